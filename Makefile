@@ -1,0 +1,39 @@
+# Two commands on a fresh machine: `make run` and `make test`. Each creates or reuses the
+# virtual environment .venv and installs what it needs.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip
+NOISESTOP := $(VENV)/bin/noisestop
+# The CPU build of torch; where that exact version is not available, plain torch.
+TORCH_SPEC ?= torch==2.13.0
+STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)
+DATA ?= data/default
+OUT ?= out
+
+.PHONY: setup run test test-fast bench dataset fixture clean
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PIP) install -q --disable-pip-version-check "$(TORCH_SPEC)" || $(PIP) install -q torch
+	$(PIP) install -q --disable-pip-version-check -e ".[dev]"
+	@rm -f $(VENV)/.installed-* && touch $@
+
+setup: $(STAMP)
+	@bash scripts/install-llvm.sh
+
+run: setup
+	$(NOISESTOP) features --resolution 128 --spp 16
+
+test: setup
+	$(PY) -m pytest -q
+
+test-fast: setup
+	$(PY) -m pytest -q -m "not slow"
+
+bench: setup
+	$(NOISESTOP) bench
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis

@@ -1,0 +1,567 @@
+"""Dataset format v1 (DESIGN "Dataset format v1"): one directory per scene.
+
+```
+<scene>/meta.json                 # written last: its presence means "complete"
+<scene>/meta.partial.json         # only while a build is in progress: the plan
+<scene>/levels/000032.exr ...     # cumulative-mean linear RGB, named by spp (%06d)
+<scene>/reference.exr             # high-spp linear RGB
+<scene>/quick.exr                 # the quick noise-free image (absent if meta "quick" == "none")
+```
+
+Resume rule (used by `StackWriter`, hence by `dataset build` and `import-lisic`):
+
+* a directory with `meta.json` is a complete stack;
+* a directory with `meta.partial.json` (and no `meta.json`) is a build in progress. The
+  partial file holds the *plan*: every meta.json key except `labeler` and `thresholds`.
+  Every image file in it is complete (all writes are atomic), so a writer reopened with an
+  identical plan keeps them and only writes what is missing; a different plan is refused
+  (ValueError) rather than mixing two builds in one directory;
+* writing into a complete stack first removes its `meta.json` (back to "in progress").
+
+`quick == "none"` (e.g. LISIC imports, which have no noise-free image): no quick.exr is
+written and `Stack.quick()` returns a flat mid-grey image (sRGB 0.5) of the right size, so
+that `features(quick) - features(current)` stays defined and carries no information
+beyond `features(current)`. `Stack.has_quick` tells callers that want to know.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .exr import atomic_write_bytes, read_exr, write_exr
+
+log = logging.getLogger(__name__)
+
+FORMAT = "noisestop-stack"
+VERSION = 1
+META = "meta.json"
+PARTIAL = "meta.partial.json"
+LEVELS_DIR = "levels"
+REFERENCE = "reference.exr"
+QUICK = "quick.exr"
+QUICK_NONE = "none"
+#: linear value whose sRGB encoding is 0.5: the stand-in quick image when there is none
+MID_GREY_LINEAR = 0.21404114
+
+REQUIRED_KEYS = ("format", "version", "scene", "width", "height", "grid", "block", "spp",
+                 "reference_spp", "quick", "renderer")
+OPTIONAL_KEYS = ("labeler", "thresholds")
+KNOWN_KEYS = REQUIRED_KEYS + OPTIONAL_KEYS
+
+
+def level_name(spp: int) -> str:
+    """File name of the level with `spp` samples per pixel, relative to the stack dir."""
+    return f"{LEVELS_DIR}/{int(spp):06d}.exr"
+
+
+def block_shape(height: int, width: int, grid: Sequence[int] = (4, 4)) -> tuple[int, int]:
+    """(bh, bw) of a `grid` cut; the image must divide exactly (as noisefeat.split_blocks)."""
+    gh, gw = (int(g) for g in grid)
+    if gh < 1 or gw < 1:
+        raise ValueError(f"grid must be two positive integers, got {list(grid)}")
+    if height % gh or width % gw:
+        raise ValueError(f"a {width}x{height} image cannot be cut into a {gh}x{gw} grid "
+                         f"of equal blocks (height % {gh} = {height % gh}, width % {gw} = "
+                         f"{width % gw})")
+    return height // gh, width // gw
+
+
+def split_blocks(image: np.ndarray, grid: Sequence[int] = (4, 4)) -> np.ndarray:
+    """[H, W, C] -> [gh*gw, bh, bw, C], blocks row-major (same contract as noisefeat)."""
+    img = np.asarray(image)
+    if img.ndim not in (2, 3):
+        raise ValueError(f"expected an image [H, W] or [H, W, C], got shape {img.shape}")
+    bh, bw = block_shape(img.shape[0], img.shape[1], grid)
+    gh, gw = int(grid[0]), int(grid[1])
+    tail = img.shape[2:]
+    out = img.reshape(gh, bh, gw, bw, *tail).swapaxes(1, 2)
+    return np.ascontiguousarray(out.reshape(gh * gw, bh, bw, *tail))
+
+
+# ----------------------------------------------------------------------------- validation
+
+def _is_int(x: Any) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _is_pos_int(x: Any) -> bool:
+    return _is_int(x) and x > 0
+
+
+def _pair(x: Any) -> bool:
+    return isinstance(x, (list, tuple)) and len(x) == 2 and all(_is_pos_int(v) for v in x)
+
+
+def validate_meta(meta: Any) -> list[str]:
+    """Every problem of a meta.json dict (empty list if none). Never raises."""
+    if not isinstance(meta, Mapping):
+        return [f"meta must be a JSON object, got {type(meta).__name__}"]
+    errs: list[str] = []
+    missing = [k for k in REQUIRED_KEYS if k not in meta]
+    if missing:
+        errs.append(f"missing required keys: {', '.join(missing)}")
+    if "format" in meta and meta["format"] != FORMAT:
+        errs.append(f"format is {meta['format']!r}, expected {FORMAT!r}")
+    if "version" in meta and not (_is_int(meta["version"]) and meta["version"] == VERSION):
+        errs.append(f"version is {meta['version']!r}, only version {VERSION} is supported")
+    if "scene" in meta:
+        s = meta["scene"]
+        if not isinstance(s, str) or not s or "/" in s or "\\" in s:
+            errs.append(f"scene must be a non-empty name without path separators, got {s!r}")
+    for key in ("width", "height"):
+        if key in meta and not _is_pos_int(meta[key]):
+            errs.append(f"{key} must be a positive integer, got {meta[key]!r}")
+    for key in ("grid", "block"):
+        if key in meta and not _pair(meta[key]):
+            errs.append(f"{key} must be two positive integers, got {meta[key]!r}")
+    if all(_is_pos_int(meta.get(k)) for k in ("width", "height")) and _pair(meta.get("grid")):
+        w, h, grid = meta["width"], meta["height"], meta["grid"]
+        try:
+            expected = list(block_shape(h, w, grid))
+        except ValueError as exc:
+            errs.append(f"block size does not match grid: {exc}")
+        else:
+            if _pair(meta.get("block")) and list(meta["block"]) != expected:
+                errs.append(f"block size {list(meta['block'])} does not match grid "
+                            f"{list(grid)} for a {w}x{h} image (expected {expected})")
+    spp_ok = False
+    if "spp" in meta:
+        spp = meta["spp"]
+        if not isinstance(spp, list) or not spp:
+            errs.append(f"spp must be a non-empty list of positive integers, got {spp!r}")
+        elif not all(_is_pos_int(v) for v in spp):
+            bad = [v for v in spp if not _is_pos_int(v)]
+            errs.append(f"spp must hold positive integers only, got {bad[:5]!r}")
+        else:
+            bad_at = [i for i in range(1, len(spp)) if spp[i] <= spp[i - 1]]
+            if bad_at:
+                i = bad_at[0]
+                errs.append(f"spp is not strictly increasing: spp[{i - 1}] = {spp[i - 1]} "
+                            f">= spp[{i}] = {spp[i]} ({len(bad_at)} such place(s))")
+            else:
+                spp_ok = True
+    if "reference_spp" in meta:
+        r = meta["reference_spp"]
+        if not _is_pos_int(r):
+            errs.append(f"reference_spp must be a positive integer, got {r!r}")
+        elif spp_ok and r < meta["spp"][-1]:
+            errs.append(f"reference_spp {r} is below the last level's spp {meta['spp'][-1]}")
+    for key in ("quick", "renderer"):
+        if key in meta and not isinstance(meta[key], str):
+            errs.append(f"{key} must be a string, got {meta[key]!r}")
+    if meta.get("labeler") is not None and not isinstance(meta["labeler"], Mapping):
+        errs.append(f"labeler must be an object or null, got {meta['labeler']!r}")
+    th = meta.get("thresholds")
+    if th is not None:
+        if not isinstance(th, list):
+            errs.append(f"thresholds must be a list or null, got {type(th).__name__}")
+        else:
+            if _pair(meta.get("grid")):
+                n = meta["grid"][0] * meta["grid"][1]
+                if len(th) != n:
+                    errs.append(f"thresholds has {len(th)} entries, the {meta['grid'][0]}x"
+                                f"{meta['grid'][1]} grid has {n} blocks")
+            bad = [(i, t) for i, t in enumerate(th) if t is not None and not _is_pos_int(t)]
+            if bad:
+                errs.append("thresholds must be positive integers (spp) or null; bad: "
+                            + ", ".join(f"block {i}: {t!r}" for i, t in bad[:5]))
+    return errs
+
+
+# ----------------------------------------------------------------------------- the stack
+
+@dataclass
+class Stack:
+    """One scene's stack on disk; images are read on demand, never cached."""
+
+    scene: str
+    width: int
+    height: int
+    grid: tuple[int, int]
+    block: tuple[int, int]
+    spp: list[int]
+    reference_spp: int
+    quick_description: str
+    renderer: str
+    labeler: dict | None
+    thresholds: list[int | None] | None
+    path: Path
+    extras: dict = field(default_factory=dict)
+
+    @property
+    def n_levels(self) -> int:
+        return len(self.spp)
+
+    @property
+    def n_blocks(self) -> int:
+        return self.grid[0] * self.grid[1]
+
+    @property
+    def has_quick(self) -> bool:
+        return self.quick_description != QUICK_NONE
+
+    def level_path(self, k: int) -> Path:
+        return self.path / level_name(self.spp[k])
+
+    @property
+    def reference_path(self) -> Path:
+        return self.path / REFERENCE
+
+    @property
+    def quick_path(self) -> Path:
+        return self.path / QUICK
+
+    def _read(self, path: Path) -> np.ndarray:
+        img = read_exr(path)
+        if img.shape != (self.height, self.width, 3):
+            raise ValueError(f"{path}: image is {img.shape[1]}x{img.shape[0]}, meta.json says "
+                             f"{self.width}x{self.height}")
+        return img
+
+    def level(self, k: int) -> np.ndarray:
+        """Level k (index into `spp`, negative allowed): linear RGB [H, W, 3] float32."""
+        return self._read(self.level_path(k))
+
+    def iter_levels(self) -> Iterator[np.ndarray]:
+        """Levels one at a time (bounded memory)."""
+        for k in range(self.n_levels):
+            yield self.level(k)
+
+    def levels(self) -> np.ndarray:
+        """All levels [K, H, W, 3]: K*H*W*12 bytes (512x512, 100 levels: 315 MB)."""
+        return np.stack(list(self.iter_levels()))
+
+    def reference(self) -> np.ndarray:
+        return self._read(self.reference_path)
+
+    def quick(self) -> np.ndarray:
+        """The quick image, or flat mid-grey when the stack has none (see module doc)."""
+        if not self.has_quick:
+            return np.full((self.height, self.width, 3), MID_GREY_LINEAR, np.float32)
+        return self._read(self.quick_path)
+
+    def blocks(self, k: int) -> np.ndarray:
+        """Level k cut into blocks [n_blocks, bh, bw, 3], row-major."""
+        return split_blocks(self.level(k), self.grid)
+
+    def labels(self) -> np.ndarray:
+        """int8 [K, n_blocks]: +1 iff threshold not null and spp[k] >= T_b, else -1."""
+        if self.thresholds is None:
+            raise ValueError(f"{self.path / META}: stack has no thresholds (not labelled)")
+        spp = np.asarray(self.spp, np.int64)[:, None]
+        never = np.iinfo(np.int64).max
+        t = np.array([never if v is None else v for v in self.thresholds], np.int64)[None, :]
+        return np.where(spp >= t, 1, -1).astype(np.int8)
+
+    def meta(self) -> dict:
+        """The meta.json dict of this stack."""
+        out = {"format": FORMAT, "version": VERSION, "scene": self.scene,
+               "width": self.width, "height": self.height, "grid": list(self.grid),
+               "block": list(self.block), "spp": list(self.spp),
+               "reference_spp": self.reference_spp, "quick": self.quick_description,
+               "renderer": self.renderer, "labeler": self.labeler,
+               "thresholds": None if self.thresholds is None else list(self.thresholds)}
+        out.update(self.extras)
+        return out
+
+
+def _load_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON: {exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not UTF-8 text: {exc}") from exc
+
+
+def _dump_json(path: Path, obj: Mapping) -> None:
+    """One top-level key per line (diff- and grep-friendly), known keys first."""
+    keys = [k for k in KNOWN_KEYS if k in obj] + [k for k in obj if k not in KNOWN_KEYS]
+    body = ",\n".join(f" {json.dumps(k)}: {json.dumps(obj[k])}" for k in keys)
+    atomic_write_bytes(path, ("{\n" + body + "\n}\n").encode("utf-8"))
+
+
+def _stack_dir(path: str | os.PathLike) -> Path:
+    p = Path(path)
+    return p.parent if p.name == META else p
+
+
+def read_stack(path: str | os.PathLike) -> Stack:
+    """Open a complete stack (its directory or its meta.json); validates meta.json."""
+    d = _stack_dir(path)
+    meta_path = d / META
+    if not meta_path.is_file():
+        if (d / PARTIAL).is_file():
+            raise FileNotFoundError(f"{meta_path}: missing: incomplete build ({PARTIAL} "
+                                    "present); rerun the build to finish it")
+        raise FileNotFoundError(f"{meta_path}: missing: {d} is not a noisestop stack")
+    meta = _load_json(meta_path)
+    errs = validate_meta(meta)
+    if errs:
+        raise ValueError(f"{meta_path}: invalid: " + "; ".join(errs))
+    return _from_meta(meta, d)
+
+
+def _from_meta(meta: Mapping, d: Path) -> Stack:
+    th = meta.get("thresholds")
+    return Stack(scene=meta["scene"], width=meta["width"], height=meta["height"],
+                 grid=(meta["grid"][0], meta["grid"][1]),
+                 block=(meta["block"][0], meta["block"][1]), spp=list(meta["spp"]),
+                 reference_spp=meta["reference_spp"], quick_description=meta["quick"],
+                 renderer=meta["renderer"], labeler=meta.get("labeler"),
+                 thresholds=None if th is None else list(th), path=d,
+                 extras={k: v for k, v in meta.items() if k not in KNOWN_KEYS})
+
+
+def update_labels(stack: Stack | str | os.PathLike, thresholds: Sequence[int | None] | None,
+                  labeler: Mapping | None) -> Stack:
+    """Replace a complete stack's thresholds/labeler (e.g. relabel with another tau)."""
+    st = stack if isinstance(stack, Stack) else read_stack(stack)
+    meta = st.meta()
+    meta["thresholds"] = None if thresholds is None else [None if t is None else int(t)
+                                                          for t in thresholds]
+    meta["labeler"] = None if labeler is None else dict(labeler)
+    errs = validate_meta(meta)
+    if errs:
+        raise ValueError(f"{st.path / META}: refusing to write: " + "; ".join(errs))
+    _dump_json(st.path / META, meta)
+    return _from_meta(meta, st.path)
+
+
+# ----------------------------------------------------------------------------- writing
+
+def make_plan(*, scene: str, width: int, height: int, spp: Sequence[int], reference_spp: int,
+              quick: str, renderer: str, grid: Sequence[int] = (4, 4),
+              **extras: Any) -> dict:
+    """A meta.json without labels: what `StackWriter` needs up front."""
+    bh, bw = block_shape(int(height), int(width), grid)
+    plan = {"format": FORMAT, "version": VERSION, "scene": scene, "width": int(width),
+            "height": int(height), "grid": [int(grid[0]), int(grid[1])], "block": [bh, bw],
+            "spp": [int(s) for s in spp], "reference_spp": int(reference_spp),
+            "quick": quick, "renderer": renderer}
+    plan.update(extras)
+    return plan
+
+
+def _normalise_plan(meta: Mapping) -> dict:
+    if "labeler" in meta or "thresholds" in meta:
+        raise ValueError("the plan of a StackWriter has no labeler/thresholds: pass them "
+                         "to finish()")
+    plan = dict(meta)
+    plan.setdefault("format", FORMAT)
+    plan.setdefault("version", VERSION)
+    plan.setdefault("grid", [4, 4])
+    if "block" not in plan and all(_is_pos_int(plan.get(k)) for k in ("width", "height")):
+        plan["block"] = list(block_shape(plan["height"], plan["width"], plan["grid"]))
+    try:
+        plan = json.loads(json.dumps(plan))  # tuples -> lists; numpy scalars are refused
+    except TypeError as exc:
+        raise ValueError(f"stack plan is not JSON-serialisable: {exc}") from exc
+    errs = validate_meta(plan)
+    if errs:
+        raise ValueError("invalid stack plan: " + "; ".join(errs))
+    return plan
+
+
+def _plan_of(meta: Mapping) -> dict:
+    return {k: v for k, v in meta.items() if k not in OPTIONAL_KEYS}
+
+
+class StackWriter:
+    """Incremental, resumable writer of one stack (see the resume rule in the module doc)."""
+
+    def __init__(self, path: str | os.PathLike, meta: Mapping, *, half: bool = False):
+        self.path = Path(path)
+        self.plan = _normalise_plan(meta)
+        self.half = half
+        self._complete = False
+        self.path.mkdir(parents=True, exist_ok=True)
+        meta_path, partial = self.path / META, self.path / PARTIAL
+        if meta_path.is_file():
+            self._same_plan(_plan_of(_load_json(meta_path)), meta_path)
+            self._complete = True
+            log.info("%s: complete stack with the same plan", self.path)
+        elif partial.is_file():
+            self._same_plan(_load_json(partial), partial)
+            log.info("%s: resuming, %d of %d levels present", self.path,
+                     len(self.plan["spp"]) - len(self.missing_levels(verify=False)),
+                     len(self.plan["spp"]))
+        else:
+            leftovers = list((self.path / LEVELS_DIR).glob("*.exr")) if (
+                self.path / LEVELS_DIR).is_dir() else []
+            leftovers += [p for p in (self.path / REFERENCE, self.path / QUICK) if p.exists()]
+            if leftovers:
+                raise ValueError(f"{self.path}: holds images ({leftovers[0].name}, ...) but no "
+                                 f"{META} or {PARTIAL}: cannot tell which build they belong "
+                                 "to; remove them or choose another directory")
+            _dump_json(partial, self.plan)
+
+    def _same_plan(self, old: Any, where: Path) -> None:
+        if not isinstance(old, Mapping):
+            raise ValueError(f"{where}: not a JSON object")
+        keys = sorted(set(old) | set(self.plan))
+        diff = [k for k in keys if old.get(k) != self.plan.get(k)]
+        if diff:
+            detail = ", ".join(f"{k}: {old.get(k)!r} -> {self.plan.get(k)!r}" for k in diff[:4])
+            raise ValueError(f"{where}: the directory holds a build with a different plan "
+                             f"({detail}); remove it or choose another directory")
+
+    @property
+    def is_complete(self) -> bool:
+        return self._complete
+
+    def _begin_write(self) -> None:
+        if self._complete:
+            _dump_json(self.path / PARTIAL, self.plan)
+            (self.path / META).unlink(missing_ok=True)
+            self._complete = False
+
+    def _check_image(self, img: np.ndarray, what: str) -> np.ndarray:
+        arr = np.asarray(img)
+        shape = (self.plan["height"], self.plan["width"], 3)
+        if arr.shape != shape:
+            raise ValueError(f"{self.path}: {what} has shape {arr.shape}, the plan needs {shape}")
+        return arr
+
+    def _present(self, p: Path, verify: bool) -> bool:
+        if not p.is_file():
+            return False
+        if not verify:
+            return True
+        try:
+            img = read_exr(p)
+        except ValueError as exc:
+            log.warning("%s; it will be rewritten", exc)
+            return False
+        if img.shape != (self.plan["height"], self.plan["width"], 3):
+            log.warning("%s: wrong shape %s; it will be rewritten", p, img.shape)
+            return False
+        return True
+
+    def has_level(self, spp: int, verify: bool = True) -> bool:
+        """True if the level file exists (and, with `verify`, reads back with the right shape)."""
+        return self._present(self.path / level_name(spp), verify)
+
+    def missing_levels(self, verify: bool = True) -> list[int]:
+        return [s for s in self.plan["spp"] if not self.has_level(s, verify)]
+
+    def write_level(self, spp: int, img: np.ndarray) -> None:
+        if spp not in self.plan["spp"]:
+            raise ValueError(f"{self.path}: spp {spp} is not a level of the plan "
+                             f"{self.plan['spp'][:4]}...")
+        arr = self._check_image(img, f"level {spp}")
+        self._begin_write()
+        write_exr(self.path / level_name(spp), arr, half=self.half)
+
+    def has_reference(self, verify: bool = True) -> bool:
+        return self._present(self.path / REFERENCE, verify)
+
+    def write_reference(self, img: np.ndarray) -> None:
+        arr = self._check_image(img, "reference")
+        self._begin_write()
+        write_exr(self.path / REFERENCE, arr)
+
+    def has_quick(self, verify: bool = True) -> bool:
+        return self.plan["quick"] == QUICK_NONE or self._present(self.path / QUICK, verify)
+
+    def write_quick(self, img: np.ndarray) -> None:
+        if self.plan["quick"] == QUICK_NONE:
+            raise ValueError(f"{self.path}: the plan says quick = 'none'; no quick image")
+        arr = self._check_image(img, "quick image")
+        self._begin_write()
+        write_exr(self.path / QUICK, arr)
+
+    def finish(self, thresholds: Sequence[int | None] | None = None,
+               labeler: Mapping | None = None) -> Stack:
+        """Check every file is there, then write meta.json (atomically) and drop the plan."""
+        missing = [level_name(s) for s in self.missing_levels(verify=False)]
+        if not self.has_reference(verify=False):
+            missing.append(REFERENCE)
+        if not self.has_quick(verify=False):
+            missing.append(QUICK)
+        if missing:
+            raise ValueError(f"{self.path}: cannot finish, missing {len(missing)} file(s): "
+                             + ", ".join(missing[:5]))
+        meta = dict(self.plan)
+        meta["labeler"] = None if labeler is None else dict(labeler)
+        meta["thresholds"] = None if thresholds is None else [
+            None if t is None else int(t) for t in thresholds]
+        meta = json.loads(json.dumps(meta))
+        errs = validate_meta(meta)
+        if errs:
+            raise ValueError(f"{self.path}: cannot finish: " + "; ".join(errs))
+        _dump_json(self.path / META, meta)
+        (self.path / PARTIAL).unlink(missing_ok=True)
+        self._complete = True
+        return _from_meta(meta, self.path)
+
+
+def write_stack(path: str | os.PathLike, *, scene: str,
+                levels: Mapping[int, np.ndarray] | Sequence[np.ndarray],
+                spp: Sequence[int] | None = None, reference: np.ndarray,
+                quick: np.ndarray | None, reference_spp: int,
+                quick_description: str | None = None, renderer: str = "unknown",
+                grid: Sequence[int] = (4, 4), labeler: Mapping | None = None,
+                thresholds: Sequence[int | None] | None = None, half: bool = False,
+                **extras: Any) -> Stack:
+    """Write a whole stack at once. `levels`: {spp: image} or a sequence aligned with `spp`.
+
+    `quick=None` writes a stack without quick image (meta "quick": "none").
+    Extra keyword arguments become extra meta.json keys.
+    """
+    if isinstance(levels, Mapping):
+        if spp is None:
+            spp = sorted(levels)
+        images = [levels[s] for s in spp]
+    else:
+        images = list(levels)
+        if spp is None:
+            raise ValueError("spp is required when levels is a sequence")
+        if len(images) != len(spp):
+            raise ValueError(f"{len(images)} level images for {len(spp)} spp values")
+    ref = np.asarray(reference)
+    if ref.ndim != 3:
+        raise ValueError(f"reference must be [H, W, 3], got shape {ref.shape}")
+    if quick is None:
+        desc = QUICK_NONE
+    else:
+        desc = quick_description or "unspecified"
+        if desc == QUICK_NONE:
+            raise ValueError("quick_description 'none' means no quick image, but one was given")
+    plan = make_plan(scene=scene, width=ref.shape[1], height=ref.shape[0], spp=spp,
+                     reference_spp=reference_spp, quick=desc, renderer=renderer, grid=grid,
+                     **extras)
+    w = StackWriter(path, plan, half=half)
+    for s, img in zip(plan["spp"], images):
+        w.write_level(s, img)
+    w.write_reference(ref)
+    if quick is not None:
+        w.write_quick(quick)
+    return w.finish(thresholds, labeler)
+
+
+def list_stacks(root: str | os.PathLike, include_incomplete: bool = False) -> list[Path]:
+    """Every stack directory under `root` (root itself included), sorted.
+
+    A directory is a stack if it holds meta.json (or, with `include_incomplete`,
+    meta.partial.json); stacks are not searched for nested stacks.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: no such dataset directory")
+    names = {META, PARTIAL} if include_incomplete else {META}
+    found = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        if names & set(filenames):
+            found.append(Path(dirpath))
+            dirnames[:] = []
+        else:
+            dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
+    return sorted(found)

@@ -1,0 +1,185 @@
+"""FeatureBase: L-channel blocks [N, 1, H, W] -> 26 noise features.
+
+Twelve single-channel convolutions in sequence (3x3 pad 1, 5x5 pad 2, alternating; no
+bias, no activation) and a thirteenth, wavelet layer applied to the twelfth output (one
+stage of PyWavelets' DWT with the detail sub-bands removed, reconstructed). For each of
+the 13 outputs O_l the noise map is input - O_l.
+
+Feature order: columns 0..12 are the mean of the noise maps of layers 1..13, columns
+13..25 their (population) standard deviation.
+
+Why the convolutions are evaluated in the frequency domain: single-channel convolutions
+are the worst case for CPU convolution kernels (torch.conv2d: ~590 ms for 101 blocks of
+128x128 on this machine's 2 cores). With circular padding the 12-layer stack is diagonal
+in the Fourier basis, so one FFT per block gives every layer's noise variance by
+Parseval's theorem (a [N, HW/2] x [HW/2, 12] matmul) and its mean from the DC term:
+~150x faster and exact up to float rounding (tests compare against torch.conv2d with
+padding_mode='circular'). Circular padding is the padding mode; the wrap seam it puts at
+block borders appears in quick and current images alike, whose feature difference is the
+model input. `layer_outputs` is the plain spatial route, kept for training and tests.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from .weights import KERNEL_SIZES, kernels_hash, load_kernels
+from .wavelet import alias_average, lowpass_projection, spectral_operators
+
+N_LAYERS = len(KERNEL_SIZES) + 1
+N_FEATURES = 2 * N_LAYERS
+MIN_SIZE = 8
+FEATURE_NAMES: tuple[str, ...] = tuple(
+    [f"mean_{i + 1:02d}" for i in range(N_LAYERS)] + [f"std_{i + 1:02d}" for i in range(N_LAYERS)])
+_F32_MAX = torch.finfo(torch.float32).max
+
+
+def _column_weights(w: int, wr: int) -> torch.Tensor:
+    """rfft keeps half the columns: each but DC (and Nyquist, for even w) also stands for
+    its mirror image in Parseval sums."""
+    col_w = torch.full((wr,), 2.0)
+    col_w[0] = 1.0
+    if w % 2 == 0:
+        col_w[-1] = 1.0
+    return col_w
+
+
+class FeatureBase(nn.Module):
+    """The noise-feature base of the paper (12 conv layers + 1 wavelet layer)."""
+
+    def __init__(self, weights: str | Path | None = None, wavelet: str = "haar") -> None:
+        super().__init__()
+        kernels, self.weights_name = load_kernels(weights)
+        self.wavelet = wavelet
+        self.convs = nn.ModuleList()
+        for k, w in zip(KERNEL_SIZES, kernels):
+            conv = nn.Conv2d(1, 1, k, padding=k // 2, padding_mode="circular", bias=False)
+            with torch.no_grad():
+                conv.weight.copy_(w.reshape(1, 1, k, k))
+            self.convs.append(conv)
+        self._transfer_cache: dict[tuple[int, int], tuple[tuple, dict[str, torch.Tensor]]] = {}
+
+    # -- identity -------------------------------------------------------------------
+    def kernels(self) -> list[torch.Tensor]:
+        return [c.weight.detach()[0, 0] for c in self.convs]
+
+    @property
+    def hash(self) -> str:
+        """Changes whenever the weights or the wavelet change (checked by model bundles)."""
+        return kernels_hash(self.kernels(), self.wavelet)
+
+    # -- the two routes -------------------------------------------------------------
+    def layer_outputs(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """O_1..O_13 computed spatially with torch.conv2d (slow; for training and tests)."""
+        x = self._sanitize(x)
+        outs, o = [], x.to(torch.float32)
+        for conv in self.convs:
+            o = conv(o)
+            outs.append(o)
+        outs.append(lowpass_projection(o, self.wavelet))
+        return outs
+
+    def transfer(self, h: int, w: int) -> torch.Tensor:
+        """Cumulative frequency responses [12, h, w//2+1] of layers 1..12 on an h x w block."""
+        responses, acc = [], None
+        for conv in self.convs:
+            k = conv.weight[0, 0]
+            r = k.shape[-1] // 2
+            emb = torch.zeros(h, w, dtype=torch.float32)
+            emb = emb.index_put((torch.arange(-r, r + 1).remainder(h)[:, None],
+                                 torch.arange(-r, r + 1).remainder(w)[None, :]), k)
+            # conv2d is a cross-correlation: its transfer function is the conjugate FFT.
+            resp = torch.conj(torch.fft.rfft2(emb))
+            acc = resp if acc is None else acc * resp
+            responses.append(acc)
+        return torch.stack(responses)
+
+    def _operators(self, h: int, w: int) -> dict[str, torch.Tensor]:
+        """Everything forward needs that depends only on the block size and the weights.
+
+        Cached while gradients are off (inference); rebuilt when the weights change.
+        """
+        version = tuple((id(c.weight), c.weight._version) for c in self.convs)
+        cached = self._transfer_cache.get((h, w))
+        if cached is not None and cached[0] == version:
+            return cached[1]
+        resp = self.transfer(h, w)
+        ops = {"resp": resp,
+               "gain": ((1.0 - resp).abs() ** 2 * _column_weights(w, resp.shape[-1]))
+               .reshape(len(self.convs), -1).T.contiguous(),
+               "dc": resp[:, 0, 0].real}
+        if h % 2 == 0 and w % 2 == 0:
+            analysis, synthesis = spectral_operators(self.wavelet, h, w)
+            ops["analysis12"] = analysis * resp[-1]
+            ops["synthesis"] = synthesis
+            ops["col_w"] = _column_weights(w, resp.shape[-1])
+        if not torch.is_grad_enabled():
+            self._transfer_cache[(h, w)] = (version, ops)
+        return ops
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """[N, 1, H, W] L-channel blocks (any float dtype, H, W >= 8) -> [N, 26] float32."""
+        x = self._sanitize(x)
+        n, _, h, w = x.shape
+        if n == 0:
+            return torch.zeros(0, N_FEATURES, dtype=torch.float32)
+        x = x[:, 0]
+        # Features are homogeneous of degree 1 in x: normalise each block by its largest
+        # magnitude so that huge (1e30) and tiny (1e-30) inputs stay in float32 range.
+        scale = x.abs().amax(dim=(-2, -1), keepdim=True)
+        scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+        xs = (x / scale).to(torch.float32)
+        scale = scale.to(torch.float32) if scale.dtype != torch.float64 else scale
+        mu = xs.mean(dim=(-2, -1), keepdim=True)
+        xc = xs - mu
+        spec = torch.fft.rfft2(xc)
+        ops = self._operators(h, w)
+        power = (spec.real ** 2 + spec.imag ** 2).reshape(n, -1)     # [n, h*(w//2+1)]
+        var = (power @ ops["gain"]) / float(h * w) ** 2              # [n, 12], Parseval
+        std_conv = var.clamp_min(0.0).sqrt()
+        mean_conv = mu.reshape(n, 1) * (1.0 - ops["dc"])[None, :]
+        mean13, std13 = self._wavelet_layer(xs, spec, ops, mu)
+        means = torch.cat([mean_conv, mean13.reshape(n, 1)], dim=1)
+        stds = torch.cat([std_conv, std13.reshape(n, 1)], dim=1)
+        feats = (torch.cat([means, stds], dim=1) * scale.reshape(n, 1)).clamp(-_F32_MAX, _F32_MAX)
+        return torch.nan_to_num(feats, nan=0.0, posinf=_F32_MAX, neginf=-_F32_MAX)
+
+    def _wavelet_layer(self, xs: torch.Tensor, spec: torch.Tensor, ops: dict[str, torch.Tensor],
+                       mu: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean and std of input - P(O_12), P the wavelet low-pass projection.
+
+        Even sizes stay in the frequency domain (aliasing form of the periodized DWT, see
+        wavelet.spectral_operators); odd sizes take one inverse FFT and the spatial filters.
+        """
+        n, h, w = xs.shape
+        low_dc = ops["dc"][-1]
+        if "analysis12" in ops:
+            aliased = alias_average(ops["analysis12"] * spec, h, w)
+            noise = spec - ops["synthesis"] * aliased
+            total = ((noise.real ** 2 + noise.imag ** 2) * ops["col_w"]).sum(dim=(-2, -1))
+            dc = noise[:, 0, 0]
+            var = (total - (dc.real ** 2 + dc.imag ** 2)) / float(h * w) ** 2
+            mean = dc.real / float(h * w) + mu.reshape(n) * (1.0 - low_dc)
+            return mean, var.clamp_min(0.0).sqrt()
+        o12 = torch.fft.irfft2(spec * ops["resp"][-1], s=(h, w)) + mu * low_dc
+        noise13 = xs - lowpass_projection(o12, self.wavelet)
+        mean = noise13.mean(dim=(-2, -1))
+        var = ((noise13 - mean[:, None, None]) ** 2).mean(dim=(-2, -1))
+        return mean, var.sqrt()
+
+    @staticmethod
+    def _sanitize(x: torch.Tensor) -> torch.Tensor:
+        if not isinstance(x, torch.Tensor):
+            x = torch.as_tensor(x)
+        if x.ndim != 4 or x.shape[1] != 1:
+            raise ValueError(f"FeatureBase expects L-channel blocks [N, 1, H, W], got {tuple(x.shape)}")
+        if x.shape[-1] < MIN_SIZE or x.shape[-2] < MIN_SIZE:
+            raise ValueError(f"blocks must be at least {MIN_SIZE}x{MIN_SIZE} pixels, got "
+                             f"{x.shape[-2]}x{x.shape[-1]}")
+        if not (x.is_floating_point() or x.dtype in (torch.uint8, torch.int16, torch.int32, torch.int64)):
+            raise ValueError(f"FeatureBase expects real-valued input, got dtype {x.dtype}")
+        if x.dtype != torch.float64:  # float64 keeps its range until normalised
+            x = x.to(torch.float32)
+        return torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)

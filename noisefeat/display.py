@@ -1,0 +1,64 @@
+"""The one display transform of DESIGN.md, and CIE L* of its result.
+
+Linear HDR RGB -> x 2**exposure -> clip to [0, 1] -> sRGB.  Non-finite pixels are never
+propagated: NaN and -Inf become 0 (black), +Inf becomes 1 (white, what clipping a very
+bright sample gives). Callers that need to report them count them with `nonfinite_pixels`.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+# Rec. 709 / sRGB primaries, D65 white: relative luminance weights.
+LUMA = (0.2126, 0.7152, 0.0722)
+_LAB_EPS = (6.0 / 29.0) ** 3
+_LAB_SLOPE = 1.0 / (3.0 * (6.0 / 29.0) ** 2)
+
+
+def nonfinite_pixels(rgb: torch.Tensor) -> torch.Tensor:
+    """Per image of a [..., H, W, C] batch: how many pixels hold a NaN or Inf channel."""
+    bad = ~torch.isfinite(rgb)
+    if rgb.ndim >= 1:
+        bad = bad.any(dim=-1)
+    return bad.flatten(start_dim=-2).sum(dim=-1) if bad.ndim >= 2 else bad.long()
+
+
+def clipped_linear(rgb: torch.Tensor, exposure: float = 0.0) -> torch.Tensor:
+    """Scale by 2**exposure, map non-finite values (rule above), clip to [0, 1]; float32."""
+    x = rgb.to(torch.float32)
+    if exposure != 0.0:
+        x = x * float(2.0 ** exposure)
+    x = torch.nan_to_num(x, nan=0.0, posinf=1.0, neginf=0.0)  # always a fresh tensor
+    return x.clamp_(0.0, 1.0)
+
+
+def srgb_encode(linear01: torch.Tensor) -> torch.Tensor:
+    """sRGB transfer function (IEC 61966-2-1) on values already in [0, 1]."""
+    return torch.where(linear01 <= 0.0031308, 12.92 * linear01,
+                       1.055 * linear01.clamp_min(0.0031308) ** (1.0 / 2.4) - 0.055)
+
+
+def srgb_decode(srgb01: torch.Tensor) -> torch.Tensor:
+    """Inverse of `srgb_encode`."""
+    return torch.where(srgb01 <= 0.04045, srgb01 / 12.92,
+                       ((srgb01.clamp_min(0.04045) + 0.055) / 1.055) ** 2.4)
+
+
+def display(rgb: torch.Tensor | np.ndarray, exposure: float = 0.0) -> torch.Tensor:
+    """Display-referred sRGB in [0, 1] of linear RGB (any float dtype, any leading shape)."""
+    return srgb_encode(clipped_linear(torch.as_tensor(rgb), exposure))
+
+
+def lightness(rgb: torch.Tensor, exposure: float = 0.0) -> torch.Tensor:
+    """CIE L* (0..100) of the display-referred image, [..., H, W, 3] -> [..., H, W].
+
+    Lab of an sRGB pixel decodes it back to linear first, so L* of display(x) equals L*
+    of the clipped linear value: computing it from there skips an encode/decode pair
+    (tests check both routes agree). Written in place on one working copy: this runs on
+    every block of every pass.
+    """
+    x = clipped_linear(rgb, exposure)
+    y = x @ torch.tensor(LUMA, dtype=torch.float32)
+    small = y <= _LAB_EPS
+    f = y.pow_(1.0 / 3.0) if not small.any() else torch.where(small, y * _LAB_SLOPE + 4.0 / 29.0, y.pow(1.0 / 3.0))
+    return f.mul_(116.0).sub_(16.0)

@@ -1,0 +1,96 @@
+"""The wavelet layer: one-stage 2D DWT with the detail sub-bands removed, reconstructed.
+
+The filter bank is PyWavelets' own: the 1D analysis and synthesis operators are read off
+`pywt.dwt` / `pywt.idwt` (mode 'periodization') applied to unit vectors, so the indexing
+convention is PyWavelets' by construction. They are run as strided circular filters in
+torch (a few shifted slices per tap), which is far cheaper than dense matrices.
+Odd sizes are extended by one replicated row/column and cropped back.
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+import pywt
+import torch
+
+
+@lru_cache(maxsize=64)
+def _taps(wavelet: str, n: int) -> tuple[tuple[tuple[int, float], ...], tuple[tuple[int, float], ...]]:
+    """Non-zero taps (offset, weight) of the analysis row and synthesis column for even n.
+
+    Periodized analysis is stride-2 circulant: cA[k] = sum_m a[m] x[(2k + m) mod n];
+    synthesis (approximation only) is y[n'] = sum_m s[m] u[(n' - m) mod n] with u the
+    zero-upsampled coefficients (u[2k] = cA[k]).
+    """
+    eye = np.eye(n)
+    analysis = pywt.dwt(eye, wavelet, mode="periodization", axis=1)[0]  # [n, n/2]: row j = A[:, j]
+    a_row = analysis[:, 0]                                                # A[0, :]
+    synth = pywt.idwt(np.eye(n // 2), None, wavelet, mode="periodization", axis=1)  # [n/2, n]
+    s_col = synth[0]                                                       # S[:, 0]
+    a = tuple((int(m), float(a_row[m])) for m in np.flatnonzero(np.abs(a_row) > 1e-12))
+    s = tuple((int(m), float(s_col[m])) for m in np.flatnonzero(np.abs(s_col) > 1e-12))
+    return a, s
+
+
+def _project_last(x: torch.Tensor, wavelet: str) -> torch.Tensor:
+    """Approximation-only DWT + inverse along the last axis."""
+    n = x.shape[-1]
+    if n % 2:
+        x = torch.cat([x, x[..., -1:]], dim=-1)
+    a, s = _taps(wavelet, x.shape[-1])
+    coeff = sum(torch.roll(x, -off, dims=-1)[..., ::2] * w for off, w in a)
+    up = torch.zeros_like(x)
+    up[..., ::2] = coeff
+    y = sum(torch.roll(up, off, dims=-1) * w for off, w in s)
+    return y[..., :n]
+
+
+def lowpass_projection(x: torch.Tensor, wavelet: str = "haar") -> torch.Tensor:
+    """Reconstruct [..., H, W] from its one-stage approximation sub-band only."""
+    rows = _project_last(x, wavelet)
+    return _project_last(rows.transpose(-1, -2), wavelet).transpose(-1, -2)
+
+
+def _response(taps: tuple[tuple[int, float], ...], n: int, sign: float) -> torch.Tensor:
+    """sum_m w_m exp(sign * 2 pi i f m / n) for f = 0..n-1 (complex64)."""
+    f = torch.arange(n, dtype=torch.float64)
+    out = torch.zeros(n, dtype=torch.complex128)
+    for m, w in taps:
+        out += w * torch.exp(sign * 2j * torch.pi * f * m / n)
+    return out.to(torch.complex64)
+
+
+@lru_cache(maxsize=32)
+def spectral_operators(wavelet: str, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Analysis and synthesis responses on the rfft2 half-spectrum of an even h x w block.
+
+    With c[k] = sum_m a_m x[2k + m] and y = s * (c upsampled by zeros), the periodized
+    approximation-only reconstruction is, per axis, Y(f) = S(f) * 1/2 * sum over the two
+    aliases f, f + n/2 of conj(A)(f) X(f), with A, S the DFTs of the taps: the 2D form
+    (four aliases) is evaluated in `base.FeatureBase` without any inverse FFT.
+    """
+    if h % 2 or w % 2:
+        raise ValueError("spectral wavelet operators need even block sizes")
+    a_h, s_h = _taps(wavelet, h)
+    a_w, s_w = _taps(wavelet, w)
+    wr = w // 2 + 1
+    analysis = _response(a_h, h, +1.0)[:, None] * _response(a_w, w, +1.0)[None, :wr]
+    synthesis = _response(s_h, h, -1.0)[:, None] * _response(s_w, w, -1.0)[None, :wr]
+    return analysis, synthesis
+
+
+def alias_average(g: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """Q(g) = 1/4 sum of G over the four aliases, from G on the rfft half [.., h, w//2+1].
+
+    G is the spectrum of a real signal (conjugate-symmetric), so its columns beyond w/2
+    are conj(G[-f1, w - f2]); the result is Q tiled back onto the half-spectrum grid.
+    """
+    half_w, half_h = w // 2, h // 2
+    neg_rows = (-torch.arange(h)) % h
+    direct = g[..., :half_w]                                         # columns g2
+    mirrored = torch.conj(g[..., neg_rows, 1:half_w + 1].flip(-1))    # columns g2 + w/2
+    cols = direct + mirrored                                         # [.., h, w/2]
+    q = 0.25 * (cols[..., :half_h, :] + cols[..., half_h:, :])       # [.., h/2, w/2]
+    q = torch.cat([q, q], dim=-2)
+    return torch.cat([q, q[..., :1]], dim=-1)                        # [.., h, w/2+1]

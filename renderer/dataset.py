@@ -1,0 +1,54 @@
+"""`noisestop dataset build`: many scenes -> one labelled dataset, locally or on a farm."""
+from __future__ import annotations
+
+import logging
+import os
+import time
+from concurrent.futures import as_completed
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from .farm import configure_worker_threads, executor
+from .stackbuild import BuildSettings, build_stack
+
+log = logging.getLogger(__name__)
+
+
+def _task(scene: str, out: str, settings: BuildSettings, progress: bool) -> dict[str, Any]:
+    """What one worker runs: one scene, start to finish (or resume to finish)."""
+    configure_worker_threads()
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    return build_stack(scene, out, settings, progress=progress)
+
+
+def build_dataset(scenes: list[str], out: str | os.PathLike, settings: BuildSettings,
+                  workers: int | None = None, scheduler: str | None = None,
+                  progress: bool = True) -> dict[str, Any]:
+    """Build every scene's stack under `out`; one task per scene. Returns a summary."""
+    out = Path(out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    if not scenes:
+        raise ValueError("no scenes to build")
+    t0 = time.perf_counter()
+    results: list[dict[str, Any]] = []
+    errors: dict[str, str] = {}
+    with executor(workers, scheduler) as pool:
+        futures = {pool.submit(_task, s, str(out), settings, progress): s for s in scenes}
+        for fut in tqdm(as_completed(futures), total=len(futures), desc="scenes", unit="scene",
+                        disable=not progress):
+            scene = futures[fut]
+            try:
+                r = fut.result()
+            except Exception as exc:  # one bad scene must not lose the others' work
+                errors[scene] = f"{type(exc).__name__}: {exc}"
+                log.error("scene %s failed: %s", scene, errors[scene])
+                continue
+            results.append(r)
+            log.info("%s: %d levels, %d censored blocks, %.0f s", r["scene"], r["levels"],
+                     r["censored"], r["seconds"])
+    wall = time.perf_counter() - t0
+    return {"out": str(out), "wall_s": wall, "scenes": sorted(results, key=lambda r: r["scene"]),
+            "failed": errors, "settings": settings.to_dict(),
+            "sub_images": sum(r["levels"] * r["blocks"] for r in results)}

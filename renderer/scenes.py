@@ -1,0 +1,462 @@
+"""Built-in scene library (Mitsuba 3 plugins only, no downloads) and XML scene loading.
+
+Every built-in scene is a Python dict for ``mi.load_dict`` made by a function of the
+image resolution alone (samples per pixel are chosen at render time, never here). The
+library spans the cases a perceptual stopping rule must get right: diffuse rooms,
+glossy and mirror inter-reflections, glass caustics, small and large lights,
+indirect-only lighting, noise-masking high-frequency textures, dark and bright
+exposures, plus two degenerate inputs (``allblack``, ``sky``).
+
+Shared render settings, and why:
+
+* Integrator ``path`` with ``max_depth = 8``: enough bounces for the mirror room and
+  glass caustics to look right, short enough to keep every scene at about a second for
+  128x128 at 64 spp on the llvm variant (2 cores).
+* Film ``hdrfilm``, ``pixel_format = rgb``, float32, **``rfilter = box``**. Mitsuba
+  splats every sample onto all pixels within the reconstruction filter's radius (the
+  default Gaussian reaches 2 px). When only a crop window (one block) is rendered, only
+  samples inside the crop exist, so with a wide filter the block's edge pixels would
+  miss their neighbours' contributions and a block rendered alone would be a different
+  estimator from the same block cut out of a full-frame render. The box filter (radius
+  half a pixel) keeps each sample inside its own pixel: blocks are then exactly
+  independent, and the stack builder and the adaptive loop may sample any subset.
+* Sampler ``independent``: passes with distinct seeds are statistically independent,
+  which the cumulative means and the Cycles-style half buffers rely on. Its
+  ``sample_count`` is a placeholder; ``mi.render(spp=...)`` decides.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import xml.etree.ElementTree as ET
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from .variant import select_variant
+
+logger = logging.getLogger(__name__)
+
+MAX_DEPTH = 8
+DEFAULT_SCENE = "cornell"
+
+SceneDict = dict[str, Any]
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """One built-in scene: a name, a one-line description and its dict builder."""
+
+    name: str
+    description: str
+    builder: Callable[[int], SceneDict] = field(repr=False)
+    tags: tuple[str, ...] = ()
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _T() -> Any:
+    import mitsuba as mi
+
+    return mi.ScalarTransform4f()
+
+
+def _rgb(v: float | list[float]) -> dict:
+    vals = [float(v)] * 3 if isinstance(v, (int, float)) else [float(x) for x in v]
+    return {"type": "rgb", "value": vals}
+
+
+def _diffuse(v: float | list[float]) -> dict:
+    return {"type": "diffuse", "reflectance": _rgb(v)}
+
+
+def _checker(c0: float | list[float], c1: float | list[float], scale: float) -> dict:
+    import mitsuba as mi
+
+    return {
+        "type": "checkerboard",
+        "color0": _rgb(c0),
+        "color1": _rgb(c1),
+        "to_uv": mi.ScalarTransform3f().scale([scale, scale]),
+    }
+
+
+def _base(
+    resolution: int,
+    origin: tuple[float, float, float] = (0.0, 0.0, 3.9),
+    target: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0),
+    fov: float = 39.3077,
+) -> SceneDict:
+    """Scene skeleton: path integrator, perspective camera, box-filtered hdrfilm."""
+    if not isinstance(resolution, int) or resolution < 1:
+        raise ValueError(f"resolution must be a positive integer, got {resolution!r}")
+    return {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": MAX_DEPTH},
+        "sensor": {
+            "type": "perspective",
+            "fov_axis": "smaller",
+            "fov": fov,
+            "near_clip": 0.001,
+            "far_clip": 100.0,
+            "to_world": _T().look_at(origin=list(origin), target=list(target), up=list(up)),
+            "sampler": {"type": "independent", "sample_count": 16},
+            "film": {
+                "type": "hdrfilm",
+                "width": resolution,
+                "height": resolution,
+                "rfilter": {"type": "box"},
+                "pixel_format": "rgb",
+                "component_format": "float32",
+            },
+        },
+    }
+
+
+CB_WHITE = [0.885809, 0.698859, 0.666422]
+CB_RED = [0.570068, 0.0430135, 0.0443706]
+CB_GREEN = [0.105421, 0.37798, 0.076425]
+CB_LIGHT = [18.387, 13.9873, 6.75357]
+
+
+def _room(
+    floor: dict | None = None,
+    ceiling: dict | None = None,
+    back: dict | None = None,
+    left: dict | None = None,
+    right: dict | None = None,
+) -> SceneDict:
+    """The five walls of the [-1, 1]^3 Cornell room (open towards the camera at +z)."""
+    T = _T
+    return {
+        "floor": {"type": "rectangle", "to_world": T().translate([0, -1, 0]).rotate([1, 0, 0], -90),
+                  "bsdf": floor or _diffuse(CB_WHITE)},
+        "ceiling": {"type": "rectangle", "to_world": T().translate([0, 1, 0]).rotate([1, 0, 0], 90),
+                    "bsdf": ceiling or _diffuse(CB_WHITE)},
+        "back": {"type": "rectangle", "to_world": T().translate([0, 0, -1]),
+                 "bsdf": back or _diffuse(CB_WHITE)},
+        "left": {"type": "rectangle", "to_world": T().translate([-1, 0, 0]).rotate([0, 1, 0], 90),
+                 "bsdf": left or _diffuse(CB_RED)},
+        "right": {"type": "rectangle", "to_world": T().translate([1, 0, 0]).rotate([0, 1, 0], -90),
+                  "bsdf": right or _diffuse(CB_GREEN)},
+    }
+
+
+def _ceiling_light(radiance: float | list[float], sx: float = 0.23, sz: float = 0.19) -> dict:
+    """Downward-facing rectangular area light just under the ceiling."""
+    return {
+        "type": "rectangle",
+        "to_world": _T().translate([0, 0.99, 0.01]).rotate([1, 0, 0], 90).scale([sx, sz, 1]),
+        "bsdf": _diffuse(CB_WHITE),
+        "emitter": {"type": "area", "radiance": _rgb(radiance)},
+    }
+
+
+def _boxes(bsdf_small: dict | None = None, bsdf_tall: dict | None = None) -> SceneDict:
+    T = _T
+    return {
+        "small_box": {"type": "cube",
+                      "to_world": T().translate([0.335, -0.7, 0.38]).rotate([0, 1, 0], -17).scale(0.3),
+                      "bsdf": bsdf_small or _diffuse(CB_WHITE)},
+        "tall_box": {"type": "cube",
+                     "to_world": T().translate([-0.33, -0.4, -0.28]).rotate([0, 1, 0], 17.5).scale([0.3, 0.61, 0.3]),
+                     "bsdf": bsdf_tall or _diffuse(CB_WHITE)},
+    }
+
+
+def _cornell_like(resolution: int, light_scale: float = 1.0) -> SceneDict:
+    d = _base(resolution)
+    d.update(_room())
+    d["light"] = _ceiling_light([c * light_scale for c in CB_LIGHT])
+    d.update(_boxes())
+    return d
+
+
+# ----------------------------------------------------------------------------- scenes
+
+
+def cornell(resolution: int) -> SceneDict:
+    return _cornell_like(resolution)
+
+
+def cornell_dark(resolution: int) -> SceneDict:
+    return _cornell_like(resolution, light_scale=0.04)
+
+
+def cornell_bright(resolution: int) -> SceneDict:
+    return _cornell_like(resolution, light_scale=12.0)
+
+
+def large_light(resolution: int) -> SceneDict:
+    d = _base(resolution)
+    d.update(_room())
+    d["light"] = _ceiling_light([c * 0.075 for c in CB_LIGHT], sx=0.85, sz=0.85)
+    d.update(_boxes())
+    return d
+
+
+def small_light(resolution: int) -> SceneDict:
+    d = _base(resolution)
+    d.update(_room())
+    d["light"] = {"type": "sphere", "center": [0.0, 0.85, 0.0], "radius": 0.025,
+                  "emitter": {"type": "area", "radiance": _rgb([1400.0, 1100.0, 700.0])}}
+    d.update(_boxes())
+    return d
+
+
+def glossy(resolution: int) -> SceneDict:
+    d = _base(resolution)
+    d.update(_room(back={"type": "roughplastic", "diffuse_reflectance": _rgb(CB_WHITE), "alpha": 0.08}))
+    d["light"] = _ceiling_light(CB_LIGHT)
+    d["gold_sphere"] = {"type": "sphere", "center": [0.4, -0.6, 0.25], "radius": 0.4,
+                        "bsdf": {"type": "roughconductor", "material": "Au", "alpha": 0.15}}
+    d["plastic_box"] = {"type": "cube",
+                        "to_world": _T().translate([-0.4, -0.45, -0.3]).rotate([0, 1, 0], 20).scale([0.3, 0.55, 0.3]),
+                        "bsdf": {"type": "roughplastic", "diffuse_reflectance": _rgb([0.1, 0.2, 0.6]), "alpha": 0.05}}
+    return d
+
+
+def mirrors(resolution: int) -> SceneDict:
+    T = _T
+    mirror = {"type": "conductor"}  # material 'none': a perfect mirror
+    d = _base(resolution)
+    d.update(_room())
+    d["light"] = _ceiling_light([c * 0.4 for c in CB_LIGHT], sx=0.4, sz=0.3)
+    # Two facing mirror panels on the side walls: the spheres repeat down a hall of
+    # reflections that changes with the view point.
+    d["mirror_left"] = {"type": "rectangle", "bsdf": mirror,
+                        "to_world": T().translate([-0.98, -0.2, -0.2]).rotate([0, 1, 0], 90).scale([0.7, 0.55, 1])}
+    d["mirror_right"] = {"type": "rectangle", "bsdf": mirror,
+                         "to_world": T().translate([0.98, -0.2, -0.2]).rotate([0, 1, 0], -90).scale([0.7, 0.55, 1])}
+    d["diffuse_sphere"] = {"type": "sphere", "center": [-0.3, -0.65, 0.1], "radius": 0.35,
+                           "bsdf": _diffuse([0.2, 0.3, 0.8])}
+    d["steel_sphere"] = {"type": "sphere", "center": [0.4, -0.7, -0.35], "radius": 0.3,
+                         "bsdf": {"type": "roughconductor", "material": "Cr", "alpha": 0.05}}
+    return d
+
+
+def glass_caustic(resolution: int) -> SceneDict:
+    d = _base(resolution)
+    d.update(_room())
+    d["light"] = {"type": "sphere", "center": [0.0, 0.8, 0.0], "radius": 0.06,
+                  "emitter": {"type": "area", "radiance": _rgb([220.0, 180.0, 120.0])}}
+    d["glass_sphere"] = {"type": "sphere", "center": [0.0, -0.55, 0.1], "radius": 0.45,
+                         "bsdf": {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0}}
+    return d
+
+
+def indirect(resolution: int) -> SceneDict:
+    T = _T
+    d = _base(resolution)
+    d.update(_room())
+    # Cove lighting: an upward-facing light on top of a shelf; the camera only sees the
+    # shelf's underside, the room is lit by the bounce off the ceiling.
+    d["shelf"] = {"type": "rectangle",
+                  "to_world": T().translate([0, 0.6, -0.2]).rotate([1, 0, 0], 90).scale([0.75, 0.55, 1]),
+                  "bsdf": _diffuse(0.7)}
+    d["light"] = {"type": "rectangle",
+                  "to_world": T().translate([0, 0.605, -0.2]).rotate([1, 0, 0], -90).scale([0.7, 0.5, 1]),
+                  "emitter": {"type": "area", "radiance": _rgb([5.0, 4.2, 3.2])}}
+    d.update(_boxes())
+    return d
+
+
+def checker(resolution: int) -> SceneDict:
+    def tex(c0: float | list[float], c1: float | list[float], scale: float) -> dict:
+        return {"type": "diffuse", "reflectance": _checker(c0, c1, scale)}
+
+    d = _base(resolution)
+    d.update(_room(floor=tex(0.1, 0.8, 12), back=tex([0.7, 0.7, 0.2], [0.2, 0.2, 0.6], 20),
+                   left=tex(CB_RED, 0.8, 8), right=tex(CB_GREEN, 0.8, 8)))
+    d["light"] = _ceiling_light(CB_LIGHT, sx=0.35, sz=0.3)
+    d["sphere"] = {"type": "sphere", "center": [0.35, -0.6, 0.2], "radius": 0.4,
+                   "bsdf": tex(0.05, 0.9, 24)}
+    d["box"] = {"type": "cube",
+                "to_world": _T().translate([-0.4, -0.45, -0.3]).rotate([0, 1, 0], 20).scale([0.3, 0.55, 0.3]),
+                "bsdf": tex([0.9, 0.5, 0.1], 0.1, 6)}
+    return d
+
+
+def _facing(p: list[float], a: list[float], b: list[float]) -> list[float]:
+    """Point a plate at `p` would look at so that it mirrors `a` into `b` (half vector)."""
+    def unit(v: list[float]) -> list[float]:
+        n = sum(x * x for x in v) ** 0.5
+        return [x / n for x in v]
+    ua = unit([ai - pi for ai, pi in zip(a, p)])
+    ub = unit([bi - pi for bi, pi in zip(b, p)])
+    h = unit([x + y for x, y in zip(ua, ub)])
+    return [pi + hi for pi, hi in zip(p, h)]
+
+
+def mis_plates(resolution: int) -> SceneDict:
+    """Veach-style MIS test: four plates of falling roughness, four lights of rising size."""
+    T = _T
+    cam = [0.0, 2.0, 15.0]
+    d = _base(resolution, origin=tuple(cam), target=(0.0, -1.8, 2.0), fov=30.0)
+    d["floor"] = {"type": "rectangle", "to_world": T().translate([0, -4.5, 0]).rotate([1, 0, 0], -90).scale(20),
+                  "bsdf": _diffuse(0.3)}
+    d["backdrop"] = {"type": "rectangle", "to_world": T().translate([0, 0, -4]).scale(20), "bsdf": _diffuse(0.3)}
+    light_y, light_z = 2.5, -1.5
+    plates = [(-3.6, 3.9, 0.20), (-2.5, 2.7, 0.08), (-1.4, 1.5, 0.03), (-0.3, 0.3, 0.005)]
+    for i, (y, z, alpha) in enumerate(plates):
+        centre = [0.0, y, z]
+        aim = _facing(centre, cam, [0.0, light_y, light_z])
+        d[f"plate{i}"] = {"type": "rectangle",
+                          "to_world": T().look_at(origin=centre, target=aim, up=[0, 1, 0]).scale([4.0, 0.5, 1]),
+                          "bsdf": {"type": "roughconductor", "material": "Cu", "alpha": alpha}}
+    lights = [(-3.0, 0.04, 600.0), (-1.0, 0.12, 70.0), (1.0, 0.35, 8.0), (3.0, 0.8, 1.5)]
+    for i, (x, r, L) in enumerate(lights):
+        d[f"light{i}"] = {"type": "sphere", "center": [x, light_y, light_z], "radius": r,
+                          "emitter": {"type": "area", "radiance": _rgb(L)}}
+    return d
+
+
+def env_spheres(resolution: int) -> SceneDict:
+    d = _base(resolution, origin=(0.0, 1.2, 5.0), target=(0.0, 0.0, 0.0))
+    d["sky"] = {"type": "constant", "radiance": _rgb([0.6, 0.75, 1.0])}
+    d["ground"] = {"type": "rectangle", "to_world": _T().translate([0, -0.5, 0]).rotate([1, 0, 0], -90).scale(8),
+                   "bsdf": _diffuse(0.5)}
+    d["s_diffuse"] = {"type": "sphere", "center": [-1.1, 0.0, 0.0], "radius": 0.5, "bsdf": _diffuse([0.8, 0.3, 0.2])}
+    d["s_glossy"] = {"type": "sphere", "center": [0.0, 0.0, 0.0], "radius": 0.5,
+                     "bsdf": {"type": "roughplastic", "diffuse_reflectance": _rgb([0.2, 0.6, 0.3]), "alpha": 0.1}}
+    d["s_glass"] = {"type": "sphere", "center": [1.1, 0.0, 0.0], "radius": 0.5,
+                    "bsdf": {"type": "dielectric", "int_ior": 1.5}}
+    return d
+
+
+def allblack(resolution: int) -> SceneDict:
+    d = _base(resolution)
+    d.update(_room())  # geometry but no emitter at all: every path carries zero radiance
+    d.update(_boxes())
+    return d
+
+
+def sky(resolution: int) -> SceneDict:
+    d = _base(resolution)
+    d["sky"] = {"type": "constant", "radiance": _rgb(0.5)}  # nothing else: a flat, noise-free image
+    return d
+
+
+SCENES: dict[str, SceneSpec] = {
+    s.name: s
+    for s in (
+        SceneSpec("cornell", "Cornell box, diffuse walls and boxes, small ceiling light", cornell, ("diffuse",)),
+        SceneSpec("cornell_dark", "Cornell box lit 25x dimmer: dark exposure, noise near black", cornell_dark,
+                  ("diffuse", "dark")),
+        SceneSpec("cornell_bright", "Cornell box lit 12x brighter: overexposed, clipping hides noise",
+                  cornell_bright, ("diffuse", "bright")),
+        SceneSpec("large_light", "Cornell box under a ceiling-wide panel light: soft shadows, low noise",
+                  large_light, ("diffuse", "large-light")),
+        SceneSpec("small_light", "Cornell box lit by a tiny bright sphere light: hard shadows, fireflies",
+                  small_light, ("diffuse", "small-light")),
+        SceneSpec("glossy", "Rough gold sphere, rough plastic box and glossy back wall in a Cornell box",
+                  glossy, ("glossy",)),
+        SceneSpec("mirrors", "Two facing mirror walls: view-dependent inter-reflections of spheres", mirrors,
+                  ("mirror", "glossy")),
+        SceneSpec("glass_caustic", "Glass sphere on the floor under a small light: refractive caustic",
+                  glass_caustic, ("dielectric", "caustic", "small-light")),
+        SceneSpec("indirect", "Light hidden on top of a shelf: the room is lit only by ceiling bounce",
+                  indirect, ("diffuse", "indirect")),
+        SceneSpec("checker", "High-frequency checkerboard textures everywhere: texture masks noise", checker,
+                  ("textured",)),
+        SceneSpec("mis_plates", "Veach MIS plates: four roughness levels x four light sizes", mis_plates,
+                  ("glossy", "small-light", "large-light")),
+        SceneSpec("env_spheres", "Diffuse, glossy and glass spheres on a ground plane under a uniform sky",
+                  env_spheres, ("environment", "dielectric", "glossy")),
+        SceneSpec("allblack", "Closed geometry with no light at all: an all-zero image (degenerate input)",
+                  allblack, ("degenerate",)),
+        SceneSpec("sky", "Constant environment and nothing else: a flat image (degenerate input)", sky,
+                  ("degenerate", "environment")),
+    )
+}
+
+
+def list_scenes() -> list[tuple[str, str]]:
+    """(name, description) of every built-in scene, in library order."""
+    return [(s.name, s.description) for s in SCENES.values()]
+
+
+def _unknown(name: str) -> ValueError:
+    return ValueError(f"unknown scene {name!r}; built-in scenes: {', '.join(SCENES)} (or a Mitsuba 3 .xml file)")
+
+
+def scene_dict(name: str, resolution: int) -> SceneDict:
+    """The ``mi.load_dict`` description of built-in scene `name` at `resolution`^2 pixels."""
+    if name not in SCENES:
+        raise _unknown(name)
+    select_variant()  # transforms need a variant
+    return SCENES[name].builder(resolution)
+
+
+# ----------------------------------------------------------------------------- loading
+
+# Names of XML <default> parameters we know how to drive from a requested resolution.
+_SQUARE_PARAMS = ("resolution",)
+_PAIR_PARAMS = (("width", "height"), ("resx", "resy"), ("res_x", "res_y"))
+
+
+def _xml_defaults(path: str) -> dict[str, str]:
+    """``<default name=... value=...>`` declarations at the top of a Mitsuba XML file."""
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise ValueError(f"{path}: not a well-formed XML file: {exc}") from exc
+    return {el.get("name", ""): el.get("value", "") for el in root.iter("default")}
+
+
+def _resolution_params(path: str, resolution: int) -> dict[str, str]:
+    """Parameters that make the XML file's film `resolution` wide, if the file allows it.
+
+    Mitsuba XML files can only be resized from outside through their ``$name``
+    parameters, and those differ between files. We recognise ``$resolution`` (square),
+    and ``$width/$height``, ``$resx/$resy`` (width set to `resolution`, height keeping
+    the file's aspect ratio). Anything else keeps the file's own film size.
+    """
+    defaults = _xml_defaults(path)
+    for name in _SQUARE_PARAMS:
+        if name in defaults:
+            return {name: str(resolution)}
+    for wname, hname in _PAIR_PARAMS:
+        if wname in defaults and hname in defaults:
+            try:
+                w, h = float(defaults[wname]), float(defaults[hname])
+            except ValueError:
+                continue
+            height = max(1, round(resolution * h / w)) if w > 0 else resolution
+            return {wname: str(resolution), hname: str(height)}
+    return {}
+
+
+def load_scene(name_or_path: str | os.PathLike[str], resolution: int | None = None) -> Any:
+    """Load a built-in scene by name, or any Mitsuba 3 XML file, as an ``mi.Scene``.
+
+    Built-ins default to 256x256 when `resolution` is None. For XML files see
+    `_resolution_params`: if the file exposes no size parameter, its own film size is
+    kept and a warning says so.
+    """
+    select_variant()
+    import mitsuba as mi
+
+    name_or_path = os.fspath(name_or_path)
+    if name_or_path in SCENES:
+        return mi.load_dict(scene_dict(name_or_path, 256 if resolution is None else resolution))
+    looks_like_file = name_or_path.lower().endswith(".xml") or os.sep in name_or_path
+    if not looks_like_file and not os.path.exists(name_or_path):
+        raise _unknown(name_or_path)
+    path = os.path.abspath(name_or_path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{name_or_path}: scene file not found")
+    params = _resolution_params(path, resolution) if resolution is not None else {}
+    try:
+        scene = mi.load_file(path, **params)
+    except Exception as exc:  # Mitsuba raises RuntimeError with its parser message
+        raise ValueError(f"{path}: Mitsuba could not load this scene: {exc}") from exc
+    size = tuple(int(v) for v in scene.sensors()[0].film().size())
+    if resolution is not None and not params:
+        logger.warning("%s declares no resolution parameter; keeping its film size %dx%d",
+                       path, size[0], size[1])
+    logger.info("loaded %s (%dx%d)", path, size[0], size[1])
+    return scene

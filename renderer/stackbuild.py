@@ -1,0 +1,186 @@
+"""Build one labelled stack (dataset format v1) from a scene: levels, reference, quick.
+
+Levels are cumulative means at spp = step, 2*step, ...; each level adds one independent
+pass of `step` samples (Mitsuba seed derived from (seed, pass)). The reference uses its
+own seed stream, so its noise is independent of the levels it judges. Every pass is split
+into Mitsuba calls of at most `max_lanes` samples in flight (a 4096-spp reference of a
+256x256 frame in one call would hold 268 M lanes in memory).
+
+Interrupted builds resume: images are written atomically by `learning.StackWriter`, and
+the float64 running sum is checkpointed (atomically) in `<scene>/.build/accum.npz` after
+each level, so a rerun continues from the last finished level.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from learning.exr import read_exr
+from learning.observer import VirtualObserver
+from learning.stack import REFERENCE, StackWriter, level_name, make_plan, read_stack
+
+from .blocks import BlockRenderer
+from .scenes import load_scene
+from .variant import select_variant
+
+log = logging.getLogger(__name__)
+
+BUILD_DIR = ".build"
+QUICK_DESCRIPTION = "albedo aov, {spp} spp"
+
+
+@dataclass(frozen=True)
+class BuildSettings:
+    """What a dataset build is made of; stored in meta.json so resumes can check it."""
+
+    resolution: int = 256
+    step: int = 16
+    levels: int = 40
+    reference_spp: int = 4096
+    grid: tuple[int, int] = (4, 4)
+    quick_spp: int = 16
+    seed: int = 0
+    tau: float = 0.02
+    ppd: float = 67.0
+    max_lanes: int = 1 << 22
+    contact_sheet: bool = True
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name in ("resolution", "step", "levels", "reference_spp", "quick_spp", "max_lanes"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if self.reference_spp <= self.step * self.levels:
+            log.warning("reference_spp %d is not above the last level (%d spp): labels will be poor",
+                        self.reference_spp, self.step * self.levels)
+
+    @property
+    def spp(self) -> list[int]:
+        return [self.step * (k + 1) for k in range(self.levels)]
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["grid"] = list(self.grid)
+        return d
+
+
+def scene_label(scene: str) -> str:
+    """Directory name of a scene: the built-in name, or an XML file's stem."""
+    return Path(scene).stem if scene.lower().endswith(".xml") else scene
+
+
+def _calls(br: BlockRenderer, spp: int, max_lanes: int) -> tuple[int, int]:
+    """(samples per Mitsuba call, number of calls) for `spp` full-frame samples."""
+    chunk = max(1, min(spp, max_lanes // (br.width * br.height)))
+    return chunk, -(-spp // chunk)
+
+
+def render_mean(br: BlockRenderer, spp: int, seed: int, first_pass: int, max_lanes: int) -> np.ndarray:
+    """Mean of `spp` full-frame samples in calls of <= max_lanes samples (float64).
+
+    Call i uses pass index first_pass + i.
+    """
+    chunk, _ = _calls(br, spp, max_lanes)
+    total = np.zeros((br.height, br.width, 3), np.float64)
+    done, passes = 0, 0
+    while done < spp:
+        n = min(chunk, spp - done)
+        total += br.render_full(n, seed, pass_index=first_pass + passes).astype(np.float64) * n
+        done += n
+        passes += 1
+    return total / spp
+
+
+def _save_checkpoint(path: Path, level: int, total: np.ndarray) -> None:
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, level=np.int64(level), sum=total)
+    os.replace(tmp, path)
+
+
+def _load_checkpoint(path: Path, shape: tuple[int, ...]) -> tuple[int, np.ndarray] | None:
+    if not path.exists():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            level, total = int(z["level"]), np.array(z["sum"])
+    except Exception as exc:  # a damaged checkpoint costs a re-render, not a wrong stack
+        log.warning("%s: unreadable checkpoint (%s); levels will be re-rendered", path, exc)
+        return None
+    if total.shape != shape:
+        log.warning("%s: checkpoint shape %s != %s; ignored", path, total.shape, shape)
+        return None
+    return level, total
+
+
+def build_stack(scene: str, out_root: str | os.PathLike, settings: BuildSettings,
+                progress: bool = True) -> dict[str, Any]:
+    """Render and label one stack under out_root/<scene>; resumes an interrupted build."""
+    t_start = time.perf_counter()
+    variant = select_variant()
+    import mitsuba as mi
+
+    name = scene_label(scene)
+    out = Path(out_root) / name
+    br = BlockRenderer(load_scene(scene, resolution=settings.resolution), grid=tuple(settings.grid))
+    plan = make_plan(scene=name, width=br.width, height=br.height, spp=settings.spp,
+                     reference_spp=settings.reference_spp,
+                     quick=QUICK_DESCRIPTION.format(spp=settings.quick_spp),
+                     renderer=f"mitsuba {mi.__version__} {variant} path", grid=settings.grid,
+                     build={k: v for k, v in settings.to_dict().items() if k not in ("contact_sheet",)})
+    writer = StackWriter(out, plan)
+    if writer.is_complete:
+        log.info("%s: already built", out)
+        return _summary(out, variant, time.perf_counter() - t_start, resumed=True)
+
+    level_seed, reference_seed = 2 * settings.seed, 2 * settings.seed + 1
+    if not writer.has_quick():
+        writer.write_quick(br.quick_image(spp=settings.quick_spp, seed=settings.seed))
+    if not writer.has_reference():
+        ref = render_mean(br, settings.reference_spp, reference_seed, 0, settings.max_lanes)
+        writer.write_reference(ref.astype(np.float32))
+
+    build_dir = out / BUILD_DIR
+    build_dir.mkdir(exist_ok=True)
+    ckpt = build_dir / "accum.npz"
+    state = _load_checkpoint(ckpt, (br.height, br.width, 3))
+    done, total = state if state is not None else (0, np.zeros((br.height, br.width, 3), np.float64))
+    # Pass indices per level are fixed by the level number, so a resumed build renders the
+    # very same samples an uninterrupted one would.
+    _, passes_per_level = _calls(br, settings.step, settings.max_lanes)
+    bar = tqdm(total=settings.levels, initial=done, desc=f"{name} levels", unit="lvl",
+               disable=not progress, leave=False)
+    for k in range(done, settings.levels):
+        mean = render_mean(br, settings.step, level_seed, k * passes_per_level, settings.max_lanes)
+        total += mean * settings.step
+        spp = settings.spp[k]
+        writer.write_level(spp, (total / spp).astype(np.float32))
+        _save_checkpoint(ckpt, k + 1, total)
+        bar.update(1)
+    bar.close()
+
+    observer = VirtualObserver(tau=settings.tau, ppd=settings.ppd)
+    levels = (read_exr(out / level_name(s)) for s in settings.spp)   # one at a time
+    thresholds = observer.thresholds(read_exr(out / REFERENCE), levels, settings.spp, settings.grid)
+    stack = writer.finish(thresholds, observer.labeler)
+    shutil.rmtree(build_dir, ignore_errors=True)
+    if settings.contact_sheet:
+        from .contact import contact_sheet
+        contact_sheet(stack, Path(out_root) / "contact" / f"{name}.png")
+    return _summary(out, variant, time.perf_counter() - t_start, resumed=done > 0)
+
+
+def _summary(out: Path, variant: str, seconds: float, resumed: bool) -> dict[str, Any]:
+    stack = read_stack(out)
+    th = stack.thresholds or []
+    return {"scene": stack.scene, "path": str(out), "variant": variant, "seconds": seconds,
+            "levels": stack.n_levels, "blocks": stack.n_blocks, "resumed": resumed,
+            "thresholds": th, "censored": sum(t is None for t in th)}

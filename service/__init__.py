@@ -1,0 +1,1 @@
+"""service: the verdict API (FastAPI) and the `noisestop` command line."""

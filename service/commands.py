@@ -1,0 +1,183 @@
+"""Sub-command definitions: each adds its arguments and a handler that calls the packages."""
+from __future__ import annotations
+
+import argparse
+import time
+
+from .cli import UsageError, emit_json, log
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a number >= 1, got {value}")
+    return value
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("scenes", help="list the built-in scenes")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_scenes)
+
+    _register_dataset(sub)
+
+    p = sub.add_parser("features", help="render a scene at low spp and print each block's 26 features")
+    p.add_argument("--scene", default=None, help="built-in scene name or Mitsuba 3 XML file")
+    p.add_argument("--resolution", type=_positive_int, default=128)
+    p.add_argument("--spp", type=_positive_int, default=16)
+    p.add_argument("--grid", type=_positive_int, nargs=2, default=(4, 4), metavar=("ROWS", "COLS"))
+    p.add_argument("--exposure", type=float, default=0.0)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_features)
+
+    p = sub.add_parser("bench", help="measure speed figures (see BENCHMARKS.md)")
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--repeats", type=_positive_int, default=30)
+    p.set_defaults(handler=cmd_bench)
+
+
+def _register_dataset(sub: argparse._SubParsersAction) -> None:
+    ds = sub.add_parser("dataset", help="build, import and check labelled datasets")
+    dsub = ds.add_subparsers(dest="dataset_command", metavar="ACTION", required=True)
+
+    p = dsub.add_parser("build", help="render and label stacks (format v1) for scenes")
+    p.add_argument("--out", required=True, help="dataset directory (one sub-directory per scene)")
+    p.add_argument("--scenes", default=None,
+                   help="comma-separated built-in names or XML files (default: every built-in scene)")
+    p.add_argument("--resolution", type=_positive_int, default=512)
+    p.add_argument("--step", type=_positive_int, default=101, help="spp added per level")
+    p.add_argument("--levels", type=_positive_int, default=100)
+    p.add_argument("--reference-spp", type=_positive_int, default=None,
+                   help="default: 4 x the last level")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--tau", type=float, default=0.02, help="virtual observer threshold on FLIP")
+    p.add_argument("--no-contact-sheets", action="store_true")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=_positive_int, default=None,
+                       help="local process workers (default: one per core)")
+    where.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_dataset_build)
+
+    p = dsub.add_parser("import-lisic", help="import a dataset in the LISIC layout")
+    p.add_argument("src")
+    p.add_argument("--out", required=True)
+    p.add_argument("--every", type=_positive_int, default=1, help="keep one image in EVERY")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_import_lisic)
+
+    p = dsub.add_parser("check", help="validate a dataset and report every problem found")
+    p.add_argument("dir")
+    p.add_argument("--quick", action="store_true", help="skip reading the images")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_dataset_check)
+
+
+def cmd_dataset_build(args: argparse.Namespace) -> int:
+    from renderer.dataset import build_dataset
+    from renderer.scenes import list_scenes
+    from renderer.stackbuild import BuildSettings
+
+    scenes = [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else \
+        [name for name, _ in list_scenes()]
+    ref = args.reference_spp or 4 * args.step * args.levels
+    settings = BuildSettings(resolution=args.resolution, step=args.step, levels=args.levels,
+                             reference_spp=ref, seed=args.seed, tau=args.tau,
+                             contact_sheet=not args.no_contact_sheets)
+    summary = build_dataset(scenes, args.out, settings, workers=args.workers, scheduler=args.scheduler)
+    if args.json:
+        emit_json(summary)
+    else:
+        for r in summary["scenes"]:
+            th = ", ".join("-" if t is None else str(t) for t in r["thresholds"])
+            print(f"{r['scene']:<14} {r['seconds']:7.1f} s  thresholds: {th}")
+        print(f"{len(summary['scenes'])} scenes, {summary['sub_images']} labelled sub-images, "
+              f"{summary['wall_s']:.0f} s wall, in {summary['out']}")
+    for scene, err in summary["failed"].items():
+        log.error("scene %s failed: %s", scene, err)
+    return 1 if summary["failed"] else 0
+
+
+def cmd_import_lisic(args: argparse.Namespace) -> int:
+    from learning.lisic import import_lisic
+    dirs = import_lisic(args.src, args.out, every=args.every)
+    if args.json:
+        emit_json({"stacks": [str(d) for d in dirs]})
+    else:
+        for d in dirs:
+            print(d)
+    return 0
+
+
+def cmd_dataset_check(args: argparse.Namespace) -> int:
+    from learning.check import ERROR, check_dataset
+    problems = check_dataset(args.dir, deep=not args.quick)
+    errors = [p for p in problems if p.severity == ERROR]
+    if args.json:
+        emit_json({"ok": not errors, "problems": [
+            {"path": str(p.path), "message": p.message, "severity": p.severity} for p in problems]})
+    else:
+        for p in problems:
+            print(p)
+        print(f"{args.dir}: {len(errors)} error(s), {len(problems) - len(errors)} warning(s)")
+    return 1 if errors else 0
+
+
+def cmd_scenes(args: argparse.Namespace) -> int:
+    from renderer.scenes import list_scenes
+    scenes = list_scenes()
+    if args.json:
+        emit_json({"scenes": [{"name": n, "description": d} for n, d in scenes]})
+    else:
+        width = max(len(n) for n, _ in scenes)
+        for name, desc in scenes:
+            print(f"{name:<{width}}  {desc}")
+    return 0
+
+
+def cmd_features(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from noisefeat import FEATURE_NAMES, extract_features, split_blocks
+    from renderer.blocks import BlockRenderer
+    from renderer.scenes import DEFAULT_SCENE, load_scene
+    from renderer.variant import select_variant
+
+    variant = select_variant()
+    scene_name = args.scene or DEFAULT_SCENE
+    t0 = time.perf_counter()
+    scene = load_scene(scene_name, resolution=args.resolution)
+    image = BlockRenderer(scene, grid=tuple(args.grid)).render_full(spp=args.spp, seed=0)
+    t_render = time.perf_counter() - t0
+    blocks = split_blocks(image, tuple(args.grid))
+    t1 = time.perf_counter()
+    feats, bad = extract_features(blocks, exposure=args.exposure, return_nonfinite=True)
+    t_feat = time.perf_counter() - t1
+    if args.json:
+        emit_json({"scene": scene_name, "variant": variant, "spp": args.spp,
+                   "resolution": list(image.shape[:2]), "feature_names": list(FEATURE_NAMES),
+                   "features": np.round(feats, 6).tolist(), "nonfinite_pixels": bad.tolist(),
+                   "render_s": t_render, "features_s": t_feat})
+        return 0
+    print(f"scene {scene_name}: {image.shape[1]}x{image.shape[0]}, {args.spp} spp, "
+          f"{len(blocks)} blocks of {blocks.shape[2]}x{blocks.shape[1]}, variant {variant}")
+    cols = ["blk"] + [n.replace("_", "") for n in FEATURE_NAMES]
+    print(" ".join(f"{c:>7}" for c in cols))
+    for i, row in enumerate(feats):
+        print(f"{i:>7} " + " ".join(f"{v:7.3f}" for v in row))
+    print(f"render {t_render * 1e3:.0f} ms (scene load + JIT included), "
+          f"features {t_feat * 1e3:.1f} ms for {len(blocks)} blocks")
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from . import bench
+    results = bench.run_all(repeats=args.repeats)
+    if args.json:
+        emit_json(results)
+    else:
+        print(bench.format_results(results))
+    return 0

@@ -1,0 +1,175 @@
+"""The virtual observer: display rule, FLIP wrapper, block errors, thresholds."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from learning.observer import (VirtualObserver, block_errors, block_means, display, flip_map,
+                               label_stack, srgb_decode, thresholds_from_errors)
+from learning.synthetic import make_synthetic_stack, synthetic_images
+
+SPP = [4, 8, 16, 32, 64, 128, 256, 512, 1024]
+
+
+def _srgb(h=32, w=32, seed=0):
+    return np.random.default_rng(seed).random((h, w, 3)).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------- display
+
+def test_display_rule():
+    x = np.array([[[0.0, 0.5, 1.0], [2.0, np.nan, -np.inf], [np.inf, -0.3, 0.001]]],
+                 dtype=np.float32)
+    d = display(x)
+    assert d.dtype == np.float32 and d.flags.c_contiguous and d.shape == x.shape
+    np.testing.assert_allclose(d[0, 0], [0.0, 0.735357, 1.0], atol=1e-5)
+    np.testing.assert_allclose(d[0, 1], [1.0, 0.0, 0.0])        # clip, NaN -> 0, -Inf -> 0
+    np.testing.assert_allclose(d[0, 2], [1.0, 0.0, 0.01292], atol=1e-6)  # +Inf -> 1, linear toe
+    np.testing.assert_allclose(display(np.full((1, 1, 3), 0.25, np.float32), exposure=1.0),
+                               display(np.full((1, 1, 3), 0.5, np.float32)))
+
+
+def test_srgb_decode_of_mid_grey():
+    assert abs(float(srgb_decode(np.float32(0.5))) - 0.21404114) < 1e-6
+
+
+# ----------------------------------------------------------------------------- FLIP
+
+def test_flip_map_identical_is_zero_and_difference_is_positive():
+    a = _srgb()
+    m = flip_map(a, a)
+    assert m.shape == (32, 32) and m.dtype == np.float32
+    assert float(m.max()) == 0.0
+    b = np.clip(a + 0.2, 0, 1).astype(np.float32)
+    m2 = flip_map(a, b)
+    assert 0.0 < float(m2.mean()) <= 1.0
+    # ppd is really passed on: viewing from farther (fewer px/deg) changes the map
+    assert not np.allclose(flip_map(a, b, ppd=10), m2)
+
+
+@pytest.mark.parametrize("ref, test, ppd, message", [
+    (_srgb(), _srgb(), 0, "ppd"),
+    (_srgb(), _srgb(), -5, "ppd"),
+    (_srgb(), _srgb(), float("nan"), "ppd"),
+    (_srgb(), _srgb(), "far", "ppd"),
+    (_srgb(), _srgb(16, 32), 67, "differ in shape"),
+    (_srgb() * 2, _srgb(), 67, r"\[0, 1\]"),
+    (_srgb() - 0.5, _srgb(), 67, r"\[0, 1\]"),
+    (np.full((8, 8, 3), np.nan, np.float32), np.zeros((8, 8, 3), np.float32), 67, "NaN"),
+    ((_srgb() * 255).astype(np.uint8), _srgb(), 67, "dtype"),
+    (_srgb()[..., 0], _srgb()[..., 0], 67, r"\[H, W, 3\]"),
+    (np.zeros((0, 4, 3), np.float32), np.zeros((0, 4, 3), np.float32), 67, "H, W > 0"),
+    (_srgb().tolist(), _srgb(), 67, "numpy array"),
+])
+def test_flip_map_invalid_inputs_raise_value_error_not_exit(ref, test, ppd, message):
+    with pytest.raises(ValueError, match=message):
+        flip_map(ref, test, ppd=ppd)
+
+
+def test_flip_systemexit_is_converted(monkeypatch):
+    import flip_evaluator
+
+    def boom(*a, **k):
+        print("Viewing condition options must be positive.\nExiting.")
+        raise SystemExit(1)
+
+    monkeypatch.setattr(flip_evaluator, "evaluate", boom)
+    with pytest.raises(ValueError, match="Viewing condition"):
+        flip_map(_srgb(), _srgb())
+
+
+def test_flip_accepts_non_contiguous_float64():
+    a = _srgb(16, 16)
+    view = np.asfortranarray(a.astype(np.float64))
+    np.testing.assert_allclose(flip_map(view, view[:, :, :]), 0.0)
+
+
+# ----------------------------------------------------------------------------- errors
+
+def test_block_means_row_major():
+    m = np.kron(np.arange(6, dtype=np.float64).reshape(2, 3), np.ones((4, 5)))
+    np.testing.assert_array_equal(block_means(m, (2, 3)), np.arange(6))
+
+
+def test_identical_levels_give_zero_error_and_first_level_thresholds():
+    ref = np.random.default_rng(0).random((32, 32, 3)).astype(np.float32) * 3  # HDR
+    e = block_errors(ref, [ref, ref, ref])
+    assert e.shape == (3, 16) and float(np.abs(e).max()) == 0.0
+    assert thresholds_from_errors(e, [10, 20, 30]) == [10] * 16
+    assert VirtualObserver().thresholds(ref, np.stack([ref, ref]), [5, 9]) == [5] * 16
+
+
+def test_noise_decreasing_with_spp_gives_monotone_thresholds():
+    ref, _, levels = synthetic_images(64, SPP, seed=0, noise=0.15)
+    e = block_errors(ref, levels)
+    assert e.shape == (len(SPP), 16)
+    assert np.all(e[-1] < e[0])                       # error falls with spp, in every block
+    assert np.all(np.diff(e.mean(axis=1)) < 0)        # and on average at every step
+    th = thresholds_from_errors(e, SPP)
+    big = 10 ** 9
+    grid = np.array([big if t is None else t for t in th]).reshape(4, 4)
+    # noise amplitude grows left to right: thresholds never decrease along a row
+    assert np.all(np.diff(grid, axis=1) >= 0)
+    assert grid[:, 0].max() < big and grid[:, -1].min() >= 1024   # clean left, noisy right
+    # level k converged <=> all later errors <= tau
+    for b, t in enumerate(th):
+        if t is not None:
+            k = SPP.index(t)
+            assert np.all(e[k:, b] <= 0.02) and (k == 0 or e[k - 1, b] > 0.02)
+        else:
+            assert e[-1, b] > 0.02
+
+
+def test_thresholds_rule_2_non_monotone_censored_and_edge_cases():
+    spp = [10, 20, 30, 40, 50]
+    per_block = [
+        [0.05, 0.01, 0.03, 0.01, 0.01],   # dips below tau at 20, rises at 30, then stays
+        [0.05, 0.04, 0.03, 0.02, 0.01],   # reaches exactly tau at 40
+        [0.01, 0.01, 0.01, 0.01, 0.01],   # always below tau
+        [0.03, 0.03, 0.03, 0.03, 0.03],   # never below tau
+        [0.02, 0.02, 0.02, 0.02, np.nan],  # NaN on the last level
+    ]
+    e = np.array(per_block).T            # e[k, b]
+    th = thresholds_from_errors(e, spp, tau=0.02)
+    assert th[0] == 40           # dip at 20 ignored, converged from 40 on
+    assert th[1] == 40           # exactly tau counts as converged
+    assert th[2] == 10           # always below tau
+    assert th[3] is None         # never converged: censored
+    assert th[4] is None         # NaN error on the last level: not converged
+    assert thresholds_from_errors(e, spp, tau=0.05)[:4] == [10, 10, 10, 10]
+    with pytest.raises(ValueError, match="spp values"):
+        thresholds_from_errors(e, spp[:3])
+    with pytest.raises(ValueError, match="strictly increasing"):
+        thresholds_from_errors(e, [10, 20, 20, 40, 50])
+    with pytest.raises(ValueError, match=r"\[K, n_blocks\]"):
+        thresholds_from_errors(e[0], spp)
+
+
+def test_nan_in_levels_is_handled_by_the_display_rule():
+    ref = np.full((32, 32, 3), 0.2, np.float32)
+    lev = ref.copy()
+    lev[3, 3] = [np.nan, np.inf, -np.inf]          # block 0
+    e = block_errors(ref, [lev])
+    assert np.all(np.isfinite(e))
+    assert e[0, 0] > 0 and np.all(e[0, 1:] < e[0, 0])
+    with pytest.raises(ValueError, match="shape"):
+        block_errors(ref, [lev[:16]])
+    with pytest.raises(ValueError, match="no levels"):
+        block_errors(ref, [])
+
+
+def test_label_stack_matches_stored_thresholds(tmp_path):
+    st = make_synthetic_stack(tmp_path / "s", size=64, spp=[16, 64, 256, 1024])
+    assert label_stack(st) == st.thresholds
+    strict = label_stack(st, tau=0.0)
+    assert all(t is None for t in strict)
+
+
+def test_virtual_observer_settings():
+    obs = VirtualObserver(tau=0.03, ppd=40)
+    assert obs.labeler == {"name": "flip", "tau": 0.03, "ppd": 40, "display": "clip+srgb",
+                           "exposure": 0.0}
+    with pytest.raises(ValueError, match="tau"):
+        VirtualObserver(tau=-1)
+    with pytest.raises(ValueError, match="ppd"):
+        VirtualObserver(ppd=0)

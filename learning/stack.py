@@ -35,6 +35,8 @@ from typing import Any
 
 import numpy as np
 
+from noisefeat import split_blocks
+
 from .exr import atomic_write_bytes, read_exr, write_exr
 
 log = logging.getLogger(__name__)
@@ -71,18 +73,6 @@ def block_shape(height: int, width: int, grid: Sequence[int] = (4, 4)) -> tuple[
                          f"of equal blocks (height % {gh} = {height % gh}, width % {gw} = "
                          f"{width % gw})")
     return height // gh, width // gw
-
-
-def split_blocks(image: np.ndarray, grid: Sequence[int] = (4, 4)) -> np.ndarray:
-    """[H, W, C] -> [gh*gw, bh, bw, C], blocks row-major (same contract as noisefeat)."""
-    img = np.asarray(image)
-    if img.ndim not in (2, 3):
-        raise ValueError(f"expected an image [H, W] or [H, W, C], got shape {img.shape}")
-    bh, bw = block_shape(img.shape[0], img.shape[1], grid)
-    gh, gw = int(grid[0]), int(grid[1])
-    tail = img.shape[2:]
-    out = img.reshape(gh, bh, gw, bw, *tail).swapaxes(1, 2)
-    return np.ascontiguousarray(out.reshape(gh * gw, bh, bw, *tail))
 
 
 # ----------------------------------------------------------------------------- validation
@@ -247,9 +237,13 @@ class Stack:
             return np.full((self.height, self.width, 3), MID_GREY_LINEAR, np.float32)
         return self._read(self.quick_path)
 
+    def split(self, image: np.ndarray) -> np.ndarray:
+        """An image of this stack cut into its blocks [n_blocks, bh, bw, 3], row-major."""
+        return split_blocks(image, tuple(self.grid))
+
     def blocks(self, k: int) -> np.ndarray:
         """Level k cut into blocks [n_blocks, bh, bw, 3], row-major."""
-        return split_blocks(self.level(k), self.grid)
+        return self.split(self.level(k))
 
     def labels(self) -> np.ndarray:
         """int8 [K, n_blocks]: +1 iff threshold not null and spp[k] >= T_b, else -1."""

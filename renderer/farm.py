@@ -41,7 +41,7 @@ def executor(workers: int | None = None, scheduler: str | None = None) -> Iterat
     threads = max(1, (os.cpu_count() or 1) // n)
     log.info("local Dask pool: %d process workers", n)
     env = {"NOISESTOP_THREADS": str(threads), "OMP_NUM_THREADS": str(threads)}  # OMP: FLIP
-    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
                       env=env) as cluster, Client(cluster) as client:
         yield client.get_executor()
 

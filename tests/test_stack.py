@@ -13,7 +13,7 @@ import pytest
 
 from learning.exr import read_exr, read_png, write_exr, write_png
 from learning.stack import (MID_GREY_LINEAR, StackWriter, list_stacks, make_plan, read_stack,
-                            split_blocks, update_labels, validate_meta, write_stack)
+                            update_labels, validate_meta, write_stack)
 from learning.synthetic import make_synthetic_stack, synthetic_images
 
 RNG = np.random.default_rng(1)
@@ -111,18 +111,6 @@ def test_exr_io_keeps_a_variant_chosen_by_someone_else(tmp_path):
                          text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(root)})
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "scalar_spectral"
-
-
-# ----------------------------------------------------------------------------- blocks
-
-def test_split_blocks_is_row_major():
-    img = np.arange(8 * 12 * 3, dtype=np.float32).reshape(8, 12, 3)
-    b = split_blocks(img, (2, 3))
-    assert b.shape == (6, 4, 4, 3)
-    np.testing.assert_array_equal(b[1], img[0:4, 4:8])   # right of block 0
-    np.testing.assert_array_equal(b[3], img[4:8, 0:4])   # first of the second row
-    with pytest.raises(ValueError, match="cannot be cut"):
-        split_blocks(np.zeros((10, 12, 3)), (4, 4))
 
 
 # ----------------------------------------------------------------------------- write/read

@@ -1,0 +1,166 @@
+"""Model bundles: a directory with manifest.json and model.skops, never a pickle.
+
+skops refuses types it does not know; we pass it an explicit allow-list (our estimator
+classes and the scikit-learn parts they hold), never `trusted=True`. The manifest records
+the model kind, what input it takes, the hash of the feature base it was trained on, the
+training data summary, metrics and library versions. A feature model loaded under a
+different feature base would give silently wrong verdicts, so that is a hard error.
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import skops.io as sio
+
+from noisefeat import FeatureBase, default_base, extract_features
+from noisefeat.display import lightness
+
+from .estimators import RBFSVM, check_inputs
+
+FORMAT = "noisestop-model"
+VERSION = 1
+MANIFEST = "manifest.json"
+MODEL_FILE = "model.skops"
+BUNDLED_DIR = Path(__file__).with_name("bundled")
+ALLOWED_TYPES = [
+    "learning.estimators.RBFSVM", "learning.estimators.DSVM", "learning.estimators.SVM",
+    "sklearn.svm._classes.SVC", "sklearn.preprocessing._data.StandardScaler",
+]
+
+
+def _versions() -> dict[str, str]:
+    import skops
+    import sklearn
+    import torch
+    return {"python": platform.python_version(), "numpy": np.__version__,
+            "scikit-learn": sklearn.__version__, "torch": torch.__version__,
+            "skops": skops.__version__}
+
+
+@dataclass
+class Model:
+    """A loaded bundle: the estimator plus what it needs to turn blocks into verdicts."""
+
+    estimator: RBFSVM
+    manifest: dict[str, Any]
+    path: Path | None = None
+
+    @property
+    def name(self) -> str:
+        return self.manifest.get("name", self.manifest["kind"])
+
+    @property
+    def input(self) -> str:
+        """'features' (26 noise features) or 'raw' (flattened L*/100 block)."""
+        return self.manifest["input"]
+
+    @property
+    def offset(self) -> float:
+        return float(self.estimator.offset)
+
+    def decision_function(self, X: np.ndarray) -> np.ndarray:
+        return self.estimator.decision_function(X)
+
+    def predict(self, X: np.ndarray) -> np.ndarray:
+        return self.estimator.predict(X)
+
+    def inputs_from_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None,
+                           base: FeatureBase | None = None, exposure: float = 0.0) -> np.ndarray:
+        """Model inputs from linear RGB blocks [N, h, w, 3] (and their quick blocks)."""
+        if self.input == "raw":
+            import torch
+            L = lightness(torch.as_tensor(np.asarray(blocks)), exposure).numpy() / 100.0
+            return L.reshape(len(L), -1)
+        if quick is None:
+            raise ValueError("a feature model needs the quick image of every block")
+        base = base or default_base()
+        return (extract_features(quick, base=base, exposure=exposure)
+                - extract_features(blocks, base=base, exposure=exposure))
+
+    def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None,
+                     exposure: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(verdict int8 [N], score float [N]) for linear RGB blocks."""
+        f = self.decision_function(self.inputs_from_blocks(blocks, quick, exposure=exposure))
+        return np.where(f > self.offset, 1, -1).astype(np.int8), f
+
+
+def save_model(estimator: RBFSVM, path: str | os.PathLike, *, kind: str, input: str,
+               training: dict[str, Any] | None = None, metrics: dict[str, Any] | None = None,
+               base: FeatureBase | None = None, name: str | None = None,
+               extra: dict[str, Any] | None = None) -> Path:
+    """Write a bundle directory (files atomically, manifest last)."""
+    if input not in ("features", "raw"):
+        raise ValueError(f"input must be 'features' or 'raw', got {input!r}")
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    base = base or default_base()
+    tmp = path / (MODEL_FILE + ".tmp")
+    sio.dump(estimator, tmp)
+    os.replace(tmp, path / MODEL_FILE)
+    manifest = {
+        "format": FORMAT, "version": VERSION, "kind": kind, "name": name or kind, "input": input,
+        "feature_base": {"hash": base.hash, "weights": base.weights_name, "wavelet": base.wavelet}
+        if input == "features" else None,
+        "n_features": int(estimator.n_features_in_), "offset": float(estimator.offset),
+        "support_vectors": int(estimator.n_support_), "parameters": int(estimator.n_parameters()),
+        "params": {k: v for k, v in estimator.get_params().items() if isinstance(v, (int, float, str, bool, type(None)))},
+        "training": training or {}, "metrics": metrics or {}, "versions": _versions(),
+        **(extra or {}),
+    }
+    tmp = path / (MANIFEST + ".tmp")
+    tmp.write_text(json.dumps(manifest, indent=2, default=_json_default))
+    os.replace(tmp, path / MANIFEST)
+    return path
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def load_model(path: str | os.PathLike | None = None, base: FeatureBase | None = None) -> Model:
+    """Load a bundle (None: the model bundled with the package); no pickle involved."""
+    path = BUNDLED_DIR if path is None else Path(path)
+    if path.is_file() and path.name == MANIFEST:
+        path = path.parent
+    if not (path / MANIFEST).is_file():
+        raise FileNotFoundError(f"{path}: not a noisestop model bundle (no {MANIFEST})")
+    try:
+        manifest = json.loads((path / MANIFEST).read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path / MANIFEST}: not valid JSON ({exc})") from exc
+    if manifest.get("format") != FORMAT or manifest.get("version") != VERSION:
+        raise ValueError(f"{path}: unsupported bundle format {manifest.get('format')!r} "
+                         f"version {manifest.get('version')!r}")
+    model_file = path / MODEL_FILE
+    if not model_file.is_file():
+        raise FileNotFoundError(f"{model_file}: missing")
+    try:
+        untrusted = sio.get_untrusted_types(file=model_file)
+    except Exception as exc:
+        raise ValueError(f"{model_file}: unreadable skops file ({exc})") from exc
+    unknown = [t for t in untrusted if t not in ALLOWED_TYPES]
+    if unknown:
+        raise ValueError(f"{model_file}: refuses to load unknown types {unknown}")
+    estimator = sio.load(model_file, trusted=untrusted)
+    if not isinstance(estimator, RBFSVM):
+        raise ValueError(f"{model_file}: holds a {type(estimator).__name__}, not a noisestop SVM")
+    if manifest.get("input") == "features":
+        running = (base or default_base()).hash
+        trained = (manifest.get("feature_base") or {}).get("hash")
+        if trained != running:
+            raise ValueError(
+                f"{path}: trained on feature base {trained}, but this noisestop runs feature base "
+                f"{running}: its verdicts would be wrong. Retrain it (noisestop train) or use "
+                f"the weights it was trained with.")
+    check_inputs(np.zeros((1, estimator.n_features_in_)), estimator.n_features_in_)
+    return Model(estimator, manifest, path)

@@ -1,0 +1,127 @@
+"""Sub-image tables: every (scene, level, block) of a dataset as one row.
+
+The model input of the paper is features(quick) - features(level) per block; the raw SVM
+uses the flattened L* block. Both are computed once per stack and feature base, and
+cached next to the stack (`.cache/features-<basehash>.npz`, written atomically), since a
+dataset is read by every train and evaluate run.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from noisefeat import FeatureBase, default_base, extract_features
+from noisefeat.display import lightness
+
+from .stack import Stack, list_stacks, read_stack
+
+log = logging.getLogger(__name__)
+CACHE_DIR = ".cache"
+
+
+@dataclass
+class SubImageTable:
+    """Rows are sub-images; `groups` = one id per (scene, level): the paper's CV groups."""
+
+    X: np.ndarray                      # [n, 26] features(quick) - features(level)
+    y: np.ndarray                      # [n] int8, -1 noisy / +1 converged
+    scene: np.ndarray                  # [n] scene name
+    level: np.ndarray                  # [n] level index within its stack
+    block: np.ndarray                  # [n] block id, row-major
+    spp: np.ndarray                    # [n] samples per pixel of the row's level
+    groups: np.ndarray                 # [n] int group id
+    stacks: dict[str, Stack] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.y)
+
+    def subset(self, mask: np.ndarray) -> "SubImageTable":
+        keep = set(np.unique(self.scene[mask]).tolist())
+        return SubImageTable(self.X[mask], self.y[mask], self.scene[mask], self.level[mask],
+                             self.block[mask], self.spp[mask], self.groups[mask],
+                             {k: v for k, v in self.stacks.items() if k in keep})
+
+    def scenes(self) -> list[str]:
+        return sorted(self.stacks)
+
+
+def _atomic_savez(path: Path, **arrays: np.ndarray) -> None:
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def stack_features(stack: Stack, base: FeatureBase | None = None, exposure: float = 0.0,
+                   progress: bool = False) -> np.ndarray:
+    """[K, n_blocks, 26] model inputs of one stack, cached per feature base."""
+    base = base or default_base()
+    cache = stack.path / CACHE_DIR / f"features-{base.hash}-e{exposure:g}.npz"
+    if cache.exists():
+        try:
+            with np.load(cache, allow_pickle=False) as z:
+                x = z["x"]
+            if x.shape == (stack.n_levels, stack.n_blocks, 26):
+                return x
+        except Exception as exc:
+            log.warning("%s: unreadable feature cache (%s); recomputing", cache, exc)
+    quick = extract_features(stack.split(stack.quick()), base=base, exposure=exposure)
+    rows = []
+    for k in tqdm(range(stack.n_levels), desc=f"{stack.scene} features", disable=not progress,
+                  leave=False):
+        rows.append(quick - extract_features(stack.blocks(k), base=base, exposure=exposure))
+    x = np.stack(rows).astype(np.float32)
+    cache.parent.mkdir(exist_ok=True)
+    _atomic_savez(cache, x=x)
+    return x
+
+
+def stack_raw_blocks(stack: Stack, exposure: float = 0.0) -> np.ndarray:
+    """[K, n_blocks, bh*bw] L*/100 of every sub-image: the raw SVM's input."""
+    out = []
+    for k in range(stack.n_levels):
+        L = lightness(torch.from_numpy(stack.blocks(k)), exposure).numpy() / 100.0
+        out.append(L.reshape(L.shape[0], -1))
+    return np.stack(out).astype(np.float32)
+
+
+def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase | None = None,
+               scenes: list[str] | None = None, progress: bool = True) -> SubImageTable:
+    """All labelled stacks under root as one table (raw L* blocks instead of features if `raw`)."""
+    paths = list_stacks(root)
+    if not paths:
+        raise ValueError(f"{root}: no stacks found (no meta.json below it)")
+    xs, ys, sc, lv, bl, sp, gr, stacks = [], [], [], [], [], [], [], {}
+    gid = 0
+    for p in tqdm(paths, desc="stacks", disable=not progress, leave=False):
+        st = read_stack(p)
+        if scenes is not None and st.scene not in scenes:
+            continue
+        if st.thresholds is None:
+            log.warning("%s: no labels (thresholds); skipped", p)
+            continue
+        if st.scene in stacks:
+            raise ValueError(f"{p}: scene name {st.scene!r} appears twice in {root}")
+        stacks[st.scene] = st
+        x = stack_raw_blocks(st) if raw else stack_features(st, base)
+        k, b = x.shape[:2]
+        xs.append(x.reshape(k * b, -1))
+        ys.append(st.labels().reshape(-1))
+        sc.append(np.full(k * b, st.scene, dtype=object))
+        lv.append(np.repeat(np.arange(k), b))
+        bl.append(np.tile(np.arange(b), k))
+        sp.append(np.repeat(np.asarray(st.spp), b))
+        gr.append(gid + np.repeat(np.arange(k), b))
+        gid += k
+    if not stacks:
+        raise ValueError(f"{root}: no labelled stack matched")
+    if raw and len({x.shape[1] for x in xs}) > 1:
+        raise ValueError("raw-pixel models need one block size across the dataset")
+    return SubImageTable(np.concatenate(xs), np.concatenate(ys).astype(np.int8), np.concatenate(sc),
+                         np.concatenate(lv), np.concatenate(bl), np.concatenate(sp),
+                         np.concatenate(gr), stacks)

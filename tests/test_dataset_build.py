@@ -1,0 +1,89 @@
+"""Dataset building: format, labels, resume after interruption, the Dask path."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from learning import check_dataset, read_stack
+from renderer import stackbuild
+from renderer.stackbuild import BuildSettings, build_stack
+
+TINY = BuildSettings(resolution=32, step=4, levels=4, reference_spp=128, contact_sheet=False)
+
+
+@pytest.mark.slow
+def test_build_writes_a_valid_labelled_stack(tmp_path):
+    summary = build_stack("cornell", tmp_path, TINY, progress=False)
+    stack = read_stack(tmp_path / "cornell")
+    assert stack.spp == [4, 8, 12, 16] and stack.reference_spp == 128
+    assert stack.quick_description == "albedo aov, 16 spp"
+    assert len(stack.thresholds) == 16 and stack.labeler["name"] == "flip"
+    assert summary["levels"] == 4 and summary["blocks"] == 16
+    assert check_dataset(tmp_path) == []
+    assert not (tmp_path / "cornell" / ".build").exists()
+    # levels are cumulative means: each one is closer to the reference than the first
+    ref = stack.reference()
+    err = [float(np.mean((stack.level(k) - ref) ** 2)) for k in range(4)]
+    assert err[-1] < err[0]
+
+
+@pytest.mark.slow
+def test_interrupted_build_resumes_to_the_same_stack(tmp_path, monkeypatch):
+    build_stack("cornell", tmp_path / "whole", TINY, progress=False)
+
+    calls = {"n": 0}
+    real = stackbuild._save_checkpoint
+
+    def dying(path, level, total):
+        real(path, level, total)
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt  # the user pressed ctrl-c after level 2
+    monkeypatch.setattr(stackbuild, "_save_checkpoint", dying)
+    with pytest.raises(KeyboardInterrupt):
+        build_stack("cornell", tmp_path / "cut", TINY, progress=False)
+    monkeypatch.setattr(stackbuild, "_save_checkpoint", real)
+    assert not (tmp_path / "cut" / "cornell" / "meta.json").exists()
+    summary = build_stack("cornell", tmp_path / "cut", TINY, progress=False)
+    assert summary["resumed"]
+    a, b = read_stack(tmp_path / "whole" / "cornell"), read_stack(tmp_path / "cut" / "cornell")
+    for k in range(a.n_levels):
+        np.testing.assert_allclose(b.level(k), a.level(k), rtol=1e-5, atol=1e-6)
+    assert a.thresholds == b.thresholds
+
+
+@pytest.mark.slow
+def test_dask_local_cluster_of_two_workers(tmp_path):
+    from renderer.dataset import build_dataset
+    summary = build_dataset(["cornell", "sky"], tmp_path, TINY, workers=2, progress=False)
+    assert summary["failed"] == {}
+    assert [r["scene"] for r in summary["scenes"]] == ["cornell", "sky"]
+    assert summary["sub_images"] == 2 * 4 * 16
+    assert check_dataset(tmp_path) == []
+    # a flat sky is converged at the first level everywhere
+    assert read_stack(tmp_path / "sky").thresholds == [4] * 16
+
+
+def test_bad_settings_are_rejected():
+    with pytest.raises(ValueError, match="step must be a positive integer"):
+        BuildSettings(step=0)
+
+
+@pytest.mark.slow
+def test_exr_write_survives_worker_thread_setup(tmp_path):
+    """Regression: drjit.set_thread_count(1) made Mitsuba's EXR writer hang forever."""
+    code = (
+        "import os, numpy as np\n"
+        "os.environ['NOISESTOP_THREADS'] = '1'\n"
+        "from renderer.variant import select_variant; select_variant()\n"
+        "from renderer.farm import configure_worker_threads; configure_worker_threads()\n"
+        "from learning.exr import write_exr\n"
+        f"write_exr({str(tmp_path / 'x.exr')!r}, np.ones((16, 16, 3), np.float32))\n"
+        "print('written')\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         env={**os.environ})
+    assert out.returncode == 0 and "written" in out.stdout, out.stderr

@@ -42,11 +42,12 @@ dataset: setup
 	$(NOISESTOP) dataset build --out $(DATA) $(DATASET_ARGS)
 	$(NOISESTOP) dataset check $(DATA)
 
-# The small dataset committed for tests (tests/fixtures/dataset, about 2 MB).
+# The small dataset committed for tests (tests/fixtures/dataset, about 2 MB): 4 scenes x
+# 16 blocks x 16 levels of 64x64 frames.
 fixture: setup
 	rm -rf tests/fixtures/dataset
-	$(NOISESTOP) dataset build --out tests/fixtures/dataset --scenes cornell,checker,sky \
-		--resolution 64 --step 16 --levels 12 --reference-spp 2048 --no-contact-sheets
+	$(NOISESTOP) dataset build --out tests/fixtures/dataset --scenes cornell,cornell_dark,checker,sky \
+		--resolution 64 --step 48 --levels 16 --reference-spp 4096 --no-contact-sheets
 	$(NOISESTOP) dataset check tests/fixtures/dataset
 
 clean:

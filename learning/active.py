@@ -70,14 +70,16 @@ class ActiveSemiSupervised(ClassifierMixin, BaseEstimator):
     """DSVM_AS / SVM_AS (semi_supervised=True) and DSVM_AL / SVM_AL (False).
 
     Stopping after the S x P phase: the label budget (`max_label_fraction` of the pool,
-    and `max_queries`) or, given a validation set, a precision plateau (no gain above
-    `min_delta` for `patience` iterations).
+    and `max_queries`) or, when `patience` is set and a validation set is given, a
+    precision plateau (no gain above `min_delta` for `patience` iterations). With
+    `patience=None` the validation set is only recorded in `history_` (for plots), never
+    used to decide anything: pass held-out data that way without leaking it.
     """
 
     def __init__(self, estimator=None, semi_supervised: bool = True, n_outer: int = 10,
                  n_inner: int = 5, batch_size: int = 16, n_centres: int = 20,
                  max_label_fraction: float = 0.25, max_queries: int | None = None,
-                 patience: int = 10, min_delta: float = 0.002, query_strategy=None,
+                 patience: int | None = 10, min_delta: float = 0.002, query_strategy=None,
                  progress: bool = False) -> None:
         self.estimator = estimator
         self.semi_supervised = semi_supervised
@@ -164,7 +166,7 @@ class ActiveSemiSupervised(ClassifierMixin, BaseEstimator):
         # then plain active learning until the stopping criterion
         best, since = -np.inf, 0
         while step():
-            if X_val is not None and self.history_:
+            if self.patience is not None and X_val is not None and self.history_:
                 p = self.history_[-1]["val_precision"]
                 if p > best + self.min_delta:
                     best, since = p, 0

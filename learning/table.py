@@ -47,6 +47,9 @@ class SubImageTable:
                              self.block[mask], self.spp[mask], self.groups[mask],
                              {k: v for k, v in self.stacks.items() if k in keep})
 
+    def scene_mask(self, scenes: list[str]) -> np.ndarray:
+        return np.isin(self.scene, list(scenes))
+
     def scenes(self) -> list[str]:
         return sorted(self.stacks)
 

@@ -36,7 +36,7 @@ FEATURE_NAMES: tuple[str, ...] = tuple(
 _F32_MAX = torch.finfo(torch.float32).max
 
 
-def _column_weights(w: int, wr: int) -> torch.Tensor:
+def column_weights(w: int, wr: int) -> torch.Tensor:
     """rfft keeps half the columns: each but DC (and Nyquist, for even w) also stands for
     its mirror image in Parseval sums."""
     col_w = torch.full((wr,), 2.0)
@@ -107,14 +107,14 @@ class FeatureBase(nn.Module):
             return cached[1]
         resp = self.transfer(h, w)
         ops = {"resp": resp,
-               "gain": ((1.0 - resp).abs() ** 2 * _column_weights(w, resp.shape[-1]))
+               "gain": ((1.0 - resp).abs() ** 2 * column_weights(w, resp.shape[-1]))
                .reshape(len(self.convs), -1).T.contiguous(),
                "dc": resp[:, 0, 0].real}
         if h % 2 == 0 and w % 2 == 0:
             analysis, synthesis = spectral_operators(self.wavelet, h, w)
             ops["analysis12"] = analysis * resp[-1]
             ops["synthesis"] = synthesis
-            ops["col_w"] = _column_weights(w, resp.shape[-1])
+            ops["col_w"] = column_weights(w, resp.shape[-1])
         if not torch.is_grad_enabled():
             self._transfer_cache[(h, w)] = (version, ops)
         return ops

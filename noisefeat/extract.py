@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import os
 from functools import lru_cache
 
 import numpy as np
@@ -15,8 +16,12 @@ log = logging.getLogger(__name__)
 
 @lru_cache(maxsize=1)
 def default_base() -> FeatureBase:
-    """The package's feature base, built once per process."""
-    return FeatureBase().eval()
+    """The package's feature base, built once per process.
+
+    NOISESTOP_FEATURE_WEIGHTS (a path, 'smoothing' or 'pretrained') selects other weights,
+    e.g. for the feature-base ablation.
+    """
+    return FeatureBase(os.environ.get("NOISESTOP_FEATURE_WEIGHTS") or None).eval()
 
 
 def _as_blocks(blocks: np.ndarray | torch.Tensor) -> torch.Tensor:

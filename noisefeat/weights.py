@@ -45,11 +45,17 @@ def save_kernels(path: Path, kernels: list[torch.Tensor], metadata: dict[str, st
     tmp.replace(path)
 
 
+NAMED = {"smoothing": SMOOTHING_FILE, "pretrained": DEFAULT_FILE}
+
+
 def load_kernels(path: Path | str | None = None) -> tuple[list[torch.Tensor], str]:
-    """Kernels from a safetensors file (None: the default), with the file's description."""
+    """Kernels from a safetensors file, or by name: 'smoothing', 'pretrained'.
+
+    None: the pre-trained weights when the package has them, else the smoothing init.
+    """
     if path is None:
         path = DEFAULT_FILE if DEFAULT_FILE.exists() else SMOOTHING_FILE
-    path = Path(path)
+    path = NAMED.get(str(path), Path(path))
     if not path.exists():
         raise FileNotFoundError(f"feature-base weights not found: {path}")
     try:

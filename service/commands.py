@@ -33,6 +33,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_features)
 
+    _register_learning(sub)
+
     p = sub.add_parser("bench", help="measure speed figures (see BENCHMARKS.md)")
     p.add_argument("--json", action="store_true")
     p.add_argument("--repeats", type=_positive_int, default=30)
@@ -124,6 +126,117 @@ def cmd_dataset_check(args: argparse.Namespace) -> int:
             print(p)
         print(f"{args.dir}: {len(errors)} error(s), {len(problems) - len(errors)} warning(s)")
     return 1 if errors else 0
+
+
+def _register_learning(sub: argparse._SubParsersAction) -> None:
+    from learning.train import SVM_KINDS
+
+    p = sub.add_parser("train", help="train a model on a dataset (scenes held out for evaluation)")
+    p.add_argument("--data", required=True, help="dataset directory")
+    p.add_argument("--model", default="dsvm_as", choices=SVM_KINDS, help="model kind (default dsvm_as)")
+    p.add_argument("--out", required=True, help="model bundle directory to write")
+    p.add_argument("--test-scenes", default=None,
+                   help="comma-separated scenes held out of training (default: every 4th by name)")
+    p.add_argument("--initial-scene", default=None, help="active kinds: the initially labelled scene")
+    p.add_argument("--label-budget", type=float, default=0.25,
+                   help="active kinds: largest fraction of the pool's labels to query")
+    p.add_argument("--no-cv", action="store_true", help="skip the C/gamma cross-validation")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_train)
+
+    p = sub.add_parser("evaluate", help="metrics on held-out scenes, overall and per scene")
+    p.add_argument("--data", required=True)
+    p.add_argument("--model", default=None, help="model bundle (default: the bundled model)")
+    p.add_argument("--criterion", default="model", choices=("model", "variance", "uniform", "oracle"))
+    p.add_argument("--scenes", default=None,
+                   help="comma-separated scenes to evaluate (default: those the model was not trained on)")
+    p.add_argument("--plots", default="out/evaluate", help="directory for the plots")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_evaluate)
+
+
+def _scene_list(text: str | None) -> list[str] | None:
+    return [s.strip() for s in text.split(",") if s.strip()] if text else None
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from learning.bundle import Model, save_model
+    from learning.evaluate import evaluate_model
+    from learning.table import load_table
+    from learning.train import train_model
+
+    if not 0 < args.label_budget <= 1:
+        raise UsageError(f"--label-budget must be in (0, 1], got {args.label_budget}")
+    raw = args.model.startswith("svm")
+    table = load_table(args.data, raw=raw)
+    est, summary = train_model(args.model, args.data, test_scenes=_scene_list(args.test_scenes),
+                               initial_scene=args.initial_scene, cv=not args.no_cv, seed=args.seed,
+                               max_label_fraction=args.label_budget, table=table)
+    test = table.subset(table.scene_mask(summary["test_scenes"]))
+    metrics = evaluate_model(Model(est, {"kind": args.model, "input": summary["input"]}), test) \
+        if len(test) else {}
+    save_model(est, args.out, kind=args.model, input=summary["input"], training=summary,
+               metrics={k: v for k, v in metrics.items() if k != "per_scene"})
+    result = {"model": args.out, "kind": args.model, "train_s": summary["train_s"],
+              "labels": summary.get("n_labels"), "label_fraction": summary.get("label_fraction"),
+              "test_scenes": summary["test_scenes"], **{k: metrics.get(k) for k in
+                                                         ("precision", "f1", "early_stop_rate")}}
+    if args.json:
+        emit_json(result)
+    else:
+        print(f"{args.model} -> {args.out}: trained in {summary['train_s']:.1f} s on "
+              f"{len(summary['train_scenes'])} scenes, {summary.get('n_labels')} labels "
+              f"({100 * summary.get('label_fraction', 1):.0f}% of the training sub-images)")
+        if metrics:
+            print(f"held-out {', '.join(summary['test_scenes'])}: precision {metrics['precision']:.3f}, "
+                  f"f1 {metrics['f1']:.3f}, early stops {metrics['early_stop_rate']:.3f}")
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from learning.bundle import load_model
+    from learning.evaluate import evaluate_model
+    from learning.table import load_table
+
+    if args.criterion != "model":
+        from renderer.simulate import evaluate_criterion_cli
+        result = evaluate_criterion_cli(args.data, args.criterion, _scene_list(args.scenes))
+    else:
+        model = load_model(args.model)
+        table = load_table(args.data, raw=model.input == "raw")
+        trained_on = set(model.manifest.get("training", {}).get("train_scenes", []))
+        scenes = _scene_list(args.scenes) or [s for s in table.scenes() if s not in trained_on]
+        if not scenes:
+            raise UsageError(f"every scene of {args.data} was used to train this model; "
+                             "name the scenes to evaluate with --scenes")
+        leaked = sorted(set(scenes) & trained_on)
+        if leaked:
+            log.warning("evaluating on scenes the model was trained on: %s", ", ".join(leaked))
+        missing = sorted(set(scenes) - set(table.scenes()))
+        if missing:
+            raise UsageError(f"scenes not in {args.data}: {missing}")
+        test = table.subset(table.scene_mask(scenes))
+        result = evaluate_model(model, test)
+        result["model"] = model.name
+        from learning.plots import plot_thresholds
+        result["plots"] = [str(p) for p in plot_thresholds(model, test, args.plots)]
+    if args.json:
+        emit_json(result)
+    else:
+        _print_metrics(result)
+    return 0
+
+
+def _print_metrics(result: dict) -> None:
+    from learning.metrics import METRIC_NAMES
+    width = max(len(s) for s in ["overall", *result["per_scene"]])
+    print(f"{'':<{width}}  " + "  ".join(f"{m:>19}" for m in METRIC_NAMES))
+    rows = [("overall", result), *sorted(result["per_scene"].items())]
+    for name, r in rows:
+        print(f"{name:<{width}}  " + "  ".join(f"{r[m]:>19.4f}" for m in METRIC_NAMES))
+    for p in result.get("plots", []):
+        print(f"plot: {p}")
 
 
 def cmd_scenes(args: argparse.Namespace) -> int:

@@ -1,0 +1,69 @@
+"""Plots people would rather look at than read: thresholds per block (paper Figs 10/12)
+and precision against labels queried (Figs 7/16)."""
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from .evaluate import verdicts_by_scene  # noqa: E402
+from .metrics import never_spp, stop_thresholds, true_thresholds  # noqa: E402
+
+
+def _save(fig, path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, path)
+    return path
+
+
+def plot_thresholds(model, table, out_dir: str | os.PathLike) -> list[Path]:
+    """One PNG per scene: the model's stopping spp per block against the expert's."""
+    out_dir = Path(out_dir)
+    paths = []
+    per_scene = verdicts_by_scene(table, model.predict(table.X))
+    for scene, (v, _, th, spp) in per_scene.items():
+        t_pred, t_true = stop_thresholds(v, spp), true_thresholds(th, spp)
+        never = never_spp(spp)
+        b = np.arange(len(t_true))
+        fig, ax = plt.subplots(figsize=(7, 3.2))
+        ax.plot(b, t_true, "o-", color="black", label="expert (virtual observer)")
+        ax.plot(b, t_pred, "s--", color="tab:orange", label=f"model ({model.name})")
+        early = t_pred < t_true
+        ax.scatter(b[early], t_pred[early], s=90, facecolors="none", edgecolors="red",
+                   label="early stop (visible noise)")
+        ax.axhline(never, color="grey", lw=0.7, ls=":")
+        ax.text(0, never, " never converged", va="bottom", fontsize=7, color="grey")
+        ax.set_xlabel("block (row-major)")
+        ax.set_ylabel("threshold (spp)")
+        ax.set_xticks(b)
+        ax.set_title(f"{scene}: stopping threshold per block", fontsize=9)
+        ax.legend(fontsize=7, loc="best")
+        fig.tight_layout()
+        paths.append(_save(fig, out_dir / f"thresholds-{scene}.png"))
+    return paths
+
+
+def plot_learning_curves(histories: Mapping[str, Sequence[Mapping]], path: str | os.PathLike,
+                         pool_size: int | None = None) -> Path:
+    """Held-out precision against the number of labels queried, one line per model."""
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    for name, hist in histories.items():
+        pts = [(h["queries"], h["val_precision"]) for h in hist if "val_precision" in h]
+        if pts:
+            q, p = zip(*pts)
+            ax.plot(q, p, label=name)
+    ax.set_xlabel("labels queried" + (f" (pool: {pool_size})" if pool_size else ""))
+    ax.set_ylabel("precision on held-out scenes")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return _save(fig, Path(path))

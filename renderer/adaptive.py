@@ -1,0 +1,420 @@
+"""The adaptive progressive renderer (the paper's Figure 6): sample only the noisy blocks.
+
+Loop, one *pass* at a time (pass p adds `step` samples per pixel to every active block):
+
+1. render the active blocks only (`BlockRenderer.render_blocks`, pass_index = p, so the
+   Mitsuba seed of (block, pass) is fixed whatever happened before);
+2. accumulate them (`BlockAccumulator`: exact means, even/odd half buffers);
+3. once spp >= min_spp, ask the criterion about the active blocks only; a block it calls
+   converged leaves the active set for good: never rendered, featured or asked again;
+4. checkpoint everything (accumulator, active set, verdict history, counters, timers, pass
+   index) atomically into out/checkpoint.npz (np.savez, read back with allow_pickle=False).
+
+It stops when no block is active or max_spp is reached. Because seeds depend only on
+(seed, block, pass) and the checkpoint holds all state, ``resume=True`` after a crash
+gives the very image and report (timings aside) of an uninterrupted run.
+
+The quick image (albedo AOV, `quick_spp` samples) is rendered once, and only if the
+criterion needs it; it is stored in the checkpoint so a resume does not re-render it.
+"""
+from __future__ import annotations
+
+import io
+import json
+import logging
+import math
+import os
+import time
+from collections.abc import Sequence
+from concurrent.futures import as_completed
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from learning.exr import atomic_write_bytes
+from learning.stack import Stack
+
+from .blocks import BlockAccumulator, BlockRenderer
+from .criteria import COUNTER_NAMES, TIMER_NAMES, BlockView, Criterion, build_criterion
+from .outputs import write_outputs
+
+logger = logging.getLogger(__name__)
+
+CHECKPOINT = "checkpoint.npz"
+CHECKPOINT_FORMAT = "noisestop-adaptive-checkpoint"
+CHECKPOINT_VERSION = 1
+
+
+def scene_label(scene: str | os.PathLike) -> str:
+    """Directory name of a scene: the built-in name, or an XML file's stem."""
+    s = os.fspath(scene)
+    return Path(s).stem if s.lower().endswith(".xml") else s
+
+
+def pass_sizes(step: int, max_spp: int) -> list[int]:
+    """spp of every pass up to max_spp (the last one may be shorter)."""
+    n = math.ceil(max_spp / step)
+    return [min(step, max_spp - p * step) for p in range(n)]
+
+
+# ----------------------------------------------------------------------------- checkpoint
+
+
+def _str_array(text: str) -> np.ndarray:
+    return np.array(text)  # 0-d unicode array: no pickle needed
+
+
+def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    """np.savez into memory, then an atomic write (never a half-written checkpoint)."""
+    arrays: dict[str, np.ndarray] = {
+        "format": _str_array(CHECKPOINT_FORMAT),
+        "version": np.int64(CHECKPOINT_VERSION),
+        "settings": _str_array(json.dumps(state["settings"], sort_keys=True)),
+        "active": np.asarray(state["active"], bool),
+        "stop_spp": np.asarray(state["stop_spp"], np.int64),
+        "history": np.asarray(state["history"], np.int8).reshape(-1, len(state["active"])),
+        "history_spp": np.asarray(state["history_spp"], np.int64),
+        "rendered": np.asarray(state["rendered"], np.int64),
+        "pass_index": np.int64(state["pass_index"]),
+        "done": np.bool_(state["done"]),
+        "counter_names": np.array(list(state["counters"]), dtype=str),
+        "counter_values": np.array(list(state["counters"].values()), np.int64),
+        "timer_names": np.array(list(state["timers"]), dtype=str),
+        "timer_values": np.array(list(state["timers"].values()), np.float64),
+        "quick": np.zeros((0, 0, 3), np.float32) if state["quick"] is None else state["quick"],
+    }
+    for k, v in state["acc"].items():
+        arrays[f"acc_{k}"] = v
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def load_checkpoint(path: Path, settings: dict[str, Any]) -> dict[str, Any]:
+    """Read a checkpoint written by `save_checkpoint` for the same settings, or raise ValueError."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError) as exc:
+        raise ValueError(f"{path}: unreadable checkpoint ({exc}); delete it to start over") from exc
+    if str(data.get("format", "")) != CHECKPOINT_FORMAT or int(data.get("version", -1)) != CHECKPOINT_VERSION:
+        raise ValueError(f"{path}: not a noisestop adaptive-render checkpoint (version {CHECKPOINT_VERSION})")
+    saved = json.loads(str(data["settings"]))
+    if saved != json.loads(json.dumps(settings, sort_keys=True)):
+        diff = [f"{k}: {saved.get(k)!r} then, {settings.get(k)!r} now"
+                for k in sorted(set(saved) | set(settings)) if saved.get(k) != settings.get(k)]
+        raise ValueError(f"{path}: checkpoint was made with other settings ({'; '.join(diff)}); "
+                         "rerun with the same options or without --resume to start over")
+    acc = BlockAccumulator.from_state({k[4:]: v for k, v in data.items() if k.startswith("acc_")})
+    quick = data["quick"]
+    return {
+        "acc": acc,
+        "active": data["active"].astype(bool),
+        "stop_spp": data["stop_spp"].astype(np.int64),
+        "history": data["history"].astype(np.int8),
+        "history_spp": data["history_spp"].astype(np.int64),
+        "rendered": data["rendered"].astype(np.int64),
+        "pass_index": int(data["pass_index"]),
+        "done": bool(data["done"]),
+        "counters": dict(zip(data["counter_names"].tolist(), data["counter_values"].tolist())),
+        "timers": dict(zip(data["timer_names"].tolist(), data["timer_values"].tolist())),
+        "quick": None if quick.size == 0 else quick,
+    }
+
+
+# ----------------------------------------------------------------------------- the loop
+
+
+def _resolve_criterion(criterion: Criterion | str, reference: Stack | None) -> Criterion:
+    if isinstance(criterion, Criterion):
+        return criterion
+    if isinstance(criterion, str):
+        th = reference.thresholds if reference is not None else None
+        return build_criterion(criterion, thresholds=th)
+    raise ValueError(f"criterion must be a Criterion or one of model/variance/uniform/oracle, "
+                     f"got {type(criterion).__name__}")
+
+
+def _check_args(resolution: int, grid: Sequence[int], step: int, min_spp: int, max_spp: int) -> tuple[int, int]:
+    for name, v in (("resolution", resolution), ("step", step), ("min_spp", min_spp), ("max_spp", max_spp)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise ValueError(f"{name} must be a positive integer, got {v!r}")
+    if len(grid) != 2 or any(int(g) < 1 for g in grid):
+        raise ValueError(f"grid must be two positive integers (rows, columns), got {grid!r}")
+    if min_spp > max_spp:
+        raise ValueError(f"min_spp ({min_spp}) is above max_spp ({max_spp})")
+    return int(grid[0]), int(grid[1])
+
+
+def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion: Criterion | str, *,
+                    resolution: int = 256, grid: Sequence[int] = (4, 4), step: int = 16,
+                    min_spp: int = 16, max_spp: int = 1024, seed: int = 0, resume: bool = False,
+                    progress: bool = True, reference: Stack | str | os.PathLike | None = None,
+                    quick_spp: int = 16) -> dict[str, Any]:
+    """Render `scene` adaptively into `out`; return the report (also out/report.json).
+
+    wall_s in the report runs from the call to the end of the last pass (writing the
+    output files is not in it); resumed runs add up the time of every attempt.
+
+    `criterion`: a `Criterion`, or its name ('oracle' takes the thresholds of `reference`).
+    `reference`: a labelled Stack, or a dataset/stack directory holding this scene: adds
+    early_stop_rate, spp_ratio_vs_oracle and per-block true thresholds to the report.
+    """
+    from .scenes import load_scene
+    from .simulate import find_reference
+    from .variant import current_variant, select_variant
+
+    gh, gw = _check_args(resolution, grid, step, min_spp, max_spp)
+    t_start = time.perf_counter()
+    label = scene_label(scene)
+    ref_stack = find_reference(reference, label) if reference is not None else None
+    crit = _resolve_criterion(criterion, ref_stack)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt_path = out / CHECKPOINT
+
+    variant = select_variant()
+    br = BlockRenderer(load_scene(scene, resolution), (gh, gw))
+    n = br.n_blocks
+    if ref_stack is not None:
+        if tuple(ref_stack.grid) != (gh, gw):
+            raise ValueError(f"{ref_stack.path}: reference grid {list(ref_stack.grid)} differs from "
+                             f"the render's {[gh, gw]}: its thresholds are for other blocks")
+        if (ref_stack.width, ref_stack.height) != (br.width, br.height):
+            logger.warning("reference %s is %dx%d, the render %dx%d: thresholds compared anyway",
+                           ref_stack.path, ref_stack.width, ref_stack.height, br.width, br.height)
+    settings = {"scene": os.fspath(scene), "resolution": [br.width, br.height], "grid": [gh, gw],
+                "step": int(step), "min_spp": int(min_spp), "max_spp": int(max_spp), "seed": int(seed),
+                "quick_spp": int(quick_spp), "criterion": crit.describe(), "variant": variant}
+    sizes = pass_sizes(step, max_spp)
+
+    state: dict[str, Any] | None = None
+    if resume and ckpt_path.exists():
+        state = load_checkpoint(ckpt_path, settings)
+        logger.info("%s: resuming after pass %d (%d active blocks)", ckpt_path, state["pass_index"],
+                    int(state["active"].sum()))
+    else:
+        if resume:
+            logger.info("%s: no checkpoint, starting from the beginning", ckpt_path)
+        elif ckpt_path.exists():
+            logger.warning("%s: existing checkpoint ignored and replaced (use resume to continue it)", ckpt_path)
+        state = {"acc": BlockAccumulator((gh, gw), br.block_shape), "active": np.ones(n, bool),
+                 "stop_spp": np.zeros(n, np.int64), "history": np.zeros((0, n), np.int8),
+                 "history_spp": np.zeros(0, np.int64), "rendered": np.zeros(0, np.int64),
+                 "pass_index": 0, "done": False, "counters": {}, "timers": {}, "quick": None}
+    loop_timers = {"render_s": 0.0, "wall_s": 0.0, "setup_s": 0.0,
+                   **{k: float(v) for k, v in state["timers"].items() if k in ("render_s", "wall_s", "setup_s")}}
+    loop_timers["setup_s"] += time.perf_counter() - t_start  # imports, scene load, checkpoint read
+    acc: BlockAccumulator = state["acc"]
+    crit.reset_counters()
+    quick_blocks = None
+    if crit.needs_quick:
+        if state["quick"] is None:
+            t0 = time.perf_counter()
+            state["quick"] = br.quick_image(spp=quick_spp, seed=seed)
+            loop_timers["render_s"] += time.perf_counter() - t0
+        quick_blocks = np.stack([state["quick"][br.block_slices(b)] for b in range(n)])
+        crit.prepare(list(range(n)), quick_blocks)
+    if state["counters"]:  # resumed: continue the counts (this overrides what prepare counted)
+        crit.restore_counters(state["counters"], {k: v for k, v in state["timers"].items() if k in TIMER_NAMES})
+
+    def snapshot() -> dict[str, Any]:
+        wall = loop_timers["wall_s"] + (time.perf_counter() - t_start)
+        return {**state, "acc": acc.state(), "settings": settings, "counters": dict(crit.counters),
+                "timers": {**crit.timers, "render_s": loop_timers["render_s"], "setup_s": loop_timers["setup_s"],
+                           "wall_s": wall}}
+
+    p = state["pass_index"]
+    bar = tqdm(total=len(sizes), initial=p, desc=f"{label} passes", unit="pass",
+               disable=not progress, leave=False)
+    while not state["done"]:
+        ids = np.flatnonzero(state["active"]).tolist()
+        if not ids or p >= len(sizes):
+            state["done"] = True
+            save_checkpoint(ckpt_path, snapshot())
+            break
+        t0 = time.perf_counter()
+        images = br.render_blocks(ids, sizes[p], seed, pass_index=p)
+        loop_timers["render_s"] += time.perf_counter() - t0
+        acc.add_many(ids, images, sizes[p])
+        spp = acc.spp(ids[0])
+        verdict_row = np.zeros(n, np.int8)
+        if spp >= min_spp:
+            halves = crit.needs_halves  # two extra divisions per block: only when used
+            views = [BlockView(mean=acc.mean(b), spp=acc.spp(b), nonfinite=acc.nonfinite(b),
+                               halves=acc.half_buffer(b) if halves else None,
+                               half_spp=acc.half_spp(b) if halves else None,
+                               quick=None if quick_blocks is None else quick_blocks[b]) for b in ids]
+            verdicts = crit.decide(ids, views)
+            verdict_row[ids] = verdicts
+            for b, v in zip(ids, verdicts):
+                if v > 0:
+                    state["active"][b] = False
+                    state["stop_spp"][b] = acc.spp(b)
+        state["history"] = np.vstack([state["history"], verdict_row[None]])
+        state["history_spp"] = np.append(state["history_spp"], spp)
+        state["rendered"] = np.append(state["rendered"], len(ids))
+        p += 1
+        state["pass_index"] = p
+        state["done"] = not state["active"].any() or p >= len(sizes)
+        save_checkpoint(ckpt_path, snapshot())
+        bar.set_postfix(spp=spp, active=int(state["active"].sum()), refresh=False)
+        bar.update(1)
+    bar.close()
+
+    final = snapshot()
+    report = _report(label, br, settings, crit, state, acc, final["timers"], variant or current_variant(),
+                     ref_stack)
+    write_outputs(out, acc.image().astype(np.float32), report)
+    logger.info("%s: %d passes, saved %.1f%% vs uniform, %.2f s", label, report["passes"],
+                100 * report["saved_vs_uniform"], report["wall_s"])
+    return report
+
+
+def _report(label: str, br: BlockRenderer, settings: dict[str, Any], crit: Criterion, state: dict[str, Any],
+            acc: BlockAccumulator, timers: dict[str, float], variant: str | None,
+            ref: Stack | None) -> dict[str, Any]:
+    n = br.n_blocks
+    max_spp = settings["max_spp"]
+    spp = np.array([acc.spp(b) for b in range(n)], np.int64)
+    converged = ~state["active"]
+    history = state["history"]
+    hist_spp = state["history_spp"]
+    blocks = []
+    for b in range(n):
+        asked = np.flatnonzero(history[:, b] != 0)
+        blocks.append({"id": b, "spp": int(spp[b]), "converged": bool(converged[b]),
+                       "stop_spp": int(state["stop_spp"][b]) if converged[b] else None,
+                       "nonfinite": acc.nonfinite(b),
+                       "history": [[int(hist_spp[i]), int(history[i, b])] for i in asked]})
+    pixels = br.block_h * br.block_w
+    wall = float(timers.get("wall_s", 0.0))
+    setup_s, render_s, features_s, decisions_s = (float(timers.get(k, 0.0))
+                                                  for k in ("setup_s", "render_s", "features_s", "decisions_s"))
+    c = crit.counters
+    report: dict[str, Any] = {
+        "scene": label, "variant": variant, "criterion": crit.describe(),
+        "resolution": [br.width, br.height], "grid": list(br.grid), "block": [br.block_h, br.block_w],
+        "step": settings["step"], "min_spp": settings["min_spp"], "max_spp": max_spp,
+        "seed": settings["seed"], "passes": int(state["pass_index"]),
+        "samples_spent": int(spp.sum()) * pixels, "mean_spp": float(spp.mean()),
+        "saved_vs_uniform": 1.0 - float(spp.sum()) / (n * max_spp),
+        "blocks_converged": int(converged.sum()),
+        "wall_s": wall,
+        "timing": {"setup_s": setup_s, "render_s": render_s, "features_s": features_s,
+                   "decisions_s": decisions_s,
+                   "overhead_s": max(0.0, wall - setup_s - render_s - features_s - decisions_s)},
+        "counters": {"blocks_rendered_per_pass": state["rendered"].tolist(),
+                     "blocks_rendered": int(state["rendered"].sum()),
+                     "blocks_featured": int(c.get("blocks_featured", 0)),
+                     "decisions": int(c.get("blocks_asked", 0)),
+                     **{k: int(c.get(k, 0)) for k in COUNTER_NAMES}},
+        "blocks": blocks,
+    }
+    if ref is not None:
+        report.update(_against_reference(ref, spp, converged, settings))
+        for b, t in enumerate(ref.thresholds or []):
+            report["blocks"][b]["true_threshold"] = t
+    return report
+
+
+def _against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settings: dict[str, Any]) -> dict[str, Any]:
+    """DESIGN metrics of one live render against a labelled stack's true thresholds.
+
+    The oracle is what `OracleCriterion` would spend in this same loop: the first pass at
+    or after both min_spp and T_b (censored T_b: max_spp). A block stopped early is one the
+    criterion stopped below its true threshold (censored: any stop is early).
+    """
+    if ref.thresholds is None:
+        raise ValueError(f"{ref.path}: reference stack has no thresholds (not labelled)")
+    max_spp, min_spp = settings["max_spp"], settings["min_spp"]
+    cum = np.cumsum(pass_sizes(settings["step"], max_spp))
+    oracle = []
+    for t in ref.thresholds:
+        need = max(min_spp, t) if t is not None else None
+        ok = cum[cum >= need] if need is not None else cum[:0]
+        oracle.append(int(ok[0]) if ok.size else int(max_spp))
+    early = [bool(converged[b] and (t is None or spp[b] < t)) for b, t in enumerate(ref.thresholds)]
+    return {"reference": {"path": str(ref.path), "scene": ref.scene, "thresholds": list(ref.thresholds),
+                          "oracle_spp": oracle},
+            "early_stop_rate": float(np.mean(early)),
+            "spp_ratio_vs_oracle": float(spp.sum()) / float(sum(oracle))}
+
+
+# ----------------------------------------------------------------------------- many scenes
+
+
+def _render_task(scene: str, out: str, criterion: Criterion | str, kwargs: dict[str, Any]) -> dict[str, Any]:
+    """What one worker runs: one scene, start to finish (or resume to finish)."""
+    from .farm import configure_worker_threads
+
+    configure_worker_threads()
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    return adaptive_render(scene, out, criterion, **kwargs)
+
+
+def render_many(scenes: Sequence[str | os.PathLike], out: str | os.PathLike, criterion: Criterion | str, *,
+                workers: int | None = None, scheduler: str | None = None, progress: bool = True,
+                **kwargs: Any) -> dict[str, Any]:
+    """`adaptive_render` for many scenes, one task per scene, into out/<scene>/.
+
+    Runs on `renderer.farm.executor` (local Dask processes or a cluster). Each task gets
+    its own copy of `criterion`. A failing scene does not stop the others: it is listed
+    under ``failed``. `kwargs` are `adaptive_render`'s keyword arguments.
+    """
+    from .farm import executor
+
+    if not scenes:
+        raise ValueError("no scenes to render")
+    labels = [scene_label(s) for s in scenes]
+    dupes = sorted({x for x in labels if labels.count(x) > 1})
+    if dupes:
+        raise ValueError(f"scenes would share output directories: {', '.join(dupes)}")
+    root = Path(out).resolve()
+    root.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    reports: dict[str, Any] = {}
+    failed: dict[str, str] = {}
+    kwargs = {**kwargs, "progress": False}
+    with executor(workers, scheduler) as pool:
+        futures = {pool.submit(_render_task, os.fspath(s), str(root / lab), criterion, kwargs): lab
+                   for s, lab in zip(scenes, labels)}
+        for fut in tqdm(as_completed(futures), total=len(futures), desc="scenes", unit="scene",
+                        disable=not progress):
+            lab = futures[fut]
+            try:
+                reports[lab] = fut.result()
+            except Exception as exc:  # one bad scene must not lose the others' work
+                failed[lab] = f"{type(exc).__name__}: {exc}"
+                logger.error("scene %s failed: %s", lab, failed[lab])
+    return {"out": str(root), "wall_s": time.perf_counter() - t0,
+            "scenes": dict(sorted(reports.items())), "failed": failed}
+
+
+def render_command(scenes: str | Sequence[str], out: str | os.PathLike, *, criterion: str = "model",
+                   model: str | None = None, server: str | None = None, reference: str | None = None,
+                   threshold: float = 0.01, quantile: float = 1.0, workers: int | None = None,
+                   scheduler: str | None = None,
+                   **kwargs: Any) -> dict[str, Any]:
+    """What `noisestop render` runs: one scene -> its report; several -> `render_many`'s summary.
+
+    `scenes`: a name, an XML path, or a comma-separated list. The model is loaded (or the
+    server contacted) once here; the oracle's thresholds come from `reference` per scene.
+    """
+    names = [s.strip() for s in scenes.split(",") if s.strip()] if isinstance(scenes, str) else list(scenes)
+    if not names:
+        raise ValueError("no scene given")
+    if criterion == "oracle" and reference is None:
+        raise ValueError("--criterion oracle needs --reference DIR (a labelled dataset or stack of the scene)")
+    if criterion != "model" and (model or server):
+        logger.warning("--model/--server are ignored with --criterion %s", criterion)
+    crit: Criterion | str = criterion if criterion == "oracle" else build_criterion(
+        criterion, model=model, server=server, variance_threshold=threshold, quantile=quantile)
+    remote = getattr(crit, "model", None)
+    if server and criterion == "model" and hasattr(remote, "ready") and not remote.ready():
+        raise ConnectionError(f"{server}: the server answers but model {remote.model!r} is not ready")
+    if len(names) == 1:
+        return adaptive_render(names[0], out, crit, reference=reference, **kwargs)
+    return render_many(names, out, crit, workers=workers, scheduler=scheduler, reference=reference, **kwargs)

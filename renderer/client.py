@@ -1,0 +1,289 @@
+"""A small Open Inference Protocol v2 client for a noisestop verdict server (stdlib only).
+
+`RemoteModel` looks like a local model to the renderer (``score_blocks(blocks, quick)``),
+so the adaptive loop can ask a server on another machine (DESIGN "HTTP API"). It speaks
+the binary tensor extension by default (REFERENCES.md): the body is the JSON header,
+then each input's raw little-endian row-major bytes in input order; the header length
+goes in ``Inference-Header-Content-Length`` and each input announces its byte count in
+``parameters.binary_data_size``; outputs are asked for with ``parameters.binary_data:
+true``. Responses are parsed whether the server answered in binary or in JSON.
+
+Errors are explicit: a 4xx answer raises ValueError and a 5xx answer ConnectionError,
+both quoting the server's ``{"error": ...}`` message; an unreachable server raises
+ConnectionError after a bounded number of retries. Only connection failures (refused,
+reset, dropped) are retried; a timeout or an HTTP error answer is not.
+
+This module never imports the `service` package (DESIGN: renderer talks to the service
+over HTTP only).
+"""
+from __future__ import annotations
+
+import http.client
+import json
+import logging
+import math
+import os
+import socket
+import time
+import urllib.error
+import urllib.parse
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+HEADER_LENGTH = "Inference-Header-Content-Length"
+ENV_TOKEN = "NOISESTOP_TOKEN"
+ENV_TOKEN_FILE = "NOISESTOP_TOKEN_FILE"
+_DTYPES = {"FP32": "<f4", "FP64": "<f8", "FP16": "<f2", "INT8": "i1", "INT16": "<i2", "INT32": "<i4",
+           "INT64": "<i8", "UINT8": "u1", "UINT16": "<u2", "UINT32": "<u4", "UINT64": "<u8", "BOOL": "?"}
+
+
+def default_token() -> str | None:
+    """NOISESTOP_TOKEN, else the contents of the file NOISESTOP_TOKEN_FILE names, else None."""
+    token = os.environ.get(ENV_TOKEN, "").strip()
+    if token:
+        return token
+    path = os.environ.get(ENV_TOKEN_FILE)
+    if path:
+        try:
+            token = Path(path).read_text(encoding="utf-8").strip()
+        except OSError as exc:
+            raise FileNotFoundError(f"{path}: cannot read the token file named by {ENV_TOKEN_FILE} ({exc})") from exc
+        if not token:
+            raise ValueError(f"{path}: token file named by {ENV_TOKEN_FILE} is empty")
+        return token
+    return None
+
+
+class RemoteModel:
+    """A verdict model behind an OIP v2 server, used like a local `learning` Model.
+
+    `url`: the server's base URL (``http://host:8000``); `model`: the model name
+    (every noisestop server serves ``default``); `token`: bearer token (default: from
+    NOISESTOP_TOKEN / NOISESTOP_TOKEN_FILE); `binary`: use the binary tensor extension
+    (else plain JSON lists, ~10x larger); `batch_size`: most blocks per request.
+    """
+
+    input = "features"  # the server computes features from blocks + quick: send the quick blocks
+
+    def __init__(self, url: str, model: str = "default", token: str | None = None, binary: bool = True,
+                 timeout: float = 30.0, retries: int = 3, backoff: float = 0.25, batch_size: int = 64) -> None:
+        parsed = urllib.parse.urlparse(url)
+        if parsed.scheme not in ("http", "https") or not parsed.netloc:
+            raise ValueError(f"server URL must look like http://host:port, got {url!r}")
+        if not model or "/" in model:
+            raise ValueError(f"model name must be a non-empty name without '/', got {model!r}")
+        if timeout <= 0 or retries < 0 or batch_size < 1:
+            raise ValueError(f"timeout must be > 0, retries >= 0 and batch_size >= 1, got "
+                             f"{timeout!r}, {retries!r}, {batch_size!r}")
+        self.url = url.rstrip("/")
+        self.model = model
+        self.token = token if token is not None else default_token()
+        self.binary, self.timeout = bool(binary), float(timeout)
+        self.retries, self.backoff, self.batch_size = int(retries), float(backoff), int(batch_size)
+        self.requests = 0  # HTTP requests sent (retries included)
+        host = parsed.hostname or ""
+        self._loopback = host == "localhost" or host.startswith("127.") or host == "::1"
+        self._opener_obj: urllib.request.OpenerDirector | None = None
+
+    @property
+    def _opener(self) -> urllib.request.OpenerDirector:
+        """Built lazily, so the object pickles (Dask ships criteria to worker processes)."""
+        if self._opener_obj is None:
+            # a proxy from the environment must not swallow requests to this very machine
+            self._opener_obj = urllib.request.build_opener(
+                urllib.request.ProxyHandler({}) if self._loopback else urllib.request.ProxyHandler())
+        return self._opener_obj
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "_opener_obj": None}
+
+    def __repr__(self) -> str:
+        return f"RemoteModel({self.url!r}, model={self.model!r}, binary={self.binary})"
+
+    # -- transport ---------------------------------------------------------------
+
+    def _path(self, *parts: str) -> str:
+        return self.url + "/" + "/".join(urllib.parse.quote(p, safe="") for p in parts)
+
+    def _request(self, method: str, url: str, body: bytes | None = None,
+                 headers: dict[str, str] | None = None) -> tuple[int, dict[str, str], bytes]:
+        """(status, headers, body); HTTP error statuses are returned, not raised."""
+        hdrs = {"Accept": "application/json", **(headers or {})}
+        if self.token:
+            hdrs["Authorization"] = f"Bearer {self.token}"
+        attempt = 0
+        while True:
+            attempt += 1
+            self.requests += 1
+            req = urllib.request.Request(url, data=body, method=method, headers=hdrs)
+            try:
+                with self._opener.open(req, timeout=self.timeout) as resp:
+                    return resp.status, {k.lower(): v for k, v in resp.headers.items()}, resp.read()
+            except urllib.error.HTTPError as exc:
+                with exc:
+                    return exc.code, {k.lower(): v for k, v in (exc.headers or {}).items()}, exc.read()
+            except (TimeoutError, socket.timeout) as exc:
+                raise ConnectionError(f"{method} {url}: no answer within {self.timeout:g} s") from exc
+            except (urllib.error.URLError, ConnectionError, http.client.RemoteDisconnected,
+                    http.client.BadStatusLine) as exc:
+                reason = getattr(exc, "reason", exc)
+                if isinstance(reason, (TimeoutError, socket.timeout)):
+                    raise ConnectionError(f"{method} {url}: no answer within {self.timeout:g} s") from exc
+                if isinstance(exc, urllib.error.URLError) and not isinstance(reason, OSError):
+                    raise ConnectionError(f"{method} {url}: {reason}") from exc
+                if attempt > self.retries:
+                    raise ConnectionError(f"{method} {url}: server unreachable after {attempt} attempt(s): "
+                                          f"{reason}") from exc
+                delay = self.backoff * 2 ** (attempt - 1)
+                logger.warning("%s %s failed (%s); retry %d/%d in %.2f s", method, url, reason, attempt,
+                               self.retries, delay)
+                time.sleep(delay)
+
+    @staticmethod
+    def _error_text(body: bytes) -> str:
+        try:
+            obj = json.loads(body)
+        except (ValueError, UnicodeDecodeError):
+            return body[:200].decode("utf-8", "replace").strip() or "(empty body)"
+        if isinstance(obj, dict) and "error" in obj:
+            return str(obj["error"])
+        if isinstance(obj, dict) and "detail" in obj:
+            return str(obj["detail"])
+        return json.dumps(obj)[:200]
+
+    def _check(self, method: str, url: str, status: int, body: bytes) -> None:
+        if status < 400:
+            return
+        msg = f"{method} {url}: HTTP {status}: {self._error_text(body)}"
+        if status >= 500:
+            raise ConnectionError(msg)
+        raise ValueError(msg)
+
+    # -- protocol ----------------------------------------------------------------
+
+    def ready(self) -> bool:
+        """Whether the server says the model is ready to answer.
+
+        An unreachable server raises ConnectionError ('not ready' and 'not there' differ);
+        a refused token (401/403) or an unknown model (404) raise ValueError; any other
+        error status (Triton answers 400, KServe 503 while loading) means not ready.
+        """
+        url = self._path("v2", "models", self.model, "ready")
+        status, _, body = self._request("GET", url)
+        if status in (401, 403, 404):
+            self._check("GET", url, status, body)
+        if status >= 400:
+            return False
+        try:
+            obj = json.loads(body) if body else {}
+        except ValueError:
+            return True  # a 200 without JSON: KServe-style bare status
+        return bool(obj.get("ready", True)) if isinstance(obj, dict) else True
+
+    def metadata(self) -> dict[str, Any]:
+        """The model's metadata document (name, versions, platform, inputs, outputs)."""
+        url = self._path("v2", "models", self.model)
+        status, _, body = self._request("GET", url)
+        self._check("GET", url, status, body)
+        try:
+            obj = json.loads(body)
+        except ValueError:
+            raise ValueError(f"GET {url}: metadata is not JSON: {body[:80]!r}") from None
+        if not isinstance(obj, dict):
+            raise ValueError(f"GET {url}: metadata is not a JSON object")
+        return obj
+
+    def infer(self, inputs: dict[str, np.ndarray], outputs: tuple[str, ...] = ("verdict", "score")) -> dict[str, np.ndarray]:
+        """One OIP infer call: named FP32 inputs in, named output arrays out."""
+        url = self._path("v2", "models", self.model, "infer")
+        tensors, tail = [], []
+        for name, arr in inputs.items():
+            a = np.ascontiguousarray(arr, dtype="<f4")
+            t: dict[str, Any] = {"name": name, "shape": list(a.shape), "datatype": "FP32"}
+            if self.binary:
+                raw = a.tobytes()
+                t["parameters"] = {"binary_data_size": len(raw)}
+                tail.append(raw)
+            else:
+                t["data"] = a.reshape(-1).tolist()
+            tensors.append(t)
+        req = {"inputs": tensors, "outputs": [{"name": o, "parameters": {"binary_data": self.binary}}
+                                              for o in outputs]}
+        header = json.dumps(req, separators=(",", ":")).encode()
+        hdrs = {"Content-Type": "application/octet-stream" if self.binary else "application/json"}
+        if self.binary:
+            hdrs[HEADER_LENGTH] = str(len(header))
+        status, rhdrs, body = self._request("POST", url, header + b"".join(tail), hdrs)
+        self._check("POST", url, status, body)
+        return self._parse_outputs(url, rhdrs, body, outputs)
+
+    @staticmethod
+    def _parse_outputs(url: str, headers: dict[str, str], body: bytes, wanted: tuple[str, ...]) -> dict[str, np.ndarray]:
+        hlen = headers.get(HEADER_LENGTH.lower())
+        try:
+            n = int(hlen) if hlen is not None else len(body)
+        except ValueError:
+            raise ValueError(f"POST {url}: bad {HEADER_LENGTH} {hlen!r}") from None
+        if not 0 < n <= len(body):
+            raise ValueError(f"POST {url}: {HEADER_LENGTH} {n} but the answer holds {len(body)} bytes")
+        try:
+            resp = json.loads(body[:n])
+        except (ValueError, UnicodeDecodeError):
+            raise ValueError(f"POST {url}: answer header is not JSON: {body[:80]!r}") from None
+        outs = resp.get("outputs") if isinstance(resp, dict) else None
+        if not isinstance(outs, list):
+            raise ValueError(f"POST {url}: answer has no 'outputs' list")
+        tail, offset, result = body[n:], 0, {}
+        for o in outs:
+            name, dt, shape = o.get("name"), o.get("datatype"), o.get("shape")
+            if dt not in _DTYPES or not isinstance(shape, list):
+                raise ValueError(f"POST {url}: output {name!r} has datatype {dt!r} / shape {shape!r}")
+            count = math.prod(int(s) for s in shape)
+            size = (o.get("parameters") or {}).get("binary_data_size")
+            if size is not None:
+                dtype = np.dtype(_DTYPES[dt])
+                if size != count * dtype.itemsize or offset + size > len(tail):
+                    raise ValueError(f"POST {url}: output {name!r}: binary_data_size {size} does not fit "
+                                     f"shape {shape} of {dt} or the {len(tail) - offset} bytes left")
+                arr = np.frombuffer(tail, dtype=dtype, count=count, offset=offset).reshape(shape)
+                offset += size
+            else:
+                data = o.get("data")
+                if data is None:
+                    raise ValueError(f"POST {url}: output {name!r} has neither data nor binary_data_size")
+                arr = np.asarray(data, dtype=_DTYPES[dt]).reshape(shape)
+            result[name] = arr
+        missing = [w for w in wanted if w not in result]
+        if missing:
+            raise ValueError(f"POST {url}: answer lacks output(s) {missing}")
+        return result
+
+    def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(verdict int8 [N], score float64 [N]) for linear RGB blocks [N, H, W, 3]."""
+        b = np.asarray(blocks)
+        if b.ndim != 4 or b.shape[-1] != 3:
+            raise ValueError(f"blocks must be [N, H, W, 3], got shape {b.shape}")
+        if quick is not None and np.shape(quick) != b.shape:
+            raise ValueError(f"quick blocks {np.shape(quick)} do not match blocks {b.shape}")
+        verdicts, scores = [], []
+        for i in range(0, len(b), self.batch_size):
+            inputs = {"blocks": b[i:i + self.batch_size]}
+            if quick is not None:
+                inputs["quick"] = np.asarray(quick)[i:i + self.batch_size]
+            out = self.infer(inputs)
+            v, s = out["verdict"].reshape(-1), out["score"].reshape(-1)
+            if len(v) != len(inputs["blocks"]) or len(s) != len(v):
+                raise ValueError(f"server returned {len(v)} verdicts / {len(s)} scores for "
+                                 f"{len(inputs['blocks'])} blocks")
+            if not np.isin(v, (-1, 1)).all():
+                raise ValueError(f"server returned verdicts other than -1/+1: {np.unique(v)[:5].tolist()}")
+            verdicts.append(v.astype(np.int8))
+            scores.append(s.astype(np.float64))
+        if not verdicts:
+            return np.zeros(0, np.int8), np.zeros(0, np.float64)
+        return np.concatenate(verdicts), np.concatenate(scores)

@@ -1,0 +1,404 @@
+"""Stopping criteria: one interface for the live adaptive loop and the dataset simulation.
+
+A criterion sees, for each block it is asked about, a `BlockView` (cumulative mean, the
+two half buffers, spp, quick block) and answers +1 (converged: stop sampling it) or -1
+(noisy: keep sampling). The live loop (`renderer.adaptive`) and the simulation on stored
+stacks (`renderer.simulate`) build the same views and call the same `decide`, so what is
+measured offline is what runs online.
+
+Criteria:
+
+* `ModelCriterion`: a learned model (a `learning.bundle.Model` in-process, or a
+  `renderer.client.RemoteModel` talking to a verdict server); both expose
+  ``score_blocks(blocks, quick) -> (verdict, score)``.
+* `VarianceCriterion`: Blender Cycles' adaptive-sampling pixel test, grouped per block.
+* `OracleCriterion`: the true thresholds of a labelled stack (the best possible stops).
+* `UniformCriterion`: never stops (every block rendered to max spp: the baseline).
+
+Flat blocks: a block whose display-referred image (DESIGN "Display transform") varies by
+at most one 8-bit code value in every channel shows no noise at all, whatever a model
+trained on textured scenes might say about such out-of-distribution input. `ModelCriterion`
+and `VarianceCriterion` call such blocks converged without further work (``flat_shortcut``,
+on by default, counted as ``flat_blocks``). This is what makes the degenerate scenes
+(``allblack``, ``sky``) stop at their first decision instead of running to max spp.
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+CONVERGED = np.int8(1)
+NOISY = np.int8(-1)
+FLAT_TOLERANCE = 1.0 / 255.0  # one 8-bit code value of the display transform
+# decide_calls: calls to decide; blocks_asked: verdicts given; blocks_featured: blocks whose
+# current image went through the feature extractor (here or on a server); feature_rows:
+# 26-feature rows computed in this process (current and quick blocks); converged: +1
+# verdicts; flat_blocks: blocks settled by the flat shortcut; nonfinite_blocks: verdicts on
+# blocks that held non-finite samples.
+COUNTER_NAMES = ("decide_calls", "blocks_asked", "blocks_featured", "feature_rows", "converged",
+                 "flat_blocks", "nonfinite_blocks")
+TIMER_NAMES = ("features_s", "decisions_s")
+
+
+@dataclass(frozen=True)
+class BlockView:
+    """What a criterion may look at for one block at one moment of the render.
+
+    `mean` is the cumulative mean of every sample so far, [bh, bw, 3] linear RGB.
+    `halves` = (A, B): means of the even-numbered and odd-numbered passes (the
+    `BlockAccumulator` convention), or None when the caller does not track them.
+    `half_spp` = samples in A and in B. `quick` is the block of the quick noise-free image
+    (None if not rendered). `nonfinite` counts (pixel, pass) values the accumulator dropped.
+    """
+
+    mean: np.ndarray
+    spp: int
+    halves: tuple[np.ndarray, np.ndarray] | None = None
+    half_spp: tuple[int, int] | None = None
+    quick: np.ndarray | None = None
+    nonfinite: int = 0
+
+
+class ScoresBlocks(Protocol):
+    """Anything that turns linear RGB blocks into verdicts (local Model or RemoteModel)."""
+
+    def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+def finite_rgb(x: np.ndarray) -> np.ndarray:
+    """noisefeat's rule for non-finite values: NaN and -Inf -> 0 (black), +Inf -> 1 (white)."""
+    return np.nan_to_num(np.asarray(x, dtype=np.float64), nan=0.0, posinf=1.0, neginf=0.0)
+
+
+def display_range(mean: np.ndarray, exposure: float = 0.0) -> float:
+    """Largest per-channel (max - min) of the block's display-referred values, in [0, 1]."""
+    x = finite_rgb(mean) * (2.0 ** exposure)
+    x = np.clip(x, 0.0, 1.0)
+    d = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0.0031308), 1 / 2.4) - 0.055)
+    flat = d.reshape(-1, d.shape[-1])
+    return float((flat.max(axis=0) - flat.min(axis=0)).max()) if flat.size else 0.0
+
+
+class Criterion(ABC):
+    """Base class: validates inputs, keeps counters and timers, enforces int8 +-1 output.
+
+    `needs_quick` / `needs_halves` tell the caller what the views must carry, so the
+    quick image is rendered (and half buffers recovered) only when some criterion uses
+    them.
+    """
+
+    name: str = "criterion"
+    needs_quick: bool = False
+    needs_halves: bool = False
+
+    def __init__(self) -> None:
+        self.counters: dict[str, int] = {k: 0 for k in COUNTER_NAMES}
+        self.timers: dict[str, float] = {k: 0.0 for k in TIMER_NAMES}
+
+    def describe(self) -> dict[str, Any]:
+        """Name and parameters, for reports."""
+        return {"name": self.name}
+
+    def reset_counters(self) -> None:
+        self.counters = {k: 0 for k in COUNTER_NAMES}
+        self.timers = {k: 0.0 for k in TIMER_NAMES}
+
+    def restore_counters(self, counters: Mapping[str, int], timers: Mapping[str, float] | None = None) -> None:
+        """Continue counting from a checkpoint."""
+        self.counters.update({k: int(v) for k, v in counters.items()})
+        if timers:
+            self.timers.update({k: float(v) for k, v in timers.items()})
+
+    def decide(self, ids: Sequence[int], views: Sequence[BlockView]) -> np.ndarray:
+        """Verdicts int8 [len(ids)]: +1 converged, -1 noisy, for the listed blocks."""
+        ids = [int(b) for b in ids]
+        if len(ids) != len(views):
+            raise ValueError(f"{len(ids)} block ids but {len(views)} views")
+        if not ids:
+            return np.zeros(0, np.int8)
+        for b, v in zip(ids, views):
+            if not isinstance(v, BlockView):
+                raise ValueError(f"block {b}: expected a BlockView, got {type(v).__name__}")
+            if v.mean.ndim != 3 or v.mean.shape[-1] != 3:
+                raise ValueError(f"block {b}: mean must be [bh, bw, 3], got shape {v.mean.shape}")
+            if self.needs_quick and v.quick is None:
+                raise ValueError(f"{self.name} criterion needs the quick image, block {b} has none")
+            if self.needs_halves and (v.halves is None or v.half_spp is None):
+                raise ValueError(f"{self.name} criterion needs half buffers, block {b} has none")
+        t0 = time.perf_counter()
+        features_before = self.timers["features_s"]
+        out = np.asarray(self._decide(ids, list(views)))
+        if out.shape != (len(ids),):
+            raise RuntimeError(f"{self.name} criterion returned shape {out.shape} for {len(ids)} blocks")
+        if not np.isin(out, (-1, 1)).all():
+            raise RuntimeError(f"{self.name} criterion returned values other than -1/+1: "
+                               f"{np.unique(out)[:5].tolist()}")
+        out = out.astype(np.int8)
+        elapsed = time.perf_counter() - t0
+        self.timers["decisions_s"] += max(0.0, elapsed - (self.timers["features_s"] - features_before))
+        self.counters["decide_calls"] += 1
+        self.counters["blocks_asked"] += len(ids)
+        self.counters["converged"] += int((out > 0).sum())
+        self.counters["nonfinite_blocks"] += sum(1 for v in views if v.nonfinite > 0 or
+                                                 not np.isfinite(v.mean).all())
+        return out
+
+    def prepare(self, ids: Sequence[int], quick: np.ndarray) -> None:
+        """Called once with every block's quick image before the first decision (optional work)."""
+
+    @abstractmethod
+    def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
+        """Verdicts for validated, non-empty input."""
+
+    def _flat(self, views: list[BlockView], exposure: float) -> np.ndarray:
+        """bool [n]: blocks with no visible variation at all (see module docstring)."""
+        flat = np.array([display_range(v.mean, exposure) <= FLAT_TOLERANCE for v in views], bool)
+        self.counters["flat_blocks"] += int(flat.sum())
+        return flat
+
+
+class UniformCriterion(Criterion):
+    """Never converged: every block is rendered to max spp (the uniform baseline)."""
+
+    name = "uniform"
+
+    def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
+        return np.full(len(ids), NOISY, np.int8)
+
+
+class OracleCriterion(Criterion):
+    """Block b is converged iff spp >= T_b; a null threshold (censored) never converges.
+
+    With the thresholds of a labelled stack this is the best any criterion can do on that
+    stack: the yardstick of `spp_ratio_vs_oracle`.
+    """
+
+    name = "oracle"
+
+    def __init__(self, thresholds: Sequence[int | None]) -> None:
+        super().__init__()
+        th = list(thresholds)
+        for i, t in enumerate(th):
+            if t is not None and (isinstance(t, bool) or not isinstance(t, (int, np.integer)) or t < 1):
+                raise ValueError(f"threshold of block {i} must be a positive integer or None, got {t!r}")
+        self.thresholds: list[int | None] = [None if t is None else int(t) for t in th]
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "thresholds": self.thresholds}
+
+    def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
+        out = np.empty(len(ids), np.int8)
+        for i, (b, v) in enumerate(zip(ids, views)):
+            if not 0 <= b < len(self.thresholds):
+                raise ValueError(f"block id {b} out of range: the oracle knows {len(self.thresholds)} blocks")
+            t = self.thresholds[b]
+            out[i] = CONVERGED if t is not None and v.spp >= t else NOISY
+        return out
+
+
+class VarianceCriterion(Criterion):
+    """Blender Cycles' adaptive-sampling test, applied to every pixel of a block.
+
+    Exact rule implemented (per pixel, channels r, g, b; I = cumulative mean of all
+    samples, A = mean of the even-numbered passes, the first half buffer):
+
+        diff      = |I_r - A_r| + |I_g - A_g| + |I_b - A_b|
+        intensity = max(I_r + I_g + I_b, 0)
+        norm      = sqrt(intensity) if intensity < 1 else intensity
+        error     = diff / (1e-4 + norm)
+        pixel passes  iff  error < scale * threshold        (scale = 1 by default)
+
+    This is Cycles' ``film_adaptive_sampling_convergence_check``
+    (intern/cycles/kernel/film/adaptive_sampling.h): there I and A are sums and A holds
+    one class of samples doubled, and both are multiplied by 1/N, so I/N and A/N are the
+    two means used here. The kernel compares against the user's noise threshold itself
+    (``error < threshold``); REFERENCES.md's "5 x noise_threshold" is not in that source,
+    so `scale` defaults to 1 and is exposed for anyone who wants the other reading.
+
+    Block rule (Octane's "group pixels"): the block is converged when a fraction of at
+    least `quantile` of its pixels pass (1.0, the default: every pixel). Cycles' one-pixel
+    dilation of unconverged pixels is irrelevant with quantile 1 and is not done.
+
+    Half buffers need two passes: with only one pass A equals I and the test would pass
+    trivially, so a block whose odd half B is still empty is noisy. The first variance
+    decision therefore comes at max(min_spp, 2 x step) unless the block is flat.
+    Non-finite values follow noisefeat's rule (NaN/-Inf -> 0, +Inf -> 1), so no decision
+    is ever NaN.
+    """
+
+    name = "variance"
+    needs_halves = True
+
+    def __init__(self, threshold: float = 0.01, quantile: float = 1.0, scale: float = 1.0,
+                 flat_shortcut: bool = True, exposure: float = 0.0) -> None:
+        super().__init__()
+        if not (np.isfinite(threshold) and threshold > 0):
+            raise ValueError(f"variance threshold must be a positive number, got {threshold!r}")
+        if not (0.0 < quantile <= 1.0):
+            raise ValueError(f"quantile must be in (0, 1], got {quantile!r}")
+        if not (np.isfinite(scale) and scale > 0):
+            raise ValueError(f"scale must be a positive number, got {scale!r}")
+        self.threshold, self.quantile, self.scale = float(threshold), float(quantile), float(scale)
+        self.flat_shortcut, self.exposure = bool(flat_shortcut), float(exposure)
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "threshold": self.threshold, "quantile": self.quantile,
+                "scale": self.scale, "flat_shortcut": self.flat_shortcut}
+
+    def pixel_error(self, mean: np.ndarray, half_a: np.ndarray) -> np.ndarray:
+        """Cycles' per-pixel error [bh, bw] (finite, >= 0)."""
+        i = finite_rgb(mean)
+        a = finite_rgb(half_a)
+        diff = np.abs(i - a).sum(axis=-1)
+        intensity = np.maximum(i.sum(axis=-1), 0.0)
+        norm = np.where(intensity < 1.0, np.sqrt(intensity), intensity)
+        return diff / (1e-4 + norm)
+
+    def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
+        flat = self._flat(views, self.exposure) if self.flat_shortcut else np.zeros(len(views), bool)
+        out = np.full(len(ids), NOISY, np.int8)
+        for i, v in enumerate(views):
+            if flat[i]:
+                out[i] = CONVERGED
+                continue
+            assert v.halves is not None and v.half_spp is not None
+            if min(v.half_spp) <= 0:
+                continue  # one pass only: no noise estimate yet
+            err = self.pixel_error(v.mean, v.halves[0])
+            passed = float((err < self.scale * self.threshold).mean())
+            out[i] = CONVERGED if passed >= self.quantile else NOISY
+        return out
+
+
+class ModelCriterion(Criterion):
+    """A learned verdict model: local `learning.bundle.Model` or a `RemoteModel`.
+
+    For a local feature model the model input features(quick) - features(current) is
+    computed here, in two timed steps (features, then the SVM), with the quick blocks'
+    features cached per (block id, content hash): the quick image never changes during a
+    render, so its features are computed once per block, not once per pass. Any other
+    scorer (a remote server, a raw-input model) is called through ``score_blocks``.
+    """
+
+    name = "model"
+
+    def __init__(self, model: ScoresBlocks, exposure: float = 0.0, flat_shortcut: bool = True) -> None:
+        super().__init__()
+        if not hasattr(model, "score_blocks"):
+            raise ValueError(f"model must have score_blocks(blocks, quick), got {type(model).__name__}")
+        self.model = model
+        self.exposure = float(exposure)
+        self.flat_shortcut = bool(flat_shortcut)
+        self.needs_quick = getattr(model, "input", "features") != "raw"
+        self._local_features = (getattr(model, "input", None) == "features"
+                                and hasattr(model, "decision_function") and hasattr(model, "offset"))
+        self._quick_cache: dict[tuple[int, bytes], np.ndarray] = {}
+
+    def describe(self) -> dict[str, Any]:
+        m = self.model
+        d: dict[str, Any] = {"name": self.name, "flat_shortcut": self.flat_shortcut}
+        manifest = getattr(m, "manifest", None)
+        if isinstance(manifest, Mapping):
+            d["model"] = {"kind": manifest.get("kind"), "name": manifest.get("name"),
+                          "input": manifest.get("input"), "path": str(getattr(m, "path", "") or "")}
+        elif hasattr(m, "url"):
+            d["model"] = {"remote": str(m.url), "name": str(getattr(m, "model", ""))}
+        else:
+            d["model"] = {"type": type(m).__name__}
+        return d
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state["_quick_cache"] = {}  # cheap to rebuild, no need to ship it to workers
+        return state
+
+    def _quick_features(self, ids: list[int], quick: np.ndarray) -> np.ndarray:
+        from noisefeat import extract_features
+
+        keys = [(b, hashlib.blake2b(np.ascontiguousarray(q, np.float32).tobytes(), digest_size=16).digest())
+                for b, q in zip(ids, quick)]
+        missing = [i for i, k in enumerate(keys) if k not in self._quick_cache]
+        if missing:
+            feats = extract_features(np.ascontiguousarray(quick[missing], np.float32), exposure=self.exposure)
+            self.counters["feature_rows"] += len(missing)
+            for i, f in zip(missing, feats):
+                self._quick_cache[keys[i]] = f
+        return np.stack([self._quick_cache[k] for k in keys])
+
+    def prepare(self, ids: Sequence[int], quick: np.ndarray) -> None:
+        """Compute (and count) the quick blocks' features up front: every block needs them."""
+        if self._local_features and self.needs_quick and len(ids):
+            t0 = time.perf_counter()
+            self._quick_features([int(b) for b in ids], np.asarray(quick, np.float32))
+            self.timers["features_s"] += time.perf_counter() - t0
+
+    def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
+        out = np.full(len(ids), NOISY, np.int8)
+        flat = self._flat(views, self.exposure) if self.flat_shortcut else np.zeros(len(views), bool)
+        out[flat] = CONVERGED
+        ask = [i for i in range(len(ids)) if not flat[i]]
+        if not ask:
+            return out
+        blocks = np.stack([np.asarray(views[i].mean, np.float32) for i in ask])
+        quick = np.stack([np.asarray(views[i].quick, np.float32) for i in ask]) if self.needs_quick else None
+        self.counters["blocks_featured"] += len(ask)
+        if self._local_features:
+            from noisefeat import extract_features
+
+            t0 = time.perf_counter()
+            qf = self._quick_features([ids[i] for i in ask], quick)
+            x = qf - extract_features(blocks, exposure=self.exposure)
+            self.counters["feature_rows"] += len(ask)
+            self.timers["features_s"] += time.perf_counter() - t0
+            score = np.asarray(self.model.decision_function(x), np.float64)  # type: ignore[attr-defined]
+            verdict = np.where(score > float(self.model.offset), 1, -1)  # type: ignore[attr-defined]
+        else:
+            verdict, score = self.model.score_blocks(blocks, quick)
+            verdict = np.asarray(verdict)
+        if verdict.shape != (len(ask),):
+            raise RuntimeError(f"model returned {verdict.shape} verdicts for {len(ask)} blocks")
+        out[ask] = np.where(verdict > 0, CONVERGED, NOISY)
+        return out
+
+
+CRITERIA = ("model", "variance", "uniform", "oracle")
+
+
+def build_criterion(kind: str, *, model: str | None = None, server: str | None = None,
+                    token: str | None = None, thresholds: Sequence[int | None] | None = None,
+                    variance_threshold: float = 0.01, quantile: float = 1.0,
+                    exposure: float = 0.0) -> Criterion:
+    """A criterion from command-line style options.
+
+    model: bundle path (None: the bundled model); server: verdict server URL (then the
+    model name is `default` unless the URL ends with ``#name``); thresholds: needed by
+    the oracle (from a labelled stack).
+    """
+    if kind == "uniform":
+        return UniformCriterion()
+    if kind == "variance":
+        return VarianceCriterion(variance_threshold, quantile=quantile, exposure=exposure)
+    if kind == "oracle":
+        if thresholds is None:
+            raise ValueError("the oracle criterion needs true thresholds: give a labelled dataset "
+                             "or stack of this scene (--reference DIR)")
+        return OracleCriterion(thresholds)
+    if kind == "model":
+        if server:
+            from .client import RemoteModel
+
+            url, _, name = server.partition("#")
+            return ModelCriterion(RemoteModel(url, model=name or "default", token=token), exposure=exposure)
+        from learning.bundle import load_model
+
+        return ModelCriterion(load_model(model), exposure=exposure)
+    raise ValueError(f"unknown criterion {kind!r}; choose one of {', '.join(CRITERIA)}")

@@ -1,0 +1,122 @@
+"""What an adaptive render leaves on disk: final.exr, final.png, spp_map.png, report.json.
+
+Every file is written atomically (temporary name, fsync, rename: `learning.exr`), so an
+interrupted run never leaves a truncated image that looks finished. The spp map is drawn
+with matplotlib's object API on an Agg canvas (no pyplot global state: safe in Dask
+worker threads).
+"""
+from __future__ import annotations
+
+import io
+import json
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from learning.exr import atomic_write_bytes, write_exr, write_png
+from noisefeat import display
+
+FINAL_EXR = "final.exr"
+FINAL_PNG = "final.png"
+SPP_MAP = "spp_map.png"
+REPORT = "report.json"
+
+
+def to_srgb8(image: np.ndarray, exposure: float = 0.0) -> np.ndarray:
+    """DESIGN's display transform, quantised to uint8 [H, W, 3]."""
+    d = display(np.asarray(image, np.float32), exposure).numpy()
+    return np.clip(np.rint(d * 255.0), 0, 255).astype(np.uint8)
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, os.PathLike):
+        return os.fspath(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def write_report(path: str | os.PathLike, report: dict[str, Any]) -> Path:
+    path = Path(path)
+    atomic_write_bytes(path, (json.dumps(report, indent=2, default=_json_default) + "\n").encode("utf-8"))
+    return path
+
+
+def spp_map_png(srgb8: np.ndarray, grid: Sequence[int], spp: Sequence[int],
+                converged: Sequence[bool], max_spp: int) -> bytes:
+    """PNG bytes: the image with the grid and each block's spp written on it.
+
+    Green labels: the criterion stopped the block; orange: it ran to max spp.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    h, w = srgb8.shape[:2]
+    gh, gw = (int(g) for g in grid)
+    bh, bw = h // gh, w // gw
+    inches = max(4.0, w / 100.0)
+    fig = Figure(figsize=(inches, inches * h / w), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_axes((0, 0, 1, 1))
+    ax.imshow(srgb8, interpolation="nearest")
+    ax.set_axis_off()
+    for r in range(1, gh):
+        ax.axhline(r * bh - 0.5, color="cyan", lw=0.8, alpha=0.8)
+    for c in range(1, gw):
+        ax.axvline(c * bw - 0.5, color="cyan", lw=0.8, alpha=0.8)
+    size = max(6.0, min(14.0, 72.0 * inches / gw / 4.0))
+    for b, (s, ok) in enumerate(zip(spp, converged)):
+        r, c = divmod(b, gw)
+        ax.text(c * bw + bw / 2 - 0.5, r * bh + bh / 2 - 0.5, f"{int(s)}", ha="center", va="center",
+                fontsize=size, color="#7CFC00" if ok else ("#FFA500" if s >= max_spp else "white"),
+                bbox={"facecolor": "black", "alpha": 0.55, "pad": 1.5, "lw": 0})
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    return buf.getvalue()
+
+
+def write_outputs(out: str | os.PathLike, image: np.ndarray, report: dict[str, Any]) -> dict[str, str]:
+    """Write the four outputs of a render into `out`; return their paths by name."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    img = np.asarray(image, np.float32)
+    srgb8 = to_srgb8(img)
+    write_exr(out / FINAL_EXR, img)
+    write_png(out / FINAL_PNG, srgb8)
+    blocks = report["blocks"]
+    atomic_write_bytes(out / SPP_MAP, spp_map_png(srgb8, report["grid"], [b["spp"] for b in blocks],
+                                                  [b["converged"] for b in blocks], report["max_spp"]))
+    write_report(out / REPORT, report)
+    return {name: str(out / name) for name in (FINAL_EXR, FINAL_PNG, SPP_MAP, REPORT)}
+
+
+def format_report(report: dict[str, Any], out: str | os.PathLike | None = None) -> str:
+    """A few human-readable lines about a finished render (the non --json output)."""
+    gh, gw = report["grid"]
+    rows = []
+    for r in range(gh):
+        cells = []
+        for c in range(gw):
+            b = report["blocks"][r * gw + c]
+            cells.append(f"{b['spp']:>6}{'*' if b['converged'] else ' '}")
+        rows.append(" ".join(cells))
+    t = report["timing"]
+    lines = [f"scene {report['scene']}: {report['resolution'][0]}x{report['resolution'][1]}, "
+             f"criterion {report['criterion']['name']}, variant {report['variant']}",
+             "spp per block (* = stopped by the criterion):", *rows,
+             f"saved vs uniform {report['saved_vs_uniform']:.1%}, mean spp {report['mean_spp']:.1f}, "
+             f"{report['passes']} passes",
+             f"wall {report['wall_s']:.2f} s = setup {t['setup_s']:.2f} + render {t['render_s']:.2f}"
+             f" + features {t['features_s']:.2f} + decisions {t['decisions_s']:.2f}"
+             f" + overhead {t['overhead_s']:.2f}"]
+    if "early_stop_rate" in report:
+        lines.append(f"vs reference: early-stop rate {report['early_stop_rate']:.1%}, "
+                     f"spp ratio vs oracle {report['spp_ratio_vs_oracle']:.2f}")
+    if out is not None:
+        lines.append(f"outputs in {out}")
+    return "\n".join(lines)

@@ -1,0 +1,218 @@
+"""Run a stopping criterion over stored stacks instead of rendering (offline evaluation).
+
+Level k of a stack is the cumulative mean of spp[k] samples. The samples added between
+two levels form one *pass*: sum_k = spp[k] * L_k, pass_k = (sum_k - sum_{k-1}) /
+(spp[k] - spp[k-1]) (pass 0 = L_0). Feeding these passes to a `BlockAccumulator` gives the
+very half buffers the live loop keeps (A = even passes, B = odd passes). With a constant
+step every pass has the same size and A and B hold equal sample counts, as in the live
+loop; with a varying step (e.g. doubling spp) halves are unbalanced and a warning says so.
+
+`simulate_stack` then replays the live loop's control flow: once spp >= min_spp, after
+each level, only the still-active blocks are asked, and a block once converged stays
+converged and is never asked again. The verdict matrix V [K, B] therefore holds -1 up to
+the level where the loop would have stopped the block and +1 from there on, which is what
+`learning.metrics.evaluate_verdicts` scores.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from learning.metrics import evaluate_verdicts
+from learning.stack import Stack, list_stacks, read_stack
+
+from .blocks import BlockAccumulator
+from .criteria import BlockView, Criterion
+
+logger = logging.getLogger(__name__)
+
+
+def recover_passes(stack: Stack) -> Iterator[tuple[int, np.ndarray, int, np.ndarray]]:
+    """Yield (k, level_k [H, W, 3] float64, pass spp, pass_k [H, W, 3] float64), one level at a time.
+
+    Pixels whose stored level is non-finite give a non-finite pass; the accumulator drops
+    them exactly as it drops a renderer's non-finite samples.
+    """
+    prev_sum: np.ndarray | None = None
+    prev_spp = 0
+    for k, s in enumerate(stack.spp):
+        level = stack.level(k).astype(np.float64)
+        total = level * float(s)
+        n = int(s) - prev_spp
+        with np.errstate(invalid="ignore", over="ignore"):
+            pass_img = total / n if prev_sum is None else (total - prev_sum) / n
+        yield k, level, n, pass_img
+        prev_sum, prev_spp = total, int(s)
+
+
+def _check_step(stack: Stack) -> None:
+    steps = np.diff([0, *stack.spp])
+    if len(set(steps.tolist())) > 1:
+        logger.warning("%s: spp steps are not constant (%s...): recovered passes differ in size, "
+                       "so the half buffers A/B are unbalanced", stack.path, steps[:4].tolist())
+
+
+def simulate_stack(stack: Stack, criterion: Criterion, min_spp: int | None = None,
+                   progress: bool = False) -> np.ndarray:
+    """Verdicts V int8 [K, n_blocks] the live loop would produce on this stack.
+
+    `min_spp` (None: no minimum): no decision before that many samples.
+    """
+    if min_spp is not None and min_spp < 1:
+        raise ValueError(f"min_spp must be a positive integer, got {min_spp!r}")
+    n = stack.n_blocks
+    K = stack.n_levels
+    V = np.full((K, n), -1, np.int8)
+    active = np.ones(n, bool)
+    quick = stack.split(stack.quick()) if criterion.needs_quick else None
+    if quick is not None:
+        criterion.prepare(list(range(n)), quick)
+    acc = None
+    if criterion.needs_halves:
+        _check_step(stack)
+        acc = BlockAccumulator(stack.grid, stack.block)
+    bar = tqdm(total=K, desc=f"{stack.scene} simulate", unit="lvl", disable=not progress, leave=False)
+    for k, level, pass_spp, pass_img in recover_passes(stack):
+        bar.update(1)
+        ids = np.flatnonzero(active).tolist()
+        if not ids:
+            V[k:] = 1
+            break
+        if acc is not None:
+            pass_blocks = stack.split(pass_img)
+            for b in ids:  # converged blocks are never rendered again, nor accumulated
+                acc.add(b, pass_blocks[b], pass_spp)
+        if k > 0:
+            V[k] = V[k - 1]
+        spp = int(stack.spp[k])
+        if min_spp is not None and spp < min_spp:
+            continue
+        means = stack.split(level)
+        views = []
+        for b in ids:
+            views.append(BlockView(
+                mean=means[b], spp=spp,
+                halves=acc.half_buffer(b) if acc is not None else None,
+                half_spp=acc.half_spp(b) if acc is not None else None,
+                quick=None if quick is None else quick[b],
+                nonfinite=acc.nonfinite(b) if acc is not None else 0))
+        verdict = criterion.decide(ids, views)
+        done = [b for b, v in zip(ids, verdict) if v > 0]
+        V[k, done] = 1
+        active[done] = False
+    bar.close()
+    return V
+
+
+def _as_stacks(stacks: Stack | str | os.PathLike | Iterable[Stack | str | os.PathLike]) -> list[Stack]:
+    if isinstance(stacks, Stack):
+        return [stacks]
+    if isinstance(stacks, (str, os.PathLike)):
+        return [read_stack(p) for p in list_stacks(stacks)]
+    out = []
+    for s in stacks:
+        out.extend(_as_stacks(s) if not isinstance(s, Stack) else [s])
+    return out
+
+
+def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str | os.PathLike],
+                       criterion_factory: Callable[[Stack], Criterion], min_spp: int | None = None,
+                       progress: bool = False) -> dict[str, Any]:
+    """DESIGN metrics of a criterion simulated on labelled stacks, overall and per scene.
+
+    `stacks`: a dataset directory, a stack, or a list of either. `criterion_factory(stack)`
+    returns a fresh criterion for each stack (the oracle needs that stack's thresholds).
+    The result is `evaluate_verdicts`' dict plus ``criterion`` (its description) and
+    ``counters`` (summed criterion counters and timers).
+    """
+    todo = _as_stacks(stacks)
+    if not todo:
+        raise ValueError(f"no stacks found in {stacks!r}")
+    per_scene: dict[str, tuple] = {}
+    counters: dict[str, float] = {}
+    description: dict[str, Any] = {}
+    for st in tqdm(todo, desc="stacks", unit="stack", disable=not progress):
+        if st.thresholds is None:
+            raise ValueError(f"{st.path}: stack has no thresholds; label it first")
+        if st.scene in per_scene:
+            raise ValueError(f"{st.path}: scene {st.scene!r} appears twice")
+        crit = criterion_factory(st)
+        V = simulate_stack(st, crit, min_spp=min_spp, progress=progress)
+        per_scene[st.scene] = (V, st.labels(), st.thresholds, st.spp)
+        for k, v in {**crit.counters, **crit.timers}.items():
+            counters[k] = counters.get(k, 0) + v
+        description = crit.describe()
+        if description.get("name") == "oracle":
+            description = {"name": "oracle"}
+    out = evaluate_verdicts(per_scene)
+    out["criterion"] = description
+    out["counters"] = counters
+    return out
+
+
+def criterion_factory(kind: str, *, model: str | None = None, server: str | None = None,
+                      variance_threshold: float = 0.01) -> Callable[[Stack], Criterion]:
+    """A fresh criterion per stack for `evaluate_criterion`, from command-line style options.
+
+    The model (or server connection) is set up once and shared; the oracle takes each
+    stack's own thresholds.
+    """
+    from .criteria import CRITERIA, ModelCriterion, OracleCriterion, build_criterion
+
+    if kind not in CRITERIA:
+        raise ValueError(f"unknown criterion {kind!r}; choose one of {', '.join(CRITERIA)}")
+    if kind == "oracle":
+        def oracle(st: Stack) -> Criterion:
+            if st.thresholds is None:
+                raise ValueError(f"{st.path}: stack has no thresholds; the oracle needs them")
+            return OracleCriterion(st.thresholds)
+        return oracle
+    if kind == "model":
+        shared = build_criterion("model", model=model, server=server)
+        assert isinstance(shared, ModelCriterion)
+        return lambda st: ModelCriterion(shared.model, exposure=shared.exposure)
+    return lambda st: build_criterion(kind, variance_threshold=variance_threshold)
+
+
+def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list[str] | None = None, *,
+                           min_spp: int | None = None, variance_threshold: float = 0.01,
+                           model: str | None = None, server: str | None = None,
+                           progress: bool = True) -> dict[str, Any]:
+    """What `noisestop evaluate --criterion C` runs for a rule criterion: simulate C on the
+    labelled stacks of `data` (only `scenes` if given) and return the DESIGN metrics,
+    overall and per scene."""
+    stacks = [read_stack(p) for p in list_stacks(data)]
+    if scenes:
+        missing = sorted(set(scenes) - {st.scene for st in stacks})
+        if missing:
+            raise ValueError(f"{data}: no stack of scene(s) {', '.join(missing)}")
+        stacks = [st for st in stacks if st.scene in scenes]
+    unlabelled = [str(st.path) for st in stacks if st.thresholds is None]
+    if unlabelled:
+        logger.warning("skipping %d unlabelled stack(s): %s", len(unlabelled), ", ".join(unlabelled[:3]))
+        stacks = [st for st in stacks if st.thresholds is not None]
+    if not stacks:
+        raise ValueError(f"{data}: no labelled stacks to evaluate on")
+    factory = criterion_factory(criterion, model=model, server=server, variance_threshold=variance_threshold)
+    return evaluate_criterion(stacks, factory, min_spp=min_spp, progress=progress)
+
+
+def find_reference(reference: Stack | str | os.PathLike, scene: str) -> Stack:
+    """The labelled stack of `scene` in a dataset directory (or that stack itself)."""
+    if isinstance(reference, Stack):
+        return reference
+    root = Path(reference)
+    stacks = [read_stack(p) for p in list_stacks(root)]
+    match = [s for s in stacks if s.scene == scene]
+    if len(stacks) == 1 and not match:
+        raise ValueError(f"{root}: the stack there is scene {stacks[0].scene!r}, not {scene!r}")
+    if not match:
+        raise ValueError(f"{root}: no stack of scene {scene!r} (found: "
+                         f"{', '.join(s.scene for s in stacks[:10]) or 'none'})")
+    return match[0]

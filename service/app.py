@@ -1,0 +1,258 @@
+"""The verdict API: Open Inference Protocol v2 over FastAPI (DESIGN.md "HTTP API").
+
+Routes: GET /v2/health/live, /v2/health/ready (no token: probes), and, behind the bearer
+token, GET /v2, GET|POST /v2/repository/index, GET /v2/models/{m}[/versions/{v}],
+GET .../ready, POST .../infer, GET /metrics. Every client error is a 4xx with
+{"error": "..."}; a 500 means a bug here.
+
+The infer route reads its body itself (FastAPI's documented route for custom bodies, with
+the schema given through `openapi_extra`): the body may carry binary tensors after the JSON
+header, and a 16-block JSON request holds ~1.5 M numbers that pydantic need not walk one
+by one. Decoding and inference run in worker threads (anyio.to_thread with a capacity
+limiter), so the event loop keeps serving probes and uploads while the CPU works.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Annotated, Any
+
+import anyio
+import anyio.to_thread
+from fastapi import APIRouter, Depends, FastAPI, Header, Request, Response
+from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
+from fastapi.responses import JSONResponse
+from pydantic.json_schema import models_json_schema
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from .auth import require_token
+from .limits import BodyLimitMiddleware, Limits
+from .metrics import ServiceMetrics
+from .oip import (BINARY_EXTENSION, HEADER_LENGTH, ApiError, ErrorResponse, InferenceRequest,
+                  InferenceResponse, LiveResponse, ModelMetadata, ModelReadyResponse, ReadyResponse,
+                  RepositoryModel, RequestOutput, ResponseOutput, ServerMetadata, decode_tensors,
+                  encode_response, param, parse_request, split_body)
+from .registry import DEFAULT, OUTPUTS, ModelRegistry, ServedModel
+
+log = logging.getLogger(__name__)
+
+SERVER_NAME = "noisestop"
+BINARY_MEDIA = "application/octet-stream"
+
+_DESCRIPTIONS = {400: "bad request (shape, datatype, data, JSON)", 401: "missing or wrong bearer token",
+                 404: "unknown model or version", 413: "body or batch over the server's limit",
+                 415: "compressed request body"}
+
+
+# A decimal string (HTTP headers are text); absent: the whole body is JSON.
+HeaderLength = Annotated[str | None, Header(alias=HEADER_LENGTH, convert_underscores=False,
+                                            pattern=r"^[0-9]{1,15}$",
+                                            description="length in bytes of the JSON header when "
+                                                        "binary tensors follow it")]
+
+
+def _errors(*codes: int) -> dict[int | str, dict[str, Any]]:
+    return {c: {"model": ErrorResponse, "description": _DESCRIPTIONS[c]} for c in codes}
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("noisestop")
+    except PackageNotFoundError:
+        return "0+unknown"
+
+
+def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Limits | None = None,
+               inference_threads: int = 2, metrics: ServiceMetrics | None = None) -> FastAPI:
+    """The ASGI app; models load in its lifespan (now, if `registry` is not loaded yet)."""
+    limits = limits or Limits()
+    metrics = metrics or ServiceMetrics()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        app.state.limiter = anyio.CapacityLimiter(inference_threads)
+        await anyio.to_thread.run_sync(registry.load)
+        for name, served in registry.models.items():
+            metrics.load_seconds.labels(name).set(served.load_seconds)
+        log.info("serving %s", ", ".join(f"{n} ({registry.get(n).name})" for n in registry.names()))
+        yield
+
+    app = FastAPI(title="noisestop verdict service", version=_version(), lifespan=lifespan,
+                  docs_url=None, redoc_url=None,
+                  description="Open Inference Protocol v2: is this sub-image still noisy to a human?")
+    app.state.token = token
+    app.state.registry = registry
+    app.state.limits = limits
+    app.state.metrics = metrics
+    app.add_middleware(BodyLimitMiddleware, max_bytes=limits.max_body_bytes)
+    metrics.instrument(app, dependencies=[Depends(require_token)], tags=["metrics"], responses={
+        200: {"description": "Prometheus text format", "content": {"text/plain": {"schema": {"type": "string"}}}},
+        **_errors(401)})
+    _add_error_handlers(app)
+    app.include_router(_health_routes(registry))
+    app.include_router(_api_routes(registry))
+    app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
+    return app
+
+
+def _add_error_handlers(app: FastAPI) -> None:
+    @app.exception_handler(ApiError)
+    async def api_error(_: Request, exc: ApiError) -> JSONResponse:
+        return JSONResponse({"error": exc.message}, exc.status, headers=exc.headers)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+        return JSONResponse({"error": str(exc.detail)}, exc.status_code, headers=exc.headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
+        first = exc.errors()[0] if exc.errors() else {"loc": (), "msg": "invalid request"}
+        where = ".".join(str(p) for p in first.get("loc", ()))
+        return JSONResponse({"error": f"{where}: {first.get('msg')}"}, 400)
+
+    @app.exception_handler(Exception)
+    async def server_error(_: Request, exc: Exception) -> JSONResponse:
+        log.exception("unexpected error", exc_info=exc)
+        return JSONResponse({"error": "internal server error"}, 500)
+
+
+def _health_routes(registry: ModelRegistry) -> APIRouter:
+    router = APIRouter(prefix="/v2/health", tags=["health"])
+
+    @router.get("/live")
+    async def live() -> LiveResponse:
+        return LiveResponse(live=True)
+
+    @router.get("/ready", responses={400: {"model": ReadyResponse, "description": "not ready"}})
+    async def ready() -> JSONResponse:
+        return JSONResponse({"ready": registry.ready}, 200 if registry.ready else 400)
+
+    return router
+
+
+def _api_routes(registry: ModelRegistry) -> APIRouter:
+    router = APIRouter(prefix="/v2", dependencies=[Depends(require_token)], responses=_errors(401))
+    model_errors = _errors(401, 404)
+
+    @router.get("", tags=["server"])
+    async def server_metadata() -> ServerMetadata:
+        return ServerMetadata(name=SERVER_NAME, version=_version(), extensions=[BINARY_EXTENSION])
+
+    @router.get("/repository/index", tags=["server"])
+    async def repository_index() -> list[RepositoryModel]:
+        out = [RepositoryModel(name=DEFAULT, version=registry.get(DEFAULT).version, state="READY",
+                               reason=f"alias of {registry.default_name}")]
+        return out + [RepositoryModel(name=n, version=s.version, state="READY")
+                      for n, s in registry.models.items()]
+
+    @router.post("/repository/index", tags=["server"], description="Triton's form (its body is ignored)")
+    async def repository_index_post() -> list[RepositoryModel]:
+        return await repository_index()
+
+    @router.get("/models/{model_name}", responses=model_errors, tags=["models"])
+    async def model_metadata(model_name: str) -> ModelMetadata:
+        return registry.get(model_name).metadata(model_name)
+
+    @router.get("/models/{model_name}/versions/{model_version}", responses=model_errors, tags=["models"])
+    async def model_version_metadata(model_name: str, model_version: str) -> ModelMetadata:
+        return registry.get(model_name, model_version).metadata(model_name)
+
+    @router.get("/models/{model_name}/ready", responses=model_errors, tags=["models"])
+    async def model_ready(model_name: str) -> ModelReadyResponse:
+        registry.get(model_name)
+        return ModelReadyResponse(name=model_name, ready=True)
+
+    @router.get("/models/{model_name}/versions/{model_version}/ready", responses=model_errors,
+                tags=["models"])
+    async def model_version_ready(model_name: str, model_version: str) -> ModelReadyResponse:
+        registry.get(model_name, model_version)
+        return ModelReadyResponse(name=model_name, ready=True)
+
+    infer_doc: dict[str, Any] = dict(
+        responses={**_INFER_OK, **_errors(400, 401, 404, 413, 415)}, response_model=None,
+        openapi_extra=_INFER_BODY, tags=["models"])
+
+    @router.post("/models/{model_name}/infer", **infer_doc)
+    async def infer(model_name: str, request: Request,
+                    header_length: HeaderLength = None) -> Response:
+        return await _infer(request, registry.get(model_name), header_length)
+
+    @router.post("/models/{model_name}/versions/{model_version}/infer", **infer_doc)
+    async def infer_version(model_name: str, model_version: str, request: Request,
+                            header_length: HeaderLength = None) -> Response:
+        return await _infer(request, registry.get(model_name, model_version), header_length)
+
+    return router
+
+
+async def _infer(request: Request, served: ServedModel, header_length: str | None) -> Response:
+    if request.headers.get("content-encoding", "identity").strip().lower() not in ("identity", ""):
+        raise ApiError(415, "compressed request bodies are not accepted (Content-Encoding must be identity)")
+    body = await request.body()  # counted against the limit by BodyLimitMiddleware
+    state = request.app.state
+    content, json_length = await anyio.to_thread.run_sync(
+        _infer_sync, served, body, None if header_length is None else int(header_length), state.limits, state.metrics, limiter=state.limiter)
+    if json_length is None:
+        return Response(content, media_type="application/json")
+    return Response(content, media_type=BINARY_MEDIA, headers={HEADER_LENGTH: str(json_length)})
+
+
+def _infer_sync(served: ServedModel, body: bytes, header_length: int | None, limits: Limits,
+                metrics: ServiceMetrics) -> tuple[bytes, int | None]:
+    """Decode, classify, encode: everything CPU-bound about one request, in a worker thread."""
+    head, tail = split_body(body, header_length)
+    req = parse_request(head)
+    tensors = decode_tensors(req, tail, limits.max_batch)
+    exposure = param(req.parameters, "exposure", (int, float), 0.0)
+    if not math.isfinite(exposure):
+        raise ApiError(400, f"parameter 'exposure' must be finite, got {exposure}")
+    wanted = _requested_outputs(req)
+    arrays, parameters = served.infer(tensors, float(exposure))
+    metrics.record(served.name, arrays["verdict"], parameters)
+    resp = InferenceResponse(
+        model_name=served.name, model_version=served.version, id=req.id, parameters=parameters or None,
+        outputs=[ResponseOutput(name=n, shape=[int(s) for s in arrays[n].shape], datatype=OUTPUTS[n])
+                 for n in wanted])
+    return encode_response(resp, arrays, {n for n, binary in wanted.items() if binary})
+
+
+def _requested_outputs(req: InferenceRequest) -> dict[str, bool]:
+    """Output name -> sent as binary; all outputs when none are named (OIP)."""
+    default_binary = param(req.parameters, "binary_data_output", bool, False)
+    outputs = req.outputs or [RequestOutput(name=n) for n in OUTPUTS]
+    wanted: dict[str, bool] = {}
+    for out in outputs:
+        if out.name not in OUTPUTS:
+            raise ApiError(400, f"unknown output {out.name!r}; the outputs are {list(OUTPUTS)}")
+        if out.name in wanted:
+            raise ApiError(400, f"output {out.name!r} requested twice")
+        wanted[out.name] = param(out.parameters, "binary_data", bool, default_binary)
+    return wanted
+
+
+_BINARY_SCHEMA = {"type": "string", "format": "binary",
+                  "description": f"JSON header ({HEADER_LENGTH} bytes), then raw little-endian tensors"}
+_INFER_BODY: dict[str, Any] = {"requestBody": {"required": True, "content": {
+    "application/json": {"schema": {"$ref": "#/components/schemas/InferenceRequest"}},
+    BINARY_MEDIA: {"schema": _BINARY_SCHEMA}}}}
+_INFER_OK: dict[int | str, dict[str, Any]] = {200: {
+    "model": InferenceResponse, "description": "verdict (-1 noisy, +1 converged) and score per item",
+    "content": {BINARY_MEDIA: {"schema": _BINARY_SCHEMA}},
+    "headers": {HEADER_LENGTH: {"description": "present when binary outputs follow the JSON header",
+                                "schema": {"type": "integer"}}}}}
+
+
+def _openapi(app: FastAPI) -> dict[str, Any]:
+    """FastAPI's document plus the schemas of the infer body, which the route reads itself."""
+    if app.openapi_schema is None:
+        doc = get_openapi(title=app.title, version=app.version, description=app.description,
+                          routes=app.routes)
+        _, defs = models_json_schema([(InferenceRequest, "validation")],
+                                     ref_template="#/components/schemas/{model}")
+        doc.setdefault("components", {}).setdefault("schemas", {}).update(defs["$defs"])
+        app.openapi_schema = doc
+    return app.openapi_schema

@@ -1,0 +1,252 @@
+"""Open Inference Protocol v2: its messages as pydantic models, and its tensor wire format.
+
+The models are what the OpenAPI document shows and what a request header is validated
+against (strictly: a number written as a string is an error, not a guess). Tensor data is
+not validated element by element by pydantic: a 16-block request holds ~1.5 M numbers, so
+`decode_tensors` turns it into numpy arrays and checks shape, datatype and length there.
+Binary tensor extension (REFERENCES.md): the body is a JSON header of
+`Inference-Header-Content-Length` bytes followed by raw little-endian row-major tensors in
+input order, each announced by `parameters.binary_data_size`.
+"""
+from __future__ import annotations
+
+import json
+import math
+from typing import Annotated, Any
+
+import numpy as np
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
+
+HEADER_LENGTH = "Inference-Header-Content-Length"
+BINARY_EXTENSION = "binary_tensor_data"
+
+# Datatypes a request may name; BYTES (strings) has no use in a verdict API.
+DATATYPES: dict[str, np.dtype] = {
+    "BOOL": np.dtype("?"), "UINT8": np.dtype("u1"), "UINT16": np.dtype("<u2"),
+    "UINT32": np.dtype("<u4"), "UINT64": np.dtype("<u8"), "INT8": np.dtype("i1"),
+    "INT16": np.dtype("<i2"), "INT32": np.dtype("<i4"), "INT64": np.dtype("<i8"),
+    "FP16": np.dtype("<f2"), "FP32": np.dtype("<f4"), "FP64": np.dtype("<f8"),
+}
+Datatype = Annotated[str, Field(description="OIP tensor datatype, e.g. FP32, INT8",
+                                json_schema_extra={"enum": sorted(DATATYPES)})]
+
+
+class ApiError(Exception):
+    """A client-side problem, answered with `status` and {"error": message}."""
+
+    def __init__(self, status: int, message: str, headers: dict[str, str] | None = None) -> None:
+        super().__init__(message)
+        self.status = status
+        self.message = message
+        self.headers = headers
+
+
+class _Message(BaseModel):
+    model_config = ConfigDict(strict=True)
+
+
+class ErrorResponse(_Message):
+    error: str
+
+
+class LiveResponse(_Message):
+    live: bool
+
+
+class ReadyResponse(_Message):
+    ready: bool
+
+
+class ModelReadyResponse(_Message):
+    name: str
+    ready: bool
+
+
+class ServerMetadata(_Message):
+    name: str
+    version: str
+    extensions: list[str]
+
+
+class TensorMetadata(_Message):
+    name: str
+    datatype: str
+    shape: list[int]
+
+
+class ModelMetadata(_Message):
+    name: str
+    versions: list[str]
+    platform: str
+    inputs: list[TensorMetadata]
+    outputs: list[TensorMetadata]
+    parameters: dict[str, Any] | None = None
+
+
+class RepositoryModel(_Message):
+    name: str
+    version: str
+    state: str
+    reason: str = ""
+
+
+Parameters = dict[str, Any]
+
+
+def _integral(value: Any) -> Any:
+    """JSON Schema's integer includes 2.0; strict validation would refuse it."""
+    return int(value) if isinstance(value, float) and value.is_integer() else value
+
+
+Dim = Annotated[int, BeforeValidator(_integral), Field(ge=0)]
+
+
+class RequestInput(_Message):
+    name: str
+    shape: list[Dim]
+    datatype: Datatype
+    parameters: Parameters | None = None
+    data: list[Any] | None = Field(
+        default=None, description="row-major values, flat or nested; omitted for binary data")
+
+
+class RequestOutput(_Message):
+    name: str
+    parameters: Parameters | None = None
+
+
+class InferenceRequest(_Message):
+    id: str | None = None
+    parameters: Parameters | None = None
+    inputs: list[RequestInput] = Field(min_length=1)
+    outputs: list[RequestOutput] | None = None
+
+
+class ResponseOutput(_Message):
+    name: str
+    shape: list[int]
+    datatype: str
+    parameters: Parameters | None = None
+    data: list[Any] | None = None
+
+
+class InferenceResponse(_Message):
+    model_name: str
+    model_version: str | None = None
+    id: str | None = None
+    parameters: Parameters | None = None
+    outputs: list[ResponseOutput]
+
+
+def split_body(body: bytes, header_length: int | None) -> tuple[bytes, bytes]:
+    """(JSON header, binary tail) of a request body."""
+    if header_length is None:
+        return body, b""
+    if not 0 < header_length <= len(body):
+        raise ApiError(400, f"{HEADER_LENGTH} is {header_length} but the body holds {len(body)} bytes")
+    return body[:header_length], body[header_length:]
+
+
+def parse_request(header: bytes) -> InferenceRequest:
+    """Validate the JSON header of an infer request; every problem is a 400."""
+    try:
+        obj = json.loads(header)
+    except RecursionError:
+        raise ApiError(400, "invalid JSON: nested too deeply") from None
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise ApiError(400, f"invalid JSON: {exc}") from None
+    try:
+        return InferenceRequest.model_validate(obj)
+    except ValidationError as exc:
+        raise ApiError(400, "invalid inference request: " + _summarise(exc)) from None
+
+
+def _summarise(exc: ValidationError, limit: int = 3) -> str:
+    errs = exc.errors(include_url=False, include_input=False)
+    parts = [f"{'.'.join(str(p) for p in e['loc']) or 'body'}: {e['msg']}" for e in errs[:limit]]
+    more = f" (and {len(errs) - limit} more)" if len(errs) > limit else ""
+    return "; ".join(parts) + more
+
+
+def param(params: Parameters | None, key: str, kinds: type | tuple[type, ...], default: Any) -> Any:
+    """A typed request parameter (a JSON true is not accepted where a number is expected)."""
+    kinds = kinds if isinstance(kinds, tuple) else (kinds,)
+    value = (params or {}).get(key, default)
+    if value is default:
+        return value
+    if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
+        names = " or ".join(k.__name__ for k in kinds)
+        raise ApiError(400, f"parameter {key!r} must be a {names}, got {value!r}")
+    return value
+
+
+def decode_tensors(req: InferenceRequest, binary: bytes, max_batch: int) -> dict[str, np.ndarray]:
+    """Input tensors by name, shaped as declared; checks the batch limit before any copy."""
+    names = [t.name for t in req.inputs]
+    if len(set(names)) != len(names):
+        raise ApiError(400, f"input names must be unique, got {names}")
+    for t in req.inputs:
+        if t.shape and t.shape[0] > max_batch:
+            raise ApiError(413, f"input {t.name!r} holds {t.shape[0]} items; the limit is "
+                                f"{max_batch} per request")
+    arrays, offset = {}, 0
+    for t in req.inputs:
+        dtype = DATATYPES.get(t.datatype)
+        if dtype is None:
+            raise ApiError(400, f"input {t.name!r}: unsupported datatype {t.datatype!r}")
+        count = math.prod(t.shape)
+        size = param(t.parameters, "binary_data_size", int, None)
+        if size is not None:
+            if t.data is not None:
+                raise ApiError(400, f"input {t.name!r} has both JSON data and binary_data_size")
+            if size != count * dtype.itemsize:
+                raise ApiError(400, f"input {t.name!r}: binary_data_size {size} does not match "
+                                    f"shape {t.shape} of {t.datatype} ({count * dtype.itemsize} bytes)")
+            if offset + size > len(binary):
+                raise ApiError(400, f"input {t.name!r}: binary data truncated (needs {size} bytes "
+                                    f"at offset {offset}, {len(binary) - offset} left)")
+            flat = np.frombuffer(binary, dtype=dtype, count=count, offset=offset).copy()  # writable
+            offset += size
+        elif t.data is None:
+            raise ApiError(400, f"input {t.name!r} has neither data nor binary_data_size")
+        else:
+            flat = _json_values(t.name, t.data, dtype)
+            if flat.size != count:
+                raise ApiError(400, f"input {t.name!r}: {flat.size} values for shape {t.shape} "
+                                    f"({count} expected)")
+        arrays[t.name] = flat.reshape(t.shape)
+    if offset != len(binary):
+        raise ApiError(400, f"{len(binary) - offset} bytes of binary data belong to no input")
+    return arrays
+
+
+def _json_values(name: str, data: list[Any], dtype: np.dtype) -> np.ndarray:
+    try:
+        values = np.asarray(data)
+    except (ValueError, TypeError, RecursionError):
+        raise ApiError(400, f"input {name!r}: data is ragged or not all numbers") from None
+    kinds = "b" if dtype.kind == "b" else "biuf"
+    if values.size and values.dtype.kind not in kinds:
+        raise ApiError(400, f"input {name!r}: data must be numbers for {dtype.name}, got "
+                            f"{values.dtype.kind!r} values")
+    if values.size and dtype.kind in "iu" and values.dtype.kind == "f":
+        raise ApiError(400, f"input {name!r}: integer datatype but fractional data")
+    return values.astype(dtype, copy=False).reshape(-1)
+
+
+def encode_response(resp: InferenceResponse, tensors: dict[str, np.ndarray],
+                    binary: set[str]) -> tuple[bytes, int | None]:
+    """Response body and, when any output is binary, the JSON header length."""
+    tail = []
+    for out in resp.outputs:
+        arr = tensors[out.name]
+        if out.name in binary:
+            raw = np.ascontiguousarray(arr, dtype=arr.dtype.newbyteorder("<")).tobytes()
+            out.parameters = {**(out.parameters or {}), "binary_data_size": len(raw)}
+            tail.append(raw)
+        else:
+            out.data = arr.reshape(-1).tolist()
+    header = resp.model_dump_json(exclude_none=True).encode()
+    if not tail:
+        return header, None
+    return header + b"".join(tail), len(header)

@@ -1,0 +1,218 @@
+"""The models a server holds, by name, and how one of them answers an inference request.
+
+Every server serves its first model also as `default` (DESIGN.md "HTTP API"). Inference is
+called from worker threads: the estimators only read their fitted arrays (libsvm's
+predict and StandardScaler.transform keep no state) and the feature base runs under
+torch.inference_mode; its per-block-size operator cache is a dict whose worst race is
+computing one entry twice, and `load` fills it (and builds the shared feature base) before
+the first request arrives.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from learning.bundle import BUNDLED_DIR, MANIFEST, Model, load_model
+from noisefeat.base import MIN_SIZE, N_FEATURES
+from noisefeat.display import nonfinite_pixels
+
+from .oip import ApiError, ModelMetadata, TensorMetadata
+
+log = logging.getLogger(__name__)
+
+DEFAULT = "default"
+PLATFORM = "noisestop-sklearn"
+INPUT_NAMES = ("blocks", "quick", "features")
+OUTPUTS = {"verdict": "INT8", "score": "FP32"}
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+def bundle_name(path: str | None) -> str:
+    """The name a bundle's manifest gives it (None: the bundled model)."""
+    where = BUNDLED_DIR if path is None else Path(path)
+    manifest = where / MANIFEST if where.is_dir() else where
+    if not manifest.is_file():
+        if path is None:
+            raise FileNotFoundError(
+                f"no model is bundled with this noisestop ({BUNDLED_DIR} holds no {MANIFEST}): "
+                f"pass --model PATH (a bundle written by `noisestop train`)")
+        raise FileNotFoundError(f"{path}: not a noisestop model bundle (no {MANIFEST})")
+    try:
+        meta = json.loads(manifest.read_text())
+        return str(meta.get("name") or meta["kind"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{manifest}: unreadable manifest ({exc})") from None
+
+
+def parse_model_specs(specs: list[str] | None) -> dict[str, str | None]:
+    """`--model` values (PATH or NAME=PATH) -> {name: path}; none -> the bundled model.
+
+    A bare PATH takes the name its manifest gives. Names are URL-safe and unique, and
+    `default` is reserved for the alias of the first model.
+    """
+    if not specs:
+        return {bundle_name(None): None}
+    models: dict[str, str | None] = {}
+    for spec in specs:
+        name, sep, path = spec.partition("=")
+        if not sep or Path(spec).exists():
+            name, path = bundle_name(spec), spec
+        if not _NAME.match(name) or name == DEFAULT:
+            raise ValueError(f"--model {spec}: model name {name!r} must be 1-64 letters, digits, "
+                             f"'_', '.', '-' and not {DEFAULT!r}")
+        if name in models:
+            raise ValueError(f"--model {spec}: two models are named {name!r}; name them (NAME=PATH)")
+        models[name] = path
+    return models
+
+
+@dataclass
+class ServedModel:
+    """One loaded bundle and the request-level rules of its inputs and outputs."""
+
+    name: str
+    model: Model
+    load_seconds: float
+    version: str = "1"
+
+    @property
+    def inputs(self) -> list[TensorMetadata]:
+        image = [-1, -1, -1, 3]
+        if self.model.input == "raw":
+            return [TensorMetadata(name="blocks", datatype="FP32", shape=image)]
+        return [TensorMetadata(name="blocks", datatype="FP32", shape=image),
+                TensorMetadata(name="quick", datatype="FP32", shape=image),
+                TensorMetadata(name="features", datatype="FP32", shape=[-1, N_FEATURES])]
+
+    def metadata(self, name: str | None = None) -> ModelMetadata:
+        m = self.model.manifest
+        return ModelMetadata(
+            name=name or self.name, versions=[self.version], platform=PLATFORM, inputs=self.inputs,
+            outputs=[TensorMetadata(name=k, datatype=v, shape=[-1]) for k, v in OUTPUTS.items()],
+            parameters={"kind": str(m.get("kind")), "input": self.model.input,
+                        "offset": self.model.offset, "n_features": int(m.get("n_features", 0))})
+
+    def infer(self, tensors: dict[str, np.ndarray], exposure: float = 0.0
+              ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """({verdict int8 [N], score float32 [N]}, response parameters); bad input -> 400."""
+        unknown = sorted(set(tensors) - {t.name for t in self.inputs})
+        if unknown:
+            raise ApiError(400, f"model {self.name!r} has no input {unknown[0]!r}; it takes "
+                                f"{[t.name for t in self.inputs]}")
+        for name, arr in tensors.items():
+            if arr.dtype != np.float32:
+                raise ApiError(400, f"input {name!r} must be FP32")
+        params: dict[str, Any] = {}
+        try:
+            if "features" in tensors:
+                score = self._score_features(tensors)
+                verdict = np.where(score > self.model.offset, 1, -1).astype(np.int8)  # Model's rule
+            else:
+                blocks, quick = self._blocks(tensors)
+                params["nonfinite_pixels"] = _nonfinite(blocks)
+                if quick is not None:
+                    params["nonfinite_quick_pixels"] = _nonfinite(quick)
+                verdict, score = self.model.score_blocks(blocks, quick, exposure=exposure)
+        except ValueError as exc:  # what the feature base and estimator reject
+            raise ApiError(400, str(exc)) from None
+        return {"verdict": verdict, "score": np.asarray(score, np.float32)}, params
+
+    def _score_features(self, tensors: dict[str, np.ndarray]) -> np.ndarray:
+        if len(tensors) > 1:
+            raise ApiError(400, "send either 'features' or 'blocks' (+ 'quick'), not both")
+        X = tensors["features"]
+        if X.ndim != 2 or X.shape[1] != N_FEATURES:
+            raise ApiError(400, f"input 'features' must have shape [N, {N_FEATURES}], got {list(X.shape)}")
+        return self.model.decision_function(X)
+
+    def _blocks(self, tensors: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray | None]:
+        blocks, quick = tensors.get("blocks"), tensors.get("quick")
+        if blocks is None:
+            raise ApiError(400, f"model {self.name!r} needs input 'blocks'"
+                                + (" and 'quick'" if self.model.input == "features" else ""))
+        if blocks.ndim != 4 or blocks.shape[-1] != 3:
+            raise ApiError(400, f"input 'blocks' must have shape [N, H, W, 3], got {list(blocks.shape)}")
+        if len(blocks) and min(blocks.shape[1:3]) < MIN_SIZE:
+            raise ApiError(400, f"blocks must be at least {MIN_SIZE}x{MIN_SIZE} pixels, got "
+                                f"{blocks.shape[1]}x{blocks.shape[2]}")
+        if self.model.input == "raw":
+            n = int(self.model.manifest.get("n_features", 0))
+            if blocks.shape[1] * blocks.shape[2] != n:
+                raise ApiError(400, f"model {self.name!r} reads raw blocks of {n} pixels, got "
+                                    f"{blocks.shape[1]}x{blocks.shape[2]}")
+            return blocks, None
+        if quick is None:
+            raise ApiError(400, f"model {self.name!r} needs input 'quick' (the quick image of every block)")
+        if quick.shape != blocks.shape:
+            raise ApiError(400, f"inputs 'quick' {list(quick.shape)} and 'blocks' "
+                                f"{list(blocks.shape)} must have the same shape")
+        return blocks, quick
+
+
+def _nonfinite(rgb: np.ndarray) -> list[int]:
+    return [int(c) for c in nonfinite_pixels(torch.from_numpy(rgb))] if len(rgb) else []
+
+
+@dataclass
+class ModelRegistry:
+    """Models by name (insertion order; the first is also `default`)."""
+
+    specs: dict[str, str | None]
+    models: dict[str, ServedModel] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not self.specs:
+            self.specs = parse_model_specs(None)
+        if DEFAULT in self.specs:
+            raise ValueError(f"{DEFAULT!r} is reserved for the alias of the first model")
+
+    @property
+    def ready(self) -> bool:
+        return len(self.models) == len(self.specs)
+
+    @property
+    def default_name(self) -> str:
+        return next(iter(self.specs))
+
+    def load(self) -> None:
+        """Load every model not yet loaded (clear FileNotFoundError/ValueError on failure)."""
+        for name, path in self.specs.items():
+            if name in self.models:
+                continue
+            if path is None:
+                bundle_name(None)  # the clear message when nothing is bundled
+            t0 = time.perf_counter()
+            model = load_model(path)
+            served = ServedModel(name, model, time.perf_counter() - t0,
+                                 version=str(model.manifest.get("model_version", "1")))
+            _warm_up(served)
+            self.models[name] = served
+            log.info("model %s loaded from %s in %.2f s (%s, input %s)", name,
+                     path or "the bundled model", served.load_seconds,
+                     model.manifest.get("kind"), model.input)
+
+    def get(self, name: str, version: str | None = None) -> ServedModel:
+        served = self.models.get(self.default_name if name == DEFAULT else name)
+        if served is None:
+            raise ApiError(404, f"unknown model {name!r}; this server has {self.names()}")
+        if version is not None and version != served.version:
+            raise ApiError(404, f"model {name!r} has no version {version!r} (versions: [{served.version!r}])")
+        return served
+
+    def names(self) -> list[str]:
+        return [DEFAULT, *self.specs]
+
+
+def _warm_up(served: ServedModel) -> None:
+    """One tiny inference: builds the shared feature base before threads race for it."""
+    if served.model.input == "features":
+        block = np.full((1, 32, 32, 3), 0.5, np.float32)
+        served.infer({"blocks": block, "quick": block})

@@ -1,0 +1,196 @@
+"""The adaptive loop on real (tiny) renders: resume identity, degenerate scenes, outputs, farm."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from learning import make_synthetic_stack
+from learning.bundle import load_model, save_model
+from learning.estimators import DSVM
+from learning.exr import read_exr
+from learning.table import stack_features
+from renderer import adaptive
+from renderer.adaptive import CHECKPOINT, adaptive_render, render_command, render_many
+from renderer.blocks import BlockRenderer
+from renderer.criteria import ModelCriterion, OracleCriterion, UniformCriterion, VarianceCriterion
+
+pytestmark = pytest.mark.slow
+
+TINY = {"resolution": 32, "step": 4, "min_spp": 4, "max_spp": 24, "progress": False}
+TIMING_KEYS = {"wall_s", "timing"}
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    d = tmp_path_factory.mktemp("model")
+    st = make_synthetic_stack(d / "train", size=64, seed=3)
+    x = stack_features(st)
+    est = DSVM(C=10.0).fit(x.reshape(-1, x.shape[-1]), st.labels().reshape(-1))
+    return load_model(save_model(est, d / "model", kind="dsvm", input="features"))
+
+
+def without_timing(report):
+    return {k: v for k, v in report.items() if k not in TIMING_KEYS}
+
+
+class Crash(RuntimeError):
+    pass
+
+
+class CrashOnThirdDecision:
+    """Mixin: dies on the third decision, i.e. after two passes were checkpointed."""
+
+    def _decide(self, ids, views):
+        if self.counters["decide_calls"] == 2:
+            raise Crash("simulated crash")
+        return super()._decide(ids, views)
+
+
+class CrashingVariance(CrashOnThirdDecision, VarianceCriterion):
+    pass
+
+
+class CrashingModel(CrashOnThirdDecision, ModelCriterion):
+    pass
+
+
+@pytest.mark.parametrize("kind", ["variance", "model"])
+def test_resume_gives_the_uninterrupted_result(tmp_path, monkeypatch, model, kind):
+    def make(crash=False):
+        if kind == "variance":
+            return (CrashingVariance if crash else VarianceCriterion)(0.3)
+        return (CrashingModel if crash else ModelCriterion)(model)
+
+    ref = adaptive_render("cornell", tmp_path / "a", make(), **TINY)
+    if kind == "variance":
+        assert 0 < ref["blocks_converged"] < 16      # some blocks stop early, some do not
+    assert ref["passes"] > 2
+    with pytest.raises(Crash):
+        adaptive_render("cornell", tmp_path / "b", make(crash=True), **TINY)
+    assert not (tmp_path / "b" / "report.json").exists()
+    with np.load(tmp_path / "b" / CHECKPOINT, allow_pickle=False) as z:
+        assert int(z["pass_index"]) == 2 and not bool(z["done"])
+    passes = []
+    real = BlockRenderer.render_blocks
+    monkeypatch.setattr(BlockRenderer, "render_blocks",
+                        lambda self, ids, spp, seed, pass_index=0: passes.append(pass_index) or
+                        real(self, ids, spp, seed, pass_index))
+    resumed = adaptive_render("cornell", tmp_path / "b", make(), resume=True, **TINY)
+    assert passes == list(range(2, ref["passes"]))   # continued, did not start over
+    assert without_timing(resumed) == without_timing(ref)
+    np.testing.assert_array_equal(read_exr(tmp_path / "b" / "final.exr"), read_exr(tmp_path / "a" / "final.exr"))
+    on_disk = json.loads((tmp_path / "b" / "report.json").read_text())
+    assert on_disk["counters"] == ref["counters"] and on_disk["blocks"] == ref["blocks"]
+    # a finished run resumed again renders nothing more
+    passes.clear()
+    again = adaptive_render("cornell", tmp_path / "b", make(), resume=True, **TINY)
+    assert without_timing(again) == without_timing(ref) and passes == []
+    # resuming with other settings is refused, not mixed
+    with pytest.raises(ValueError, match="other settings.*step"):
+        adaptive_render("cornell", tmp_path / "b", make(), resume=True, **{**TINY, "step": 8})
+
+
+@pytest.mark.parametrize("scene", ["allblack", "sky"])
+@pytest.mark.parametrize("kind", ["variance", "model"])
+def test_degenerate_scenes_stop_at_min_spp(tmp_path, model, scene, kind):
+    crit = VarianceCriterion() if kind == "variance" else ModelCriterion(model)
+    r = adaptive_render(scene, tmp_path, crit, **{**TINY, "max_spp": 64})
+    assert [b["spp"] for b in r["blocks"]] == [4] * 16
+    assert all(b["converged"] for b in r["blocks"])
+    assert r["passes"] == 1 and r["saved_vs_uniform"] == pytest.approx(1 - 4 / 64)
+    assert r["counters"]["flat_blocks"] == 16
+
+
+def test_only_active_blocks_are_rendered_and_asked(tmp_path, model, monkeypatch):
+    calls = []
+    real = BlockRenderer.quick_image
+
+    def counting_quick(self, *a, **k):
+        calls.append(1)
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(BlockRenderer, "quick_image", counting_quick)
+    rendered = []
+    real_blocks = BlockRenderer.render_blocks
+
+    def counting_blocks(self, ids, spp, seed, pass_index=0):
+        rendered.append((list(ids), pass_index))
+        return real_blocks(self, ids, spp, seed, pass_index)
+
+    monkeypatch.setattr(BlockRenderer, "render_blocks", counting_blocks)
+    r = adaptive_render("cornell", tmp_path / "m", ModelCriterion(model), **{**TINY, "min_spp": 8})
+    assert len(calls) == 1                                        # quick image: once, model needs it
+    per_pass = r["counters"]["blocks_rendered_per_pass"]
+    assert per_pass == [len(ids) for ids, _ in rendered]
+    assert [p for _, p in rendered] == list(range(len(rendered)))
+    assert all(b == sorted(b) for b, _ in rendered)
+    # a block stopped at spp s was rendered s / step times, never after
+    for blk in r["blocks"]:
+        times = sum(blk["id"] in ids for ids, _ in rendered)
+        assert times * 4 == blk["spp"]
+        verdicts = [v for _, v in blk["history"]]
+        assert all(v == -1 for v in verdicts[:-1]) and (verdicts[-1] == 1) == blk["converged"]
+    # decisions: every rendered block from 8 spp on (pass 0 is below min_spp)
+    assert r["counters"]["decisions"] == sum(per_pass[1:])
+    assert r["counters"]["blocks_featured"] + r["counters"]["flat_blocks"] == r["counters"]["decisions"]
+    calls.clear()
+    adaptive_render("cornell", tmp_path / "v", VarianceCriterion(), **TINY)
+    assert calls == []                                            # variance: no quick image
+
+
+def test_outputs_and_report(tmp_path):
+    r = adaptive_render("cornell", tmp_path, UniformCriterion(), **TINY)
+    assert r["passes"] == 6 and r["counters"]["blocks_rendered_per_pass"] == [16] * 6
+    for name in ("final.exr", "final.png", "spp_map.png", "report.json"):
+        assert (tmp_path / name).stat().st_size > 0, name
+    img = read_exr(tmp_path / "final.exr")
+    assert img.shape == (32, 32, 3) and np.isfinite(img).all() and img.mean() > 0.01
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert rep["saved_vs_uniform"] == 0.0 and rep["variant"] and rep["wall_s"] > 0
+    assert [b["spp"] for b in rep["blocks"]] == [24] * 16 and not any(b["converged"] for b in rep["blocks"])
+    t = rep["timing"]
+    assert t["render_s"] > 0 and abs(sum(t.values()) - rep["wall_s"]) < 1e-6 + 1e-3 * rep["wall_s"]
+    assert rep["samples_spent"] == 24 * 32 * 32
+    assert rep["blocks"] == r["blocks"] and set(t) == {"setup_s", "render_s", "features_s", "decisions_s",
+                                                       "overhead_s"}
+    from learning.exr import read_png
+    png = read_png(tmp_path / "spp_map.png")
+    assert png.shape[0] >= 400 and png.std() > 0.05             # a real picture, not a blank canvas
+
+
+def test_reference_metrics_and_oracle(tmp_path):
+    th = [4, 8, 12, 16, 20, 24, None, 4, 8, 12, 16, 20, 24, None, 6, 10]
+    make_synthetic_stack(tmp_path / "data" / "cornell", scene="cornell", size=32, spp=(4, 8, 12, 16, 20, 24),
+                         thresholds=th)
+    r = adaptive_render("cornell", tmp_path / "o", "oracle", reference=tmp_path / "data", **TINY)
+    assert [b["spp"] for b in r["blocks"]] == [t or 24 for t in [4, 8, 12, 16, 20, 24, None, 4, 8, 12, 16, 20,
+                                                                   24, None, 8, 12]]
+    assert r["early_stop_rate"] == 0.0 and r["spp_ratio_vs_oracle"] == pytest.approx(1.0)
+    assert [b["true_threshold"] for b in r["blocks"]] == th
+    u = adaptive_render("cornell", tmp_path / "u", OracleCriterion([4] * 16), reference=tmp_path / "data", **TINY)
+    assert u["early_stop_rate"] == pytest.approx(14 / 16)         # all but the two T=4 blocks
+    assert u["spp_ratio_vs_oracle"] < 1.0
+    with pytest.raises(ValueError, match="oracle needs --reference"):
+        render_command("cornell", tmp_path / "x", criterion="oracle")
+
+
+def test_render_many_on_a_local_pool(tmp_path):
+    summary = render_many(["allblack", "sky"], tmp_path, VarianceCriterion(), workers=1,
+                          **{**TINY, "max_spp": 16})
+    assert summary["failed"] == {}
+    assert set(summary["scenes"]) == {"allblack", "sky"}
+    for name in ("allblack", "sky"):
+        assert json.loads((tmp_path / name / "report.json").read_text())["scene"] == name
+    assert summary["scenes"]["sky"]["blocks"][0]["spp"] == 4
+
+
+def test_bad_arguments(tmp_path):
+    with pytest.raises(ValueError, match="min_spp"):
+        adaptive_render("cornell", tmp_path, UniformCriterion(), **{**TINY, "min_spp": 99})
+    with pytest.raises(ValueError, match="step must be a positive integer"):
+        adaptive_render("cornell", tmp_path, UniformCriterion(), **{**TINY, "step": 0})
+    with pytest.raises(ValueError, match="unknown criterion"):
+        adaptive_render("cornell", tmp_path, "bogus", **TINY)
+    assert adaptive.pass_sizes(16, 40) == [16, 16, 8]

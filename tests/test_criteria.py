@@ -1,0 +1,192 @@
+"""Stopping criteria: the Cycles rule exactly, oracle/uniform, the model path, counters, NaN safety."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from learning import make_synthetic_stack
+from learning.bundle import load_model, save_model
+from learning.estimators import DSVM
+from learning.table import stack_features
+from renderer.criteria import (BlockView, ModelCriterion, OracleCriterion, UniformCriterion,
+                               VarianceCriterion, build_criterion, display_range)
+
+
+def train_model(tmp_path):
+    """A real DSVM bundle trained on a labelled synthetic stack (there is no bundled model yet)."""
+    st = make_synthetic_stack(tmp_path / "train", size=64, seed=3)
+    x = stack_features(st)
+    est = DSVM(C=10.0).fit(x.reshape(-1, x.shape[-1]), st.labels().reshape(-1))
+    return load_model(save_model(est, tmp_path / "model", kind="dsvm", input="features")), st
+
+
+@pytest.fixture(scope="module")
+def model_and_stack(tmp_path_factory):
+    return train_model(tmp_path_factory.mktemp("model"))
+
+
+def view(mean, a=None, half_spp=(8, 8), spp=16, quick=None):
+    mean = np.asarray(mean, np.float64)
+    a = mean if a is None else np.asarray(a, np.float64)
+    with np.errstate(invalid="ignore"):
+        b = 2 * mean - a
+    return BlockView(mean=mean, spp=spp, halves=(a, b), half_spp=half_spp, quick=quick)
+
+
+def noisy_block(seed=0, level=0.3, shape=(8, 8)):
+    rng = np.random.default_rng(seed)
+    return level + 0.2 * rng.random((*shape, 3))
+
+
+# ----------------------------------------------------------------------------- variance
+
+
+def test_pixel_error_is_cycles_formula_both_branches():
+    c = VarianceCriterion(0.01)
+    i = np.array([[[0.1, 0.2, 0.3], [1.0, 2.0, 3.0]]])       # intensity 0.6 (< 1) and 6 (>= 1)
+    a = i + np.array([[[0.01, -0.02, 0.0], [0.3, 0.0, -0.3]]])
+    err = c.pixel_error(i, a)
+    assert err.shape == (1, 2)
+    assert err[0, 0] == pytest.approx(0.03 / (1e-4 + np.sqrt(0.6)), rel=1e-12)
+    assert err[0, 1] == pytest.approx(0.6 / (1e-4 + 6.0), rel=1e-12)
+
+
+def test_threshold_boundary_and_scale():
+    i = np.full((4, 4, 3), 0.25)                              # intensity 0.75, norm sqrt(0.75)
+    a = i.copy()
+    a[..., 0] += 0.0087                                       # error ~ 0.0087/0.866 = 0.01004
+    err = 0.0087 / (1e-4 + np.sqrt(0.75))
+    assert VarianceCriterion(err * 1.001, flat_shortcut=False).decide([0], [view(i, a)])[0] == 1
+    assert VarianceCriterion(err * 0.999, flat_shortcut=False).decide([0], [view(i, a)])[0] == -1
+    # a scale of 5 (REFERENCES.md's reading) loosens the same test five-fold
+    assert VarianceCriterion(err / 4.9, scale=5.0, flat_shortcut=False).decide([0], [view(i, a)])[0] == 1
+
+
+def test_all_pixels_by_default_quantile_optional():
+    i = np.full((10, 10, 3), 0.25)
+    i[:, :5] = 0.3                                             # not flat: no shortcut
+    a = i.copy()
+    a[0, 0, 0] += 0.5                                          # one bad pixel of 100
+    assert VarianceCriterion(0.01).decide([0], [view(i, a)])[0] == -1
+    assert VarianceCriterion(0.01, quantile=0.99).decide([0], [view(i, a)])[0] == 1
+    a[0, 1, 0] += 0.5                                          # two bad pixels: 98 % pass
+    assert VarianceCriterion(0.01, quantile=0.99).decide([0], [view(i, a)])[0] == -1
+
+
+def test_one_pass_has_no_noise_estimate():
+    i = noisy_block()
+    v = view(i, i, half_spp=(16, 0))                          # A == I after one pass
+    assert VarianceCriterion(1.0).decide([0], [v])[0] == -1
+    assert VarianceCriterion(1.0).decide([0], [view(i, i, half_spp=(8, 8))])[0] == 1
+
+
+def test_flat_blocks_are_converged_without_halves():
+    c = VarianceCriterion(0.01)
+    black = np.zeros((8, 8, 3))
+    sky = np.full((8, 8, 3), 0.5)
+    out = c.decide([0, 1], [view(black, half_spp=(16, 0)), view(sky, half_spp=(16, 0))])
+    assert out.tolist() == [1, 1]
+    assert c.counters["flat_blocks"] == 2
+    assert display_range(sky) == 0.0 and display_range(noisy_block()) > 0.1
+    off = VarianceCriterion(0.01, flat_shortcut=False)
+    assert off.decide([0], [view(black, half_spp=(16, 0))])[0] == -1
+
+
+def test_nonfinite_pixels_never_give_nan_decisions():
+    i = noisy_block()
+    i[0, 0] = [np.nan, np.inf, -np.inf]
+    a = i.copy()
+    a[1, 1, 0] = np.nan
+    c = VarianceCriterion(0.05)
+    err = c.pixel_error(i, a)
+    assert np.isfinite(err).all()
+    out = c.decide([3], [view(i, a)])
+    assert out.dtype == np.int8 and out[0] in (-1, 1)
+    assert c.counters["nonfinite_blocks"] == 1
+
+
+# ----------------------------------------------------------------------------- oracle, uniform
+
+
+def test_oracle_and_uniform():
+    o = OracleCriterion([32, None, 16])
+    views = [view(noisy_block(), spp=32)] * 3
+    assert o.decide([0, 1, 2], views).tolist() == [1, -1, 1]
+    assert o.decide([0, 2], [view(noisy_block(), spp=16)] * 2).tolist() == [-1, 1]
+    with pytest.raises(ValueError, match="out of range"):
+        o.decide([5], views[:1])
+    with pytest.raises(ValueError, match="positive integer"):
+        OracleCriterion([0])
+    u = UniformCriterion()
+    assert u.decide([0, 1], views[:2]).tolist() == [-1, -1]
+    assert u.counters["blocks_asked"] == 2 and u.counters["decide_calls"] == 1
+
+
+def test_bad_input_is_a_clear_error():
+    c = VarianceCriterion()
+    with pytest.raises(ValueError, match="2 block ids but 1 views"):
+        c.decide([0, 1], [view(noisy_block())])
+    with pytest.raises(ValueError, match="half buffers"):
+        c.decide([0], [BlockView(mean=noisy_block(), spp=4)])
+    with pytest.raises(ValueError, match="oracle.*--reference"):
+        build_criterion("oracle")
+    with pytest.raises(ValueError, match="unknown criterion 'magic'"):
+        build_criterion("magic")
+    with pytest.raises(ValueError, match="threshold"):
+        VarianceCriterion(-1.0)
+    assert c.decide([], []).shape == (0,)
+
+
+# ----------------------------------------------------------------------------- model
+
+
+def test_model_criterion_matches_score_blocks_and_caches_quick(model_and_stack):
+    model, st = model_and_stack
+    crit = ModelCriterion(model)
+    assert crit.needs_quick
+    quick = st.split(st.quick())
+    ids = list(range(st.n_blocks))
+    for k in (0, st.n_levels - 1):
+        blocks = st.blocks(k)
+        expected, _ = model.score_blocks(blocks, quick)
+        got = crit.decide(ids, [BlockView(mean=blocks[b], spp=st.spp[k], quick=quick[b]) for b in ids])
+        assert got.tolist() == expected.tolist()
+    # two passes over 16 blocks: 32 current rows + 16 quick rows (cached the second time)
+    assert crit.counters["blocks_featured"] == 32
+    assert crit.counters["feature_rows"] == 48
+    assert crit.counters["blocks_asked"] == 32
+    assert crit.timers["features_s"] > 0 and crit.timers["decisions_s"] > 0
+    assert set(expected.tolist()) <= {-1, 1}
+
+
+def test_model_criterion_skips_flat_blocks(model_and_stack):
+    model, st = model_and_stack
+    crit = ModelCriterion(model)
+    quick = st.split(st.quick())
+    flat = np.zeros_like(quick[0])
+    out = crit.decide([0, 1], [BlockView(mean=flat, spp=4, quick=quick[0]),
+                               BlockView(mean=st.blocks(0)[1], spp=4, quick=quick[1])])
+    assert out[0] == 1
+    assert crit.counters["flat_blocks"] == 1 and crit.counters["blocks_featured"] == 1
+    with pytest.raises(ValueError, match="needs the quick image"):
+        crit.decide([0], [BlockView(mean=st.blocks(0)[0], spp=4)])
+
+
+def test_model_criterion_uses_any_scorer():
+    class Fake:
+        input = "features"
+
+        def __init__(self):
+            self.calls = []
+
+        def score_blocks(self, blocks, quick=None):
+            self.calls.append((blocks.shape, None if quick is None else quick.shape))
+            v = np.where(blocks.mean(axis=(1, 2, 3)) > 0.35, 1, -1).astype(np.int8)
+            return v, v.astype(float)
+
+    fake = Fake()
+    crit = ModelCriterion(fake)
+    views = [BlockView(mean=noisy_block(level=lv), spp=8, quick=np.ones((8, 8, 3))) for lv in (0.1, 0.5)]
+    assert crit.decide([4, 7], views).tolist() == [-1, 1]
+    assert fake.calls == [((2, 8, 8, 3), (2, 8, 8, 3))]
+    assert crit.describe()["model"] == {"type": "Fake"}

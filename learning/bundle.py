@@ -83,11 +83,15 @@ class Model:
         return (extract_features(quick, base=base, exposure=exposure)
                 - extract_features(blocks, base=base, exposure=exposure))
 
+    def score_inputs(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(verdict int8 [N], score float [N]) for model inputs (e.g. [N, 26] features)."""
+        f = self.decision_function(X)
+        return np.where(f > self.offset, 1, -1).astype(np.int8), f
+
     def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None,
                      exposure: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """(verdict int8 [N], score float [N]) for linear RGB blocks."""
-        f = self.decision_function(self.inputs_from_blocks(blocks, quick, exposure=exposure))
-        return np.where(f > self.offset, 1, -1).astype(np.int8), f
+        return self.score_inputs(self.inputs_from_blocks(blocks, quick, exposure=exposure))
 
 
 def save_model(estimator: RBFSVM, path: str | os.PathLike, *, kind: str, input: str,

@@ -78,7 +78,7 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
         await anyio.to_thread.run_sync(registry.load)
         for name, served in registry.models.items():
             metrics.load_seconds.labels(name).set(served.load_seconds)
-        log.info("serving %s", ", ".join(f"{n} ({registry.get(n).name})" for n in registry.names()))
+        log.info("serving %s; %r is %s", ", ".join(registry.models), DEFAULT, registry.default_name)
         yield
 
     app = FastAPI(title="noisestop verdict service", version=_version(), lifespan=lifespan,
@@ -90,7 +90,8 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
     app.state.metrics = metrics
     app.add_middleware(BodyLimitMiddleware, max_bytes=limits.max_body_bytes)
     metrics.instrument(app, dependencies=[Depends(require_token)], tags=["metrics"], responses={
-        200: {"description": "Prometheus text format", "content": {"text/plain": {"schema": {"type": "string"}}}},
+        200: {"description": "Prometheus text format",
+              "content": {"text/plain": {"schema": {"type": "string"}}}},
         **_errors(401)})
     _add_error_handlers(app)
     app.include_router(_health_routes(registry))
@@ -194,8 +195,9 @@ async def _infer(request: Request, served: ServedModel, header_length: str | Non
         raise ApiError(415, "compressed request bodies are not accepted (Content-Encoding must be identity)")
     body = await request.body()  # counted against the limit by BodyLimitMiddleware
     state = request.app.state
+    length = None if header_length is None else int(header_length)
     content, json_length = await anyio.to_thread.run_sync(
-        _infer_sync, served, body, None if header_length is None else int(header_length), state.limits, state.metrics, limiter=state.limiter)
+        _infer_sync, served, body, length, state.limits, state.metrics, limiter=state.limiter)
     if json_length is None:
         return Response(content, media_type="application/json")
     return Response(content, media_type=BINARY_MEDIA, headers={HEADER_LENGTH: str(json_length)})

@@ -12,6 +12,7 @@ import ipaddress
 import os
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Annotated
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -66,7 +67,7 @@ def check_bind(host: str, token: str | None) -> None:
 
 
 async def require_token(request: Request,
-                        credentials: HTTPAuthorizationCredentials | None = Depends(bearer)) -> None:
+                        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]) -> None:
     """FastAPI dependency: the app's token (app.state.token), if it has one, must be presented."""
     expected: str | None = request.app.state.token
     if expected is None:

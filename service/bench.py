@@ -8,6 +8,7 @@ from __future__ import annotations
 import statistics
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -87,32 +88,83 @@ def bench_crop(repeats: int = 3) -> dict[str, Any]:
     return measure_crop_cost(repeats=repeats)
 
 
-def run_all(repeats: int = 30) -> dict[str, Any]:
+def bench_models(data: str, out_dir: Path, arches: tuple[str, ...] | None = None) -> dict[str, Any]:
+    from learning.compare import TRANSFER_ARCHES, compare_models
+    result = compare_models(data, out_dir, arches=TRANSFER_ARCHES if arches is None else arches)
+    result.pop("fitted")
+    return result
+
+
+# --- markdown for BENCHMARKS.md --------------------------------------------------------
+def md_features(f: dict[str, Any], variant: str) -> str:
+    return "\n".join([
+        f"Measured on this machine ({f['threads']} torch threads, Mitsuba variant {variant}), "
+        f"{f['blocks']} sub-images of {f['block_size']}x{f['block_size']}, median of repeats:",
+        "",
+        "| what | time | goal |",
+        "|---|---|---|",
+        f"| feature base, L* blocks -> 26 features (spectral route) | {f['feature_base_ms']:.2f} ms | <= {f['goal_ms']:.0f} ms |",
+        f"| display transform + L* (RGB -> L*) | {f['lightness_ms']:.2f} ms | |",
+        f"| extract_features, linear RGB -> 26 features | {f['extract_features_ms']:.2f} ms | |",
+        f"| the definition run with torch.conv2d (reference route) | {f['direct_conv2d_ms']:.0f} ms | |",
+        f"| dense float32 matmul of the same {f['direct_macs'] / 1e6:.0f} M multiply-adds "
+        f"({f['matmul_gmacs']:.1f} GMAC/s) | {f['matmul_same_macs_ms']:.2f} ms | |",
+        f"| feature base time / matmul time | {f['feature_base_vs_matmul']:.2f} x | <= {f['goal_ratio']:.0f} x |",
+        "",
+        f"Accuracy cost of the spectral route against torch.conv2d: max abs difference "
+        f"{f['spectral_vs_conv2d_max_abs_diff']:.1e}, max relative {f['spectral_vs_conv2d_max_rel_diff']:.1e} "
+        "(float32 rounding; both compute the same circular convolutions).",
+    ])
+
+
+def md_crop(c: dict[str, Any]) -> str:
+    rows = ["| key | value |", "|---|---|"]
+    rows += [f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |" for k, v in c.items()]
+    return "\n".join(rows)
+
+
+def update_markdown(path: Path, sections: dict[str, str]) -> None:
+    """Replace the text between <!-- bench:NAME --> and <!-- /bench:NAME --> markers."""
+    text = path.read_text() if path.exists() else ""
+    for name, body in sections.items():
+        start, end = f"<!-- bench:{name} -->", f"<!-- /bench:{name} -->"
+        block = f"{start}\n{body}\n{end}"
+        if start in text and end in text:
+            i, j = text.index(start), text.index(end) + len(end)
+            text = text[:i] + block + text[j:]
+        else:
+            text += f"\n{block}\n"
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+SECTIONS = ("features", "crop", "models")
+
+
+def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), data: str | None = None,
+            out_dir: str = "out/bench", arches: tuple[str, ...] | None = None) -> dict[str, Any]:
     from renderer.variant import select_variant
     variant = select_variant()
-    results: dict[str, Any] = {"variant": variant, "features": bench_features(repeats)}
-    results["crop"] = bench_crop(repeats=max(1, min(repeats, 3)))
+    results: dict[str, Any] = {"variant": variant}
+    markdown: dict[str, str] = {}
+    if "features" in only:
+        results["features"] = bench_features(repeats)
+        markdown["features"] = md_features(results["features"], variant)
+    if "crop" in only:
+        results["crop"] = bench_crop(repeats=max(1, min(repeats, 3)))
+        markdown["crop"] = md_crop(results["crop"])
+    if "models" in only:
+        if not data:
+            raise ValueError("bench models needs --data DIR (a labelled dataset)")
+        from learning.compare import markdown_table
+        results["models"] = bench_models(data, Path(out_dir), arches)
+        m = results["models"]
+        markdown["models"] = (f"Trained on {', '.join(m['train_scenes'])}; evaluated on the held-out "
+                              f"{', '.join(m['test_scenes'])}.\n\n" + markdown_table(m["rows"]))
+    results["markdown"] = markdown
     return results
 
 
 def format_results(r: dict[str, Any]) -> str:
-    f = r["features"]
-    lines = [
-        f"mitsuba variant: {r['variant']}; torch threads: {f['threads']}",
-        f"features, {f['blocks']} blocks of {f['block_size']}x{f['block_size']}:",
-        f"  feature base (L -> 26)        {f['feature_base_ms']:8.2f} ms   (goal <= {f['goal_ms']:.0f} ms)",
-        f"  display + L* (RGB -> L)       {f['lightness_ms']:8.2f} ms",
-        f"  extract_features (RGB -> 26)  {f['extract_features_ms']:8.2f} ms",
-        f"  torch.conv2d route (reference){f['direct_conv2d_ms']:8.1f} ms",
-        f"  direct multiply-adds          {f['direct_macs'] / 1e6:8.1f} M",
-        f"  dense matmul rate             {f['matmul_gmacs']:8.1f} GMAC/s -> same MACs in "
-        f"{f['matmul_same_macs_ms']:.2f} ms",
-        f"  feature base / matmul time    {f['feature_base_vs_matmul']:8.2f} x   (goal <= {f['goal_ratio']:.0f} x)",
-        f"  spectral vs conv2d            max abs diff {f['spectral_vs_conv2d_max_abs_diff']:.2e}, "
-        f"max rel diff {f['spectral_vs_conv2d_max_rel_diff']:.2e}",
-    ]
-    if "crop" in r:
-        c = r["crop"]
-        lines.append("crop rendering: " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                                                   for k, v in c.items()))
-    return "\n".join(lines)
+    return "\n\n".join(f"## {name}\n{body}" for name, body in r["markdown"].items())

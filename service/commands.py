@@ -34,10 +34,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=cmd_features)
 
     _register_learning(sub)
+    _register_render(sub)
+    _register_serve(sub)
 
-    p = sub.add_parser("bench", help="measure speed figures (see BENCHMARKS.md)")
-    p.add_argument("--json", action="store_true")
+    p = sub.add_parser("bench", help="measure the figures of BENCHMARKS.md")
+    p.add_argument("what", nargs="*", default=["features", "crop"],
+                   help="sections: features, crop, models (default: features crop)")
+    p.add_argument("--data", default=None, help="labelled dataset (models)")
+    p.add_argument("--out", default="out/bench", help="directory for plots")
+    p.add_argument("--arches", default=None,
+                   help="models: comma-separated transfer baselines (default: all five; '' for none)")
+    p.add_argument("--update", default=None, metavar="FILE",
+                   help="rewrite the marked sections of FILE (e.g. BENCHMARKS.md) with the results")
     p.add_argument("--repeats", type=_positive_int, default=30)
+    p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_bench)
 
 
@@ -239,6 +249,96 @@ def _print_metrics(result: dict) -> None:
         print(f"plot: {p}")
 
 
+def _register_render(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("render", help="adaptive progressive render: stop sampling blocks that look converged")
+    p.add_argument("--scene", default=None,
+                   help="built-in scene name or Mitsuba 3 XML file; several comma-separated (default: cornell)")
+    p.add_argument("--out", required=True, help="output directory (several scenes: one sub-directory each)")
+    source = p.add_mutually_exclusive_group()
+    source.add_argument("--model", default=None, help="model bundle directory (default: the bundled model)")
+    source.add_argument("--server", default=None,
+                        help="verdict server URL, e.g. http://host:8000 (token from NOISESTOP_TOKEN)")
+    p.add_argument("--criterion", choices=("model", "variance", "uniform", "oracle"), default="model")
+    p.add_argument("--threshold", type=float, default=0.01,
+                   help="noise threshold of --criterion variance (Blender Cycles' test)")
+    p.add_argument("--quantile", type=float, default=1.0,
+                   help="--criterion variance: fraction of a block's pixels that must pass (default: all)")
+    p.add_argument("--reference", default=None,
+                   help="labelled dataset or stack of the scene: oracle thresholds, early-stop metrics")
+    p.add_argument("--resolution", type=_positive_int, default=256)
+    p.add_argument("--grid", type=_positive_int, nargs=2, default=(4, 4), metavar=("ROWS", "COLS"))
+    p.add_argument("--min-spp", type=_positive_int, default=16)
+    p.add_argument("--max-spp", type=_positive_int, default=1024)
+    p.add_argument("--step", type=_positive_int, default=16, help="spp added per pass")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=_positive_int, default=None,
+                       help="local process workers, for several scenes (default: one per core)")
+    where.add_argument("--scheduler", default=None, help="Dask scheduler address, for several scenes")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_render)
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from renderer.adaptive import render_command
+    from renderer.outputs import format_report
+    from renderer.scenes import DEFAULT_SCENE
+
+    try:
+        result = render_command(
+            args.scene or DEFAULT_SCENE, args.out, criterion=args.criterion, model=args.model,
+            server=args.server, reference=args.reference, threshold=args.threshold,
+            quantile=args.quantile, workers=args.workers, scheduler=args.scheduler,
+            resolution=args.resolution, grid=tuple(args.grid), step=args.step,
+            min_spp=args.min_spp, max_spp=args.max_spp, seed=args.seed, resume=args.resume)
+    except ConnectionError as exc:      # verdict server unreachable or failing
+        raise UsageError(str(exc)) from exc
+    single = "blocks" in result         # one scene: its report; several: a summary
+    if args.json:
+        emit_json(result)
+    elif single:
+        print(format_report(result, args.out))
+    else:
+        for name, rep in result["scenes"].items():
+            print(format_report(rep, f"{result['out']}/{name}"), end="\n\n")
+    if not single:
+        for scene, err in result["failed"].items():
+            log.error("scene %s failed: %s", scene, err)
+        return 1 if result["failed"] else 0
+    return 0
+
+
+def _register_serve(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("serve", help="serve verdicts over HTTP (Open Inference Protocol v2)")
+    p.add_argument("--model", action="append", default=None, metavar="[NAME=]PATH",
+                   help="model bundle to serve, optionally under NAME; repeat for several (the "
+                        "first is also served as 'default'); none: the bundled model")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on; anything but loopback needs a token")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--token-file", default=None,
+                   help="file holding the bearer token (default: $NOISESTOP_TOKEN, "
+                        "else the file $NOISESTOP_TOKEN_FILE names)")
+    p.add_argument("--max-body-bytes", type=_positive_int, default=None,
+                   help="largest request body (default: $NOISESTOP_MAX_BODY_BYTES or 64 MiB)")
+    p.add_argument("--max-batch", type=_positive_int, default=None,
+                   help="most blocks per request (default: $NOISESTOP_MAX_BATCH or 1024)")
+    p.add_argument("--threads", type=_positive_int, default=2,
+                   help="requests classified at the same time")
+    p.add_argument("--graceful-timeout", type=float, default=30.0,
+                   help="seconds SIGTERM waits for requests in flight")
+    p.set_defaults(handler=cmd_serve)
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    from service.serve import parse_model_specs, run
+    run(parse_model_specs(args.model), args.host, args.port, token_file=args.token_file,
+        max_body_bytes=args.max_body_bytes, max_batch=args.max_batch,
+        inference_threads=args.threads, graceful_timeout=args.graceful_timeout)
+    return 0
+
+
 def cmd_scenes(args: argparse.Namespace) -> int:
     from renderer.scenes import list_scenes
     scenes = list_scenes()
@@ -287,8 +387,18 @@ def cmd_features(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     from . import bench
-    results = bench.run_all(repeats=args.repeats)
+    unknown = sorted(set(args.what) - set(bench.SECTIONS))
+    if unknown:
+        raise UsageError(f"unknown bench sections {unknown}; known: {', '.join(bench.SECTIONS)}")
+    arches = None if args.arches is None else tuple(a for a in args.arches.split(",") if a)
+    results = bench.run_all(repeats=args.repeats, only=tuple(args.what), data=args.data,
+                            out_dir=args.out, arches=arches)
+    if args.update:
+        bench.update_markdown(Path(args.update), results["markdown"])
+        log.info("updated %s: %s", args.update, ", ".join(results["markdown"]))
     if args.json:
         emit_json(results)
     else:

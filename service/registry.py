@@ -85,12 +85,13 @@ class ServedModel:
 
     @property
     def inputs(self) -> list[TensorMetadata]:
+        """A raw-block model accepts (and ignores) `quick`, so one client serves both kinds."""
         image = [-1, -1, -1, 3]
-        if self.model.input == "raw":
-            return [TensorMetadata(name="blocks", datatype="FP32", shape=image)]
-        return [TensorMetadata(name="blocks", datatype="FP32", shape=image),
-                TensorMetadata(name="quick", datatype="FP32", shape=image),
-                TensorMetadata(name="features", datatype="FP32", shape=[-1, N_FEATURES])]
+        inputs = [TensorMetadata(name="blocks", datatype="FP32", shape=image),
+                  TensorMetadata(name="quick", datatype="FP32", shape=image)]
+        if self.model.input == "features":
+            inputs.append(TensorMetadata(name="features", datatype="FP32", shape=[-1, N_FEATURES]))
+        return inputs
 
     def metadata(self, name: str | None = None) -> ModelMetadata:
         m = self.model.manifest
@@ -113,25 +114,26 @@ class ServedModel:
         params: dict[str, Any] = {}
         try:
             if "features" in tensors:
-                score = self._score_features(tensors)
-                verdict = np.where(score > self.model.offset, 1, -1).astype(np.int8)  # Model's rule
+                verdict, score = self.model.score_inputs(self._features(tensors))
             else:
                 blocks, quick = self._blocks(tensors)
                 params["nonfinite_pixels"] = _nonfinite(blocks)
-                if quick is not None:
+                if self.model.input == "features":
                     params["nonfinite_quick_pixels"] = _nonfinite(quick)
+                else:
+                    quick = None  # raw-block models read the current block only
                 verdict, score = self.model.score_blocks(blocks, quick, exposure=exposure)
         except ValueError as exc:  # what the feature base and estimator reject
             raise ApiError(400, str(exc)) from None
         return {"verdict": verdict, "score": np.asarray(score, np.float32)}, params
 
-    def _score_features(self, tensors: dict[str, np.ndarray]) -> np.ndarray:
+    def _features(self, tensors: dict[str, np.ndarray]) -> np.ndarray:
         if len(tensors) > 1:
             raise ApiError(400, "send either 'features' or 'blocks' (+ 'quick'), not both")
         X = tensors["features"]
         if X.ndim != 2 or X.shape[1] != N_FEATURES:
             raise ApiError(400, f"input 'features' must have shape [N, {N_FEATURES}], got {list(X.shape)}")
-        return self.model.decision_function(X)
+        return X
 
     def _blocks(self, tensors: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray | None]:
         blocks, quick = tensors.get("blocks"), tensors.get("quick")
@@ -143,17 +145,16 @@ class ServedModel:
         if len(blocks) and min(blocks.shape[1:3]) < MIN_SIZE:
             raise ApiError(400, f"blocks must be at least {MIN_SIZE}x{MIN_SIZE} pixels, got "
                                 f"{blocks.shape[1]}x{blocks.shape[2]}")
+        if quick is not None and quick.shape != blocks.shape:
+            raise ApiError(400, f"inputs 'quick' {list(quick.shape)} and 'blocks' "
+                                f"{list(blocks.shape)} must have the same shape")
         if self.model.input == "raw":
             n = int(self.model.manifest.get("n_features", 0))
             if blocks.shape[1] * blocks.shape[2] != n:
                 raise ApiError(400, f"model {self.name!r} reads raw blocks of {n} pixels, got "
                                     f"{blocks.shape[1]}x{blocks.shape[2]}")
-            return blocks, None
-        if quick is None:
+        elif quick is None:
             raise ApiError(400, f"model {self.name!r} needs input 'quick' (the quick image of every block)")
-        if quick.shape != blocks.shape:
-            raise ApiError(400, f"inputs 'quick' {list(quick.shape)} and 'blocks' "
-                                f"{list(blocks.shape)} must have the same shape")
         return blocks, quick
 
 

@@ -44,10 +44,11 @@ def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", po
         token: str | None = None, token_file: str | os.PathLike | None = None,
         max_body_bytes: int | None = None, max_batch: int | None = None,
         inference_threads: int = 2, max_connections: int = 64, graceful_timeout: float = 30.0,
-        log_level: str = "info") -> None:
+        log_level: str | None = None) -> None:
     """Serve `models` ({name: bundle path or None for the bundled model}; empty: the bundled
     model) until SIGTERM/SIGINT. The token defaults to NOISESTOP_TOKEN / NOISESTOP_TOKEN_FILE;
-    limits default to NOISESTOP_MAX_BODY_BYTES / NOISESTOP_MAX_BATCH."""
+    limits default to NOISESTOP_MAX_BODY_BYTES / NOISESTOP_MAX_BATCH. Logs go to the root logger
+    (uvicorn's own logging setup is off); `log_level` overrides uvicorn's level only."""
     if not 0 <= port <= 65535:
         raise ValueError(f"port must be 0..65535, got {port}")
     app = build(models, host, token=token, token_file=token_file, max_body_bytes=max_body_bytes,

@@ -22,7 +22,6 @@ from schemathesis.specs.openapi.checks import (content_type_conformance, negativ
                                                response_headers_conformance,
                                                response_schema_conformance, status_code_conformance)
 
-from service.limits import Limits
 from service.loadtest import LocalServer, free_port, make_demo_bundle, make_request, run_load
 from service.serve import build
 
@@ -86,7 +85,8 @@ def _triton_infer(client, current, quick, binary):
         t.set_data_from_numpy(arr, binary_data=binary)
         inputs.append(t)
     outputs = [httpclient.InferRequestedOutput(n, binary_data=binary) for n in ("verdict", "score")]
-    result = client.infer("default", inputs, outputs=outputs, headers=AUTH)
+    # a copy: tritonclient writes Inference-Header-Content-Length into the dict it is given
+    result = client.infer("default", inputs, outputs=outputs, headers=dict(AUTH))
     return result.as_numpy("verdict"), result.as_numpy("score"), result.get_response()
 
 
@@ -118,7 +118,7 @@ def test_tritonclient_sees_errors_as_exceptions(live_url):
         q = httpclient.InferInput("quick", [1, 4, 4, 3], "FP32")
         q.set_data_from_numpy(np.zeros((1, 4, 4, 3), np.float32))
         with pytest.raises(InferenceServerException, match="8x8"):
-            client.infer("default", [t, q], headers=AUTH)
+            client.infer("default", [t, q], headers=dict(AUTH))
         with pytest.raises(InferenceServerException, match="unauthorized"):
             client.get_server_metadata()
     finally:
@@ -150,10 +150,6 @@ def test_openapi_conformance_and_no_server_errors(live_url, mode):
                   suppress_health_check=list(HealthCheck))
         @given(case=operation.as_strategy(generation_mode=mode, path_parameters=known or None))
         def check(case):
-            # schemathesis 4.32 may feed a number it read in an error message back into a
-            # header as an int, which `requests` refuses to send: send it as its text
-            if case.headers:
-                case.headers = {k: v if isinstance(v, str) else str(v) for k, v in case.headers.items()}
             case.call_and_validate(headers=AUTH, timeout=60, checks=CHECKS)
 
         check()
@@ -225,5 +221,6 @@ def test_sigterm_drains_the_request_in_flight(bundle):
         n = int(resp.getheader("Inference-Header-Content-Length"))
         head = json.loads(data[:n])
         assert [o["shape"] for o in head["outputs"]] == [[4], [4]]
-        assert server.process.wait(30) == 0
-        assert "Finished server process" in server.log() or "Shutting down" in server.log()
+        # uvicorn re-raises the signal once it has shut down cleanly, hence -SIGTERM
+        assert server.process.wait(30) in (0, -15)
+        assert "Finished server process" in server.log(), server.log()

@@ -23,8 +23,12 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 	@bash scripts/install-llvm.sh
 
+# The main job: adaptive render of the default scene with the bundled model. With the
+# default dataset built, its thresholds give early-stop figures too.
+RUN_ARGS ?= --resolution 256 --step 16 --min-spp 16 --max-spp 640
 run: setup
-	$(NOISESTOP) features --resolution 128 --spp 16
+	$(NOISESTOP) render --scene cornell --out $(OUT) $(RUN_ARGS) \
+		$(if $(wildcard $(DATA)/cornell/meta.json),--reference $(DATA)/cornell,)
 
 test: setup
 	$(PY) -m pytest -q
@@ -33,7 +37,9 @@ test-fast: setup
 	$(PY) -m pytest -q -m "not slow"
 
 bench: setup
-	$(NOISESTOP) bench
+	$(NOISESTOP) bench features crop --update BENCHMARKS.md
+	$(if $(wildcard $(DATA)/*/meta.json),$(NOISESTOP) bench models --data $(DATA) --update BENCHMARKS.md,\
+		@echo "bench models skipped: run make dataset first")
 
 # The default training dataset: 14 scenes x 16 blocks x 40 levels (8,960 labelled
 # sub-images). Resumes if interrupted. Settings and measured time: README "Datasets".

@@ -66,12 +66,44 @@ def _cv_subset(n: int, groups: np.ndarray, seed: int) -> np.ndarray:
     return np.flatnonzero(np.isin(groups, keep))
 
 
+def fit_kind(kind: str, table: SubImageTable, scenes: list[str], *, C: float, gamma,
+             initial_scene: str | None = None, max_label_fraction: float = 0.25,
+             batch_size: int = 16, monitor: SubImageTable | None = None,
+             progress: bool = False) -> tuple[RBFSVM, dict[str, Any]]:
+    """Fit `kind` with fixed (C, gamma) on the rows of `scenes`; returns (estimator, info)."""
+    tr = table.scene_mask(scenes)
+    X, y = table.X[tr], table.y[tr].astype(int)
+    est: RBFSVM = (SVM if kind.startswith("svm") else DSVM)(C=C, gamma=gamma)
+    if kind in ("svm", "dsvm"):
+        return est.fit(X, y), {"n_labels": int(len(y)), "label_fraction": 1.0}
+    first = initial_scene or balanced_scene(table, scenes)
+    if first not in scenes:
+        raise ValueError(f"initial scene {first!r} is not a training scene ({scenes})")
+    init = table.scene[tr] == first
+    learner = ActiveSemiSupervised(estimator=est, semi_supervised=kind.endswith("_as"),
+                                   batch_size=batch_size, max_label_fraction=max_label_fraction,
+                                   patience=None, progress=progress)
+    learner.fit(X, np.where(init, y, np.nan).astype(float), SimulatedExpert(y),
+                X_val=None if monitor is None else monitor.X,
+                y_val=None if monitor is None else monitor.y.astype(int))
+    return learner.estimator_, {
+        "initial_scene": first, "n_initial": int(init.sum()), "n_pool": learner.n_pool_,
+        "n_queries": learner.n_queries_, "query_fraction": learner.n_queries_ / max(1, learner.n_pool_),
+        "n_pseudo": int(learner.pseudo_mask_.sum()), "n_labels": int(init.sum()) + learner.n_queries_,
+        "label_fraction": (int(init.sum()) + learner.n_queries_) / len(y), "history": learner.history_}
+
+
 def train_model(kind: str, data: str, *, test_scenes: list[str] | None = None,
                 initial_scene: str | None = None, cv: bool = True, seed: int = 0,
                 max_label_fraction: float = 0.25, batch_size: int = 16,
+                max_early_stop: float | None = None,
                 base: FeatureBase | None = None, progress: bool = True,
                 table: SubImageTable | None = None) -> tuple[RBFSVM, dict[str, Any]]:
-    """Fit one model kind; returns (fitted estimator, training summary for the manifest)."""
+    """Fit one model kind; returns (fitted estimator, training summary for the manifest).
+
+    With `max_early_stop`, the decision offset is calibrated on leave-one-scene-out scores
+    of the training scenes (learning.calibrate) to keep early stops within that rate.
+    """
     kind = kind.lower()
     if kind not in SVM_KINDS:
         raise ValueError(f"unknown model kind {kind!r}; SVM kinds: {', '.join(SVM_KINDS)}")
@@ -80,49 +112,46 @@ def train_model(kind: str, data: str, *, test_scenes: list[str] | None = None,
     table = table or load_table(data, raw=raw, base=base, progress=progress)
     t_data = time.perf_counter() - t0
     train_scenes, test = split_scenes(table, test_scenes)
-    tr = np.isin(table.scene, train_scenes)
-    te = np.isin(table.scene, test)
-    X, y, groups = table.X[tr], table.y[tr].astype(int), table.groups[tr]
-    est: RBFSVM = SVM() if raw else DSVM()
+    tr = table.scene_mask(train_scenes)
     summary: dict[str, Any] = {"kind": kind, "input": "raw" if raw else "features",
                                "train_scenes": train_scenes, "test_scenes": test,
                                "n_train": int(tr.sum()), "data": str(data), "seed": seed,
                                "table_s": t_data}
     t1 = time.perf_counter()
-    if kind in ("svm", "dsvm"):
-        if cv:
-            sub = _cv_subset(len(y), groups, seed)
-            best = select_hyperparameters(est, X[sub], y[sub], groups[sub])
-            est.set_params(C=best["C"], gamma=best["gamma"])
-            summary["cv"] = best
-        est.fit(X, y)
-        summary.update(n_labels=int(len(y)), label_fraction=1.0)
-        fitted = est
-    else:
-        first = initial_scene or balanced_scene(table, train_scenes)
-        if first not in train_scenes:
-            raise ValueError(f"initial scene {first!r} is not a training scene ({train_scenes})")
-        init = table.scene[tr] == first
-        if cv:
-            best = select_hyperparameters(est, X[init], y[init], groups[init])
-            est.set_params(C=best["C"], gamma=best["gamma"])
-            summary["cv"] = best
-        y_known = np.where(init, y, np.nan).astype(float)
-        learner = ActiveSemiSupervised(estimator=est, semi_supervised=kind.endswith("_as"),
-                                       batch_size=batch_size, max_label_fraction=max_label_fraction,
-                                       patience=None, progress=progress)
-        learner.fit(X, y_known, SimulatedExpert(y), X_val=table.X[te] if te.any() else None,
-                    y_val=table.y[te].astype(int) if te.any() else None)
-        fitted = learner.estimator_
-        summary.update(initial_scene=first, n_initial=int(init.sum()), n_pool=learner.n_pool_,
-                       n_queries=learner.n_queries_,
-                       query_fraction=learner.n_queries_ / max(1, learner.n_pool_),
-                       n_pseudo=int(learner.pseudo_mask_.sum()),
-                       n_labels=int(init.sum()) + learner.n_queries_,
-                       label_fraction=(int(init.sum()) + learner.n_queries_) / len(y),
-                       history=learner.history_)
+    template = SVM() if raw else DSVM()
+    C, gamma = template.C, template.gamma
+    if cv:
+        if kind in ("svm", "dsvm"):
+            rows = np.flatnonzero(tr)
+            sub = rows[_cv_subset(len(rows), table.groups[rows], seed)]
+        else:  # the paper: cross-validation on the initially labelled set
+            first = initial_scene or balanced_scene(table, train_scenes)
+            sub = np.flatnonzero(table.scene == first)
+        best = select_hyperparameters(template, table.X[sub], table.y[sub].astype(int), table.groups[sub])
+        C, gamma = best["C"], best["gamma"]
+        summary["cv"] = best
+    monitor = table.subset(table.scene_mask(test)) if test else None
+    fitted, info = fit_kind(kind, table, train_scenes, C=C, gamma=gamma, initial_scene=initial_scene,
+                            max_label_fraction=max_label_fraction, batch_size=batch_size,
+                            monitor=monitor, progress=progress)
+    summary.update(info)
     summary["train_s"] = time.perf_counter() - t1
+    if max_early_stop is not None:
+        from .calibrate import choose_offset, out_of_fold_scores, sweep
+
+        def fold_fit(sub_table: SubImageTable) -> RBFSVM:
+            return fit_kind(kind, sub_table, sub_table.scenes(), C=C, gamma=gamma,
+                            max_label_fraction=max_label_fraction, batch_size=batch_size)[0]
+        t2 = time.perf_counter()
+        train_table = table.subset(tr)
+        scores = out_of_fold_scores(fold_fit, train_table, train_scenes, progress=progress)
+        curve = sweep(scores, train_table)
+        chosen = choose_offset(curve, max_early_stop)
+        fitted.set_params(offset=chosen["offset"])
+        summary["calibration"] = {"target_early_stop_rate": max_early_stop, "chosen": chosen,
+                                  "curve": curve, "seconds": time.perf_counter() - t2}
     summary["C"], summary["gamma"] = float(fitted.C), fitted.gamma
-    log.info("%s: trained on %d scenes in %.1f s (%s labels)", kind, len(train_scenes),
-             summary["train_s"], summary.get("n_labels"))
+    summary["offset"] = float(fitted.offset)
+    log.info("%s: trained on %d scenes in %.1f s (%s labels), offset %.2f", kind, len(train_scenes),
+             summary["train_s"], summary.get("n_labels"), fitted.offset)
     return fitted, summary

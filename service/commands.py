@@ -151,9 +151,23 @@ def _register_learning(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--label-budget", type=float, default=0.25,
                    help="active kinds: largest fraction of the pool's labels to query")
     p.add_argument("--no-cv", action="store_true", help="skip the C/gamma cross-validation")
+    p.add_argument("--max-early-stop", type=float, default=0.05,
+                   help="calibrate the decision offset on leave-one-scene-out scores of the "
+                        "training scenes to keep early stops at or below this rate (default 0.05)")
+    p.add_argument("--no-calibrate", action="store_true", help="keep the decision offset at 0")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_train)
+
+    p = sub.add_parser("pretrain", help="pre-train the feature base's conv layers as a denoiser")
+    p.add_argument("--data", required=True, help="dataset directory (training scenes only are used)")
+    p.add_argument("--out", default=None,
+                   help="safetensors file to write (default: the package's default weights)")
+    p.add_argument("--test-scenes", default=None, help="scenes to keep out (default: every 4th by name)")
+    p.add_argument("--steps", type=_positive_int, default=400)
+    p.add_argument("--lr", type=float, default=0.003)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_pretrain)
 
     p = sub.add_parser("evaluate", help="metrics on held-out scenes, overall and per scene")
     p.add_argument("--data", required=True)
@@ -180,15 +194,19 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise UsageError(f"--label-budget must be in (0, 1], got {args.label_budget}")
     raw = args.model.startswith("svm")
     table = load_table(args.data, raw=raw)
+    if not 0 <= args.max_early_stop <= 1:
+        raise UsageError(f"--max-early-stop must be in [0, 1], got {args.max_early_stop}")
     est, summary = train_model(args.model, args.data, test_scenes=_scene_list(args.test_scenes),
                                initial_scene=args.initial_scene, cv=not args.no_cv, seed=args.seed,
-                               max_label_fraction=args.label_budget, table=table)
+                               max_label_fraction=args.label_budget, table=table,
+                               max_early_stop=None if args.no_calibrate else args.max_early_stop)
     test = table.subset(table.scene_mask(summary["test_scenes"]))
     metrics = evaluate_model(Model(est, {"kind": args.model, "input": summary["input"]}), test) \
         if len(test) else {}
     save_model(est, args.out, kind=args.model, input=summary["input"], training=summary,
                metrics={k: v for k, v in metrics.items() if k != "per_scene"})
     result = {"model": args.out, "kind": args.model, "train_s": summary["train_s"],
+              "offset": summary["offset"],
               "labels": summary.get("n_labels"), "label_fraction": summary.get("label_fraction"),
               "test_scenes": summary["test_scenes"], **{k: metrics.get(k) for k in
                                                          ("precision", "f1", "early_stop_rate")}}
@@ -198,9 +216,37 @@ def cmd_train(args: argparse.Namespace) -> int:
         print(f"{args.model} -> {args.out}: trained in {summary['train_s']:.1f} s on "
               f"{len(summary['train_scenes'])} scenes, {summary.get('n_labels')} labels "
               f"({100 * summary.get('label_fraction', 1):.0f}% of the training sub-images)")
+        if "calibration" in summary:
+            c = summary["calibration"]["chosen"]
+            print(f"decision offset {summary['offset']:.2f}: leave-one-scene-out early stops "
+                  f"{c['early_stop_rate']:.3f}, samples {c['spp_ratio_vs_oracle']:.2f} x oracle")
         if metrics:
             print(f"held-out {', '.join(summary['test_scenes'])}: precision {metrics['precision']:.3f}, "
-                  f"f1 {metrics['f1']:.3f}, early stops {metrics['early_stop_rate']:.3f}")
+                  f"f1 {metrics['f1']:.3f}, early stops {metrics['early_stop_rate']:.3f}, "
+                  f"samples {metrics['spp_ratio_vs_oracle']:.2f} x oracle")
+    return 0
+
+
+def cmd_pretrain(args: argparse.Namespace) -> int:
+    from learning.pretrain import pretrain_base
+    from learning.stack import list_stacks, read_stack
+    from learning.train import default_test_scenes
+    from noisefeat.weights import DEFAULT_FILE, save_kernels
+
+    stacks = [read_stack(p) for p in list_stacks(args.data)]
+    held = set(_scene_list(args.test_scenes) or default_test_scenes([s.scene for s in stacks]))
+    train = [s for s in stacks if s.scene not in held]
+    base, report = pretrain_base(train, steps=args.steps, lr=args.lr)
+    out = args.out or DEFAULT_FILE
+    save_kernels(out, base.kernels(), {"init": "denoiser pre-training", "scenes": ",".join(report["scenes"]),
+                                       "steps": str(args.steps), "lr": str(args.lr)})
+    report["out"], report["hash"] = str(out), base.hash
+    if args.json:
+        emit_json(report)
+    else:
+        print(f"conv base pre-trained on {len(train)} scenes ({report['pairs']} block pairs) in "
+              f"{report['seconds']:.0f} s: MSE(O_12, reference) {report['mse_smoothing_init']:.2f} "
+              f"-> {report['mse_trained']:.2f} (noisy input: {report['mse_noisy']:.2f}); wrote {out}")
     return 0
 
 

@@ -156,10 +156,19 @@ class FeatureBase(nn.Module):
         n, h, w = xs.shape
         low_dc = ops["dc"][-1]
         if "analysis12" in ops:
-            aliased = alias_average(ops["analysis12"] * spec, h, w)
-            noise = spec - ops["synthesis"] * aliased
-            total = ((noise.real ** 2 + noise.imag ** 2) * ops["col_w"]).sum(dim=(-2, -1))
-            dc = noise[:, 0, 0]
+            # noise spectrum = X - S * Q(f mod (h/2, w/2)): evaluated per quadrant of the
+            # half-spectrum (and its Nyquist column) instead of tiling Q.
+            q = alias_average(ops["analysis12"] * spec, h, w)             # [n, h/2, w/2]
+            syn, cw = ops["synthesis"], ops["col_w"]
+            hh, hw = h // 2, w // 2
+            total = torch.zeros(n)
+            for rows in (slice(0, hh), slice(hh, h)):
+                part = spec[:, rows, :hw] - syn[rows, :hw] * q
+                total += ((part.real ** 2 + part.imag ** 2) * cw[:hw]).sum(dim=(-2, -1))
+                nyq = spec[:, rows, hw] - syn[rows, hw] * q[:, :, 0]
+                total += (nyq.real ** 2 + nyq.imag ** 2).sum(dim=-1)
+                if rows.start == 0:
+                    dc = part[:, 0, 0]
             var = (total - (dc.real ** 2 + dc.imag ** 2)) / float(h * w) ** 2
             mean = dc.real / float(h * w) + mu.reshape(n) * (1.0 - low_dc)
             return mean, var.clamp_min(0.0).sqrt()

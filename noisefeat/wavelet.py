@@ -80,17 +80,23 @@ def spectral_operators(wavelet: str, h: int, w: int) -> tuple[torch.Tensor, torc
     return analysis, synthesis
 
 
-def alias_average(g: torch.Tensor, h: int, w: int) -> torch.Tensor:
-    """Q(g) = 1/4 sum of G over the four aliases, from G on the rfft half [.., h, w//2+1].
+@lru_cache(maxsize=32)
+def mirror_index(h: int, w: int) -> torch.Tensor:
+    """Flat rfft2-half indices of G[-f1, w/2 - g2] for g2 in 0..w/2-1 (one gather)."""
+    wr = w // 2 + 1
+    rows = (-torch.arange(h)) % h
+    cols = w // 2 - torch.arange(w // 2)
+    return (rows[:, None] * wr + cols[None, :]).reshape(-1)
 
-    G is the spectrum of a real signal (conjugate-symmetric), so its columns beyond w/2
-    are conj(G[-f1, w - f2]); the result is Q tiled back onto the half-spectrum grid.
+
+def alias_average(g: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """Q(g) = 1/4 sum of G over the four aliases, on the quarter grid [.., h/2, w/2].
+
+    G is the rfft2 half-spectrum [.., h, w//2+1] of a real signal (conjugate-symmetric),
+    so its columns beyond w/2 are conj(G[-f1, w - f2]): one precomputed gather.
     """
     half_w, half_h = w // 2, h // 2
-    neg_rows = (-torch.arange(h)) % h
-    direct = g[..., :half_w]                                         # columns g2
-    mirrored = torch.conj(g[..., neg_rows, 1:half_w + 1].flip(-1))    # columns g2 + w/2
-    cols = direct + mirrored                                         # [.., h, w/2]
-    q = 0.25 * (cols[..., :half_h, :] + cols[..., half_h:, :])       # [.., h/2, w/2]
-    q = torch.cat([q, q], dim=-2)
-    return torch.cat([q, q[..., :1]], dim=-1)                        # [.., h, w/2+1]
+    flat = g.reshape(*g.shape[:-2], -1)
+    mirrored = torch.conj(flat.index_select(-1, mirror_index(h, w)).reshape(*g.shape[:-2], h, half_w))
+    cols = g[..., :half_w] + mirrored                                 # [.., h, w/2]
+    return 0.25 * (cols[..., :half_h, :] + cols[..., half_h:, :])      # [.., h/2, w/2]

@@ -24,11 +24,12 @@ on by default, counted as ``flat_blocks``). This is what makes the degenerate sc
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -47,6 +48,23 @@ FLAT_TOLERANCE = 1.0 / 255.0  # one 8-bit code value of the display transform
 COUNTER_NAMES = ("decide_calls", "blocks_asked", "blocks_featured", "feature_rows", "converged",
                  "flat_blocks", "nonfinite_blocks")
 TIMER_NAMES = ("features_s", "decisions_s")
+
+
+@contextlib.contextmanager
+def single_torch_thread() -> Iterator[None]:
+    """Run torch on one thread for a decision's few blocks.
+
+    Inside the render loop torch's OpenMP threads share the cores with Dr.Jit's pool and
+    spin-wait: features of 16 blocks of 64x64 took 47 ms per pass there against 2 ms alone.
+    A decision's batch is too small to gain from threads anyway.
+    """
+    import torch
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 @dataclass(frozen=True)
@@ -328,7 +346,9 @@ class ModelCriterion(Criterion):
                 for b, q in zip(ids, quick)]
         missing = [i for i, k in enumerate(keys) if k not in self._quick_cache]
         if missing:
-            feats = extract_features(np.ascontiguousarray(quick[missing], np.float32), exposure=self.exposure)
+            with single_torch_thread():
+                feats = extract_features(np.ascontiguousarray(quick[missing], np.float32),
+                                         exposure=self.exposure)
             self.counters["feature_rows"] += len(missing)
             for i, f in zip(missing, feats):
                 self._quick_cache[keys[i]] = f
@@ -354,13 +374,13 @@ class ModelCriterion(Criterion):
         if self._local_features:
             from noisefeat import extract_features
 
-            t0 = time.perf_counter()
-            qf = self._quick_features([ids[i] for i in ask], quick)
-            x = qf - extract_features(blocks, exposure=self.exposure)
-            self.counters["feature_rows"] += len(ask)
-            self.timers["features_s"] += time.perf_counter() - t0
-            score = np.asarray(self.model.decision_function(x), np.float64)  # type: ignore[attr-defined]
-            verdict = np.where(score > float(self.model.offset), 1, -1)  # type: ignore[attr-defined]
+            with single_torch_thread():
+                t0 = time.perf_counter()
+                qf = self._quick_features([ids[i] for i in ask], quick)
+                x = qf - extract_features(blocks, exposure=self.exposure)
+                self.counters["feature_rows"] += len(ask)
+                self.timers["features_s"] += time.perf_counter() - t0
+                verdict, _ = self.model.score_inputs(x)  # type: ignore[attr-defined]
         else:
             verdict, score = self.model.score_blocks(blocks, quick)
             verdict = np.asarray(verdict)

@@ -25,6 +25,7 @@ log = logging.getLogger(__name__)
 
 SVM_KINDS = ("svm", "dsvm", "svm_al", "dsvm_al", "svm_as", "dsvm_as")
 CV_MAX_SAMPLES = 4000
+CV_MAX_SAMPLES_RAW = 1000   # 4096-dim raw blocks: each RBF fit costs ~100x a 26-feature one
 
 
 def default_test_scenes(scenes: list[str]) -> list[str]:
@@ -50,16 +51,16 @@ def balanced_scene(table: SubImageTable, scenes: list[str]) -> str:
     return min(scenes, key=lambda s: (abs(fractions[s] - 0.5), s))
 
 
-def _cv_subset(n: int, groups: np.ndarray, seed: int) -> np.ndarray:
-    """Whole groups, at random, up to CV_MAX_SAMPLES rows: CV cost stays bounded."""
-    if n <= CV_MAX_SAMPLES:
+def _cv_subset(n: int, groups: np.ndarray, seed: int, limit: int = CV_MAX_SAMPLES) -> np.ndarray:
+    """Whole groups, at random, up to `limit` rows: CV cost stays bounded."""
+    if n <= limit:
         return np.arange(n)
     rng = np.random.default_rng(seed)
     ug = rng.permutation(np.unique(groups))
     sizes = {g: int((groups == g).sum()) for g in ug}
     keep, total = [], 0
     for g in ug:
-        if total >= CV_MAX_SAMPLES:
+        if total >= limit:
             break
         keep.append(g)
         total += sizes[g]
@@ -123,7 +124,8 @@ def train_model(kind: str, data: str, *, test_scenes: list[str] | None = None,
     if cv:
         if kind in ("svm", "dsvm"):
             rows = np.flatnonzero(tr)
-            sub = rows[_cv_subset(len(rows), table.groups[rows], seed)]
+            sub = rows[_cv_subset(len(rows), table.groups[rows], seed,
+                                  CV_MAX_SAMPLES_RAW if raw else CV_MAX_SAMPLES)]
         else:  # the paper: cross-validation on the initially labelled set
             first = initial_scene or balanced_scene(table, train_scenes)
             sub = np.flatnonzero(table.scene == first)

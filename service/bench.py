@@ -95,6 +95,69 @@ def bench_models(data: str, out_dir: Path, arches: tuple[str, ...] | None = None
     return result
 
 
+def bench_criteria(data: str, model: str | None = None, max_early_stop: float = 0.05,
+                   thresholds: tuple[float, ...] = (0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2)) -> dict[str, Any]:
+    """Criteria simulated on held-out scenes; variance's threshold tuned on training scenes."""
+    from learning.bundle import load_model
+    from learning.stack import list_stacks, read_stack
+    from renderer.criteria import ModelCriterion, OracleCriterion, UniformCriterion, VarianceCriterion
+    from renderer.simulate import evaluate_criterion
+
+    m = load_model(model)
+    stacks = [read_stack(p) for p in list_stacks(data)]
+    held = set(m.manifest.get("training", {}).get("test_scenes") or [])
+    if not held:
+        from learning.train import default_test_scenes
+        held = set(default_test_scenes([s.scene for s in stacks]))
+    train = [s for s in stacks if s.scene not in held]
+    test = [s for s in stacks if s.scene in held]
+    keys = ("precision", "early_stop_rate", "spp_ratio_vs_oracle", "saved_vs_uniform")
+
+    def run(stk, factory):
+        r = evaluate_criterion(stk, factory)
+        return {k: r[k] for k in keys}
+    sweep = [{"threshold": t, "train": run(train, lambda st, t=t: VarianceCriterion(threshold=t)),
+              "test": run(test, lambda st, t=t: VarianceCriterion(threshold=t))} for t in thresholds]
+    ok = [r for r in sweep if r["train"]["early_stop_rate"] <= max_early_stop]
+    tuned = max(ok, key=lambda r: r["threshold"]) if ok else min(sweep, key=lambda r: r["train"]["early_stop_rate"])
+    rows = {
+        f"model ({m.name}, offset {m.offset:.2f})": run(test, lambda st: ModelCriterion(m)),
+        f"variance (threshold {tuned['threshold']}, tuned on training scenes)": tuned["test"],
+        "oracle": run(test, lambda st: OracleCriterion(st.thresholds)),
+        "uniform": run(test, lambda st: UniformCriterion()),
+    }
+    return {"test_scenes": sorted(held), "rows": rows, "variance_sweep": sweep,
+            "model_on_training_scenes": run(train, lambda st: ModelCriterion(m))}
+
+
+def bench_render(scene: str = "env_spheres", resolution: int = 256, max_spp: int = 640,
+                 step: int = 16, model: str | None = None) -> dict[str, Any]:
+    """Real renders: the model criterion against uniform sampling to the same max spp."""
+    import tempfile
+
+    from learning.bundle import load_model
+    from renderer.adaptive import adaptive_render
+    from renderer.criteria import ModelCriterion, UniformCriterion
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, crit in (("model", ModelCriterion(load_model(model))), ("uniform", UniformCriterion())):
+            rep = adaptive_render(scene, Path(tmp) / name, crit, resolution=resolution, step=step,
+                                  min_spp=step, max_spp=max_spp, progress=False)
+            out[name] = {"wall_s": rep["wall_s"], "saved_vs_uniform": rep["saved_vs_uniform"],
+                         "timing": rep.get("timing")}
+    t = out["model"]["timing"] or {}
+    decide = float(t.get("features_s", 0) + t.get("decisions_s", 0))
+    return {"scene": scene, "resolution": resolution, "max_spp": max_spp, **out,
+            "speedup_vs_uniform": out["uniform"]["wall_s"] / out["model"]["wall_s"],
+            "decision_share": decide / out["model"]["wall_s"]}
+
+
+def bench_service(clients: tuple[int, ...] = (1, 8, 32)) -> dict[str, Any]:
+    from .loadtest import bench
+    return {str(c): bench(None, clients=c, requests_per_client=max(2, 64 // c), max_seconds=60)
+            for c in clients}
+
+
 # --- markdown for BENCHMARKS.md --------------------------------------------------------
 def md_features(f: dict[str, Any], variant: str) -> str:
     return "\n".join([
@@ -123,6 +186,52 @@ def md_crop(c: dict[str, Any]) -> str:
     return "\n".join(rows)
 
 
+def md_criteria(r: dict[str, Any]) -> str:
+    lines = [f"Held-out scenes: {', '.join(r['test_scenes'])}; simulated on the stored stacks.", "",
+             "| criterion | precision | early_stop_rate | samples / oracle | saved vs uniform |",
+             "|---|---|---|---|---|"]
+    for name, m in r["rows"].items():
+        lines.append(f"| {name} | {m['precision']:.3f} | {m['early_stop_rate']:.3f} | "
+                     f"{m['spp_ratio_vs_oracle']:.3f} | {m['saved_vs_uniform']:.3f} |")
+    t = r["model_on_training_scenes"]
+    lines += ["", f"The same model on its training scenes: early stops {t['early_stop_rate']:.3f}, "
+              f"samples {t['spp_ratio_vs_oracle']:.3f} x oracle.", "",
+              "Variance threshold sweep (training / held-out early stops and samples vs oracle):", "",
+              "| threshold | train early stops | train samples | held-out early stops | held-out samples |",
+              "|---|---|---|---|---|"]
+    for row in r["variance_sweep"]:
+        a, b = row["train"], row["test"]
+        lines.append(f"| {row['threshold']} | {a['early_stop_rate']:.3f} | {a['spp_ratio_vs_oracle']:.3f} "
+                     f"| {b['early_stop_rate']:.3f} | {b['spp_ratio_vs_oracle']:.3f} |")
+    return "\n".join(lines)
+
+
+def md_render(r: dict[str, Any]) -> str:
+    m, u = r["model"], r["uniform"]
+    return "\n".join([
+        f"{r['scene']} at {r['resolution']}x{r['resolution']}, max {r['max_spp']} spp:", "",
+        "| run | wall (s) | saved vs uniform |", "|---|---|---|",
+        f"| model criterion | {m['wall_s']:.1f} | {m['saved_vs_uniform']:.3f} |",
+        f"| uniform to max spp | {u['wall_s']:.1f} | 0 |", "",
+        f"Speed-up {r['speedup_vs_uniform']:.2f}x (goal >= 2x); features + decisions "
+        f"{100 * r['decision_share']:.2f} % of the model run's wall time (goal < 2 %)."])
+
+
+def md_service(r: dict[str, Any]) -> str:
+    lines = ["| clients | encoding | requests | req/s | blocks/s | p50 (ms) | p99 (ms) | errors |",
+             "|---|---|---|---|---|---|---|---|"]
+    for c, res in r.items():
+        for enc in ("json", "binary"):
+            x = res[enc]
+            f = (lambda v: "-" if v is None else f"{v:.0f}")
+            lines.append(f"| {c} | {enc} | {x['requests']} | {x['requests_per_s']:.2f} | "
+                         f"{x['blocks_per_s']:.0f} | {f(x['p50_ms'])} | {f(x['p99_ms'])} | {x['errors']} |")
+    first = next(iter(r.values()))
+    return (f"16 blocks of 128x128 (+ quick) per request, model {first['model']}, loopback, "
+            f"{first['cpus']} CPUs. Goal: p99 <= 25 ms at 8 clients with binary data, no errors "
+            "at 32.\n\n" + "\n".join(lines))
+
+
 def update_markdown(path: Path, sections: dict[str, str]) -> None:
     """Replace the text between <!-- bench:NAME --> and <!-- /bench:NAME --> markers."""
     text = path.read_text() if path.exists() else ""
@@ -139,7 +248,7 @@ def update_markdown(path: Path, sections: dict[str, str]) -> None:
     tmp.replace(path)
 
 
-SECTIONS = ("features", "crop", "models")
+SECTIONS = ("features", "crop", "models", "criteria", "render", "service")
 
 
 def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), data: str | None = None,
@@ -162,6 +271,17 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
         m = results["models"]
         markdown["models"] = (f"Trained on {', '.join(m['train_scenes'])}; evaluated on the held-out "
                               f"{', '.join(m['test_scenes'])}.\n\n" + markdown_table(m["rows"]))
+    if "criteria" in only:
+        if not data:
+            raise ValueError("bench criteria needs --data DIR (a labelled dataset)")
+        results["criteria"] = bench_criteria(data)
+        markdown["criteria"] = md_criteria(results["criteria"])
+    if "render" in only:
+        results["render"] = bench_render()
+        markdown["render"] = md_render(results["render"])
+    if "service" in only:
+        results["service"] = bench_service()
+        markdown["service"] = md_service(results["service"])
     results["markdown"] = markdown
     return results
 

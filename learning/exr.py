@@ -110,19 +110,25 @@ def _load(path: Path, fmt, kind: str):
         raise ValueError(f"{path}: unreadable {kind} (truncated or corrupt?): {exc}") from exc
 
 
-def read_exr(path: str | os.PathLike) -> np.ndarray:
-    """EXR -> float32 [H, W, 3] linear RGB (alpha dropped, grey expanded to RGB)."""
+def _read_rgb(path: str | os.PathLike, kind: str, srgb: bool) -> np.ndarray:
+    """A Bitmap file as float32 [H, W, 3] (alpha dropped, grey expanded to RGB)."""
     path = Path(path)
     mi = _mi()
-    bm = _load(path, mi.Bitmap.FileFormat.OpenEXR, "EXR")
+    fmt = mi.Bitmap.FileFormat.OpenEXR if kind == "EXR" else mi.Bitmap.FileFormat.PNG
+    bm = _load(path, fmt, kind)
     try:
-        bm = bm.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
+        bm = bm.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=srgb)
     except RuntimeError as exc:
-        raise ValueError(f"{path}: cannot convert EXR to RGB: {exc}") from exc
+        raise ValueError(f"{path}: cannot convert {kind} to RGB: {exc}") from exc
     out = np.array(bm, dtype=np.float32, copy=True)
     if out.ndim == 2:
         out = np.repeat(out[:, :, None], 3, axis=2)
     return out
+
+
+def read_exr(path: str | os.PathLike) -> np.ndarray:
+    """EXR -> float32 [H, W, 3] linear RGB (alpha dropped, grey expanded to RGB)."""
+    return _read_rgb(path, "EXR", srgb=False)
 
 
 def write_png(path: str | os.PathLike, srgb8: np.ndarray) -> None:
@@ -142,12 +148,4 @@ def read_png(path: str | os.PathLike) -> np.ndarray:
 
     Grey PNGs are expanded to RGB, alpha is dropped, 16-bit PNGs are scaled to [0, 1].
     """
-    path = Path(path)
-    mi = _mi()
-    bm = _load(path, mi.Bitmap.FileFormat.PNG, "PNG")
-    try:
-        bm = bm.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=True)
-    except RuntimeError as exc:
-        raise ValueError(f"{path}: cannot convert PNG to RGB: {exc}") from exc
-    out = np.array(bm, dtype=np.float32, copy=True)
-    return np.clip(out, 0.0, 1.0)
+    return np.clip(_read_rgb(path, "PNG", srgb=True), 0.0, 1.0)

@@ -51,6 +51,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=cmd_bench)
 
 
+def _add_pool_arguments(p: argparse.ArgumentParser, purpose: str) -> None:
+    """--workers N | --scheduler ADDRESS: where per-scene tasks run (renderer.farm)."""
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=_positive_int, default=None,
+                       help=f"local process workers{purpose} (default: one per core)")
+    where.add_argument("--scheduler", default=None,
+                       help=f"Dask scheduler address{purpose}, e.g. tcp://host:8786")
+
+
 def _register_dataset(sub: argparse._SubParsersAction) -> None:
     ds = sub.add_parser("dataset", help="build, import and check labelled datasets")
     dsub = ds.add_subparsers(dest="dataset_command", metavar="ACTION", required=True)
@@ -67,10 +76,7 @@ def _register_dataset(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--tau", type=float, default=0.02, help="virtual observer threshold on FLIP")
     p.add_argument("--no-contact-sheets", action="store_true")
-    where = p.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=_positive_int, default=None,
-                       help="local process workers (default: one per core)")
-    where.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786")
+    _add_pool_arguments(p, "")
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_dataset_build)
 
@@ -318,10 +324,7 @@ def _register_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--step", type=_positive_int, default=16, help="spp added per pass")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz")
-    where = p.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=_positive_int, default=None,
-                       help="local process workers, for several scenes (default: one per core)")
-    where.add_argument("--scheduler", default=None, help="Dask scheduler address, for several scenes")
+    _add_pool_arguments(p, ", for several scenes")
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_render)
 

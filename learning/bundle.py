@@ -64,6 +64,16 @@ class Model:
     def offset(self) -> float:
         return float(self.estimator.offset)
 
+    @property
+    def quick(self) -> str:
+        """The quick image the model was trained with: 'albedo' (default) or 'none'."""
+        return self.manifest.get("quick", "albedo")
+
+    @property
+    def needs_quick(self) -> bool:
+        """Whether verdicts need the quick image (feature models not trained with 'none')."""
+        return self.input == "features" and self.quick != "none"
+
     def decision_function(self, X: np.ndarray) -> np.ndarray:
         return self.estimator.decision_function(X)
 
@@ -77,11 +87,13 @@ class Model:
             import torch
             L = lightness(torch.as_tensor(np.asarray(blocks)), exposure).numpy() / 100.0
             return L.reshape(len(L), -1)
+        base = base or default_base()
+        current = extract_features(blocks, base=base, exposure=exposure)
+        if not self.needs_quick:  # a flat quick image has all-zero features
+            return -current
         if quick is None:
             raise ValueError("a feature model needs the quick image of every block")
-        base = base or default_base()
-        return (extract_features(quick, base=base, exposure=exposure)
-                - extract_features(blocks, base=base, exposure=exposure))
+        return extract_features(quick, base=base, exposure=exposure) - current
 
     def score_inputs(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(verdict int8 [N], score float [N]) for model inputs (e.g. [N, 26] features)."""

@@ -60,11 +60,20 @@ def _atomic_savez(path: Path, **arrays: np.ndarray) -> None:
     os.replace(tmp, path)
 
 
+QUICK_MODES = ("albedo", "none")
+
+
 def stack_features(stack: Stack, base: FeatureBase | None = None, exposure: float = 0.0,
-                   progress: bool = False) -> np.ndarray:
-    """[K, n_blocks, 26] model inputs of one stack, cached per feature base."""
+                   progress: bool = False, quick: str = "albedo") -> np.ndarray:
+    """[K, n_blocks, 26] model inputs of one stack, cached per feature base and quick mode.
+
+    quick='albedo': features(quick image) - features(level); quick='none': a flat quick
+    image, whose features are all zero, so the input is -features(level).
+    """
+    if quick not in QUICK_MODES:
+        raise ValueError(f"quick must be one of {QUICK_MODES}, got {quick!r}")
     base = base or default_base()
-    cache = stack.path / CACHE_DIR / f"features-{base.hash}-e{exposure:g}.npz"
+    cache = stack.path / CACHE_DIR / f"features-{base.hash}-e{exposure:g}-{quick}.npz"
     if cache.exists():
         try:
             with np.load(cache, allow_pickle=False) as z:
@@ -73,11 +82,12 @@ def stack_features(stack: Stack, base: FeatureBase | None = None, exposure: floa
                 return x
         except Exception as exc:
             log.warning("%s: unreadable feature cache (%s); recomputing", cache, exc)
-    quick = extract_features(stack.split(stack.quick()), base=base, exposure=exposure)
+    quick_feats = (extract_features(stack.split(stack.quick()), base=base, exposure=exposure)
+                   if quick == "albedo" else np.zeros((stack.n_blocks, 26), np.float32))
     rows = []
     for k in tqdm(range(stack.n_levels), desc=f"{stack.scene} features", disable=not progress,
                   leave=False):
-        rows.append(quick - extract_features(stack.blocks(k), base=base, exposure=exposure))
+        rows.append(quick_feats - extract_features(stack.blocks(k), base=base, exposure=exposure))
     x = np.stack(rows).astype(np.float32)
     cache.parent.mkdir(exist_ok=True)
     _atomic_savez(cache, x=x)
@@ -94,7 +104,8 @@ def stack_raw_blocks(stack: Stack, exposure: float = 0.0) -> np.ndarray:
 
 
 def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase | None = None,
-               scenes: list[str] | None = None, progress: bool = True) -> SubImageTable:
+               scenes: list[str] | None = None, progress: bool = True,
+               quick: str = "albedo") -> SubImageTable:
     """All labelled stacks under root as one table (raw L* blocks instead of features if `raw`)."""
     paths = list_stacks(root)
     if not paths:
@@ -111,7 +122,7 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
         if st.scene in stacks:
             raise ValueError(f"{p}: scene name {st.scene!r} appears twice in {root}")
         stacks[st.scene] = st
-        x = stack_raw_blocks(st) if raw else stack_features(st, base)
+        x = stack_raw_blocks(st) if raw else stack_features(st, base, quick=quick)
         k, b = x.shape[:2]
         xs.append(x.reshape(k * b, -1))
         ys.append(st.labels().reshape(-1))

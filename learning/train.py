@@ -97,7 +97,7 @@ def fit_kind(kind: str, table: SubImageTable, scenes: list[str], *, C: float, ga
 def train_model(kind: str, data: str, *, test_scenes: list[str] | None = None,
                 initial_scene: str | None = None, cv: bool = True, seed: int = 0,
                 max_label_fraction: float = 0.25, batch_size: int = 16,
-                max_early_stop: float | None = None,
+                max_early_stop: float | None = None, quick: str = "albedo",
                 base: FeatureBase | None = None, progress: bool = True,
                 table: SubImageTable | None = None) -> tuple[RBFSVM, dict[str, Any]]:
     """Fit one model kind; returns (fitted estimator, training summary for the manifest).
@@ -110,11 +110,12 @@ def train_model(kind: str, data: str, *, test_scenes: list[str] | None = None,
         raise ValueError(f"unknown model kind {kind!r}; SVM kinds: {', '.join(SVM_KINDS)}")
     raw = kind.startswith("svm")
     t0 = time.perf_counter()
-    table = table or load_table(data, raw=raw, base=base, progress=progress)
+    table = table or load_table(data, raw=raw, base=base, progress=progress, quick=quick)
     t_data = time.perf_counter() - t0
     train_scenes, test = split_scenes(table, test_scenes)
     tr = table.scene_mask(train_scenes)
     summary: dict[str, Any] = {"kind": kind, "input": "raw" if raw else "features",
+                               "quick": None if raw else quick,
                                "train_scenes": train_scenes, "test_scenes": test,
                                "n_train": int(tr.sum()), "data": str(data), "seed": seed,
                                "table_s": t_data}

@@ -316,7 +316,7 @@ class ModelCriterion(Criterion):
         self.model = model
         self.exposure = float(exposure)
         self.flat_shortcut = bool(flat_shortcut)
-        self.needs_quick = getattr(model, "input", "features") != "raw"
+        self.needs_quick = bool(getattr(model, "needs_quick", getattr(model, "input", "features") != "raw"))
         self._local_features = (getattr(model, "input", None) == "features"
                                 and hasattr(model, "decision_function") and hasattr(model, "offset"))
         self._quick_cache: dict[tuple[int, bytes], np.ndarray] = {}
@@ -376,8 +376,10 @@ class ModelCriterion(Criterion):
 
             with single_torch_thread():
                 t0 = time.perf_counter()
-                qf = self._quick_features([ids[i] for i in ask], quick)
-                x = qf - extract_features(blocks, exposure=self.exposure)
+                current = extract_features(blocks, exposure=self.exposure)
+                # a model trained without quick image: a flat one, whose features are zero
+                x = (self._quick_features([ids[i] for i in ask], quick) - current
+                     if self.needs_quick else -current)
                 self.counters["feature_rows"] += len(ask)
                 self.timers["features_s"] += time.perf_counter() - t0
                 verdict, _ = self.model.score_inputs(x)  # type: ignore[attr-defined]

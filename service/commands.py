@@ -161,6 +161,10 @@ def _register_learning(sub: argparse._SubParsersAction) -> None:
                    help="calibrate the decision offset on leave-one-scene-out scores of the "
                         "training scenes to keep early stops at or below this rate (default 0.05)")
     p.add_argument("--no-calibrate", action="store_true", help="keep the decision offset at 0")
+    p.add_argument("--quick", choices=("albedo", "none"), default="albedo",
+                   help="feature models: the quick image subtracted from the features: the "
+                        "albedo AOV (the paper's) or none (a flat image: features of the "
+                        "current block alone)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_train)
@@ -199,18 +203,20 @@ def cmd_train(args: argparse.Namespace) -> int:
     if not 0 < args.label_budget <= 1:
         raise UsageError(f"--label-budget must be in (0, 1], got {args.label_budget}")
     raw = args.model.startswith("svm")
-    table = load_table(args.data, raw=raw)
+    table = load_table(args.data, raw=raw, quick=args.quick)
     if not 0 <= args.max_early_stop <= 1:
         raise UsageError(f"--max-early-stop must be in [0, 1], got {args.max_early_stop}")
     est, summary = train_model(args.model, args.data, test_scenes=_scene_list(args.test_scenes),
                                initial_scene=args.initial_scene, cv=not args.no_cv, seed=args.seed,
                                max_label_fraction=args.label_budget, table=table,
-                               max_early_stop=None if args.no_calibrate else args.max_early_stop)
+                               max_early_stop=None if args.no_calibrate else args.max_early_stop,
+                               quick=args.quick)
     test = table.subset(table.scene_mask(summary["test_scenes"]))
-    metrics = evaluate_model(Model(est, {"kind": args.model, "input": summary["input"]}), test) \
+    extra = {} if raw else {"quick": args.quick}
+    metrics = evaluate_model(Model(est, {"kind": args.model, "input": summary["input"], **extra}), test) \
         if len(test) else {}
     save_model(est, args.out, kind=args.model, input=summary["input"], training=summary,
-               metrics={k: v for k, v in metrics.items() if k != "per_scene"})
+               metrics={k: v for k, v in metrics.items() if k != "per_scene"}, extra=extra)
     result = {"model": args.out, "kind": args.model, "train_s": summary["train_s"],
               "offset": summary["offset"],
               "labels": summary.get("n_labels"), "label_fraction": summary.get("label_fraction"),
@@ -266,7 +272,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         result = evaluate_criterion_cli(args.data, args.criterion, _scene_list(args.scenes))
     else:
         model = load_model(args.model)
-        table = load_table(args.data, raw=model.input == "raw")
+        table = load_table(args.data, raw=model.input == "raw", quick=model.quick)
         trained_on = set(model.manifest.get("training", {}).get("train_scenes", []))
         scenes = _scene_list(args.scenes) or [s for s in table.scenes() if s not in trained_on]
         if not scenes:

@@ -85,7 +85,7 @@ class ServedModel:
 
     @property
     def inputs(self) -> list[TensorMetadata]:
-        """A raw-block model accepts (and ignores) `quick`, so one client serves both kinds."""
+        """Raw-block and quick-'none' models accept (and ignore) `quick`: one client serves all."""
         image = [-1, -1, -1, 3]
         inputs = [TensorMetadata(name="blocks", datatype="FP32", shape=image),
                   TensorMetadata(name="quick", datatype="FP32", shape=image)]
@@ -118,10 +118,10 @@ class ServedModel:
             else:
                 blocks, quick = self._blocks(tensors)
                 params["nonfinite_pixels"] = _nonfinite(blocks)
-                if self.model.input == "features":
+                if self.model.needs_quick:
                     params["nonfinite_quick_pixels"] = _nonfinite(quick)
                 else:
-                    quick = None  # raw-block models read the current block only
+                    quick = None  # raw-block and quick-'none' models read the current block only
                 verdict, score = self.model.score_blocks(blocks, quick, exposure=exposure)
         except ValueError as exc:  # what the feature base and estimator reject
             raise ApiError(400, str(exc)) from None
@@ -139,7 +139,7 @@ class ServedModel:
         blocks, quick = tensors.get("blocks"), tensors.get("quick")
         if blocks is None:
             raise ApiError(400, f"model {self.name!r} needs input 'blocks'"
-                                + (" and 'quick'" if self.model.input == "features" else ""))
+                                + (" and 'quick'" if self.model.needs_quick else ""))
         if blocks.ndim != 4 or blocks.shape[-1] != 3:
             raise ApiError(400, f"input 'blocks' must have shape [N, H, W, 3], got {list(blocks.shape)}")
         if len(blocks) and min(blocks.shape[1:3]) < MIN_SIZE:
@@ -153,7 +153,7 @@ class ServedModel:
             if blocks.shape[1] * blocks.shape[2] != n:
                 raise ApiError(400, f"model {self.name!r} reads raw blocks of {n} pixels, got "
                                     f"{blocks.shape[1]}x{blocks.shape[2]}")
-        elif quick is None:
+        elif quick is None and self.model.needs_quick:
             raise ApiError(400, f"model {self.name!r} needs input 'quick' (the quick image of every block)")
         return blocks, quick
 

@@ -190,3 +190,19 @@ def test_model_criterion_uses_any_scorer():
     assert crit.decide([4, 7], views).tolist() == [-1, 1]
     assert fake.calls == [((2, 8, 8, 3), (2, 8, 8, 3))]
     assert crit.describe()["model"] == {"type": "Fake"}
+
+
+def test_model_criterion_without_quick_image(tmp_path):
+    """A model trained with quick 'none' decides from the current blocks alone."""
+    from learning.bundle import load_model, save_model
+    from learning.estimators import DSVM
+    from renderer.criteria import BlockView, ModelCriterion
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(120, 26))
+    y = np.where(X[:, 0] > 0, 1, -1)
+    save_model(DSVM().fit(X, y), tmp_path / "m", kind="dsvm", input="features", extra={"quick": "none"})
+    crit = ModelCriterion(load_model(tmp_path / "m"), flat_shortcut=False)
+    assert not crit.needs_quick
+    views = [BlockView(mean=rng.random((16, 16, 3)).astype(np.float32), spp=16) for _ in range(3)]
+    out = crit.decide([0, 1, 2], views)
+    assert out.shape == (3,) and set(out.tolist()) <= {-1, 1}

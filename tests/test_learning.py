@@ -222,3 +222,34 @@ def test_training_holds_scenes_out(kind, table):
         assert summary["initial_scene"] in summary["train_scenes"]
     assert np.isfinite(est.decision_function(
         np.zeros((1, est.n_features_in_)))).all()
+
+
+# --- models trained without a quick image ('none': a flat quick image) ---------------------
+def test_quick_none_model_uses_minus_the_current_features(tmp_path):
+    from noisefeat import extract_features
+    X, y = toy(200)
+    save_model(DSVM().fit(X, y), tmp_path / "m", kind="dsvm", input="features", extra={"quick": "none"})
+    model = load_model(tmp_path / "m")
+    assert model.quick == "none" and not model.needs_quick
+    rng = np.random.default_rng(1)
+    blocks = rng.random((3, 16, 16, 3)).astype(np.float32)
+    np.testing.assert_allclose(model.inputs_from_blocks(blocks), -extract_features(blocks))
+    flat = np.full((2, 16, 16, 3), 0.4, np.float32)     # what 'none' stands for
+    np.testing.assert_array_equal(extract_features(flat), np.zeros((2, 26), np.float32))
+    verdict, score = model.score_blocks(blocks)          # no quick image needed
+    assert verdict.shape == (3,) and np.isfinite(score).all()
+    albedo = load_model(tmp_path / "m")
+    albedo.manifest["quick"] = "albedo"
+    with pytest.raises(ValueError, match="quick image"):
+        albedo.score_blocks(blocks)
+
+
+def test_table_quick_modes_differ_by_the_quick_features(table):
+    none = load_table(FIXTURE, progress=False, quick="none")
+    st = table.stacks["cornell"]
+    from noisefeat import extract_features
+    q = extract_features(st.split(st.quick()))
+    m = table.scene == "cornell"
+    np.testing.assert_allclose(table.X[m] - none.X[m], np.tile(q, (st.n_levels, 1)), atol=1e-4)
+    with pytest.raises(ValueError, match="quick must be"):
+        load_table(FIXTURE, progress=False, quick="direct")

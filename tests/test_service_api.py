@@ -389,3 +389,18 @@ def test_openapi_documents_errors_and_the_infer_body(client):
     assert ref.rsplit("/", 1)[1] in doc["components"]["schemas"]
     assert "RequestInput" in doc["components"]["schemas"]
     assert "bearer" in json.dumps(doc["components"]["securitySchemes"]).lower()
+
+
+def test_quick_none_model_needs_no_quick_input(tmp_path):
+    from learning.estimators import DSVM
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(80, 26))
+    bundle = save_model(DSVM().fit(X, np.where(X[:, 0] > 0, 1, -1)), tmp_path / "qn", kind="dsvm",
+                        input="features", name="dsvm_none", extra={"quick": "none"})
+    app = create_app(ModelRegistry({"dsvm_none": str(bundle)}), token=TOKEN)
+    current, _ = blocks_pair()
+    with TestClient(app) as c:
+        out = outputs_of(infer(c, {"inputs": [tensor("blocks", current)]}, model="dsvm_none"))
+    verdict, score = load_model(bundle).score_blocks(current)
+    np.testing.assert_allclose(out["score"], score, rtol=1e-4, atol=1e-5)
+    assert out["verdict"].tolist() == verdict.tolist()

@@ -25,9 +25,11 @@ TRANSFER_ARCHES = ("vgg19", "mobilenet_v2", "inception_v3", "resnet50", "densene
 PAPER = {"dsvm_as": "91 % / 93.4 %, 0.008 s per 101, 2095 s training", "svm_as": "99 %"}
 
 
-def _svm_row(kind: str, data: str, table: SubImageTable, test_scenes) -> tuple[dict, Any, dict]:
-    est, summary = train_model(kind, data, table=table, test_scenes=test_scenes, progress=False)
-    model = Model(est, {"kind": kind, "input": summary["input"]})
+def _svm_row(kind: str, data: str, table: SubImageTable, test_scenes,
+             quick: str = "albedo") -> tuple[dict, Any, dict]:
+    est, summary = train_model(kind, data, table=table, test_scenes=test_scenes, progress=False,
+                               quick=quick)
+    model = Model(est, {"kind": kind, "input": summary["input"], "quick": quick})
     test = table.subset(table.scene_mask(summary["test_scenes"]))
     m = evaluate_model(model, test)
     block = next(iter(table.stacks.values())).block
@@ -84,15 +86,15 @@ def _transfer_row(arch: str, table: SubImageTable, train_scenes, test_scenes) ->
 
 
 def compare_models(data: str, out_dir: str | Path, kinds=SVM_KINDS, arches=TRANSFER_ARCHES,
-                   test_scenes: list[str] | None = None) -> dict[str, Any]:
+                   test_scenes: list[str] | None = None, quick: str = "albedo") -> dict[str, Any]:
     out_dir = Path(out_dir)
-    feats = load_table(data, progress=False)
+    feats = load_table(data, progress=False, quick=quick)
     raw = load_table(data, raw=True, progress=False) if any(k.startswith("svm") for k in kinds) else None
     train_scenes, test = split_scenes(feats, test_scenes)
     rows, histories, fitted = [], {}, {}
     for kind in kinds:
         log.info("comparison: training %s", kind)
-        row, est, summary = _svm_row(kind, data, raw if kind.startswith("svm") else feats, test)
+        row, est, summary = _svm_row(kind, data, raw if kind.startswith("svm") else feats, test, quick)
         rows.append(row)
         fitted[kind] = (est, summary)
         if "history" in summary:
@@ -107,7 +109,7 @@ def compare_models(data: str, out_dir: str | Path, kinds=SVM_KINDS, arches=TRANS
     curves = None
     if histories:
         pool = next(iter(fitted[k][1].get("n_pool") for k in histories))
-        curves = str(plot_learning_curves(histories, out_dir / "precision-vs-queries.png", pool))
+        curves = str(plot_learning_curves(histories, out_dir / f"precision-vs-queries-{quick}.png", pool))
     return {"rows": rows, "train_scenes": train_scenes, "test_scenes": test,
             "curves": curves, "fitted": fitted}
 

@@ -3,9 +3,9 @@
 Weights live in safetensors files inside the package (no pickle). `smoothing.safetensors`
 is the documented deterministic initialisation: normalised binomial kernels (3x3 from
 [1, 2, 1], 5x5 from [1, 4, 6, 4, 1]), so each layer is a slightly stronger low-pass than
-the one before and the noise maps input - O_l grow with l. `default.safetensors`, when
-present, is what `FeatureBase()` loads (the pre-trained denoiser once training has run);
-otherwise the smoothing initialisation is the default.
+the one before and the noise maps input - O_l grow with l; it is the default, because it
+measured better on held-out scenes than `pretrained.safetensors` (the conv layers trained
+as a denoiser by `noisestop pretrain`, selectable by name or NOISESTOP_FEATURE_WEIGHTS).
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from safetensors.torch import load_file, save_file
 KERNEL_SIZES: tuple[int, ...] = (3, 5) * 6
 WEIGHTS_DIR = Path(__file__).with_name("weights")
 SMOOTHING_FILE = WEIGHTS_DIR / "smoothing.safetensors"
-DEFAULT_FILE = WEIGHTS_DIR / "default.safetensors"
+PRETRAINED_FILE = WEIGHTS_DIR / "pretrained.safetensors"
 
 
 def _binomial(k: int) -> np.ndarray:
@@ -45,17 +45,12 @@ def save_kernels(path: Path, kernels: list[torch.Tensor], metadata: dict[str, st
     tmp.replace(path)
 
 
-NAMED = {"smoothing": SMOOTHING_FILE, "pretrained": DEFAULT_FILE}
+NAMED = {"smoothing": SMOOTHING_FILE, "pretrained": PRETRAINED_FILE}
 
 
 def load_kernels(path: Path | str | None = None) -> tuple[list[torch.Tensor], str]:
-    """Kernels from a safetensors file, or by name: 'smoothing', 'pretrained'.
-
-    None: the pre-trained weights when the package has them, else the smoothing init.
-    """
-    if path is None:
-        path = DEFAULT_FILE if DEFAULT_FILE.exists() else SMOOTHING_FILE
-    path = NAMED.get(str(path), Path(path))
+    """Kernels from a safetensors file, or by name: 'smoothing' (None), 'pretrained'."""
+    path = SMOOTHING_FILE if path is None else NAMED.get(str(path), Path(path))
     if not path.exists():
         raise FileNotFoundError(f"feature-base weights not found: {path}")
     try:

@@ -88,9 +88,12 @@ def bench_crop(repeats: int = 3) -> dict[str, Any]:
     return measure_crop_cost(repeats=repeats)
 
 
-def bench_models(data: str, out_dir: Path, arches: tuple[str, ...] | None = None) -> dict[str, Any]:
+def bench_models(data: str, out_dir: Path, arches: tuple[str, ...] | None = None,
+                 kinds: tuple[str, ...] | None = None, quick: str = "albedo") -> dict[str, Any]:
     from learning.compare import TRANSFER_ARCHES, compare_models
-    result = compare_models(data, out_dir, arches=TRANSFER_ARCHES if arches is None else arches)
+    from learning.train import SVM_KINDS
+    result = compare_models(data, out_dir, arches=TRANSFER_ARCHES if arches is None else arches,
+                            kinds=SVM_KINDS if kinds is None else kinds, quick=quick)
     result.pop("fitted")
     return result
 
@@ -252,7 +255,8 @@ SECTIONS = ("features", "crop", "models", "criteria", "render", "service")
 
 
 def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), data: str | None = None,
-            out_dir: str = "out/bench", arches: tuple[str, ...] | None = None) -> dict[str, Any]:
+            out_dir: str = "out/bench", arches: tuple[str, ...] | None = None,
+            kinds: tuple[str, ...] | None = None, quick: str = "albedo") -> dict[str, Any]:
     from renderer.variant import select_variant
     variant = select_variant()
     results: dict[str, Any] = {"variant": variant}
@@ -267,9 +271,10 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
         if not data:
             raise ValueError("bench models needs --data DIR (a labelled dataset)")
         from learning.compare import markdown_table
-        results["models"] = bench_models(data, Path(out_dir), arches)
+        results["models"] = bench_models(data, Path(out_dir), arches, kinds, quick)
         m = results["models"]
-        markdown["models"] = (f"Trained on {', '.join(m['train_scenes'])}; evaluated on the held-out "
+        section = "models" if quick == "albedo" else f"models_quick_{quick}"
+        markdown[section] = (f"Quick image: {quick}. Trained on {', '.join(m['train_scenes'])}; evaluated on the held-out "
                               f"{', '.join(m['test_scenes'])}.\n\n" + markdown_table(m["rows"]))
     if "criteria" in only:
         if not data:

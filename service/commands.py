@@ -44,6 +44,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="out/bench", help="directory for plots")
     p.add_argument("--arches", default=None,
                    help="models: comma-separated transfer baselines (default: all five; '' for none)")
+    p.add_argument("--kinds", default=None, help="models: comma-separated SVM kinds (default: all six)")
+    p.add_argument("--quick", choices=("albedo", "none"), default="albedo",
+                   help="models: the quick image of the feature models")
     p.add_argument("--update", default=None, metavar="FILE",
                    help="rewrite the marked sections of FILE (e.g. BENCHMARKS.md) with the results")
     p.add_argument("--repeats", type=_positive_int, default=30)
@@ -172,7 +175,7 @@ def _register_learning(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("pretrain", help="pre-train the feature base's conv layers as a denoiser")
     p.add_argument("--data", required=True, help="dataset directory (training scenes only are used)")
     p.add_argument("--out", default=None,
-                   help="safetensors file to write (default: the package's default weights)")
+                   help="safetensors file to write (default: the package's pretrained.safetensors)")
     p.add_argument("--test-scenes", default=None, help="scenes to keep out (default: every 4th by name)")
     p.add_argument("--steps", type=_positive_int, default=400)
     p.add_argument("--lr", type=float, default=0.003)
@@ -243,13 +246,13 @@ def cmd_pretrain(args: argparse.Namespace) -> int:
     from learning.pretrain import pretrain_base
     from learning.stack import list_stacks, read_stack
     from learning.train import default_test_scenes
-    from noisefeat.weights import DEFAULT_FILE, save_kernels
+    from noisefeat.weights import PRETRAINED_FILE, save_kernels
 
     stacks = [read_stack(p) for p in list_stacks(args.data)]
     held = set(_scene_list(args.test_scenes) or default_test_scenes([s.scene for s in stacks]))
     train = [s for s in stacks if s.scene not in held]
     base, report = pretrain_base(train, steps=args.steps, lr=args.lr)
-    out = args.out or DEFAULT_FILE
+    out = args.out or PRETRAINED_FILE
     save_kernels(out, base.kernels(), {"init": "denoiser pre-training", "scenes": ",".join(report["scenes"]),
                                        "steps": str(args.steps), "lr": str(args.lr)})
     report["out"], report["hash"] = str(out), base.hash
@@ -449,8 +452,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if unknown:
         raise UsageError(f"unknown bench sections {unknown}; known: {', '.join(bench.SECTIONS)}")
     arches = None if args.arches is None else tuple(a for a in args.arches.split(",") if a)
+    kinds = None if args.kinds is None else tuple(k for k in args.kinds.split(",") if k)
     results = bench.run_all(repeats=args.repeats, only=tuple(args.what), data=args.data,
-                            out_dir=args.out, arches=arches)
+                            out_dir=args.out, arches=arches, kinds=kinds, quick=args.quick)
     if args.update:
         bench.update_markdown(Path(args.update), results["markdown"])
         log.info("updated %s: %s", args.update, ", ".join(results["markdown"]))

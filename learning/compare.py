@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from .bundle import Model
-from .evaluate import evaluate_model, test_time_101, verdicts_by_scene
+from .evaluate import evaluate_model, time_101_sub_images, verdicts_by_scene
 from .metrics import evaluate_verdicts
 from .plots import plot_learning_curves
 from .table import SubImageTable, load_table
@@ -39,7 +39,7 @@ def _svm_row(kind: str, data: str, table: SubImageTable, test_scenes,
            "queries": summary.get("n_queries"), "pool": summary.get("n_pool"),
            "query_fraction": summary.get("query_fraction"),
            "support_vectors": est.n_support_, "parameters": est.n_parameters(),
-           "train_s": summary["train_s"], "test_101_s": test_time_101(model, tuple(block)),
+           "train_s": summary["train_s"], "test_101_s": time_101_sub_images(model, tuple(block)),
            "C": summary["C"], "gamma": summary["gamma"]}
     return row, est, summary
 

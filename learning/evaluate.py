@@ -35,7 +35,7 @@ def evaluate_model(model: Model, table: SubImageTable) -> dict[str, Any]:
     return result
 
 
-def test_time_101(model: Model, block: tuple[int, int], repeats: int = 20) -> float:
+def time_101_sub_images(model: Model, block: tuple[int, int], repeats: int = 20) -> float:
     """Seconds to classify 101 sub-images from linear RGB, features included (paper: 0.008 s)."""
     rng = np.random.default_rng(0)
     blocks = rng.random((101, *block, 3)).astype(np.float32)

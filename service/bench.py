@@ -161,6 +161,79 @@ def bench_service(clients: tuple[int, ...] = (1, 8, 32)) -> dict[str, Any]:
             for c in clients}
 
 
+def bench_tradeoff(data: str, out_png: str = "docs/pareto.png", model: str | None = None,
+                   thresholds: tuple[float, ...] = (0.01, 0.02, 0.05, 0.07, 0.1, 0.15, 0.2)) -> dict[str, Any]:
+    """Samples (vs oracle) against early stops on held-out scenes: one curve per criterion.
+
+    Models are swept over their decision offset (per-sub-image verdicts on the stored
+    levels, first +1 stops the block), the variance criterion over its threshold (the
+    criterion simulation); the oracle is the point (1, 0); the bundled default is marked.
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from learning.bundle import load_model
+    from learning.calibrate import DEFAULT_OFFSETS, sweep
+    from learning.stack import list_stacks, read_stack
+    from learning.table import load_table
+    from learning.train import train_model
+    from renderer.criteria import VarianceCriterion
+    from renderer.simulate import evaluate_criterion
+
+    bundled = load_model(model)
+    test = list(bundled.manifest.get("training", {}).get("test_scenes") or [])
+    if not test:
+        raise ValueError("the model's manifest names no held-out scenes")
+    curves: dict[str, list[dict]] = {}
+    tables = {q: load_table(data, quick=q, progress=False) for q in ("none", "albedo")}
+    entries = [(f"{bundled.name} quick {bundled.quick} (bundled)", bundled.estimator, bundled.quick)]
+    for kind, quick in (("dsvm", "none"), ("dsvm_as", "albedo")):
+        est, _ = train_model(kind, data, table=tables[quick], test_scenes=test, quick=quick,
+                             progress=False)
+        entries.append((f"{kind} quick {quick}", est, quick))
+    for name, est, quick in entries:
+        table = tables[quick]
+        scores = np.full(len(table), np.nan)
+        mask = table.scene_mask(test)
+        scores[mask] = est.decision_function(table.X[mask])
+        curves[name] = sweep(scores, table, DEFAULT_OFFSETS)
+    stacks = [read_stack(p) for p in list_stacks(data)]
+    held = [s for s in stacks if s.scene in test]
+    var = []
+    for t in thresholds:
+        r = evaluate_criterion(held, lambda st, t=t: VarianceCriterion(threshold=t))
+        var.append({"threshold": t, **{k: r[k] for k in ("early_stop_rate", "spp_ratio_vs_oracle",
+                                                          "precision")}})
+    default = next(r for r in curves[entries[0][0]] if abs(r["offset"] - bundled.offset) < 1e-9) \
+        if any(abs(r["offset"] - bundled.offset) < 1e-9 for r in curves[entries[0][0]]) else None
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for name, rows in curves.items():
+        ax.plot([r["spp_ratio_vs_oracle"] for r in rows], [r["early_stop_rate"] for r in rows],
+                ".-", label=f"{name}, offset -1..3")
+    ax.plot([r["spp_ratio_vs_oracle"] for r in var], [r["early_stop_rate"] for r in var], "s--",
+            color="grey", label="variance (Cycles), threshold 0.01..0.2")
+    ax.plot([1.0], [0.0], "k*", ms=14, label="oracle")
+    if default is not None:
+        ax.plot([default["spp_ratio_vs_oracle"]], [default["early_stop_rate"]], "o", ms=14,
+                mfc="none", mec="red", mew=2, label=f"default (bundled, offset {bundled.offset:.2f})")
+    ax.axhline(0.05, color="red", lw=0.6, ls=":")
+    ax.set_xlabel("samples spent / oracle's samples (held-out scenes)")
+    ax.set_ylabel("early-stop rate (blocks stopped with visible noise)")
+    ax.set_title(f"speed / accuracy on held-out scenes: {', '.join(test)}", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path = Path(out_png)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    tmp.replace(path)
+    return {"test_scenes": test, "curves": curves, "variance": var, "default": default,
+            "plot": str(path)}
+
+
 # --- markdown for BENCHMARKS.md --------------------------------------------------------
 def md_features(f: dict[str, Any], variant: str) -> str:
     return "\n".join([
@@ -235,6 +308,20 @@ def md_service(r: dict[str, Any]) -> str:
             "at 32.\n\n" + "\n".join(lines))
 
 
+def md_tradeoff(r: dict[str, Any]) -> str:
+    lines = [f"![samples vs early stops]({r['plot']})", "",
+             "| criterion | setting | early_stop_rate | samples / oracle |", "|---|---|---|---|"]
+    for name, rows in r["curves"].items():
+        for row in rows:
+            if abs(round(row["offset"] * 2) - row["offset"] * 2) < 1e-9:  # every 0.5
+                lines.append(f"| {name} | offset {row['offset']:.1f} | {row['early_stop_rate']:.3f} "
+                             f"| {row['spp_ratio_vs_oracle']:.3f} |")
+    for row in r["variance"]:
+        lines.append(f"| variance | threshold {row['threshold']} | {row['early_stop_rate']:.3f} "
+                     f"| {row['spp_ratio_vs_oracle']:.3f} |")
+    return "\n".join(lines)
+
+
 def update_markdown(path: Path, sections: dict[str, str]) -> None:
     """Replace the text between <!-- bench:NAME --> and <!-- /bench:NAME --> markers."""
     text = path.read_text() if path.exists() else ""
@@ -251,7 +338,7 @@ def update_markdown(path: Path, sections: dict[str, str]) -> None:
     tmp.replace(path)
 
 
-SECTIONS = ("features", "crop", "models", "criteria", "render", "service")
+SECTIONS = ("features", "crop", "models", "criteria", "render", "service", "tradeoff")
 
 
 def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), data: str | None = None,
@@ -284,6 +371,11 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
     if "render" in only:
         results["render"] = bench_render()
         markdown["render"] = md_render(results["render"])
+    if "tradeoff" in only:
+        if not data:
+            raise ValueError("bench tradeoff needs --data DIR (a labelled dataset)")
+        results["tradeoff"] = bench_tradeoff(data)
+        markdown["tradeoff"] = md_tradeoff(results["tradeoff"])
     if "service" in only:
         results["service"] = bench_service()
         markdown["service"] = md_service(results["service"])

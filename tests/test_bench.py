@@ -1,0 +1,44 @@
+"""The BENCHMARKS.md machinery: marked sections and the trade-off chart."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from learning.bundle import save_model
+from learning.table import load_table
+from learning.train import train_model
+from service.bench import bench_tradeoff, md_tradeoff, update_markdown
+
+FIXTURE = Path(__file__).parent / "fixtures" / "dataset"
+
+
+def test_update_markdown_replaces_only_its_section(tmp_path):
+    doc = tmp_path / "B.md"
+    doc.write_text("intro\n<!-- bench:a -->\nold a\n<!-- /bench:a -->\nmiddle\n"
+                   "<!-- bench:b -->\nold b\n<!-- /bench:b -->\nend\n")
+    update_markdown(doc, {"a": "new a"})
+    text = doc.read_text()
+    assert "new a" in text and "old a" not in text and "old b" in text
+    assert text.startswith("intro") and "middle" in text and text.endswith("end\n")
+    update_markdown(doc, {"c": "fresh"})
+    assert "<!-- bench:c -->\nfresh\n<!-- /bench:c -->" in doc.read_text()
+
+
+@pytest.mark.slow
+def test_tradeoff_curves_on_the_fixture(tmp_path):
+    table = load_table(FIXTURE, progress=False, quick="none")
+    est, summary = train_model("dsvm", str(FIXTURE), table=table, cv=False, quick="none",
+                               progress=False)
+    model = save_model(est, tmp_path / "m", kind="dsvm", input="features", training=summary,
+                       extra={"quick": "none"})
+    r = bench_tradeoff(str(FIXTURE), out_png=str(tmp_path / "p.png"), model=str(model),
+                       thresholds=(0.05, 0.2))
+    assert r["test_scenes"] == ["cornell"] and Path(r["plot"]).stat().st_size > 1000
+    for rows in r["curves"].values():
+        early = [row["early_stop_rate"] for row in rows]
+        assert early == sorted(early, reverse=True)     # a larger offset never stops earlier
+        assert all(np.isfinite(row["spp_ratio_vs_oracle"]) for row in rows)
+    assert r["default"] is not None and len(r["variance"]) == 2
+    assert "offset 0.0" in md_tradeoff(r) or "offset -0.0" in md_tradeoff(r)

@@ -396,7 +396,7 @@ def render_many(scenes: Sequence[str | os.PathLike], out: str | os.PathLike, cri
 def render_command(scenes: str | Sequence[str], out: str | os.PathLike, *, criterion: str = "model",
                    model: str | None = None, server: str | None = None, reference: str | None = None,
                    threshold: float = 0.01, quantile: float = 1.0, workers: int | None = None,
-                   scheduler: str | None = None,
+                   scheduler: str | None = None, exposure: float = 0.0,
                    **kwargs: Any) -> dict[str, Any]:
     """What `noisestop render` runs: one scene -> its report; several -> `render_many`'s summary.
 
@@ -411,7 +411,8 @@ def render_command(scenes: str | Sequence[str], out: str | os.PathLike, *, crite
     if criterion != "model" and (model or server):
         logger.warning("--model/--server are ignored with --criterion %s", criterion)
     crit: Criterion | str = criterion if criterion == "oracle" else build_criterion(
-        criterion, model=model, server=server, variance_threshold=threshold, quantile=quantile)
+        criterion, model=model, server=server, variance_threshold=threshold, quantile=quantile,
+        exposure=exposure)
     remote = getattr(crit, "model", None)
     if server and criterion == "model" and hasattr(remote, "ready") and not remote.ready():
         raise ConnectionError(f"{server}: the server answers but model {remote.model!r} is not ready")

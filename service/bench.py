@@ -338,7 +338,7 @@ def update_markdown(path: Path, sections: dict[str, str]) -> None:
     tmp.replace(path)
 
 
-SECTIONS = ("features", "crop", "models", "criteria", "render", "service", "tradeoff")
+SECTIONS = ("features", "crop", "models", "criteria", "render", "service", "tradeoff", "stability")
 
 
 def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), data: str | None = None,
@@ -376,6 +376,16 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
             raise ValueError("bench tradeoff needs --data DIR (a labelled dataset)")
         results["tradeoff"] = bench_tradeoff(data)
         markdown["tradeoff"] = md_tradeoff(results["tradeoff"])
+    if "stability" in only:
+        import tempfile
+
+        from . import stability
+        with tempfile.TemporaryDirectory() as tmp:
+            results["stability"] = {"blocks": stability.matrix(), "other": stability.other_cells(tmp)}
+        other = results["stability"]["other"]
+        markdown["stability"] = (stability.markdown(results["stability"]["blocks"]) + "\n\n"
+                                 + "| other extreme | behaviour |\n|---|---|\n"
+                                 + "\n".join(f"| {k} | {v} |" for k, v in other.items()))
     if "service" in only:
         results["service"] = bench_service()
         markdown["service"] = md_service(results["service"])

@@ -39,7 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("bench", help="measure the figures of BENCHMARKS.md")
     p.add_argument("what", nargs="*", default=["features", "crop"],
-                   help="sections: features, crop, models, criteria, render, service, tradeoff (default: features crop)")
+                   help="sections: features, crop, models, criteria, render, service, tradeoff, stability (default: features crop)")
     p.add_argument("--data", default=None, help="labelled dataset (models)")
     p.add_argument("--out", default="out/bench", help="directory for plots")
     p.add_argument("--arches", default=None,
@@ -326,6 +326,8 @@ def _register_render(sub: argparse._SubParsersAction) -> None:
                    help="--criterion variance: fraction of a block's pixels that must pass (default: all)")
     p.add_argument("--reference", default=None,
                    help="labelled dataset or stack of the scene: oracle thresholds, early-stop metrics")
+    p.add_argument("--exposure", type=float, default=0.0,
+                   help="display exposure (stops) the criteria judge the image at (default 0)")
     p.add_argument("--resolution", type=_positive_int, default=256)
     p.add_argument("--grid", type=_positive_int, nargs=2, default=(4, 4), metavar=("ROWS", "COLS"))
     p.add_argument("--min-spp", type=_positive_int, default=16)
@@ -348,6 +350,7 @@ def cmd_render(args: argparse.Namespace) -> int:
             args.scene or DEFAULT_SCENE, args.out, criterion=args.criterion, model=args.model,
             server=args.server, reference=args.reference, threshold=args.threshold,
             quantile=args.quantile, workers=args.workers, scheduler=args.scheduler,
+            exposure=args.exposure,
             resolution=args.resolution, grid=tuple(args.grid), step=args.step,
             min_spp=args.min_spp, max_spp=args.max_spp, seed=args.seed, resume=args.resume)
     except ConnectionError as exc:      # verdict server unreachable or failing

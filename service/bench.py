@@ -230,8 +230,44 @@ def bench_tradeoff(data: str, out_png: str = "docs/pareto.png", model: str | Non
     fig.savefig(tmp, dpi=100)
     plt.close(fig)
     tmp.replace(path)
+    maps = spp_maps(bundled, tables[bundled.quick], test, path.with_name("spp-maps.png"))
     return {"test_scenes": test, "curves": curves, "variance": var, "default": default,
-            "plot": str(path)}
+            "plot": str(path), "spp_maps": maps}
+
+
+def spp_maps(model, table, scenes: list[str], out_png: Path) -> str:
+    """Where the samples went, per held-out scene: the model's spp per block vs the oracle's."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from learning.evaluate import verdicts_by_scene
+    from learning.metrics import stop_thresholds, true_thresholds
+
+    sub = table.subset(table.scene_mask(scenes))
+    per = verdicts_by_scene(sub, model.predict(sub.X))
+    fig, axes = plt.subplots(2, len(per), figsize=(2.6 * len(per), 5.2), squeeze=False)
+    for j, (scene, (v, _, th, spp)) in enumerate(sorted(per.items())):
+        st = sub.stacks[scene]
+        grid = tuple(st.grid)
+        spent = np.minimum(stop_thresholds(v, spp), spp[-1]).reshape(grid)
+        oracle = np.minimum(true_thresholds(th, spp), spp[-1]).reshape(grid)
+        for i, (name, m) in enumerate((("model", spent), ("oracle", oracle))):
+            ax = axes[i, j]
+            ax.imshow(m, cmap="magma", vmin=0, vmax=spp[-1])
+            for (r, c), val in np.ndenumerate(m):
+                ax.text(c, r, str(int(val)), ha="center", va="center", fontsize=7,
+                        color="white" if val < 0.6 * spp[-1] else "black")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_title(f"{scene}: {name}, {int(m.sum())} spp", fontsize=8)
+    fig.suptitle(f"spp per block, {model.name} (offset {model.offset:.2f}) vs oracle", fontsize=9)
+    fig.tight_layout()
+    tmp = out_png.with_name(out_png.name + ".tmp.png")
+    fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    tmp.replace(out_png)
+    return str(out_png)
 
 
 # --- markdown for BENCHMARKS.md --------------------------------------------------------
@@ -310,6 +346,8 @@ def md_service(r: dict[str, Any]) -> str:
 
 def md_tradeoff(r: dict[str, Any]) -> str:
     lines = [f"![samples vs early stops]({r['plot']})", "",
+             f"Where the samples went per held-out scene (default offset, spp per block): "
+             f"![spp maps]({r['spp_maps']})", "",
              "| criterion | setting | early_stop_rate | samples / oracle |", "|---|---|---|---|"]
     for name, rows in r["curves"].items():
         for row in rows:

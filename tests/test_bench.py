@@ -41,4 +41,5 @@ def test_tradeoff_curves_on_the_fixture(tmp_path):
         assert early == sorted(early, reverse=True)     # a larger offset never stops earlier
         assert all(np.isfinite(row["spp_ratio_vs_oracle"]) for row in rows)
     assert r["default"] is not None and len(r["variance"]) == 2
+    assert Path(r["spp_maps"]).stat().st_size > 1000
     assert "offset 0.0" in md_tradeoff(r) or "offset -0.0" in md_tradeoff(r)

@@ -5,6 +5,7 @@ speed choice is reported beside it (e.g. the spectral feature route vs torch.con
 """
 from __future__ import annotations
 
+import dataclasses
 import statistics
 import time
 from collections.abc import Callable
@@ -270,6 +271,36 @@ def spp_maps(model, table, scenes: list[str], out_png: Path) -> str:
     return str(out_png)
 
 
+def bench_ablation(data: str) -> dict[str, Any]:
+    """DSVM on held-out scenes with parts of the feature pipeline switched: quick image
+    (albedo / none), conv weights (smoothing / pre-trained), wavelet layer (on / off: its
+    two features dropped). Accuracy next to the cost of 101 sub-images' features."""
+    from learning.bundle import Model
+    from learning.evaluate import evaluate_model, time_101_sub_images
+    from learning.table import load_table
+    from learning.train import train_model
+    from noisefeat import FeatureBase
+
+    rows = []
+    wavelet_cols = [12, 25]                     # mean_13, std_13: the wavelet layer
+    keep_no_wavelet = [i for i in range(26) if i not in wavelet_cols]
+    for weights in ("smoothing", "pretrained"):
+        base = FeatureBase(weights).eval()
+        for quick in ("albedo", "none"):
+            table = load_table(data, base=base, quick=quick, progress=False)
+            for wavelet in (True, False):
+                t = table if wavelet else dataclasses.replace(table, X=table.X[:, keep_no_wavelet])
+                est, summary = train_model("dsvm", data, table=t, quick=quick, progress=False)
+                model = Model(est, {"kind": "dsvm", "input": "features", "quick": quick})
+                m = evaluate_model(model, t.subset(t.scene_mask(summary["test_scenes"])))
+                cost = time_101_sub_images(model, tuple(next(iter(t.stacks.values())).block)) \
+                    if wavelet else None
+                rows.append({"weights": weights, "quick": quick, "wavelet": wavelet,
+                             **{k: m[k] for k in ("precision", "f1", "early_stop_rate",
+                                                  "spp_ratio_vs_oracle")}, "test_101_s": cost})
+    return {"rows": rows}
+
+
 # --- markdown for BENCHMARKS.md --------------------------------------------------------
 def md_features(f: dict[str, Any], variant: str) -> str:
     return "\n".join([
@@ -360,6 +391,17 @@ def md_tradeoff(r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def md_ablation(r: dict[str, Any]) -> str:
+    lines = ["| conv weights | quick image | wavelet layer | precision | f1 | early_stop_rate "
+             "| samples / oracle | 101 sub-images (s) |", "|---|---|---|---|---|---|---|---|"]
+    for x in r["rows"]:
+        cost = "-" if x["test_101_s"] is None else f"{x['test_101_s']:.4f}"
+        lines.append(f"| {x['weights']} | {x['quick']} | {'on' if x['wavelet'] else 'off'} | "
+                     f"{x['precision']:.3f} | {x['f1']:.3f} | {x['early_stop_rate']:.3f} | "
+                     f"{x['spp_ratio_vs_oracle']:.3f} | {cost} |")
+    return "\n".join(lines)
+
+
 def update_markdown(path: Path, sections: dict[str, str]) -> None:
     """Replace the text between <!-- bench:NAME --> and <!-- /bench:NAME --> markers."""
     text = path.read_text() if path.exists() else ""
@@ -376,7 +418,8 @@ def update_markdown(path: Path, sections: dict[str, str]) -> None:
     tmp.replace(path)
 
 
-SECTIONS = ("features", "crop", "models", "criteria", "render", "service", "tradeoff", "stability")
+SECTIONS = ("features", "crop", "models", "criteria", "render", "service", "tradeoff", "stability",
+            "ablation")
 
 
 def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), data: str | None = None,
@@ -414,6 +457,11 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
             raise ValueError("bench tradeoff needs --data DIR (a labelled dataset)")
         results["tradeoff"] = bench_tradeoff(data)
         markdown["tradeoff"] = md_tradeoff(results["tradeoff"])
+    if "ablation" in only:
+        if not data:
+            raise ValueError("bench ablation needs --data DIR (a labelled dataset)")
+        results["ablation"] = bench_ablation(data)
+        markdown["ablation"] = md_ablation(results["ablation"])
     if "stability" in only:
         import tempfile
 

@@ -43,3 +43,13 @@ def test_tradeoff_curves_on_the_fixture(tmp_path):
     assert r["default"] is not None and len(r["variance"]) == 2
     assert Path(r["spp_maps"]).stat().st_size > 1000
     assert "offset 0.0" in md_tradeoff(r) or "offset -0.0" in md_tradeoff(r)
+
+
+@pytest.mark.slow
+def test_ablation_rows_cover_every_switch():
+    from service.bench import bench_ablation, md_ablation
+    r = bench_ablation(str(FIXTURE))
+    combos = {(x["weights"], x["quick"], x["wavelet"]) for x in r["rows"]}
+    assert len(combos) == 8
+    assert all(0 <= x["precision"] <= 1 and np.isfinite(x["spp_ratio_vs_oracle"]) for x in r["rows"])
+    assert md_ablation(r).count("\n") == 9

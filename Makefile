@@ -40,7 +40,7 @@ test-fast: setup
 bench: setup
 	$(NOISESTOP) bench features crop render service stability --update BENCHMARKS.md
 	$(if $(wildcard $(DATA)/*/meta.json),\
-		$(NOISESTOP) bench models criteria tradeoff ablation --data $(DATA) --update BENCHMARKS.md && \
+		$(NOISESTOP) bench models criteria tradeoff ablation step --data $(DATA) --update BENCHMARKS.md && \
 		$(NOISESTOP) bench models --data $(DATA) --kinds dsvm,dsvm_al,dsvm_as --arches '' \
 			--quick none --update BENCHMARKS.md,\
 		@echo "dataset sections skipped: run make dataset first")

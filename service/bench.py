@@ -136,7 +136,7 @@ def bench_criteria(data: str, model: str | None = None, max_early_stop: float = 
 
 def bench_render(scene: str = "env_spheres", resolution: int = 256, max_spp: int = 640,
                  step: int = 16, model: str | None = None) -> dict[str, Any]:
-    """Real renders: the model criterion against uniform sampling to the same max spp."""
+    """Real renders: the model criterion against uniform sampling to the same max spp (warm)."""
     import tempfile
 
     from learning.bundle import load_model
@@ -144,6 +144,10 @@ def bench_render(scene: str = "env_spheres", resolution: int = 256, max_spp: int
     from renderer.criteria import ModelCriterion, UniformCriterion
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
+        # warm-up: every block's kernel compiled once (Dr.Jit caches them), so neither timed
+        # run pays compilation and their order does not matter
+        adaptive_render(scene, Path(tmp) / "warm", UniformCriterion(), resolution=resolution,
+                        step=step, min_spp=step, max_spp=step, progress=False)
         for name, crit in (("model", ModelCriterion(load_model(model))), ("uniform", UniformCriterion())):
             rep = adaptive_render(scene, Path(tmp) / name, crit, resolution=resolution, step=step,
                                   min_spp=step, max_spp=max_spp, progress=False)
@@ -301,6 +305,42 @@ def bench_ablation(data: str) -> dict[str, Any]:
     return {"rows": rows}
 
 
+def bench_step(data: str, multiples: tuple[int, ...] = (1, 2, 4, 8), scene: str = "env_spheres",
+               model: str | None = None) -> dict[str, Any]:
+    """Render step (spp per pass) against samples, early stops and wall time.
+
+    Samples and early stops: the bundled model on the held-out stacks with a decision only
+    every k-th level (step = k x the dataset's step). Wall time: real renders of `scene`.
+    """
+    import tempfile
+
+    from learning.bundle import load_model
+    from learning.evaluate import verdicts_by_scene
+    from learning.metrics import evaluate_verdicts
+    from learning.table import load_table
+    from renderer.adaptive import adaptive_render
+    from renderer.criteria import ModelCriterion
+
+    m = load_model(model)
+    test = list(m.manifest.get("training", {}).get("test_scenes") or [])
+    table = load_table(data, quick=m.quick, progress=False)
+    sub = table.subset(table.scene_mask(test))
+    per = verdicts_by_scene(sub, m.predict(sub.X))
+    rows = []
+    for k in multiples:
+        thinned = {s: (v[k - 1::k], lab[k - 1::k], th, list(spp)[k - 1::k]) for s, (v, lab, th, spp) in per.items()}
+        r = evaluate_verdicts(thinned)
+        step = list(next(iter(per.values()))[3])[0] * k
+        with tempfile.TemporaryDirectory() as tmp:
+            rep = adaptive_render(scene, Path(tmp), ModelCriterion(m), step=step, min_spp=step,
+                                  max_spp=640, progress=False)
+        rows.append({"step": step, "early_stop_rate": r["early_stop_rate"],
+                     "spp_ratio_vs_oracle": r["spp_ratio_vs_oracle"], "render_scene": scene,
+                     "wall_s": rep["wall_s"], "saved_vs_uniform": rep["saved_vs_uniform"],
+                     "passes": rep.get("passes")})
+    return {"test_scenes": test, "rows": rows}
+
+
 # --- markdown for BENCHMARKS.md --------------------------------------------------------
 def md_features(f: dict[str, Any], variant: str) -> str:
     return "\n".join([
@@ -402,6 +442,16 @@ def md_ablation(r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def md_step(r: dict[str, Any]) -> str:
+    scene = r["rows"][0]["render_scene"]
+    lines = [f"| step (spp per pass) | held-out early stops | held-out samples / oracle "
+             f"| {scene}: wall (s) | {scene}: saved vs uniform | passes |", "|---|---|---|---|---|---|"]
+    for x in r["rows"]:
+        lines.append(f"| {x['step']} | {x['early_stop_rate']:.3f} | {x['spp_ratio_vs_oracle']:.3f} "
+                     f"| {x['wall_s']:.1f} | {x['saved_vs_uniform']:.3f} | {x['passes']} |")
+    return "\n".join(lines)
+
+
 def update_markdown(path: Path, sections: dict[str, str]) -> None:
     """Replace the text between <!-- bench:NAME --> and <!-- /bench:NAME --> markers."""
     text = path.read_text() if path.exists() else ""
@@ -419,7 +469,7 @@ def update_markdown(path: Path, sections: dict[str, str]) -> None:
 
 
 SECTIONS = ("features", "crop", "models", "criteria", "render", "service", "tradeoff", "stability",
-            "ablation")
+            "ablation", "step")
 
 
 def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), data: str | None = None,
@@ -462,6 +512,11 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
             raise ValueError("bench ablation needs --data DIR (a labelled dataset)")
         results["ablation"] = bench_ablation(data)
         markdown["ablation"] = md_ablation(results["ablation"])
+    if "step" in only:
+        if not data:
+            raise ValueError("bench step needs --data DIR (a labelled dataset)")
+        results["step"] = bench_step(data)
+        markdown["step"] = md_step(results["step"])
     if "stability" in only:
         import tempfile
 

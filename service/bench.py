@@ -306,7 +306,7 @@ def bench_ablation(data: str) -> dict[str, Any]:
 
 
 def bench_step(data: str, multiples: tuple[int, ...] = (1, 2, 4, 8), scene: str = "env_spheres",
-               model: str | None = None) -> dict[str, Any]:
+               model: str | None = None, resolution: int = 256, max_spp: int = 640) -> dict[str, Any]:
     """Render step (spp per pass) against samples, early stops and wall time.
 
     Samples and early stops: the bundled model on the held-out stacks with a decision only
@@ -333,7 +333,7 @@ def bench_step(data: str, multiples: tuple[int, ...] = (1, 2, 4, 8), scene: str 
         step = list(next(iter(per.values()))[3])[0] * k
         with tempfile.TemporaryDirectory() as tmp:
             rep = adaptive_render(scene, Path(tmp), ModelCriterion(m), step=step, min_spp=step,
-                                  max_spp=640, progress=False)
+                                  max_spp=max_spp, resolution=resolution, progress=False)
         rows.append({"step": step, "early_stop_rate": r["early_stop_rate"],
                      "spp_ratio_vs_oracle": r["spp_ratio_vs_oracle"], "render_scene": scene,
                      "wall_s": rep["wall_s"], "saved_vs_uniform": rep["saved_vs_uniform"],

@@ -53,3 +53,20 @@ def test_ablation_rows_cover_every_switch():
     assert len(combos) == 8
     assert all(0 <= x["precision"] <= 1 and np.isfinite(x["spp_ratio_vs_oracle"]) for x in r["rows"])
     assert md_ablation(r).count("\n") == 9
+
+
+@pytest.mark.slow
+def test_step_sizes_thin_the_decisions(tmp_path):
+    from service.bench import bench_step, md_step
+    table = load_table(FIXTURE, progress=False, quick="none")
+    est, summary = train_model("dsvm", str(FIXTURE), table=table, cv=False, quick="none",
+                               progress=False)
+    model = save_model(est, tmp_path / "m", kind="dsvm", input="features", training=summary,
+                       extra={"quick": "none"})
+    r = bench_step(str(FIXTURE), multiples=(1, 2), scene="cornell", model=str(model),
+                   resolution=32, max_spp=192)
+    steps = [x["step"] for x in r["rows"]]
+    assert steps == [48, 96] and [x["passes"] for x in r["rows"]][1] <= 2
+    # deciding less often can only stop later: never fewer samples
+    assert r["rows"][1]["spp_ratio_vs_oracle"] >= r["rows"][0]["spp_ratio_vs_oracle"] - 1e-12
+    assert md_step(r).count("\n") == 3

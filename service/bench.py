@@ -468,8 +468,10 @@ def update_markdown(path: Path, sections: dict[str, str]) -> None:
     tmp.replace(path)
 
 
-SECTIONS = ("features", "crop", "models", "criteria", "render", "service", "tradeoff", "stability",
-            "ablation", "step")
+# sections that need only a dataset: name -> (measure(data), markdown(result))
+DATASET_SECTIONS = {"criteria": (bench_criteria, md_criteria), "tradeoff": (bench_tradeoff, md_tradeoff),
+                    "ablation": (bench_ablation, md_ablation), "step": (bench_step, md_step)}
+SECTIONS = ("features", "crop", "models", "render", "service", "stability", *DATASET_SECTIONS)
 
 
 def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), data: str | None = None,
@@ -494,29 +496,15 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
         section = "models" if quick == "albedo" else f"models_quick_{quick}"
         markdown[section] = (f"Quick image: {quick}. Trained on {', '.join(m['train_scenes'])}; evaluated on the held-out "
                               f"{', '.join(m['test_scenes'])}.\n\n" + markdown_table(m["rows"]))
-    if "criteria" in only:
-        if not data:
-            raise ValueError("bench criteria needs --data DIR (a labelled dataset)")
-        results["criteria"] = bench_criteria(data)
-        markdown["criteria"] = md_criteria(results["criteria"])
     if "render" in only:
         results["render"] = bench_render()
         markdown["render"] = md_render(results["render"])
-    if "tradeoff" in only:
-        if not data:
-            raise ValueError("bench tradeoff needs --data DIR (a labelled dataset)")
-        results["tradeoff"] = bench_tradeoff(data)
-        markdown["tradeoff"] = md_tradeoff(results["tradeoff"])
-    if "ablation" in only:
-        if not data:
-            raise ValueError("bench ablation needs --data DIR (a labelled dataset)")
-        results["ablation"] = bench_ablation(data)
-        markdown["ablation"] = md_ablation(results["ablation"])
-    if "step" in only:
-        if not data:
-            raise ValueError("bench step needs --data DIR (a labelled dataset)")
-        results["step"] = bench_step(data)
-        markdown["step"] = md_step(results["step"])
+    for name, (run, md) in DATASET_SECTIONS.items():
+        if name in only:
+            if not data:
+                raise ValueError(f"bench {name} needs --data DIR (a labelled dataset)")
+            results[name] = run(data)
+            markdown[name] = md(results[name])
     if "stability" in only:
         import tempfile
 

@@ -26,13 +26,18 @@ def test_update_markdown_replaces_only_its_section(tmp_path):
     assert "<!-- bench:c -->\nfresh\n<!-- /bench:c -->" in doc.read_text()
 
 
-@pytest.mark.slow
-def test_tradeoff_curves_on_the_fixture(tmp_path):
+def fixture_model(tmp_path) -> Path:
+    """A quick-'none' DSVM trained on the fixture, 'cornell' held out (in its manifest)."""
     table = load_table(FIXTURE, progress=False, quick="none")
     est, summary = train_model("dsvm", str(FIXTURE), table=table, cv=False, quick="none",
                                progress=False)
-    model = save_model(est, tmp_path / "m", kind="dsvm", input="features", training=summary,
-                       extra={"quick": "none"})
+    return save_model(est, tmp_path / "m", kind="dsvm", input="features", training=summary,
+                      extra={"quick": "none"})
+
+
+@pytest.mark.slow
+def test_tradeoff_curves_on_the_fixture(tmp_path):
+    model = fixture_model(tmp_path)
     r = bench_tradeoff(str(FIXTURE), out_png=str(tmp_path / "p.png"), model=str(model),
                        thresholds=(0.05, 0.2))
     assert r["test_scenes"] == ["cornell"] and Path(r["plot"]).stat().st_size > 1000
@@ -58,11 +63,7 @@ def test_ablation_rows_cover_every_switch():
 @pytest.mark.slow
 def test_step_sizes_thin_the_decisions(tmp_path):
     from service.bench import bench_step, md_step
-    table = load_table(FIXTURE, progress=False, quick="none")
-    est, summary = train_model("dsvm", str(FIXTURE), table=table, cv=False, quick="none",
-                               progress=False)
-    model = save_model(est, tmp_path / "m", kind="dsvm", input="features", training=summary,
-                       extra={"quick": "none"})
+    model = fixture_model(tmp_path)
     r = bench_step(str(FIXTURE), multiples=(1, 2), scene="cornell", model=str(model),
                    resolution=32, max_spp=192)
     steps = [x["step"] for x in r["rows"]]

@@ -19,9 +19,9 @@ import numpy as np
 import skops.io as sio
 
 from noisefeat import FeatureBase, default_base, extract_features
-from noisefeat.display import lightness
 
 from .estimators import RBFSVM, check_inputs
+from .table import feature_input, raw_input
 
 FORMAT = "noisestop-model"
 VERSION = 1
@@ -84,16 +84,12 @@ class Model:
                            base: FeatureBase | None = None, exposure: float = 0.0) -> np.ndarray:
         """Model inputs from linear RGB blocks [N, h, w, 3] (and their quick blocks)."""
         if self.input == "raw":
-            import torch
-            L = lightness(torch.as_tensor(np.asarray(blocks)), exposure).numpy() / 100.0
-            return L.reshape(len(L), -1)
-        base = base or default_base()
-        current = extract_features(blocks, base=base, exposure=exposure)
-        if not self.needs_quick:  # a flat quick image has all-zero features
-            return -current
-        if quick is None:
+            return raw_input(blocks, exposure)
+        if self.needs_quick and quick is None:
             raise ValueError("a feature model needs the quick image of every block")
-        return extract_features(quick, base=base, exposure=exposure) - current
+        base = base or default_base()
+        quick_feats = extract_features(quick, base=base, exposure=exposure) if self.needs_quick else None
+        return feature_input(extract_features(blocks, base=base, exposure=exposure), quick_feats)
 
     def score_inputs(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(verdict int8 [N], score float [N]) for model inputs (e.g. [N, 26] features)."""

@@ -63,6 +63,21 @@ def _atomic_savez(path: Path, **arrays: np.ndarray) -> None:
 QUICK_MODES = ("albedo", "none")
 
 
+def feature_input(current: np.ndarray, quick: np.ndarray | None = None) -> np.ndarray:
+    """The feature models' input from 26-feature rows: features(quick) - features(current).
+
+    quick=None stands for a flat quick image (quick mode 'none'), whose features are all
+    zero. Training (this table), `Model` and the render loop all build inputs here.
+    """
+    return -current if quick is None else quick - current
+
+
+def raw_input(blocks: np.ndarray | torch.Tensor, exposure: float = 0.0) -> np.ndarray:
+    """The raw SVM's input: L*/100 of linear RGB blocks [N, h, w, 3], flattened to [N, h*w]."""
+    L = lightness(torch.as_tensor(np.asarray(blocks)), exposure).numpy() / 100.0
+    return L.reshape(len(L), -1).astype(np.float32)
+
+
 def stack_features(stack: Stack, base: FeatureBase | None = None, exposure: float = 0.0,
                    progress: bool = False, quick: str = "albedo") -> np.ndarray:
     """[K, n_blocks, 26] model inputs of one stack, cached per feature base and quick mode.
@@ -83,11 +98,12 @@ def stack_features(stack: Stack, base: FeatureBase | None = None, exposure: floa
         except Exception as exc:
             log.warning("%s: unreadable feature cache (%s); recomputing", cache, exc)
     quick_feats = (extract_features(stack.split(stack.quick()), base=base, exposure=exposure)
-                   if quick == "albedo" else np.zeros((stack.n_blocks, 26), np.float32))
+                   if quick == "albedo" else None)
     rows = []
     for k in tqdm(range(stack.n_levels), desc=f"{stack.scene} features", disable=not progress,
                   leave=False):
-        rows.append(quick_feats - extract_features(stack.blocks(k), base=base, exposure=exposure))
+        rows.append(feature_input(extract_features(stack.blocks(k), base=base, exposure=exposure),
+                                  quick_feats))
     x = np.stack(rows).astype(np.float32)
     cache.parent.mkdir(exist_ok=True)
     _atomic_savez(cache, x=x)
@@ -96,11 +112,7 @@ def stack_features(stack: Stack, base: FeatureBase | None = None, exposure: floa
 
 def stack_raw_blocks(stack: Stack, exposure: float = 0.0) -> np.ndarray:
     """[K, n_blocks, bh*bw] L*/100 of every sub-image: the raw SVM's input."""
-    out = []
-    for k in range(stack.n_levels):
-        L = lightness(torch.from_numpy(stack.blocks(k)), exposure).numpy() / 100.0
-        out.append(L.reshape(L.shape[0], -1))
-    return np.stack(out).astype(np.float32)
+    return np.stack([raw_input(stack.blocks(k), exposure) for k in range(stack.n_levels)])
 
 
 def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase | None = None,

@@ -372,14 +372,13 @@ class ModelCriterion(Criterion):
         quick = np.stack([np.asarray(views[i].quick, np.float32) for i in ask]) if self.needs_quick else None
         self.counters["blocks_featured"] += len(ask)
         if self._local_features:
+            from learning.table import feature_input
             from noisefeat import extract_features
 
             with single_torch_thread():
                 t0 = time.perf_counter()
-                current = extract_features(blocks, exposure=self.exposure)
-                # a model trained without quick image: a flat one, whose features are zero
-                x = (self._quick_features([ids[i] for i in ask], quick) - current
-                     if self.needs_quick else -current)
+                quick_feats = self._quick_features([ids[i] for i in ask], quick) if self.needs_quick else None
+                x = feature_input(extract_features(blocks, exposure=self.exposure), quick_feats)
                 self.counters["feature_rows"] += len(ask)
                 self.timers["features_s"] += time.perf_counter() - t0
                 verdict, _ = self.model.score_inputs(x)  # type: ignore[attr-defined]

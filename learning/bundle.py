@@ -66,7 +66,7 @@ class Model:
 
     @property
     def quick(self) -> str:
-        """The quick image the model was trained with: 'albedo' (default) or 'none'."""
+        """The quick image the model was trained with: 'albedo' (default), 'direct' or 'none'."""
         return self.manifest.get("quick", "albedo")
 
     @property

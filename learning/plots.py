@@ -67,3 +67,26 @@ def plot_learning_curves(histories: Mapping[str, Sequence[Mapping]], path: str |
     ax.legend(fontsize=8)
     fig.tight_layout()
     return _save(fig, Path(path))
+
+
+def plot_cost_accuracy(rows: Sequence[Mapping], path: str | os.PathLike, title: str = "") -> Path:
+    """Decision cost (test time per 101 sub-images, log x) against precision, one point per
+    model: the models a user would pick from lie on the upper-left frontier."""
+    pts = [r for r in rows if r.get("precision") is not None and r.get("test_101_s")]
+    if not pts:
+        raise ValueError("no model row has both a precision and a positive test time")
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for r in pts:
+        feature = str(r["model"]).startswith("dsvm")
+        ax.scatter(r["test_101_s"], r["precision"], s=40, zorder=3,
+                   marker="o" if feature else "s", color="tab:blue" if feature else "tab:gray")
+        ax.annotate(str(r["model"]).replace(" (untrained base)", "*"), (r["test_101_s"], r["precision"]),
+                    textcoords="offset points", xytext=(5, 4), fontsize=8)
+    ax.set_xscale("log")
+    ax.set_xlabel("decision cost: test time per 101 sub-images (s, features included)")
+    ax.set_ylabel("precision on held-out scenes")
+    ax.set_title(title or "decision cost vs accuracy (circles: feature SVMs; * untrained conv base)",
+                 fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    return _save(fig, Path(path))

@@ -6,7 +6,12 @@
 <scene>/levels/000032.exr ...     # cumulative-mean linear RGB, named by spp (%06d)
 <scene>/reference.exr             # high-spp linear RGB
 <scene>/quick.exr                 # the quick noise-free image (absent if meta "quick" == "none")
+<scene>/quick_direct.exr          # optional, beyond format v1: direct-lighting quick image
 ```
+
+Extra quick images (`EXTRA_QUICK`, only for the quick-image ablation) are not part of
+format v1: readers that do not know them ignore them, a stack is complete without them,
+and adding one to a complete stack leaves it complete (`write_extra_quick`).
 
 Resume rule (used by `StackWriter`, hence by `dataset build` and `import-lisic`):
 
@@ -48,6 +53,8 @@ PARTIAL = "meta.partial.json"
 LEVELS_DIR = "levels"
 REFERENCE = "reference.exr"
 QUICK = "quick.exr"
+#: optional extra quick images by kind (see module doc)
+EXTRA_QUICK = {"direct": "quick_direct.exr"}
 QUICK_NONE = "none"
 #: linear value whose sRGB encoding is 0.5: the stand-in quick image when there is none
 MID_GREY_LINEAR = 0.21404114
@@ -231,8 +238,22 @@ class Stack:
     def reference(self) -> np.ndarray:
         return self._read(self.reference_path)
 
-    def quick(self) -> np.ndarray:
-        """The quick image, or flat mid-grey when the stack has none (see module doc)."""
+    def quick(self, kind: str | None = None) -> np.ndarray:
+        """The quick image, or flat mid-grey when the stack has none (see module doc).
+
+        `kind`: None or 'albedo' = the stack's own quick image (quick.exr; the design's
+        albedo AOV, whatever meta "quick" describes); an `EXTRA_QUICK` kind = that optional
+        extra image.
+        """
+        if kind in EXTRA_QUICK:
+            path = self.path / EXTRA_QUICK[kind]
+            if not path.exists():
+                raise FileNotFoundError(f"{self.path}: no {kind} quick image ({path.name}); rerun "
+                                        f"`noisestop dataset build` with the same settings to add it")
+            return self._read(path)
+        if kind not in (None, "albedo"):
+            raise ValueError(f"quick image kind must be None, 'albedo' or one of {sorted(EXTRA_QUICK)}, "
+                             f"got {kind!r}")
         if not self.has_quick:
             return np.full((self.height, self.width, 3), MID_GREY_LINEAR, np.float32)
         return self._read(self.quick_path)
@@ -471,6 +492,13 @@ class StackWriter:
         arr = self._check_image(img, "quick image")
         self._begin_write()
         write_exr(self.path / QUICK, arr)
+
+    def write_extra_quick(self, kind: str, img: np.ndarray) -> None:
+        """Add an optional extra quick image; does not touch the stack's completeness."""
+        if kind not in EXTRA_QUICK:
+            raise ValueError(f"extra quick image kind must be one of {sorted(EXTRA_QUICK)}, got {kind!r}")
+        self.path.mkdir(parents=True, exist_ok=True)
+        write_exr(self.path / EXTRA_QUICK[kind], self._check_image(img, f"{kind} quick image"))
 
     def finish(self, thresholds: Sequence[int | None] | None = None,
                labeler: Mapping | None = None) -> Stack:

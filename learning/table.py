@@ -60,7 +60,9 @@ def _atomic_savez(path: Path, **arrays: np.ndarray) -> None:
     os.replace(tmp, path)
 
 
-QUICK_MODES = ("albedo", "none")
+#: quick images a feature model can be trained with: the stack's own (albedo), the extra
+#: direct-lighting image, or none (a flat image)
+QUICK_MODES = ("albedo", "direct", "none")
 
 
 def feature_input(current: np.ndarray, quick: np.ndarray | None = None) -> np.ndarray:
@@ -82,8 +84,9 @@ def stack_features(stack: Stack, base: FeatureBase | None = None, exposure: floa
                    progress: bool = False, quick: str = "albedo") -> np.ndarray:
     """[K, n_blocks, 26] model inputs of one stack, cached per feature base and quick mode.
 
-    quick='albedo': features(quick image) - features(level); quick='none': a flat quick
-    image, whose features are all zero, so the input is -features(level).
+    quick='albedo': features(the stack's quick image) - features(level); 'direct': the
+    same with the stack's extra direct-lighting quick image; 'none': a flat quick image,
+    whose features are all zero, so the input is -features(level).
     """
     if quick not in QUICK_MODES:
         raise ValueError(f"quick must be one of {QUICK_MODES}, got {quick!r}")
@@ -97,8 +100,8 @@ def stack_features(stack: Stack, base: FeatureBase | None = None, exposure: floa
                 return x
         except Exception as exc:
             log.warning("%s: unreadable feature cache (%s); recomputing", cache, exc)
-    quick_feats = (extract_features(stack.split(stack.quick()), base=base, exposure=exposure)
-                   if quick == "albedo" else None)
+    quick_feats = None if quick == "none" else extract_features(
+        stack.split(stack.quick(None if quick == "albedo" else quick)), base=base, exposure=exposure)
     rows = []
     for k in tqdm(range(stack.n_levels), desc=f"{stack.scene} features", disable=not progress,
                   leave=False):

@@ -14,7 +14,7 @@ It stops when no block is active or max_spp is reached. Because seeds depend onl
 (seed, block, pass) and the checkpoint holds all state, ``resume=True`` after a crash
 gives the very image and report (timings aside) of an uninterrupted run.
 
-The quick image (albedo AOV, `quick_spp` samples) is rendered once, and only if the
+The quick image (the kind the model was trained with, `quick_spp` samples) is rendered once, and only if the
 criterion needs it; it is stored in the checkpoint so a resume does not re-render it.
 """
 from __future__ import annotations
@@ -39,6 +39,8 @@ from learning.stack import Stack
 from .blocks import BlockAccumulator, BlockRenderer
 from .criteria import COUNTER_NAMES, TIMER_NAMES, BlockView, Criterion, build_criterion
 from .outputs import write_outputs
+from .settings import describe as describe_settings
+from .settings import resolve_settings
 
 logger = logging.getLogger(__name__)
 
@@ -137,8 +139,12 @@ def _resolve_criterion(criterion: Criterion | str, reference: Stack | None) -> C
                      f"got {type(criterion).__name__}")
 
 
-def _check_args(resolution: int, grid: Sequence[int], step: int, min_spp: int, max_spp: int) -> tuple[int, int]:
+def _check_args(resolution: int | None, grid: Sequence[int], step: int, min_spp: int, max_spp: int
+                ) -> tuple[int, int]:
+    """Resolution None (the scene's own) passes; anything else must be a positive integer."""
     for name, v in (("resolution", resolution), ("step", step), ("min_spp", min_spp), ("max_spp", max_spp)):
+        if name == "resolution" and v is None:
+            continue
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
             raise ValueError(f"{name} must be a positive integer, got {v!r}")
     if len(grid) != 2 or any(int(g) < 1 for g in grid):
@@ -149,8 +155,8 @@ def _check_args(resolution: int, grid: Sequence[int], step: int, min_spp: int, m
 
 
 def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion: Criterion | str, *,
-                    resolution: int = 256, grid: Sequence[int] = (4, 4), step: int = 16,
-                    min_spp: int = 16, max_spp: int = 1024, seed: int = 0, resume: bool = False,
+                    resolution: int | None = None, grid: Sequence[int] | None = None, step: int | None = None,
+                    min_spp: int | None = None, max_spp: int | None = None, seed: int = 0, resume: bool = False,
                     progress: bool = True, reference: Stack | str | os.PathLike | None = None,
                     quick_spp: int = 16) -> dict[str, Any]:
     """Render `scene` adaptively into `out`; return the report (also out/report.json).
@@ -161,15 +167,20 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     `criterion`: a `Criterion`, or its name ('oracle' takes the thresholds of `reference`).
     `reference`: a labelled Stack, or a dataset/stack directory holding this scene: adds
     early_stop_rate, spp_ratio_vs_oracle and per-block true thresholds to the report.
+    Settings left None come from the reference, the scene or the defaults
+    (`renderer.settings`); the report's `settings_source` says which.
     """
     from .scenes import load_scene
     from .simulate import find_reference
     from .variant import current_variant, select_variant
 
-    gh, gw = _check_args(resolution, grid, step, min_spp, max_spp)
     t_start = time.perf_counter()
     label = scene_label(scene)
     ref_stack = find_reference(reference, label) if reference is not None else None
+    given = {"resolution": resolution, "grid": grid, "step": step, "min_spp": min_spp, "max_spp": max_spp}
+    values, sources = resolve_settings(given, ref_stack)
+    resolution, grid, step, min_spp, max_spp = (values[k] for k in given)
+    gh, gw = _check_args(resolution, grid, step, min_spp, max_spp)
     crit = _resolve_criterion(criterion, ref_stack)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -178,6 +189,8 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     variant = select_variant()
     br = BlockRenderer(load_scene(scene, resolution), (gh, gw))
     n = br.n_blocks
+    values["resolution"] = [br.width, br.height]
+    logger.info("%s: %s, exposure %g", label, describe_settings(values, sources), getattr(crit, "exposure", 0.0))
     if ref_stack is not None:
         if tuple(ref_stack.grid) != (gh, gw):
             raise ValueError(f"{ref_stack.path}: reference grid {list(ref_stack.grid)} differs from "
@@ -186,8 +199,10 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
             logger.warning("reference %s is %dx%d, the render %dx%d: thresholds compared anyway",
                            ref_stack.path, ref_stack.width, ref_stack.height, br.width, br.height)
     settings = {"scene": os.fspath(scene), "resolution": [br.width, br.height], "grid": [gh, gw],
+                "exposure": float(getattr(crit, "exposure", 0.0)),
                 "step": int(step), "min_spp": int(min_spp), "max_spp": int(max_spp), "seed": int(seed),
-                "quick_spp": int(quick_spp), "criterion": crit.describe(), "variant": variant}
+                "quick_spp": int(quick_spp), "quick": crit.quick_kind if crit.needs_quick else "none",
+                "criterion": crit.describe(), "variant": variant}
     sizes = pass_sizes(step, max_spp)
 
     state: dict[str, Any] | None = None
@@ -213,7 +228,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     if crit.needs_quick:
         if state["quick"] is None:
             t0 = time.perf_counter()
-            state["quick"] = br.quick_image(spp=quick_spp, seed=seed)
+            state["quick"] = br.quick_image(spp=quick_spp, seed=seed, kind=crit.quick_kind)
             loop_timers["render_s"] += time.perf_counter() - t0
         quick_blocks = np.stack([state["quick"][br.block_slices(b)] for b in range(n)])
         crit.prepare(list(range(n)), quick_blocks)
@@ -267,6 +282,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     final = snapshot()
     report = _report(label, br, settings, crit, state, acc, final["timers"], variant or current_variant(),
                      ref_stack)
+    report["settings_source"] = {k: sources[k] for k in given}
     write_outputs(out, acc.image().astype(np.float32), report)
     logger.info("%s: %d passes, saved %.1f%% vs uniform, %.2f s", label, report["passes"],
                 100 * report["saved_vs_uniform"], report["wall_s"])
@@ -298,7 +314,8 @@ def _report(label: str, br: BlockRenderer, settings: dict[str, Any], crit: Crite
         "scene": label, "variant": variant, "criterion": crit.describe(),
         "resolution": [br.width, br.height], "grid": list(br.grid), "block": [br.block_h, br.block_w],
         "step": settings["step"], "min_spp": settings["min_spp"], "max_spp": max_spp,
-        "seed": settings["seed"], "passes": int(state["pass_index"]),
+        "seed": settings["seed"], "exposure": settings["exposure"], "quick": settings["quick"],
+        "passes": int(state["pass_index"]),
         "samples_spent": int(spp.sum()) * pixels, "mean_spp": float(spp.mean()),
         "saved_vs_uniform": 1.0 - float(spp.sum()) / (n * max_spp),
         "blocks_converged": int(converged.sum()),

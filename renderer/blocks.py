@@ -63,6 +63,10 @@ def _to_rgb(img: Any, where: str) -> np.ndarray:
     raise ValueError(f"{where}: film has {c} channels; need 1 (luminance), 3 (rgb) or 4 (rgba)")
 
 
+#: quick images the renderer can make (learning.table.QUICK_MODES adds 'none')
+QUICK_KINDS = ("albedo", "direct")
+
+
 class BlockRenderer:
     """Render any subset of a grid of blocks of one scene's first sensor.
 
@@ -98,6 +102,11 @@ class BlockRenderer:
                 "differ slightly from a full-frame render (use rfilter 'box' for exact independence)",
                 film.rfilter().class_name(), radius,
             )
+        # an XML scene may declare no integrator (mi.render then refuses): Mitsuba's path tracer
+        self._integrator = scene.integrator()
+        if self._integrator is None:
+            logger.info("scene declares no integrator; using Mitsuba's 'path'")
+            self._integrator = mi.load_dict({"type": "path"})
         self._params = mi.traverse(self.sensor)
         self._crop: tuple[int, int, int, int] | None = None
         self._set_crop(0, 0, self.width, self.height)
@@ -145,8 +154,9 @@ class BlockRenderer:
     def _render(self, spp: int, mitsuba_seed: int, integrator: Any = None, where: str = "render") -> np.ndarray:
         if not isinstance(spp, (int, np.integer)) or spp < 1:
             raise ValueError(f"spp must be a positive integer, got {spp!r}")
-        img = self._mi.render(self.scene, sensor=self.sensor, integrator=integrator, spp=int(spp),
-                              seed=int(mitsuba_seed))
+        img = self._mi.render(self.scene, sensor=self.sensor,
+                              integrator=self._integrator if integrator is None else integrator,
+                              spp=int(spp), seed=int(mitsuba_seed))
         return _to_rgb(img, where)
 
     def render_blocks(self, block_ids: Sequence[int], spp: int, seed: int, pass_index: int = 0) -> np.ndarray:
@@ -175,11 +185,22 @@ class BlockRenderer:
         self._set_crop(0, 0, self.width, self.height)
         return self._render(spp, derive_seed(seed, FULL_FRAME, pass_index), where="full frame")
 
-    def quick_image(self, spp: int = 16, seed: int = 0) -> np.ndarray:
-        """The noise-free-ish 'quick' image of the design: albedo AOV of the full frame."""
+    def quick_image(self, spp: int = 16, seed: int = 0, kind: str = "albedo") -> np.ndarray:
+        """The noise-free-ish 'quick' image of the design, full frame.
+
+        kind 'albedo' (the design's default): the albedo AOV, no light transport at all;
+        'direct': direct lighting only (Mitsuba's `direct` integrator), which carries the
+        shading and shadows but still some noise under area lights (quick-image ablation).
+        """
         self._set_crop(0, 0, self.width, self.height)
-        aov = self._mi.load_dict({"type": "aov", "aovs": "albedo:albedo"})
-        return self._render(spp, derive_seed(seed, FULL_FRAME, -1), integrator=aov, where="albedo AOV")
+        if kind == "albedo":
+            integrator = self._mi.load_dict({"type": "aov", "aovs": "albedo:albedo"})
+        elif kind == "direct":
+            integrator = self._mi.load_dict({"type": "direct"})
+        else:
+            raise ValueError(f"quick image kind must be one of {QUICK_KINDS}, got {kind!r}")
+        return self._render(spp, derive_seed(seed, FULL_FRAME, -1), integrator=integrator,
+                            where=f"{kind} quick image")
 
 
 class BlockAccumulator:

@@ -89,6 +89,7 @@ class RemoteModel:
         host = parsed.hostname or ""
         self._loopback = host == "localhost" or host.startswith("127.") or host == "::1"
         self._opener_obj: urllib.request.OpenerDirector | None = None
+        self._quick: str | None = None
 
     @property
     def _opener(self) -> urllib.request.OpenerDirector:
@@ -184,6 +185,21 @@ class RemoteModel:
         except ValueError:
             return True  # a 200 without JSON: KServe-style bare status
         return bool(obj.get("ready", True)) if isinstance(obj, dict) else True
+
+    @property
+    def quick(self) -> str:
+        """The quick image the served model wants ('albedo', 'direct', 'none'), from its metadata.
+
+        Asked once; a server that does not say (older versions) is taken to want albedo.
+        """
+        if self._quick is None:
+            params = self.metadata().get("parameters") or {}
+            self._quick = str(params.get("quick", "albedo"))
+        return self._quick
+
+    @property
+    def needs_quick(self) -> bool:
+        return self.quick != "none"
 
     def metadata(self) -> dict[str, Any]:
         """The model's metadata document (name, versions, platform, inputs, outputs)."""

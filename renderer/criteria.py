@@ -111,11 +111,12 @@ class Criterion(ABC):
 
     `needs_quick` / `needs_halves` tell the caller what the views must carry, so the
     quick image is rendered (and half buffers recovered) only when some criterion uses
-    them.
+    them; `quick_kind` says which quick image ('albedo' or 'direct').
     """
 
     name: str = "criterion"
     needs_quick: bool = False
+    quick_kind: str = "albedo"
     needs_halves: bool = False
 
     def __init__(self) -> None:
@@ -317,6 +318,7 @@ class ModelCriterion(Criterion):
         self.exposure = float(exposure)
         self.flat_shortcut = bool(flat_shortcut)
         self.needs_quick = bool(getattr(model, "needs_quick", getattr(model, "input", "features") != "raw"))
+        self.quick_kind = str(getattr(model, "quick", "albedo")) if self.needs_quick else "albedo"
         self._local_features = (getattr(model, "input", None) == "features"
                                 and hasattr(model, "decision_function") and hasattr(model, "offset"))
         self._quick_cache: dict[tuple[int, bytes], np.ndarray] = {}

@@ -1,5 +1,8 @@
 """Build one labelled stack (dataset format v1) from a scene: levels, reference, quick.
 
+The extra quick images of `learning.stack.EXTRA_QUICK` (direct lighting) are rendered too,
+also into stacks that are already complete, so rerunning a build adds them.
+
 Levels are cumulative means at spp = step, 2*step, ...; each level adds one independent
 pass of `step` samples (Mitsuba seed derived from (seed, pass)). The reference uses its
 own seed stream, so its noise is independent of the levels it judges. Every pass is split
@@ -25,7 +28,7 @@ from tqdm import tqdm
 
 from learning.exr import read_exr
 from learning.observer import VirtualObserver
-from learning.stack import REFERENCE, StackWriter, level_name, make_plan, read_stack
+from learning.stack import EXTRA_QUICK, REFERENCE, StackWriter, level_name, make_plan, read_stack
 
 from .blocks import BlockRenderer
 from .scenes import load_scene
@@ -137,6 +140,9 @@ def build_stack(scene: str, out_root: str | os.PathLike, settings: BuildSettings
                      renderer=f"mitsuba {mi.__version__} {variant} path", grid=settings.grid,
                      build={k: v for k, v in settings.to_dict().items() if k not in ("contact_sheet",)})
     writer = StackWriter(out, plan)
+    for kind in EXTRA_QUICK:     # cheap, and added to stacks built before they existed
+        if not (out / EXTRA_QUICK[kind]).exists():
+            writer.write_extra_quick(kind, br.quick_image(spp=settings.quick_spp, seed=settings.seed, kind=kind))
     if writer.is_complete:
         log.info("%s: already built", out)
         return _summary(out, variant, time.perf_counter() - t_start, resumed=True)

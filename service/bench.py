@@ -277,20 +277,21 @@ def spp_maps(model, table, scenes: list[str], out_png: Path) -> str:
 
 def bench_ablation(data: str) -> dict[str, Any]:
     """DSVM on held-out scenes with parts of the feature pipeline switched: quick image
-    (albedo / none), conv weights (smoothing / pre-trained), wavelet layer (on / off: its
+    (albedo / direct lighting / none, with its render time once per frame), conv weights (smoothing / pre-trained), wavelet layer (on / off: its
     two features dropped). Accuracy next to the cost of 101 sub-images' features."""
     from learning.bundle import Model
     from learning.evaluate import evaluate_model, time_101_sub_images
-    from learning.table import load_table
+    from learning.table import QUICK_MODES, load_table
     from learning.train import train_model
     from noisefeat import FeatureBase
 
     rows = []
     wavelet_cols = [12, 25]                     # mean_13, std_13: the wavelet layer
     keep_no_wavelet = [i for i in range(26) if i not in wavelet_cols]
+    quick_s = quick_image_cost()
     for weights in ("smoothing", "pretrained"):
         base = FeatureBase(weights).eval()
-        for quick in ("albedo", "none"):
+        for quick in QUICK_MODES:
             table = load_table(data, base=base, quick=quick, progress=False)
             for wavelet in (True, False):
                 t = table if wavelet else dataclasses.replace(table, X=table.X[:, keep_no_wavelet])
@@ -301,8 +302,25 @@ def bench_ablation(data: str) -> dict[str, Any]:
                     if wavelet else None
                 rows.append({"weights": weights, "quick": quick, "wavelet": wavelet,
                              **{k: m[k] for k in ("precision", "f1", "early_stop_rate",
-                                                  "spp_ratio_vs_oracle")}, "test_101_s": cost})
-    return {"rows": rows}
+                                                  "spp_ratio_vs_oracle")}, "test_101_s": cost,
+                             "quick_render_s": quick_s.get(quick, 0.0)})
+    return {"rows": rows, "quick_scene": QUICK_COST_SCENE}
+
+
+QUICK_COST_SCENE = ("cornell", 256, 16)      # scene, resolution, quick spp
+
+
+def quick_image_cost() -> dict[str, float]:
+    """Wall time of one warm quick image per kind (once per render, full frame)."""
+    from renderer.blocks import QUICK_KINDS, BlockRenderer
+    from renderer.scenes import load_scene
+    scene, res, spp = QUICK_COST_SCENE
+    br = BlockRenderer(load_scene(scene, res), (4, 4))
+    out = {}
+    for kind in QUICK_KINDS:
+        br.quick_image(spp, kind=kind)                       # compile
+        out[kind] = _median_s(lambda k=kind: br.quick_image(spp, kind=k), 3)
+    return out
 
 
 def bench_step(data: str, multiples: tuple[int, ...] = (1, 2, 4, 8), scene: str = "env_spheres",
@@ -432,13 +450,15 @@ def md_tradeoff(r: dict[str, Any]) -> str:
 
 
 def md_ablation(r: dict[str, Any]) -> str:
+    scene, res, spp = r["quick_scene"]
     lines = ["| conv weights | quick image | wavelet layer | precision | f1 | early_stop_rate "
-             "| samples / oracle | 101 sub-images (s) |", "|---|---|---|---|---|---|---|---|"]
+             f"| samples / oracle | 101 sub-images (s) | quick image, {scene} {res}x{res} {spp} spp (s) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for x in r["rows"]:
         cost = "-" if x["test_101_s"] is None else f"{x['test_101_s']:.4f}"
         lines.append(f"| {x['weights']} | {x['quick']} | {'on' if x['wavelet'] else 'off'} | "
                      f"{x['precision']:.3f} | {x['f1']:.3f} | {x['early_stop_rate']:.3f} | "
-                     f"{x['spp_ratio_vs_oracle']:.3f} | {cost} |")
+                     f"{x['spp_ratio_vs_oracle']:.3f} | {cost} | {x['quick_render_s']:.3f} |")
     return "\n".join(lines)
 
 
@@ -494,8 +514,12 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
         results["models"] = bench_models(data, Path(out_dir), arches, kinds, quick)
         m = results["models"]
         section = "models" if quick == "albedo" else f"models_quick_{quick}"
+        from learning.plots import plot_cost_accuracy
+        png = plot_cost_accuracy(m["rows"], f"docs/cost-accuracy-{quick}.png",
+                                 f"decision cost vs precision, quick image {quick}, held-out scenes")
         markdown[section] = (f"Quick image: {quick}. Trained on {', '.join(m['train_scenes'])}; evaluated on the held-out "
-                              f"{', '.join(m['test_scenes'])}.\n\n" + markdown_table(m["rows"]))
+                              f"{', '.join(m['test_scenes'])}.\n\n" + markdown_table(m["rows"])
+                              + f"\n\nDecision cost against accuracy: ![cost vs accuracy]({png})")
     if "render" in only:
         results["render"] = bench_render()
         markdown["render"] = md_render(results["render"])

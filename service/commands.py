@@ -6,6 +6,10 @@ import time
 
 from .cli import UsageError, emit_json, log
 
+#: learning.table.QUICK_MODES, spelled out so the parser builds without importing torch
+#: (tests/test_cli.py checks the two agree)
+QUICK_MODES = ("albedo", "direct", "none")
+
 
 def _positive_int(text: str) -> int:
     try:
@@ -45,7 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--arches", default=None,
                    help="models: comma-separated transfer baselines (default: all five; '' for none)")
     p.add_argument("--kinds", default=None, help="models: comma-separated SVM kinds (default: all six)")
-    p.add_argument("--quick", choices=("albedo", "none"), default="albedo",
+    p.add_argument("--quick", choices=QUICK_MODES, default="albedo",
                    help="models: the quick image of the feature models")
     p.add_argument("--update", default=None, metavar="FILE",
                    help="rewrite the marked sections of FILE (e.g. BENCHMARKS.md) with the results")
@@ -164,10 +168,10 @@ def _register_learning(sub: argparse._SubParsersAction) -> None:
                    help="calibrate the decision offset on leave-one-scene-out scores of the "
                         "training scenes to keep early stops at or below this rate (default 0.05)")
     p.add_argument("--no-calibrate", action="store_true", help="keep the decision offset at 0")
-    p.add_argument("--quick", choices=("albedo", "none"), default="albedo",
+    p.add_argument("--quick", choices=QUICK_MODES, default="albedo",
                    help="feature models: the quick image subtracted from the features: the "
-                        "albedo AOV (the paper's) or none (a flat image: features of the "
-                        "current block alone)")
+                        "albedo AOV (the paper's), direct lighting, or none (a flat image: "
+                        "features of the current block alone)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_train)
@@ -328,11 +332,19 @@ def _register_render(sub: argparse._SubParsersAction) -> None:
                    help="labelled dataset or stack of the scene: oracle thresholds, early-stop metrics")
     p.add_argument("--exposure", type=float, default=0.0,
                    help="display exposure (stops) the criteria judge the image at (default 0)")
-    p.add_argument("--resolution", type=_positive_int, default=256)
-    p.add_argument("--grid", type=_positive_int, nargs=2, default=(4, 4), metavar=("ROWS", "COLS"))
-    p.add_argument("--min-spp", type=_positive_int, default=16)
-    p.add_argument("--max-spp", type=_positive_int, default=1024)
-    p.add_argument("--step", type=_positive_int, default=16, help="spp added per pass")
+    # None = not given: taken from --reference, then the scene, then the defaults shown
+    # (renderer/settings.py); the report's settings_source says which
+    p.add_argument("--resolution", type=_positive_int, default=None,
+                   help="square frame size (default: the reference's, else the scene's own: "
+                        "256 for built-ins, the film size of an XML file)")
+    p.add_argument("--grid", type=_positive_int, nargs=2, default=None, metavar=("ROWS", "COLS"),
+                   help="blocks (default: the reference's, else 4 4)")
+    p.add_argument("--min-spp", type=_positive_int, default=None,
+                   help="first decision (default: the reference's first level, else 16)")
+    p.add_argument("--max-spp", type=_positive_int, default=None,
+                   help="most spp per block (default: the reference's last level, else 1024)")
+    p.add_argument("--step", type=_positive_int, default=None,
+                   help="spp added per pass (default: the reference's level step, else 16)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz")
     _add_pool_arguments(p, ", for several scenes")
@@ -351,7 +363,7 @@ def cmd_render(args: argparse.Namespace) -> int:
             server=args.server, reference=args.reference, threshold=args.threshold,
             quantile=args.quantile, workers=args.workers, scheduler=args.scheduler,
             exposure=args.exposure,
-            resolution=args.resolution, grid=tuple(args.grid), step=args.step,
+            resolution=args.resolution, grid=None if args.grid is None else tuple(args.grid), step=args.step,
             min_spp=args.min_spp, max_spp=args.max_spp, seed=args.seed, resume=args.resume)
     except ConnectionError as exc:      # verdict server unreachable or failing
         raise UsageError(str(exc)) from exc

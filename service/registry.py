@@ -98,7 +98,7 @@ class ServedModel:
         return ModelMetadata(
             name=name or self.name, versions=[self.version], platform=PLATFORM, inputs=self.inputs,
             outputs=[TensorMetadata(name=k, datatype=v, shape=[-1]) for k, v in OUTPUTS.items()],
-            parameters={"kind": str(m.get("kind")), "input": self.model.input,
+            parameters={"kind": str(m.get("kind")), "input": self.model.input, "quick": self.model.quick,
                         "offset": self.model.offset, "n_features": int(m.get("n_features", 0))})
 
     def infer(self, tensors: dict[str, np.ndarray], exposure: float = 0.0

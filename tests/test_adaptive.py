@@ -140,6 +140,23 @@ def test_only_active_blocks_are_rendered_and_asked(tmp_path, model, monkeypatch)
     assert calls == []                                            # variance: no quick image
 
 
+@pytest.mark.parametrize("quick", ["direct", "none"])
+def test_the_loop_renders_the_quick_image_the_model_was_trained_with(tmp_path, model, monkeypatch, quick):
+    kinds = []
+    real = BlockRenderer.quick_image
+
+    def recording_quick(self, *a, **k):
+        kinds.append(k.get("kind", "albedo"))
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(BlockRenderer, "quick_image", recording_quick)
+    m = load_model(model.path)
+    m.manifest["quick"] = quick
+    r = adaptive_render("cornell", tmp_path, ModelCriterion(m), **TINY)
+    assert kinds == ([] if quick == "none" else [quick])   # 'none': no quick image at all
+    assert r["quick"] == quick
+
+
 def test_outputs_and_report(tmp_path):
     r = adaptive_render("cornell", tmp_path, UniformCriterion(), **TINY)
     assert r["passes"] == 6 and r["counters"]["blocks_rendered_per_pass"] == [16] * 6

@@ -55,9 +55,11 @@ def test_ablation_rows_cover_every_switch():
     from service.bench import bench_ablation, md_ablation
     r = bench_ablation(str(FIXTURE))
     combos = {(x["weights"], x["quick"], x["wavelet"]) for x in r["rows"]}
-    assert len(combos) == 8
+    assert len(combos) == 12 and {q for _, q, _ in combos} == {"albedo", "direct", "none"}
     assert all(0 <= x["precision"] <= 1 and np.isfinite(x["spp_ratio_vs_oracle"]) for x in r["rows"])
-    assert md_ablation(r).count("\n") == 9
+    cost = {x["quick"]: x["quick_render_s"] for x in r["rows"]}
+    assert cost["none"] == 0 and cost["albedo"] > 0 and cost["direct"] > 0
+    assert md_ablation(r).count("\n") == 13
 
 
 @pytest.mark.slow
@@ -71,3 +73,14 @@ def test_step_sizes_thin_the_decisions(tmp_path):
     # deciding less often can only stop later: never fewer samples
     assert r["rows"][1]["spp_ratio_vs_oracle"] >= r["rows"][0]["spp_ratio_vs_oracle"] - 1e-12
     assert md_step(r).count("\n") == 3
+
+
+def test_cost_accuracy_plot_needs_rows_with_both_axes(tmp_path):
+    from learning.plots import plot_cost_accuracy
+    rows = [{"model": "dsvm", "precision": 0.8, "test_101_s": 0.05},
+            {"model": "vgg19 (untrained base)", "precision": 0.7, "test_101_s": 1.5},
+            {"model": "resnet50 (unavailable: no torchvision)"}]
+    png = plot_cost_accuracy(rows, tmp_path / "c.png")
+    assert png.stat().st_size > 1000
+    with pytest.raises(ValueError, match="no model row"):
+        plot_cost_accuracy(rows[2:], tmp_path / "d.png")

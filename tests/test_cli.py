@@ -65,3 +65,9 @@ def test_dataset_check_exit_codes(tmp_path):
 def test_argument_errors_exit_2():
     out = run("dataset", "build", "--out", "x", "--step", "0")
     assert out.returncode == 2 and "expected a number >= 1" in out.stderr
+
+
+def test_cli_quick_modes_are_the_tables():
+    from learning.table import QUICK_MODES
+    from service.commands import QUICK_MODES as CLI_MODES
+    assert CLI_MODES == QUICK_MODES

@@ -147,6 +147,7 @@ def test_ready_metadata_and_token_from_env(server, monkeypatch):
     assert m.ready() is True
     assert m.metadata()["inputs"][0]["name"] == "blocks"
     assert RemoteModel(server, model="loading").ready() is False
+    assert m.quick == "albedo" and m.needs_quick   # a server that does not say wants albedo
     monkeypatch.delenv("NOISESTOP_TOKEN")
     with pytest.raises(ValueError, match="401.*unauthorized"):
         RemoteModel(server).metadata()

@@ -251,5 +251,9 @@ def test_table_quick_modes_differ_by_the_quick_features(table):
     q = extract_features(st.split(st.quick()))
     m = table.scene == "cornell"
     np.testing.assert_allclose(table.X[m] - none.X[m], np.tile(q, (st.n_levels, 1)), atol=1e-4)
+    direct = load_table(FIXTURE, progress=False, quick="direct")
+    qd = extract_features(st.split(st.quick("direct")))
+    np.testing.assert_allclose(direct.X[m] - none.X[m], np.tile(qd, (st.n_levels, 1)), atol=1e-4)
+    assert not np.allclose(qd, q, atol=1e-2)     # a different picture: shading and shadows
     with pytest.raises(ValueError, match="quick must be"):
-        load_table(FIXTURE, progress=False, quick="direct")
+        load_table(FIXTURE, progress=False, quick="normals")

@@ -64,6 +64,16 @@ def test_quick_image_is_albedo_of_full_frame(cornell32: BlockRenderer) -> None:
     assert q.mean() > 0.2
 
 
+@pytest.mark.slow
+def test_direct_quick_image_is_shaded_radiance(cornell32: BlockRenderer) -> None:
+    albedo, direct = cornell32.quick_image(), cornell32.quick_image(kind="direct")
+    assert direct.shape == (32, 32, 3) and np.isfinite(direct).all() and direct.min() >= 0
+    assert direct.max() > 1.0          # radiance: the light itself is far above 1
+    assert not np.allclose(direct, albedo, atol=0.05)
+    with pytest.raises(ValueError, match="kind"):
+        cornell32.quick_image(kind="normals")
+
+
 def _noise_var(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Per-pixel variance of mean((a+b)/2) estimated from two equal independent halves."""
     return (a.astype(np.float64) - b) ** 2 / 4.0

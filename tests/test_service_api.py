@@ -124,6 +124,7 @@ def test_model_metadata_default_alias_and_names(client):
             "features": ("FP32", [-1, 26])}
         assert {t["name"]: (t["datatype"], t["shape"]) for t in meta["outputs"]} == {
             "verdict": ("INT8", [-1]), "score": ("FP32", [-1])}
+        assert meta["parameters"]["quick"] == "albedo"   # which quick image clients must send
     raw = client.get("/v2/models/svm_raw", headers=AUTH).json()
     assert [t["name"] for t in raw["inputs"]] == ["blocks", "quick"] and raw["parameters"]["input"] == "raw"
     assert client.get("/v2/models/dsvm_demo/versions/1", headers=AUTH).status_code == 200
@@ -401,6 +402,7 @@ def test_quick_none_model_needs_no_quick_input(tmp_path):
     current, _ = blocks_pair()
     with TestClient(app) as c:
         out = outputs_of(infer(c, {"inputs": [tensor("blocks", current)]}, model="dsvm_none"))
+        assert c.get("/v2/models/dsvm_none", headers=AUTH).json()["parameters"]["quick"] == "none"
     verdict, score = load_model(bundle).score_blocks(current)
     np.testing.assert_allclose(out["score"], score, rtol=1e-4, atol=1e-5)
     assert out["verdict"].tolist() == verdict.tolist()

@@ -140,8 +140,8 @@ class StackRenderer:
         self.calls.append(list(ids))
         return np.stack([self.passes[pass_index][b] for b in ids])
 
-    def quick_image(self, spp=16, seed=0):
-        return self.stack.quick()
+    def quick_image(self, spp=16, seed=0, kind="albedo"):
+        return self.stack.quick(kind)
 
 
 def live(monkeypatch, tmp_path, stack, crit, min_spp):

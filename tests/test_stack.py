@@ -183,6 +183,24 @@ def test_stack_without_quick(tmp_path):
     assert q.shape == (32, 32, 3) and np.all(q == np.float32(MID_GREY_LINEAR))
 
 
+def test_extra_direct_quick_image_keeps_the_stack_complete(tmp_path):
+    st = _write_small(tmp_path / "s", thresholds=[4] * 16)
+    with pytest.raises(FileNotFoundError, match="dataset build"):
+        st.quick("direct")
+    w = StackWriter(tmp_path / "s", {k: v for k, v in json.loads((tmp_path / "s" / "meta.json").read_text()).items()
+                                    if k not in ("labeler", "thresholds")})
+    w.write_extra_quick("direct", _img(seed=5))
+    assert w.is_complete and read_stack(tmp_path / "s") == st
+    np.testing.assert_array_equal(st.quick("direct"), _img(seed=5))
+    np.testing.assert_array_equal(st.quick(), st.quick(None))
+    with pytest.raises(ValueError, match="kind"):
+        w.write_extra_quick("normals", _img())
+    with pytest.raises(ValueError, match="kind"):
+        st.quick("normals")
+    with pytest.raises(ValueError):                 # wrong size: refused like any image
+        w.write_extra_quick("direct", _img(h=8))
+
+
 def test_level_with_wrong_shape_is_refused_on_read(tmp_path):
     st = _write_small(tmp_path / "s")
     write_exr(st.level_path(0), _img(16, 16))

@@ -1,0 +1,79 @@
+"""Where each render setting comes from: command line, reference stack, scene, or default.
+
+A render is judged against the settings a scene needs, so none of them is assumed
+silently: each value is taken, in order, from
+
+1. the command line (or the caller's keyword argument), when given;
+2. the reference stack (`--reference`), whose levels the oracle's thresholds and the
+   early-stop figures are measured at: its grid, its square resolution, its first level
+   as step and min spp (when the levels are evenly spaced) and its last level as max spp;
+3. the scene itself: the resolution of a built-in scene's registry entry or of a Mitsuba
+   XML file's own film (`load_scene` with resolution None);
+4. the documented defaults below, and the report says so.
+
+The report carries the source of every value (`settings_source`), and the log says it
+once per render. The display exposure the criteria judge at is the criterion's (command
+line, default 0 stops); the report records it too.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from learning.stack import Stack
+
+#: used only when neither the command line, the reference nor the scene says
+DEFAULTS: dict[str, Any] = {"grid": (4, 4), "step": 16, "min_spp": 16, "max_spp": 1024}
+KEYS = ("resolution", "grid", "step", "min_spp", "max_spp")
+SCENE = "scene"
+COMMAND_LINE = "command line"
+DEFAULT = "default"
+
+
+def reference_settings(stack: Stack) -> dict[str, Any]:
+    """The settings a reference stack implies (only those it determines)."""
+    out: dict[str, Any] = {"grid": tuple(stack.grid), "max_spp": int(stack.spp[-1]), "min_spp": int(stack.spp[0])}
+    if stack.width == stack.height:
+        out["resolution"] = int(stack.width)
+    spp = list(stack.spp)
+    if all(b - a == spp[0] for a, b in zip([0, *spp[:-1]], spp)):   # spp = step, 2 step, 3 step...
+        out["step"] = int(spp[0])
+    return out
+
+
+def resolve_settings(given: Mapping[str, Any], reference: Stack | None = None
+                     ) -> tuple[dict[str, Any], dict[str, str]]:
+    """(values, sources) for every key of KEYS; a None value in `given` means "not given".
+
+    `resolution` may stay None: the scene decides it when loaded (source "scene").
+    """
+    unknown = set(given) - set(KEYS)
+    if unknown:
+        raise ValueError(f"unknown render settings {sorted(unknown)}")
+    implied = reference_settings(reference) if reference is not None else {}
+    values: dict[str, Any] = {}
+    sources: dict[str, str] = {}
+    for key in KEYS:
+        if given.get(key) is not None:
+            values[key], sources[key] = given[key], COMMAND_LINE
+        elif key in implied:
+            values[key], sources[key] = implied[key], f"reference {reference.path}"
+        elif key == "resolution":
+            values[key], sources[key] = None, SCENE
+        else:
+            values[key], sources[key] = DEFAULTS[key], DEFAULT
+    if values["min_spp"] > values["max_spp"] and sources["min_spp"] != sources["max_spp"]:
+        # e.g. --max-spp 8 below the default min: the one given wins rather than an error
+        loser = "min_spp" if sources["max_spp"] == COMMAND_LINE else "max_spp"
+        values[loser] = values["max_spp" if loser == "min_spp" else "min_spp"]
+        sources[loser] += f" (clipped to {loser.replace('_spp', '')} = the other bound)"
+    return values, sources
+
+
+def describe(values: Mapping[str, Any], sources: Mapping[str, str]) -> str:
+    """One log line: 'resolution 256x256 (scene), grid 4x4 (default), ...'."""
+    def fmt(k: str, v: Any) -> str:
+        if isinstance(v, (list, tuple)):
+            return "x".join(str(int(x)) for x in v)
+        return f"{v:g}" if isinstance(v, float) else str(v)
+    return ", ".join(f"{k} {fmt(k, values[k])} ({sources[k]})" for k in KEYS if k in values)

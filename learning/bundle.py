@@ -84,6 +84,11 @@ class Model:
                            base: FeatureBase | None = None, exposure: float = 0.0) -> np.ndarray:
         """Model inputs from linear RGB blocks [N, h, w, 3] (and their quick blocks)."""
         if self.input == "raw":
+            shape = np.shape(blocks)
+            n = self.estimator.n_features_in_
+            if len(shape) == 4 and shape[1] * shape[2] != n:
+                raise ValueError(f"this raw-pixel model takes blocks of {n} pixels (it was trained on "
+                                 f"one block size), got {shape[1]}x{shape[2]}")
             return raw_input(blocks, exposure)
         if self.needs_quick and quick is None:
             raise ValueError("a feature model needs the quick image of every block")

@@ -14,7 +14,8 @@ from typing import Any
 import numpy as np
 
 from .bundle import Model
-from .evaluate import evaluate_model, time_101_sub_images, verdicts_by_scene
+from .calibrate import DEFAULT_OFFSETS, sweep
+from .evaluate import evaluate_model, time_101_sub_images
 from .metrics import evaluate_verdicts
 from .plots import plot_learning_curves
 from .table import SubImageTable, load_table
@@ -30,8 +31,11 @@ def _svm_row(kind: str, data: str, table: SubImageTable, test_scenes,
     est, summary = train_model(kind, data, table=table, test_scenes=test_scenes, progress=False,
                                quick=quick)
     model = Model(est, {"kind": kind, "input": summary["input"], "quick": quick})
-    test = table.subset(table.scene_mask(summary["test_scenes"]))
+    mask = table.scene_mask(summary["test_scenes"])
+    test = table.subset(mask)
     m = evaluate_model(model, test)
+    scores = np.full(len(table), np.nan)
+    scores[mask] = est.decision_function(table.X[mask])
     block = next(iter(table.stacks.values())).block
     row = {"model": kind, **{k: m[k] for k in ("precision", "f1", "threshold_mse", "early_stop_rate",
                                                 "spp_ratio_vs_oracle")},
@@ -40,7 +44,9 @@ def _svm_row(kind: str, data: str, table: SubImageTable, test_scenes,
            "query_fraction": summary.get("query_fraction"),
            "support_vectors": est.n_support_, "parameters": est.n_parameters(),
            "train_s": summary["train_s"], "test_101_s": time_101_sub_images(model, tuple(block)),
-           "C": summary["C"], "gamma": summary["gamma"]}
+           "C": summary["C"], "gamma": summary["gamma"],
+           # the speed/accuracy knob: held-out metrics at each decision offset
+           "offset_curve": sweep(scores, table, DEFAULT_OFFSETS)}
     return row, est, summary
 
 

@@ -30,6 +30,7 @@ beyond `features(current)`. `Stack.has_quick` tells callers that want to know.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -587,3 +588,12 @@ def list_stacks(root: str | os.PathLike, include_incomplete: bool = False) -> li
         else:
             dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
     return sorted(found)
+
+
+def dataset_fingerprint(root: str | os.PathLike) -> str:
+    """A short hash of every stack's meta.json under `root`: results computed on a dataset
+    (e.g. a saved model comparison) are only reused on the very same one."""
+    h = hashlib.sha256()
+    for p in list_stacks(root):
+        h.update(p.name.encode() + b"\0" + (p / META).read_bytes())
+    return h.hexdigest()[:16]

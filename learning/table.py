@@ -76,8 +76,11 @@ def feature_input(current: np.ndarray, quick: np.ndarray | None = None) -> np.nd
 
 def raw_input(blocks: np.ndarray | torch.Tensor, exposure: float = 0.0) -> np.ndarray:
     """The raw SVM's input: L*/100 of linear RGB blocks [N, h, w, 3], flattened to [N, h*w]."""
-    L = lightness(torch.as_tensor(np.asarray(blocks)), exposure).numpy() / 100.0
-    return L.reshape(len(L), -1).astype(np.float32)
+    blocks = np.asarray(blocks)
+    if blocks.ndim != 4 or blocks.shape[-1] != 3:
+        raise ValueError(f"expected linear RGB blocks [N, h, w, 3], got shape {blocks.shape}")
+    L = lightness(torch.as_tensor(blocks), exposure).numpy() / 100.0
+    return L.reshape(len(L), blocks.shape[1] * blocks.shape[2]).astype(np.float32)
 
 
 def stack_features(stack: Stack, base: FeatureBase | None = None, exposure: float = 0.0,

@@ -19,6 +19,7 @@ from noisefeat import FeatureBase
 from .active import ActiveSemiSupervised, SimulatedExpert
 from .cv import select_hyperparameters
 from .estimators import DSVM, SVM, RBFSVM
+from .gram import GramRBF, SharedGram, index_column
 from .table import SubImageTable, load_table
 
 log = logging.getLogger(__name__)
@@ -67,6 +68,22 @@ def _cv_subset(n: int, groups: np.ndarray, seed: int, limit: int = CV_MAX_SAMPLE
     return np.flatnonzero(np.isin(groups, keep))
 
 
+def _raw_gram(kind: str, X: np.ndarray, X_val: np.ndarray | None, gamma) -> SharedGram | None:
+    """The precomputed Gram matrix for a raw-pixel active run (rows: pool + monitor), or
+    None where it does not apply (feature kinds, gamma not a number, too large)."""
+    if not kind.startswith("svm_") or isinstance(gamma, str):
+        return None
+    rows = X if X_val is None else np.concatenate([X, X_val])
+    if not SharedGram.fits(len(rows), len(X)):
+        log.info("%s: %d x %d Gram matrix too large to precompute; libsvm computes kernels", kind,
+                 len(rows), len(X))
+        return None
+    t0 = time.perf_counter()
+    gram = SharedGram(rows, X, float(gamma))
+    log.info("%s: %d x %d Gram matrix in %.1f s", kind, len(rows), len(X), time.perf_counter() - t0)
+    return gram
+
+
 def fit_kind(kind: str, table: SubImageTable, scenes: list[str], *, C: float, gamma,
              initial_scene: str | None = None, max_label_fraction: float = 0.25,
              batch_size: int = 16, monitor: SubImageTable | None = None,
@@ -81,13 +98,22 @@ def fit_kind(kind: str, table: SubImageTable, scenes: list[str], *, C: float, ga
     if first not in scenes:
         raise ValueError(f"initial scene {first!r} is not a training scene ({scenes})")
     init = table.scene[tr] == first
-    learner = ActiveSemiSupervised(estimator=est, semi_supervised=kind.endswith("_as"),
-                                   batch_size=batch_size, max_label_fraction=max_label_fraction,
-                                   patience=None, progress=progress)
-    learner.fit(X, np.where(init, y, np.nan).astype(float), SimulatedExpert(y),
-                X_val=None if monitor is None else monitor.X,
+    X_val = None if monitor is None else monitor.X
+    gram = _raw_gram(kind, X, X_val, gamma)
+    learner = ActiveSemiSupervised(estimator=est if gram is None else GramRBF(gram, C=C),
+                                   semi_supervised=kind.endswith("_as"), batch_size=batch_size,
+                                   max_label_fraction=max_label_fraction, patience=None,
+                                   progress=progress)
+    if gram is not None:     # the learner works on row indices into the Gram matrix
+        X_val = None if X_val is None else index_column(len(X) + np.arange(len(X_val)))
+    learner.fit(X if gram is None else index_column(np.arange(len(X))),
+                np.where(init, y, np.nan).astype(float), SimulatedExpert(y), X_val=X_val,
                 y_val=None if monitor is None else monitor.y.astype(int))
-    return learner.estimator_, {
+    fitted = learner.estimator_
+    if gram is not None:     # the same SVM on the same training set, as a plain estimator
+        train = learner.labelled_mask_ | learner.pseudo_mask_
+        fitted = est.fit(X[train], np.where(learner.labelled_mask_, y, learner.pseudo_labels_)[train].astype(int))
+    return fitted, {
         "initial_scene": first, "n_initial": int(init.sum()), "n_pool": learner.n_pool_,
         "n_queries": learner.n_queries_, "query_fraction": learner.n_queries_ / max(1, learner.n_pool_),
         "n_pseudo": int(learner.pseudo_mask_.sum()), "n_labels": int(init.sum()) + learner.n_queries_,

@@ -1,9 +1,11 @@
 """`noisestop dataset build`: many scenes -> one labelled dataset, locally or on a farm."""
 from __future__ import annotations
 
+import json
 import logging
 import os
 import time
+from datetime import datetime, timezone
 from concurrent.futures import as_completed
 from pathlib import Path
 from typing import Any
@@ -14,6 +16,7 @@ from .farm import configure_worker_threads, executor
 from .stackbuild import BuildSettings, build_stack
 
 log = logging.getLogger(__name__)
+BUILD_LOG = "build-log.jsonl"
 
 
 def _task(scene: str, out: str, settings: BuildSettings, progress: bool) -> dict[str, Any]:
@@ -49,6 +52,30 @@ def build_dataset(scenes: list[str], out: str | os.PathLike, settings: BuildSett
             log.info("%s: %d levels, %d censored blocks, %.0f s", r["scene"], r["levels"],
                      r["censored"], r["seconds"])
     wall = time.perf_counter() - t0
-    return {"out": str(out), "wall_s": wall, "scenes": sorted(results, key=lambda r: r["scene"]),
-            "failed": errors, "settings": settings.to_dict(),
-            "sub_images": sum(r["levels"] * r["blocks"] for r in results)}
+    summary = {"out": str(out), "wall_s": wall, "scenes": sorted(results, key=lambda r: r["scene"]),
+               "failed": errors, "settings": settings.to_dict(),
+               "sub_images": sum(r["levels"] * r["blocks"] for r in results),
+               "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+               "cpus": os.cpu_count(), "workers": workers, "scheduler": scheduler}
+    append_build_log(out, summary)
+    return summary
+
+
+def append_build_log(out: Path, summary: dict[str, Any]) -> None:
+    """One JSON line per build run in OUT/BUILD_LOG, so a dataset's build time is on record
+    (`noisestop bench dataset` reports the latest run that rendered anything)."""
+    with open(out / BUILD_LOG, "a") as f:
+        f.write(json.dumps(summary, default=str) + "\n")
+
+
+def read_build_log(out: str | os.PathLike) -> list[dict[str, Any]]:
+    path = Path(out) / BUILD_LOG
+    if not path.is_file():
+        return []
+    runs = []
+    for line in path.read_text().splitlines():
+        try:
+            runs.append(json.loads(line))
+        except json.JSONDecodeError:      # a line cut short by an interrupted run
+            log.warning("%s: skipped an unreadable line", path)
+    return runs

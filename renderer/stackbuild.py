@@ -145,7 +145,7 @@ def build_stack(scene: str, out_root: str | os.PathLike, settings: BuildSettings
             writer.write_extra_quick(kind, br.quick_image(spp=settings.quick_spp, seed=settings.seed, kind=kind))
     if writer.is_complete:
         log.info("%s: already built", out)
-        return _summary(out, variant, time.perf_counter() - t_start, resumed=True)
+        return {**_summary(out, variant, time.perf_counter() - t_start, resumed=True), "already_built": True}
 
     level_seed, reference_seed = 2 * settings.seed, 2 * settings.seed + 1
     if not writer.has_quick():
@@ -188,5 +188,5 @@ def _summary(out: Path, variant: str, seconds: float, resumed: bool) -> dict[str
     stack = read_stack(out)
     th = stack.thresholds or []
     return {"scene": stack.scene, "path": str(out), "variant": variant, "seconds": seconds,
-            "levels": stack.n_levels, "blocks": stack.n_blocks, "resumed": resumed,
+            "levels": stack.n_levels, "blocks": stack.n_blocks, "resumed": resumed, "already_built": False,
             "thresholds": th, "censored": sum(t is None for t in th)}

@@ -6,6 +6,7 @@ speed choice is reported beside it (e.g. the spectral feature route vs torch.con
 from __future__ import annotations
 
 import dataclasses
+import logging
 import statistics
 import time
 from collections.abc import Callable
@@ -15,6 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
+log = logging.getLogger(__name__)
 
 def _median_s(fn: Callable[[], Any], repeats: int) -> float:
     fn()
@@ -90,13 +92,42 @@ def bench_crop(repeats: int = 3) -> dict[str, Any]:
 
 
 def bench_models(data: str, out_dir: Path, arches: tuple[str, ...] | None = None,
-                 kinds: tuple[str, ...] | None = None, quick: str = "albedo") -> dict[str, Any]:
+                 kinds: tuple[str, ...] | None = None, quick: str = "albedo",
+                 plots_dir: str = "docs") -> dict[str, Any]:
+    """The model comparison on held-out scenes; saved as OUT/models-QUICK.json (with each
+    model's offset curve) so that `bench tradeoff` draws every model without retraining."""
+    import json
+
     from learning.compare import TRANSFER_ARCHES, compare_models
+    from learning.stack import dataset_fingerprint
     from learning.train import SVM_KINDS
-    result = compare_models(data, out_dir, arches=TRANSFER_ARCHES if arches is None else arches,
+    result = compare_models(data, plots_dir, arches=TRANSFER_ARCHES if arches is None else arches,
                             kinds=SVM_KINDS if kinds is None else kinds, quick=quick)
     result.pop("fitted")
+    result.update(quick=quick, data=str(data), fingerprint=dataset_fingerprint(data))
+    path = Path(out_dir) / f"models-{quick}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(result, default=float))
+    tmp.replace(path)
     return result
+
+
+def saved_comparisons(data: str, out_dir: Path) -> list[dict[str, Any]]:
+    """The model comparisons `bench models` saved in out_dir for this very dataset."""
+    import json
+    import logging
+
+    from learning.stack import dataset_fingerprint
+    fp = dataset_fingerprint(data)
+    found = []
+    for path in sorted(Path(out_dir).glob("models-*.json")):
+        r = json.loads(path.read_text())
+        if r.get("fingerprint") != fp:
+            logging.getLogger(__name__).warning("%s: measured on another dataset; ignored", path)
+            continue
+        found.append(r)
+    return found
 
 
 def bench_criteria(data: str, model: str | None = None, max_early_stop: float = 0.05,
@@ -166,43 +197,51 @@ def bench_service(clients: tuple[int, ...] = (1, 8, 32)) -> dict[str, Any]:
             for c in clients}
 
 
-def bench_tradeoff(data: str, out_png: str = "docs/pareto.png", model: str | None = None,
+#: the curves drawn on the Pareto chart (every kind of the comparison is in the table)
+PARETO_KINDS = ("dsvm_as", "svm_as", "dsvm", "svm")
+
+
+def bench_tradeoff(data: str, out_dir: str | Path = "out/bench", out_png: str = "docs/pareto.png",
+                   model: str | None = None,
                    thresholds: tuple[float, ...] = (0.01, 0.02, 0.05, 0.07, 0.1, 0.15, 0.2)) -> dict[str, Any]:
     """Samples (vs oracle) against early stops on held-out scenes: one curve per criterion.
 
-    Models are swept over their decision offset (per-sub-image verdicts on the stored
-    levels, first +1 stops the block), the variance criterion over its threshold (the
-    criterion simulation); the oracle is the point (1, 0); the bundled default is marked.
+    The bundled model and every SVM kind of the saved model comparison (`bench models`,
+    same dataset, same held-out scenes) are swept over their decision offset (per-sub-image
+    verdicts on the stored levels, first +1 stops the block); the variance criterion over
+    its threshold (the criterion simulation); the oracle is the point (1, 0).
     """
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from learning.bundle import load_model
     from learning.calibrate import DEFAULT_OFFSETS, sweep
     from learning.stack import list_stacks, read_stack
     from learning.table import load_table
-    from learning.train import train_model
     from renderer.criteria import VarianceCriterion
     from renderer.simulate import evaluate_criterion
+
+    from . import charts
 
     bundled = load_model(model)
     test = list(bundled.manifest.get("training", {}).get("test_scenes") or [])
     if not test:
         raise ValueError("the model's manifest names no held-out scenes")
-    curves: dict[str, list[dict]] = {}
-    tables = {q: load_table(data, quick=q, progress=False) for q in ("none", "albedo")}
-    entries = [(f"{bundled.name} quick {bundled.quick} (bundled)", bundled.estimator, bundled.quick)]
-    for kind, quick in (("dsvm", "none"), ("dsvm_as", "albedo")):
-        est, _ = train_model(kind, data, table=tables[quick], test_scenes=test, quick=quick,
-                             progress=False)
-        entries.append((f"{kind} quick {quick}", est, quick))
-    for name, est, quick in entries:
-        table = tables[quick]
-        scores = np.full(len(table), np.nan)
-        mask = table.scene_mask(test)
-        scores[mask] = est.decision_function(table.X[mask])
-        curves[name] = sweep(scores, table, DEFAULT_OFFSETS)
+    comparisons = [c for c in saved_comparisons(data, Path(out_dir)) if sorted(c["test_scenes"]) == sorted(test)]
+    if not comparisons:
+        raise ValueError(f"bench tradeoff draws the models of the comparison on {data} with "
+                         f"held-out scenes {test}: run `noisestop bench models --data {data} "
+                         f"--out {out_dir}` first (or list models before tradeoff in one command)")
+    table = load_table(data, quick=bundled.quick, progress=False)
+    scores = np.full(len(table), np.nan)
+    mask = table.scene_mask(test)
+    scores[mask] = bundled.decision_function(table.X[mask])
+    name = f"{bundled.name} quick {bundled.quick} (bundled)"
+    curves: dict[str, list[dict]] = {name: sweep(scores, table, DEFAULT_OFFSETS)}
+    default = sweep(scores, table, [bundled.offset])[0]
+    for comp in comparisons:
+        for row in comp["rows"]:
+            if "offset_curve" in row:        # SVM kinds; raw-pixel ones use no quick image
+                kind = row["model"]
+                curves.setdefault(kind if kind.startswith("svm") else f"{kind} quick {comp['quick']}",
+                                  row["offset_curve"])
     stacks = [read_stack(p) for p in list_stacks(data)]
     held = [s for s in stacks if s.scene in test]
     var = []
@@ -210,75 +249,47 @@ def bench_tradeoff(data: str, out_png: str = "docs/pareto.png", model: str | Non
         r = evaluate_criterion(held, lambda st, t=t: VarianceCriterion(threshold=t))
         var.append({"threshold": t, **{k: r[k] for k in ("early_stop_rate", "spp_ratio_vs_oracle",
                                                           "precision")}})
-    default = next(r for r in curves[entries[0][0]] if abs(r["offset"] - bundled.offset) < 1e-9) \
-        if any(abs(r["offset"] - bundled.offset) < 1e-9 for r in curves[entries[0][0]]) else None
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for name, rows in curves.items():
-        ax.plot([r["spp_ratio_vs_oracle"] for r in rows], [r["early_stop_rate"] for r in rows],
-                ".-", label=f"{name}, offset -1..3")
-    ax.plot([r["spp_ratio_vs_oracle"] for r in var], [r["early_stop_rate"] for r in var], "s--",
-            color="grey", label="variance (Cycles), threshold 0.01..0.2")
-    ax.plot([1.0], [0.0], "k*", ms=14, label="oracle")
-    if default is not None:
-        ax.plot([default["spp_ratio_vs_oracle"]], [default["early_stop_rate"]], "o", ms=14,
-                mfc="none", mec="red", mew=2, label=f"default (bundled, offset {bundled.offset:.2f})")
-    ax.axhline(0.05, color="red", lw=0.6, ls=":")
-    ax.set_xlabel("samples spent / oracle's samples (held-out scenes)")
-    ax.set_ylabel("early-stop rate (blocks stopped with visible noise)")
-    ax.set_title(f"speed / accuracy on held-out scenes: {', '.join(test)}", fontsize=9)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    path = Path(out_png)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    tmp.replace(path)
-    maps = spp_maps(bundled, tables[bundled.quick], test, path.with_name("spp-maps.png"))
-    return {"test_scenes": test, "curves": curves, "variance": var, "default": default,
-            "plot": str(path), "spp_maps": maps}
+    twin = f"{bundled.manifest['kind']} quick {bundled.quick}"     # the bundle's own kind, retrained
+    drawn = {n: c for n, c in curves.items()
+             if n == name or (n.split()[0] in PARETO_KINDS and n != twin)}
+    path = charts.pareto(drawn, var, default, f"default (bundled, offset {bundled.offset:.2f})", test,
+                         out_png)
+    maps = spp_maps(bundled, table, test, Path(out_png).with_name("spp-maps.png"))
+    return {"test_scenes": test, "curves": curves, "drawn": list(drawn), "bundled": name,
+            "variance": var, "default": {"offset": bundled.offset, **default}, "plot": path, **maps}
 
 
-def spp_maps(model, table, scenes: list[str], out_png: Path) -> str:
+def spp_maps(model, table, scenes: list[str], out_png: Path) -> dict[str, Any]:
     """Where the samples went, per held-out scene: the model's spp per block vs the oracle's."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from learning.evaluate import verdicts_by_scene
     from learning.metrics import stop_thresholds, true_thresholds
 
+    from . import charts
+
     sub = table.subset(table.scene_mask(scenes))
     per = verdicts_by_scene(sub, model.predict(sub.X))
-    fig, axes = plt.subplots(2, len(per), figsize=(2.6 * len(per), 5.2), squeeze=False)
-    for j, (scene, (v, _, th, spp)) in enumerate(sorted(per.items())):
-        st = sub.stacks[scene]
-        grid = tuple(st.grid)
-        spent = np.minimum(stop_thresholds(v, spp), spp[-1]).reshape(grid)
-        oracle = np.minimum(true_thresholds(th, spp), spp[-1]).reshape(grid)
-        for i, (name, m) in enumerate((("model", spent), ("oracle", oracle))):
-            ax = axes[i, j]
-            ax.imshow(m, cmap="magma", vmin=0, vmax=spp[-1])
-            for (r, c), val in np.ndenumerate(m):
-                ax.text(c, r, str(int(val)), ha="center", va="center", fontsize=7,
-                        color="white" if val < 0.6 * spp[-1] else "black")
-            ax.set_xticks([])
-            ax.set_yticks([])
-            ax.set_title(f"{scene}: {name}, {int(m.sum())} spp", fontsize=8)
-    fig.suptitle(f"spp per block, {model.name} (offset {model.offset:.2f}) vs oracle", fontsize=9)
-    fig.tight_layout()
-    tmp = out_png.with_name(out_png.name + ".tmp.png")
-    fig.savefig(tmp, dpi=90)
-    plt.close(fig)
-    tmp.replace(out_png)
-    return str(out_png)
+    maps, rows, top = {}, [], 0
+    for scene, (v, _, th, spp) in sorted(per.items()):
+        grid = tuple(sub.stacks[scene].grid)
+        t_pred, t_true = stop_thresholds(v, spp), true_thresholds(th, spp)
+        spent = np.minimum(t_pred, spp[-1]).reshape(grid)
+        oracle = np.minimum(t_true, spp[-1]).reshape(grid)
+        maps[scene] = {"model": spent, "oracle": oracle}
+        top = max(top, int(spp[-1]))
+        rows.append({"scene": scene, "model_spp": int(spent.sum()), "oracle_spp": int(oracle.sum()),
+                     "uniform_spp": int(spp[-1]) * spent.size,
+                     "early_blocks": int((t_pred < t_true).sum()),
+                     "late_blocks": int((t_pred > t_true).sum())})
+    png = charts.spp_maps(maps, top, f"spp per block, {model.name} (offset {model.offset:.2f}) vs oracle",
+                          out_png)
+    return {"spp_maps": png, "spp_by_scene": rows}
 
 
-def bench_ablation(data: str) -> dict[str, Any]:
+def bench_ablation(data: str, out_png: str = "docs/ablation.png") -> dict[str, Any]:
     """DSVM on held-out scenes with parts of the feature pipeline switched: quick image
-    (albedo / direct lighting / none, with its render time once per frame), conv weights (smoothing / pre-trained), wavelet layer (on / off: its
-    two features dropped). Accuracy next to the cost of 101 sub-images' features."""
+    (albedo / direct lighting / none, with its render time once per frame), conv weights
+    (smoothing / pre-trained), wavelet layer (on / off: its two features dropped).
+    Accuracy next to the cost of classifying 101 sub-images."""
     from learning.bundle import Model
     from learning.evaluate import evaluate_model, time_101_sub_images
     from learning.table import QUICK_MODES, load_table
@@ -298,16 +309,33 @@ def bench_ablation(data: str) -> dict[str, Any]:
                 est, summary = train_model("dsvm", data, table=t, quick=quick, progress=False)
                 model = Model(est, {"kind": "dsvm", "input": "features", "quick": quick})
                 m = evaluate_model(model, t.subset(t.scene_mask(summary["test_scenes"])))
-                cost = time_101_sub_images(model, tuple(next(iter(t.stacks.values())).block)) \
-                    if wavelet else None
+                block = tuple(next(iter(t.stacks.values())).block)
+                if wavelet:
+                    cost = on_cost = time_101_sub_images(model, block)
+                else:   # the same pipeline without the wavelet layer's own (measured) time
+                    cost = on_cost - wavelet_layer_s(block)
                 rows.append({"weights": weights, "quick": quick, "wavelet": wavelet,
                              **{k: m[k] for k in ("precision", "f1", "early_stop_rate",
                                                   "spp_ratio_vs_oracle")}, "test_101_s": cost,
                              "quick_render_s": quick_s.get(quick, 0.0)})
-    return {"rows": rows, "quick_scene": QUICK_COST_SCENE}
+    from . import charts
+    return {"rows": rows, "quick_scene": QUICK_COST_SCENE, "plot": charts.ablation(rows, out_png)}
 
 
 QUICK_COST_SCENE = ("cornell", 256, 16)      # scene, resolution, quick spp
+
+
+def wavelet_layer_s(block: tuple[int, int], n: int = 101, repeats: int = 20) -> float:
+    """Seconds the feature base spends in its wavelet layer for n blocks (what switching the
+    layer off would save): the layer timed alone on the spectrum forward has computed."""
+    from noisefeat import FeatureBase
+    base = FeatureBase().eval()
+    xs = torch.rand(n, *block, generator=torch.Generator().manual_seed(0))
+    with torch.inference_mode():
+        mu = xs.mean(dim=(-2, -1), keepdim=True)
+        spec = torch.fft.rfft2(xs - mu)
+        ops = base._operators(*block)
+        return _median_s(lambda: base._wavelet_layer(xs, spec, ops, mu), repeats)
 
 
 def quick_image_cost() -> dict[str, float]:
@@ -324,7 +352,8 @@ def quick_image_cost() -> dict[str, float]:
 
 
 def bench_step(data: str, multiples: tuple[int, ...] = (1, 2, 4, 8), scene: str = "env_spheres",
-               model: str | None = None, resolution: int = 256, max_spp: int = 640) -> dict[str, Any]:
+               model: str | None = None, resolution: int = 256, max_spp: int = 640,
+               out_png: str = "docs/step.png") -> dict[str, Any]:
     """Render step (spp per pass) against samples, early stops and wall time.
 
     Samples and early stops: the bundled model on the held-out stacks with a decision only
@@ -356,7 +385,17 @@ def bench_step(data: str, multiples: tuple[int, ...] = (1, 2, 4, 8), scene: str 
                      "spp_ratio_vs_oracle": r["spp_ratio_vs_oracle"], "render_scene": scene,
                      "wall_s": rep["wall_s"], "saved_vs_uniform": rep["saved_vs_uniform"],
                      "passes": rep.get("passes")})
-    return {"test_scenes": test, "rows": rows}
+    from . import charts
+    return {"test_scenes": test, "rows": rows, "plot": charts.step_size(rows, scene, out_png)}
+
+
+def bench_dataset(data: str) -> dict[str, Any]:
+    """The dataset's build time, from its build log: the latest run that rendered anything."""
+    from renderer.dataset import BUILD_LOG, read_build_log
+    runs = [r for r in read_build_log(data) if any(not s.get("already_built") for s in r["scenes"])]
+    if not runs:
+        raise ValueError(f"{data}: no build run on record ({BUILD_LOG}); build it with `make dataset`")
+    return runs[-1]
 
 
 # --- markdown for BENCHMARKS.md --------------------------------------------------------
@@ -385,6 +424,48 @@ def md_crop(c: dict[str, Any]) -> str:
     rows = ["| key | value |", "|---|---|"]
     rows += [f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |" for k, v in c.items()]
     return "\n".join(rows)
+
+
+def md_models(m: dict[str, Any]) -> str:
+    from learning.compare import markdown_table
+    text = (f"Quick image: {m['quick']}. Trained on {', '.join(m['train_scenes'])}; evaluated on the "
+            f"held-out {', '.join(m['test_scenes'])}.\n\n" + markdown_table(m["rows"]))
+    if m.get("curves"):
+        text += f"\n\nHeld-out precision against labels queried (active kinds): ![learning curves]({m['curves']})"
+    return text
+
+
+def md_cost_accuracy(comparisons: list[dict[str, Any]], out_png: str = "docs/cost-accuracy.png") -> str:
+    """One chart of every compared model: test time per 101 sub-images against precision."""
+    from learning.plots import plot_cost_accuracy
+    def label(row: dict, quick: str) -> str:      # only feature models use the quick image
+        return f"{row['model']} ({quick})" if str(row["model"]).startswith("dsvm") else row["model"]
+    rows = [{**r, "model": label(r, c["quick"])} for c in comparisons for r in c["rows"]]
+    png = plot_cost_accuracy(rows, out_png, "decision cost vs precision on held-out scenes "
+                             "(feature SVMs: quick image in brackets; * untrained conv base)")
+    lines = [f"![cost vs accuracy]({png})", "", "| model | precision | test, 101 sub-images (s) |", "|---|---|---|"]
+    for r in sorted((r for r in rows if r.get("test_101_s")), key=lambda r: r["test_101_s"]):
+        lines.append(f"| {r['model']} | {r['precision']:.3f} | {r['test_101_s']:.4f} |")
+    return "\n".join(lines)
+
+
+def md_dataset(r: dict[str, Any]) -> str:
+    st = r["settings"]
+    resumed = [x["scene"] for x in r["scenes"] if x.get("resumed") and not x.get("already_built")]
+    done = [x["scene"] for x in r["scenes"] if x.get("already_built")]
+    minutes, seconds = divmod(round(r["wall_s"]), 60)
+    where = f"scheduler {r['scheduler']}" if r.get("scheduler") else f"{r.get('workers') or 'default'} local workers"
+    lines = [f"{len(r['scenes'])} scenes at {st['resolution']}x{st['resolution']}, step {st['step']}, "
+             f"{st['levels']} levels, reference {st['reference_spp']} spp, {where}, "
+             f"{r.get('cpus')} CPUs, variant {r['scenes'][0]['variant'] if r['scenes'] else '-'}; "
+             f"run finished {r.get('finished', '?')}: **{minutes} min {seconds} s** wall (goal <= 60 min), "
+             f"{r['sub_images']:,} labelled sub-images.",
+             "", "| scene | seconds | censored blocks (never converged) |", "|---|---|---|"]
+    lines += [f"| {x['scene']} | {x['seconds']:.0f} | {x['censored']} |" for x in r["scenes"]]
+    if resumed or done or r.get("failed"):
+        lines += ["", f"Resumed scenes: {', '.join(resumed) or 'none'}; already built: "
+                  f"{', '.join(done) or 'none'}; failed: {', '.join(r.get('failed') or {}) or 'none'}."]
+    return "\n".join(lines)
 
 
 def md_criteria(r: dict[str, Any]) -> str:
@@ -433,29 +514,55 @@ def md_service(r: dict[str, Any]) -> str:
             "at 32.\n\n" + "\n".join(lines))
 
 
+def _best(rows: list[dict], max_early: float) -> str:
+    """The fewest samples whose early-stop rate is within max_early, with its offset."""
+    ok = [r for r in rows if r["early_stop_rate"] <= max_early + 1e-12]
+    if not ok:
+        return "never"
+    r = min(ok, key=lambda r: (r["spp_ratio_vs_oracle"], r["offset"]))
+    return f"{r['spp_ratio_vs_oracle']:.3f} (offset {r['offset']:.1f})"
+
+
 def md_tradeoff(r: dict[str, Any]) -> str:
+    d = r["default"]
     lines = [f"![samples vs early stops]({r['plot']})", "",
-             f"Where the samples went per held-out scene (default offset, spp per block): "
-             f"![spp maps]({r['spp_maps']})", "",
-             "| criterion | setting | early_stop_rate | samples / oracle |", "|---|---|---|---|"]
+             f"Default (bundled, offset {d['offset']:.2f}): early stops {d['early_stop_rate']:.3f}, "
+             f"samples {d['spp_ratio_vs_oracle']:.3f} x oracle. Drawn: {', '.join(r['drawn'])}; "
+             "every model is in the table. Samples are relative to the oracle.", "",
+             "| criterion | at offset 0: early stops | at offset 0: samples | fewest samples, early stops <= 5 % "
+             "| fewest samples, no early stop |", "|---|---|---|---|---|"]
     for name, rows in r["curves"].items():
-        for row in rows:
-            if abs(round(row["offset"] * 2) - row["offset"] * 2) < 1e-9:  # every 0.5
-                lines.append(f"| {name} | offset {row['offset']:.1f} | {row['early_stop_rate']:.3f} "
-                             f"| {row['spp_ratio_vs_oracle']:.3f} |")
+        zero = min(rows, key=lambda x: abs(x["offset"]))
+        lines.append(f"| {name} | {zero['early_stop_rate']:.3f} | {zero['spp_ratio_vs_oracle']:.3f} "
+                     f"| {_best(rows, 0.05)} | {_best(rows, 0.0)} |")
+    lines += ["", "The bundled model along its offset, and the variance criterion along its threshold:", "",
+              "| criterion | setting | early_stop_rate | samples / oracle |", "|---|---|---|---|"]
+    for row in r["curves"][r["bundled"]]:
+        if abs(round(row["offset"] * 2) - row["offset"] * 2) < 1e-9:  # every 0.5
+            lines.append(f"| {r['bundled']} | offset {row['offset']:.1f} | {row['early_stop_rate']:.3f} "
+                         f"| {row['spp_ratio_vs_oracle']:.3f} |")
     for row in r["variance"]:
         lines.append(f"| variance | threshold {row['threshold']} | {row['early_stop_rate']:.3f} "
                      f"| {row['spp_ratio_vs_oracle']:.3f} |")
+    lines += ["", f"Where the samples went per held-out scene (default offset, spp per block, model "
+              f"above oracle): ![spp maps]({r['spp_maps']})", "",
+              "| scene | model spp (sum over blocks) | oracle spp | uniform spp | blocks stopped early "
+              "| blocks stopped late |", "|---|---|---|---|---|---|"]
+    for x in r["spp_by_scene"]:
+        lines.append(f"| {x['scene']} | {x['model_spp']:,} | {x['oracle_spp']:,} | {x['uniform_spp']:,} "
+                     f"| {x['early_blocks']} | {x['late_blocks']} |")
     return "\n".join(lines)
 
 
 def md_ablation(r: dict[str, Any]) -> str:
     scene, res, spp = r["quick_scene"]
     lines = ["| conv weights | quick image | wavelet layer | precision | f1 | early_stop_rate "
-             f"| samples / oracle | 101 sub-images (s) | quick image, {scene} {res}x{res} {spp} spp (s) |",
+             f"| samples / oracle | 101 sub-images (s; off: less the wavelet layer's time) "
+             f"| quick image, {scene} {res}x{res} {spp} spp (s) |",
              "|---|---|---|---|---|---|---|---|---|"]
+    lines = [f"![feature-pipeline ablation]({r['plot']})", "", *lines]
     for x in r["rows"]:
-        cost = "-" if x["test_101_s"] is None else f"{x['test_101_s']:.4f}"
+        cost = f"{x['test_101_s']:.4f}"
         lines.append(f"| {x['weights']} | {x['quick']} | {'on' if x['wavelet'] else 'off'} | "
                      f"{x['precision']:.3f} | {x['f1']:.3f} | {x['early_stop_rate']:.3f} | "
                      f"{x['spp_ratio_vs_oracle']:.3f} | {cost} | {x['quick_render_s']:.3f} |")
@@ -466,6 +573,7 @@ def md_step(r: dict[str, Any]) -> str:
     scene = r["rows"][0]["render_scene"]
     lines = [f"| step (spp per pass) | held-out early stops | held-out samples / oracle "
              f"| {scene}: wall (s) | {scene}: saved vs uniform | passes |", "|---|---|---|---|---|---|"]
+    lines = [f"![step size]({r['plot']})", "", *lines]
     for x in r["rows"]:
         lines.append(f"| {x['step']} | {x['early_stop_rate']:.3f} | {x['spp_ratio_vs_oracle']:.3f} "
                      f"| {x['wall_s']:.1f} | {x['saved_vs_uniform']:.3f} | {x['passes']} |")
@@ -489,61 +597,75 @@ def update_markdown(path: Path, sections: dict[str, str]) -> None:
 
 
 # sections that need only a dataset: name -> (measure(data), markdown(result))
-DATASET_SECTIONS = {"criteria": (bench_criteria, md_criteria), "tradeoff": (bench_tradeoff, md_tradeoff),
-                    "ablation": (bench_ablation, md_ablation), "step": (bench_step, md_step)}
+DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "criteria": (bench_criteria, md_criteria),
+                    "tradeoff": (bench_tradeoff, md_tradeoff), "ablation": (bench_ablation, md_ablation),
+                    "step": (bench_step, md_step)}
 SECTIONS = ("features", "crop", "models", "render", "service", "stability", *DATASET_SECTIONS)
 
 
 def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), data: str | None = None,
             out_dir: str = "out/bench", arches: tuple[str, ...] | None = None,
-            kinds: tuple[str, ...] | None = None, quick: str = "albedo") -> dict[str, Any]:
+            kinds: tuple[str, ...] | None = None, quick: tuple[str, ...] = ("albedo",),
+            on_section: Callable[[str, str], None] | None = None) -> dict[str, Any]:
+    """Measure the sections in `only`; `quick`: the quick images the models section compares
+    (feature models are trained once per mode). `on_section(name, markdown)` is called as
+    each section finishes, so an interrupted run keeps what it measured."""
+    from learning.train import SVM_KINDS
     from renderer.variant import select_variant
     variant = select_variant()
-    results: dict[str, Any] = {"variant": variant}
+    results: dict[str, Any] = {"variant": variant, "seconds": {}}
     markdown: dict[str, str] = {}
+    needs_data = {"models", *DATASET_SECTIONS} & set(only)
+    if needs_data and not data:
+        raise ValueError(f"bench {', '.join(sorted(needs_data))} needs --data DIR (a labelled dataset)")
+
+    def measure(name: str, run: Callable[[], Any], md: Callable[[Any], str]) -> None:
+        t0 = time.perf_counter()
+        results[name] = run()
+        markdown[name] = md(results[name])
+        results["seconds"][name] = time.perf_counter() - t0
+        log.info("bench %s: %.0f s", name, results["seconds"][name])
+        if on_section is not None:
+            on_section(name, markdown[name])
+
     if "features" in only:
-        results["features"] = bench_features(repeats)
-        markdown["features"] = md_features(results["features"], variant)
+        measure("features", lambda: bench_features(repeats), lambda r: md_features(r, variant))
     if "crop" in only:
-        results["crop"] = bench_crop(repeats=max(1, min(repeats, 3)))
-        markdown["crop"] = md_crop(results["crop"])
+        measure("crop", lambda: bench_crop(repeats=max(1, min(repeats, 3))), md_crop)
     if "models" in only:
-        if not data:
-            raise ValueError("bench models needs --data DIR (a labelled dataset)")
-        from learning.compare import markdown_table
-        results["models"] = bench_models(data, Path(out_dir), arches, kinds, quick)
-        m = results["models"]
-        section = "models" if quick == "albedo" else f"models_quick_{quick}"
-        from learning.plots import plot_cost_accuracy
-        png = plot_cost_accuracy(m["rows"], f"docs/cost-accuracy-{quick}.png",
-                                 f"decision cost vs precision, quick image {quick}, held-out scenes")
-        markdown[section] = (f"Quick image: {quick}. Trained on {', '.join(m['train_scenes'])}; evaluated on the held-out "
-                              f"{', '.join(m['test_scenes'])}.\n\n" + markdown_table(m["rows"])
-                              + f"\n\nDecision cost against accuracy: ![cost vs accuracy]({png})")
+        for i, q in enumerate(quick):
+            # raw-pixel and transfer models use no quick image: measured with the first mode only
+            k, a = (kinds, arches) if i == 0 else (
+                tuple(x for x in (kinds or SVM_KINDS) if x.startswith("dsvm")), ())
+            measure("models" if q == "albedo" else f"models_quick_{q}",
+                    lambda k=k, a=a, q=q: bench_models(data, Path(out_dir), a, k, q), md_models)
+        measure("cost_accuracy", lambda: saved_comparisons(data, Path(out_dir)), md_cost_accuracy)
     if "render" in only:
-        results["render"] = bench_render()
-        markdown["render"] = md_render(results["render"])
+        measure("render", bench_render, md_render)
     for name, (run, md) in DATASET_SECTIONS.items():
         if name in only:
-            if not data:
-                raise ValueError(f"bench {name} needs --data DIR (a labelled dataset)")
-            results[name] = run(data)
-            markdown[name] = md(results[name])
+            measure(name, lambda run=run, name=name: run(data, out_dir=out_dir) if name == "tradeoff"
+                    else run(data), md)
     if "stability" in only:
-        import tempfile
-
-        from . import stability
-        with tempfile.TemporaryDirectory() as tmp:
-            results["stability"] = {"blocks": stability.matrix(), "other": stability.other_cells(tmp)}
-        other = results["stability"]["other"]
-        markdown["stability"] = (stability.markdown(results["stability"]["blocks"]) + "\n\n"
-                                 + "| other extreme | behaviour |\n|---|---|\n"
-                                 + "\n".join(f"| {k} | {v} |" for k, v in other.items()))
+        measure("stability", stability_section, md_stability)
     if "service" in only:
-        results["service"] = bench_service()
-        markdown["service"] = md_service(results["service"])
+        measure("service", bench_service, md_service)
     results["markdown"] = markdown
     return results
+
+
+def stability_section() -> dict[str, Any]:
+    import tempfile
+
+    from . import stability
+    with tempfile.TemporaryDirectory() as tmp:
+        return {"blocks": stability.matrix(), "other": stability.other_cells(tmp)}
+
+
+def md_stability(r: dict[str, Any]) -> str:
+    from . import stability
+    return (stability.markdown(r["blocks"]) + "\n\n| other extreme | behaviour |\n|---|---|\n"
+            + "\n".join(f"| {k} | {v} |" for k, v in r["other"].items()))
 
 
 def format_results(r: dict[str, Any]) -> str:

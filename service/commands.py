@@ -21,6 +21,15 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _quick_modes(text: str) -> tuple[str, ...]:
+    modes = tuple(m.strip() for m in text.split(",") if m.strip())
+    bad = [m for m in modes if m not in QUICK_MODES]
+    if not modes or bad or len(set(modes)) != len(modes):
+        raise argparse.ArgumentTypeError(
+            f"expected distinct quick images from {', '.join(QUICK_MODES)}, comma-separated; got {text!r}")
+    return modes
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("scenes", help="list the built-in scenes")
     p.add_argument("--json", action="store_true")
@@ -49,8 +58,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--arches", default=None,
                    help="models: comma-separated transfer baselines (default: all five; '' for none)")
     p.add_argument("--kinds", default=None, help="models: comma-separated SVM kinds (default: all six)")
-    p.add_argument("--quick", choices=QUICK_MODES, default="albedo",
-                   help="models: the quick image of the feature models")
+    p.add_argument("--quick", type=_quick_modes, default=("albedo",),
+                   help="models: the quick images of the feature models, comma-separated "
+                        f"({', '.join(QUICK_MODES)}; default albedo)")
     p.add_argument("--update", default=None, metavar="FILE",
                    help="rewrite the marked sections of FILE (e.g. BENCHMARKS.md) with the results")
     p.add_argument("--repeats", type=_positive_int, default=30)
@@ -468,11 +478,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise UsageError(f"unknown bench sections {unknown}; known: {', '.join(bench.SECTIONS)}")
     arches = None if args.arches is None else tuple(a for a in args.arches.split(",") if a)
     kinds = None if args.kinds is None else tuple(k for k in args.kinds.split(",") if k)
+    def update(name: str, markdown: str) -> None:   # section by section: ctrl-c loses nothing done
+        bench.update_markdown(Path(args.update), {name: markdown})
+        log.info("updated %s: section %s", args.update, name)
     results = bench.run_all(repeats=args.repeats, only=tuple(args.what), data=args.data,
-                            out_dir=args.out, arches=arches, kinds=kinds, quick=args.quick)
-    if args.update:
-        bench.update_markdown(Path(args.update), results["markdown"])
-        log.info("updated %s: %s", args.update, ", ".join(results["markdown"]))
+                            out_dir=args.out, arches=arches, kinds=kinds, quick=args.quick,
+                            on_section=update if args.update else None)
     if args.json:
         emit_json(results)
     else:

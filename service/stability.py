@@ -67,13 +67,33 @@ def entry_points(model=None) -> dict[str, Entry]:
     def render_variance(blocks: np.ndarray) -> Any:
         return VarianceCriterion().decide(list(range(len(blocks))), views(blocks, True))
 
+    raw_svm, transfer = small_models()
     return {
         "extract_features": extract_features,
         f"model decision ({m.name})": lambda b: m.score_blocks(b, b)[1],
+        "model decision (svm, raw L* of 16x16 blocks)": lambda b: raw_svm.score_blocks(b)[1],
+        f"model decision ({transfer.report_label()})": transfer.decision_function,
         "service infer": service,
         "render loop: model criterion": render_model,
         "render loop: variance criterion": render_variance,
     }
+
+
+def small_models(seed: int = 0):
+    """A raw-pixel SVM bundle-model and a transfer baseline (MobileNetV2, untrained base,
+    two epochs), both fit on seeded random 16x16 blocks: the other decision routes a user
+    can train, driven through the same extremes as the bundled model."""
+    from learning.bundle import Model
+    from learning.estimators import SVM
+    from learning.table import raw_input
+    from learning.transfer import TransferClassifier
+
+    rng = np.random.default_rng(seed)
+    blocks = (rng.random((48, 16, 16, 3)) * np.linspace(0.05, 1, 48)[:, None, None, None]).astype(np.float32)
+    y = np.where(np.arange(48) % 2 == 0, 1, -1)
+    raw = Model(SVM(C=10, gamma="scale").fit(raw_input(blocks), y), {"kind": "svm", "input": "raw"})
+    transfer = TransferClassifier("mobilenet_v2", epochs=2, batch_size=16).fit(blocks, y)
+    return raw, transfer
 
 
 def cell(entry: Entry, blocks: np.ndarray) -> str:

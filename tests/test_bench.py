@@ -1,6 +1,7 @@
 """The BENCHMARKS.md machinery: marked sections and the trade-off chart."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 from learning.bundle import save_model
 from learning.table import load_table
 from learning.train import train_model
-from service.bench import bench_tradeoff, md_tradeoff, update_markdown
+from service.bench import bench_models, bench_tradeoff, md_tradeoff, update_markdown
 
 FIXTURE = Path(__file__).parent / "fixtures" / "dataset"
 
@@ -36,30 +37,45 @@ def fixture_model(tmp_path) -> Path:
 
 
 @pytest.mark.slow
-def test_tradeoff_curves_on_the_fixture(tmp_path):
+def test_tradeoff_draws_the_saved_comparison_on_the_fixture(tmp_path):
     model = fixture_model(tmp_path)
-    r = bench_tradeoff(str(FIXTURE), out_png=str(tmp_path / "p.png"), model=str(model),
-                       thresholds=(0.05, 0.2))
+    saved = tmp_path / "bench"
+    kw = dict(out_dir=saved, model=str(model), thresholds=(0.05, 0.2))
+    with pytest.raises(ValueError, match="bench models"):
+        bench_tradeoff(str(FIXTURE), out_png=str(tmp_path / "p.png"), **kw)
+    (saved).mkdir()
+    (saved / "models-stale.json").write_text(json.dumps({"fingerprint": "another dataset", "rows": []}))
+    comp = bench_models(str(FIXTURE), saved, arches=(), kinds=("dsvm", "svm_as"), quick="none",
+                        plots_dir=str(tmp_path))
+    assert json.loads((saved / "models-none.json").read_text())["rows"][1]["model"] == "svm_as"
+    assert all(len(row["offset_curve"]) == 41 for row in comp["rows"])
+    r = bench_tradeoff(str(FIXTURE), out_png=str(tmp_path / "p.png"), **kw)
     assert r["test_scenes"] == ["cornell"] and Path(r["plot"]).stat().st_size > 1000
+    assert set(r["curves"]) == {"dsvm quick none (bundled)", "dsvm quick none", "svm_as"}
+    assert r["drawn"] == ["dsvm quick none (bundled)", "svm_as"]     # the bundle's twin is not drawn
     for rows in r["curves"].values():
         early = [row["early_stop_rate"] for row in rows]
         assert early == sorted(early, reverse=True)     # a larger offset never stops earlier
         assert all(np.isfinite(row["spp_ratio_vs_oracle"]) for row in rows)
-    assert r["default"] is not None and len(r["variance"]) == 2
+    assert r["default"]["offset"] == 0 and len(r["variance"]) == 2
     assert Path(r["spp_maps"]).stat().st_size > 1000
-    assert "offset 0.0" in md_tradeoff(r) or "offset -0.0" in md_tradeoff(r)
+    (scene,) = r["spp_by_scene"]
+    assert scene["scene"] == "cornell" and 0 < scene["model_spp"] <= scene["uniform_spp"]
+    assert 0 < scene["oracle_spp"] <= scene["uniform_spp"]
+    md = md_tradeoff(r)
+    assert "| svm_as |" in md and "| cornell |" in md and "offset 0.0" in md
 
 
 @pytest.mark.slow
-def test_ablation_rows_cover_every_switch():
+def test_ablation_rows_cover_every_switch(tmp_path):
     from service.bench import bench_ablation, md_ablation
-    r = bench_ablation(str(FIXTURE))
+    r = bench_ablation(str(FIXTURE), out_png=str(tmp_path / "a.png"))
     combos = {(x["weights"], x["quick"], x["wavelet"]) for x in r["rows"]}
     assert len(combos) == 12 and {q for _, q, _ in combos} == {"albedo", "direct", "none"}
     assert all(0 <= x["precision"] <= 1 and np.isfinite(x["spp_ratio_vs_oracle"]) for x in r["rows"])
     cost = {x["quick"]: x["quick_render_s"] for x in r["rows"]}
     assert cost["none"] == 0 and cost["albedo"] > 0 and cost["direct"] > 0
-    assert md_ablation(r).count("\n") == 13
+    assert md_ablation(r).count("\n") == 15 and Path(r["plot"]).stat().st_size > 1000
 
 
 @pytest.mark.slow
@@ -67,12 +83,12 @@ def test_step_sizes_thin_the_decisions(tmp_path):
     from service.bench import bench_step, md_step
     model = fixture_model(tmp_path)
     r = bench_step(str(FIXTURE), multiples=(1, 2), scene="cornell", model=str(model),
-                   resolution=32, max_spp=192)
+                   resolution=32, max_spp=192, out_png=str(tmp_path / "s.png"))
     steps = [x["step"] for x in r["rows"]]
     assert steps == [48, 96] and [x["passes"] for x in r["rows"]][1] <= 2
     # deciding less often can only stop later: never fewer samples
     assert r["rows"][1]["spp_ratio_vs_oracle"] >= r["rows"][0]["spp_ratio_vs_oracle"] - 1e-12
-    assert md_step(r).count("\n") == 3
+    assert md_step(r).count("\n") == 5 and Path(r["plot"]).stat().st_size > 1000
 
 
 def test_cost_accuracy_plot_needs_rows_with_both_axes(tmp_path):
@@ -84,3 +100,20 @@ def test_cost_accuracy_plot_needs_rows_with_both_axes(tmp_path):
     assert png.stat().st_size > 1000
     with pytest.raises(ValueError, match="no model row"):
         plot_cost_accuracy(rows[2:], tmp_path / "d.png")
+
+
+def test_run_all_hands_each_section_over_as_it_finishes(tmp_path):
+    from renderer.dataset import append_build_log
+    from service.bench import run_all
+    with pytest.raises(ValueError, match="criteria, models needs --data"):
+        run_all(only=("models", "criteria"))
+    run = {"wall_s": 754.2, "sub_images": 32, "finished": "2026-11-23T12:00:00+00:00", "cpus": 2,
+           "workers": None, "scheduler": None, "failed": {},
+           "settings": {"resolution": 32, "step": 4, "levels": 2, "reference_spp": 64},
+           "scenes": [{"scene": "sky", "seconds": 3.0, "censored": 0, "variant": "scalar_rgb",
+                       "resumed": False, "already_built": False}]}
+    append_build_log(tmp_path, run)
+    seen = []
+    r = run_all(only=("dataset",), data=str(tmp_path), on_section=lambda n, md: seen.append((n, md)))
+    assert [n for n, _ in seen] == ["dataset"] and "**12 min 34 s** wall" in seen[0][1]
+    assert r["seconds"]["dataset"] >= 0 and r["markdown"]["dataset"] == seen[0][1]

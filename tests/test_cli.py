@@ -71,3 +71,15 @@ def test_cli_quick_modes_are_the_tables():
     from learning.table import QUICK_MODES
     from service.commands import QUICK_MODES as CLI_MODES
     assert CLI_MODES == QUICK_MODES
+
+
+def test_bench_quick_list_is_parsed_and_bad_modes_are_refused():
+    import argparse
+
+    from service.commands import _quick_modes
+    assert _quick_modes("albedo,none") == ("albedo", "none")
+    for bad in ("", "albedo,albedo", "sky"):
+        with pytest.raises(argparse.ArgumentTypeError, match="distinct quick images"):
+            _quick_modes(bad)
+    out = run("bench", "models", "--quick", "albedo,bogus")
+    assert out.returncode == 2 and "bogus" in out.stderr and "Traceback" not in out.stderr

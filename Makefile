@@ -43,7 +43,7 @@ test-fast: setup
 # Time: BENCHMARKS.md "make bench".
 bench: dataset
 	$(NOISESTOP) bench features crop render service stability --update BENCHMARKS.md
-	$(NOISESTOP) bench dataset models criteria tradeoff ablation step --data $(DATA) --quick albedo,none \
+	$(NOISESTOP) bench dataset models criteria tradeoff ablation step knobs --data $(DATA) --quick albedo,none \
 		--update BENCHMARKS.md
 
 # The default training dataset: 14 scenes x 16 blocks x 40 levels (8,960 labelled

@@ -9,6 +9,7 @@ different feature base would give silently wrong verdicts, so that is a hard err
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 from dataclasses import dataclass
@@ -87,8 +88,10 @@ class Model:
             shape = np.shape(blocks)
             n = self.estimator.n_features_in_
             if len(shape) == 4 and shape[1] * shape[2] != n:
-                raise ValueError(f"this raw-pixel model takes blocks of {n} pixels (it was trained on "
-                                 f"one block size), got {shape[1]}x{shape[2]}")
+                side = math.isqrt(n)
+                size = f"{side}x{side}" if side * side == n else f"{n}-pixel"
+                raise ValueError(f"this raw-pixel model takes {size} blocks (its training size), "
+                                 f"got {shape[1]}x{shape[2]}")
             return raw_input(blocks, exposure)
         if self.needs_quick and quick is None:
             raise ValueError("a feature model needs the quick image of every block")

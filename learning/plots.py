@@ -75,14 +75,22 @@ def plot_cost_accuracy(rows: Sequence[Mapping], path: str | os.PathLike, title: 
     pts = [r for r in rows if r.get("precision") is not None and r.get("test_101_s")]
     if not pts:
         raise ValueError("no model row has both a precision and a positive test time")
-    fig, ax = plt.subplots(figsize=(7, 4.2))
+    fig, ax = plt.subplots(figsize=(8, 4.6))
     for r in pts:
         feature = str(r["model"]).startswith("dsvm")
         ax.scatter(r["test_101_s"], r["precision"], s=40, zorder=3,
                    marker="o" if feature else "s", color="tab:blue" if feature else "tab:gray")
-        ax.annotate(str(r["model"]).replace(" (untrained base)", "*"), (r["test_101_s"], r["precision"]),
-                    textcoords="offset points", xytext=(5, 4), fontsize=8)
     ax.set_xscale("log")
+    xs = [r["test_101_s"] for r in pts]
+    ax.set_xlim(min(xs) / 1.5, max(xs) * 4)           # room for the labels on the right
+    ys = [r["precision"] for r in pts]
+    pad = max(0.02, 0.1 * (max(ys) - min(ys)))
+    ax.set_ylim(min(ys) - pad, max(ys) + pad)
+    fig.canvas.draw()
+    placed: list[tuple[float, float, float, float]] = []
+    for r in sorted(pts, key=lambda r: (r["test_101_s"], -r["precision"])):
+        label = str(r["model"]).replace(" (untrained base)", "*")
+        _label_clear_of(ax, (r["test_101_s"], r["precision"]), label, placed)
     ax.set_xlabel("decision cost: test time per 101 sub-images (s, features included)")
     ax.set_ylabel("precision on held-out scenes")
     ax.set_title(title or "decision cost vs accuracy (circles: feature SVMs; * untrained conv base)",
@@ -90,3 +98,20 @@ def plot_cost_accuracy(rows: Sequence[Mapping], path: str | os.PathLike, title: 
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     return _save(fig, Path(path))
+
+
+def _label_clear_of(ax, xy: tuple[float, float], label: str,
+                    placed: list[tuple[float, float, float, float]]) -> None:
+    """Annotate xy at the first offset whose text box (display pixels, estimated from the
+    label length) overlaps no label placed before; records the box in `placed`."""
+    px, py = ax.transData.transform(xy)
+    scale = ax.figure.dpi / 72.0
+    w, h = 5.2 * len(label) * scale, 9.0 * scale
+    for dx, dy in ((5, 4), (5, -11), (5, 15), (5, -22), (5, 26), (5, -33), (5, 37)):
+        x0, y0 = px + dx * scale, py + dy * scale
+        box = (x0, y0, x0 + w, y0 + h)
+        if not any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3] for b in placed):
+            break
+    placed.append(box)
+    ax.annotate(label, xy, textcoords="offset points", xytext=(dx, dy), fontsize=8,
+                arrowprops=None if (dx, dy) == (5, 4) else {"arrowstyle": "-", "lw": 0.4, "color": "grey"})

@@ -166,27 +166,35 @@ def bench_criteria(data: str, model: str | None = None, max_early_stop: float = 
 
 
 def bench_render(scene: str = "env_spheres", resolution: int = 256, max_spp: int = 640,
-                 step: int = 16, model: str | None = None) -> dict[str, Any]:
-    """Real renders: the model criterion against uniform sampling to the same max spp (warm)."""
+                 step: int = 16, model: str | None = None, repeats: int = 3) -> dict[str, Any]:
+    """Real renders: the model criterion against uniform sampling to the same max spp (warm).
+
+    The two runs alternate `repeats` times and each reports its median run, so that a
+    passing disturbance on the machine does not decide the speed-up.
+    """
     import tempfile
 
     from learning.bundle import load_model
     from renderer.adaptive import adaptive_render
     from renderer.criteria import ModelCriterion, UniformCriterion
-    out = {}
+    runs: dict[str, list[dict]] = {"model": [], "uniform": []}
+    m = load_model(model)
     with tempfile.TemporaryDirectory() as tmp:
         # warm-up: every block's kernel compiled once (Dr.Jit caches them), so neither timed
         # run pays compilation and their order does not matter
         adaptive_render(scene, Path(tmp) / "warm", UniformCriterion(), resolution=resolution,
                         step=step, min_spp=step, max_spp=step, progress=False)
-        for name, crit in (("model", ModelCriterion(load_model(model))), ("uniform", UniformCriterion())):
-            rep = adaptive_render(scene, Path(tmp) / name, crit, resolution=resolution, step=step,
-                                  min_spp=step, max_spp=max_spp, progress=False)
-            out[name] = {"wall_s": rep["wall_s"], "saved_vs_uniform": rep["saved_vs_uniform"],
-                         "timing": rep.get("timing")}
+        for i in range(repeats):
+            for name, crit in (("model", ModelCriterion(m)), ("uniform", UniformCriterion())):
+                rep = adaptive_render(scene, Path(tmp) / f"{name}{i}", crit, resolution=resolution,
+                                      step=step, min_spp=step, max_spp=max_spp, progress=False)
+                runs[name].append({"wall_s": rep["wall_s"], "saved_vs_uniform": rep["saved_vs_uniform"],
+                                   "timing": rep.get("timing")})
+    out = {name: {**sorted(r, key=lambda x: x["wall_s"])[len(r) // 2],
+                  "walls_s": [x["wall_s"] for x in r]} for name, r in runs.items()}
     t = out["model"]["timing"] or {}
     decide = float(t.get("features_s", 0) + t.get("decisions_s", 0))
-    return {"scene": scene, "resolution": resolution, "max_spp": max_spp, **out,
+    return {"scene": scene, "resolution": resolution, "max_spp": max_spp, "repeats": repeats, **out,
             "speedup_vs_uniform": out["uniform"]["wall_s"] / out["model"]["wall_s"],
             "decision_share": decide / out["model"]["wall_s"]}
 
@@ -389,6 +397,12 @@ def bench_step(data: str, multiples: tuple[int, ...] = (1, 2, 4, 8), scene: str 
     return {"test_scenes": test, "rows": rows, "plot": charts.step_size(rows, scene, out_png)}
 
 
+def bench_knobs(data: str) -> dict[str, Any]:
+    """Training's speed knobs (CV cap, active-learning batch) with their accuracy cost."""
+    from learning.knobs import measure_knobs
+    return measure_knobs(data)
+
+
 def bench_dataset(data: str) -> dict[str, Any]:
     """The dataset's build time, from its build log: the latest run that rendered anything."""
     from renderer.dataset import BUILD_LOG, read_build_log
@@ -468,6 +482,20 @@ def md_dataset(r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def md_knobs(r: dict[str, Any]) -> str:
+    lines = [f"Quick image {r['quick']}; held-out scenes; * = the default.", "",
+             "| knob | model | setting | training (s) | precision | f1 | early_stop_rate | samples / oracle "
+             "| C, gamma chosen |", "|---|---|---|---|---|---|---|---|---|"]
+    for x in r["rows"]:
+        setting = f"{x['value']}{' *' if x['default'] else ''}"
+        if x["knob"].startswith("cross") and x.get("cv_rows"):
+            setting += f" ({x['cv_rows']:,} rows)"
+        lines.append(f"| {x['knob']} | {x['kind']} | {setting} | {x['seconds']:.1f} | {x['precision']:.3f} "
+                     f"| {x['f1']:.3f} | {x['early_stop_rate']:.3f} | {x['spp_ratio_vs_oracle']:.3f} "
+                     f"| {x['C']:g}, {x['gamma']:.3g} |")
+    return "\n".join(lines)
+
+
 def md_criteria(r: dict[str, Any]) -> str:
     lines = [f"Held-out scenes: {', '.join(r['test_scenes'])}; simulated on the stored stacks.", "",
              "| criterion | precision | early_stop_rate | samples / oracle | saved vs uniform |",
@@ -490,11 +518,14 @@ def md_criteria(r: dict[str, Any]) -> str:
 
 def md_render(r: dict[str, Any]) -> str:
     m, u = r["model"], r["uniform"]
+
+    def walls(x: dict) -> str:
+        return ", ".join(f"{w:.1f}" for w in x.get("walls_s", [x["wall_s"]]))
     return "\n".join([
         f"{r['scene']} at {r['resolution']}x{r['resolution']}, max {r['max_spp']} spp:", "",
-        "| run | wall (s) | saved vs uniform |", "|---|---|---|",
-        f"| model criterion | {m['wall_s']:.1f} | {m['saved_vs_uniform']:.3f} |",
-        f"| uniform to max spp | {u['wall_s']:.1f} | 0 |", "",
+        f"| run | wall (s), median of {r.get('repeats', 1)} | all runs (s) | saved vs uniform |", "|---|---|---|---|",
+        f"| model criterion | {m['wall_s']:.1f} | {walls(m)} | {m['saved_vs_uniform']:.3f} |",
+        f"| uniform to max spp | {u['wall_s']:.1f} | {walls(u)} | 0 |", "",
         f"Speed-up {r['speedup_vs_uniform']:.2f}x (goal >= 2x); features + decisions "
         f"{100 * r['decision_share']:.2f} % of the model run's wall time (goal < 2 %)."])
 
@@ -599,7 +630,7 @@ def update_markdown(path: Path, sections: dict[str, str]) -> None:
 # sections that need only a dataset: name -> (measure(data), markdown(result))
 DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "criteria": (bench_criteria, md_criteria),
                     "tradeoff": (bench_tradeoff, md_tradeoff), "ablation": (bench_ablation, md_ablation),
-                    "step": (bench_step, md_step)}
+                    "step": (bench_step, md_step), "knobs": (bench_knobs, md_knobs)}
 SECTIONS = ("features", "crop", "models", "render", "service", "stability", *DATASET_SECTIONS)
 
 
@@ -609,11 +640,13 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
             on_section: Callable[[str, str], None] | None = None) -> dict[str, Any]:
     """Measure the sections in `only`; `quick`: the quick images the models section compares
     (feature models are trained once per mode). `on_section(name, markdown)` is called as
-    each section finishes, so an interrupted run keeps what it measured."""
+    each section finishes, so an interrupted run keeps what it measured; a section that
+    cannot run (e.g. no dataset build on record) is reported in results["failed"] and the
+    others still run."""
     from learning.train import SVM_KINDS
     from renderer.variant import select_variant
     variant = select_variant()
-    results: dict[str, Any] = {"variant": variant, "seconds": {}}
+    results: dict[str, Any] = {"variant": variant, "seconds": {}, "failed": {}}
     markdown: dict[str, str] = {}
     needs_data = {"models", *DATASET_SECTIONS} & set(only)
     if needs_data and not data:
@@ -621,7 +654,12 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
 
     def measure(name: str, run: Callable[[], Any], md: Callable[[Any], str]) -> None:
         t0 = time.perf_counter()
-        results[name] = run()
+        try:
+            results[name] = run()
+        except (ValueError, FileNotFoundError) as exc:   # one section's problem spares the others
+            log.error("bench %s: %s", name, exc)
+            results["failed"][name] = str(exc)
+            return
         markdown[name] = md(results[name])
         results["seconds"][name] = time.perf_counter() - t0
         log.info("bench %s: %.0f s", name, results["seconds"][name])

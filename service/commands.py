@@ -488,4 +488,6 @@ def cmd_bench(args: argparse.Namespace) -> int:
         emit_json(results)
     else:
         print(bench.format_results(results))
-    return 0
+    for name, why in results["failed"].items():
+        log.error("bench %s not measured: %s", name, why)
+    return 1 if results["failed"] else 0

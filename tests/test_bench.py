@@ -10,6 +10,7 @@ import pytest
 from learning.bundle import save_model
 from learning.table import load_table
 from learning.train import train_model
+from learning.knobs import measure_knobs
 from service.bench import bench_models, bench_tradeoff, md_tradeoff, update_markdown
 
 FIXTURE = Path(__file__).parent / "fixtures" / "dataset"
@@ -112,8 +113,38 @@ def test_run_all_hands_each_section_over_as_it_finishes(tmp_path):
            "settings": {"resolution": 32, "step": 4, "levels": 2, "reference_spp": 64},
            "scenes": [{"scene": "sky", "seconds": 3.0, "censored": 0, "variant": "scalar_rgb",
                        "resumed": False, "already_built": False}]}
+    missing = run_all(only=("dataset",), data=str(tmp_path))       # reported, not raised
+    assert "no build run on record" in missing["failed"]["dataset"] and not missing["markdown"]
     append_build_log(tmp_path, run)
     seen = []
     r = run_all(only=("dataset",), data=str(tmp_path), on_section=lambda n, md: seen.append((n, md)))
     assert [n for n, _ in seen] == ["dataset"] and "**12 min 34 s** wall" in seen[0][1]
-    assert r["seconds"]["dataset"] >= 0 and r["markdown"]["dataset"] == seen[0][1]
+    assert r["seconds"]["dataset"] >= 0 and r["markdown"]["dataset"] == seen[0][1] and not r["failed"]
+
+
+@pytest.mark.slow
+def test_render_bench_alternates_runs_and_reports_medians(tmp_path):
+    from service.bench import bench_render, md_render
+    r = bench_render(scene="cornell", resolution=32, max_spp=64, step=16,
+                     model=str(fixture_model(tmp_path)), repeats=3)
+    for name in ("model", "uniform"):
+        walls = r[name]["walls_s"]
+        assert len(walls) == 3 and r[name]["wall_s"] == sorted(walls)[1]
+    assert r["uniform"]["saved_vs_uniform"] == 0 and 0 <= r["model"]["saved_vs_uniform"] < 1
+    assert r["speedup_vs_uniform"] == pytest.approx(r["uniform"]["wall_s"] / r["model"]["wall_s"])
+    assert "median of 3" in md_render(r)
+
+
+@pytest.mark.slow
+def test_knobs_train_each_setting_and_mark_the_default():
+    from learning.train import CV_MAX_SAMPLES
+    from service.bench import md_knobs
+    r = measure_knobs(str(FIXTURE), cv_caps=(100, CV_MAX_SAMPLES, 0), batches=(16, 64))
+    cv = [x for x in r["rows"] if x["kind"] == "dsvm"]
+    assert [x["value"] for x in cv] == [100, CV_MAX_SAMPLES, "all"] and [x["default"] for x in cv] == [0, 1, 0]
+    assert cv[0]["cv_rows"] <= 112 < cv[2]["cv_rows"]         # whole groups of 16, up to the cap
+    al = [x for x in r["rows"] if x["kind"] == "dsvm_as"]
+    assert [x["default"] for x in al] == [True, False]
+    assert all(0 <= x["precision"] <= 1 and np.isfinite(x["spp_ratio_vs_oracle"]) for x in r["rows"])
+    md = md_knobs(r)
+    assert md.count("\n") == 2 + 2 + len(r["rows"]) - 1 and "16 *" in md

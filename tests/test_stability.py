@@ -26,7 +26,7 @@ def test_expected_rejections_and_acceptances(cells):
     assert "FP32" in cells["service infer"]["float16"]        # the protocol's datatype rule
     raw = cells["model decision (svm, raw L* of 16x16 blocks)"]
     for size in ("8x8 blocks", "1024x1024 block", "7x7 blocks (too small)"):
-        assert "trained on one block size" in raw[size], raw[size]
+        assert "takes 16x16 blocks (its training size), got" in raw[size], raw[size]
     transfer = next(v for k, v in cells.items() if "mobilenet_v2" in k)
     assert all(v == "finite" for v in transfer.values()), transfer   # it resizes every block
     assert set(extreme_inputs()) == set(next(iter(cells.values())))

@@ -5,8 +5,8 @@ import json
 import logging
 import os
 import time
-from datetime import datetime, timezone
 from concurrent.futures import as_completed
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 

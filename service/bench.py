@@ -18,6 +18,7 @@ import torch
 
 log = logging.getLogger(__name__)
 
+
 def _median_s(fn: Callable[[], Any], repeats: int) -> float:
     fn()
     times = []
@@ -116,7 +117,6 @@ def bench_models(data: str, out_dir: Path, arches: tuple[str, ...] | None = None
 def saved_comparisons(data: str, out_dir: Path) -> list[dict[str, Any]]:
     """The model comparisons `bench models` saved in out_dir for this very dataset."""
     import json
-    import logging
 
     from learning.stack import dataset_fingerprint
     fp = dataset_fingerprint(data)
@@ -124,7 +124,7 @@ def saved_comparisons(data: str, out_dir: Path) -> list[dict[str, Any]]:
     for path in sorted(Path(out_dir).glob("models-*.json")):
         r = json.loads(path.read_text())
         if r.get("fingerprint") != fp:
-            logging.getLogger(__name__).warning("%s: measured on another dataset; ignored", path)
+            log.warning("%s: measured on another dataset; ignored", path)
             continue
         found.append(r)
     return found
@@ -452,6 +452,7 @@ def md_models(m: dict[str, Any]) -> str:
 def md_cost_accuracy(comparisons: list[dict[str, Any]], out_png: str = "docs/cost-accuracy.png") -> str:
     """One chart of every compared model: test time per 101 sub-images against precision."""
     from learning.plots import plot_cost_accuracy
+
     def label(row: dict, quick: str) -> str:      # only feature models use the quick image
         return f"{row['model']} ({quick})" if str(row["model"]).startswith("dsvm") else row["model"]
     rows = [{**r, "model": label(r, c["quick"])} for c in comparisons for r in c["rows"]]
@@ -468,7 +469,8 @@ def md_dataset(r: dict[str, Any]) -> str:
     resumed = [x["scene"] for x in r["scenes"] if x.get("resumed") and not x.get("already_built")]
     done = [x["scene"] for x in r["scenes"] if x.get("already_built")]
     minutes, seconds = divmod(round(r["wall_s"]), 60)
-    where = f"scheduler {r['scheduler']}" if r.get("scheduler") else f"{r.get('workers') or 'default'} local workers"
+    where = (f"scheduler {r['scheduler']}" if r.get("scheduler") else
+             f"{r['workers']} local workers" if r.get("workers") else "one local worker per core")
     lines = [f"{len(r['scenes'])} scenes at {st['resolution']}x{st['resolution']}, step {st['step']}, "
              f"{st['levels']} levels, reference {st['reference_spp']} spp, {where}, "
              f"{r.get('cpus')} CPUs, variant {r['scenes'][0]['variant'] if r['scenes'] else '-'}; "
@@ -587,11 +589,11 @@ def md_tradeoff(r: dict[str, Any]) -> str:
 
 def md_ablation(r: dict[str, Any]) -> str:
     scene, res, spp = r["quick_scene"]
-    lines = ["| conv weights | quick image | wavelet layer | precision | f1 | early_stop_rate "
+    lines = [f"![feature-pipeline ablation]({r['plot']})", "",
+             "| conv weights | quick image | wavelet layer | precision | f1 | early_stop_rate "
              f"| samples / oracle | 101 sub-images (s; off: less the wavelet layer's time) "
              f"| quick image, {scene} {res}x{res} {spp} spp (s) |",
              "|---|---|---|---|---|---|---|---|---|"]
-    lines = [f"![feature-pipeline ablation]({r['plot']})", "", *lines]
     for x in r["rows"]:
         cost = f"{x['test_101_s']:.4f}"
         lines.append(f"| {x['weights']} | {x['quick']} | {'on' if x['wavelet'] else 'off'} | "
@@ -602,9 +604,9 @@ def md_ablation(r: dict[str, Any]) -> str:
 
 def md_step(r: dict[str, Any]) -> str:
     scene = r["rows"][0]["render_scene"]
-    lines = [f"| step (spp per pass) | held-out early stops | held-out samples / oracle "
+    lines = [f"![step size]({r['plot']})", "",
+             f"| step (spp per pass) | held-out early stops | held-out samples / oracle "
              f"| {scene}: wall (s) | {scene}: saved vs uniform | passes |", "|---|---|---|---|---|---|"]
-    lines = [f"![step size]({r['plot']})", "", *lines]
     for x in r["rows"]:
         lines.append(f"| {x['step']} | {x['early_stop_rate']:.3f} | {x['spp_ratio_vs_oracle']:.3f} "
                      f"| {x['wall_s']:.1f} | {x['saved_vs_uniform']:.3f} | {x['passes']} |")

@@ -52,7 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("bench", help="measure the figures of BENCHMARKS.md")
     p.add_argument("what", nargs="*", default=["features", "crop"],
-                   help="sections: features, crop, models, criteria, render, service, tradeoff, stability (default: features crop)")
+                   help="sections: features, crop, models, render, service, stability, dataset, criteria, "
+                        "tradeoff, ablation, step, knobs (default: features crop)")
     p.add_argument("--data", default=None, help="labelled dataset (models)")
     p.add_argument("--out", default="out/bench", help="directory for plots")
     p.add_argument("--arches", default=None,

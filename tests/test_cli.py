@@ -83,3 +83,11 @@ def test_bench_quick_list_is_parsed_and_bad_modes_are_refused():
             _quick_modes(bad)
     out = run("bench", "models", "--quick", "albedo,bogus")
     assert out.returncode == 2 and "bogus" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_bench_help_names_every_section():
+    from service.bench import SECTIONS
+    out = run("bench", "--help")
+    assert out.returncode == 0
+    text = " ".join(out.stdout.split())
+    assert all(name in text for name in SECTIONS), text

@@ -16,10 +16,12 @@ from .evaluate import verdicts_by_scene  # noqa: E402
 from .metrics import never_spp, stop_thresholds, true_thresholds  # noqa: E402
 
 
-def _save(fig, path: Path) -> Path:
+def save_figure(fig, path: str | os.PathLike, dpi: int = 110) -> Path:
+    """Write a figure atomically (temporary name, then rename) and close it."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    fig.savefig(tmp, dpi=dpi)
     plt.close(fig)
     os.replace(tmp, path)
     return path
@@ -48,7 +50,7 @@ def plot_thresholds(model, table, out_dir: str | os.PathLike) -> list[Path]:
         ax.set_title(f"{scene}: stopping threshold per block", fontsize=9)
         ax.legend(fontsize=7, loc="best")
         fig.tight_layout()
-        paths.append(_save(fig, out_dir / f"thresholds-{scene}.png"))
+        paths.append(save_figure(fig, out_dir / f"thresholds-{scene}.png"))
     return paths
 
 
@@ -66,7 +68,7 @@ def plot_learning_curves(histories: Mapping[str, Sequence[Mapping]], path: str |
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))
 
 
 def plot_cost_accuracy(rows: Sequence[Mapping], path: str | os.PathLike, title: str = "") -> Path:
@@ -97,7 +99,7 @@ def plot_cost_accuracy(rows: Sequence[Mapping], path: str | os.PathLike, title: 
                  fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))
 
 
 def _label_clear_of(ax, xy: tuple[float, float], label: str,

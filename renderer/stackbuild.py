@@ -145,7 +145,7 @@ def build_stack(scene: str, out_root: str | os.PathLike, settings: BuildSettings
             writer.write_extra_quick(kind, br.quick_image(spp=settings.quick_spp, seed=settings.seed, kind=kind))
     if writer.is_complete:
         log.info("%s: already built", out)
-        return {**_summary(out, variant, time.perf_counter() - t_start, resumed=True), "already_built": True}
+        return _summary(out, variant, time.perf_counter() - t_start, resumed=True, already_built=True)
 
     level_seed, reference_seed = 2 * settings.seed, 2 * settings.seed + 1
     if not writer.has_quick():
@@ -184,9 +184,11 @@ def build_stack(scene: str, out_root: str | os.PathLike, settings: BuildSettings
     return _summary(out, variant, time.perf_counter() - t_start, resumed=done > 0)
 
 
-def _summary(out: Path, variant: str, seconds: float, resumed: bool) -> dict[str, Any]:
+def _summary(out: Path, variant: str, seconds: float, resumed: bool,
+             already_built: bool = False) -> dict[str, Any]:
     stack = read_stack(out)
     th = stack.thresholds or []
     return {"scene": stack.scene, "path": str(out), "variant": variant, "seconds": seconds,
-            "levels": stack.n_levels, "blocks": stack.n_blocks, "resumed": resumed, "already_built": False,
+            "levels": stack.n_levels, "blocks": stack.n_blocks, "resumed": resumed,
+            "already_built": already_built,
             "thresholds": th, "censored": sum(t is None for t in th)}

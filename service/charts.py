@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 
 import matplotlib
 
@@ -15,17 +14,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from learning.plots import save_figure  # noqa: E402
+
 EARLY_STOP_TARGET = 0.05
 
 
 def save(fig, path: str | os.PathLike, dpi: int = 100) -> str:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=dpi)
-    plt.close(fig)
-    os.replace(tmp, path)
-    return str(path)
+    return str(save_figure(fig, path, dpi))
 
 
 def pareto(curves: Mapping[str, Sequence[Mapping]], variance: Sequence[Mapping],

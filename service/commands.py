@@ -479,6 +479,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise UsageError(f"unknown bench sections {unknown}; known: {', '.join(bench.SECTIONS)}")
     arches = None if args.arches is None else tuple(a for a in args.arches.split(",") if a)
     kinds = None if args.kinds is None else tuple(k for k in args.kinds.split(",") if k)
+
     def update(name: str, markdown: str) -> None:   # section by section: ctrl-c loses nothing done
         bench.update_markdown(Path(args.update), {name: markdown})
         log.info("updated %s: section %s", args.update, name)

@@ -10,9 +10,10 @@ NOISESTOP := $(VENV)/bin/noisestop
 TORCH_SPEC ?= torch==2.13.0
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)
 DATA ?= data/default
+HELDOUT ?= data/heldout
 OUT ?= out
 
-.PHONY: setup run test test-fast bench dataset fixture model clean
+.PHONY: setup run test test-fast bench dataset heldout fixture model clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -23,8 +24,9 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 	@bash scripts/install-llvm.sh
 
-# The main job: adaptive render of the default scene with the bundled model. With the
-# default dataset built, its thresholds give early-stop figures too.
+# The main job: adaptive render of the default scene with the default criterion (flip;
+# README "Deciding a stop"). With the default dataset built, its thresholds give early-stop
+# figures and compare.png (final next to the reference) too.
 RUN_ARGS ?= --resolution 256 --step 16 --min-spp 16 --max-spp 640
 run: setup
 	$(NOISESTOP) render --scene cornell --out $(OUT) $(RUN_ARGS) \
@@ -41,10 +43,10 @@ test-fast: setup
 # machine. The model comparison (paper's albedo quick image, then feature models with
 # none) is saved in out/bench, where the trade-off chart finds every model's offset curve.
 # Time: BENCHMARKS.md "make bench".
-bench: dataset
+bench: dataset heldout
 	$(NOISESTOP) bench features crop render service stability --update BENCHMARKS.md
-	$(NOISESTOP) bench dataset models criteria tradeoff ablation step knobs --data $(DATA) --quick albedo,none \
-		--update BENCHMARKS.md
+	$(NOISESTOP) bench dataset models criteria tradeoff ablation step knobs --data $(DATA) \
+		--heldout $(HELDOUT) --quick albedo,none --update BENCHMARKS.md
 
 # The default training dataset: 14 scenes x 16 blocks x 40 levels (8,960 labelled
 # sub-images). Resumes if interrupted. Settings and measured time: README "Datasets".
@@ -53,10 +55,22 @@ dataset: setup
 	$(NOISESTOP) dataset build --out $(DATA) $(DATASET_ARGS)
 	$(NOISESTOP) dataset check $(DATA)
 
-# The bundled model (learning/bundled): DSVM_AS on the default dataset, quick image 'none',
-# decision offset calibrated for <= 5 % early stops on the training scenes.
+# The held-out scenes every figure is measured on (renderer/heldout.py): 8 scenes x 16
+# blocks x 64 levels (32..2048 spp), reference 8192 spp, so that most blocks converge
+# inside the stack. Never trained or calibrated on. Resumes if interrupted.
+HELDOUT_ARGS ?= --resolution 256 --step 32 --levels 64 --reference-spp 8192
+heldout: setup
+	$(NOISESTOP) dataset build --out $(HELDOUT) --scenes heldout $(HELDOUT_ARGS)
+	$(NOISESTOP) dataset check $(HELDOUT)
+
+# What ships to decide stops: the bundled model (learning/bundled: DSVM_AS on every scene of
+# the default dataset, quick image 'none', decision offset calibrated on leave-one-scene-out
+# scores for <= 5 % early stops) and flip's c (learning/flip.json: calibrated on the same
+# training scenes to the same target). Held-out figures: `make bench`.
 model: setup
-	$(NOISESTOP) train --data $(DATA) --model dsvm_as --quick none --out learning/bundled
+	$(NOISESTOP) train --data $(DATA) --model dsvm_as --quick none --out learning/bundled \
+		$(if $(wildcard $(HELDOUT)/*/meta.json),--heldout $(HELDOUT),--test-scenes '')
+	$(NOISESTOP) calibrate --criterion flip --data $(DATA)
 
 # The small dataset committed for tests (tests/fixtures/dataset, about 2 MB): 4 scenes x
 # 16 blocks x 16 levels of 64x64 frames.

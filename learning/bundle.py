@@ -22,6 +22,7 @@ import skops.io as sio
 from noisefeat import FeatureBase, default_base, extract_features
 
 from .estimators import RBFSVM, check_inputs
+from .stoprule import StopRule, flat_blocks
 from .table import feature_input, raw_input
 
 FORMAT = "noisestop-model"
@@ -46,7 +47,12 @@ def _versions() -> dict[str, str]:
 
 @dataclass
 class Model:
-    """A loaded bundle: the estimator plus what it needs to turn blocks into verdicts."""
+    """A loaded bundle: the estimator plus what it needs to turn blocks into verdicts.
+
+    Verdicts always come from the one stop rule (`learning.stoprule`) at the estimator's
+    calibrated `offset_`, or at the `offset` a caller passes (the user's speed/accuracy
+    knob: `--offset` on render, evaluate and serve).
+    """
 
     estimator: RBFSVM
     manifest: dict[str, Any]
@@ -63,7 +69,12 @@ class Model:
 
     @property
     def offset(self) -> float:
-        return float(self.estimator.offset)
+        """The calibrated decision offset (the estimator's fitted `offset_`)."""
+        return float(self.estimator.offset_)
+
+    def rule(self, offset: float | None = None, min_spp: int | None = None) -> StopRule:
+        """The stop rule at this model's offset, or at `offset` if given."""
+        return StopRule(self.offset if offset is None else float(offset), min_spp)
 
     @property
     def quick(self) -> str:
@@ -99,15 +110,19 @@ class Model:
         quick_feats = extract_features(quick, base=base, exposure=exposure) if self.needs_quick else None
         return feature_input(extract_features(blocks, base=base, exposure=exposure), quick_feats)
 
-    def score_inputs(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(verdict int8 [N], score float [N]) for model inputs (e.g. [N, 26] features)."""
+    def score_inputs(self, X: np.ndarray, offset: float | None = None,
+                     flat: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(verdict int8 [N], score float [N]) for model inputs (e.g. [N, 26] features), by
+        the stop rule; `flat` (bool [N]) marks rows whose blocks were flat."""
         f = self.decision_function(X)
-        return np.where(f > self.offset, 1, -1).astype(np.int8), f
+        return self.rule(offset).verdict(f, flat), f
 
     def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None,
-                     exposure: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-        """(verdict int8 [N], score float [N]) for linear RGB blocks."""
-        return self.score_inputs(self.inputs_from_blocks(blocks, quick, exposure=exposure))
+                     exposure: float = 0.0, offset: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(verdict int8 [N], score float [N]) for linear RGB blocks: the stop rule's verdict,
+        flat blocks included (they are converged whatever their score)."""
+        flat = flat_blocks(blocks, exposure) if len(blocks) else np.zeros(0, bool)
+        return self.score_inputs(self.inputs_from_blocks(blocks, quick, exposure=exposure), offset, flat)
 
 
 def save_model(estimator: RBFSVM, path: str | os.PathLike, *, kind: str, input: str,
@@ -127,7 +142,7 @@ def save_model(estimator: RBFSVM, path: str | os.PathLike, *, kind: str, input: 
         "format": FORMAT, "version": VERSION, "kind": kind, "name": name or kind, "input": input,
         "feature_base": {"hash": base.hash, "weights": base.weights_name, "wavelet": base.wavelet}
         if input == "features" else None,
-        "n_features": int(estimator.n_features_in_), "offset": float(estimator.offset),
+        "n_features": int(estimator.n_features_in_), "offset": float(estimator.offset_),
         "support_vectors": int(estimator.n_support_), "parameters": int(estimator.n_parameters()),
         "params": {k: v for k, v in estimator.get_params().items() if isinstance(v, (int, float, str, bool, type(None)))},
         "training": training or {}, "metrics": metrics or {}, "versions": _versions(),
@@ -174,6 +189,10 @@ def load_model(path: str | os.PathLike | None = None, base: FeatureBase | None =
     estimator = sio.load(model_file, trusted=untrusted)
     if not isinstance(estimator, RBFSVM):
         raise ValueError(f"{model_file}: holds a {type(estimator).__name__}, not a noisestop SVM")
+    if not hasattr(estimator, "offset_"):      # bundles written before the offset was fitted
+        estimator.offset_ = float(manifest.get("offset", getattr(estimator, "offset", 0.0)))
+    if not math.isfinite(float(estimator.offset_)):
+        raise ValueError(f"{model_file}: decision offset {estimator.offset_!r} is not a finite number")
     if manifest.get("input") == "features":
         running = (base or default_base()).hash
         trained = (manifest.get("feature_base") or {}).get("hash")

@@ -2,9 +2,12 @@
 
 DSVM works on the 26 noise features (standardised), SVM on the raw L* block (flattened,
 L*/100). Labels are -1 (noisy) and +1 (converged). `decision_function` is the signed
-distance to the hyperplane (positive = converged); `offset` moves the decision without
-refitting: predict is +1 iff f(x) > offset, the knob the speed/accuracy trade-off sweeps
-(a larger offset stops later: fewer early stops, more samples).
+distance to the hyperplane (positive = converged). The fitted attribute `offset_` moves
+the decision without refitting: predict is +1 iff f(x) > offset_ (the one stop rule,
+`learning.stoprule`). `fit` sets it to 0 (the hyperplane itself); calibration
+(`learning.calibrate`) sets the value that keeps early stops within a target, the knob
+the speed/accuracy trade-off sweeps (a larger offset stops later: fewer early stops,
+more samples).
 """
 from __future__ import annotations
 
@@ -13,6 +16,8 @@ from sklearn.base import BaseEstimator, ClassifierMixin
 from sklearn.preprocessing import StandardScaler
 from sklearn.svm import SVC
 from sklearn.utils.validation import check_is_fitted
+
+from .stoprule import StopRule
 
 LABELS = (-1, 1)
 
@@ -51,13 +56,11 @@ class RBFSVM(ClassifierMixin, BaseEstimator):
     """
 
     def __init__(self, C: float = 10.0, gamma: float | str = "scale", standardize: bool = True,
-                 class_weight: dict | str | None = None, offset: float = 0.0,
-                 cache_size: float = 500.0) -> None:
+                 class_weight: dict | str | None = None, cache_size: float = 500.0) -> None:
         self.C = C
         self.gamma = gamma
         self.standardize = standardize
         self.class_weight = class_weight
-        self.offset = offset
         self.cache_size = cache_size
 
     def fit(self, X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None = None) -> "RBFSVM":
@@ -73,6 +76,7 @@ class RBFSVM(ClassifierMixin, BaseEstimator):
             raise ValueError(f"gamma must be 'scale', 'auto' or a positive finite number, got {self.gamma}")
         self.n_features_in_ = X.shape[1]
         self.classes_ = np.array(LABELS)
+        self.offset_ = 0.0
         self.scaler_ = StandardScaler().fit(X) if self.standardize else None
         present = np.unique(y)
         if len(present) == 1:
@@ -97,7 +101,9 @@ class RBFSVM(ClassifierMixin, BaseEstimator):
         return self.svc_.decision_function(Z)
 
     def predict(self, X: np.ndarray) -> np.ndarray:
-        return np.where(self.decision_function(X) > self.offset, 1, -1).astype(np.int8)
+        """-1 / +1 per row by the stop rule's verdict at `offset_` (no flat-block test here:
+        rows of features do not show whether their block was flat)."""
+        return StopRule(float(self.offset_)).verdict(self.decision_function(X))
 
     @property
     def n_support_(self) -> int:
@@ -116,15 +122,13 @@ class DSVM(RBFSVM):
     """RBF SVM on the 26 noise features, standardised (the paper's DSVM)."""
 
     def __init__(self, C: float = 10.0, gamma: float | str = "scale", standardize: bool = True,
-                 class_weight: dict | str | None = None, offset: float = 0.0,
-                 cache_size: float = 500.0) -> None:
-        super().__init__(C, gamma, standardize, class_weight, offset, cache_size)
+                 class_weight: dict | str | None = None, cache_size: float = 500.0) -> None:
+        super().__init__(C, gamma, standardize, class_weight, cache_size)
 
 
 class SVM(RBFSVM):
     """RBF SVM on the raw L* block (L*/100, flattened; not standardised)."""
 
     def __init__(self, C: float = 10.0, gamma: float | str = "scale", standardize: bool = False,
-                 class_weight: dict | str | None = None, offset: float = 0.0,
-                 cache_size: float = 500.0) -> None:
-        super().__init__(C, gamma, standardize, class_weight, offset, cache_size)
+                 class_weight: dict | str | None = None, cache_size: float = 500.0) -> None:
+        super().__init__(C, gamma, standardize, class_weight, cache_size)

@@ -1,4 +1,5 @@
-"""Evaluation of a model on held-out scenes: DESIGN metrics, overall and per scene."""
+"""Evaluation of a model on held-out scenes through the one stop rule: DESIGN metrics,
+overall and per scene."""
 from __future__ import annotations
 
 import time
@@ -7,28 +8,44 @@ from typing import Any
 import numpy as np
 
 from .bundle import Model
+from .generalisation import scene_groups
 from .metrics import evaluate_verdicts
+from .stoprule import StopRule
 from .table import SubImageTable
 
 
-def verdicts_by_scene(table: SubImageTable, verdict: np.ndarray) -> dict[str, tuple]:
-    """Per scene: (V [K, B], labels [K, B], thresholds, spp) for learning.metrics."""
+def by_scene(table: SubImageTable, values: np.ndarray) -> dict[str, np.ndarray]:
+    """Per scene: a per-row column of `table` (scores, verdicts, flags) as [K, B]."""
     out = {}
     for scene, stack in table.stacks.items():
         m = table.scene == scene
-        k, b = stack.n_levels, stack.n_blocks
         order = np.lexsort((table.block[m], table.level[m]))
-        v = verdict[m][order].reshape(k, b)
-        labels = table.y[m][order].reshape(k, b)
-        out[scene] = (v, labels, stack.thresholds, stack.spp)
+        out[scene] = np.asarray(values)[m][order].reshape(stack.n_levels, stack.n_blocks)
     return out
 
 
-def evaluate_model(model: Model, table: SubImageTable) -> dict[str, Any]:
-    """Metrics of `model` on every scene of `table` (restrict the table to held-out scenes)."""
+def stops_by_scene(table: SubImageTable, scores: np.ndarray, rule: StopRule) -> dict[str, tuple]:
+    """Per scene: (held verdicts V [K, B], labels, thresholds, spp) for learning.metrics,
+    the stops `rule` makes from per-row `scores` (flat sub-images stop at once)."""
+    s, flat, labels = by_scene(table, scores), by_scene(table, table.flat), by_scene(table, table.y)
+    return {scene: (rule.stops(s[scene], st.spp, flat[scene]), labels[scene], st.thresholds, st.spp)
+            for scene, st in table.stacks.items()}
+
+
+def evaluate_scores(table: SubImageTable, scores: np.ndarray, rule: StopRule) -> dict[str, Any]:
+    """DESIGN metrics of the stops `rule` makes from `scores`: overall, per scene, and per
+    group (scenes that converge inside their stacks apart from those that do not)."""
+    return evaluate_verdicts(stops_by_scene(table, scores, rule), scene_groups(table.stacks.values()))
+
+
+def evaluate_model(model: Model, table: SubImageTable, offset: float | None = None,
+                   min_spp: int | None = None) -> dict[str, Any]:
+    """Metrics of `model` on every scene of `table` (restrict the table to held-out scenes),
+    at its own offset or `offset`; no decision below `min_spp` (None: from the first level)."""
     t0 = time.perf_counter()
-    verdict = model.predict(table.X)
-    result = evaluate_verdicts(verdicts_by_scene(table, verdict))
+    rule = model.rule(offset, min_spp)
+    result = evaluate_scores(table, model.decision_function(table.X), rule)
+    result["offset"] = rule.offset
     result["n_sub_images"] = int(len(table))
     result["scenes"] = table.scenes()
     result["predict_s"] = time.perf_counter() - t0

@@ -21,6 +21,7 @@ from sklearn.svm import SVC
 from sklearn.utils.validation import check_is_fitted
 
 from .estimators import LABELS, check_inputs, check_labels
+from .stoprule import StopRule
 
 log = logging.getLogger(__name__)
 
@@ -73,16 +74,16 @@ class GramRBF(ClassifierMixin, BaseEstimator):
     """RBF SVC on the rows of a `SharedGram`, addressed by index (fit columns only).
 
     Same contract as `estimators.RBFSVM` without standardisation: decision_function is the
-    signed distance (positive = converged), predict is +1 iff it exceeds `offset`, and a
-    one-class training set answers that class everywhere.
+    signed distance (positive = converged), predict is the stop rule's verdict at the
+    fitted `offset_` (0 after fit), and a one-class training set answers that class
+    everywhere.
     """
 
     def __init__(self, gram: SharedGram | None = None, C: float = 10.0,
-                 class_weight: dict | str | None = None, offset: float = 0.0) -> None:
+                 class_weight: dict | str | None = None) -> None:
         self.gram = gram
         self.C = C
         self.class_weight = class_weight
-        self.offset = offset
 
     def fit(self, X: np.ndarray, y: np.ndarray) -> "GramRBF":
         if self.gram is None:
@@ -95,6 +96,7 @@ class GramRBF(ClassifierMixin, BaseEstimator):
             raise ValueError("GramRBF can only be fit on the Gram matrix's columns")
         self.classes_ = np.array(LABELS)
         self.n_features_in_ = 1
+        self.offset_ = 0.0
         self.train_index_ = idx
         present = np.unique(y)
         self.constant_ = int(present[0]) if len(present) == 1 else None
@@ -115,4 +117,4 @@ class GramRBF(ClassifierMixin, BaseEstimator):
         return self.svc_.decision_function(self.gram.K[np.ix_(idx, self.train_index_)])
 
     def predict(self, X: np.ndarray) -> np.ndarray:
-        return np.where(self.decision_function(X) > self.offset, 1, -1).astype(np.int8)
+        return StopRule(float(self.offset_)).verdict(self.decision_function(X))

@@ -14,24 +14,25 @@ from typing import Any
 
 from .bundle import Model
 from .evaluate import evaluate_model
-from .table import load_table
+from .generalisation import split_tables
 from .train import AL_BATCH, CV_MAX_SAMPLES, train_model
 
 METRICS = ("precision", "f1", "early_stop_rate", "spp_ratio_vs_oracle")
 
 
-def measure_knobs(data: str, quick: str = "none", cv_caps: tuple[int, ...] = (1000, CV_MAX_SAMPLES, 0),
+def measure_knobs(data: str, heldout: str | None = None, quick: str = "none",
+                  cv_caps: tuple[int, ...] = (1000, CV_MAX_SAMPLES, 0),
                   batches: tuple[int, ...] = (8, AL_BATCH, 64)) -> dict[str, Any]:
     """Rows of {knob, value, default, seconds, metrics...}: DSVM over the CV cap (0 = every
-    training row), DSVM_AS over the active-learning batch size."""
-    table = load_table(data, quick=quick, progress=False)
+    training row), DSVM_AS over the active-learning batch size; trained on the training
+    scenes, scored on the held-out ones (learning.generalisation)."""
+    table, test = split_tables(data, heldout, quick=quick)
     rows = []
 
     def row(knob: str, value: Any, default: bool, kind: str, **kw: Any) -> None:
         t0 = time.perf_counter()
-        est, summary = train_model(kind, data, table=table, quick=quick, progress=False, **kw)
+        est, summary = train_model(kind, data, table=table, test_scenes=[], quick=quick, progress=False, **kw)
         seconds = time.perf_counter() - t0
-        test = table.subset(table.scene_mask(summary["test_scenes"]))
         m = evaluate_model(Model(est, {"kind": kind, "input": "features", "quick": quick}), test)
         rows.append({"knob": knob, "kind": kind, "value": value, "default": default, "seconds": seconds,
                      "cv_rows": summary.get("cv_rows"), "labels": summary.get("n_labels"),

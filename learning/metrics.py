@@ -7,7 +7,7 @@ Censored true thresholds (None) count as spp_max + step.
 """
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -70,16 +70,34 @@ def metrics_from_counts(c: Mapping[str, float]) -> dict[str, float]:
 
 
 def evaluate_verdicts(per_scene: Mapping[str, tuple[np.ndarray, np.ndarray, Sequence[int | None],
-                                                     Sequence[int]]]) -> dict[str, Any]:
-    """{scene: (V [K, B], labels [K, B], thresholds, spp)} -> metrics overall and per scene."""
-    total: dict[str, float] = {}
+                                                     Sequence[int]]],
+                      groups: Mapping[str, Sequence[str]] | None = None) -> dict[str, Any]:
+    """{scene: (V [K, B], labels [K, B], thresholds, spp)} -> metrics overall and per scene
+    (each scene's entry also holds its additive `counts`, so that any subset of scenes can
+    be pooled later: `pool_counts`).
+
+    `groups` ({name: scenes}) adds ``groups`` (name -> metrics pooled over those scenes,
+    absent when none of them was evaluated), e.g. scenes that converge inside their
+    stacks apart from those that never do (`learning.generalisation`)."""
+    counts: dict[str, dict[str, float]] = {}
     out: dict[str, Any] = {"per_scene": {}}
     for scene, (v, labels, th, spp) in sorted(per_scene.items()):
-        c = stack_counts(v, labels, th, spp)
-        out["per_scene"][scene] = metrics_from_counts(c)
+        counts[scene] = stack_counts(v, labels, th, spp)
+        out["per_scene"][scene] = {**metrics_from_counts(counts[scene]), "counts": counts[scene]}
+    if not counts:
+        raise ValueError("nothing to evaluate: no scenes")
+    out.update(metrics_from_counts(pool_counts(counts.values())))
+    if groups is not None:
+        out["groups"] = {name: {**metrics_from_counts(pool_counts(counts[s] for s in scenes if s in counts)),
+                                "scenes": [s for s in scenes if s in counts]}
+                         for name, scenes in groups.items() if any(s in counts for s in scenes)}
+    return out
+
+
+def pool_counts(counts: Iterable[Mapping[str, float]]) -> dict[str, float]:
+    """The sum of `stack_counts` dicts: metrics over several stacks pool their counts."""
+    total: dict[str, float] = {}
+    for c in counts:
         for k, val in c.items():
             total[k] = total.get(k, 0) + val
-    if not total:
-        raise ValueError("nothing to evaluate: no scenes")
-    out.update(metrics_from_counts(total))
-    return out
+    return total

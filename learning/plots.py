@@ -12,7 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .evaluate import verdicts_by_scene  # noqa: E402
+from .evaluate import stops_by_scene  # noqa: E402
 from .metrics import never_spp, stop_thresholds, true_thresholds  # noqa: E402
 
 
@@ -27,11 +27,13 @@ def save_figure(fig, path: str | os.PathLike, dpi: int = 110) -> Path:
     return path
 
 
-def plot_thresholds(model, table, out_dir: str | os.PathLike) -> list[Path]:
-    """One PNG per scene: the model's stopping spp per block against the expert's."""
+def plot_thresholds(model, table, out_dir: str | os.PathLike, offset: float | None = None,
+                    min_spp: int | None = None) -> list[Path]:
+    """One PNG per scene: the model's stopping spp per block (the stop rule at its offset,
+    or `offset`) against the expert's."""
     out_dir = Path(out_dir)
     paths = []
-    per_scene = verdicts_by_scene(table, model.predict(table.X))
+    per_scene = stops_by_scene(table, model.decision_function(table.X), model.rule(offset, min_spp))
     for scene, (v, _, th, spp) in per_scene.items():
         t_pred, t_true = stop_thresholds(v, spp), true_thresholds(th, spp)
         never = never_spp(spp)

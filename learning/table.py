@@ -36,6 +36,7 @@ class SubImageTable:
     block: np.ndarray                  # [n] block id, row-major
     spp: np.ndarray                    # [n] samples per pixel of the row's level
     groups: np.ndarray                 # [n] int group id
+    flat: np.ndarray                   # [n] bool: the sub-image's display image is flat (stop rule)
     stacks: dict[str, Stack] = field(default_factory=dict)
 
     def __len__(self) -> int:
@@ -44,7 +45,7 @@ class SubImageTable:
     def subset(self, mask: np.ndarray) -> "SubImageTable":
         keep = set(np.unique(self.scene[mask]).tolist())
         return SubImageTable(self.X[mask], self.y[mask], self.scene[mask], self.level[mask],
-                             self.block[mask], self.spp[mask], self.groups[mask],
+                             self.block[mask], self.spp[mask], self.groups[mask], self.flat[mask],
                              {k: v for k, v in self.stacks.items() if k in keep})
 
     def scene_mask(self, scenes: list[str]) -> np.ndarray:
@@ -116,6 +117,26 @@ def stack_features(stack: Stack, base: FeatureBase | None = None, exposure: floa
     return x
 
 
+def stack_flat(stack: Stack, exposure: float = 0.0) -> np.ndarray:
+    """bool [K, n_blocks]: which sub-images the stop rule calls flat (learning.stoprule),
+    cached next to the stack like the features."""
+    from .stoprule import FLAT_TOLERANCE, flat_blocks
+
+    cache = stack.path / CACHE_DIR / f"flat-e{exposure:g}-t{FLAT_TOLERANCE:.9g}.npz"
+    if cache.exists():
+        try:
+            with np.load(cache, allow_pickle=False) as z:
+                flat = z["flat"]
+            if flat.shape == (stack.n_levels, stack.n_blocks) and flat.dtype == bool:
+                return flat
+        except Exception as exc:
+            log.warning("%s: unreadable flat-block cache (%s); recomputing", cache, exc)
+    flat = np.stack([flat_blocks(stack.blocks(k), exposure) for k in range(stack.n_levels)])
+    cache.parent.mkdir(exist_ok=True)
+    _atomic_savez(cache, flat=flat)
+    return flat
+
+
 def stack_raw_blocks(stack: Stack, exposure: float = 0.0) -> np.ndarray:
     """[K, n_blocks, bh*bw] L*/100 of every sub-image: the raw SVM's input."""
     return np.stack([raw_input(stack.blocks(k), exposure) for k in range(stack.n_levels)])
@@ -128,7 +149,7 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
     paths = list_stacks(root)
     if not paths:
         raise ValueError(f"{root}: no stacks found (no meta.json below it)")
-    xs, ys, sc, lv, bl, sp, gr, stacks = [], [], [], [], [], [], [], {}
+    xs, ys, sc, lv, bl, sp, gr, fl, stacks = [], [], [], [], [], [], [], [], {}
     gid = 0
     for p in tqdm(paths, desc="stacks", disable=not progress, leave=False):
         st = read_stack(p)
@@ -149,6 +170,7 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
         bl.append(np.tile(np.arange(b), k))
         sp.append(np.repeat(np.asarray(st.spp), b))
         gr.append(gid + np.repeat(np.arange(k), b))
+        fl.append(stack_flat(st).reshape(-1))
         gid += k
     if not stacks:
         raise ValueError(f"{root}: no labelled stack matched")
@@ -156,4 +178,4 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
         raise ValueError("raw-pixel models need one block size across the dataset")
     return SubImageTable(np.concatenate(xs), np.concatenate(ys).astype(np.int8), np.concatenate(sc),
                          np.concatenate(lv), np.concatenate(bl), np.concatenate(sp),
-                         np.concatenate(gr), stacks)
+                         np.concatenate(gr), np.concatenate(fl), stacks)

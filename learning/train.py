@@ -127,14 +127,17 @@ def train_model(kind: str, data: str, *, test_scenes: list[str] | None = None,
                 max_early_stop: float | None = None, quick: str = "albedo",
                 base: FeatureBase | None = None, progress: bool = True,
                 table: SubImageTable | None = None,
-                cv_max_samples: int | None = None) -> tuple[RBFSVM, dict[str, Any]]:
+                cv_max_samples: int | None = None,
+                monitor: SubImageTable | None = None) -> tuple[RBFSVM, dict[str, Any]]:
     """Fit one model kind; returns (fitted estimator, training summary for the manifest).
 
     With `max_early_stop`, the decision offset is calibrated on leave-one-scene-out scores
     of the training scenes (learning.calibrate) to keep early stops within that rate.
     `cv_max_samples` caps the rows the supervised kinds' cross-validation sees (default
     CV_MAX_SAMPLES, raw pixels CV_MAX_SAMPLES_RAW; 0 = no cap): a speed knob whose accuracy
-    cost `noisestop bench knobs` measures.
+    cost `noisestop bench knobs` measures. `monitor`: held-out rows whose precision the
+    active kinds record along their queries (default: the test scenes of `table`); only
+    recorded, never used to decide anything.
     """
     kind = kind.lower()
     if kind not in SVM_KINDS:
@@ -166,7 +169,8 @@ def train_model(kind: str, data: str, *, test_scenes: list[str] | None = None,
         best = select_hyperparameters(template, table.X[sub], table.y[sub].astype(int), table.groups[sub])
         C, gamma = best["C"], best["gamma"]
         summary["cv"] = best
-    monitor = table.subset(table.scene_mask(test)) if test else None
+    if monitor is None and test:
+        monitor = table.subset(table.scene_mask(test))
     fitted, info = fit_kind(kind, table, train_scenes, C=C, gamma=gamma, initial_scene=initial_scene,
                             max_label_fraction=max_label_fraction, batch_size=batch_size,
                             monitor=monitor, progress=progress)
@@ -183,11 +187,16 @@ def train_model(kind: str, data: str, *, test_scenes: list[str] | None = None,
         scores = out_of_fold_scores(fold_fit, train_table, train_scenes, progress=progress)
         curve = sweep(scores, train_table)
         chosen = choose_offset(curve, max_early_stop)
-        fitted.set_params(offset=chosen["offset"])
-        summary["calibration"] = {"target_early_stop_rate": max_early_stop, "chosen": chosen,
-                                  "curve": curve, "seconds": time.perf_counter() - t2}
+        fitted.offset_ = chosen["offset"]
+        summary["calibration"] = {"target_early_stop_rate": max_early_stop, "route": "stop rule",
+                                  "chosen": {k: v for k, v in chosen.items() if k not in ("per_scene", "groups")},
+                                  "per_scene": {sc: {k: v for k, v in m.items() if k != "counts"}
+                                                for sc, m in chosen["per_scene"].items()},
+                                  "curve": [{k: v for k, v in r.items() if k not in ("per_scene", "groups")}
+                                            for r in curve],
+                                  "seconds": time.perf_counter() - t2}
     summary["C"], summary["gamma"] = float(fitted.C), fitted.gamma
-    summary["offset"] = float(fitted.offset)
+    summary["offset"] = float(fitted.offset_)
     log.info("%s: trained on %d scenes in %.1f s (%s labels), offset %.2f", kind, len(train_scenes),
-             summary["train_s"], summary.get("n_labels"), fitted.offset)
+             summary["train_s"], summary.get("n_labels"), fitted.offset_)
     return fitted, summary

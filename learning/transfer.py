@@ -45,6 +45,7 @@ from tqdm import tqdm
 from noisefeat.display import display
 
 from .estimators import LABELS, check_labels
+from .stoprule import StopRule
 
 log = logging.getLogger(__name__)
 
@@ -278,7 +279,7 @@ class TransferClassifier(ClassifierMixin, BaseEstimator):
 
     def __init__(self, arch: str = "vgg19", weights: str | None = None, input_size: int | None = None,
                  epochs: int = 30, batch_size: int = 64, lr: float = 1e-3, freeze_base: bool = True,
-                 random_state: int = 0, progress: bool = False, offset: float = 0.0) -> None:
+                 random_state: int = 0, progress: bool = False) -> None:
         self.arch = arch
         self.weights = weights
         self.input_size = input_size
@@ -288,7 +289,6 @@ class TransferClassifier(ClassifierMixin, BaseEstimator):
         self.freeze_base = freeze_base
         self.random_state = random_state
         self.progress = progress
-        self.offset = offset
 
     # -- parameters and the base
 
@@ -463,6 +463,7 @@ class TransferClassifier(ClassifierMixin, BaseEstimator):
         else:
             self.prepare_base(X)
         self.classes_ = np.array(LABELS)
+        self.offset_ = 0.0
         F = torch.from_numpy(self._features(X))
         mean, std = F.mean(0), F.std(0, unbiased=False).clamp_min(1e-6)
         target = torch.from_numpy((y > 0).astype(np.float32))
@@ -511,7 +512,8 @@ class TransferClassifier(ClassifierMixin, BaseEstimator):
         return np.stack([1.0 - p, p], axis=1)
 
     def predict(self, X: np.ndarray | torch.Tensor) -> np.ndarray:
-        return np.where(self.decision_function(X) > self.offset, 1, -1).astype(np.int8)
+        """The stop rule's verdict at the fitted `offset_` (0 after fit)."""
+        return StopRule(float(self.offset_)).verdict(self.decision_function(X))
 
     def n_parameters(self, trainable_only: bool = False) -> int:
         """Numbers the model uses (base + head incl. its standardisation), or only the trained ones."""
@@ -543,7 +545,8 @@ class TransferClassifier(ClassifierMixin, BaseEstimator):
         state = {"params": self.get_params(), "base_pretrained": self.base_pretrained_,
                  "base_weights": self.base_weights_, "base_sha256": self.base_sha256_,
                  "base_source": self.base_source_, "base_fingerprint": self.base_fingerprint_,
-                 "block_shape": list(getattr(self, "block_shape_", ()) or []) or None}
+                 "block_shape": list(getattr(self, "block_shape_", ()) or []) or None,
+                 "offset": float(self.offset_)}
         tmp = path / (STATE_FILE + ".tmp")
         tmp.write_text(json.dumps(state, indent=2))
         os.replace(tmp, path / STATE_FILE)
@@ -586,6 +589,9 @@ class TransferClassifier(ClassifierMixin, BaseEstimator):
         est.head_.load_state_dict({k[5:]: v for k, v in tensors.items() if k.startswith("head.")})
         est.head_.eval()
         est.classes_ = np.array(LABELS)
+        est.offset_ = float(state.get("offset", 0.0))
+        if not np.isfinite(est.offset_):
+            raise ValueError(f"{path / STATE_FILE}: decision offset {est.offset_!r} is not finite")
         est.base_pretrained_ = bool(state["base_pretrained"])
         est.base_weights_, est.base_sha256_ = state["base_weights"], state["base_sha256"]
         est.base_source_ = state["base_source"]

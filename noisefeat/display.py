@@ -49,6 +49,18 @@ def display(rgb: torch.Tensor | np.ndarray, exposure: float = 0.0) -> torch.Tens
     return srgb_encode(clipped_linear(torch.as_tensor(rgb), exposure))
 
 
+def display_range(blocks: torch.Tensor | np.ndarray, exposure: float = 0.0) -> np.ndarray:
+    """Per block of linear RGB [N, h, w, 3]: the largest per-channel (max - min) of its
+    display-referred values, float64 [N] in [0, 1] (0 for an empty block)."""
+    d = display(blocks, exposure)
+    if d.ndim != 4 or d.shape[-1] != 3:
+        raise ValueError(f"expected linear RGB blocks [N, h, w, 3], got shape {tuple(d.shape)}")
+    if d.shape[0] == 0 or d.shape[1] * d.shape[2] == 0:
+        return np.zeros(d.shape[0])
+    flat = d.reshape(d.shape[0], -1, 3)
+    return (flat.amax(dim=1) - flat.amin(dim=1)).amax(dim=1).double().numpy()
+
+
 def lightness(rgb: torch.Tensor, exposure: float = 0.0) -> torch.Tensor:
     """CIE L* (0..100) of the display-referred image, [..., H, W, 3] -> [..., H, W].
 

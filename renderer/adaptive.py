@@ -33,11 +33,13 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from learning.accumulator import BlockAccumulator
 from learning.exr import atomic_write_bytes
 from learning.stack import Stack
+from learning.stoprule import decide_active
 
-from .blocks import BlockAccumulator, BlockRenderer
-from .criteria import COUNTER_NAMES, TIMER_NAMES, BlockView, Criterion, build_criterion
+from .blocks import BlockRenderer
+from .criteria import COUNTER_NAMES, DEFAULT_CRITERION, TIMER_NAMES, BlockView, Criterion, build_criterion
 from .outputs import write_outputs
 from .settings import describe as describe_settings
 from .settings import resolve_settings
@@ -255,19 +257,16 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
         loop_timers["render_s"] += time.perf_counter() - t0
         acc.add_many(ids, images, sizes[p])
         spp = acc.spp(ids[0])
-        verdict_row = np.zeros(n, np.int8)
-        if spp >= min_spp:
+
+        def ask(ask_ids: list[int]) -> np.ndarray:
             halves = crit.needs_halves  # two extra divisions per block: only when used
-            views = [BlockView(mean=acc.mean(b), spp=acc.spp(b), nonfinite=acc.nonfinite(b),
-                               halves=acc.half_buffer(b) if halves else None,
-                               half_spp=acc.half_spp(b) if halves else None,
-                               quick=None if quick_blocks is None else quick_blocks[b]) for b in ids]
-            verdicts = crit.decide(ids, views)
-            verdict_row[ids] = verdicts
-            for b, v in zip(ids, verdicts):
-                if v > 0:
-                    state["active"][b] = False
-                    state["stop_spp"][b] = acc.spp(b)
+            return crit.decide(ask_ids, [BlockView(
+                mean=acc.mean(b), spp=acc.spp(b), nonfinite=acc.nonfinite(b),
+                halves=acc.half_buffer(b) if halves else None,
+                half_spp=acc.half_spp(b) if halves else None,
+                quick=None if quick_blocks is None else quick_blocks[b]) for b in ask_ids])
+        verdict_row = decide_active(state["active"], spp, min_spp, ask)
+        state["stop_spp"][verdict_row > 0] = spp
         state["history"] = np.vstack([state["history"], verdict_row[None]])
         state["history_spp"] = np.append(state["history_spp"], spp)
         state["rendered"] = np.append(state["rendered"], len(ids))
@@ -283,7 +282,18 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     report = _report(label, br, settings, crit, state, acc, final["timers"], variant or current_variant(),
                      ref_stack)
     report["settings_source"] = {k: sources[k] for k in given}
-    write_outputs(out, acc.image().astype(np.float32), report)
+    image = acc.image().astype(np.float32)
+    reference = None
+    if ref_stack is not None:
+        reference = ref_stack.reference()
+        if reference.shape != image.shape:
+            logger.warning("reference image %s differs from the render %s: no final-vs-reference check",
+                           reference.shape, image.shape)
+            reference = None
+        else:
+            report["final_vs_reference"] = final_vs_reference(image, reference, (gh, gw), ref_stack,
+                                                              float(settings["exposure"]))
+    write_outputs(out, image, report, reference=reference)
     logger.info("%s: %d passes, saved %.1f%% vs uniform, %.2f s", label, report["passes"],
                 100 * report["saved_vs_uniform"], report["wall_s"])
     return report
@@ -310,8 +320,12 @@ def _report(label: str, br: BlockRenderer, settings: dict[str, Any], crit: Crite
     setup_s, render_s, features_s, decisions_s = (float(timers.get(k, 0.0))
                                                   for k in ("setup_s", "render_s", "features_s", "decisions_s"))
     c = crit.counters
+    described = crit.describe()
     report: dict[str, Any] = {
-        "scene": label, "variant": variant, "criterion": crit.describe(),
+        "scene": label, "variant": variant, "criterion": described,
+        # the speed/accuracy knob the stops were made at: the model's decision offset
+        # (None for other criteria, and for a server's own offset), flip's or variance's threshold
+        "offset": described.get("offset"), "threshold": described.get("threshold"),
         "resolution": [br.width, br.height], "grid": list(br.grid), "block": [br.block_h, br.block_w],
         "step": settings["step"], "min_spp": settings["min_spp"], "max_spp": max_spp,
         "seed": settings["seed"], "exposure": settings["exposure"], "quick": settings["quick"],
@@ -358,6 +372,19 @@ def _against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, setti
                           "oracle_spp": oracle},
             "early_stop_rate": float(np.mean(early)),
             "spp_ratio_vs_oracle": float(spp.sum()) / float(sum(oracle))}
+
+
+def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int, int], ref: Stack,
+                       exposure: float = 0.0) -> dict[str, Any]:
+    """What a person would see flipping between final.png and the reference: the virtual
+    observer's per-block FLIP error of the finished image, and the blocks still above its
+    threshold (visible noise left; blocks that ran to max spp included)."""
+    from learning.observer import DEFAULT_TAU, VirtualObserver
+
+    tau = float((ref.labeler or {}).get("tau", DEFAULT_TAU))
+    obs = VirtualObserver(tau=tau, exposure=exposure)
+    e = obs.errors(reference, image[None], grid)[0]
+    return {"tau": tau, "errors": [float(x) for x in e], "visible_noise_blocks": int((e > tau).sum())}
 
 
 # ----------------------------------------------------------------------------- many scenes
@@ -410,10 +437,10 @@ def render_many(scenes: Sequence[str | os.PathLike], out: str | os.PathLike, cri
             "scenes": dict(sorted(reports.items())), "failed": failed}
 
 
-def render_command(scenes: str | Sequence[str], out: str | os.PathLike, *, criterion: str = "model",
+def render_command(scenes: str | Sequence[str], out: str | os.PathLike, *, criterion: str = DEFAULT_CRITERION,
                    model: str | None = None, server: str | None = None, reference: str | None = None,
-                   threshold: float = 0.01, quantile: float = 1.0, workers: int | None = None,
-                   scheduler: str | None = None, exposure: float = 0.0,
+                   threshold: float | None = None, quantile: float = 1.0, offset: float | None = None,
+                   workers: int | None = None, scheduler: str | None = None, exposure: float = 0.0,
                    **kwargs: Any) -> dict[str, Any]:
     """What `noisestop render` runs: one scene -> its report; several -> `render_many`'s summary.
 
@@ -425,11 +452,13 @@ def render_command(scenes: str | Sequence[str], out: str | os.PathLike, *, crite
         raise ValueError("no scene given")
     if criterion == "oracle" and reference is None:
         raise ValueError("--criterion oracle needs --reference DIR (a labelled dataset or stack of the scene)")
-    if criterion != "model" and (model or server):
-        logger.warning("--model/--server are ignored with --criterion %s", criterion)
+    if criterion != "model" and (model or server or offset is not None):
+        logger.warning("--model/--server/--offset are ignored with --criterion %s", criterion)
+    if criterion not in ("flip", "variance") and threshold is not None:
+        logger.warning("--threshold is ignored with --criterion %s", criterion)
     crit: Criterion | str = criterion if criterion == "oracle" else build_criterion(
-        criterion, model=model, server=server, variance_threshold=threshold, quantile=quantile,
-        exposure=exposure)
+        criterion, model=model, server=server, threshold=threshold, quantile=quantile,
+        exposure=exposure, offset=offset)
     remote = getattr(crit, "model", None)
     if server and criterion == "model" and hasattr(remote, "ready") and not remote.ready():
         raise ConnectionError(f"{server}: the server answers but model {remote.model!r} is not ready")

@@ -214,8 +214,10 @@ class RemoteModel:
             raise ValueError(f"GET {url}: metadata is not a JSON object")
         return obj
 
-    def infer(self, inputs: dict[str, np.ndarray], outputs: tuple[str, ...] = ("verdict", "score")) -> dict[str, np.ndarray]:
-        """One OIP infer call: named FP32 inputs in, named output arrays out."""
+    def infer(self, inputs: dict[str, np.ndarray], outputs: tuple[str, ...] = ("verdict", "score"),
+              parameters: dict[str, Any] | None = None) -> dict[str, np.ndarray]:
+        """One OIP infer call: named FP32 inputs in, named output arrays out; `parameters`
+        are the request's (noisestop reads `exposure` and `offset`)."""
         url = self._path("v2", "models", self.model, "infer")
         tensors, tail = [], []
         for name, arr in inputs.items():
@@ -228,8 +230,10 @@ class RemoteModel:
             else:
                 t["data"] = a.reshape(-1).tolist()
             tensors.append(t)
-        req = {"inputs": tensors, "outputs": [{"name": o, "parameters": {"binary_data": self.binary}}
-                                              for o in outputs]}
+        req: dict[str, Any] = {"inputs": tensors, "outputs": [{"name": o, "parameters": {"binary_data": self.binary}}
+                                                              for o in outputs]}
+        if parameters:
+            req["parameters"] = parameters
         header = json.dumps(req, separators=(",", ":")).encode()
         hdrs = {"Content-Type": "application/octet-stream" if self.binary else "application/json"}
         if self.binary:
@@ -279,9 +283,16 @@ class RemoteModel:
             raise ValueError(f"POST {url}: answer lacks output(s) {missing}")
         return result
 
-    def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(verdict int8 [N], score float64 [N]) for linear RGB blocks [N, H, W, 3]."""
+    def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None, exposure: float = 0.0,
+                     offset: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(verdict int8 [N], score float64 [N]) for linear RGB blocks [N, H, W, 3]: the
+        server's stop rule at display `exposure` and at `offset` (None: the model's own)."""
         b = np.asarray(blocks)
+        params: dict[str, Any] = {}
+        if exposure:
+            params["exposure"] = float(exposure)
+        if offset is not None:
+            params["offset"] = float(offset)
         if b.ndim != 4 or b.shape[-1] != 3:
             raise ValueError(f"blocks must be [N, H, W, 3], got shape {b.shape}")
         if quick is not None and np.shape(quick) != b.shape:
@@ -291,7 +302,7 @@ class RemoteModel:
             inputs = {"blocks": b[i:i + self.batch_size]}
             if quick is not None:
                 inputs["quick"] = np.asarray(quick)[i:i + self.batch_size]
-            out = self.infer(inputs)
+            out = self.infer(inputs, parameters=params)
             v, s = out["verdict"].reshape(-1), out["score"].reshape(-1)
             if len(v) != len(inputs["blocks"]) or len(s) != len(v):
                 raise ValueError(f"server returned {len(v)} verdicts / {len(s)} scores for "

@@ -11,16 +11,19 @@ Criteria:
 * `ModelCriterion`: a learned model (a `learning.bundle.Model` in-process, or a
   `renderer.client.RemoteModel` talking to a verdict server); both expose
   ``score_blocks(blocks, quick) -> (verdict, score)``.
+* `FlipCriterion`: training-free: FLIP between the display images of the two half
+  buffers (`learning.halves`), converged when at most a calibrated c.
 * `VarianceCriterion`: Blender Cycles' adaptive-sampling pixel test, grouped per block.
 * `OracleCriterion`: the true thresholds of a labelled stack (the best possible stops).
 * `UniformCriterion`: never stops (every block rendered to max spp: the baseline).
 
-Flat blocks: a block whose display-referred image (DESIGN "Display transform") varies by
-at most one 8-bit code value in every channel shows no noise at all, whatever a model
-trained on textured scenes might say about such out-of-distribution input. `ModelCriterion`
-and `VarianceCriterion` call such blocks converged without further work (``flat_shortcut``,
-on by default, counted as ``flat_blocks``). This is what makes the degenerate scenes
-(``allblack``, ``sky``) stop at their first decision instead of running to max spp.
+The model and flip criteria decide by the one stop rule (`learning.stoprule`): a block is
+converged when its score exceeds the offset, or at once when it is flat (its display image
+within one 8-bit level: no noise to see, whatever a model trained on textured scenes might
+say about such out-of-distribution input). The loops around `decide` add the rest of the
+rule: no decision before min spp, and a stop is held. `VarianceCriterion` applies the same
+flat test (``flat_shortcut``, counted as ``flat_blocks``). This is what makes the
+degenerate scenes (``allblack``, ``sky``) stop at their first decision.
 """
 from __future__ import annotations
 
@@ -35,11 +38,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-logger = logging.getLogger(__name__)
+from learning.stoprule import CONVERGED, NOISY, StopRule, flat_blocks
 
-CONVERGED = np.int8(1)
-NOISY = np.int8(-1)
-FLAT_TOLERANCE = 1.0 / 255.0  # one 8-bit code value of the display transform
+logger = logging.getLogger(__name__)
 # decide_calls: calls to decide; blocks_asked: verdicts given; blocks_featured: blocks whose
 # current image went through the feature extractor (here or on a server); feature_rows:
 # 26-feature rows computed in this process (current and quick blocks); converged: +1
@@ -89,21 +90,8 @@ class BlockView:
 class ScoresBlocks(Protocol):
     """Anything that turns linear RGB blocks into verdicts (local Model or RemoteModel)."""
 
-    def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]: ...
-
-
-def finite_rgb(x: np.ndarray) -> np.ndarray:
-    """noisefeat's rule for non-finite values: NaN and -Inf -> 0 (black), +Inf -> 1 (white)."""
-    return np.nan_to_num(np.asarray(x, dtype=np.float64), nan=0.0, posinf=1.0, neginf=0.0)
-
-
-def display_range(mean: np.ndarray, exposure: float = 0.0) -> float:
-    """Largest per-channel (max - min) of the block's display-referred values, in [0, 1]."""
-    x = finite_rgb(mean) * (2.0 ** exposure)
-    x = np.clip(x, 0.0, 1.0)
-    d = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0.0031308), 1 / 2.4) - 0.055)
-    flat = d.reshape(-1, d.shape[-1])
-    return float((flat.max(axis=0) - flat.min(axis=0)).max()) if flat.size else 0.0
+    def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None, exposure: float = 0.0,
+                     offset: float | None = None) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 class Criterion(ABC):
@@ -179,8 +167,10 @@ class Criterion(ABC):
         """Verdicts for validated, non-empty input."""
 
     def _flat(self, views: list[BlockView], exposure: float) -> np.ndarray:
-        """bool [n]: blocks with no visible variation at all (see module docstring)."""
-        flat = np.array([display_range(v.mean, exposure) <= FLAT_TOLERANCE for v in views], bool)
+        """bool [n]: blocks with no visible variation at all (the stop rule's flat test)."""
+        means = [v.mean for v in views]
+        flat = flat_blocks(np.stack(means), exposure) if len({m.shape for m in means}) == 1 else \
+            np.concatenate([flat_blocks(m[None], exposure) for m in means])
         self.counters["flat_blocks"] += int(flat.sum())
         return flat
 
@@ -273,10 +263,16 @@ class VarianceCriterion(Criterion):
         return {"name": self.name, "threshold": self.threshold, "quantile": self.quantile,
                 "scale": self.scale, "flat_shortcut": self.flat_shortcut}
 
+    @staticmethod
+    def _finite(x: np.ndarray) -> np.ndarray:
+        """The display rule's mapping of non-finite values, in linear float64: NaN and -Inf
+        -> 0, +Inf -> 1 (so no error is ever NaN)."""
+        return np.nan_to_num(np.asarray(x, dtype=np.float64), nan=0.0, posinf=1.0, neginf=0.0)
+
     def pixel_error(self, mean: np.ndarray, half_a: np.ndarray) -> np.ndarray:
         """Cycles' per-pixel error [bh, bw] (finite, >= 0)."""
-        i = finite_rgb(mean)
-        a = finite_rgb(half_a)
+        i = self._finite(mean)
+        a = self._finite(half_a)
         diff = np.abs(i - a).sum(axis=-1)
         intensity = np.maximum(i.sum(axis=-1), 0.0)
         norm = np.where(intensity < 1.0, np.sqrt(intensity), intensity)
@@ -301,6 +297,12 @@ class VarianceCriterion(Criterion):
 class ModelCriterion(Criterion):
     """A learned verdict model: local `learning.bundle.Model` or a `RemoteModel`.
 
+    Verdicts follow the one stop rule: flat blocks are converged without asking the model;
+    the others are converged when their score exceeds the offset (the model's calibrated
+    `offset_`, or `offset` if given: the user's speed/accuracy knob). A remote server
+    applies the same rule itself (its model's offset, or the `offset` sent with the
+    request), so its verdicts are used as they come.
+
     For a local feature model the model input features(quick) - features(current) is
     computed here, in two timed steps (features, then the SVM), with the quick blocks'
     features cached per (block id, content hash): the quick image never changes during a
@@ -310,22 +312,30 @@ class ModelCriterion(Criterion):
 
     name = "model"
 
-    def __init__(self, model: ScoresBlocks, exposure: float = 0.0, flat_shortcut: bool = True) -> None:
+    def __init__(self, model: ScoresBlocks, exposure: float = 0.0, offset: float | None = None) -> None:
         super().__init__()
         if not hasattr(model, "score_blocks"):
             raise ValueError(f"model must have score_blocks(blocks, quick), got {type(model).__name__}")
         self.model = model
         self.exposure = float(exposure)
-        self.flat_shortcut = bool(flat_shortcut)
+        self.offset = None if offset is None else float(offset)
         self.needs_quick = bool(getattr(model, "needs_quick", getattr(model, "input", "features") != "raw"))
         self.quick_kind = str(getattr(model, "quick", "albedo")) if self.needs_quick else "albedo"
-        self._local_features = (getattr(model, "input", None) == "features"
-                                and hasattr(model, "decision_function") and hasattr(model, "offset"))
+        self._local = hasattr(model, "rule") and hasattr(model, "decision_function")
+        self._local_features = self._local and getattr(model, "input", None) == "features"
+        # local models: the rule is applied here; remote: the server applies it (the offset
+        # and exposure go with every request)
+        self.rule: StopRule | None = model.rule(self.offset) if self._local else None  # type: ignore[attr-defined]
         self._quick_cache: dict[tuple[int, bytes], np.ndarray] = {}
+
+    @property
+    def effective_offset(self) -> float | None:
+        """The offset verdicts are made at (None: a remote server's own, not known here)."""
+        return self.rule.offset if self.rule is not None else self.offset
 
     def describe(self) -> dict[str, Any]:
         m = self.model
-        d: dict[str, Any] = {"name": self.name, "flat_shortcut": self.flat_shortcut}
+        d: dict[str, Any] = {"name": self.name, "offset": self.effective_offset}
         manifest = getattr(m, "manifest", None)
         if isinstance(manifest, Mapping):
             d["model"] = {"kind": manifest.get("kind"), "name": manifest.get("name"),
@@ -364,52 +374,107 @@ class ModelCriterion(Criterion):
             self.timers["features_s"] += time.perf_counter() - t0
 
     def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
-        out = np.full(len(ids), NOISY, np.int8)
-        flat = self._flat(views, self.exposure) if self.flat_shortcut else np.zeros(len(views), bool)
-        out[flat] = CONVERGED
-        ask = [i for i in range(len(ids)) if not flat[i]]
-        if not ask:
-            return out
-        blocks = np.stack([np.asarray(views[i].mean, np.float32) for i in ask])
-        quick = np.stack([np.asarray(views[i].quick, np.float32) for i in ask]) if self.needs_quick else None
-        self.counters["blocks_featured"] += len(ask)
-        if self._local_features:
-            from learning.table import feature_input
-            from noisefeat import extract_features
+        flat = self._flat(views, self.exposure)
+        ask = np.flatnonzero(~flat).tolist()
+        score = np.full(len(ids), np.nan)
+        remote_verdict = np.full(len(ids), NOISY, np.int8)
+        if ask:
+            blocks = np.stack([np.asarray(views[i].mean, np.float32) for i in ask])
+            quick = np.stack([np.asarray(views[i].quick, np.float32) for i in ask]) if self.needs_quick else None
+            self.counters["blocks_featured"] += len(ask)
+            if self._local_features:
+                from learning.table import feature_input
+                from noisefeat import extract_features
 
-            with single_torch_thread():
-                t0 = time.perf_counter()
-                quick_feats = self._quick_features([ids[i] for i in ask], quick) if self.needs_quick else None
-                x = feature_input(extract_features(blocks, exposure=self.exposure), quick_feats)
-                self.counters["feature_rows"] += len(ask)
-                self.timers["features_s"] += time.perf_counter() - t0
-                verdict, _ = self.model.score_inputs(x)  # type: ignore[attr-defined]
+                with single_torch_thread():
+                    t0 = time.perf_counter()
+                    quick_feats = self._quick_features([ids[i] for i in ask], quick) if self.needs_quick else None
+                    x = feature_input(extract_features(blocks, exposure=self.exposure), quick_feats)
+                    self.counters["feature_rows"] += len(ask)
+                    self.timers["features_s"] += time.perf_counter() - t0
+                    score[ask] = self.model.decision_function(x)  # type: ignore[attr-defined]
+            elif self._local:
+                score[ask] = self.model.decision_function(  # type: ignore[attr-defined]
+                    self.model.inputs_from_blocks(blocks, quick, exposure=self.exposure))  # type: ignore[attr-defined]
+            else:
+                verdict, _ = self.model.score_blocks(blocks, quick, exposure=self.exposure, offset=self.offset)
+                verdict = np.asarray(verdict)
+                if verdict.shape != (len(ask),):
+                    raise RuntimeError(f"model returned {verdict.shape} verdicts for {len(ask)} blocks")
+                remote_verdict[ask] = np.where(verdict > 0, CONVERGED, NOISY)
+        if self.rule is None:                  # a server's verdicts, by the same rule there
+            return np.where(flat, CONVERGED, remote_verdict)
+        return self.rule.verdict(score, flat)
+
+
+class FlipCriterion(Criterion):
+    """Training-free: FLIP between display(A) and display(B), the two half buffers.
+
+    e = mean over the block of the raw LDR-FLIP map between the display images of the
+    even-pass and odd-pass means (`learning.halves`); the block is converged when e <= c
+    (the stop rule with score -e), or at once when flat. `c` defaults to the calibrated
+    value shipped in `learning/flip.json` (training scenes only). A block whose odd half is
+    still empty (one pass) has no estimate yet and stays noisy, so the first flip decision
+    comes after two passes unless the block is flat. FLIP runs on the active, non-flat
+    blocks only; its time is the decision cost (`decisions_s`).
+    """
+
+    name = "flip"
+    needs_halves = True
+
+    def __init__(self, c: float | None = None, exposure: float = 0.0) -> None:
+        super().__init__()
+        from learning.halves import flip_offset, load_flip_calibration
+
+        if c is None:
+            cal = load_flip_calibration()
+            self.c, self.source = float(cal["c"]), str(cal.get("source", "learning/flip.json"))
         else:
-            verdict, score = self.model.score_blocks(blocks, quick)
-            verdict = np.asarray(verdict)
-        if verdict.shape != (len(ask),):
-            raise RuntimeError(f"model returned {verdict.shape} verdicts for {len(ask)} blocks")
-        out[ask] = np.where(verdict > 0, CONVERGED, NOISY)
-        return out
+            self.c, self.source = float(c), "argument"
+        self.rule = StopRule(flip_offset(self.c))
+        self.exposure = float(exposure)
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "threshold": self.c, "source": self.source}
+
+    def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
+        from learning.halves import halves_flip
+
+        flat = self._flat(views, self.exposure)
+        ask = [i for i, v in enumerate(views) if not flat[i] and min(v.half_spp or (0, 0)) > 0]
+        score = np.full(len(ids), np.nan)
+        if ask:
+            a = np.stack([views[i].halves[0] for i in ask])    # type: ignore[index]
+            b = np.stack([views[i].halves[1] for i in ask])    # type: ignore[index]
+            score[ask] = -halves_flip(a, b, self.exposure)
+            self.counters["blocks_featured"] += len(ask)
+        return self.rule.verdict(score, flat)
 
 
-CRITERIA = ("model", "variance", "uniform", "oracle")
+CRITERIA = ("model", "flip", "variance", "uniform", "oracle")
+#: what `noisestop render` and `make run` use unless told: the criterion that measured best
+#: on the held-out scenes at <= 5 % early stops (README "Deciding a stop", BENCHMARKS.md)
+DEFAULT_CRITERION = "flip"
 
 
 def build_criterion(kind: str, *, model: str | None = None, server: str | None = None,
                     token: str | None = None, thresholds: Sequence[int | None] | None = None,
-                    variance_threshold: float = 0.01, quantile: float = 1.0,
-                    exposure: float = 0.0) -> Criterion:
+                    threshold: float | None = None, quantile: float = 1.0,
+                    exposure: float = 0.0, offset: float | None = None) -> Criterion:
     """A criterion from command-line style options.
 
     model: bundle path (None: the bundled model); server: verdict server URL (then the
-    model name is `default` unless the URL ends with ``#name``); thresholds: needed by
-    the oracle (from a labelled stack).
+    model name is `default` unless the URL ends with ``#name``); offset: the model's
+    decision offset (None: its calibrated one); threshold: flip's c (None: the shipped
+    calibration) or variance's noise threshold (None: 0.01); thresholds: needed by the
+    oracle (from a labelled stack).
     """
     if kind == "uniform":
         return UniformCriterion()
     if kind == "variance":
-        return VarianceCriterion(variance_threshold, quantile=quantile, exposure=exposure)
+        return VarianceCriterion(0.01 if threshold is None else threshold, quantile=quantile, exposure=exposure)
+    if kind == "flip":
+        return FlipCriterion(threshold, exposure=exposure)
     if kind == "oracle":
         if thresholds is None:
             raise ValueError("the oracle criterion needs true thresholds: give a labelled dataset "
@@ -420,8 +485,9 @@ def build_criterion(kind: str, *, model: str | None = None, server: str | None =
             from .client import RemoteModel
 
             url, _, name = server.partition("#")
-            return ModelCriterion(RemoteModel(url, model=name or "default", token=token), exposure=exposure)
+            return ModelCriterion(RemoteModel(url, model=name or "default", token=token), exposure=exposure,
+                                  offset=offset)
         from learning.bundle import load_model
 
-        return ModelCriterion(load_model(model), exposure=exposure)
+        return ModelCriterion(load_model(model), exposure=exposure, offset=offset)
     raise ValueError(f"unknown criterion {kind!r}; choose one of {', '.join(CRITERIA)}")

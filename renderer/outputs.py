@@ -1,4 +1,5 @@
-"""What an adaptive render leaves on disk: final.exr, final.png, spp_map.png, report.json.
+"""What an adaptive render leaves on disk: final.exr, final.png, spp_map.png, report.json,
+and with a reference, compare.png (final next to reference, per-block FLIP against it).
 
 Every file is written atomically (temporary name, fsync, rename: `learning.exr`), so an
 interrupted run never leaves a truncated image that looks finished. The spp map is drawn
@@ -23,6 +24,7 @@ FINAL_EXR = "final.exr"
 FINAL_PNG = "final.png"
 SPP_MAP = "spp_map.png"
 REPORT = "report.json"
+COMPARE = "compare.png"
 
 
 def to_srgb8(image: np.ndarray, exposure: float = 0.0) -> np.ndarray:
@@ -80,19 +82,63 @@ def spp_map_png(srgb8: np.ndarray, grid: Sequence[int], spp: Sequence[int],
     return buf.getvalue()
 
 
-def write_outputs(out: str | os.PathLike, image: np.ndarray, report: dict[str, Any]) -> dict[str, str]:
-    """Write the four outputs of a render into `out`; return their paths by name."""
+def compare_png(final8: np.ndarray, reference8: np.ndarray, grid: Sequence[int], spp: Sequence[int],
+                errors: Sequence[float], tau: float) -> bytes:
+    """PNG bytes: final image and reference side by side, each block of the final image
+    labelled with its spp and its FLIP error against the reference (red: above the
+    observer's threshold, noise a person would see)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    h, w = final8.shape[:2]
+    gh, gw = (int(g) for g in grid)
+    bh, bw = h // gh, w // gw
+    inches = max(4.0, w / 100.0)
+    fig = Figure(figsize=(2 * inches, inches * h / w + 0.3), dpi=100)
+    FigureCanvasAgg(fig)
+    size = max(5.0, min(11.0, 60.0 * inches / gw / 4.0))
+    for i, (img, title) in enumerate(((final8, "final (spp, FLIP vs reference)"), (reference8, "reference"))):
+        ax = fig.add_axes((i / 2, 0, 0.5, h / (h + 30)))
+        ax.imshow(img, interpolation="nearest")
+        ax.set_axis_off()
+        ax.set_title(title, fontsize=8)
+        for r in range(1, gh):
+            ax.axhline(r * bh - 0.5, color="cyan", lw=0.6, alpha=0.7)
+        for c in range(1, gw):
+            ax.axvline(c * bw - 0.5, color="cyan", lw=0.6, alpha=0.7)
+        if i == 0:
+            for b, (s, e) in enumerate(zip(spp, errors)):
+                r, c = divmod(b, gw)
+                ax.text(c * bw + bw / 2 - 0.5, r * bh + bh / 2 - 0.5, f"{int(s)}\n{e:.3f}", ha="center",
+                        va="center", fontsize=size, color="red" if e > tau else "#7CFC00",
+                        bbox={"facecolor": "black", "alpha": 0.55, "pad": 1.5, "lw": 0})
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    return buf.getvalue()
+
+
+def write_outputs(out: str | os.PathLike, image: np.ndarray, report: dict[str, Any],
+                  reference: np.ndarray | None = None) -> dict[str, str]:
+    """Write the outputs of a render into `out`; return their paths by name. With the
+    reference image (and `final_vs_reference` in the report) also compare.png."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     img = np.asarray(image, np.float32)
-    srgb8 = to_srgb8(img)
+    srgb8 = to_srgb8(img, report.get("exposure", 0.0))
     write_exr(out / FINAL_EXR, img)
     write_png(out / FINAL_PNG, srgb8)
     blocks = report["blocks"]
-    atomic_write_bytes(out / SPP_MAP, spp_map_png(srgb8, report["grid"], [b["spp"] for b in blocks],
+    spp = [b["spp"] for b in blocks]
+    atomic_write_bytes(out / SPP_MAP, spp_map_png(srgb8, report["grid"], spp,
                                                   [b["converged"] for b in blocks], report["max_spp"]))
+    names = [FINAL_EXR, FINAL_PNG, SPP_MAP, REPORT]
+    check = report.get("final_vs_reference")
+    if reference is not None and check is not None:
+        atomic_write_bytes(out / COMPARE, compare_png(srgb8, to_srgb8(reference, report.get("exposure", 0.0)),
+                                                      report["grid"], spp, check["errors"], check["tau"]))
+        names.append(COMPARE)
     write_report(out / REPORT, report)
-    return {name: str(out / name) for name in (FINAL_EXR, FINAL_PNG, SPP_MAP, REPORT)}
+    return {name: str(out / name) for name in names}
 
 
 def format_report(report: dict[str, Any], out: str | os.PathLike | None = None) -> str:
@@ -106,8 +152,10 @@ def format_report(report: dict[str, Any], out: str | os.PathLike | None = None) 
             cells.append(f"{b['spp']:>6}{'*' if b['converged'] else ' '}")
         rows.append(" ".join(cells))
     t = report["timing"]
+    knob = (f" at offset {report['offset']:g}" if report.get("offset") is not None else
+            f" at threshold {report['threshold']:g}" if report.get("threshold") is not None else "")
     lines = [f"scene {report['scene']}: {report['resolution'][0]}x{report['resolution'][1]}, "
-             f"criterion {report['criterion']['name']}, variant {report['variant']}",
+             f"criterion {report['criterion']['name']}{knob}, variant {report['variant']}",
              "spp per block (* = stopped by the criterion):", *rows,
              f"saved vs uniform {report['saved_vs_uniform']:.1%}, mean spp {report['mean_spp']:.1f}, "
              f"{report['passes']} passes",
@@ -117,6 +165,10 @@ def format_report(report: dict[str, Any], out: str | os.PathLike | None = None) 
     if "early_stop_rate" in report:
         lines.append(f"vs reference: early-stop rate {report['early_stop_rate']:.1%}, "
                      f"spp ratio vs oracle {report['spp_ratio_vs_oracle']:.2f}")
+    if "final_vs_reference" in report:
+        f = report["final_vs_reference"]
+        lines.append(f"final image vs reference: {f['visible_noise_blocks']} of {len(f['errors'])} blocks above "
+                     f"the observer's FLIP threshold {f['tau']:g} (visible noise; see compare.png)")
     if out is not None:
         lines.append(f"outputs in {out}")
     return "\n".join(lines)

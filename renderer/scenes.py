@@ -34,14 +34,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from . import heldout
+from .scene_kit import SceneDict, T, base, checker_texture, diffuse, rgb
 from .variant import select_variant
 
 logger = logging.getLogger(__name__)
 
-MAX_DEPTH = 8
 DEFAULT_SCENE = "cornell"
-
-SceneDict = dict[str, Any]
 
 
 @dataclass(frozen=True)
@@ -52,68 +51,6 @@ class SceneSpec:
     description: str
     builder: Callable[[int], SceneDict] = field(repr=False)
     tags: tuple[str, ...] = ()
-
-
-# ----------------------------------------------------------------------------- helpers
-
-
-def _T() -> Any:
-    import mitsuba as mi
-
-    return mi.ScalarTransform4f()
-
-
-def _rgb(v: float | list[float]) -> dict:
-    vals = [float(v)] * 3 if isinstance(v, (int, float)) else [float(x) for x in v]
-    return {"type": "rgb", "value": vals}
-
-
-def _diffuse(v: float | list[float]) -> dict:
-    return {"type": "diffuse", "reflectance": _rgb(v)}
-
-
-def _checker(c0: float | list[float], c1: float | list[float], scale: float) -> dict:
-    import mitsuba as mi
-
-    return {
-        "type": "checkerboard",
-        "color0": _rgb(c0),
-        "color1": _rgb(c1),
-        "to_uv": mi.ScalarTransform3f().scale([scale, scale]),
-    }
-
-
-def _base(
-    resolution: int,
-    origin: tuple[float, float, float] = (0.0, 0.0, 3.9),
-    target: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    up: tuple[float, float, float] = (0.0, 1.0, 0.0),
-    fov: float = 39.3077,
-) -> SceneDict:
-    """Scene skeleton: path integrator, perspective camera, box-filtered hdrfilm."""
-    if not isinstance(resolution, int) or resolution < 1:
-        raise ValueError(f"resolution must be a positive integer, got {resolution!r}")
-    return {
-        "type": "scene",
-        "integrator": {"type": "path", "max_depth": MAX_DEPTH},
-        "sensor": {
-            "type": "perspective",
-            "fov_axis": "smaller",
-            "fov": fov,
-            "near_clip": 0.001,
-            "far_clip": 100.0,
-            "to_world": _T().look_at(origin=list(origin), target=list(target), up=list(up)),
-            "sampler": {"type": "independent", "sample_count": 16},
-            "film": {
-                "type": "hdrfilm",
-                "width": resolution,
-                "height": resolution,
-                "rfilter": {"type": "box"},
-                "pixel_format": "rgb",
-                "component_format": "float32",
-            },
-        },
-    }
 
 
 CB_WHITE = [0.885809, 0.698859, 0.666422]
@@ -130,18 +67,17 @@ def _room(
     right: dict | None = None,
 ) -> SceneDict:
     """The five walls of the [-1, 1]^3 Cornell room (open towards the camera at +z)."""
-    T = _T
     return {
         "floor": {"type": "rectangle", "to_world": T().translate([0, -1, 0]).rotate([1, 0, 0], -90),
-                  "bsdf": floor or _diffuse(CB_WHITE)},
+                  "bsdf": floor or diffuse(CB_WHITE)},
         "ceiling": {"type": "rectangle", "to_world": T().translate([0, 1, 0]).rotate([1, 0, 0], 90),
-                    "bsdf": ceiling or _diffuse(CB_WHITE)},
+                    "bsdf": ceiling or diffuse(CB_WHITE)},
         "back": {"type": "rectangle", "to_world": T().translate([0, 0, -1]),
-                 "bsdf": back or _diffuse(CB_WHITE)},
+                 "bsdf": back or diffuse(CB_WHITE)},
         "left": {"type": "rectangle", "to_world": T().translate([-1, 0, 0]).rotate([0, 1, 0], 90),
-                 "bsdf": left or _diffuse(CB_RED)},
+                 "bsdf": left or diffuse(CB_RED)},
         "right": {"type": "rectangle", "to_world": T().translate([1, 0, 0]).rotate([0, 1, 0], -90),
-                  "bsdf": right or _diffuse(CB_GREEN)},
+                  "bsdf": right or diffuse(CB_GREEN)},
     }
 
 
@@ -149,26 +85,25 @@ def _ceiling_light(radiance: float | list[float], sx: float = 0.23, sz: float = 
     """Downward-facing rectangular area light just under the ceiling."""
     return {
         "type": "rectangle",
-        "to_world": _T().translate([0, 0.99, 0.01]).rotate([1, 0, 0], 90).scale([sx, sz, 1]),
-        "bsdf": _diffuse(CB_WHITE),
-        "emitter": {"type": "area", "radiance": _rgb(radiance)},
+        "to_world": T().translate([0, 0.99, 0.01]).rotate([1, 0, 0], 90).scale([sx, sz, 1]),
+        "bsdf": diffuse(CB_WHITE),
+        "emitter": {"type": "area", "radiance": rgb(radiance)},
     }
 
 
 def _boxes(bsdf_small: dict | None = None, bsdf_tall: dict | None = None) -> SceneDict:
-    T = _T
     return {
         "small_box": {"type": "cube",
                       "to_world": T().translate([0.335, -0.7, 0.38]).rotate([0, 1, 0], -17).scale(0.3),
-                      "bsdf": bsdf_small or _diffuse(CB_WHITE)},
+                      "bsdf": bsdf_small or diffuse(CB_WHITE)},
         "tall_box": {"type": "cube",
                      "to_world": T().translate([-0.33, -0.4, -0.28]).rotate([0, 1, 0], 17.5).scale([0.3, 0.61, 0.3]),
-                     "bsdf": bsdf_tall or _diffuse(CB_WHITE)},
+                     "bsdf": bsdf_tall or diffuse(CB_WHITE)},
     }
 
 
 def _cornell_like(resolution: int, light_scale: float = 1.0) -> SceneDict:
-    d = _base(resolution)
+    d = base(resolution)
     d.update(_room())
     d["light"] = _ceiling_light([c * light_scale for c in CB_LIGHT])
     d.update(_boxes())
@@ -191,7 +126,7 @@ def cornell_bright(resolution: int) -> SceneDict:
 
 
 def large_light(resolution: int) -> SceneDict:
-    d = _base(resolution)
+    d = base(resolution)
     d.update(_room())
     d["light"] = _ceiling_light([c * 0.075 for c in CB_LIGHT], sx=0.85, sz=0.85)
     d.update(_boxes())
@@ -199,30 +134,29 @@ def large_light(resolution: int) -> SceneDict:
 
 
 def small_light(resolution: int) -> SceneDict:
-    d = _base(resolution)
+    d = base(resolution)
     d.update(_room())
     d["light"] = {"type": "sphere", "center": [0.0, 0.85, 0.0], "radius": 0.025,
-                  "emitter": {"type": "area", "radiance": _rgb([1400.0, 1100.0, 700.0])}}
+                  "emitter": {"type": "area", "radiance": rgb([1400.0, 1100.0, 700.0])}}
     d.update(_boxes())
     return d
 
 
 def glossy(resolution: int) -> SceneDict:
-    d = _base(resolution)
-    d.update(_room(back={"type": "roughplastic", "diffuse_reflectance": _rgb(CB_WHITE), "alpha": 0.08}))
+    d = base(resolution)
+    d.update(_room(back={"type": "roughplastic", "diffuse_reflectance": rgb(CB_WHITE), "alpha": 0.08}))
     d["light"] = _ceiling_light(CB_LIGHT)
     d["gold_sphere"] = {"type": "sphere", "center": [0.4, -0.6, 0.25], "radius": 0.4,
                         "bsdf": {"type": "roughconductor", "material": "Au", "alpha": 0.15}}
     d["plastic_box"] = {"type": "cube",
-                        "to_world": _T().translate([-0.4, -0.45, -0.3]).rotate([0, 1, 0], 20).scale([0.3, 0.55, 0.3]),
-                        "bsdf": {"type": "roughplastic", "diffuse_reflectance": _rgb([0.1, 0.2, 0.6]), "alpha": 0.05}}
+                        "to_world": T().translate([-0.4, -0.45, -0.3]).rotate([0, 1, 0], 20).scale([0.3, 0.55, 0.3]),
+                        "bsdf": {"type": "roughplastic", "diffuse_reflectance": rgb([0.1, 0.2, 0.6]), "alpha": 0.05}}
     return d
 
 
 def mirrors(resolution: int) -> SceneDict:
-    T = _T
     mirror = {"type": "conductor"}  # material 'none': a perfect mirror
-    d = _base(resolution)
+    d = base(resolution)
     d.update(_room())
     d["light"] = _ceiling_light([c * 0.4 for c in CB_LIGHT], sx=0.4, sz=0.3)
     # Two facing mirror panels on the side walls: the spheres repeat down a hall of
@@ -232,50 +166,49 @@ def mirrors(resolution: int) -> SceneDict:
     d["mirror_right"] = {"type": "rectangle", "bsdf": mirror,
                          "to_world": T().translate([0.98, -0.2, -0.2]).rotate([0, 1, 0], -90).scale([0.7, 0.55, 1])}
     d["diffuse_sphere"] = {"type": "sphere", "center": [-0.3, -0.65, 0.1], "radius": 0.35,
-                           "bsdf": _diffuse([0.2, 0.3, 0.8])}
+                           "bsdf": diffuse([0.2, 0.3, 0.8])}
     d["steel_sphere"] = {"type": "sphere", "center": [0.4, -0.7, -0.35], "radius": 0.3,
                          "bsdf": {"type": "roughconductor", "material": "Cr", "alpha": 0.05}}
     return d
 
 
 def glass_caustic(resolution: int) -> SceneDict:
-    d = _base(resolution)
+    d = base(resolution)
     d.update(_room())
     d["light"] = {"type": "sphere", "center": [0.0, 0.8, 0.0], "radius": 0.06,
-                  "emitter": {"type": "area", "radiance": _rgb([220.0, 180.0, 120.0])}}
+                  "emitter": {"type": "area", "radiance": rgb([220.0, 180.0, 120.0])}}
     d["glass_sphere"] = {"type": "sphere", "center": [0.0, -0.55, 0.1], "radius": 0.45,
                          "bsdf": {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0}}
     return d
 
 
 def indirect(resolution: int) -> SceneDict:
-    T = _T
-    d = _base(resolution)
+    d = base(resolution)
     d.update(_room())
     # Cove lighting: an upward-facing light on top of a shelf; the camera only sees the
     # shelf's underside, the room is lit by the bounce off the ceiling.
     d["shelf"] = {"type": "rectangle",
                   "to_world": T().translate([0, 0.6, -0.2]).rotate([1, 0, 0], 90).scale([0.75, 0.55, 1]),
-                  "bsdf": _diffuse(0.7)}
+                  "bsdf": diffuse(0.7)}
     d["light"] = {"type": "rectangle",
                   "to_world": T().translate([0, 0.605, -0.2]).rotate([1, 0, 0], -90).scale([0.7, 0.5, 1]),
-                  "emitter": {"type": "area", "radiance": _rgb([5.0, 4.2, 3.2])}}
+                  "emitter": {"type": "area", "radiance": rgb([5.0, 4.2, 3.2])}}
     d.update(_boxes())
     return d
 
 
 def checker(resolution: int) -> SceneDict:
     def tex(c0: float | list[float], c1: float | list[float], scale: float) -> dict:
-        return {"type": "diffuse", "reflectance": _checker(c0, c1, scale)}
+        return {"type": "diffuse", "reflectance": checker_texture(c0, c1, scale)}
 
-    d = _base(resolution)
+    d = base(resolution)
     d.update(_room(floor=tex(0.1, 0.8, 12), back=tex([0.7, 0.7, 0.2], [0.2, 0.2, 0.6], 20),
                    left=tex(CB_RED, 0.8, 8), right=tex(CB_GREEN, 0.8, 8)))
     d["light"] = _ceiling_light(CB_LIGHT, sx=0.35, sz=0.3)
     d["sphere"] = {"type": "sphere", "center": [0.35, -0.6, 0.2], "radius": 0.4,
                    "bsdf": tex(0.05, 0.9, 24)}
     d["box"] = {"type": "cube",
-                "to_world": _T().translate([-0.4, -0.45, -0.3]).rotate([0, 1, 0], 20).scale([0.3, 0.55, 0.3]),
+                "to_world": T().translate([-0.4, -0.45, -0.3]).rotate([0, 1, 0], 20).scale([0.3, 0.55, 0.3]),
                 "bsdf": tex([0.9, 0.5, 0.1], 0.1, 6)}
     return d
 
@@ -293,12 +226,11 @@ def _facing(p: list[float], a: list[float], b: list[float]) -> list[float]:
 
 def mis_plates(resolution: int) -> SceneDict:
     """Veach-style MIS test: four plates of falling roughness, four lights of rising size."""
-    T = _T
     cam = [0.0, 2.0, 15.0]
-    d = _base(resolution, origin=tuple(cam), target=(0.0, -1.8, 2.0), fov=30.0)
+    d = base(resolution, origin=tuple(cam), target=(0.0, -1.8, 2.0), fov=30.0)
     d["floor"] = {"type": "rectangle", "to_world": T().translate([0, -4.5, 0]).rotate([1, 0, 0], -90).scale(20),
-                  "bsdf": _diffuse(0.3)}
-    d["backdrop"] = {"type": "rectangle", "to_world": T().translate([0, 0, -4]).scale(20), "bsdf": _diffuse(0.3)}
+                  "bsdf": diffuse(0.3)}
+    d["backdrop"] = {"type": "rectangle", "to_world": T().translate([0, 0, -4]).scale(20), "bsdf": diffuse(0.3)}
     light_y, light_z = 2.5, -1.5
     plates = [(-3.6, 3.9, 0.20), (-2.5, 2.7, 0.08), (-1.4, 1.5, 0.03), (-0.3, 0.3, 0.005)]
     for i, (y, z, alpha) in enumerate(plates):
@@ -310,33 +242,33 @@ def mis_plates(resolution: int) -> SceneDict:
     lights = [(-3.0, 0.04, 600.0), (-1.0, 0.12, 70.0), (1.0, 0.35, 8.0), (3.0, 0.8, 1.5)]
     for i, (x, r, L) in enumerate(lights):
         d[f"light{i}"] = {"type": "sphere", "center": [x, light_y, light_z], "radius": r,
-                          "emitter": {"type": "area", "radiance": _rgb(L)}}
+                          "emitter": {"type": "area", "radiance": rgb(L)}}
     return d
 
 
 def env_spheres(resolution: int) -> SceneDict:
-    d = _base(resolution, origin=(0.0, 1.2, 5.0), target=(0.0, 0.0, 0.0))
-    d["sky"] = {"type": "constant", "radiance": _rgb([0.6, 0.75, 1.0])}
-    d["ground"] = {"type": "rectangle", "to_world": _T().translate([0, -0.5, 0]).rotate([1, 0, 0], -90).scale(8),
-                   "bsdf": _diffuse(0.5)}
-    d["s_diffuse"] = {"type": "sphere", "center": [-1.1, 0.0, 0.0], "radius": 0.5, "bsdf": _diffuse([0.8, 0.3, 0.2])}
+    d = base(resolution, origin=(0.0, 1.2, 5.0), target=(0.0, 0.0, 0.0))
+    d["sky"] = {"type": "constant", "radiance": rgb([0.6, 0.75, 1.0])}
+    d["ground"] = {"type": "rectangle", "to_world": T().translate([0, -0.5, 0]).rotate([1, 0, 0], -90).scale(8),
+                   "bsdf": diffuse(0.5)}
+    d["s_diffuse"] = {"type": "sphere", "center": [-1.1, 0.0, 0.0], "radius": 0.5, "bsdf": diffuse([0.8, 0.3, 0.2])}
     d["s_glossy"] = {"type": "sphere", "center": [0.0, 0.0, 0.0], "radius": 0.5,
-                     "bsdf": {"type": "roughplastic", "diffuse_reflectance": _rgb([0.2, 0.6, 0.3]), "alpha": 0.1}}
+                     "bsdf": {"type": "roughplastic", "diffuse_reflectance": rgb([0.2, 0.6, 0.3]), "alpha": 0.1}}
     d["s_glass"] = {"type": "sphere", "center": [1.1, 0.0, 0.0], "radius": 0.5,
                     "bsdf": {"type": "dielectric", "int_ior": 1.5}}
     return d
 
 
 def allblack(resolution: int) -> SceneDict:
-    d = _base(resolution)
+    d = base(resolution)
     d.update(_room())  # geometry but no emitter at all: every path carries zero radiance
     d.update(_boxes())
     return d
 
 
 def sky(resolution: int) -> SceneDict:
-    d = _base(resolution)
-    d["sky"] = {"type": "constant", "radiance": _rgb(0.5)}  # nothing else: a flat, noise-free image
+    d = base(resolution)
+    d["sky"] = {"type": "constant", "radiance": rgb(0.5)}  # nothing else: a flat, noise-free image
     return d
 
 
@@ -370,13 +302,33 @@ SCENES: dict[str, SceneSpec] = {
                   allblack, ("degenerate",)),
         SceneSpec("sky", "Constant environment and nothing else: a flat image (degenerate input)", sky,
                   ("degenerate", "environment")),
+        # held out: never used to train or calibrate anything (renderer/heldout.py)
+        SceneSpec("studio_preview", "Material preview: three spheres on a plane under a studio environment map",
+                  heldout.studio_preview, ("heldout", "environment", "glossy")),
+        SceneSpec("sunlit_courtyard", "Pillars and blocks under sun and sky casting shadows on paving",
+                  heldout.sunlit_courtyard, ("heldout", "outdoor", "textured")),
+        SceneSpec("marble_hall", "Room with a marble floor, wood-grain back wall and a panel light",
+                  heldout.marble_hall, ("heldout", "textured", "glossy")),
+        SceneSpec("spot_stage", "Dark stage lit by one spot light: a pool of light in near-black",
+                  heldout.spot_stage, ("heldout", "dark", "glossy")),
+        SceneSpec("lamp_room", "Table under a hanging globe lamp in a warm room with a wooden floor",
+                  heldout.lamp_room, ("heldout", "diffuse", "textured")),
+        SceneSpec("corridor", "Long corridor with a row of ceiling lights and a glossy floor",
+                  heldout.corridor, ("heldout", "glossy")),
+        SceneSpec("pastel_blocks", "Grid of pastel blocks under an overcast sky (ambient occlusion look)",
+                  heldout.pastel_blocks, ("heldout", "outdoor", "environment")),
+        SceneSpec("window_light", "Room lit through one window: a sun patch, the rest bounce light",
+                  heldout.window_light, ("heldout", "indirect")),
     )
 }
+HELDOUT = "heldout"
 
 
-def list_scenes() -> list[tuple[str, str]]:
-    """(name, description) of every built-in scene, in library order."""
-    return [(s.name, s.description) for s in SCENES.values()]
+def list_scenes(heldout: bool | None = None) -> list[tuple[str, str]]:
+    """(name, description) of the built-in scenes, in library order: all of them (None),
+    only the held-out set (True) or only the training library (False)."""
+    return [(s.name, s.description) for s in SCENES.values()
+            if heldout is None or (HELDOUT in s.tags) == heldout]
 
 
 def _unknown(name: str) -> ValueError:

@@ -1,14 +1,15 @@
 """Run a stopping criterion over stored stacks instead of rendering (offline evaluation).
 
-Level k of a stack is the cumulative mean of spp[k] samples. The samples added between
-two levels form one *pass*: sum_k = spp[k] * L_k, pass_k = (sum_k - sum_{k-1}) /
-(spp[k] - spp[k-1]) (pass 0 = L_0). Feeding these passes to a `BlockAccumulator` gives the
-very half buffers the live loop keeps (A = even passes, B = odd passes). With a constant
-step every pass has the same size and A and B hold equal sample counts, as in the live
-loop; with a varying step (e.g. doubling spp) halves are unbalanced and a warning says so.
+Level k of a stack is the cumulative mean of spp[k] samples; the passes between levels
+come back exactly (`learning.halves.recover_passes`), and feeding them to a
+`BlockAccumulator` gives the very half buffers the live loop keeps (A = even passes,
+B = odd passes). With a constant step every pass has the same size and A and B hold
+equal sample counts, as in the live loop; with a varying step (e.g. doubling spp) halves
+are unbalanced and a warning says so.
 
-`simulate_stack` then replays the live loop's control flow: once spp >= min_spp, after
-each level, only the still-active blocks are asked, and a block once converged stays
+`simulate_stack` then replays the live loop's control flow through the stop rule's
+`decide_active` (the live loop calls the same function): once spp >= min_spp, after each
+level, only the still-active blocks are asked, and a block once converged stays
 converged and is never asked again. The verdict matrix V [K, B] therefore holds -1 up to
 the level where the loop would have stopped the block and +1 from there on, which is what
 `learning.metrics.evaluate_verdicts` scores.
@@ -17,45 +18,23 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
+from learning.accumulator import BlockAccumulator
+from learning.generalisation import scene_groups
+from learning.halves import check_constant_step, recover_passes
 from learning.metrics import evaluate_verdicts
 from learning.stack import Stack, list_stacks, read_stack
+from learning.stoprule import decide_active
 
-from .blocks import BlockAccumulator
 from .criteria import BlockView, Criterion
 
 logger = logging.getLogger(__name__)
-
-
-def recover_passes(stack: Stack) -> Iterator[tuple[int, np.ndarray, int, np.ndarray]]:
-    """Yield (k, level_k [H, W, 3] float64, pass spp, pass_k [H, W, 3] float64), one level at a time.
-
-    Pixels whose stored level is non-finite give a non-finite pass; the accumulator drops
-    them exactly as it drops a renderer's non-finite samples.
-    """
-    prev_sum: np.ndarray | None = None
-    prev_spp = 0
-    for k, s in enumerate(stack.spp):
-        level = stack.level(k).astype(np.float64)
-        total = level * float(s)
-        n = int(s) - prev_spp
-        with np.errstate(invalid="ignore", over="ignore"):
-            pass_img = total / n if prev_sum is None else (total - prev_sum) / n
-        yield k, level, n, pass_img
-        prev_sum, prev_spp = total, int(s)
-
-
-def _check_step(stack: Stack) -> None:
-    steps = np.diff([0, *stack.spp])
-    if len(set(steps.tolist())) > 1:
-        logger.warning("%s: spp steps are not constant (%s...): recovered passes differ in size, "
-                       "so the half buffers A/B are unbalanced", stack.path, steps[:4].tolist())
 
 
 def simulate_stack(stack: Stack, criterion: Criterion, min_spp: int | None = None,
@@ -75,37 +54,32 @@ def simulate_stack(stack: Stack, criterion: Criterion, min_spp: int | None = Non
         criterion.prepare(list(range(n)), quick)
     acc = None
     if criterion.needs_halves:
-        _check_step(stack)
+        check_constant_step(stack)
         acc = BlockAccumulator(stack.grid, stack.block)
     bar = tqdm(total=K, desc=f"{stack.scene} simulate", unit="lvl", disable=not progress, leave=False)
     for k, level, pass_spp, pass_img in recover_passes(stack):
         bar.update(1)
-        ids = np.flatnonzero(active).tolist()
-        if not ids:
+        if not active.any():
             V[k:] = 1
             break
         if acc is not None:
             pass_blocks = stack.split(pass_img)
-            for b in ids:  # converged blocks are never rendered again, nor accumulated
-                acc.add(b, pass_blocks[b], pass_spp)
+            for b in np.flatnonzero(active):  # converged blocks are never rendered again, nor accumulated
+                acc.add(int(b), pass_blocks[b], pass_spp)
         if k > 0:
             V[k] = V[k - 1]
         spp = int(stack.spp[k])
-        if min_spp is not None and spp < min_spp:
-            continue
         means = stack.split(level)
-        views = []
-        for b in ids:
-            views.append(BlockView(
+
+        def ask(ids: list[int], means: np.ndarray = means, spp: int = spp) -> np.ndarray:
+            return criterion.decide(ids, [BlockView(
                 mean=means[b], spp=spp,
                 halves=acc.half_buffer(b) if acc is not None else None,
                 half_spp=acc.half_spp(b) if acc is not None else None,
                 quick=None if quick is None else quick[b],
-                nonfinite=acc.nonfinite(b) if acc is not None else 0))
-        verdict = criterion.decide(ids, views)
-        done = [b for b, v in zip(ids, verdict) if v > 0]
-        V[k, done] = 1
-        active[done] = False
+                nonfinite=acc.nonfinite(b) if acc is not None else 0) for b in ids])
+        row = decide_active(active, spp, min_spp, ask)
+        V[k, row > 0] = 1
     bar.close()
     return V
 
@@ -150,18 +124,20 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
         description = crit.describe()
         if description.get("name") == "oracle":
             description = {"name": "oracle"}
-    out = evaluate_verdicts(per_scene)
+    out = evaluate_verdicts(per_scene, scene_groups(todo))
     out["criterion"] = description
     out["counters"] = counters
     return out
 
 
 def criterion_factory(kind: str, *, model: str | None = None, server: str | None = None,
-                      variance_threshold: float = 0.01) -> Callable[[Stack], Criterion]:
+                      threshold: float | None = None, offset: float | None = None,
+                      exposure: float = 0.0) -> Callable[[Stack], Criterion]:
     """A fresh criterion per stack for `evaluate_criterion`, from command-line style options.
 
     The model (or server connection) is set up once and shared; the oracle takes each
-    stack's own thresholds.
+    stack's own thresholds. `threshold`: flip's c or variance's threshold (None: their
+    defaults); `offset`: the model's decision offset (None: its calibrated one).
     """
     from .criteria import CRITERIA, ModelCriterion, OracleCriterion, build_criterion
 
@@ -174,16 +150,16 @@ def criterion_factory(kind: str, *, model: str | None = None, server: str | None
             return OracleCriterion(st.thresholds)
         return oracle
     if kind == "model":
-        shared = build_criterion("model", model=model, server=server)
+        shared = build_criterion("model", model=model, server=server, offset=offset, exposure=exposure)
         assert isinstance(shared, ModelCriterion)
-        return lambda st: ModelCriterion(shared.model, exposure=shared.exposure)
-    return lambda st: build_criterion(kind, variance_threshold=variance_threshold)
+        return lambda st: ModelCriterion(shared.model, exposure=shared.exposure, offset=shared.offset)
+    return lambda st: build_criterion(kind, threshold=threshold, exposure=exposure)
 
 
 def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list[str] | None = None, *,
-                           min_spp: int | None = None, variance_threshold: float = 0.01,
-                           model: str | None = None, server: str | None = None,
-                           progress: bool = True) -> dict[str, Any]:
+                           min_spp: int | None = None, threshold: float | None = None,
+                           offset: float | None = None, model: str | None = None,
+                           server: str | None = None, progress: bool = True) -> dict[str, Any]:
     """What `noisestop evaluate --criterion C` runs for a rule criterion: simulate C on the
     labelled stacks of `data` (only `scenes` if given) and return the DESIGN metrics,
     overall and per scene."""
@@ -199,7 +175,7 @@ def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list
         stacks = [st for st in stacks if st.thresholds is not None]
     if not stacks:
         raise ValueError(f"{data}: no labelled stacks to evaluate on")
-    factory = criterion_factory(criterion, model=model, server=server, variance_threshold=variance_threshold)
+    factory = criterion_factory(criterion, model=model, server=server, threshold=threshold, offset=offset)
     return evaluate_criterion(stacks, factory, min_spp=min_spp, progress=progress)
 
 

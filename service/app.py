@@ -212,8 +212,11 @@ def _infer_sync(served: ServedModel, body: bytes, header_length: int | None, lim
     exposure = param(req.parameters, "exposure", (int, float), 0.0)
     if not math.isfinite(exposure):
         raise ApiError(400, f"parameter 'exposure' must be finite, got {exposure}")
+    offset = param(req.parameters, "offset", (int, float), None)
+    if offset is not None and not math.isfinite(offset):
+        raise ApiError(400, f"parameter 'offset' must be finite, got {offset}")
     wanted = _requested_outputs(req)
-    arrays, parameters = served.infer(tensors, float(exposure))
+    arrays, parameters = served.infer(tensors, float(exposure), None if offset is None else float(offset))
     metrics.record(served.name, arrays["verdict"], parameters)
     resp = InferenceResponse(
         model_name=served.name, model_version=served.version, id=req.id, parameters=parameters or None,

@@ -16,6 +16,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from .bench_decisions import bench_criteria, bench_step, bench_tradeoff, md_criteria, md_step, md_tradeoff
+
 log = logging.getLogger(__name__)
 
 
@@ -94,18 +96,17 @@ def bench_crop(repeats: int = 3) -> dict[str, Any]:
 
 def bench_models(data: str, out_dir: Path, arches: tuple[str, ...] | None = None,
                  kinds: tuple[str, ...] | None = None, quick: str = "albedo",
-                 plots_dir: str = "docs") -> dict[str, Any]:
+                 plots_dir: str = "docs", heldout: str | None = None) -> dict[str, Any]:
     """The model comparison on held-out scenes; saved as OUT/models-QUICK.json (with each
     model's offset curve) so that `bench tradeoff` draws every model without retraining."""
     import json
 
     from learning.compare import TRANSFER_ARCHES, compare_models
-    from learning.stack import dataset_fingerprint
     from learning.train import SVM_KINDS
     result = compare_models(data, plots_dir, arches=TRANSFER_ARCHES if arches is None else arches,
-                            kinds=SVM_KINDS if kinds is None else kinds, quick=quick)
+                            kinds=SVM_KINDS if kinds is None else kinds, quick=quick, heldout=heldout)
     result.pop("fitted")
-    result.update(quick=quick, data=str(data), fingerprint=dataset_fingerprint(data))
+    result.update(quick=quick, data=str(data), fingerprint=_fingerprints(data, heldout))
     path = Path(out_dir) / f"models-{quick}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
@@ -114,12 +115,16 @@ def bench_models(data: str, out_dir: Path, arches: tuple[str, ...] | None = None
     return result
 
 
-def saved_comparisons(data: str, out_dir: Path) -> list[dict[str, Any]]:
-    """The model comparisons `bench models` saved in out_dir for this very dataset."""
+def _fingerprints(data: str, heldout: str | None) -> str:
+    from learning.stack import dataset_fingerprint
+    return dataset_fingerprint(data) + ("" if heldout is None else "+" + dataset_fingerprint(heldout))
+
+
+def saved_comparisons(data: str, out_dir: Path, heldout: str | None = None) -> list[dict[str, Any]]:
+    """The model comparisons `bench models` saved in out_dir for these very datasets."""
     import json
 
-    from learning.stack import dataset_fingerprint
-    fp = dataset_fingerprint(data)
+    fp = _fingerprints(data, heldout)
     found = []
     for path in sorted(Path(out_dir).glob("models-*.json")):
         r = json.loads(path.read_text())
@@ -130,54 +135,20 @@ def saved_comparisons(data: str, out_dir: Path) -> list[dict[str, Any]]:
     return found
 
 
-def bench_criteria(data: str, model: str | None = None, max_early_stop: float = 0.05,
-                   thresholds: tuple[float, ...] = (0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2)) -> dict[str, Any]:
-    """Criteria simulated on held-out scenes; variance's threshold tuned on training scenes."""
-    from learning.bundle import load_model
-    from learning.stack import list_stacks, read_stack
-    from renderer.criteria import ModelCriterion, OracleCriterion, UniformCriterion, VarianceCriterion
-    from renderer.simulate import evaluate_criterion
-
-    m = load_model(model)
-    stacks = [read_stack(p) for p in list_stacks(data)]
-    held = set(m.manifest.get("training", {}).get("test_scenes") or [])
-    if not held:
-        from learning.train import default_test_scenes
-        held = set(default_test_scenes([s.scene for s in stacks]))
-    train = [s for s in stacks if s.scene not in held]
-    test = [s for s in stacks if s.scene in held]
-    keys = ("precision", "early_stop_rate", "spp_ratio_vs_oracle", "saved_vs_uniform")
-
-    def run(stk, factory):
-        r = evaluate_criterion(stk, factory)
-        return {k: r[k] for k in keys}
-    sweep = [{"threshold": t, "train": run(train, lambda st, t=t: VarianceCriterion(threshold=t)),
-              "test": run(test, lambda st, t=t: VarianceCriterion(threshold=t))} for t in thresholds]
-    ok = [r for r in sweep if r["train"]["early_stop_rate"] <= max_early_stop]
-    tuned = max(ok, key=lambda r: r["threshold"]) if ok else min(sweep, key=lambda r: r["train"]["early_stop_rate"])
-    rows = {
-        f"model ({m.name}, offset {m.offset:.2f})": run(test, lambda st: ModelCriterion(m)),
-        f"variance (threshold {tuned['threshold']}, tuned on training scenes)": tuned["test"],
-        "oracle": run(test, lambda st: OracleCriterion(st.thresholds)),
-        "uniform": run(test, lambda st: UniformCriterion()),
-    }
-    return {"test_scenes": sorted(held), "rows": rows, "variance_sweep": sweep,
-            "model_on_training_scenes": run(train, lambda st: ModelCriterion(m))}
-
-
 def bench_render(scene: str = "env_spheres", resolution: int = 256, max_spp: int = 640,
                  step: int = 16, model: str | None = None, repeats: int = 3) -> dict[str, Any]:
-    """Real renders: the model criterion against uniform sampling to the same max spp (warm).
+    """Real renders: the model and flip criteria against uniform sampling to the same max
+    spp (warm).
 
-    The two runs alternate `repeats` times and each reports its median run, so that a
+    The runs alternate `repeats` times and each reports its median run, so that a
     passing disturbance on the machine does not decide the speed-up.
     """
     import tempfile
 
     from learning.bundle import load_model
     from renderer.adaptive import adaptive_render
-    from renderer.criteria import ModelCriterion, UniformCriterion
-    runs: dict[str, list[dict]] = {"model": [], "uniform": []}
+    from renderer.criteria import FlipCriterion, ModelCriterion, UniformCriterion
+    runs: dict[str, list[dict]] = {"model": [], "flip": [], "uniform": []}
     m = load_model(model)
     with tempfile.TemporaryDirectory() as tmp:
         # warm-up: every block's kernel compiled once (Dr.Jit caches them), so neither timed
@@ -185,18 +156,20 @@ def bench_render(scene: str = "env_spheres", resolution: int = 256, max_spp: int
         adaptive_render(scene, Path(tmp) / "warm", UniformCriterion(), resolution=resolution,
                         step=step, min_spp=step, max_spp=step, progress=False)
         for i in range(repeats):
-            for name, crit in (("model", ModelCriterion(m)), ("uniform", UniformCriterion())):
+            for name, crit in (("model", ModelCriterion(m)), ("flip", FlipCriterion()),
+                               ("uniform", UniformCriterion())):
                 rep = adaptive_render(scene, Path(tmp) / f"{name}{i}", crit, resolution=resolution,
                                       step=step, min_spp=step, max_spp=max_spp, progress=False)
                 runs[name].append({"wall_s": rep["wall_s"], "saved_vs_uniform": rep["saved_vs_uniform"],
                                    "timing": rep.get("timing")})
     out = {name: {**sorted(r, key=lambda x: x["wall_s"])[len(r) // 2],
                   "walls_s": [x["wall_s"] for x in r]} for name, r in runs.items()}
-    t = out["model"]["timing"] or {}
-    decide = float(t.get("features_s", 0) + t.get("decisions_s", 0))
-    return {"scene": scene, "resolution": resolution, "max_spp": max_spp, "repeats": repeats, **out,
-            "speedup_vs_uniform": out["uniform"]["wall_s"] / out["model"]["wall_s"],
-            "decision_share": decide / out["model"]["wall_s"]}
+    for name in ("model", "flip"):
+        t = out[name]["timing"] or {}
+        decide = float(t.get("features_s", 0) + t.get("decisions_s", 0))
+        out[name]["speedup_vs_uniform"] = out["uniform"]["wall_s"] / out[name]["wall_s"]
+        out[name]["decision_share"] = decide / out[name]["wall_s"]
+    return {"scene": scene, "resolution": resolution, "max_spp": max_spp, "repeats": repeats, **out}
 
 
 def bench_service(clients: tuple[int, ...] = (1, 8, 32)) -> dict[str, Any]:
@@ -205,102 +178,15 @@ def bench_service(clients: tuple[int, ...] = (1, 8, 32)) -> dict[str, Any]:
             for c in clients}
 
 
-#: the curves drawn on the Pareto chart (every kind of the comparison is in the table)
-PARETO_KINDS = ("dsvm_as", "svm_as", "dsvm", "svm")
-
-
-def bench_tradeoff(data: str, out_dir: str | Path = "out/bench", out_png: str = "docs/pareto.png",
-                   model: str | None = None,
-                   thresholds: tuple[float, ...] = (0.01, 0.02, 0.05, 0.07, 0.1, 0.15, 0.2)) -> dict[str, Any]:
-    """Samples (vs oracle) against early stops on held-out scenes: one curve per criterion.
-
-    The bundled model and every SVM kind of the saved model comparison (`bench models`,
-    same dataset, same held-out scenes) are swept over their decision offset (per-sub-image
-    verdicts on the stored levels, first +1 stops the block); the variance criterion over
-    its threshold (the criterion simulation); the oracle is the point (1, 0).
-    """
-    from learning.bundle import load_model
-    from learning.calibrate import DEFAULT_OFFSETS, sweep
-    from learning.stack import list_stacks, read_stack
-    from learning.table import load_table
-    from renderer.criteria import VarianceCriterion
-    from renderer.simulate import evaluate_criterion
-
-    from . import charts
-
-    bundled = load_model(model)
-    test = list(bundled.manifest.get("training", {}).get("test_scenes") or [])
-    if not test:
-        raise ValueError("the model's manifest names no held-out scenes")
-    comparisons = [c for c in saved_comparisons(data, Path(out_dir)) if sorted(c["test_scenes"]) == sorted(test)]
-    if not comparisons:
-        raise ValueError(f"bench tradeoff draws the models of the comparison on {data} with "
-                         f"held-out scenes {test}: run `noisestop bench models --data {data} "
-                         f"--out {out_dir}` first (or list models before tradeoff in one command)")
-    table = load_table(data, quick=bundled.quick, progress=False)
-    scores = np.full(len(table), np.nan)
-    mask = table.scene_mask(test)
-    scores[mask] = bundled.decision_function(table.X[mask])
-    name = f"{bundled.name} quick {bundled.quick} (bundled)"
-    curves: dict[str, list[dict]] = {name: sweep(scores, table, DEFAULT_OFFSETS)}
-    default = sweep(scores, table, [bundled.offset])[0]
-    for comp in comparisons:
-        for row in comp["rows"]:
-            if "offset_curve" in row:        # SVM kinds; raw-pixel ones use no quick image
-                kind = row["model"]
-                curves.setdefault(kind if kind.startswith("svm") else f"{kind} quick {comp['quick']}",
-                                  row["offset_curve"])
-    stacks = [read_stack(p) for p in list_stacks(data)]
-    held = [s for s in stacks if s.scene in test]
-    var = []
-    for t in thresholds:
-        r = evaluate_criterion(held, lambda st, t=t: VarianceCriterion(threshold=t))
-        var.append({"threshold": t, **{k: r[k] for k in ("early_stop_rate", "spp_ratio_vs_oracle",
-                                                          "precision")}})
-    twin = f"{bundled.manifest['kind']} quick {bundled.quick}"     # the bundle's own kind, retrained
-    drawn = {n: c for n, c in curves.items()
-             if n == name or (n.split()[0] in PARETO_KINDS and n != twin)}
-    path = charts.pareto(drawn, var, default, f"default (bundled, offset {bundled.offset:.2f})", test,
-                         out_png)
-    maps = spp_maps(bundled, table, test, Path(out_png).with_name("spp-maps.png"))
-    return {"test_scenes": test, "curves": curves, "drawn": list(drawn), "bundled": name,
-            "variance": var, "default": {"offset": bundled.offset, **default}, "plot": path, **maps}
-
-
-def spp_maps(model, table, scenes: list[str], out_png: Path) -> dict[str, Any]:
-    """Where the samples went, per held-out scene: the model's spp per block vs the oracle's."""
-    from learning.evaluate import verdicts_by_scene
-    from learning.metrics import stop_thresholds, true_thresholds
-
-    from . import charts
-
-    sub = table.subset(table.scene_mask(scenes))
-    per = verdicts_by_scene(sub, model.predict(sub.X))
-    maps, rows, top = {}, [], 0
-    for scene, (v, _, th, spp) in sorted(per.items()):
-        grid = tuple(sub.stacks[scene].grid)
-        t_pred, t_true = stop_thresholds(v, spp), true_thresholds(th, spp)
-        spent = np.minimum(t_pred, spp[-1]).reshape(grid)
-        oracle = np.minimum(t_true, spp[-1]).reshape(grid)
-        maps[scene] = {"model": spent, "oracle": oracle}
-        top = max(top, int(spp[-1]))
-        rows.append({"scene": scene, "model_spp": int(spent.sum()), "oracle_spp": int(oracle.sum()),
-                     "uniform_spp": int(spp[-1]) * spent.size,
-                     "early_blocks": int((t_pred < t_true).sum()),
-                     "late_blocks": int((t_pred > t_true).sum())})
-    png = charts.spp_maps(maps, top, f"spp per block, {model.name} (offset {model.offset:.2f}) vs oracle",
-                          out_png)
-    return {"spp_maps": png, "spp_by_scene": rows}
-
-
-def bench_ablation(data: str, out_png: str = "docs/ablation.png") -> dict[str, Any]:
+def bench_ablation(data: str, heldout: str | None = None, out_png: str = "docs/ablation.png") -> dict[str, Any]:
     """DSVM on held-out scenes with parts of the feature pipeline switched: quick image
     (albedo / direct lighting / none, with its render time once per frame), conv weights
     (smoothing / pre-trained), wavelet layer (on / off: its two features dropped).
     Accuracy next to the cost of classifying 101 sub-images."""
     from learning.bundle import Model
     from learning.evaluate import evaluate_model, time_101_sub_images
-    from learning.table import QUICK_MODES, load_table
+    from learning.generalisation import split_tables
+    from learning.table import QUICK_MODES
     from learning.train import train_model
     from noisefeat import FeatureBase
 
@@ -311,12 +197,13 @@ def bench_ablation(data: str, out_png: str = "docs/ablation.png") -> dict[str, A
     for weights in ("smoothing", "pretrained"):
         base = FeatureBase(weights).eval()
         for quick in QUICK_MODES:
-            table = load_table(data, base=base, quick=quick, progress=False)
+            train, test = split_tables(data, heldout, base=base, quick=quick)
             for wavelet in (True, False):
-                t = table if wavelet else dataclasses.replace(table, X=table.X[:, keep_no_wavelet])
-                est, summary = train_model("dsvm", data, table=t, quick=quick, progress=False)
+                t, h = (train, test) if wavelet else (dataclasses.replace(train, X=train.X[:, keep_no_wavelet]),
+                                                      dataclasses.replace(test, X=test.X[:, keep_no_wavelet]))
+                est, _ = train_model("dsvm", data, table=t, test_scenes=[], quick=quick, progress=False)
                 model = Model(est, {"kind": "dsvm", "input": "features", "quick": quick})
-                m = evaluate_model(model, t.subset(t.scene_mask(summary["test_scenes"])))
+                m = evaluate_model(model, h)
                 block = tuple(next(iter(t.stacks.values())).block)
                 if wavelet:
                     cost = on_cost = time_101_sub_images(model, block)
@@ -359,57 +246,25 @@ def quick_image_cost() -> dict[str, float]:
     return out
 
 
-def bench_step(data: str, multiples: tuple[int, ...] = (1, 2, 4, 8), scene: str = "env_spheres",
-               model: str | None = None, resolution: int = 256, max_spp: int = 640,
-               out_png: str = "docs/step.png") -> dict[str, Any]:
-    """Render step (spp per pass) against samples, early stops and wall time.
-
-    Samples and early stops: the bundled model on the held-out stacks with a decision only
-    every k-th level (step = k x the dataset's step). Wall time: real renders of `scene`.
-    """
-    import tempfile
-
-    from learning.bundle import load_model
-    from learning.evaluate import verdicts_by_scene
-    from learning.metrics import evaluate_verdicts
-    from learning.table import load_table
-    from renderer.adaptive import adaptive_render
-    from renderer.criteria import ModelCriterion
-
-    m = load_model(model)
-    test = list(m.manifest.get("training", {}).get("test_scenes") or [])
-    table = load_table(data, quick=m.quick, progress=False)
-    sub = table.subset(table.scene_mask(test))
-    per = verdicts_by_scene(sub, m.predict(sub.X))
-    rows = []
-    for k in multiples:
-        thinned = {s: (v[k - 1::k], lab[k - 1::k], th, list(spp)[k - 1::k]) for s, (v, lab, th, spp) in per.items()}
-        r = evaluate_verdicts(thinned)
-        step = list(next(iter(per.values()))[3])[0] * k
-        with tempfile.TemporaryDirectory() as tmp:
-            rep = adaptive_render(scene, Path(tmp), ModelCriterion(m), step=step, min_spp=step,
-                                  max_spp=max_spp, resolution=resolution, progress=False)
-        rows.append({"step": step, "early_stop_rate": r["early_stop_rate"],
-                     "spp_ratio_vs_oracle": r["spp_ratio_vs_oracle"], "render_scene": scene,
-                     "wall_s": rep["wall_s"], "saved_vs_uniform": rep["saved_vs_uniform"],
-                     "passes": rep.get("passes")})
-    from . import charts
-    return {"test_scenes": test, "rows": rows, "plot": charts.step_size(rows, scene, out_png)}
-
-
-def bench_knobs(data: str) -> dict[str, Any]:
+def bench_knobs(data: str, heldout: str | None = None) -> dict[str, Any]:
     """Training's speed knobs (CV cap, active-learning batch) with their accuracy cost."""
     from learning.knobs import measure_knobs
-    return measure_knobs(data)
+    return measure_knobs(data, heldout)
 
 
-def bench_dataset(data: str) -> dict[str, Any]:
+def bench_dataset(data: str, heldout: str | None = None) -> dict[str, Any]:
     """The dataset's build time, from its build log: the latest run that rendered anything."""
     from renderer.dataset import BUILD_LOG, read_build_log
-    runs = [r for r in read_build_log(data) if any(not s.get("already_built") for s in r["scenes"])]
-    if not runs:
-        raise ValueError(f"{data}: no build run on record ({BUILD_LOG}); build it with `make dataset`")
-    return runs[-1]
+    out = {}
+    for name, where in (("training", data), ("heldout", heldout)):
+        if where is None:
+            continue
+        runs = [r for r in read_build_log(where) if any(not s.get("already_built") for s in r["scenes"])]
+        if not runs:
+            raise ValueError(f"{where}: no build run on record ({BUILD_LOG}); build it with `make dataset` "
+                             "or `make heldout`")
+        out[name] = runs[-1]
+    return out
 
 
 # --- markdown for BENCHMARKS.md --------------------------------------------------------
@@ -442,8 +297,10 @@ def md_crop(c: dict[str, Any]) -> str:
 
 def md_models(m: dict[str, Any]) -> str:
     from learning.compare import markdown_table
+    conv = ", ".join((m.get("groups") or {}).get("converging") or []) or "none"
     text = (f"Quick image: {m['quick']}. Trained on {', '.join(m['train_scenes'])}; evaluated on the "
-            f"held-out {', '.join(m['test_scenes'])}.\n\n" + markdown_table(m["rows"]))
+            f"held-out {', '.join(m['test_scenes'])} (converging inside their stacks: {conv}). Offset 0 "
+            "(the hyperplane), through the stop rule.\n\n" + markdown_table(m["rows"]))
     if m.get("curves"):
         text += f"\n\nHeld-out precision against labels queried (active kinds): ![learning curves]({m['curves']})"
     return text
@@ -464,7 +321,12 @@ def md_cost_accuracy(comparisons: list[dict[str, Any]], out_png: str = "docs/cos
     return "\n".join(lines)
 
 
-def md_dataset(r: dict[str, Any]) -> str:
+def md_dataset(runs: dict[str, Any]) -> str:
+    titles = {"training": "Training scenes (`make dataset`)", "heldout": "Held-out scenes (`make heldout`)"}
+    return "\n\n".join(f"{titles[name]}: {_md_build(r)}" for name, r in runs.items())
+
+
+def _md_build(r: dict[str, Any]) -> str:
     st = r["settings"]
     resumed = [x["scene"] for x in r["scenes"] if x.get("resumed") and not x.get("already_built")]
     done = [x["scene"] for x in r["scenes"] if x.get("already_built")]
@@ -498,38 +360,20 @@ def md_knobs(r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def md_criteria(r: dict[str, Any]) -> str:
-    lines = [f"Held-out scenes: {', '.join(r['test_scenes'])}; simulated on the stored stacks.", "",
-             "| criterion | precision | early_stop_rate | samples / oracle | saved vs uniform |",
-             "|---|---|---|---|---|"]
-    for name, m in r["rows"].items():
-        lines.append(f"| {name} | {m['precision']:.3f} | {m['early_stop_rate']:.3f} | "
-                     f"{m['spp_ratio_vs_oracle']:.3f} | {m['saved_vs_uniform']:.3f} |")
-    t = r["model_on_training_scenes"]
-    lines += ["", f"The same model on its training scenes: early stops {t['early_stop_rate']:.3f}, "
-              f"samples {t['spp_ratio_vs_oracle']:.3f} x oracle.", "",
-              "Variance threshold sweep (training / held-out early stops and samples vs oracle):", "",
-              "| threshold | train early stops | train samples | held-out early stops | held-out samples |",
-              "|---|---|---|---|---|"]
-    for row in r["variance_sweep"]:
-        a, b = row["train"], row["test"]
-        lines.append(f"| {row['threshold']} | {a['early_stop_rate']:.3f} | {a['spp_ratio_vs_oracle']:.3f} "
-                     f"| {b['early_stop_rate']:.3f} | {b['spp_ratio_vs_oracle']:.3f} |")
-    return "\n".join(lines)
-
-
 def md_render(r: dict[str, Any]) -> str:
-    m, u = r["model"], r["uniform"]
+    u = r["uniform"]
 
     def walls(x: dict) -> str:
         return ", ".join(f"{w:.1f}" for w in x.get("walls_s", [x["wall_s"]]))
-    return "\n".join([
-        f"{r['scene']} at {r['resolution']}x{r['resolution']}, max {r['max_spp']} spp:", "",
-        f"| run | wall (s), median of {r.get('repeats', 1)} | all runs (s) | saved vs uniform |", "|---|---|---|---|",
-        f"| model criterion | {m['wall_s']:.1f} | {walls(m)} | {m['saved_vs_uniform']:.3f} |",
-        f"| uniform to max spp | {u['wall_s']:.1f} | {walls(u)} | 0 |", "",
-        f"Speed-up {r['speedup_vs_uniform']:.2f}x (goal >= 2x); features + decisions "
-        f"{100 * r['decision_share']:.2f} % of the model run's wall time (goal < 2 %)."])
+    lines = [f"{r['scene']} at {r['resolution']}x{r['resolution']}, max {r['max_spp']} spp:", "",
+             f"| run | wall (s), median of {r.get('repeats', 1)} | all runs (s) | saved vs uniform "
+             "| speed-up vs uniform | features + decisions, share of wall time |", "|---|---|---|---|---|---|"]
+    for name in ("model", "flip"):
+        m = r[name]
+        lines.append(f"| {name} criterion | {m['wall_s']:.1f} | {walls(m)} | {m['saved_vs_uniform']:.3f} "
+                     f"| {m['speedup_vs_uniform']:.2f}x | {100 * m['decision_share']:.2f} % |")
+    lines.append(f"| uniform to max spp | {u['wall_s']:.1f} | {walls(u)} | 0 | 1 | - |")
+    return "\n".join(lines)
 
 
 def md_service(r: dict[str, Any]) -> str:
@@ -547,46 +391,6 @@ def md_service(r: dict[str, Any]) -> str:
             "at 32.\n\n" + "\n".join(lines))
 
 
-def _best(rows: list[dict], max_early: float) -> str:
-    """The fewest samples whose early-stop rate is within max_early, with its offset."""
-    ok = [r for r in rows if r["early_stop_rate"] <= max_early + 1e-12]
-    if not ok:
-        return "never"
-    r = min(ok, key=lambda r: (r["spp_ratio_vs_oracle"], r["offset"]))
-    return f"{r['spp_ratio_vs_oracle']:.3f} (offset {r['offset']:.1f})"
-
-
-def md_tradeoff(r: dict[str, Any]) -> str:
-    d = r["default"]
-    lines = [f"![samples vs early stops]({r['plot']})", "",
-             f"Default (bundled, offset {d['offset']:.2f}): early stops {d['early_stop_rate']:.3f}, "
-             f"samples {d['spp_ratio_vs_oracle']:.3f} x oracle. Drawn: {', '.join(r['drawn'])}; "
-             "every model is in the table. Samples are relative to the oracle.", "",
-             "| criterion | at offset 0: early stops | at offset 0: samples | fewest samples, early stops <= 5 % "
-             "| fewest samples, no early stop |", "|---|---|---|---|---|"]
-    for name, rows in r["curves"].items():
-        zero = min(rows, key=lambda x: abs(x["offset"]))
-        lines.append(f"| {name} | {zero['early_stop_rate']:.3f} | {zero['spp_ratio_vs_oracle']:.3f} "
-                     f"| {_best(rows, 0.05)} | {_best(rows, 0.0)} |")
-    lines += ["", "The bundled model along its offset, and the variance criterion along its threshold:", "",
-              "| criterion | setting | early_stop_rate | samples / oracle |", "|---|---|---|---|"]
-    for row in r["curves"][r["bundled"]]:
-        if abs(round(row["offset"] * 2) - row["offset"] * 2) < 1e-9:  # every 0.5
-            lines.append(f"| {r['bundled']} | offset {row['offset']:.1f} | {row['early_stop_rate']:.3f} "
-                         f"| {row['spp_ratio_vs_oracle']:.3f} |")
-    for row in r["variance"]:
-        lines.append(f"| variance | threshold {row['threshold']} | {row['early_stop_rate']:.3f} "
-                     f"| {row['spp_ratio_vs_oracle']:.3f} |")
-    lines += ["", f"Where the samples went per held-out scene (default offset, spp per block, model "
-              f"above oracle): ![spp maps]({r['spp_maps']})", "",
-              "| scene | model spp (sum over blocks) | oracle spp | uniform spp | blocks stopped early "
-              "| blocks stopped late |", "|---|---|---|---|---|---|"]
-    for x in r["spp_by_scene"]:
-        lines.append(f"| {x['scene']} | {x['model_spp']:,} | {x['oracle_spp']:,} | {x['uniform_spp']:,} "
-                     f"| {x['early_blocks']} | {x['late_blocks']} |")
-    return "\n".join(lines)
-
-
 def md_ablation(r: dict[str, Any]) -> str:
     scene, res, spp = r["quick_scene"]
     lines = [f"![feature-pipeline ablation]({r['plot']})", "",
@@ -599,17 +403,6 @@ def md_ablation(r: dict[str, Any]) -> str:
         lines.append(f"| {x['weights']} | {x['quick']} | {'on' if x['wavelet'] else 'off'} | "
                      f"{x['precision']:.3f} | {x['f1']:.3f} | {x['early_stop_rate']:.3f} | "
                      f"{x['spp_ratio_vs_oracle']:.3f} | {cost} | {x['quick_render_s']:.3f} |")
-    return "\n".join(lines)
-
-
-def md_step(r: dict[str, Any]) -> str:
-    scene = r["rows"][0]["render_scene"]
-    lines = [f"![step size]({r['plot']})", "",
-             f"| step (spp per pass) | held-out early stops | held-out samples / oracle "
-             f"| {scene}: wall (s) | {scene}: saved vs uniform | passes |", "|---|---|---|---|---|---|"]
-    for x in r["rows"]:
-        lines.append(f"| {x['step']} | {x['early_stop_rate']:.3f} | {x['spp_ratio_vs_oracle']:.3f} "
-                     f"| {x['wall_s']:.1f} | {x['saved_vs_uniform']:.3f} | {x['passes']} |")
     return "\n".join(lines)
 
 
@@ -629,7 +422,7 @@ def update_markdown(path: Path, sections: dict[str, str]) -> None:
     tmp.replace(path)
 
 
-# sections that need only a dataset: name -> (measure(data), markdown(result))
+# sections that need only the datasets: name -> (measure(data, heldout), markdown(result))
 DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "criteria": (bench_criteria, md_criteria),
                     "tradeoff": (bench_tradeoff, md_tradeoff), "ablation": (bench_ablation, md_ablation),
                     "step": (bench_step, md_step), "knobs": (bench_knobs, md_knobs)}
@@ -639,7 +432,8 @@ SECTIONS = ("features", "crop", "models", "render", "service", "stability", *DAT
 def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), data: str | None = None,
             out_dir: str = "out/bench", arches: tuple[str, ...] | None = None,
             kinds: tuple[str, ...] | None = None, quick: tuple[str, ...] = ("albedo",),
-            on_section: Callable[[str, str], None] | None = None) -> dict[str, Any]:
+            on_section: Callable[[str, str], None] | None = None,
+            heldout: str | None = None) -> dict[str, Any]:
     """Measure the sections in `only`; `quick`: the quick images the models section compares
     (feature models are trained once per mode). `on_section(name, markdown)` is called as
     each section finishes, so an interrupted run keeps what it measured; a section that
@@ -678,14 +472,14 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
             k, a = (kinds, arches) if i == 0 else (
                 tuple(x for x in (kinds or SVM_KINDS) if x.startswith("dsvm")), ())
             measure("models" if q == "albedo" else f"models_quick_{q}",
-                    lambda k=k, a=a, q=q: bench_models(data, Path(out_dir), a, k, q), md_models)
-        measure("cost_accuracy", lambda: saved_comparisons(data, Path(out_dir)), md_cost_accuracy)
+                    lambda k=k, a=a, q=q: bench_models(data, Path(out_dir), a, k, q, heldout=heldout), md_models)
+        measure("cost_accuracy", lambda: saved_comparisons(data, Path(out_dir), heldout), md_cost_accuracy)
     if "render" in only:
         measure("render", bench_render, md_render)
     for name, (run, md) in DATASET_SECTIONS.items():
         if name in only:
-            measure(name, lambda run=run, name=name: run(data, out_dir=out_dir) if name == "tradeoff"
-                    else run(data), md)
+            measure(name, lambda run=run, name=name: run(data, heldout, out_dir=out_dir) if name == "tradeoff"
+                    else run(data, heldout), md)
     if "stability" in only:
         measure("stability", stability_section, md_stability)
     if "service" in only:

@@ -23,28 +23,26 @@ def save(fig, path: str | os.PathLike, dpi: int = 100) -> str:
     return str(save_figure(fig, path, dpi))
 
 
-def pareto(curves: Mapping[str, Sequence[Mapping]], variance: Sequence[Mapping],
-           default: Mapping | None, default_label: str, scenes: Sequence[str],
-           path: str | os.PathLike) -> str:
-    """Samples vs oracle (x) against early-stop rate (y): one line per criterion."""
-    fig, ax = plt.subplots(figsize=(8, 5))
-    for i, (name, rows) in enumerate(curves.items()):
-        style = "--" if "albedo" in name else "-"
-        marker = "s" if name.startswith("svm") else "."
+def pareto(curves: Sequence[Mapping], points: Sequence[Mapping], scenes: Sequence[str],
+           path: str | os.PathLike, title: str = "held-out scenes") -> str:
+    """Samples vs oracle (x) against early-stop rate (y): one line per criterion.
+
+    `curves`: {"label", "rows" (each with early_stop_rate and spp_ratio_vs_oracle),
+    "dashed"?, "marker"?}; `points`: {"label", "row"}, the defaults, circled."""
+    fig, ax = plt.subplots(figsize=(8.5, 5.2))
+    for i, c in enumerate(curves):
+        rows = c["rows"]
         ax.plot([r["spp_ratio_vs_oracle"] for r in rows], [r["early_stop_rate"] for r in rows],
-                marker + style, ms=4, color=f"C{i}", label=f"{name}, offset -1..3")
-    ax.plot([r["spp_ratio_vs_oracle"] for r in variance], [r["early_stop_rate"] for r in variance],
-            "x:", color="grey", label="variance (Cycles), threshold "
-            f"{variance[0]['threshold']}..{variance[-1]['threshold']}")
+                c.get("marker", ".") + ("--" if c.get("dashed") else "-"), ms=4, color=c.get("color", f"C{i}"),
+                lw=c.get("lw", 1.2), label=c["label"])
     ax.plot([1.0], [0.0], "k*", ms=14, label="oracle")
-    if default is not None:
-        ax.plot([default["spp_ratio_vs_oracle"]], [default["early_stop_rate"]], "o", ms=14,
-                mfc="none", mec="red", mew=2, label=default_label)
+    for j, p in enumerate(points):
+        ax.plot([p["row"]["spp_ratio_vs_oracle"]], [p["row"]["early_stop_rate"]], "o", ms=14 - 3 * j,
+                mfc="none", mec=("red", "blue", "green")[j % 3], mew=2, label=p["label"])
     ax.axhline(EARLY_STOP_TARGET, color="red", lw=0.6, ls=":")
-    ax.set_xlabel("samples spent / oracle's samples (held-out scenes)")
+    ax.set_xlabel("samples spent / oracle's samples")
     ax.set_ylabel("early-stop rate (blocks stopped with visible noise)")
-    ax.set_title(f"speed / accuracy on held-out scenes: {', '.join(scenes)} "
-                 "(lower left is better)", fontsize=9)
+    ax.set_title(f"speed / accuracy on {title}: {', '.join(scenes)} (lower left is better)", fontsize=8)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="upper right")
     fig.tight_layout()
@@ -72,19 +70,20 @@ def spp_maps(maps: Mapping[str, Mapping[str, np.ndarray]], max_spp: int, title: 
     return save(fig, path, dpi=90)
 
 
-def step_size(rows: Sequence[Mapping], scene: str, path: str | os.PathLike) -> str:
+def step_size(rows: Sequence[Mapping], scene: str, path: str | os.PathLike,
+              criteria: Sequence[str] = ("model", "flip")) -> str:
     """Render step (spp per pass): wall time of a real render, and held-out early stops and
-    samples vs oracle, side by side."""
+    samples vs oracle, side by side, one line per criterion."""
     steps = [r["step"] for r in rows]
-    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.4))
-    a.plot(steps, [r["wall_s"] for r in rows], "o-", color="C0")
+    fig, (a, b) = plt.subplots(1, 2, figsize=(9.5, 3.6))
+    for i, name in enumerate(criteria):
+        a.plot(steps, [r[name]["wall_s"] for r in rows], "o-", color=f"C{i}", label=f"{name}: wall time")
+        b.plot(steps, [r[name]["early_stop_rate"] for r in rows], "o-", color=f"C{i}",
+               label=f"{name}: early-stop rate")
+        b.plot(steps, [r[name]["spp_ratio_vs_oracle"] - 1 for r in rows], "s--", color=f"C{i}",
+               label=f"{name}: extra samples vs oracle (ratio - 1)")
     a.set_ylabel(f"wall time, {scene} (s)")
-    a2 = a.twinx()
-    a2.plot(steps, [r["saved_vs_uniform"] for r in rows], "s--", color="C2")
-    a2.set_ylabel("saved vs uniform", color="C2")
-    b.plot(steps, [r["early_stop_rate"] for r in rows], "o-", color="C3", label="early-stop rate")
-    b.plot(steps, [r["spp_ratio_vs_oracle"] - 1 for r in rows], "s--", color="C1",
-           label="extra samples vs oracle (ratio - 1)")
+    a.legend(fontsize=7)
     b.axhline(EARLY_STOP_TARGET, color="red", lw=0.6, ls=":")
     b.legend(fontsize=7)
     b.set_ylim(bottom=0)
@@ -94,7 +93,7 @@ def step_size(rows: Sequence[Mapping], scene: str, path: str | os.PathLike) -> s
         ax.set_xlabel("step (spp per pass)")
         ax.grid(alpha=0.3)
     a.set_title("render cost", fontsize=9)
-    b.set_title("held-out scenes, bundled model", fontsize=9)
+    b.set_title("held-out scenes", fontsize=9)
     fig.tight_layout()
     return save(fig, path)
 

@@ -19,7 +19,7 @@ log = logging.getLogger("noisestop")
 Handler = Callable[[argparse.Namespace], int]
 
 
-class UsageError(Exception):
+class UsageError(ValueError):
     """A problem with what the user asked for: reported in one line, exit status 2."""
 
 

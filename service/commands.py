@@ -2,13 +2,16 @@
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 from .cli import UsageError, emit_json, log
 
-#: learning.table.QUICK_MODES, spelled out so the parser builds without importing torch
-#: (tests/test_cli.py checks the two agree)
+#: learning.table.QUICK_MODES and renderer.criteria.CRITERIA, spelled out so the parser
+#: builds without importing torch or Mitsuba (tests/test_cli.py checks they agree)
 QUICK_MODES = ("albedo", "direct", "none")
+CRITERIA = ("model", "flip", "variance", "uniform", "oracle")
+DEFAULT_CRITERION = "flip"     # renderer.criteria.DEFAULT_CRITERION
 
 
 def _positive_int(text: str) -> int:
@@ -18,6 +21,16 @@ def _positive_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a number >= 1, got {value}")
+    return value
+
+
+def _finite_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
     return value
 
 
@@ -54,7 +67,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("what", nargs="*", default=["features", "crop"],
                    help="sections: features, crop, models, render, service, stability, dataset, criteria, "
                         "tradeoff, ablation, step, knobs (default: features crop)")
-    p.add_argument("--data", default=None, help="labelled dataset (models)")
+    p.add_argument("--data", default=None, help="labelled dataset of training scenes")
+    p.add_argument("--heldout", default=None,
+                   help="labelled dataset of held-out scenes every figure is measured on (make "
+                        "heldout); without it a quarter of --data is held out, with a warning")
     p.add_argument("--out", default="out/bench", help="directory for plots")
     p.add_argument("--arches", default=None,
                    help="models: comma-separated transfer baselines (default: all five; '' for none)")
@@ -85,7 +101,8 @@ def _register_dataset(sub: argparse._SubParsersAction) -> None:
     p = dsub.add_parser("build", help="render and label stacks (format v1) for scenes")
     p.add_argument("--out", required=True, help="dataset directory (one sub-directory per scene)")
     p.add_argument("--scenes", default=None,
-                   help="comma-separated built-in names or XML files (default: every built-in scene)")
+                   help="comma-separated built-in names, XML files, or the sets 'training' (the "
+                        "training library, the default) and 'heldout' (scenes kept out of all training)")
     p.add_argument("--resolution", type=_positive_int, default=512)
     p.add_argument("--step", type=_positive_int, default=101, help="spp added per level")
     p.add_argument("--levels", type=_positive_int, default=100)
@@ -117,8 +134,11 @@ def cmd_dataset_build(args: argparse.Namespace) -> int:
     from renderer.scenes import list_scenes
     from renderer.stackbuild import BuildSettings
 
-    scenes = [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else \
-        [name for name, _ in list_scenes()]
+    sets = {"training": False, "heldout": True}   # named sets of built-in scenes
+    scenes = []
+    for s in (args.scenes or "training").split(","):
+        s = s.strip()
+        scenes += [name for name, _ in list_scenes(sets[s])] if s in sets else [s] if s else []
     ref = args.reference_spp or 4 * args.step * args.levels
     settings = BuildSettings(resolution=args.resolution, step=args.step, levels=args.levels,
                              reference_spp=ref, seed=args.seed, tau=args.tau,
@@ -170,7 +190,11 @@ def _register_learning(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", default="dsvm_as", choices=SVM_KINDS, help="model kind (default dsvm_as)")
     p.add_argument("--out", required=True, help="model bundle directory to write")
     p.add_argument("--test-scenes", default=None,
-                   help="comma-separated scenes held out of training (default: every 4th by name)")
+                   help="comma-separated scenes of --data held out of training ('' for none; default: "
+                        "every 4th by name, none with --heldout)")
+    p.add_argument("--heldout", default=None, metavar="DIR",
+                   help="labelled dataset of held-out scenes to report on (then every scene of --data "
+                        "is trained on, unless --test-scenes says otherwise)")
     p.add_argument("--initial-scene", default=None, help="active kinds: the initially labelled scene")
     p.add_argument("--label-budget", type=float, default=0.25,
                    help="active kinds: largest fraction of the pool's labels to query")
@@ -187,6 +211,18 @@ def _register_learning(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_train)
 
+    p = sub.add_parser("calibrate", help="calibrate the flip criterion's c on training scenes")
+    p.add_argument("--data", required=True, help="labelled dataset of training scenes (never held-out ones)")
+    p.add_argument("--criterion", choices=("flip",), default="flip")
+    p.add_argument("--max-early-stop", type=float, default=0.05,
+                   help="largest early-stop rate accepted on the training scenes (default 0.05)")
+    p.add_argument("--min-spp", type=_positive_int, default=None,
+                   help="no decision below this many spp (default: from the first level)")
+    p.add_argument("--out", default=None,
+                   help="calibration file to write (default: the package's learning/flip.json)")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_calibrate)
+
     p = sub.add_parser("pretrain", help="pre-train the feature base's conv layers as a denoiser")
     p.add_argument("--data", required=True, help="dataset directory (training scenes only are used)")
     p.add_argument("--out", default=None,
@@ -200,7 +236,15 @@ def _register_learning(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("evaluate", help="metrics on held-out scenes, overall and per scene")
     p.add_argument("--data", required=True)
     p.add_argument("--model", default=None, help="model bundle (default: the bundled model)")
-    p.add_argument("--criterion", default="model", choices=("model", "variance", "uniform", "oracle"))
+    p.add_argument("--criterion", default="model", choices=CRITERIA)
+    p.add_argument("--offset", type=_finite_float, default=None,
+                   help="--criterion model: decision offset, the speed/accuracy knob (default: the "
+                        "model's calibrated offset; larger stops later)")
+    p.add_argument("--threshold", type=_finite_float, default=None,
+                   help="--criterion flip: c (default: the shipped calibration); --criterion "
+                        "variance: the noise threshold (default 0.01)")
+    p.add_argument("--min-spp", type=_positive_int, default=None,
+                   help="no decision below this many spp (default: from the first level)")
     p.add_argument("--scenes", default=None,
                    help="comma-separated scenes to evaluate (default: those the model was not trained on)")
     p.add_argument("--plots", default="out/evaluate", help="directory for the plots")
@@ -224,12 +268,22 @@ def cmd_train(args: argparse.Namespace) -> int:
     table = load_table(args.data, raw=raw, quick=args.quick)
     if not 0 <= args.max_early_stop <= 1:
         raise UsageError(f"--max-early-stop must be in [0, 1], got {args.max_early_stop}")
-    est, summary = train_model(args.model, args.data, test_scenes=_scene_list(args.test_scenes),
+    test_scenes = [] if args.test_scenes == "" else _scene_list(args.test_scenes)   # '': none
+    if args.heldout and test_scenes is None:
+        test_scenes = []
+    _refuse_heldout([s for s in table.scenes() if s not in (test_scenes or [])], "train")
+    est, summary = train_model(args.model, args.data, test_scenes=test_scenes,
                                initial_scene=args.initial_scene, cv=not args.no_cv, seed=args.seed,
                                max_label_fraction=args.label_budget, table=table,
                                max_early_stop=None if args.no_calibrate else args.max_early_stop,
                                quick=args.quick)
-    test = table.subset(table.scene_mask(summary["test_scenes"]))
+    if args.heldout:
+        from learning.generalisation import check_disjoint
+        test = load_table(args.heldout, raw=raw, quick=args.quick)
+        check_disjoint(summary["train_scenes"], test.scenes())
+        summary["heldout"] = {"data": str(args.heldout), "scenes": test.scenes()}
+    else:
+        test = table.subset(table.scene_mask(summary["test_scenes"]))
     extra = {} if raw else {"quick": args.quick}
     metrics = evaluate_model(Model(est, {"kind": args.model, "input": summary["input"], **extra}), test) \
         if len(test) else {}
@@ -238,7 +292,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     result = {"model": args.out, "kind": args.model, "train_s": summary["train_s"],
               "offset": summary["offset"],
               "labels": summary.get("n_labels"), "label_fraction": summary.get("label_fraction"),
-              "test_scenes": summary["test_scenes"], **{k: metrics.get(k) for k in
+              "test_scenes": test.scenes(), **{k: metrics.get(k) for k in
                                                          ("precision", "f1", "early_stop_rate")}}
     if args.json:
         emit_json(result)
@@ -251,9 +305,53 @@ def cmd_train(args: argparse.Namespace) -> int:
             print(f"decision offset {summary['offset']:.2f}: leave-one-scene-out early stops "
                   f"{c['early_stop_rate']:.3f}, samples {c['spp_ratio_vs_oracle']:.2f} x oracle")
         if metrics:
-            print(f"held-out {', '.join(summary['test_scenes'])}: precision {metrics['precision']:.3f}, "
+            print(f"held-out {', '.join(test.scenes())}: precision {metrics['precision']:.3f}, "
                   f"f1 {metrics['f1']:.3f}, early stops {metrics['early_stop_rate']:.3f}, "
                   f"samples {metrics['spp_ratio_vs_oracle']:.2f} x oracle")
+    return 0
+
+
+def _refuse_heldout(scenes: list[str], what: str) -> None:
+    """The built-in held-out scenes take no part in training or calibration."""
+    from learning.generalisation import check_disjoint
+    from renderer.scenes import list_scenes
+    try:
+        check_disjoint(scenes, [n for n, _ in list_scenes(heldout=True)])
+    except ValueError as exc:
+        raise UsageError(f"{what}: {exc} (renderer/heldout.py)") from None
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    import datetime
+    import json
+    from pathlib import Path
+
+    from learning.halves import FLIP_CALIBRATION, calibrate_flip
+    from learning.stack import dataset_fingerprint, list_stacks, read_stack
+
+    if not 0 <= args.max_early_stop <= 1:
+        raise UsageError(f"--max-early-stop must be in [0, 1], got {args.max_early_stop}")
+    stacks = [read_stack(p) for p in list_stacks(args.data)]
+    if not stacks:
+        raise UsageError(f"{args.data}: no stacks found")
+    _refuse_heldout([s.scene for s in stacks], "calibrate")
+    cal = calibrate_flip(stacks, args.max_early_stop, min_spp=args.min_spp)
+    cal.update(criterion="flip", data=str(args.data), fingerprint=dataset_fingerprint(args.data),
+               observer={"ppd": 67, "display": "clip+srgb"},
+               calibrated=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
+    out = Path(args.out) if args.out else FLIP_CALIBRATION
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(json.dumps(cal, indent=1, default=float) + "\n")
+    tmp.replace(out)
+    chosen = cal["chosen"]
+    if args.json:
+        emit_json({"c": cal["c"], "out": str(out), **{k: chosen[k] for k in ("early_stop_rate",
+                                                                          "spp_ratio_vs_oracle")}})
+    else:
+        print(f"flip: c = {cal['c']:g} on {len(stacks)} training scenes: early stops "
+              f"{chosen['early_stop_rate']:.3f} (target {args.max_early_stop:g}), samples "
+              f"{chosen['spp_ratio_vs_oracle']:.3f} x oracle; wrote {out}")
     return 0
 
 
@@ -287,7 +385,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     if args.criterion != "model":
         from renderer.simulate import evaluate_criterion_cli
-        result = evaluate_criterion_cli(args.data, args.criterion, _scene_list(args.scenes))
+        result = evaluate_criterion_cli(args.data, args.criterion, _scene_list(args.scenes),
+                                        min_spp=args.min_spp, threshold=args.threshold)
+        result["threshold"] = result["criterion"].get("threshold")
     else:
         model = load_model(args.model)
         table = load_table(args.data, raw=model.input == "raw", quick=model.quick)
@@ -303,10 +403,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         if missing:
             raise UsageError(f"scenes not in {args.data}: {missing}")
         test = table.subset(table.scene_mask(scenes))
-        result = evaluate_model(model, test)
+        result = evaluate_model(model, test, offset=args.offset, min_spp=args.min_spp)
         result["model"] = model.name
         from learning.plots import plot_thresholds
-        result["plots"] = [str(p) for p in plot_thresholds(model, test, args.plots)]
+        result["plots"] = [str(p) for p in plot_thresholds(model, test, args.plots, offset=args.offset,
+                                                           min_spp=args.min_spp)]
     if args.json:
         emit_json(result)
     else:
@@ -316,6 +417,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _print_metrics(result: dict) -> None:
     from learning.metrics import METRIC_NAMES
+    knob = (f"offset {result['offset']:g}" if result.get("offset") is not None else
+            f"threshold {result['threshold']:g}" if result.get("threshold") is not None else "")
+    if knob:
+        print(knob)
     width = max(len(s) for s in ["overall", *result["per_scene"]])
     print(f"{'':<{width}}  " + "  ".join(f"{m:>19}" for m in METRIC_NAMES))
     rows = [("overall", result), *sorted(result["per_scene"].items())]
@@ -334,9 +439,16 @@ def _register_render(sub: argparse._SubParsersAction) -> None:
     source.add_argument("--model", default=None, help="model bundle directory (default: the bundled model)")
     source.add_argument("--server", default=None,
                         help="verdict server URL, e.g. http://host:8000 (token from NOISESTOP_TOKEN)")
-    p.add_argument("--criterion", choices=("model", "variance", "uniform", "oracle"), default="model")
-    p.add_argument("--threshold", type=float, default=0.01,
-                   help="noise threshold of --criterion variance (Blender Cycles' test)")
+    p.add_argument("--criterion", choices=CRITERIA, default=None,
+                   help=f"stopping criterion (default: model when --model, --server or --offset is "
+                        f"given, else {DEFAULT_CRITERION}; README \"Deciding a stop\")")
+    p.add_argument("--offset", type=_finite_float, default=None,
+                   help="--criterion model: decision offset, the speed/accuracy knob (default: the "
+                        "model's calibrated offset; larger stops later)")
+    p.add_argument("--threshold", type=_finite_float, default=None,
+                   help="--criterion flip: c, the FLIP between the half buffers a block must reach "
+                        "(default: the shipped calibration); --criterion variance: Blender Cycles' "
+                        "noise threshold (default 0.01)")
     p.add_argument("--quantile", type=float, default=1.0,
                    help="--criterion variance: fraction of a block's pixels that must pass (default: all)")
     p.add_argument("--reference", default=None,
@@ -368,11 +480,13 @@ def cmd_render(args: argparse.Namespace) -> int:
     from renderer.outputs import format_report
     from renderer.scenes import DEFAULT_SCENE
 
+    criterion = args.criterion or ("model" if args.model or args.server or args.offset is not None
+                                   else DEFAULT_CRITERION)
     try:
         result = render_command(
-            args.scene or DEFAULT_SCENE, args.out, criterion=args.criterion, model=args.model,
+            args.scene or DEFAULT_SCENE, args.out, criterion=criterion, model=args.model,
             server=args.server, reference=args.reference, threshold=args.threshold,
-            quantile=args.quantile, workers=args.workers, scheduler=args.scheduler,
+            quantile=args.quantile, offset=args.offset, workers=args.workers, scheduler=args.scheduler,
             exposure=args.exposure,
             resolution=args.resolution, grid=None if args.grid is None else tuple(args.grid), step=args.step,
             min_spp=args.min_spp, max_spp=args.max_spp, seed=args.seed, resume=args.resume)
@@ -410,6 +524,9 @@ def _register_serve(sub: argparse._SubParsersAction) -> None:
                    help="most blocks per request (default: $NOISESTOP_MAX_BATCH or 1024)")
     p.add_argument("--threads", type=_positive_int, default=2,
                    help="requests classified at the same time")
+    p.add_argument("--offset", type=_finite_float, default=None,
+                   help="decision offset for every model served (default: each model's calibrated "
+                        "offset); a request's own 'offset' parameter overrides it")
     p.add_argument("--graceful-timeout", type=float, default=30.0,
                    help="seconds SIGTERM waits for requests in flight")
     p.set_defaults(handler=cmd_serve)
@@ -419,19 +536,20 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from service.serve import parse_model_specs, run
     run(parse_model_specs(args.model), args.host, args.port, token_file=args.token_file,
         max_body_bytes=args.max_body_bytes, max_batch=args.max_batch,
-        inference_threads=args.threads, graceful_timeout=args.graceful_timeout)
+        inference_threads=args.threads, graceful_timeout=args.graceful_timeout, offset=args.offset)
     return 0
 
 
 def cmd_scenes(args: argparse.Namespace) -> int:
     from renderer.scenes import list_scenes
+    held = {n for n, _ in list_scenes(heldout=True)}
     scenes = list_scenes()
     if args.json:
-        emit_json({"scenes": [{"name": n, "description": d} for n, d in scenes]})
+        emit_json({"scenes": [{"name": n, "description": d, "heldout": n in held} for n, d in scenes]})
     else:
         width = max(len(n) for n, _ in scenes)
         for name, desc in scenes:
-            print(f"{name:<{width}}  {desc}")
+            print(f"{name:<{width}}  {'held out  ' if name in held else 'training  '}{desc}")
     return 0
 
 
@@ -485,7 +603,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         log.info("updated %s: section %s", args.update, name)
     results = bench.run_all(repeats=args.repeats, only=tuple(args.what), data=args.data,
                             out_dir=args.out, arches=arches, kinds=kinds, quick=args.quick,
-                            on_section=update if args.update else None)
+                            on_section=update if args.update else None, heldout=args.heldout)
     if args.json:
         emit_json(results)
     else:

@@ -183,15 +183,16 @@ def decode_tensors(req: InferenceRequest, binary: bytes, max_batch: int) -> dict
     names = [t.name for t in req.inputs]
     if len(set(names)) != len(names):
         raise ApiError(400, f"input names must be unique, got {names}")
+    for t in req.inputs:       # what the request says is checked before what it weighs
+        if t.datatype not in DATATYPES:
+            raise ApiError(400, f"input {t.name!r}: unsupported datatype {t.datatype!r}")
     for t in req.inputs:
         if t.shape and t.shape[0] > max_batch:
             raise ApiError(413, f"input {t.name!r} holds {t.shape[0]} items; the limit is "
                                 f"{max_batch} per request")
     arrays, offset = {}, 0
     for t in req.inputs:
-        dtype = DATATYPES.get(t.datatype)
-        if dtype is None:
-            raise ApiError(400, f"input {t.name!r}: unsupported datatype {t.datatype!r}")
+        dtype = DATATYPES[t.datatype]
         count = math.prod(t.shape)
         size = param(t.parameters, "binary_data_size", int, None)
         if size is not None:

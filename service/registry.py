@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import re
 import time
 from dataclasses import dataclass, field
@@ -82,6 +83,11 @@ class ServedModel:
     model: Model
     load_seconds: float
     version: str = "1"
+    offset: float | None = None     # `serve --offset`: overrides the model's calibrated offset
+
+    @property
+    def effective_offset(self) -> float:
+        return self.model.offset if self.offset is None else float(self.offset)
 
     @property
     def inputs(self) -> list[TensorMetadata]:
@@ -99,11 +105,16 @@ class ServedModel:
             name=name or self.name, versions=[self.version], platform=PLATFORM, inputs=self.inputs,
             outputs=[TensorMetadata(name=k, datatype=v, shape=[-1]) for k, v in OUTPUTS.items()],
             parameters={"kind": str(m.get("kind")), "input": self.model.input, "quick": self.model.quick,
-                        "offset": self.model.offset, "n_features": int(m.get("n_features", 0))})
+                        "offset": self.effective_offset, "calibrated_offset": self.model.offset,
+                        "n_features": int(m.get("n_features", 0))})
 
-    def infer(self, tensors: dict[str, np.ndarray], exposure: float = 0.0
+    def infer(self, tensors: dict[str, np.ndarray], exposure: float = 0.0, offset: float | None = None
               ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        """({verdict int8 [N], score float32 [N]}, response parameters); bad input -> 400."""
+        """({verdict int8 [N], score float32 [N]}, response parameters); bad input -> 400.
+
+        Verdicts come from the one stop rule at `offset` (the request's), else the server's
+        `--offset`, else the model's calibrated one; blocks whose display image is flat are
+        converged whatever their score (rows of `features` carry no image: no flat test)."""
         unknown = sorted(set(tensors) - {t.name for t in self.inputs})
         if unknown:
             raise ApiError(400, f"model {self.name!r} has no input {unknown[0]!r}; it takes "
@@ -111,10 +122,11 @@ class ServedModel:
         for name, arr in tensors.items():
             if arr.dtype != np.float32:
                 raise ApiError(400, f"input {name!r} must be FP32")
-        params: dict[str, Any] = {}
+        offset = self.effective_offset if offset is None else float(offset)
+        params: dict[str, Any] = {"offset": offset}
         try:
             if "features" in tensors:
-                verdict, score = self.model.score_inputs(self._features(tensors))
+                verdict, score = self.model.score_inputs(self._features(tensors), offset)
             else:
                 blocks, quick = self._blocks(tensors)
                 params["nonfinite_pixels"] = _nonfinite(blocks)
@@ -122,7 +134,7 @@ class ServedModel:
                     params["nonfinite_quick_pixels"] = _nonfinite(quick)
                 else:
                     quick = None  # raw-block and quick-'none' models read the current block only
-                verdict, score = self.model.score_blocks(blocks, quick, exposure=exposure)
+                verdict, score = self.model.score_blocks(blocks, quick, exposure=exposure, offset=offset)
         except ValueError as exc:  # what the feature base and estimator reject
             raise ApiError(400, str(exc)) from None
         return {"verdict": verdict, "score": np.asarray(score, np.float32)}, params
@@ -168,8 +180,11 @@ class ModelRegistry:
 
     specs: dict[str, str | None]
     models: dict[str, ServedModel] = field(default_factory=dict)
+    offset: float | None = None     # `serve --offset`, for every model served
 
     def __post_init__(self) -> None:
+        if self.offset is not None and not math.isfinite(self.offset):
+            raise ValueError(f"offset must be a finite number, got {self.offset!r}")
         if not self.specs:
             self.specs = parse_model_specs(None)
         if DEFAULT in self.specs:
@@ -193,12 +208,13 @@ class ModelRegistry:
             t0 = time.perf_counter()
             model = load_model(path)
             served = ServedModel(name, model, time.perf_counter() - t0,
-                                 version=str(model.manifest.get("model_version", "1")))
+                                 version=str(model.manifest.get("model_version", "1")), offset=self.offset)
             _warm_up(served)
             self.models[name] = served
-            log.info("model %s loaded from %s in %.2f s (%s, input %s)", name,
+            log.info("model %s loaded from %s in %.2f s (%s, input %s, offset %.3g%s)", name,
                      path or "the bundled model", served.load_seconds,
-                     model.manifest.get("kind"), model.input)
+                     model.manifest.get("kind"), model.input, served.effective_offset,
+                     "" if self.offset is None else f" by --offset, calibrated {model.offset:.3g}")
 
     def get(self, name: str, version: str | None = None) -> ServedModel:
         served = self.models.get(self.default_name if name == DEFAULT else name)

@@ -42,7 +42,7 @@ def entry_points(model=None) -> dict[str, Entry]:
     """name -> callable(blocks) for features, the model, the service and the render loop."""
     from learning.bundle import load_model
     from noisefeat import extract_features
-    from renderer.criteria import BlockView, ModelCriterion, VarianceCriterion
+    from renderer.criteria import BlockView, FlipCriterion, ModelCriterion, VarianceCriterion
     from service.oip import ApiError
     from service.registry import ServedModel
 
@@ -62,7 +62,10 @@ def entry_points(model=None) -> dict[str, Entry]:
                           half_spp=(8, 8) if halves else None, quick=x) for x in b]
 
     def render_model(blocks: np.ndarray) -> Any:
-        return ModelCriterion(m, flat_shortcut=False).decide(list(range(len(blocks))), views(blocks, False))
+        return ModelCriterion(m).decide(list(range(len(blocks))), views(blocks, False))
+
+    def render_flip(blocks: np.ndarray) -> Any:
+        return FlipCriterion(0.02).decide(list(range(len(blocks))), views(blocks, True))
 
     def render_variance(blocks: np.ndarray) -> Any:
         return VarianceCriterion().decide(list(range(len(blocks))), views(blocks, True))
@@ -76,6 +79,7 @@ def entry_points(model=None) -> dict[str, Entry]:
         "service infer": service,
         "render loop: model criterion": render_model,
         "render loop: variance criterion": render_variance,
+        "render loop: flip criterion": render_flip,
     }
 
 
@@ -123,7 +127,8 @@ def other_cells(tmp_dir) -> dict[str, str]:
     from learning.estimators import DSVM
     from learning.metrics import evaluate_verdicts
     from learning.synthetic import make_synthetic_stack
-    from renderer.criteria import OracleCriterion, VarianceCriterion
+    from learning.stoprule import StopRule
+    from renderer.criteria import FlipCriterion, OracleCriterion, VarianceCriterion
     from renderer.simulate import simulate_stack
 
     def run(fn: Callable[[], Any]) -> str:
@@ -136,6 +141,9 @@ def other_cells(tmp_dir) -> dict[str, str]:
     cells = {
         "single-level stack, variance simulation": run(lambda: simulate_stack(one, VarianceCriterion())),
         "single-level stack, oracle simulation": run(lambda: simulate_stack(one, OracleCriterion(one.thresholds))),
+        "single-level stack, flip simulation": run(lambda: simulate_stack(one, FlipCriterion(0.02))),
+        "stop rule, scores NaN / +-Inf / +-1e300": run(lambda: StopRule(0.0, 16).stops(
+            np.array([[np.nan, np.inf, -np.inf, 1e300, -1e300]] * 3), [8, 16, 24])),
     }
     for spp in ([1], [10 ** 6], [1, 10 ** 6]):
         v = np.ones((len(spp), 2), int)

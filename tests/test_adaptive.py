@@ -191,6 +191,20 @@ def test_reference_metrics_and_oracle(tmp_path):
     assert u["spp_ratio_vs_oracle"] < 1.0
     with pytest.raises(ValueError, match="oracle needs --reference"):
         render_command("cornell", tmp_path / "x", criterion="oracle")
+    # the finished image against the reference, as a person flipping between them would see it:
+    # this synthetic 'reference' is another picture altogether, so every block differs visibly
+    check = r["final_vs_reference"]
+    assert check["tau"] == 0.02 and len(check["errors"]) == 16 and check["visible_noise_blocks"] == 16
+    assert all(0 < e <= 1 for e in check["errors"]) and (tmp_path / "o" / "compare.png").stat().st_size > 1000
+
+
+def test_a_finished_image_equal_to_its_reference_shows_no_noise(tmp_path):
+    from learning import write_stack
+    grey = np.full((32, 32, 3), 0.5, np.float32)            # what the 'sky' scene renders, exactly
+    write_stack(tmp_path / "data" / "sky", scene="sky", levels=[grey] * 2, spp=[4, 8], reference=grey,
+                quick=None, reference_spp=64, thresholds=[4] * 16)
+    r = adaptive_render("sky", tmp_path / "o", UniformCriterion(), reference=tmp_path / "data", **TINY)
+    assert r["final_vs_reference"]["visible_noise_blocks"] == 0 and max(r["final_vs_reference"]["errors"]) == 0
 
 
 def test_render_many_on_a_local_pool(tmp_path):

@@ -28,49 +28,76 @@ def test_update_markdown_replaces_only_its_section(tmp_path):
     assert "<!-- bench:c -->\nfresh\n<!-- /bench:c -->" in doc.read_text()
 
 
-def fixture_model(tmp_path) -> Path:
-    """A quick-'none' DSVM trained on the fixture, 'cornell' held out (in its manifest)."""
-    table = load_table(FIXTURE, progress=False, quick="none")
-    est, summary = train_model("dsvm", str(FIXTURE), table=table, cv=False, quick="none",
-                               progress=False)
+@pytest.fixture(scope="module")
+def split(tmp_path_factory) -> tuple[str, str]:
+    """The fixture as the protocol's two datasets: 'cornell' held out, the rest to train on."""
+    import shutil
+    root = tmp_path_factory.mktemp("split")
+    for scene in ("checker", "cornell_dark", "sky", "cornell"):
+        shutil.copytree(FIXTURE / scene, root / ("heldout" if scene == "cornell" else "train") / scene)
+    return str(root / "train"), str(root / "heldout")
+
+
+def fixture_model(tmp_path, data=FIXTURE, test_scenes=None) -> Path:
+    """A quick-'none' DSVM trained on `data` (default split of the fixture: 'cornell' held
+    out, in its manifest; `test_scenes=[]`: every scene trained on)."""
+    table = load_table(data, progress=False, quick="none")
+    est, summary = train_model("dsvm", str(data), table=table, cv=False, quick="none", progress=False,
+                               test_scenes=test_scenes)
     return save_model(est, tmp_path / "m", kind="dsvm", input="features", training=summary,
                       extra={"quick": "none"})
 
 
 @pytest.mark.slow
-def test_tradeoff_draws_the_saved_comparison_on_the_fixture(tmp_path):
-    model = fixture_model(tmp_path)
+def test_tradeoff_draws_every_criterion_and_the_saved_comparison(tmp_path, split):
+    train, heldout = split
+    model = fixture_model(tmp_path, train, [])
     saved = tmp_path / "bench"
     kw = dict(out_dir=saved, model=str(model), thresholds=(0.05, 0.2))
-    with pytest.raises(ValueError, match="bench models"):
-        bench_tradeoff(str(FIXTURE), out_png=str(tmp_path / "p.png"), **kw)
-    (saved).mkdir()
+    saved.mkdir()
     (saved / "models-stale.json").write_text(json.dumps({"fingerprint": "another dataset", "rows": []}))
-    comp = bench_models(str(FIXTURE), saved, arches=(), kinds=("dsvm", "svm_as"), quick="none",
-                        plots_dir=str(tmp_path))
+    comp = bench_models(train, saved, arches=(), kinds=("dsvm", "svm_as"), quick="none",
+                        plots_dir=str(tmp_path), heldout=heldout)
+    assert comp["test_scenes"] == ["cornell"] and comp["train_scenes"] == ["checker", "cornell_dark", "sky"]
     assert json.loads((saved / "models-none.json").read_text())["rows"][1]["model"] == "svm_as"
-    assert all(len(row["offset_curve"]) == 41 for row in comp["rows"])
-    r = bench_tradeoff(str(FIXTURE), out_png=str(tmp_path / "p.png"), **kw)
+    assert all(len(row["offset_curve"]) == 71 for row in comp["rows"])
+    r = bench_tradeoff(train, heldout, out_png=str(tmp_path / "p.png"), **kw)
     assert r["test_scenes"] == ["cornell"] and Path(r["plot"]).stat().st_size > 1000
-    assert set(r["curves"]) == {"dsvm quick none (bundled)", "dsvm quick none", "svm_as"}
-    assert r["drawn"] == ["dsvm quick none (bundled)", "svm_as"]     # the bundle's twin is not drawn
-    for rows in r["curves"].values():
+    assert set(r["curves"]) == {"model", "flip", "variance", "dsvm quick none", "svm_as"}
+    assert not any(d.startswith("dsvm quick none,") for d in r["drawn"])   # the bundle's twin is not drawn
+    assert any(d.startswith("svm_as") for d in r["drawn"]) and any(d.startswith("flip") for d in r["drawn"])
+    for name, rows in r["curves"].items():
         early = [row["early_stop_rate"] for row in rows]
-        assert early == sorted(early, reverse=True)     # a larger offset never stops earlier
+        # a larger offset never stops earlier; a larger c (flip) or threshold (variance) never later
+        assert early == sorted(early, reverse=name not in ("flip", "variance")), name
         assert all(np.isfinite(row["spp_ratio_vs_oracle"]) for row in rows)
-    assert r["default"]["offset"] == 0 and len(r["variance"]) == 2
-    assert Path(r["spp_maps"]).stat().st_size > 1000
-    (scene,) = r["spp_by_scene"]
-    assert scene["scene"] == "cornell" and 0 < scene["model_spp"] <= scene["uniform_spp"]
-    assert 0 < scene["oracle_spp"] <= scene["uniform_spp"]
+    d = r["defaults"]
+    assert d["model"]["offset"] == 0 and d["flip"]["c"] > 0 and len(r["curves"]["variance"]) == 2
+    assert set(d["flip"]["per_scene"]) == {"cornell"} and Path(r["spp_maps"]).stat().st_size > 1000
     md = md_tradeoff(r)
-    assert "| svm_as |" in md and "| cornell |" in md and "offset 0.0" in md
+    assert "| svm_as |" in md and "| cornell |" in md and "offset 0.0" in md and "| flip | c " in md
+    with pytest.raises(ValueError, match="both trained on and held out"):   # the model saw cornell
+        bench_tradeoff(train, heldout, out_png=str(tmp_path / "q.png"), out_dir=saved,
+                       model=str(fixture_model(tmp_path / "all", FIXTURE, [])), thresholds=(0.05,))
 
 
 @pytest.mark.slow
-def test_ablation_rows_cover_every_switch(tmp_path):
+def test_criteria_section_simulates_every_criterion_on_held_out_scenes(tmp_path, split):
+    from service.bench import bench_criteria, md_criteria
+    train, heldout = split
+    r = bench_criteria(train, heldout, model=str(fixture_model(tmp_path, train, [])), thresholds=(0.01, 0.2))
+    assert r["test_scenes"] == ["cornell"] and set(r["rows"]) == {"model", "flip", "variance", "oracle", "uniform"}
+    assert r["rows"]["oracle"]["early_stop_rate"] == 0 and r["rows"]["oracle"]["spp_ratio_vs_oracle"] == 1
+    assert r["rows"]["uniform"]["saved_vs_uniform"] == 0
+    assert r["rows"]["flip"]["decision_ms_per_block"] > 0 and r["rows"]["model"]["decision_ms_per_block"] > 0
+    md = md_criteria(r)
+    assert "| cornell |" in md and "decision cost" in md and md.count("| flip (c ") == 2
+
+
+@pytest.mark.slow
+def test_ablation_rows_cover_every_switch(tmp_path, split):
     from service.bench import bench_ablation, md_ablation
-    r = bench_ablation(str(FIXTURE), out_png=str(tmp_path / "a.png"))
+    r = bench_ablation(*split, out_png=str(tmp_path / "a.png"))
     combos = {(x["weights"], x["quick"], x["wavelet"]) for x in r["rows"]}
     assert len(combos) == 12 and {q for _, q, _ in combos} == {"albedo", "direct", "none"}
     assert all(0 <= x["precision"] <= 1 and np.isfinite(x["spp_ratio_vs_oracle"]) for x in r["rows"])
@@ -80,16 +107,18 @@ def test_ablation_rows_cover_every_switch(tmp_path):
 
 
 @pytest.mark.slow
-def test_step_sizes_thin_the_decisions(tmp_path):
+def test_step_sizes_thin_the_decisions(tmp_path, split):
     from service.bench import bench_step, md_step
-    model = fixture_model(tmp_path)
-    r = bench_step(str(FIXTURE), multiples=(1, 2), scene="cornell", model=str(model),
+    model = fixture_model(tmp_path, split[0], [])
+    r = bench_step(*split, multiples=(1, 2), scene="cornell", model=str(model),
                    resolution=32, max_spp=192, out_png=str(tmp_path / "s.png"))
     steps = [x["step"] for x in r["rows"]]
-    assert steps == [48, 96] and [x["passes"] for x in r["rows"]][1] <= 2
-    # deciding less often can only stop later: never fewer samples
-    assert r["rows"][1]["spp_ratio_vs_oracle"] >= r["rows"][0]["spp_ratio_vs_oracle"] - 1e-12
-    assert md_step(r).count("\n") == 5 and Path(r["plot"]).stat().st_size > 1000
+    assert steps == [48, 96]
+    for name in ("model", "flip"):
+        assert r["rows"][1][name]["passes"] <= 2
+        # deciding less often can only stop later: never fewer samples
+        assert r["rows"][1][name]["spp_ratio_vs_oracle"] >= r["rows"][0][name]["spp_ratio_vs_oracle"] - 1e-12
+    assert md_step(r).count("\n") == 3 + 2 * 2 and Path(r["plot"]).stat().st_size > 1000
 
 
 def test_cost_accuracy_plot_needs_rows_with_both_axes(tmp_path):
@@ -127,19 +156,21 @@ def test_render_bench_alternates_runs_and_reports_medians(tmp_path):
     from service.bench import bench_render, md_render
     r = bench_render(scene="cornell", resolution=32, max_spp=64, step=16,
                      model=str(fixture_model(tmp_path)), repeats=3)
-    for name in ("model", "uniform"):
+    for name in ("model", "flip", "uniform"):
         walls = r[name]["walls_s"]
         assert len(walls) == 3 and r[name]["wall_s"] == sorted(walls)[1]
     assert r["uniform"]["saved_vs_uniform"] == 0 and 0 <= r["model"]["saved_vs_uniform"] < 1
-    assert r["speedup_vs_uniform"] == pytest.approx(r["uniform"]["wall_s"] / r["model"]["wall_s"])
-    assert "median of 3" in md_render(r)
+    for name in ("model", "flip"):
+        assert r[name]["speedup_vs_uniform"] == pytest.approx(r["uniform"]["wall_s"] / r[name]["wall_s"])
+        assert 0 < r[name]["decision_share"] < 1
+    assert "median of 3" in md_render(r) and "| flip criterion |" in md_render(r)
 
 
 @pytest.mark.slow
-def test_knobs_train_each_setting_and_mark_the_default():
+def test_knobs_train_each_setting_and_mark_the_default(split):
     from learning.train import CV_MAX_SAMPLES
     from service.bench import md_knobs
-    r = measure_knobs(str(FIXTURE), cv_caps=(100, CV_MAX_SAMPLES, 0), batches=(16, 64))
+    r = measure_knobs(*split, cv_caps=(100, CV_MAX_SAMPLES, 0), batches=(16, 64))
     cv = [x for x in r["rows"] if x["kind"] == "dsvm"]
     assert [x["value"] for x in cv] == [100, CV_MAX_SAMPLES, "all"] and [x["default"] for x in cv] == [0, 1, 0]
     assert cv[0]["cv_rows"] <= 112 < cv[2]["cv_rows"]         # whole groups of 16, up to the cap

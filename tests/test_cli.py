@@ -67,10 +67,14 @@ def test_argument_errors_exit_2():
     assert out.returncode == 2 and "expected a number >= 1" in out.stderr
 
 
-def test_cli_quick_modes_are_the_tables():
+def test_cli_copies_of_the_tables_agree():
     from learning.table import QUICK_MODES
+    from renderer.criteria import CRITERIA, DEFAULT_CRITERION
+    from service.commands import CRITERIA as CLI_CRITERIA
+    from service.commands import DEFAULT_CRITERION as CLI_DEFAULT
     from service.commands import QUICK_MODES as CLI_MODES
     assert CLI_MODES == QUICK_MODES
+    assert CLI_CRITERIA == CRITERIA and CLI_DEFAULT == DEFAULT_CRITERION
 
 
 def test_bench_quick_list_is_parsed_and_bad_modes_are_refused():
@@ -91,3 +95,56 @@ def test_bench_help_names_every_section():
     assert out.returncode == 0
     text = " ".join(out.stdout.split())
     assert all(name in text for name in SECTIONS), text
+
+
+# --- issue 12: one decision route, the flip criterion, held-out scenes --------------------------
+FIXTURE = __import__("pathlib").Path(__file__).parent / "fixtures" / "dataset"
+
+
+def test_scenes_marks_the_held_out_set():
+    scenes = json.loads(run("scenes", "--json").stdout)["scenes"]
+    held = {s["name"] for s in scenes if s["heldout"]}
+    assert len(held) == 8 and "cornell" not in held and "studio_preview" in held
+    table = run("scenes").stdout
+    assert "held out" in table and "training" in table
+
+
+def test_speed_knobs_must_be_finite_numbers():
+    for cmd in (("evaluate", "--data", "x"), ("render", "--out", "x"), ("serve",)):
+        for bad in ("nan", "inf", "fast"):
+            out = run(*cmd, "--offset", bad)
+            assert out.returncode == 2 and "--offset" in out.stderr and "Traceback" not in out.stderr, (cmd, bad)
+    out = run("evaluate", "--data", "x", "--threshold=-inf")
+    assert out.returncode == 2 and "finite" in out.stderr
+
+
+def test_evaluate_flip_and_model_offset_as_json():
+    out = run("evaluate", "--data", str(FIXTURE), "--criterion", "flip", "--threshold", "0.03", "--json")
+    assert out.returncode == 0, out.stderr
+    flip = json.loads(out.stdout)
+    assert flip["threshold"] == 0.03 and set(flip["per_scene"]) == {"checker", "cornell", "cornell_dark", "sky"}
+    assert flip["groups"]["converging"]["scenes"] and 0 <= flip["early_stop_rate"] <= 1
+    assert flip["per_scene"]["sky"]["saved_vs_uniform"] > 0.9          # flat: stops at the first level
+    stricter = json.loads(run("evaluate", "--data", str(FIXTURE), "--criterion", "flip", "--threshold", "0.005",
+                              "--json").stdout)
+    assert stricter["saved_vs_uniform"] <= flip["saved_vs_uniform"]    # a smaller c stops later
+
+
+def test_calibrate_writes_c_and_refuses_held_out_scenes(tmp_path):
+    out = run("calibrate", "--data", str(FIXTURE), "--out", str(tmp_path / "flip.json"), "--json")
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout)
+    saved = json.loads((tmp_path / "flip.json").read_text())
+    assert saved["c"] == got["c"] and saved["chosen"]["early_stop_rate"] <= 0.05
+    assert saved["scenes"] == ["checker", "cornell", "cornell_dark", "sky"] and saved["fingerprint"]
+    # a held-out scene may take no part in calibration (nor in training)
+    held = tmp_path / "data" / "studio_preview"
+    make_synthetic_stack(held, size=32, spp=(8, 16))
+    meta = json.loads((held / "meta.json").read_text())
+    meta["scene"] = "studio_preview"
+    (held / "meta.json").write_text(json.dumps(meta))
+    for cmd in (("calibrate", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "x.json")),
+                ("train", "--data", str(tmp_path / "data"), "--model", "dsvm", "--out", str(tmp_path / "m"),
+                 "--test-scenes", "")):
+        out = run(*cmd)
+        assert out.returncode == 2 and "studio_preview" in out.stderr and "held out" in out.stderr, out.stderr

@@ -8,8 +8,9 @@ from learning import make_synthetic_stack
 from learning.bundle import load_model, save_model
 from learning.estimators import DSVM
 from learning.table import stack_features
+from noisefeat.display import display_range
 from renderer.criteria import (BlockView, ModelCriterion, OracleCriterion, UniformCriterion,
-                               VarianceCriterion, build_criterion, display_range)
+                               VarianceCriterion, build_criterion)
 
 
 def train_model(tmp_path):
@@ -87,7 +88,7 @@ def test_flat_blocks_are_converged_without_halves():
     out = c.decide([0, 1], [view(black, half_spp=(16, 0)), view(sky, half_spp=(16, 0))])
     assert out.tolist() == [1, 1]
     assert c.counters["flat_blocks"] == 2
-    assert display_range(sky) == 0.0 and display_range(noisy_block()) > 0.1
+    assert display_range(sky[None])[0] == 0.0 and display_range(noisy_block()[None])[0] > 0.1
     off = VarianceCriterion(0.01, flat_shortcut=False)
     assert off.decide([0], [view(black, half_spp=(16, 0))])[0] == -1
 
@@ -179,8 +180,8 @@ def test_model_criterion_uses_any_scorer():
         def __init__(self):
             self.calls = []
 
-        def score_blocks(self, blocks, quick=None):
-            self.calls.append((blocks.shape, None if quick is None else quick.shape))
+        def score_blocks(self, blocks, quick=None, exposure=0.0, offset=None):
+            self.calls.append((blocks.shape, None if quick is None else quick.shape, exposure, offset))
             v = np.where(blocks.mean(axis=(1, 2, 3)) > 0.35, 1, -1).astype(np.int8)
             return v, v.astype(float)
 
@@ -188,8 +189,11 @@ def test_model_criterion_uses_any_scorer():
     crit = ModelCriterion(fake)
     views = [BlockView(mean=noisy_block(level=lv), spp=8, quick=np.ones((8, 8, 3))) for lv in (0.1, 0.5)]
     assert crit.decide([4, 7], views).tolist() == [-1, 1]
-    assert fake.calls == [((2, 8, 8, 3), (2, 8, 8, 3))]
+    assert fake.calls == [((2, 8, 8, 3), (2, 8, 8, 3), 0.0, None)]
     assert crit.describe()["model"] == {"type": "Fake"}
+    # a remote scorer gets the display exposure and the user's offset with every call
+    ModelCriterion(fake, exposure=1.5, offset=0.7).decide([4], views[:1])
+    assert fake.calls[-1] == ((1, 8, 8, 3), (1, 8, 8, 3), 1.5, 0.7)
 
 
 def test_model_criterion_without_quick_image(tmp_path):
@@ -201,7 +205,7 @@ def test_model_criterion_without_quick_image(tmp_path):
     X = rng.normal(size=(120, 26))
     y = np.where(X[:, 0] > 0, 1, -1)
     save_model(DSVM().fit(X, y), tmp_path / "m", kind="dsvm", input="features", extra={"quick": "none"})
-    crit = ModelCriterion(load_model(tmp_path / "m"), flat_shortcut=False)
+    crit = ModelCriterion(load_model(tmp_path / "m"))
     assert not crit.needs_quick
     views = [BlockView(mean=rng.random((16, 16, 3)).astype(np.float32), spp=16) for _ in range(3)]
     out = crit.decide([0, 1, 2], views)

@@ -13,7 +13,7 @@ from learning.active import (ActiveSemiSupervised, SimulatedExpert, class_centre
 from learning.bundle import load_model, save_model
 from learning.cv import select_hyperparameters
 from learning.estimators import DSVM, SVM
-from learning.evaluate import verdicts_by_scene
+from learning.evaluate import by_scene
 from learning.metrics import evaluate_verdicts, stack_counts, stop_thresholds
 from learning.query import MarginQuery, RandomQuery
 from learning.table import load_table
@@ -39,8 +39,11 @@ def test_dsvm_contract_and_offset():
     majority = max((y[400:] > 0).mean(), (y[400:] < 0).mean())
     # 24 of the 26 dimensions are pure noise: well above the majority class is the test
     assert (m.predict(X[400:]) == y[400:]).mean() > majority + 0.15
-    hi = DSVM(offset=1.0).fit(X[:400], y[:400])
+    assert m.offset_ == 0.0 and "offset" not in m.get_params()     # fitted, not a parameter
+    hi = DSVM().fit(X[:400], y[:400])
+    hi.offset_ = 1.0                                                 # what calibration sets
     assert (hi.predict(X) > 0).sum() < (m.predict(X) > 0).sum()   # a larger offset stops later
+    np.testing.assert_array_equal(hi.predict(X), np.where(hi.decision_function(X) > 1.0, 1, -1))
     assert m.n_support_ > 0 and m.n_parameters() > m.n_support_ * 26
 
 
@@ -173,7 +176,8 @@ def test_grouped_cv_picks_from_the_grid():
 # --- bundles -----------------------------------------------------------------------
 def test_bundle_roundtrip(tmp_path):
     X, y = toy(200)
-    est = DSVM(offset=0.25).fit(X, y)
+    est = DSVM().fit(X, y)
+    est.offset_ = 0.25
     save_model(est, tmp_path / "m", kind="dsvm", input="features", training={"n": 200})
     model = load_model(tmp_path / "m")
     np.testing.assert_allclose(model.decision_function(X), est.decision_function(X))
@@ -206,9 +210,10 @@ def table():
 def test_table_rows_and_groups(table):
     assert len(table) == 4 * 16 * 16 and table.X.shape[1] == 26
     assert len(np.unique(table.groups)) == 4 * 16
-    per = verdicts_by_scene(table, table.y)
-    v, labels, th, spp = per["cornell"]
+    v, labels = by_scene(table, table.y)["cornell"], table.stacks["cornell"].labels()
     assert v.shape == (16, 16) and (v == labels).all()
+    flat = by_scene(table, table.flat)
+    assert flat["sky"].all() and not flat["cornell"].any()   # the stop rule's flat blocks
 
 
 @pytest.mark.parametrize("kind", ["dsvm", "dsvm_as", "svm_al"])

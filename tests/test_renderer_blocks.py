@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from renderer.blocks import BlockAccumulator, BlockRenderer, derive_seed
+from learning.accumulator import BlockAccumulator
+from renderer.blocks import BlockRenderer, derive_seed
 from renderer.scenes import load_scene
 
 

@@ -124,3 +124,19 @@ def test_xml_errors_name_the_file(tmp_path: Path) -> None:
     broken.write_text("<scene")
     with pytest.raises(ValueError, match="broken.xml"):
         load_scene(str(broken), 16)
+
+
+def test_held_out_scenes_are_a_separate_set() -> None:
+    train, held = list_scenes(heldout=False), list_scenes(heldout=True)
+    assert len(held) == 8 and len(train) == 14 and list_scenes() == train + held
+    assert not {n for n, _ in train} & {n for n, _ in held}
+    assert all("heldout" in SCENES[n].tags for n, _ in held)
+
+
+def test_procedural_textures_are_seeded_and_in_range() -> None:
+    from renderer.heldout import marble, studio_environment, wood
+    for make in (marble, wood, studio_environment):
+        a, b = make(), make()
+        assert np.array_equal(a, b) and np.isfinite(a).all() and a.min() >= 0 and a.dtype == np.float32
+    assert marble().max() <= 1 and wood().max() <= 1          # reflectances
+    assert studio_environment().max() > 1                     # light: soft boxes brighter than the room

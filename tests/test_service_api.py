@@ -213,7 +213,7 @@ def test_nonfinite_pixels_are_counted_and_read_by_the_display_rule(client):
     body, headers = binary_body([("blocks", bad), ("quick", quick_bad)])
     r = infer(client, body, headers=headers)
     assert r.status_code == 200, r.text
-    assert r.json()["parameters"] == {"nonfinite_pixels": [2, 0, 1], "nonfinite_quick_pixels": [0, 1, 0]}
+    assert r.json()["parameters"] == {"offset": 0.0, "nonfinite_pixels": [2, 0, 1], "nonfinite_quick_pixels": [0, 1, 0]}
     # NaN/-Inf read as black, +Inf as white: the same answer as the cleaned blocks
     clean = np.nan_to_num(bad, nan=0.0, posinf=1.0, neginf=0.0)
     quick_clean = np.nan_to_num(quick_bad, nan=0.0)
@@ -406,3 +406,54 @@ def test_quick_none_model_needs_no_quick_input(tmp_path):
     verdict, score = load_model(bundle).score_blocks(current)
     np.testing.assert_allclose(out["score"], score, rtol=1e-4, atol=1e-5)
     assert out["verdict"].tolist() == verdict.tolist()
+
+
+# --- the one stop rule over HTTP: offset and flat blocks (issue 12) ---------------------------
+
+def test_verdicts_follow_the_stop_rule_offset_and_flat_blocks(client):
+    current, quick = blocks_pair(n=4)
+    current[3] = 0.42                                  # a flat block: converged whatever its score
+    body, headers = binary_body([("blocks", current), ("quick", quick)])
+    r = infer(client, body, headers=headers)
+    out = outputs_of(r)
+    score = out["score"]
+    assert r.json()["parameters"]["offset"] == 0.0 and out["verdict"][3] == 1
+    np.testing.assert_array_equal(out["verdict"][:3], np.where(score[:3] > 0.0, 1, -1))
+    mid = float(np.sort(score[:3])[:2].mean())          # between two scores: no float32 tie
+    for off in (mid, -1e6, 1e6):
+        body, headers = binary_body([("blocks", current), ("quick", quick)], parameters={"offset": off})
+        r = infer(client, body, headers=headers)
+        got = outputs_of(r)
+        assert r.json()["parameters"]["offset"] == off
+        np.testing.assert_array_equal(got["score"], score)                  # the knob moves verdicts only
+        np.testing.assert_array_equal(got["verdict"][:3], np.where(score[:3] > off, 1, -1))
+        assert got["verdict"][3] == 1
+    # rows of features carry no image: no flat test, the offset still applies
+    feats = np.zeros((2, 26), np.float32)
+    r = infer(client, {"inputs": [tensor("features", feats)], "parameters": {"offset": 1e6}})
+    assert outputs_of(r)["verdict"].tolist() == [-1, -1]
+
+
+@pytest.mark.parametrize("bad", ["0.5", True, None, 1e400])
+def test_a_bad_offset_is_a_400(client, bad):
+    current, quick = blocks_pair(n=1)
+    body = {"inputs": [tensor("blocks", current), tensor("quick", quick)], "parameters": {"offset": bad}}
+    r = infer(client, json.dumps(body).replace("Infinity", "1e400"))
+    if bad is None:            # null: as if not given
+        assert r.status_code == 200
+    else:
+        assert r.status_code == 400 and "offset" in r.json()["error"]
+
+
+def test_serve_offset_overrides_every_model(bundles):
+    app = create_app(ModelRegistry(dict(bundles), offset=0.75), token=TOKEN)
+    with TestClient(app) as c:
+        meta = c.get("/v2/models/dsvm_demo", headers=AUTH).json()["parameters"]
+        assert meta["offset"] == 0.75 and meta["calibrated_offset"] == 0.0
+        current, quick = blocks_pair(n=2)
+        r = infer(c, {"inputs": [tensor("blocks", current), tensor("quick", quick)]})
+        out = outputs_of(r)
+        assert r.json()["parameters"]["offset"] == 0.75
+        np.testing.assert_array_equal(out["verdict"], np.where(out["score"] > 0.75, 1, -1))
+    with pytest.raises(ValueError, match="finite"):
+        ModelRegistry(dict(bundles), offset=float("nan"))

@@ -11,11 +11,11 @@ from learning.bundle import load_model, save_model
 from learning.estimators import DSVM
 from learning.table import stack_features
 from noisefeat import split_blocks
-from renderer import adaptive
-from renderer.blocks import BlockAccumulator
+from learning.accumulator import BlockAccumulator
 from renderer.criteria import ModelCriterion, OracleCriterion, UniformCriterion, VarianceCriterion
-from renderer.simulate import (criterion_factory, evaluate_criterion, evaluate_criterion_cli, find_reference,
-                               recover_passes, simulate_stack)
+from learning.halves import recover_passes
+from renderer.simulate import criterion_factory, evaluate_criterion, evaluate_criterion_cli, find_reference, simulate_stack
+from stack_renderer import live
 
 GRID = (4, 4)
 STEP = 8
@@ -118,47 +118,6 @@ def test_converged_blocks_stay_converged_and_are_not_asked_again(synth):
     assert 0 < (V[-1] > 0).sum() < 16                   # the test is informative on this stack
 
 
-class StackRenderer:
-    """Stand-in for BlockRenderer that serves a stack's recovered passes: the live loop
-    then sees exactly the samples the simulation sees."""
-
-    def __init__(self, stack, grid):
-        self.stack, self.grid = stack, tuple(grid)
-        self.passes = [split_blocks(p, self.grid) for _, _, _, p in recover_passes(stack)]
-        self.height, self.width = stack.height, stack.width
-        self.block_h, self.block_w = stack.block
-        self.block_shape = tuple(stack.block)
-        self.n_blocks = stack.n_blocks
-        self.calls = []
-
-    def block_slices(self, b):
-        r, c = divmod(b, self.grid[1])
-        return slice(r * self.block_h, (r + 1) * self.block_h), slice(c * self.block_w, (c + 1) * self.block_w)
-
-    def render_blocks(self, ids, spp, seed, pass_index=0):
-        assert spp == STEP
-        self.calls.append(list(ids))
-        return np.stack([self.passes[pass_index][b] for b in ids])
-
-    def quick_image(self, spp=16, seed=0, kind="albedo"):
-        return self.stack.quick(kind)
-
-
-def live(monkeypatch, tmp_path, stack, crit, min_spp):
-    made = []
-
-    def fake_renderer(scene, grid):
-        made.append(StackRenderer(stack, grid))
-        return made[-1]
-
-    monkeypatch.setattr(adaptive, "BlockRenderer", fake_renderer)
-    monkeypatch.setattr("renderer.scenes.load_scene", lambda scene, resolution: scene)
-    report = adaptive.adaptive_render(stack.scene, tmp_path / "live", crit, resolution=stack.width,
-                                      grid=GRID, step=STEP, min_spp=min_spp, max_spp=SPP[-1],
-                                      progress=False)
-    return report, made[0]
-
-
 def train(tmp_path):
     st = make_synthetic_stack(tmp_path / "train", size=64, seed=11)
     x = stack_features(st)
@@ -230,11 +189,11 @@ def test_find_reference(tmp_path, synth):
 def test_criterion_factory_for_the_evaluate_command(synth):
     by_name = evaluate_criterion(synth, criterion_factory("oracle"))
     assert by_name["precision"] == 1.0 and by_name["spp_ratio_vs_oracle"] == pytest.approx(1.0)
-    var = evaluate_criterion(synth, criterion_factory("variance", variance_threshold=0.08))
+    var = evaluate_criterion(synth, criterion_factory("variance", threshold=0.08))
     assert var["criterion"]["threshold"] == 0.08
     with pytest.raises(ValueError, match="unknown criterion"):
         criterion_factory("bogus")
-    cli = evaluate_criterion_cli(synth.path.parent, "variance", ["synthetic"], variance_threshold=0.08,
+    cli = evaluate_criterion_cli(synth.path.parent, "variance", ["synthetic"], threshold=0.08,
                                  progress=False)
     assert cli["precision"] == var["precision"] and set(cli["per_scene"]) == {"synthetic"}
     with pytest.raises(ValueError, match="no stack of scene.*kitchen"):

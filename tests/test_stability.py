@@ -23,6 +23,7 @@ def test_expected_rejections_and_acceptances(cells):
         assert row["empty batch"] == "finite", entry
     for entry in ("extract_features", "service infer", "render loop: model criterion"):
         assert "at least 8x8" in cells[entry]["7x7 blocks (too small)"]
+    assert all(v == "finite" for v in cells["render loop: flip criterion"].values())   # FLIP takes any size
     assert "FP32" in cells["service infer"]["float16"]        # the protocol's datatype rule
     raw = cells["model decision (svm, raw L* of 16x16 blocks)"]
     for size in ("8x8 blocks", "1024x1024 block", "7x7 blocks (too small)"):

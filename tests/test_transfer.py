@@ -76,7 +76,8 @@ def test_fit_predict_contract(caplog):
     proba = m.predict_proba(X)
     assert proba.shape == (len(X), 2) and np.allclose(proba.sum(1), 1.0)
     assert np.array_equal(proba[:, 1] > 0.5, f > 0)
-    m.offset = float(f.max()) + 1.0           # a larger offset stops later: here never
+    assert m.offset_ == 0.0 and "offset" not in m.get_params()   # fitted, not a parameter
+    m.offset_ = float(f.max()) + 1.0          # a larger offset stops later: here never
     assert (m.predict(X) == -1).all()
 
 
@@ -208,7 +209,7 @@ def test_input_size_resizes():
 
 
 def test_clone_and_params():
-    m = TransferClassifier(arch="resnet50", epochs=3, offset=0.5)
+    m = TransferClassifier(arch="resnet50", epochs=3, lr=0.01)
     c = clone(m)
     assert c.get_params() == m.get_params() and not hasattr(c, "head_")
 
@@ -218,7 +219,10 @@ def test_save_load_roundtrip(tmp_path, freeze):
     X, _ = _data()
     m = _fit(epochs=2, freeze_base=freeze)
     m.save(tmp_path / "m")
+    m.offset_ = 0.25                                  # a calibrated offset travels with the model
+    m.save(tmp_path / "m")
     back = TransferClassifier.load(tmp_path / "m")
+    assert back.offset_ == 0.25 and np.array_equal(back.predict(X), m.predict(X))
     assert np.array_equal(back.decision_function(X), m.decision_function(X))
     assert back.report_label() == m.report_label() and back.get_params() == m.get_params()
 

@@ -1,0 +1,200 @@
+"""Half buffers and the training-free `flip` score: FLIP between the two halves of a block.
+
+A progressive render can keep two half buffers per pixel, as Cycles does: A, the mean of
+the even-numbered passes, and B, the mean of the odd-numbered ones. They are two
+independent estimates of the same image, so display(A) against display(B) differs only
+by noise: no scene content is left in the comparison. The `flip` criterion measures that
+difference the way DESIGN's observer measures the difference to the reference: e = mean
+over the block of the raw LDR-FLIP map (67 pixels per degree) between display(A) and
+display(B), the map computed on the block alone (the live loop only has the active
+blocks). A block is converged when e <= c, with c calibrated on training scenes
+(`calibrate_flip`, shipped in `learning/flip.json`).
+
+On a stored stack the passes come back exactly from consecutive cumulative levels
+(`recover_passes`), and a `BlockAccumulator` fed with them holds the very half buffers the
+live loop keeps, so `stack_flip_errors` scores every (level, block) as the render would.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .accumulator import BlockAccumulator
+from .observer import DEFAULT_PPD, display, flip_map
+from .stack import Stack
+
+log = logging.getLogger(__name__)
+
+CACHE_DIR = ".cache"
+FLIP_CALIBRATION = Path(__file__).with_name("flip.json")
+DEFAULT_C = 0.02   # used only when no calibration file ships (flip.json says what is shipped)
+
+
+def recover_passes(stack: Stack) -> Iterator[tuple[int, np.ndarray, int, np.ndarray]]:
+    """Yield (k, level_k [H, W, 3] float64, pass spp, pass_k [H, W, 3] float64), one level at a time.
+
+    Level k is the cumulative mean of spp[k] samples, so sum_k = spp[k] * L_k and the
+    pass between two levels is (sum_k - sum_{k-1}) / (spp[k] - spp[k-1]) (pass 0 = L_0).
+    Pixels whose stored level is non-finite give a non-finite pass; the accumulator drops
+    them exactly as it drops a renderer's non-finite samples.
+    """
+    prev_sum: np.ndarray | None = None
+    prev_spp = 0
+    for k, s in enumerate(stack.spp):
+        level = stack.level(k).astype(np.float64)
+        total = level * float(s)
+        n = int(s) - prev_spp
+        with np.errstate(invalid="ignore", over="ignore"):
+            pass_img = total / n if prev_sum is None else (total - prev_sum) / n
+        yield k, level, n, pass_img
+        prev_sum, prev_spp = total, int(s)
+
+
+def check_constant_step(stack: Stack) -> None:
+    """Warn when levels are not evenly spaced: the recovered passes then differ in size and
+    the half buffers A and B hold unequal sample counts."""
+    steps = np.diff([0, *stack.spp])
+    if len(set(steps.tolist())) > 1:
+        log.warning("%s: spp steps are not constant (%s...): recovered passes differ in size, "
+                    "so the half buffers A/B are unbalanced", stack.path, steps[:4].tolist())
+
+
+def halves_flip(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
+                ppd: float = DEFAULT_PPD) -> np.ndarray:
+    """e float64 [N]: per block, the mean raw FLIP between display(A) and display(B).
+
+    `even`, `odd`: linear RGB blocks [N, h, w, 3] (the two half-buffer means). Non-finite
+    values follow the display rule (NaN/-Inf black, +Inf white), so e is always finite.
+    """
+    even, odd = np.asarray(even), np.asarray(odd)
+    if even.shape != odd.shape or even.ndim != 4 or even.shape[-1] != 3:
+        raise ValueError(f"half buffers must be two [N, h, w, 3] arrays of one shape, got "
+                         f"{even.shape} and {odd.shape}")
+    if not np.isfinite(exposure):
+        raise ValueError(f"exposure must be finite, got {exposure}")
+    out = np.empty(len(even))
+    for i, (a, b) in enumerate(zip(even, odd)):
+        out[i] = float(np.mean(flip_map(display(a, exposure), display(b, exposure), ppd), dtype=np.float64))
+    return out
+
+
+def flip_offset(c: float) -> float:
+    """The stop-rule offset that makes `score > offset` (score = -e) mean e <= c exactly."""
+    if not (np.isfinite(c) and c >= 0):
+        raise ValueError(f"flip threshold c must be a non-negative number, got {c!r}")
+    return float(np.nextafter(-float(c), -np.inf))
+
+
+def stack_flip_errors(stack: Stack, exposure: float = 0.0, ppd: float = DEFAULT_PPD,
+                      progress: bool = False) -> np.ndarray:
+    """e float64 [K, n_blocks] of a stack; NaN where B is still empty (one pass only) and
+    where the block's image is flat (the stop rule stops it whatever e is, so FLIP, the
+    expensive part, is not run there, as in the live loop).
+
+    Cached next to the stack (`.cache/flip-halves-*.npz`, atomic), since every
+    calibration and evaluation reads it.
+    """
+    from tqdm import tqdm
+
+    from .table import stack_flat
+
+    flat = stack_flat(stack, exposure)
+    cache = stack.path / CACHE_DIR / f"flip-halves-e{exposure:g}-ppd{ppd:g}.npz"
+    shape = (stack.n_levels, stack.n_blocks)
+    if cache.exists():
+        try:
+            with np.load(cache, allow_pickle=False) as z:
+                e = z["e"]
+            if e.shape == shape:
+                return e
+        except Exception as exc:
+            log.warning("%s: unreadable cache (%s); recomputing", cache, exc)
+    check_constant_step(stack)
+    acc = BlockAccumulator(stack.grid, stack.block)
+    ids = list(range(stack.n_blocks))
+    e = np.full(shape, np.nan)
+    for k, _, n, pass_img in tqdm(recover_passes(stack), total=stack.n_levels, disable=not progress,
+                                  desc=f"{stack.scene} flip", leave=False):
+        acc.add_many(ids, stack.split(pass_img), n)
+        todo = np.flatnonzero(~flat[k])
+        if k == 0 or not todo.size:
+            continue                     # k = 0: B is empty, no estimate of the noise yet
+        halves = [acc.half_buffer(int(b)) for b in todo]
+        e[k, todo] = halves_flip(np.stack([h[0] for h in halves]), np.stack([h[1] for h in halves]),
+                                 exposure, ppd)
+    cache.parent.mkdir(exist_ok=True)
+    tmp = cache.with_name(cache.name + ".tmp.npz")
+    np.savez(tmp, e=e)
+    os.replace(tmp, cache)
+    return e
+
+
+# ----------------------------------------------------------------------------- the shipped c
+
+
+def load_flip_calibration(path: str | os.PathLike | None = None) -> dict[str, Any]:
+    """The shipped calibration of c (`learning/flip.json`), or the fallback if none ships."""
+    p = Path(path) if path is not None else FLIP_CALIBRATION
+    if not p.is_file():
+        if path is not None:
+            raise FileNotFoundError(f"{p}: no flip calibration file")
+        log.warning("no flip calibration shipped (%s); using c = %g", p, DEFAULT_C)
+        return {"c": DEFAULT_C, "source": "fallback"}
+    try:
+        cal = json.loads(p.read_text())
+        c = float(cal["c"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{p}: unreadable flip calibration ({exc})") from None
+    flip_offset(c)
+    return cal
+
+
+FLIP_CANDIDATES = tuple(round(float(c), 4) for c in np.arange(0.005, 0.08001, 0.0005))
+
+
+def flip_sweep(stacks: Sequence[Stack], candidates: Sequence[float] = FLIP_CANDIDATES, *,
+               min_spp: int | None = None, progress: bool = False) -> list[dict[str, Any]]:
+    """Metrics of the flip criterion at each c (overall, per scene, per group), through the
+    one stop rule (min spp, held stops, flat blocks at once), on labelled `stacks`."""
+    from .generalisation import scene_groups
+    from .metrics import evaluate_verdicts
+    from .stoprule import StopRule
+    from .table import stack_flat
+
+    if not stacks:
+        raise ValueError("no stacks to sweep c on")
+    unlabelled = [str(s.path) for s in stacks if s.thresholds is None]
+    if unlabelled:
+        raise ValueError(f"stacks without thresholds cannot be scored: {', '.join(unlabelled[:3])}")
+    errors = {s.scene: stack_flip_errors(s, progress=progress) for s in stacks}
+    flats = {s.scene: stack_flat(s) for s in stacks}
+    groups = scene_groups(stacks)
+    curve = []
+    for c in sorted(candidates):
+        rule = StopRule(flip_offset(c), min_spp)
+        per = {s.scene: (rule.stops(-errors[s.scene], s.spp, flats[s.scene]), s.labels(), s.thresholds, s.spp)
+               for s in stacks}
+        curve.append({"threshold": float(c), **evaluate_verdicts(per, groups)})
+    return curve
+
+
+def calibrate_flip(stacks: Sequence[Stack], max_early_stop: float = 0.05, *, min_spp: int | None = None,
+                   candidates: Sequence[float] = FLIP_CANDIDATES, progress: bool = True) -> dict[str, Any]:
+    """c for the `flip` criterion on `stacks` (training scenes, never the held-out ones):
+    the largest c (fewest samples) whose early-stop rate stays within `max_early_stop` on
+    scenes it was not chosen on (`learning.calibrate.choose_out_of_fold`)."""
+    from .calibrate import choose_out_of_fold
+
+    curve = flip_sweep(stacks, candidates, min_spp=min_spp, progress=progress)
+    chosen = choose_out_of_fold(curve, max_early_stop, larger_is_safer=False)
+    return {"c": chosen["threshold"], "target_early_stop_rate": max_early_stop,
+            "chosen": {k: v for k, v in chosen.items() if k not in ("per_scene", "groups")},
+            "per_scene": {s: {k: v for k, v in m.items() if k != "counts"} for s, m in chosen["per_scene"].items()},
+            "curve": [{k: v for k, v in r.items() if k not in ("per_scene", "groups")} for r in curve],
+            "scenes": sorted(s.scene for s in stacks), "min_spp": min_spp}

@@ -1,0 +1,105 @@
+"""The stop rule (DESIGN "The stop rule"): one definition for every consumer.
+
+A block stops at the first *decided* level whose score exceeds the offset; no level is
+decided before `min_spp`; a stop is held (the block is never asked again); a flat block
+(its display image within one 8-bit level in every channel) stops at once, whatever its
+score, because it shows no noise at all and a model trained on textured scenes has no
+business judging such out-of-distribution input.
+
+Who uses it: training's offset calibration and `evaluate` (`StopRule.stops` on stored
+score matrices), the simulation on stacks and the live render loop (`decide_active`,
+level by level, with a criterion's `StopRule.verdict`), and the HTTP service
+(`StopRule.verdict` on the blocks of one request). A NaN score is no decision: the block
+stays noisy.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from noisefeat.display import display_range
+
+CONVERGED = np.int8(1)
+NOISY = np.int8(-1)
+FLAT_TOLERANCE = 1.0 / 255.0  # one 8-bit code value of the display transform
+
+
+def flat_blocks(blocks: np.ndarray, exposure: float = 0.0) -> np.ndarray:
+    """bool [N]: linear RGB blocks [N, h, w, 3] whose display image varies by at most one
+    8-bit level in every channel (non-finite pixels follow the display rule)."""
+    return display_range(blocks, exposure) <= FLAT_TOLERANCE
+
+
+def decide_active(active: np.ndarray, spp: int, min_spp: int | None,
+                  decide: Callable[[list[int]], np.ndarray]) -> np.ndarray:
+    """One level of the rule for the blocks still `active` (bool [B], updated in place).
+
+    Nothing is decided below `min_spp`; otherwise `decide(ids)` answers (+1/-1 per id) for
+    the active blocks only, and those it calls converged leave `active` for good. Returns
+    the level's verdict row, int8 [B]: +1 / -1 for the blocks asked, 0 for the others.
+    """
+    row = np.zeros(len(active), np.int8)
+    if min_spp is not None and spp < min_spp:
+        return row
+    ids = np.flatnonzero(active).tolist()
+    if not ids:
+        return row
+    verdict = np.asarray(decide(ids))
+    if verdict.shape != (len(ids),):
+        raise RuntimeError(f"{len(ids)} blocks asked, {verdict.shape} verdicts returned")
+    row[ids] = np.where(verdict > 0, CONVERGED, NOISY)
+    active[np.asarray(ids)[verdict > 0]] = False
+    return row
+
+
+@dataclass(frozen=True)
+class StopRule:
+    """The rule with its two knobs: `offset` (the speed/accuracy knob: a larger offset
+    stops later) and `min_spp` (no decision below it; None: from the first level)."""
+
+    offset: float = 0.0
+    min_spp: int | None = None
+
+    def __post_init__(self) -> None:
+        if not np.isfinite(self.offset):
+            raise ValueError(f"offset must be a finite number, got {self.offset!r}")
+        if self.min_spp is not None and (isinstance(self.min_spp, bool) or int(self.min_spp) != self.min_spp
+                                         or self.min_spp < 1):
+            raise ValueError(f"min_spp must be a positive integer or None, got {self.min_spp!r}")
+
+    def verdict(self, score: np.ndarray, flat: np.ndarray | None = None) -> np.ndarray:
+        """int8 [N] for one decided level: +1 where the block is flat or its score exceeds
+        the offset, -1 elsewhere (a NaN score is -1)."""
+        score = np.asarray(score, np.float64)
+        with np.errstate(invalid="ignore"):
+            converged = score > self.offset
+        if flat is not None:
+            flat = np.asarray(flat, bool)
+            if flat.shape != score.shape:
+                raise ValueError(f"flat {flat.shape} and scores {score.shape} differ in shape")
+            converged = converged | flat
+        return np.where(converged, CONVERGED, NOISY)
+
+    def stops(self, scores: np.ndarray, spp: Sequence[int], flat: np.ndarray | None = None) -> np.ndarray:
+        """Held verdicts V int8 [K, B] from per-level scores [K, B] (and flat flags [K, B]):
+        -1 up to the level where the block stops, +1 from there on. The same levels are
+        decided and the same blocks asked as in the render loop."""
+        scores = np.asarray(scores, np.float64)
+        if scores.ndim != 2 or scores.shape[0] != len(spp):
+            raise ValueError(f"scores must be [levels, blocks] with {len(spp)} levels, got {scores.shape}")
+        if flat is not None and np.shape(flat) != scores.shape:
+            raise ValueError(f"flat {np.shape(flat)} and scores {scores.shape} differ in shape")
+        K, B = scores.shape
+        V = np.full((K, B), NOISY, np.int8)
+        active = np.ones(B, bool)
+        for k in range(K):
+            if k:
+                V[k] = V[k - 1]
+            row = decide_active(active, int(spp[k]), self.min_spp,
+                                lambda ids, k=k: self.verdict(scores[k, ids],
+                                                              None if flat is None else flat[k, ids]))
+            V[k, row > 0] = CONVERGED
+        return V
+

@@ -1,0 +1,51 @@
+"""Test helper: the live render loop fed a stored stack's own passes instead of Mitsuba's."""
+from __future__ import annotations
+
+import numpy as np
+
+from learning.halves import recover_passes
+from noisefeat import split_blocks
+from renderer import adaptive
+
+
+class StackRenderer:
+    """Stand-in for BlockRenderer that serves a stack's recovered passes: the live loop
+    then sees exactly the samples the simulation sees."""
+
+    def __init__(self, stack, grid):
+        self.stack, self.grid = stack, tuple(grid)
+        self.passes = [split_blocks(p, self.grid) for _, _, _, p in recover_passes(stack)]
+        self.step = int(stack.spp[0])
+        self.height, self.width = stack.height, stack.width
+        self.block_h, self.block_w = stack.block
+        self.block_shape = tuple(stack.block)
+        self.n_blocks = stack.n_blocks
+        self.calls = []
+
+    def block_slices(self, b):
+        r, c = divmod(b, self.grid[1])
+        return slice(r * self.block_h, (r + 1) * self.block_h), slice(c * self.block_w, (c + 1) * self.block_w)
+
+    def render_blocks(self, ids, spp, seed, pass_index=0):
+        assert spp == self.step
+        self.calls.append(list(ids))
+        return np.stack([self.passes[pass_index][b] for b in ids])
+
+    def quick_image(self, spp=16, seed=0, kind="albedo"):
+        return self.stack.quick(kind)
+
+
+def live(monkeypatch, tmp_path, stack, crit, min_spp, name="live"):
+    """adaptive_render over `stack`'s passes; returns (report, the renderer used)."""
+    made = []
+
+    def fake_renderer(scene, grid):
+        made.append(StackRenderer(stack, grid))
+        return made[-1]
+
+    monkeypatch.setattr(adaptive, "BlockRenderer", fake_renderer)
+    monkeypatch.setattr("renderer.scenes.load_scene", lambda scene, resolution: scene)
+    report = adaptive.adaptive_render(stack.scene, tmp_path / name, crit, resolution=stack.width,
+                                      grid=tuple(stack.grid), step=int(stack.spp[0]), min_spp=min_spp,
+                                      max_spp=int(stack.spp[-1]), progress=False)
+    return report, made[0]

@@ -31,7 +31,6 @@ from .stack import Stack
 
 log = logging.getLogger(__name__)
 
-CACHE_DIR = ".cache"
 FLIP_CALIBRATION = Path(__file__).with_name("flip.json")
 DEFAULT_C = 0.02   # used only when no calibration file ships (flip.json says what is shipped)
 
@@ -102,37 +101,27 @@ def stack_flip_errors(stack: Stack, exposure: float = 0.0, ppd: float = DEFAULT_
     """
     from tqdm import tqdm
 
-    from .table import stack_flat
+    from .table import cached_array, stack_flat
 
     flat = stack_flat(stack, exposure)
-    cache = stack.path / CACHE_DIR / f"flip-halves-e{exposure:g}-ppd{ppd:g}.npz"
     shape = (stack.n_levels, stack.n_blocks)
-    if cache.exists():
-        try:
-            with np.load(cache, allow_pickle=False) as z:
-                e = z["e"]
-            if e.shape == shape:
-                return e
-        except Exception as exc:
-            log.warning("%s: unreadable cache (%s); recomputing", cache, exc)
-    check_constant_step(stack)
-    acc = BlockAccumulator(stack.grid, stack.block)
-    ids = list(range(stack.n_blocks))
-    e = np.full(shape, np.nan)
-    for k, _, n, pass_img in tqdm(recover_passes(stack), total=stack.n_levels, disable=not progress,
-                                  desc=f"{stack.scene} flip", leave=False):
-        acc.add_many(ids, stack.split(pass_img), n)
-        todo = np.flatnonzero(~flat[k])
-        if k == 0 or not todo.size:
-            continue                     # k = 0: B is empty, no estimate of the noise yet
-        halves = [acc.half_buffer(int(b)) for b in todo]
-        e[k, todo] = halves_flip(np.stack([h[0] for h in halves]), np.stack([h[1] for h in halves]),
-                                 exposure, ppd)
-    cache.parent.mkdir(exist_ok=True)
-    tmp = cache.with_name(cache.name + ".tmp.npz")
-    np.savez(tmp, e=e)
-    os.replace(tmp, cache)
-    return e
+
+    def compute() -> np.ndarray:
+        check_constant_step(stack)
+        acc = BlockAccumulator(stack.grid, stack.block)
+        ids = list(range(stack.n_blocks))
+        e = np.full(shape, np.nan)
+        for k, _, n, pass_img in tqdm(recover_passes(stack), total=stack.n_levels, disable=not progress,
+                                      desc=f"{stack.scene} flip", leave=False):
+            acc.add_many(ids, stack.split(pass_img), n)
+            todo = np.flatnonzero(~flat[k])
+            if k == 0 or not todo.size:
+                continue                     # k = 0: B is empty, no estimate of the noise yet
+            halves = [acc.half_buffer(int(b)) for b in todo]
+            e[k, todo] = halves_flip(np.stack([h[0] for h in halves]), np.stack([h[1] for h in halves]),
+                                     exposure, ppd)
+        return e
+    return cached_array(stack, f"flip-halves-e{exposure:g}-ppd{ppd:g}", shape, compute)
 
 
 # ----------------------------------------------------------------------------- the shipped c

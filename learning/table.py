@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -61,6 +62,25 @@ def _atomic_savez(path: Path, **arrays: np.ndarray) -> None:
     os.replace(tmp, path)
 
 
+def cached_array(stack: Stack, name: str, shape: tuple[int, ...], compute: Callable[[], np.ndarray],
+                 dtype: type | None = None) -> np.ndarray:
+    """An array computed from a stack, kept in `<stack>/.cache/<name>.npz` (written
+    atomically): read back when it has the expected shape (and dtype), else computed again."""
+    cache = stack.path / CACHE_DIR / f"{name}.npz"
+    if cache.exists():
+        try:
+            with np.load(cache, allow_pickle=False) as z:
+                arr = z[z.files[0]]          # the one array of the file
+            if arr.shape == shape and (dtype is None or arr.dtype == dtype):
+                return arr
+        except Exception as exc:
+            log.warning("%s: unreadable cache (%s); recomputing", cache, exc)
+    arr = compute()
+    cache.parent.mkdir(exist_ok=True)
+    _atomic_savez(cache, a=arr)
+    return arr
+
+
 #: quick images a feature model can be trained with: the stack's own (albedo), the extra
 #: direct-lighting image, or none (a flat image)
 QUICK_MODES = ("albedo", "direct", "none")
@@ -95,26 +115,18 @@ def stack_features(stack: Stack, base: FeatureBase | None = None, exposure: floa
     if quick not in QUICK_MODES:
         raise ValueError(f"quick must be one of {QUICK_MODES}, got {quick!r}")
     base = base or default_base()
-    cache = stack.path / CACHE_DIR / f"features-{base.hash}-e{exposure:g}-{quick}.npz"
-    if cache.exists():
-        try:
-            with np.load(cache, allow_pickle=False) as z:
-                x = z["x"]
-            if x.shape == (stack.n_levels, stack.n_blocks, 26):
-                return x
-        except Exception as exc:
-            log.warning("%s: unreadable feature cache (%s); recomputing", cache, exc)
-    quick_feats = None if quick == "none" else extract_features(
-        stack.split(stack.quick(None if quick == "albedo" else quick)), base=base, exposure=exposure)
-    rows = []
-    for k in tqdm(range(stack.n_levels), desc=f"{stack.scene} features", disable=not progress,
-                  leave=False):
-        rows.append(feature_input(extract_features(stack.blocks(k), base=base, exposure=exposure),
-                                  quick_feats))
-    x = np.stack(rows).astype(np.float32)
-    cache.parent.mkdir(exist_ok=True)
-    _atomic_savez(cache, x=x)
-    return x
+
+    def compute() -> np.ndarray:
+        quick_feats = None if quick == "none" else extract_features(
+            stack.split(stack.quick(None if quick == "albedo" else quick)), base=base, exposure=exposure)
+        rows = []
+        for k in tqdm(range(stack.n_levels), desc=f"{stack.scene} features", disable=not progress,
+                      leave=False):
+            rows.append(feature_input(extract_features(stack.blocks(k), base=base, exposure=exposure),
+                                      quick_feats))
+        return np.stack(rows).astype(np.float32)
+    return cached_array(stack, f"features-{base.hash}-e{exposure:g}-{quick}",
+                        (stack.n_levels, stack.n_blocks, 26), compute)
 
 
 def stack_flat(stack: Stack, exposure: float = 0.0) -> np.ndarray:
@@ -122,19 +134,9 @@ def stack_flat(stack: Stack, exposure: float = 0.0) -> np.ndarray:
     cached next to the stack like the features."""
     from .stoprule import FLAT_TOLERANCE, flat_blocks
 
-    cache = stack.path / CACHE_DIR / f"flat-e{exposure:g}-t{FLAT_TOLERANCE:.9g}.npz"
-    if cache.exists():
-        try:
-            with np.load(cache, allow_pickle=False) as z:
-                flat = z["flat"]
-            if flat.shape == (stack.n_levels, stack.n_blocks) and flat.dtype == bool:
-                return flat
-        except Exception as exc:
-            log.warning("%s: unreadable flat-block cache (%s); recomputing", cache, exc)
-    flat = np.stack([flat_blocks(stack.blocks(k), exposure) for k in range(stack.n_levels)])
-    cache.parent.mkdir(exist_ok=True)
-    _atomic_savez(cache, flat=flat)
-    return flat
+    return cached_array(stack, f"flat-e{exposure:g}-t{FLAT_TOLERANCE:.9g}", (stack.n_levels, stack.n_blocks),
+                        lambda: np.stack([flat_blocks(stack.blocks(k), exposure) for k in range(stack.n_levels)]),
+                        dtype=bool)
 
 
 def stack_raw_blocks(stack: Stack, exposure: float = 0.0) -> np.ndarray:

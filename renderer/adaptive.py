@@ -292,7 +292,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
             reference = None
         else:
             report["final_vs_reference"] = final_vs_reference(image, reference, (gh, gw), ref_stack,
-                                                              float(settings["exposure"]))
+                                                              float(settings["exposure"]), ~state["active"])
     write_outputs(out, image, report, reference=reference)
     logger.info("%s: %d passes, saved %.1f%% vs uniform, %.2f s", label, report["passes"],
                 100 * report["saved_vs_uniform"], report["wall_s"])
@@ -375,16 +375,21 @@ def _against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, setti
 
 
 def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int, int], ref: Stack,
-                       exposure: float = 0.0) -> dict[str, Any]:
+                       exposure: float = 0.0, stopped: np.ndarray | None = None) -> dict[str, Any]:
     """What a person would see flipping between final.png and the reference: the virtual
-    observer's per-block FLIP error of the finished image, and the blocks still above its
-    threshold (visible noise left; blocks that ran to max spp included)."""
+    observer's per-block FLIP error of the finished image, the blocks still above its
+    threshold (visible noise left), and among them those the criterion stopped (the others
+    ran out of samples at max spp)."""
     from learning.observer import DEFAULT_TAU, VirtualObserver
 
     tau = float((ref.labeler or {}).get("tau", DEFAULT_TAU))
     obs = VirtualObserver(tau=tau, exposure=exposure)
     e = obs.errors(reference, image[None], grid)[0]
-    return {"tau": tau, "errors": [float(x) for x in e], "visible_noise_blocks": int((e > tau).sum())}
+    visible = e > tau
+    out = {"tau": tau, "errors": [float(x) for x in e], "visible_noise_blocks": int(visible.sum())}
+    if stopped is not None:
+        out["visible_noise_stopped_blocks"] = int((visible & np.asarray(stopped, bool)).sum())
+    return out
 
 
 # ----------------------------------------------------------------------------- many scenes

@@ -167,8 +167,11 @@ def format_report(report: dict[str, Any], out: str | os.PathLike | None = None) 
                      f"spp ratio vs oracle {report['spp_ratio_vs_oracle']:.2f}")
     if "final_vs_reference" in report:
         f = report["final_vs_reference"]
+        stopped = f.get("visible_noise_stopped_blocks")
         lines.append(f"final image vs reference: {f['visible_noise_blocks']} of {len(f['errors'])} blocks above "
-                     f"the observer's FLIP threshold {f['tau']:g} (visible noise; see compare.png)")
+                     f"the observer's FLIP threshold {f['tau']:g} (visible noise"
+                     + (f"; {stopped} of them stopped by the criterion, the others ran to max spp" if stopped
+                        is not None else "") + "; see compare.png)")
     if out is not None:
         lines.append(f"outputs in {out}")
     return "\n".join(lines)

@@ -123,6 +123,22 @@ def early_stops(per: dict[str, tuple]) -> list[dict[str, Any]]:
     return out
 
 
+def flip_at_threshold(stacks: list) -> dict[str, Any]:
+    """Flip's score where the observer says a block converges: e (FLIP between the half
+    buffers) at each block's true threshold level. If flip is free of scene content, its
+    distribution is the same on every set of scenes."""
+    from learning.halves import stack_flip_errors
+
+    e = []
+    for st in stacks:
+        errors = stack_flip_errors(st)
+        for b, t in enumerate(st.thresholds or []):
+            if t is not None and np.isfinite(errors[st.spp.index(t), b]):
+                e.append(float(errors[st.spp.index(t), b]))
+    pct = np.percentile(e, [10, 50, 90]).tolist() if e else [float("nan")] * 3
+    return {"blocks": len(e), "p10": pct[0], "median": pct[1], "p90": pct[2]}
+
+
 def _stop_grids(per: dict[str, tuple], grids: dict[str, tuple[int, int]]) -> dict[str, np.ndarray]:
     """Per scene, the spp each block stopped at (max spp if never) as its grid."""
     from learning.metrics import stop_thresholds
@@ -214,6 +230,8 @@ def bench_tradeoff(data: str, heldout: str | None = None, out_dir: str | Path = 
                           f"(offset {bundled.offset:.2f}), oracle", Path(out_png).with_name("spp-maps.png"))
     return {"test_scenes": [s.scene for s in test_stacks], "groups": groups,
             "early_stops": {"model": early_stops(per_model), "flip": early_stops(per_flip)},
+            "flip_at_threshold": {"training": flip_at_threshold(train_stacks),
+                                  "held-out": flip_at_threshold(test_stacks)},
             "curves": {"model": model_curve, "flip": flip_curve, "variance": var, **kinds},
             "drawn": [cv["label"] for cv in curves], "bundled": bundled.name,
             "defaults": {"model": {"offset": bundled.offset, **model_default}, "flip": {"c": c, **flip_default}},
@@ -238,7 +256,7 @@ def bench_step(data: str, heldout: str | None = None, multiples: tuple[int, ...]
     from learning.stoprule import StopRule
     from learning.table import stack_flat
     from renderer.adaptive import adaptive_render
-    from renderer.criteria import FlipCriterion, ModelCriterion
+    from renderer.criteria import FlipCriterion, ModelCriterion, UniformCriterion
 
     from . import charts
 
@@ -250,6 +268,10 @@ def bench_step(data: str, heldout: str | None = None, multiples: tuple[int, ...]
     flip_scores = {s.scene: -stack_flip_errors(s) for s in test_stacks}
     flats = {s.scene: stack_flat(s) for s in test_stacks}
     rules = {"model": (m.rule(), model_scores, flat), "flip": (StopRule(flip_offset(c)), flip_scores, flats)}
+    with tempfile.TemporaryDirectory() as tmp:   # warm-up: every block's kernel compiled once
+        adaptive_render(scene, Path(tmp), UniformCriterion(), step=multiples[0] * int(test_stacks[0].spp[0]),
+                        min_spp=1, max_spp=multiples[0] * int(test_stacks[0].spp[0]), resolution=resolution,
+                        progress=False)
     rows = []
     for k in multiples:
         step = int(test_stacks[0].spp[0]) * k
@@ -357,11 +379,18 @@ def md_tradeoff(r: dict[str, Any]) -> str:
             f"{x['scene']} block {x['block']} at {x['stop']} spp (threshold "
             f"{x['threshold'] if x['threshold'] is not None else 'never'}, {100 * x['short']:.0f} % short)"
             for x in sorted(es, key=lambda x: -x["short"])) if es else ""))
+    at = r["flip_at_threshold"]
+    lines += ["", "Flip's score where the observer says a block converges (e at the block's true threshold; "
+              "blocks whose threshold lies past the first level):", "",
+              "| scenes | blocks | 10th percentile | median | 90th percentile |", "|---|---|---|---|---|"]
+    lines += [f"| {name} | {x['blocks']} | {x['p10']:.4f} | {x['median']:.4f} | {x['p90']:.4f} |" for name, x in at.items()]
     lines += ["", "Flip along c and the bundled model along its offset (all held-out scenes / converging ones):",
               "", "| criterion | setting | all: early stops / samples | converging: early stops / samples |",
               "|---|---|---|---|"]
-    for row in r["curves"]["flip"]:
-        if round(row["threshold"] * 400) % 2 == 0:      # every 0.005
+    c = d["flip"]["c"]
+    for row in r["curves"]["flip"]:    # every 0.005, and every step within 0.003 of the default
+        t = row["threshold"]
+        if abs(t * 200 - round(t * 200)) < 1e-6 or abs(t - c) <= 0.003 + 1e-9:
             lines.append(f"| flip | c {row['threshold']:g} | {_pair(row)} | {_pair(row['groups'].get('converging'))} |")
     for row in r["curves"]["model"]:
         if abs(round(row["offset"] * 2) - row["offset"] * 2) < 1e-9:  # every 0.5

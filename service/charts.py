@@ -42,7 +42,7 @@ def pareto(curves: Sequence[Mapping], points: Sequence[Mapping], scenes: Sequenc
     ax.axhline(EARLY_STOP_TARGET, color="red", lw=0.6, ls=":")
     ax.set_xlabel("samples spent / oracle's samples")
     ax.set_ylabel("early-stop rate (blocks stopped with visible noise)")
-    ax.set_title(f"speed / accuracy on {title}: {', '.join(scenes)} (lower left is better)", fontsize=8)
+    ax.set_title(f"speed / accuracy on {len(scenes)} {title} (lower left is better)", fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="upper right")
     fig.tight_layout()

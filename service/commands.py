@@ -383,6 +383,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from learning.evaluate import evaluate_model
     from learning.table import load_table
 
+    if args.criterion != "model" and args.offset is not None:
+        log.warning("--offset is ignored with --criterion %s (it moves the model's decision)", args.criterion)
+    if args.criterion not in ("flip", "variance") and args.threshold is not None:
+        log.warning("--threshold is ignored with --criterion %s", args.criterion)
     if args.criterion != "model":
         from renderer.simulate import evaluate_criterion_cli
         result = evaluate_criterion_cli(args.data, args.criterion, _scene_list(args.scenes),

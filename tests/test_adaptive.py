@@ -195,6 +195,7 @@ def test_reference_metrics_and_oracle(tmp_path):
     # this synthetic 'reference' is another picture altogether, so every block differs visibly
     check = r["final_vs_reference"]
     assert check["tau"] == 0.02 and len(check["errors"]) == 16 and check["visible_noise_blocks"] == 16
+    assert check["visible_noise_stopped_blocks"] == sum(b["converged"] for b in r["blocks"]) > 0
     assert all(0 < e <= 1 for e in check["errors"]) and (tmp_path / "o" / "compare.png").stat().st_size > 1000
 
 

@@ -74,6 +74,7 @@ def test_tradeoff_draws_every_criterion_and_the_saved_comparison(tmp_path, split
     d = r["defaults"]
     assert d["model"]["offset"] == 0 and d["flip"]["c"] > 0 and len(r["curves"]["variance"]) == 2
     assert set(d["flip"]["per_scene"]) == {"cornell"} and Path(r["spp_maps"]).stat().st_size > 1000
+    assert set(r["flip_at_threshold"]) == {"training", "held-out"} and r["flip_at_threshold"]["held-out"]["blocks"] > 0
     md = md_tradeoff(r)
     assert "| svm_as |" in md and "| cornell |" in md and "offset 0.0" in md and "| flip | c " in md
     with pytest.raises(ValueError, match="both trained on and held out"):   # the model saw cornell

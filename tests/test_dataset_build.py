@@ -74,8 +74,10 @@ def test_dask_local_cluster_of_two_workers(tmp_path):
     runs = read_build_log(tmp_path)
     assert len(runs) == 2 and runs[0]["wall_s"] == pytest.approx(summary["wall_s"])
     reported = bench_dataset(str(tmp_path))
-    assert reported["finished"] == summary["finished"]
+    assert list(reported) == ["training"] and reported["training"]["finished"] == summary["finished"]
     assert "| sky |" in md_dataset(reported) and "128 labelled sub-images" in md_dataset(reported)
+    both = bench_dataset(str(tmp_path), str(tmp_path))          # the held-out dataset's run too
+    assert list(both) == ["training", "heldout"] and "Held-out scenes" in md_dataset(both)
 
 
 def test_dataset_without_a_build_log_is_a_clear_error(tmp_path):

@@ -7,13 +7,10 @@ import json
 import shutil
 import subprocess
 import sys
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-import uvicorn
 
 from learning import read_stack, write_stack
 from learning.bundle import load_model, save_model
@@ -26,12 +23,10 @@ from learning.train import train_model
 from renderer.client import RemoteModel
 from renderer.criteria import FlipCriterion, ModelCriterion
 from renderer.simulate import evaluate_criterion, simulate_stack
-from service.loadtest import free_port
-from service.serve import build
+from service.loadtest import LocalServer
 from stack_renderer import live
 
 FIXTURE = Path(__file__).parent / "fixtures" / "dataset"
-TOKEN = "one-route-token-123456"
 MIN_SPP = 96
 FLAT_BLOCK = 5
 
@@ -68,19 +63,10 @@ def model(data, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def server_url(model):
-    app = build({"m": str(model.path)}, "127.0.0.1", token=TOKEN)
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "server did not start"
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(30)
+def server(model):
+    """`noisestop serve` with that model, in its own process on loopback."""
+    with LocalServer({"m": str(model.path)}) as s:
+        yield s
 
 
 def offset_that_splits(model, table) -> float:
@@ -105,7 +91,7 @@ def stop_spp(V, spp) -> list[int]:
     return [int(x) if x <= spp[-1] else -1 for x in t]
 
 
-def test_model_stops_agree_on_every_route(data, model, server_url, monkeypatch, tmp_path):
+def test_model_stops_agree_on_every_route(data, model, server, monkeypatch, tmp_path):
     table = load_table(data, progress=False, quick="none", scenes=["cornell"])
     stack = table.stacks["cornell"]
     assert table.flat.reshape(stack.n_levels, -1)[:, FLAT_BLOCK].all()
@@ -124,7 +110,7 @@ def test_model_stops_agree_on_every_route(data, model, server_url, monkeypatch, 
     assert spp_from_report(report) == truth and report["offset"] == off
     # 4. the HTTP service, asked about every active block (flat ones too) as a Triton client
     #    would, the stops held on the client side
-    remote = RemoteModel(server_url, model="m", token=TOKEN)
+    remote = RemoteModel(server.url, model="m", token=server.token)
     active, stops = np.ones(stack.n_blocks, bool), [-1] * stack.n_blocks
     for k, s in enumerate(stack.spp):
         means = stack.blocks(k)

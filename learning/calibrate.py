@@ -57,19 +57,6 @@ def _pick(curve: list[dict], max_early_stop: float, key: str, larger_is_safer: b
     return min(ok, key=lambda r: r[key]) if larger_is_safer else max(ok, key=lambda r: r[key])
 
 
-def choose_threshold(curve: list[dict], max_early_stop: float = 0.05, *, key: str = "threshold",
-                     larger_is_safer: bool = True) -> dict:
-    """The setting of `curve` (rows with `key` and the metrics) with the fewest samples
-    whose early-stop rate is within the target: the least safe one that still meets it.
-    If none does, the safest (fewest early stops, then fewest samples), with a warning."""
-    best = _pick(curve, max_early_stop, key, larger_is_safer)
-    if best is None:
-        best = min(curve, key=lambda r: (r["early_stop_rate"], r["spp_ratio_vs_oracle"]))
-        log.warning("no %s reaches early_stop_rate <= %.3f; the safest (%.3f at %g) is used",
-                    key, max_early_stop, best["early_stop_rate"], best[key])
-    return best
-
-
 def choose_out_of_fold(curve: list[dict], max_early_stop: float = 0.05, *, key: str = "threshold",
                        larger_is_safer: bool = True, step: float = 0.0025) -> dict:
     """A setting whose early-stop rate on scenes it was *not* chosen on meets the target.

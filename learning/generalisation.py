@@ -16,6 +16,7 @@ The protocol (issue 12), which every figure of BENCHMARKS.md follows:
 """
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterable, Sequence
 from typing import Any
 
@@ -24,8 +25,6 @@ from .stack import Stack
 CONVERGING_SHARE = 0.5
 CONVERGING = "converging"
 NOT_CONVERGING = "not_converging"
-GROUP_TITLES = {CONVERGING: "scenes that converge inside the stack",
-                NOT_CONVERGING: "scenes that mostly never converge (test only 'never stop early')"}
 
 
 def converged_share(stack: Stack) -> float:
@@ -51,25 +50,37 @@ def check_disjoint(train_scenes: Sequence[str], heldout_scenes: Sequence[str]) -
                          "a held-out scene must take no part in training or calibration")
 
 
-def split_tables(data: str, heldout: str | None = None, **load: Any) -> tuple[Any, Any]:
-    """(training table, held-out table) of the protocol, loaded with `load` (learning.table).
+def split_stacks(data: str, heldout: str | None = None) -> tuple[list[Stack], list[Stack]]:
+    """(training stacks, held-out stacks) of the protocol.
 
     With `heldout` (a dataset of scenes no one trains on), every scene of `data` is a
     training scene. Without it, the older in-dataset split (every 4th scene by name held
     out) is used, with a warning: such scenes are alike and often never converge.
     """
-    import logging
-
-    from .table import load_table
+    from .stack import list_stacks, read_stack
     from .train import default_test_scenes
 
-    table = load_table(data, progress=False, **load)
+    stacks = [read_stack(p) for p in list_stacks(data)]
+    if not stacks:
+        raise ValueError(f"{data}: no stacks found")
     if heldout is not None:
-        test = load_table(heldout, progress=False, **load)
-        check_disjoint(table.scenes(), test.scenes())
-        return table, test
+        test = [read_stack(p) for p in list_stacks(heldout)]
+        if not test:
+            raise ValueError(f"{heldout}: no stacks found (make heldout builds the held-out dataset)")
+        check_disjoint([s.scene for s in stacks], [s.scene for s in test])
+        return stacks, test
     logging.getLogger(__name__).warning(
         "no held-out dataset given: scenes of %s are held out instead (make heldout builds the "
         "held-out dataset)", data)
-    test_scenes = default_test_scenes(table.scenes())
-    return table.subset(~table.scene_mask(test_scenes)), table.subset(table.scene_mask(test_scenes))
+    held = set(default_test_scenes([s.scene for s in stacks]))
+    return [s for s in stacks if s.scene not in held], [s for s in stacks if s.scene in held]
+
+
+def split_tables(data: str, heldout: str | None = None, **load: Any) -> tuple[Any, Any]:
+    """(training table, held-out table) of `split_stacks`' scenes, loaded with `load`
+    (learning.table.load_table's options)."""
+    from .table import load_table
+
+    train, test = split_stacks(data, heldout)
+    return (load_table(data, progress=False, scenes=[s.scene for s in train], **load),
+            load_table(heldout or data, progress=False, scenes=[s.scene for s in test], **load))

@@ -8,39 +8,16 @@ stop goes through the one stop rule (`learning.stoprule`).
 """
 from __future__ import annotations
 
-import logging
 import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-log = logging.getLogger(__name__)
-
 VARIANCE_THRESHOLDS = (0.002, 0.005, 0.01, 0.02, 0.05, 0.07, 0.1, 0.15, 0.2)
 KEYS = ("precision", "early_stop_rate", "spp_ratio_vs_oracle", "saved_vs_uniform")
 #: the comparison's model kinds drawn on the Pareto chart (every kind is in the table)
 PARETO_KINDS = ("dsvm_as", "svm_as", "dsvm", "svm")
-
-
-def split_stacks(data: str, heldout: str | None) -> tuple[list, list]:
-    """(training stacks, held-out stacks) of the protocol (see `split_tables`)."""
-    from learning.generalisation import check_disjoint
-    from learning.stack import list_stacks, read_stack
-    from learning.train import default_test_scenes
-
-    stacks = [read_stack(p) for p in list_stacks(data)]
-    if not stacks:
-        raise ValueError(f"{data}: no stacks found")
-    if heldout is not None:
-        test = [read_stack(p) for p in list_stacks(heldout)]
-        if not test:
-            raise ValueError(f"{heldout}: no stacks found (make heldout builds the held-out dataset)")
-        check_disjoint([s.scene for s in stacks], [s.scene for s in test])
-        return stacks, test
-    log.warning("no held-out dataset given: scenes of %s are held out instead", data)
-    held = set(default_test_scenes([s.scene for s in stacks]))
-    return [s for s in stacks if s.scene not in held], [s for s in stacks if s.scene in held]
 
 
 def _summary(r: dict[str, Any]) -> dict[str, Any]:
@@ -69,8 +46,8 @@ def bench_criteria(data: str, heldout: str | None = None, model: str | None = No
     """Every criterion simulated on the held-out stacks (the render loop's own code), with
     its decision cost; variance's threshold tuned on the training scenes to the same
     early-stop target the model's offset and flip's c were calibrated to."""
-    from learning.calibrate import choose_threshold
-    from learning.generalisation import scene_groups
+    from learning.calibrate import choose_out_of_fold
+    from learning.generalisation import scene_groups, split_stacks
     from learning.halves import load_flip_calibration
     from renderer.criteria import (FlipCriterion, ModelCriterion, OracleCriterion, UniformCriterion,
                                    VarianceCriterion)
@@ -81,10 +58,12 @@ def bench_criteria(data: str, heldout: str | None = None, model: str | None = No
 
     def run(stacks, factory):
         return _summary(evaluate_criterion(stacks, factory))
-    sweep = [{"threshold": t, "train": run(train, lambda st, t=t: VarianceCriterion(threshold=t)),
+    # variance's threshold is chosen as the model's offset and flip's c were: out of fold
+    on_train = {t: evaluate_criterion(train, lambda st, t=t: VarianceCriterion(threshold=t)) for t in thresholds}
+    tuned = choose_out_of_fold([{"threshold": t, **r} for t, r in on_train.items()], max_early_stop,
+                               larger_is_safer=False)
+    sweep = [{"threshold": t, "train": _summary(on_train[t]),
               "test": run(test, lambda st, t=t: VarianceCriterion(threshold=t))} for t in thresholds]
-    tuned = choose_threshold([{"threshold": r["threshold"], **r["train"]} for r in sweep], max_early_stop,
-                             larger_is_safer=False)
     tuned_test = next(r["test"] for r in sweep if r["threshold"] == tuned["threshold"])
     cal = load_flip_calibration()
     c = float(cal["c"])
@@ -157,7 +136,7 @@ def bench_tradeoff(data: str, heldout: str | None = None, out_dir: str | Path = 
     at their calibrated defaults, and where their samples went (spp maps)."""
     from learning.calibrate import DEFAULT_OFFSETS, sweep
     from learning.evaluate import stops_by_scene
-    from learning.generalisation import scene_groups, split_tables
+    from learning.generalisation import scene_groups, split_stacks, split_tables
     from learning.halves import FLIP_CANDIDATES, flip_offset, flip_sweep, load_flip_calibration, stack_flip_errors
     from learning.metrics import true_thresholds
     from learning.stoprule import StopRule
@@ -250,7 +229,7 @@ def bench_step(data: str, heldout: str | None = None, multiples: tuple[int, ...]
     half-buffer scores of every k-th level stand in for them). Wall time: real renders of
     `scene` with each criterion."""
     from learning.evaluate import by_scene
-    from learning.generalisation import split_tables
+    from learning.generalisation import split_stacks, split_tables
     from learning.halves import flip_offset, load_flip_calibration, stack_flip_errors
     from learning.metrics import evaluate_verdicts
     from learning.stoprule import StopRule

@@ -9,11 +9,12 @@ NOISESTOP := $(VENV)/bin/noisestop
 # The CPU build of torch; where that exact version is not available, plain torch.
 TORCH_SPEC ?= torch==2.13.0
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)
-DATA ?= data/default
+DATA ?= data/train
+LIBRARY ?= data/default
 HELDOUT ?= data/heldout
 OUT ?= out
 
-.PHONY: setup run test test-fast bench dataset heldout fixture model clean
+.PHONY: setup run test test-fast bench dataset library heldout fixture model clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -30,7 +31,7 @@ setup: $(STAMP)
 RUN_ARGS ?= --resolution 256 --step 16 --min-spp 16 --max-spp 640
 run: setup
 	$(NOISESTOP) render --scene cornell --out $(OUT) $(RUN_ARGS) \
-		$(if $(wildcard $(DATA)/cornell/meta.json),--reference $(DATA)/cornell,)
+		$(if $(wildcard $(LIBRARY)/cornell/meta.json),--reference $(LIBRARY)/cornell,)
 
 test: setup
 	$(PY) -m pytest -q
@@ -48,12 +49,22 @@ bench: dataset heldout
 	$(NOISESTOP) bench dataset models criteria tradeoff ablation step knobs --data $(DATA) \
 		--heldout $(HELDOUT) --quick albedo,none --update BENCHMARKS.md
 
-# The default training dataset: 14 scenes x 16 blocks x 40 levels (8,960 labelled
-# sub-images). Resumes if interrupted. Settings and measured time: README "Datasets".
-DATASET_ARGS ?= --resolution 256 --step 16 --levels 40 --reference-spp 4096
+# The training dataset (README "Datasets"): PROCEDURAL seeded procedural scenes
+# (renderer/procedural.py) plus the 14 built-in training scenes, each a 64x64 frame of one
+# 64x64 block, a level every 32 spp up to 2048 spp and an 8192-spp reference, so that most
+# blocks converge inside their stacks. Resumes if interrupted. Measured time: README.
+PROCEDURAL ?= 72
+TRAIN_ARGS ?= --resolution 64 --block 64 --step 32 --levels 64 --reference-spp 8192
 dataset: setup
-	$(NOISESTOP) dataset build --out $(DATA) $(DATASET_ARGS)
+	$(NOISESTOP) dataset build --out $(DATA) --scenes procedural:$(PROCEDURAL),training $(TRAIN_ARGS)
 	$(NOISESTOP) dataset check $(DATA)
+
+# The scene library at the paper's layout (14 scenes x 16 blocks of 64x64, 16..640 spp,
+# reference 4096): the reference `make run` compares its render with. Resumes if interrupted.
+LIBRARY_ARGS ?= --resolution 256 --step 16 --levels 40 --reference-spp 4096
+library: setup
+	$(NOISESTOP) dataset build --out $(LIBRARY) $(LIBRARY_ARGS)
+	$(NOISESTOP) dataset check $(LIBRARY)
 
 # The held-out scenes every figure is measured on (renderer/heldout.py): 8 scenes x 16
 # blocks x 64 levels (32..2048 spp), reference 8192 spp, so that most blocks converge

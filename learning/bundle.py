@@ -22,8 +22,9 @@ import skops.io as sio
 from noisefeat import FeatureBase, default_base, extract_features
 
 from .estimators import RBFSVM, check_inputs
+from .noise_input import HALVES, halves_input, halves_mean, n_inputs, noise_lightness
 from .stoprule import StopRule, flat_blocks
-from .table import feature_input, raw_input
+from .table import QUICK_MODES, feature_input, raw_input
 
 FORMAT = "noisestop-model"
 VERSION = 1
@@ -78,13 +79,38 @@ class Model:
 
     @property
     def quick(self) -> str:
-        """The quick image the model was trained with: 'albedo' (default), 'direct' or 'none'."""
-        return self.manifest.get("quick", "albedo")
+        """The input mode: 'halves' (the half buffers: noise features for a feature model,
+        the raw noise image for a raw one) or, for a feature model, the paper's quick image
+        'albedo' (default), 'direct' or 'none'. A raw model otherwise reads the block alone."""
+        default = "albedo" if self.input == "features" else "none"
+        return self.manifest.get("quick") or default
 
     @property
     def needs_quick(self) -> bool:
-        """Whether verdicts need the quick image (feature models not trained with 'none')."""
-        return self.input == "features" and self.quick != "none"
+        """Whether verdicts need the quick image (feature models on a quick image but 'none')."""
+        return self.input == "features" and self.quick not in ("none", "halves")
+
+    @property
+    def needs_halves(self) -> bool:
+        """Whether verdicts need the two half buffers (even, odd) instead of the block."""
+        return self.quick == "halves"
+
+    @property
+    def n_features(self) -> int:
+        return int(self.estimator.n_features_in_)
+
+    @property
+    def composition(self) -> str | None:
+        """A `halves` model's input composition (`learning.noise_input`), else None."""
+        return self.manifest.get("composition", HALVES) if self.needs_halves and self.input == "features" \
+            else None
+
+    def table_options(self) -> dict[str, Any]:
+        """`learning.table.load_table` options that give the rows this model reads."""
+        opts: dict[str, Any] = {"raw": self.input == "raw", "quick": self.quick}
+        if self.composition is not None:
+            opts["composition"] = self.composition
+        return opts
 
     def decision_function(self, X: np.ndarray) -> np.ndarray:
         return self.estimator.decision_function(X)
@@ -95,20 +121,36 @@ class Model:
     def inputs_from_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None,
                            base: FeatureBase | None = None, exposure: float = 0.0) -> np.ndarray:
         """Model inputs from linear RGB blocks [N, h, w, 3] (and their quick blocks)."""
+        if self.needs_halves:
+            raise ValueError("this model reads the two half buffers (even and odd passes) of every "
+                             "block, not the block alone: use score_halves")
         if self.input == "raw":
-            shape = np.shape(blocks)
-            n = self.estimator.n_features_in_
-            if len(shape) == 4 and shape[1] * shape[2] != n:
-                side = math.isqrt(n)
-                size = f"{side}x{side}" if side * side == n else f"{n}-pixel"
-                raise ValueError(f"this raw-pixel model takes {size} blocks (its training size), "
-                                 f"got {shape[1]}x{shape[2]}")
+            self._check_raw_size(np.shape(blocks))
             return raw_input(blocks, exposure)
         if self.needs_quick and quick is None:
             raise ValueError("a feature model needs the quick image of every block")
         base = base or default_base()
         quick_feats = extract_features(quick, base=base, exposure=exposure) if self.needs_quick else None
         return feature_input(extract_features(blocks, base=base, exposure=exposure), quick_feats)
+
+    def _check_raw_size(self, shape: tuple[int, ...]) -> None:
+        n = self.estimator.n_features_in_
+        if len(shape) == 4 and shape[1] * shape[2] != n:
+            side = math.isqrt(n)
+            size = f"{side}x{side}" if side * side == n else f"{n}-pixel"
+            raise ValueError(f"this raw-pixel model takes {size} blocks (its training size), "
+                             f"got {shape[1]}x{shape[2]}")
+
+    def inputs_from_halves(self, even: np.ndarray, odd: np.ndarray, exposure: float = 0.0) -> np.ndarray:
+        """Model inputs from the half buffers of N blocks (a `halves` model): the noise
+        features of `learning.noise_input` in the model's composition, or the raw noise image."""
+        if not self.needs_halves:
+            raise ValueError(f"this model reads {'raw blocks' if self.input == 'raw' else 'blocks'}"
+                             f"{' and their quick images' if self.needs_quick else ''}, not half buffers")
+        if self.input == "raw":
+            self._check_raw_size(np.shape(even))
+            return noise_lightness(even, odd, exposure)
+        return halves_input(even, odd, exposure, composition=self.composition or HALVES)
 
     def score_inputs(self, X: np.ndarray, offset: float | None = None,
                      flat: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -124,6 +166,14 @@ class Model:
         flat = flat_blocks(blocks, exposure) if len(blocks) else np.zeros(0, bool)
         return self.score_inputs(self.inputs_from_blocks(blocks, quick, exposure=exposure), offset, flat)
 
+    def score_halves(self, even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
+                     offset: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(verdict int8 [N], score float [N]) for the half buffers of N blocks (a `halves`
+        model); the block judged is their mean, which is also what the flat test reads."""
+        x = self.inputs_from_halves(even, odd, exposure)
+        flat = flat_blocks(halves_mean(np.asarray(even), np.asarray(odd)), exposure) if len(x) else np.zeros(0, bool)
+        return self.score_inputs(x, offset, flat)
+
 
 def save_model(estimator: RBFSVM, path: str | os.PathLike, *, kind: str, input: str,
                training: dict[str, Any] | None = None, metrics: dict[str, Any] | None = None,
@@ -132,6 +182,9 @@ def save_model(estimator: RBFSVM, path: str | os.PathLike, *, kind: str, input: 
     """Write a bundle directory (files atomically, manifest last)."""
     if input not in ("features", "raw"):
         raise ValueError(f"input must be 'features' or 'raw', got {input!r}")
+    extra = dict(extra or {})
+    if extra.get("quick") == "halves" and input == "features":
+        extra.setdefault("composition", HALVES)     # what the half buffers are turned into
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     base = base or default_base()
@@ -202,4 +255,18 @@ def load_model(path: str | os.PathLike | None = None, base: FeatureBase | None =
                 f"{running}: its verdicts would be wrong. Retrain it (noisestop train) or use "
                 f"the weights it was trained with.")
     check_inputs(np.zeros((1, estimator.n_features_in_)), estimator.n_features_in_)
-    return Model(estimator, manifest, path)
+    quick = manifest.get("quick")
+    allowed = QUICK_MODES if manifest.get("input") == "features" else (None, "none", "halves")
+    if quick is not None and quick not in allowed:
+        raise ValueError(f"{path}: unknown input mode quick={quick!r} for a {manifest.get('input')} model "
+                         f"(one of {', '.join(str(q) for q in allowed if q)})")
+    model = Model(estimator, manifest, path)
+    if model.composition is not None:
+        try:
+            width = n_inputs(str(model.composition))
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+        if width != model.n_features:
+            raise ValueError(f"{path}: input composition {model.composition!r} has {width} columns, but the "
+                             f"model was fitted on {model.n_features}")
+    return model

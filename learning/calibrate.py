@@ -27,14 +27,32 @@ log = logging.getLogger(__name__)
 DEFAULT_OFFSETS = tuple(np.round(np.arange(-1.0, 6.01, 0.1), 2))
 
 
+#: scenes are scored in at most this many folds: leave-one-scene-out up to that many
+#: scenes, then groups of scenes (a hundred procedural scenes would cost a hundred fits)
+CALIBRATION_FOLDS = 10
+
+
+def scene_folds(scenes: Sequence[str], folds: int | None = CALIBRATION_FOLDS, seed: int = 0) -> list[list[str]]:
+    """Scenes in folds: one per scene up to `folds` scenes (None: always), else `folds`
+    seeded groups of near-equal size."""
+    scenes = sorted(scenes)
+    if folds is None or len(scenes) <= folds:
+        return [[s] for s in scenes]
+    order = np.random.default_rng(seed).permutation(len(scenes))
+    return [sorted(scenes[i] for i in order[f::folds]) for f in range(folds)]
+
+
 def out_of_fold_scores(fit: Callable[[SubImageTable], Any], table: SubImageTable,
-                       scenes: Sequence[str], progress: bool = False) -> np.ndarray:
-    """f(x) for every row of `scenes`, each scene scored by a model fit without it."""
+                       scenes: Sequence[str], progress: bool = False,
+                       folds: int | None = CALIBRATION_FOLDS) -> np.ndarray:
+    """f(x) for every row of `scenes`, each scene scored by a model fit without it (nor
+    the other scenes of its fold, `scene_folds`)."""
     scores = np.full(len(table), np.nan)
-    for s in tqdm(scenes, desc="leave-one-scene-out", disable=not progress, leave=False):
-        rest = [t for t in scenes if t != s]
+    groups = scene_folds(scenes, folds)
+    for held in tqdm(groups, desc="out-of-fold scores", disable=not progress, leave=False):
+        rest = [t for t in scenes if t not in held]
         model = fit(table.subset(table.scene_mask(rest)))
-        m = table.scene == s
+        m = table.scene_mask(held)
         scores[m] = model.decision_function(table.X[m])
     return scores
 

@@ -15,6 +15,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
+
+from noisefeat.display import display, srgb_decode
 
 from .bundle import Model
 from .calibrate import DEFAULT_OFFSETS, sweep
@@ -22,7 +25,7 @@ from .evaluate import evaluate_model, evaluate_scores, time_101_sub_images
 from .generalisation import scene_groups, split_tables
 from .plots import plot_learning_curves
 from .stoprule import StopRule
-from .table import SubImageTable
+from .table import SubImageTable, iter_stack_halves
 from .train import SVM_KINDS, train_model
 
 log = logging.getLogger(__name__)
@@ -57,35 +60,53 @@ def _curve(rows: list[dict]) -> list[dict]:
 ROW_METRICS = ("precision", "f1", "threshold_mse", "early_stop_rate", "spp_ratio_vs_oracle")
 
 
-def rgb_blocks(table: SubImageTable) -> np.ndarray:
-    """Linear RGB sub-images [n, h, w, 3] of every row of `table`, in row order."""
+def rgb_blocks(table: SubImageTable, halves: bool = False) -> np.ndarray:
+    """Linear RGB sub-images [n, h, w, 3] of every row of `table`, in row order.
+
+    With `halves`, each sub-image is the displayed noise image instead: linear RGB whose
+    display is 0.5 + display(A) - display(B) (clipped), a content-free picture of the
+    noise that an image classifier can read as it reads a block (the transfer baselines'
+    `halves` input); level 0, with no B yet, is flat grey."""
     st0 = next(iter(table.stacks.values()))
     out = np.empty((len(table), *st0.block, 3), np.float32)
     for scene, st in table.stacks.items():
         m = table.scene == scene
-        for k in np.unique(table.level[m]):
+        levels = ((k, st.blocks(int(k))) for k in np.unique(table.level[m])) if not halves else \
+            ((k, noise_picture(a, b)) for k, a, b in iter_stack_halves(st))
+        if halves:
+            out[m & (table.level == 0)] = srgb_decode(torch.tensor(0.5)).item()
+        for k, images in levels:
             rows = np.flatnonzero(m & (table.level == k))
-            out[rows] = st.blocks(int(k))[table.block[rows]]
+            out[rows] = images[table.block[rows]]
     return out
 
 
-def _transfer_row(arch: str, train: SubImageTable, test: SubImageTable) -> dict:
+def noise_picture(even: np.ndarray, odd: np.ndarray) -> np.ndarray:
+    """Linear RGB [N, h, w, 3] whose display is clip(0.5 + display(A) - display(B))."""
+    with torch.inference_mode():
+        d = (0.5 + display(even) - display(odd)).clamp_(0.0, 1.0)
+        return srgb_decode(d).numpy().astype(np.float32)
+
+
+def _transfer_row(arch: str, train: SubImageTable, test: SubImageTable, halves: bool = False) -> dict:
     from .transfer import TransferClassifier
-    Xtr = rgb_blocks(train)
+    train = train.trainable()
+    Xtr = rgb_blocks(train, halves)
     clf = TransferClassifier(arch=arch).prepare_base(Xtr[:1024])
     t0 = time.perf_counter()
     Ftr = clf.transform(Xtr)
     del Xtr
     clf.fit(Ftr, train.y.astype(int))
     train_s = time.perf_counter() - t0
-    Xte = rgb_blocks(test)
+    Xte = rgb_blocks(test, halves)
     scores = clf.decision_function(clf.transform(Xte))
     m = evaluate_scores(test, scores, StopRule(float(clf.offset_)))
     sample = Xte[:101]
     clf.decision_function(sample)
     t1 = time.perf_counter()
     clf.decision_function(sample)
-    return {"model": clf.report_label(), **{k: m[k] for k in ROW_METRICS}, "groups": m.get("groups", {}),
+    return {"model": clf.report_label() + (" on the noise image" if halves else ""),
+            **{k: m[k] for k in ROW_METRICS}, "groups": m.get("groups", {}),
             "labels": int(len(train)), "label_fraction": 1.0, "queries": None, "pool": None,
             "query_fraction": None, "support_vectors": None, "parameters": clf.n_parameters(),
             "train_s": train_s, "test_101_s": time.perf_counter() - t1}
@@ -97,7 +118,9 @@ def compare_models(data: str, out_dir: str | Path, kinds=SVM_KINDS, arches=TRANS
     (learning.generalisation: without `heldout`, a quarter of `data` is held out)."""
     out_dir = Path(out_dir)
     feats = split_tables(data, heldout, quick=quick)
-    raw = split_tables(data, heldout, raw=True) if any(k.startswith("svm") for k in kinds) else None
+    # raw-pixel kinds read the block itself (the paper's) or, with halves, the noise image
+    raw = split_tables(data, heldout, raw=True, quick="halves" if quick == "halves" else "none") \
+        if any(k.startswith("svm") for k in kinds) else None
     rows, histories, fitted = [], {}, {}
     for kind in kinds:
         log.info("comparison: training %s", kind)
@@ -110,7 +133,7 @@ def compare_models(data: str, out_dir: str | Path, kinds=SVM_KINDS, arches=TRANS
     for arch in arches:
         log.info("comparison: transfer baseline %s", arch)
         try:
-            rows.append(_transfer_row(arch, *feats))
+            rows.append(_transfer_row(arch, *feats, halves=quick == "halves"))
         except (ImportError, RuntimeError, ValueError) as exc:
             log.error("transfer baseline %s unavailable: %s", arch, exc)
             rows.append({"model": f"{arch} (unavailable: {exc})"})

@@ -25,7 +25,6 @@ from typing import Any
 
 import numpy as np
 
-from .accumulator import BlockAccumulator
 from .observer import DEFAULT_PPD, display, flip_map
 from .stack import Stack
 
@@ -99,27 +98,17 @@ def stack_flip_errors(stack: Stack, exposure: float = 0.0, ppd: float = DEFAULT_
     Cached next to the stack (`.cache/flip-halves-*.npz`, atomic), since every
     calibration and evaluation reads it.
     """
-    from tqdm import tqdm
-
-    from .table import cached_array, stack_flat
+    from .table import cached_array, iter_stack_halves, stack_flat
 
     flat = stack_flat(stack, exposure)
     shape = (stack.n_levels, stack.n_blocks)
 
     def compute() -> np.ndarray:
-        check_constant_step(stack)
-        acc = BlockAccumulator(stack.grid, stack.block)
-        ids = list(range(stack.n_blocks))
-        e = np.full(shape, np.nan)
-        for k, _, n, pass_img in tqdm(recover_passes(stack), total=stack.n_levels, disable=not progress,
-                                      desc=f"{stack.scene} flip", leave=False):
-            acc.add_many(ids, stack.split(pass_img), n)
+        e = np.full(shape, np.nan)             # level 0 stays NaN: B is empty there
+        for k, even, odd in iter_stack_halves(stack, progress):
             todo = np.flatnonzero(~flat[k])
-            if k == 0 or not todo.size:
-                continue                     # k = 0: B is empty, no estimate of the noise yet
-            halves = [acc.half_buffer(int(b)) for b in todo]
-            e[k, todo] = halves_flip(np.stack([h[0] for h in halves]), np.stack([h[1] for h in halves]),
-                                     exposure, ppd)
+            if todo.size:
+                e[k, todo] = halves_flip(even[todo], odd[todo], exposure, ppd)
         return e
     return cached_array(stack, f"flip-halves-e{exposure:g}-ppd{ppd:g}", shape, compute)
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,6 +20,7 @@ from tqdm import tqdm
 from noisefeat import FeatureBase, default_base, extract_features
 from noisefeat.display import lightness
 
+from .noise_input import HALVES, RAW_COLUMNS, compose, halves_raw, needs, noise_lightness
 from .stack import Stack, list_stacks, read_stack
 
 log = logging.getLogger(__name__)
@@ -39,6 +40,14 @@ class SubImageTable:
     groups: np.ndarray                 # [n] int group id
     flat: np.ndarray                   # [n] bool: the sub-image's display image is flat (stop rule)
     stacks: dict[str, Stack] = field(default_factory=dict)
+    #: [n] bool: the input exists at this level (False where the half buffers are not both
+    #: filled yet: the first level of a `halves` table); None = every row. Rows that are not
+    #: decidable never stop (unless flat) and are never trained on.
+    decidable: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.decidable is None:
+            self.decidable = np.ones(len(self.y), bool)
 
     def __len__(self) -> int:
         return len(self.y)
@@ -47,7 +56,11 @@ class SubImageTable:
         keep = set(np.unique(self.scene[mask]).tolist())
         return SubImageTable(self.X[mask], self.y[mask], self.scene[mask], self.level[mask],
                              self.block[mask], self.spp[mask], self.groups[mask], self.flat[mask],
-                             {k: v for k, v in self.stacks.items() if k in keep})
+                             {k: v for k, v in self.stacks.items() if k in keep}, self.decidable[mask])
+
+    def trainable(self) -> "SubImageTable":
+        """The rows a model may be fitted on (its input exists there)."""
+        return self if self.decidable.all() else self.subset(self.decidable)
 
     def scene_mask(self, scenes: list[str]) -> np.ndarray:
         return np.isin(self.scene, list(scenes))
@@ -81,9 +94,10 @@ def cached_array(stack: Stack, name: str, shape: tuple[int, ...], compute: Calla
     return arr
 
 
-#: quick images a feature model can be trained with: the stack's own (albedo), the extra
-#: direct-lighting image, or none (a flat image)
-QUICK_MODES = ("albedo", "direct", "none")
+#: inputs a feature model can be trained with: the content-free noise features of the half
+#: buffers (`halves`, learning.noise_input), or the paper's quick-image difference with the
+#: stack's own quick image (albedo), the extra direct-lighting image, or none (a flat image)
+QUICK_MODES = ("halves", "albedo", "direct", "none")
 
 
 def feature_input(current: np.ndarray, quick: np.ndarray | None = None) -> np.ndarray:
@@ -106,15 +120,18 @@ def raw_input(blocks: np.ndarray | torch.Tensor, exposure: float = 0.0) -> np.nd
 
 def stack_features(stack: Stack, base: FeatureBase | None = None, exposure: float = 0.0,
                    progress: bool = False, quick: str = "albedo") -> np.ndarray:
-    """[K, n_blocks, 26] model inputs of one stack, cached per feature base and quick mode.
+    """[K, n_blocks, D] model inputs of one stack, cached per feature base and quick mode.
 
-    quick='albedo': features(the stack's quick image) - features(level); 'direct': the
+    quick='halves': `learning.noise_input` on the stack's half buffers (first level: no
+    odd half yet, see `stack_decidable`); 'albedo': features(the stack's quick image) - features(level); 'direct': the
     same with the stack's extra direct-lighting quick image; 'none': a flat quick image,
     whose features are all zero, so the input is -features(level).
     """
     if quick not in QUICK_MODES:
         raise ValueError(f"quick must be one of {QUICK_MODES}, got {quick!r}")
     base = base or default_base()
+    if quick == "halves":
+        return stack_halves_input(stack, base, exposure, progress)
 
     def compute() -> np.ndarray:
         quick_feats = None if quick == "none" else extract_features(
@@ -127,6 +144,72 @@ def stack_features(stack: Stack, base: FeatureBase | None = None, exposure: floa
         return np.stack(rows).astype(np.float32)
     return cached_array(stack, f"features-{base.hash}-e{exposure:g}-{quick}",
                         (stack.n_levels, stack.n_blocks, 26), compute)
+
+
+def iter_stack_halves(stack: Stack, progress: bool = False) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """(k, even [n_blocks, bh, bw, 3], odd [...]) for every level k >= 1: the half buffers a
+    `BlockAccumulator` fed with the stack's recovered passes holds (the live loop's
+    buffers, bit for bit). Level 0 has none: B is still empty there."""
+    from .accumulator import BlockAccumulator
+    from .halves import check_constant_step, recover_passes
+
+    check_constant_step(stack)
+    acc = BlockAccumulator(stack.grid, stack.block)
+    ids = list(range(stack.n_blocks))
+    for k, _, n, pass_img in tqdm(recover_passes(stack), total=stack.n_levels, disable=not progress,
+                                  desc=f"{stack.scene} halves", leave=False):
+        acc.add_many(ids, stack.split(pass_img), n)
+        if k:
+            halves = [acc.half_buffer(b) for b in ids]
+            yield k, np.stack([h[0] for h in halves]), np.stack([h[1] for h in halves])
+
+
+def _per_level_halves(stack: Stack, name: str, width: int, fn: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                      progress: bool = False) -> np.ndarray:
+    """[K, n_blocks, width] fn(even, odd) of every (level, block) (`iter_stack_halves`);
+    zeros at the first level. Cached as `name`."""
+    def compute() -> np.ndarray:
+        out = np.zeros((stack.n_levels, stack.n_blocks, width), np.float32)
+        for k, even, odd in iter_stack_halves(stack, progress):
+            out[k] = fn(even, odd)
+        return out
+    return cached_array(stack, name, (stack.n_levels, stack.n_blocks, width), compute)
+
+
+def stack_halves_raw(stack: Stack, base: FeatureBase | None = None, exposure: float = 0.0,
+                     progress: bool = False) -> np.ndarray:
+    """[K, n_blocks, 53] `noise_input.halves_raw` of every (level, block) (`_per_level_halves`)."""
+    base = base or default_base()
+    return _per_level_halves(stack, f"halves-{base.hash}-e{exposure:g}", RAW_COLUMNS,
+                             lambda a, b: halves_raw(a, b, exposure, base), progress)
+
+
+def stack_raw_halves(stack: Stack, exposure: float = 0.0) -> np.ndarray:
+    """[K, n_blocks, bh*bw] the raw noise image (L*(A) - L*(B)) / 100 of every sub-image:
+    the raw SVM's `halves` input (`_per_level_halves`)."""
+    return _per_level_halves(stack, f"raw-halves-e{exposure:g}", stack.block[0] * stack.block[1],
+                             lambda a, b: noise_lightness(a, b, exposure))
+
+
+def stack_halves_input(stack: Stack, base: FeatureBase | None = None, exposure: float = 0.0,
+                       progress: bool = False, composition: str = HALVES) -> np.ndarray:
+    """[K, n_blocks, D] `halves` model inputs of a stack (`noise_input.compose` of the cached
+    half-buffer features and FLIP values; first level: not decidable, see `stack_decidable`)."""
+    from .halves import stack_flip_errors
+
+    feats, flip = needs(composition)
+    k, b = stack.n_levels, stack.n_blocks
+    raw = stack_halves_raw(stack, base, exposure, progress).reshape(k * b, -1) if feats else None
+    e = stack_flip_errors(stack, exposure, progress=progress).reshape(-1) if flip else None
+    return compose(raw, e, composition).reshape(k, b, -1)
+
+
+def stack_decidable(stack: Stack, quick: str) -> np.ndarray:
+    """bool [K, n_blocks]: where the model input exists (halves: from the second level on)."""
+    ok = np.ones((stack.n_levels, stack.n_blocks), bool)
+    if quick == "halves":
+        ok[0] = False
+    return ok
 
 
 def stack_flat(stack: Stack, exposure: float = 0.0) -> np.ndarray:
@@ -146,12 +229,14 @@ def stack_raw_blocks(stack: Stack, exposure: float = 0.0) -> np.ndarray:
 
 def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase | None = None,
                scenes: list[str] | None = None, progress: bool = True,
-               quick: str = "albedo") -> SubImageTable:
-    """All labelled stacks under root as one table (raw L* blocks instead of features if `raw`)."""
+               quick: str = "albedo", composition: str = HALVES) -> SubImageTable:
+    """All labelled stacks under root as one table: model inputs of `quick` (a `halves`
+    table in `composition`); raw L* blocks instead of features if `raw` (with quick
+    'halves': the raw noise image; any other quick: the block itself)."""
     paths = list_stacks(root)
     if not paths:
         raise ValueError(f"{root}: no stacks found (no meta.json below it)")
-    xs, ys, sc, lv, bl, sp, gr, fl, stacks = [], [], [], [], [], [], [], [], {}
+    xs, ys, sc, lv, bl, sp, gr, fl, ok, stacks = [], [], [], [], [], [], [], [], [], {}
     gid = 0
     for p in tqdm(paths, desc="stacks", disable=not progress, leave=False):
         st = read_stack(p)
@@ -163,7 +248,12 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
         if st.scene in stacks:
             raise ValueError(f"{p}: scene name {st.scene!r} appears twice in {root}")
         stacks[st.scene] = st
-        x = stack_raw_blocks(st) if raw else stack_features(st, base, quick=quick)
+        if raw:
+            x = stack_raw_halves(st) if quick == "halves" else stack_raw_blocks(st)
+        elif quick == "halves":
+            x = stack_halves_input(st, base, composition=composition)
+        else:
+            x = stack_features(st, base, quick=quick)
         k, b = x.shape[:2]
         xs.append(x.reshape(k * b, -1))
         ys.append(st.labels().reshape(-1))
@@ -173,6 +263,7 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
         sp.append(np.repeat(np.asarray(st.spp), b))
         gr.append(gid + np.repeat(np.arange(k), b))
         fl.append(stack_flat(st).reshape(-1))
+        ok.append(stack_decidable(st, quick).reshape(-1))
         gid += k
     if not stacks:
         raise ValueError(f"{root}: no labelled stack matched")
@@ -180,4 +271,4 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
         raise ValueError("raw-pixel models need one block size across the dataset")
     return SubImageTable(np.concatenate(xs), np.concatenate(ys).astype(np.int8), np.concatenate(sc),
                          np.concatenate(lv), np.concatenate(bl), np.concatenate(sp),
-                         np.concatenate(gr), np.concatenate(fl), stacks)
+                         np.concatenate(gr), np.concatenate(fl), stacks, np.concatenate(ok))

@@ -47,10 +47,38 @@ def split_scenes(table: SubImageTable, test_scenes: list[str] | None) -> tuple[l
     return train, test
 
 
+#: the initial labelled set holds at least this many sub-images (the paper's: one scene's
+#: 505; a stack of one 64x64 block has only 64)
+INITIAL_MIN_ROWS = 500
+
+
 def balanced_scene(table: SubImageTable, scenes: list[str]) -> str:
-    """The training scene whose labels are closest to half converged: the initial set."""
+    """The training scene whose labels are closest to half converged."""
+    return initial_scenes(table, scenes, min_rows=1)[0]
+
+
+def initial_scenes(table: SubImageTable, scenes: list[str], min_rows: int = INITIAL_MIN_ROWS) -> list[str]:
+    """The initial labelled set of the active kinds: the scenes whose labels are closest to
+    half converged, as many as it takes to reach `min_rows` sub-images (one scene of a
+    16-block stack; about eight of one-block stacks). Both classes are needed to fit."""
     fractions = {s: float((table.y[table.scene == s] > 0).mean()) for s in scenes}
-    return min(scenes, key=lambda s: (abs(fractions[s] - 0.5), s))
+    chosen, rows = [], 0
+    for s in sorted(scenes, key=lambda s: (abs(fractions[s] - 0.5), s)):
+        chosen.append(s)
+        rows += int((table.scene == s).sum())
+        if rows >= min_rows and len(np.unique(table.y[table.scene_mask(chosen)])) == 2:
+            break
+    return chosen
+
+
+def cv_groups(table: SubImageTable, rows: np.ndarray, folds: int = 5) -> np.ndarray:
+    """Groups for grouped cross-validation: the paper's (the sub-images of one image level)
+    when the rows hold fewer than `folds` scenes; else whole scenes, since the levels of a
+    one-block stack are one block's noise at several spp and would leak across folds."""
+    scenes = table.scene[rows]
+    if len(np.unique(scenes)) < folds:
+        return table.groups[rows]
+    return np.unique(scenes, return_inverse=True)[1]
 
 
 def _cv_subset(n: int, groups: np.ndarray, seed: int, limit: int = CV_MAX_SAMPLES) -> np.ndarray:
@@ -86,7 +114,7 @@ def _raw_gram(kind: str, X: np.ndarray, X_val: np.ndarray | None, gamma) -> Shar
 
 
 def fit_kind(kind: str, table: SubImageTable, scenes: list[str], *, C: float, gamma,
-             initial_scene: str | None = None, max_label_fraction: float = 0.25,
+             initial_scene: str | list[str] | None = None, max_label_fraction: float = 0.25,
              batch_size: int = AL_BATCH, monitor: SubImageTable | None = None,
              progress: bool = False) -> tuple[RBFSVM, dict[str, Any]]:
     """Fit `kind` with fixed (C, gamma) on the rows of `scenes`; returns (estimator, info)."""
@@ -95,10 +123,11 @@ def fit_kind(kind: str, table: SubImageTable, scenes: list[str], *, C: float, ga
     est: RBFSVM = (SVM if kind.startswith("svm") else DSVM)(C=C, gamma=gamma)
     if kind in ("svm", "dsvm"):
         return est.fit(X, y), {"n_labels": int(len(y)), "label_fraction": 1.0}
-    first = initial_scene or balanced_scene(table, scenes)
-    if first not in scenes:
-        raise ValueError(f"initial scene {first!r} is not a training scene ({scenes})")
-    init = table.scene[tr] == first
+    first = _initial(initial_scene) or initial_scenes(table, scenes)
+    unknown = sorted(set(first) - set(scenes))
+    if unknown:
+        raise ValueError(f"initial scene(s) {', '.join(unknown)} not among the training scenes ({scenes})")
+    init = np.isin(table.scene[tr], first)
     X_val = None if monitor is None else monitor.X
     gram = _raw_gram(kind, X, X_val, gamma)
     learner = ActiveSemiSupervised(estimator=est if gram is None else GramRBF(gram, C=C),
@@ -115,14 +144,22 @@ def fit_kind(kind: str, table: SubImageTable, scenes: list[str], *, C: float, ga
         train = learner.labelled_mask_ | learner.pseudo_mask_
         fitted = est.fit(X[train], np.where(learner.labelled_mask_, y, learner.pseudo_labels_)[train].astype(int))
     return fitted, {
-        "initial_scene": first, "n_initial": int(init.sum()), "n_pool": learner.n_pool_,
+        "initial_scenes": first, "n_initial": int(init.sum()), "n_pool": learner.n_pool_,
         "n_queries": learner.n_queries_, "query_fraction": learner.n_queries_ / max(1, learner.n_pool_),
         "n_pseudo": int(learner.pseudo_mask_.sum()), "n_labels": int(init.sum()) + learner.n_queries_,
         "label_fraction": (int(init.sum()) + learner.n_queries_) / len(y), "history": learner.history_}
 
 
+def _initial(initial_scene: str | list[str] | None) -> list[str]:
+    """The initial scenes a caller named ('a,b' or a list), [] for none."""
+    if initial_scene is None:
+        return []
+    names = initial_scene.split(",") if isinstance(initial_scene, str) else list(initial_scene)
+    return [n.strip() for n in names if n.strip()]
+
+
 def train_model(kind: str, data: str, *, test_scenes: list[str] | None = None,
-                initial_scene: str | None = None, cv: bool = True, seed: int = 0,
+                initial_scene: str | list[str] | None = None, cv: bool = True, seed: int = 0,
                 max_label_fraction: float = 0.25, batch_size: int = AL_BATCH,
                 max_early_stop: float | None = None, quick: str = "albedo",
                 base: FeatureBase | None = None, progress: bool = True,
@@ -149,29 +186,32 @@ def train_model(kind: str, data: str, *, test_scenes: list[str] | None = None,
     train_scenes, test = split_scenes(table, test_scenes)
     tr = table.scene_mask(train_scenes)
     summary: dict[str, Any] = {"kind": kind, "input": "raw" if raw else "features",
-                               "quick": None if raw else quick,
+                               "quick": quick if not raw or quick == "halves" else None,
                                "train_scenes": train_scenes, "test_scenes": test,
                                "n_train": int(tr.sum()), "data": str(data), "seed": seed,
                                "table_s": t_data}
     t1 = time.perf_counter()
     template = SVM() if raw else DSVM()
     C, gamma = template.C, template.gamma
+    fit_table = table.trainable()        # rows whose input exists (halves: not the first level)
+    tr_fit = fit_table.scene_mask(train_scenes)
     if cv:
         if kind in ("svm", "dsvm"):
-            rows = np.flatnonzero(tr)
+            rows = np.flatnonzero(tr_fit)
             cap = (CV_MAX_SAMPLES_RAW if raw else CV_MAX_SAMPLES) if cv_max_samples is None else \
                 (cv_max_samples or len(rows))
-            sub = rows[_cv_subset(len(rows), table.groups[rows], seed, cap)]
+            sub = rows[_cv_subset(len(rows), cv_groups(fit_table, rows), seed, cap)]
             summary["cv_rows"] = int(len(sub))
         else:  # the paper: cross-validation on the initially labelled set
-            first = initial_scene or balanced_scene(table, train_scenes)
-            sub = np.flatnonzero(table.scene == first)
-        best = select_hyperparameters(template, table.X[sub], table.y[sub].astype(int), table.groups[sub])
+            first = _initial(initial_scene) or initial_scenes(fit_table, train_scenes)
+            sub = np.flatnonzero(fit_table.scene_mask(first))
+        best = select_hyperparameters(template, fit_table.X[sub], fit_table.y[sub].astype(int),
+                                      cv_groups(fit_table, sub))
         C, gamma = best["C"], best["gamma"]
         summary["cv"] = best
     if monitor is None and test:
-        monitor = table.subset(table.scene_mask(test))
-    fitted, info = fit_kind(kind, table, train_scenes, C=C, gamma=gamma, initial_scene=initial_scene,
+        monitor = fit_table.subset(fit_table.scene_mask(test))
+    fitted, info = fit_kind(kind, fit_table, train_scenes, C=C, gamma=gamma, initial_scene=initial_scene,
                             max_label_fraction=max_label_fraction, batch_size=batch_size,
                             monitor=monitor, progress=progress)
     summary.update(info)
@@ -180,7 +220,7 @@ def train_model(kind: str, data: str, *, test_scenes: list[str] | None = None,
         from .calibrate import choose_offset, out_of_fold_scores, sweep
 
         def fold_fit(sub_table: SubImageTable) -> RBFSVM:
-            return fit_kind(kind, sub_table, sub_table.scenes(), C=C, gamma=gamma,
+            return fit_kind(kind, sub_table.trainable(), sub_table.scenes(), C=C, gamma=gamma,
                             max_label_fraction=max_label_fraction, batch_size=batch_size)[0]
         t2 = time.perf_counter()
         train_table = table.subset(tr)

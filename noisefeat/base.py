@@ -102,9 +102,20 @@ class FeatureBase(nn.Module):
         Cached while gradients are off (inference); rebuilt when the weights change.
         """
         version = tuple((id(c.weight), c.weight._version) for c in self.convs)
-        cached = self._transfer_cache.get((h, w))
+        key = (h, w)
+        cached = self._transfer_cache.get(key)
         if cached is not None and cached[0] == version:
             return cached[1]
+        if torch.is_grad_enabled():
+            return self._build_operators(h, w)
+        # built as normal tensors even under torch.inference_mode(): an inference tensor in
+        # the cache would break a later autograd-tracked forward of the same size
+        with torch.inference_mode(False), torch.no_grad():
+            ops = self._build_operators(h, w)
+        self._transfer_cache[key] = (version, ops)
+        return ops
+
+    def _build_operators(self, h: int, w: int) -> dict[str, torch.Tensor]:
         resp = self.transfer(h, w)
         ops = {"resp": resp,
                "gain": ((1.0 - resp).abs() ** 2 * column_weights(w, resp.shape[-1]))
@@ -115,8 +126,6 @@ class FeatureBase(nn.Module):
             ops["analysis12"] = analysis * resp[-1]
             ops["synthesis"] = synthesis
             ops["col_w"] = column_weights(w, resp.shape[-1])
-        if not torch.is_grad_enabled():
-            self._transfer_cache[(h, w)] = (version, ops)
         return ops
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

@@ -8,11 +8,26 @@ Odd sizes are extended by one replicated row/column and cropped back.
 """
 from __future__ import annotations
 
-from functools import lru_cache
+from collections.abc import Callable
+from functools import lru_cache, wraps
+from typing import TypeVar
 
 import numpy as np
 import pywt
 import torch
+
+F = TypeVar("F", bound=Callable)
+
+
+def _normal_tensors(fn: F) -> F:
+    """Build cached tensors outside inference mode: a tensor made under
+    torch.inference_mode() and cached would break any later autograd-tracked use
+    (feature-base pre-training, gradient tests) of the same block size."""
+    @wraps(fn)
+    def wrapper(*args, **kwargs):
+        with torch.inference_mode(False):
+            return fn(*args, **kwargs)
+    return wrapper  # type: ignore[return-value]
 
 
 @lru_cache(maxsize=64)
@@ -62,6 +77,7 @@ def _response(taps: tuple[tuple[int, float], ...], n: int, sign: float) -> torch
 
 
 @lru_cache(maxsize=32)
+@_normal_tensors
 def spectral_operators(wavelet: str, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Analysis and synthesis responses on the rfft2 half-spectrum of an even h x w block.
 
@@ -81,6 +97,7 @@ def spectral_operators(wavelet: str, h: int, w: int) -> tuple[torch.Tensor, torc
 
 
 @lru_cache(maxsize=32)
+@_normal_tensors
 def mirror_index(h: int, w: int) -> torch.Tensor:
     """Flat rfft2-half indices of G[-f1, w/2 - g2] for g2 in 0..w/2-1 (one gather)."""
     wr = w // 2 + 1

@@ -188,7 +188,7 @@ class RemoteModel:
 
     @property
     def quick(self) -> str:
-        """The quick image the served model wants ('albedo', 'direct', 'none'), from its metadata.
+        """The served model's input ('halves', or the quick image 'albedo', 'direct', 'none'), from its metadata.
 
         Asked once; a server that does not say (older versions) is taken to want albedo.
         """
@@ -199,7 +199,12 @@ class RemoteModel:
 
     @property
     def needs_quick(self) -> bool:
-        return self.quick != "none"
+        return self.quick not in ("none", "halves")
+
+    @property
+    def needs_halves(self) -> bool:
+        """The served model reads the half buffers ('even', 'odd') instead of the block."""
+        return self.quick == "halves"
 
     def metadata(self) -> dict[str, Any]:
         """The model's metadata document (name, versions, platform, inputs, outputs)."""
@@ -288,25 +293,38 @@ class RemoteModel:
         """(verdict int8 [N], score float64 [N]) for linear RGB blocks [N, H, W, 3]: the
         server's stop rule at display `exposure` and at `offset` (None: the model's own)."""
         b = np.asarray(blocks)
+        if b.ndim != 4 or b.shape[-1] != 3:
+            raise ValueError(f"blocks must be [N, H, W, 3], got shape {b.shape}")
+        if quick is not None and np.shape(quick) != b.shape:
+            raise ValueError(f"quick blocks {np.shape(quick)} do not match blocks {b.shape}")
+        return self._score({"blocks": b, **({} if quick is None else {"quick": np.asarray(quick)})},
+                           exposure, offset)
+
+    def score_halves(self, even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
+                     offset: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """`score_blocks` for a `halves` model: the half-buffer means of N blocks, [N, H, W, 3] each."""
+        a, b = np.asarray(even), np.asarray(odd)
+        if a.ndim != 4 or a.shape[-1] != 3 or a.shape != b.shape:
+            raise ValueError(f"even and odd must be two [N, H, W, 3] arrays of one shape, got {a.shape} "
+                             f"and {b.shape}")
+        return self._score({"even": a, "odd": b}, exposure, offset)
+
+    def _score(self, tensors: dict[str, np.ndarray], exposure: float,
+               offset: float | None) -> tuple[np.ndarray, np.ndarray]:
         params: dict[str, Any] = {}
         if exposure:
             params["exposure"] = float(exposure)
         if offset is not None:
             params["offset"] = float(offset)
-        if b.ndim != 4 or b.shape[-1] != 3:
-            raise ValueError(f"blocks must be [N, H, W, 3], got shape {b.shape}")
-        if quick is not None and np.shape(quick) != b.shape:
-            raise ValueError(f"quick blocks {np.shape(quick)} do not match blocks {b.shape}")
+        n = len(next(iter(tensors.values())))
         verdicts, scores = [], []
-        for i in range(0, len(b), self.batch_size):
-            inputs = {"blocks": b[i:i + self.batch_size]}
-            if quick is not None:
-                inputs["quick"] = np.asarray(quick)[i:i + self.batch_size]
+        for i in range(0, n, self.batch_size):
+            inputs = {k: v[i:i + self.batch_size] for k, v in tensors.items()}
+            rows = len(next(iter(inputs.values())))
             out = self.infer(inputs, parameters=params)
             v, s = out["verdict"].reshape(-1), out["score"].reshape(-1)
-            if len(v) != len(inputs["blocks"]) or len(s) != len(v):
-                raise ValueError(f"server returned {len(v)} verdicts / {len(s)} scores for "
-                                 f"{len(inputs['blocks'])} blocks")
+            if len(v) != rows or len(s) != len(v):
+                raise ValueError(f"server returned {len(v)} verdicts / {len(s)} scores for {rows} blocks")
             if not np.isin(v, (-1, 1)).all():
                 raise ValueError(f"server returned verdicts other than -1/+1: {np.unique(v)[:5].tolist()}")
             verdicts.append(v.astype(np.int8))

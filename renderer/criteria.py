@@ -319,7 +319,9 @@ class ModelCriterion(Criterion):
         self.model = model
         self.exposure = float(exposure)
         self.offset = None if offset is None else float(offset)
-        self.needs_quick = bool(getattr(model, "needs_quick", getattr(model, "input", "features") != "raw"))
+        self.needs_halves = bool(getattr(model, "needs_halves", False))
+        self.needs_quick = not self.needs_halves and bool(
+            getattr(model, "needs_quick", getattr(model, "input", "features") != "raw"))
         self.quick_kind = str(getattr(model, "quick", "albedo")) if self.needs_quick else "albedo"
         self._local = hasattr(model, "rule") and hasattr(model, "decision_function")
         self._local_features = self._local and getattr(model, "input", None) == "features"
@@ -339,7 +341,8 @@ class ModelCriterion(Criterion):
         manifest = getattr(m, "manifest", None)
         if isinstance(manifest, Mapping):
             d["model"] = {"kind": manifest.get("kind"), "name": manifest.get("name"),
-                          "input": manifest.get("input"), "path": str(getattr(m, "path", "") or "")}
+                          "input": manifest.get("input"), "quick": manifest.get("quick"),
+                          "path": str(getattr(m, "path", "") or "")}
         elif hasattr(m, "url"):
             d["model"] = {"remote": str(m.url), "name": str(getattr(m, "model", ""))}
         else:
@@ -375,10 +378,28 @@ class ModelCriterion(Criterion):
 
     def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
         flat = self._flat(views, self.exposure)
-        ask = np.flatnonzero(~flat).tolist()
+        if self.needs_halves:       # no estimate of the noise before both halves hold a pass
+            ask = [i for i, v in enumerate(views) if not flat[i] and min(v.half_spp or (0, 0)) > 0]
+        else:
+            ask = np.flatnonzero(~flat).tolist()
         score = np.full(len(ids), np.nan)
         remote_verdict = np.full(len(ids), NOISY, np.int8)
-        if ask:
+        if ask and self.needs_halves:
+            even = np.stack([np.asarray(views[i].halves[0], np.float32) for i in ask])  # type: ignore[index]
+            odd = np.stack([np.asarray(views[i].halves[1], np.float32) for i in ask])   # type: ignore[index]
+            self.counters["blocks_featured"] += len(ask)
+            if self._local:
+                with single_torch_thread():
+                    t0 = time.perf_counter()
+                    x = self.model.inputs_from_halves(even, odd, self.exposure)  # type: ignore[attr-defined]
+                    self.counters["feature_rows"] += len(ask)
+                    self.timers["features_s"] += time.perf_counter() - t0
+                score[ask] = self.model.decision_function(x)  # type: ignore[attr-defined]
+            else:
+                verdict, _ = self.model.score_halves(even, odd, exposure=self.exposure,  # type: ignore[attr-defined]
+                                                     offset=self.offset)
+                remote_verdict[ask] = np.where(np.asarray(verdict) > 0, CONVERGED, NOISY)
+        elif ask:
             blocks = np.stack([np.asarray(views[i].mean, np.float32) for i in ask])
             quick = np.stack([np.asarray(views[i].quick, np.float32) for i in ask]) if self.needs_quick else None
             self.counters["blocks_featured"] += len(ask)

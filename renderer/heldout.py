@@ -18,42 +18,30 @@ import math
 
 import numpy as np
 
-from .scene_kit import SceneDict, T, base, checker_texture, diffuse, rgb
+from .scene_kit import (
+    SceneDict,
+    T,
+    base,
+    bitmap_texture,
+    checker_texture,
+    cube,
+    diffuse,
+    panel,
+    rgb,
+    room_box,
+    value_noise,
+)
 
 # ----------------------------------------------------------------------------- procedural images
 
 
-def _value_noise(size: int, octaves: int, seed: int) -> np.ndarray:
-    """Smooth fractal noise in [0, 1], [size, size] float32 (bilinear octaves of random grids)."""
-    rng = np.random.default_rng(seed)
-    out = np.zeros((size, size))
-    amp, total = 1.0, 0.0
-    for o in range(octaves):
-        cells = 4 * 2 ** o
-        grid = rng.random((cells + 1, cells + 1))
-        t = np.linspace(0, cells, size, endpoint=False)
-        i = t.astype(int)
-        f = t - i
-        f = f * f * (3 - 2 * f)
-        rows = grid[i][:, i] * (1 - f)[None, :] + grid[i][:, i + 1] * f[None, :]
-        rows2 = grid[i + 1][:, i] * (1 - f)[None, :] + grid[i + 1][:, i + 1] * f[None, :]
-        out += amp * (rows * (1 - f)[:, None] + rows2 * f[:, None])
-        total += amp
-        amp *= 0.5
-    out /= total
-    return ((out - out.min()) / (np.ptp(out) + 1e-12)).astype(np.float32)
 
 
-def _bitmap(image: np.ndarray) -> dict:
-    import mitsuba as mi
-
-    return {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(image, np.float32)),
-            "raw": True}
 
 
 def marble(size: int = 256, seed: int = 3) -> np.ndarray:
     """Veined marble, linear RGB [size, size, 3]."""
-    n = _value_noise(size, 5, seed)
+    n = value_noise(size, 5, seed)
     x = np.linspace(0, 6 * math.pi, size)[None, :]
     veins = 0.5 + 0.5 * np.sin(x + 9.0 * n)
     v = 0.45 + 0.4 * veins ** 3
@@ -62,7 +50,7 @@ def marble(size: int = 256, seed: int = 3) -> np.ndarray:
 
 def wood(size: int = 256, seed: int = 4) -> np.ndarray:
     """Wood-grain stripes, linear RGB."""
-    n = _value_noise(size, 4, seed)
+    n = value_noise(size, 4, seed)
     y = np.linspace(0, 40 * math.pi, size)[:, None]
     rings = 0.5 + 0.5 * np.sin(y + 6.0 * n)
     v = 0.18 + 0.2 * rings
@@ -79,47 +67,17 @@ def studio_environment(width: int = 256, seed: int = 5) -> np.ndarray:
     for centre_phi, centre_th, size, power in ((1.2, 0.9, 0.35, 9.0), (4.0, 1.1, 0.5, 3.0)):
         d = np.hypot((ph - centre_phi) / size, (th - centre_th) / (0.6 * size))
         img += (power * np.clip(1.2 - d, 0, 1) ** 2)[..., None]
-    img += 0.02 * _value_noise(width, 3, seed)[:h, :, None]
+    img += 0.02 * value_noise(width, 3, seed)[:h, :, None]
     return img.astype(np.float32)
 
 
 # ----------------------------------------------------------------------------- scenes
 
 
-def _room(width: float, depth: float, height: float, floor: dict, walls: dict, back: dict | None = None,
-          open_left: bool = False, front: float = 0.0, closed: bool = False) -> SceneDict:
-    """Floor, ceiling and walls of a box room centred on x, floor at y = 0, spanning z from
-    `front` back to `front - depth`; open at the front unless `closed`."""
-    w, d, h = width / 2, depth, height
-    zc = front - d / 2
-    parts: SceneDict = {
-        "floor": {"type": "rectangle", "bsdf": floor,
-                  "to_world": T().translate([0, 0, zc]).rotate([1, 0, 0], -90).scale([w, d / 2, 1])},
-        "ceiling": {"type": "rectangle", "bsdf": walls,
-                    "to_world": T().translate([0, h, zc]).rotate([1, 0, 0], 90).scale([w, d / 2, 1])},
-        "back": {"type": "rectangle", "bsdf": back or walls,
-                 "to_world": T().translate([0, h / 2, front - d]).scale([w, h / 2, 1])},
-        "right": {"type": "rectangle", "bsdf": walls,
-                  "to_world": T().translate([w, h / 2, zc]).rotate([0, 1, 0], -90).scale([d / 2, h / 2, 1])},
-    }
-    if not open_left:
-        parts["left"] = {"type": "rectangle", "bsdf": walls,
-                         "to_world": T().translate([-w, h / 2, zc]).rotate([0, 1, 0], 90).scale([d / 2, h / 2, 1])}
-    if closed:
-        parts["front"] = {"type": "rectangle", "bsdf": walls,
-                          "to_world": T().translate([0, h / 2, front]).rotate([0, 1, 0], 180).scale([w, h / 2, 1])}
-    return parts
 
 
-def _panel(centre: list[float], sx: float, sz: float, radiance: list[float] | float) -> dict:
-    """A downward-facing rectangular area light."""
-    return {"type": "rectangle", "emitter": {"type": "area", "radiance": rgb(radiance)},
-            "to_world": T().translate(centre).rotate([1, 0, 0], 90).scale([sx, sz, 1])}
 
 
-def _cube(centre: list[float], size: list[float], bsdf: dict, angle: float = 0.0) -> dict:
-    return {"type": "cube", "bsdf": bsdf,
-            "to_world": T().translate(centre).rotate([0, 1, 0], angle).scale([s / 2 for s in size])}
 
 
 def studio_preview(resolution: int) -> SceneDict:
@@ -148,51 +106,51 @@ def sunlit_courtyard(resolution: int) -> SceneDict:
     for i, x in enumerate((-2.4, -0.8, 0.8, 2.4)):
         d[f"pillar{i}"] = {"type": "cylinder", "radius": 0.22, "p0": [x, 0, -1.5], "p1": [x, 2.4, -1.5],
                            "bsdf": diffuse(0.7)}
-    d["block_a"] = _cube([-1.2, 0.35, 0.9], [0.9, 0.7, 0.9], diffuse([0.55, 0.45, 0.35]), 25)
-    d["block_b"] = _cube([1.4, 0.25, 1.2], [1.2, 0.5, 0.6], diffuse([0.3, 0.4, 0.55]), -10)
-    d["lintel"] = _cube([0.0, 2.55, -1.5], [5.4, 0.3, 0.5], diffuse(0.65))
+    d["block_a"] = cube([-1.2, 0.35, 0.9], [0.9, 0.7, 0.9], diffuse([0.55, 0.45, 0.35]), 25)
+    d["block_b"] = cube([1.4, 0.25, 1.2], [1.2, 0.5, 0.6], diffuse([0.3, 0.4, 0.55]), -10)
+    d["lintel"] = cube([0.0, 2.55, -1.5], [5.4, 0.3, 0.5], diffuse(0.65))
     return d
 
 
 def marble_hall(resolution: int) -> SceneDict:
     """Room with a marble floor, wood-panelled back wall and a panel light: texture masks noise."""
     d = base(resolution, origin=(0.0, 1.4, 3.2), target=(0.0, 0.9, -2.0), fov=50.0)
-    d.update(_room(5.0, 6.5, 3.0, floor={"type": "roughplastic", "alpha": 0.2,
-                                          "diffuse_reflectance": _bitmap(marble())},
-                   walls=diffuse([0.75, 0.7, 0.6]), back={"type": "diffuse", "reflectance": _bitmap(wood())},
+    d.update(room_box(5.0, 6.5, 3.0, floor={"type": "roughplastic", "alpha": 0.2,
+                                          "diffuse_reflectance": bitmap_texture(marble())},
+                   walls=diffuse([0.75, 0.7, 0.6]), back={"type": "diffuse", "reflectance": bitmap_texture(wood())},
                    front=3.5, closed=True))
-    d["light"] = _panel([0.0, 2.99, -2.0], 0.8, 0.5, [9.0, 8.5, 7.5])
+    d["light"] = panel([0.0, 2.99, -2.0], 0.8, 0.5, [9.0, 8.5, 7.5])
     d["sphere"] = {"type": "sphere", "center": [0.8, 0.5, -2.2], "radius": 0.5,
                    "bsdf": {"type": "roughplastic", "diffuse_reflectance": rgb([0.15, 0.3, 0.55]), "alpha": 0.1}}
-    d["plinth"] = _cube([-0.9, 0.4, -2.6], [0.6, 0.8, 0.6], diffuse(0.8), 15)
+    d["plinth"] = cube([-0.9, 0.4, -2.6], [0.6, 0.8, 0.6], diffuse(0.8), 15)
     return d
 
 
 def spot_stage(resolution: int) -> SceneDict:
     """A dark stage lit by one spot: a pool of light, objects, and a lot of near-black."""
     d = base(resolution, origin=(0.0, 1.6, 4.0), target=(0.0, 0.5, 0.0), fov=42.0)
-    d.update(_room(8.0, 10.5, 4.0, front=4.5, floor={"type": "roughplastic", "alpha": 0.25,
+    d.update(room_box(8.0, 10.5, 4.0, front=4.5, floor={"type": "roughplastic", "alpha": 0.25,
                                           "diffuse_reflectance": rgb(0.08)},
                    walls=diffuse(0.06)))
     d["spot"] = {"type": "spot", "intensity": rgb(60.0), "cutoff_angle": 28.0, "beam_width": 18.0,
                  "to_world": T().look_at(origin=[0.6, 3.8, 1.2], target=[0.0, 0.0, -1.0], up=[0, 1, 0])}
     d["copper"] = {"type": "sphere", "center": [-0.5, 0.55, -1.0], "radius": 0.55,
                    "bsdf": {"type": "roughconductor", "material": "Cu", "alpha": 0.2}}
-    d["cube"] = _cube([0.75, 0.4, -0.7], [0.8, 0.8, 0.8], diffuse(0.8), 30)
+    d["cube"] = cube([0.75, 0.4, -0.7], [0.8, 0.8, 0.8], diffuse(0.8), 30)
     return d
 
 
 def lamp_room(resolution: int) -> SceneDict:
     """A table under a hanging globe lamp in a warm room: soft shadows, indirect light."""
     d = base(resolution, origin=(1.6, 1.7, 3.4), target=(0.0, 0.8, -1.0), fov=48.0)
-    d.update(_room(5.0, 6.0, 3.0, floor={"type": "diffuse", "reflectance": _bitmap(wood(seed=8))},
+    d.update(room_box(5.0, 6.0, 3.0, floor={"type": "diffuse", "reflectance": bitmap_texture(wood(seed=8))},
                    walls=diffuse([0.8, 0.65, 0.5]), front=3.6, closed=True))
     d["lamp"] = {"type": "sphere", "center": [0.0, 1.9, -1.2], "radius": 0.14,
                  "emitter": {"type": "area", "radiance": rgb([40.0, 32.0, 20.0])}}
     top = diffuse([0.5, 0.35, 0.2])
-    d["table_top"] = _cube([0.0, 0.75, -1.2], [1.6, 0.06, 0.9], top)
+    d["table_top"] = cube([0.0, 0.75, -1.2], [1.6, 0.06, 0.9], top)
     for i, (x, z) in enumerate(((-0.72, -0.8), (0.72, -0.8), (-0.72, -1.6), (0.72, -1.6))):
-        d[f"leg{i}"] = _cube([x, 0.36, z], [0.06, 0.72, 0.06], top)
+        d[f"leg{i}"] = cube([x, 0.36, z], [0.06, 0.72, 0.06], top)
     d["vase"] = {"type": "cylinder", "radius": 0.09, "p0": [0.3, 0.78, -1.1], "p1": [0.3, 1.1, -1.1],
                  "bsdf": {"type": "roughplastic", "diffuse_reflectance": rgb([0.1, 0.35, 0.3]), "alpha": 0.1}}
     return d
@@ -201,11 +159,11 @@ def lamp_room(resolution: int) -> SceneDict:
 def corridor(resolution: int) -> SceneDict:
     """A long corridor with a row of ceiling lights and a glossy floor: depth and reflections."""
     d = base(resolution, origin=(0.0, 1.3, 1.5), target=(0.0, 1.1, -8.0), fov=55.0)
-    d.update(_room(2.4, 12.0, 2.6, floor={"type": "roughplastic", "alpha": 0.12,
+    d.update(room_box(2.4, 12.0, 2.6, floor={"type": "roughplastic", "alpha": 0.12,
                                            "diffuse_reflectance": rgb([0.25, 0.25, 0.28])},
                    walls=diffuse([0.7, 0.72, 0.75]), back=diffuse([0.45, 0.2, 0.15])))
     for i, z in enumerate((-1.5, -4.5, -7.5, -10.5)):
-        d[f"light{i}"] = _panel([0.0, 2.59, z], 0.35, 0.2, [14.0, 14.0, 12.0])
+        d[f"light{i}"] = panel([0.0, 2.59, z], 0.35, 0.2, [14.0, 14.0, 12.0])
     for i, z in enumerate((-3.0, -6.0, -9.0)):
         d[f"door{i}"] = {"type": "rectangle", "bsdf": diffuse([0.35, 0.22, 0.12]),
                          "to_world": T().translate([1.19, 1.0, z]).rotate([0, 1, 0], -90).scale([0.45, 1.0, 1])}
@@ -222,7 +180,7 @@ def pastel_blocks(resolution: int) -> SceneDict:
     for i in range(4):
         for j in range(4):
             h = float(rng.uniform(0.3, 1.6))
-            d[f"block{i}{j}"] = _cube([-2.1 + 1.4 * i, h / 2, -2.1 + 1.4 * j], [0.9, h, 0.9],
+            d[f"block{i}{j}"] = cube([-2.1 + 1.4 * i, h / 2, -2.1 + 1.4 * j], [0.9, h, 0.9],
                                       diffuse(colours[(i + 2 * j) % len(colours)]))
     return d
 
@@ -231,7 +189,7 @@ def window_light(resolution: int) -> SceneDict:
     """A room lit only through a window in its left wall: a sun patch, the rest bounce light."""
     d = base(resolution, origin=(0.6, 1.4, 2.6), target=(-0.4, 1.0, -2.0), fov=55.0)
     walls = diffuse([0.78, 0.76, 0.72])
-    d.update(_room(4.0, 7.0, 2.8, floor=diffuse([0.45, 0.4, 0.35]), walls=walls, open_left=True,
+    d.update(room_box(4.0, 7.0, 2.8, floor=diffuse([0.45, 0.4, 0.35]), walls=walls, open_left=True,
                    front=3.0, closed=True))
     w, h, depth = 2.0, 2.8, 4.0
     # the left wall, with a window 1.2 m wide and 1 m high in its middle
@@ -241,5 +199,5 @@ def window_light(resolution: int) -> SceneDict:
             [-w, (y0 + y1) / 2, -(z0 + z1) / 2]).rotate([0, 1, 0], 90).scale([(z1 - z0) / 2, (y1 - y0) / 2, 1])}
     d["sky"] = {"type": "constant", "radiance": rgb([0.5, 0.65, 0.9])}      # seen through the window
     d["sun"] = {"type": "directional", "direction": [0.75, -0.55, -0.2], "irradiance": rgb([14.0, 12.5, 10.5])}
-    d["sofa"] = _cube([0.6, 0.3, -2.6], [1.6, 0.6, 0.7], diffuse([0.25, 0.3, 0.45]))
+    d["sofa"] = cube([0.6, 0.3, -2.6], [1.6, 0.6, 0.7], diffuse([0.25, 0.3, 0.45]))
     return d

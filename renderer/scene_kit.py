@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 MAX_DEPTH = 8
 
 SceneDict = dict[str, Any]
@@ -69,3 +71,62 @@ def base(
             },
         },
     }
+
+def value_noise(size: int, octaves: int, seed: int) -> np.ndarray:
+    """Smooth fractal noise in [0, 1], [size, size] float32 (bilinear octaves of random grids)."""
+    rng = np.random.default_rng(seed)
+    out = np.zeros((size, size))
+    amp, total = 1.0, 0.0
+    for o in range(octaves):
+        cells = 4 * 2 ** o
+        grid = rng.random((cells + 1, cells + 1))
+        t = np.linspace(0, cells, size, endpoint=False)
+        i = t.astype(int)
+        f = t - i
+        f = f * f * (3 - 2 * f)
+        rows = grid[i][:, i] * (1 - f)[None, :] + grid[i][:, i + 1] * f[None, :]
+        rows2 = grid[i + 1][:, i] * (1 - f)[None, :] + grid[i + 1][:, i + 1] * f[None, :]
+        out += amp * (rows * (1 - f)[:, None] + rows2 * f[:, None])
+        total += amp
+        amp *= 0.5
+    out /= total
+    return ((out - out.min()) / (np.ptp(out) + 1e-12)).astype(np.float32)
+
+def bitmap_texture(image: np.ndarray) -> dict:
+    import mitsuba as mi
+
+    return {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(image, np.float32)),
+            "raw": True}
+
+def room_box(width: float, depth: float, height: float, floor: dict, walls: dict, back: dict | None = None,
+          open_left: bool = False, front: float = 0.0, closed: bool = False) -> SceneDict:
+    """Floor, ceiling and walls of a box room centred on x, floor at y = 0, spanning z from
+    `front` back to `front - depth`; open at the front unless `closed`."""
+    w, d, h = width / 2, depth, height
+    zc = front - d / 2
+    parts: SceneDict = {
+        "floor": {"type": "rectangle", "bsdf": floor,
+                  "to_world": T().translate([0, 0, zc]).rotate([1, 0, 0], -90).scale([w, d / 2, 1])},
+        "ceiling": {"type": "rectangle", "bsdf": walls,
+                    "to_world": T().translate([0, h, zc]).rotate([1, 0, 0], 90).scale([w, d / 2, 1])},
+        "back": {"type": "rectangle", "bsdf": back or walls,
+                 "to_world": T().translate([0, h / 2, front - d]).scale([w, h / 2, 1])},
+        "right": {"type": "rectangle", "bsdf": walls,
+                  "to_world": T().translate([w, h / 2, zc]).rotate([0, 1, 0], -90).scale([d / 2, h / 2, 1])},
+    }
+    if not open_left:
+        parts["left"] = {"type": "rectangle", "bsdf": walls,
+                         "to_world": T().translate([-w, h / 2, zc]).rotate([0, 1, 0], 90).scale([d / 2, h / 2, 1])}
+    if closed:
+        parts["front"] = {"type": "rectangle", "bsdf": walls,
+                          "to_world": T().translate([0, h / 2, front]).rotate([0, 1, 0], 180).scale([w, h / 2, 1])}
+    return parts
+
+def panel(centre: list[float], sx: float, sz: float, radiance: list[float] | float) -> dict:
+    """A downward-facing rectangular area light."""
+    return {"type": "rectangle", "emitter": {"type": "area", "radiance": rgb(radiance)},
+            "to_world": T().translate(centre).rotate([1, 0, 0], 90).scale([sx, sz, 1])}
+
+def cube(centre: list[float], size: list[float], bsdf: dict, angle: float = 0.0) -> dict:
+    return {"type": "cube", "bsdf": bsdf,
+            "to_world": T().translate(centre).rotate([0, 1, 0], angle).scale([s / 2 for s in size])}

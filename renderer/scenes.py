@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from . import heldout
+from .procedural import procedural_scene, procedural_seed
 from .scene_kit import SceneDict, T, base, checker_texture, diffuse, rgb
 from .variant import select_variant
 
@@ -332,15 +333,17 @@ def list_scenes(heldout: bool | None = None) -> list[tuple[str, str]]:
 
 
 def _unknown(name: str) -> ValueError:
-    return ValueError(f"unknown scene {name!r}; built-in scenes: {', '.join(SCENES)} (or a Mitsuba 3 .xml file)")
+    return ValueError(f"unknown scene {name!r}; built-in scenes: {', '.join(SCENES)}, procedural scenes "
+                      "proc-0000, proc-0001, ... (or a Mitsuba 3 .xml file)")
 
 
 def scene_dict(name: str, resolution: int) -> SceneDict:
     """The ``mi.load_dict`` description of built-in scene `name` at `resolution`^2 pixels."""
-    if name not in SCENES:
+    seed = procedural_seed(name)
+    if name not in SCENES and seed is None:
         raise _unknown(name)
     select_variant()  # transforms need a variant
-    return SCENES[name].builder(resolution)
+    return SCENES[name].builder(resolution) if seed is None else procedural_scene(seed, resolution)
 
 
 # ----------------------------------------------------------------------------- loading
@@ -393,7 +396,7 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: int | None = No
     import mitsuba as mi
 
     name_or_path = os.fspath(name_or_path)
-    if name_or_path in SCENES:
+    if name_or_path in SCENES or procedural_seed(name_or_path) is not None:
         return mi.load_dict(scene_dict(name_or_path, 256 if resolution is None else resolution))
     looks_like_file = name_or_path.lower().endswith(".xml") or os.sep in name_or_path
     if not looks_like_file and not os.path.exists(name_or_path):

@@ -252,6 +252,19 @@ def bench_knobs(data: str, heldout: str | None = None) -> dict[str, Any]:
     return measure_knobs(data, heldout)
 
 
+def bench_inputs(data: str, heldout: str | None = None) -> dict[str, Any]:
+    """Every composition of the half-buffer input, and the paper's quick inputs, on held-out scenes."""
+    from learning.compare_inputs import compare_inputs
+    if not heldout:
+        raise ValueError("bench inputs needs --heldout DIR (scenes no composition was chosen on)")
+    return compare_inputs(data, heldout)
+
+
+def md_inputs(r: dict[str, Any]) -> str:
+    from learning.compare_inputs import md_inputs as md
+    return md(r)
+
+
 def bench_dataset(data: str, heldout: str | None = None) -> dict[str, Any]:
     """The dataset's build time, from its build log: the latest run that rendered anything."""
     from renderer.dataset import BUILD_LOG, read_build_log
@@ -423,7 +436,8 @@ def update_markdown(path: Path, sections: dict[str, str]) -> None:
 
 
 # sections that need only the datasets: name -> (measure(data, heldout), markdown(result))
-DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "criteria": (bench_criteria, md_criteria),
+DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "inputs": (bench_inputs, md_inputs),
+                    "criteria": (bench_criteria, md_criteria),
                     "tradeoff": (bench_tradeoff, md_tradeoff), "ablation": (bench_ablation, md_ablation),
                     "step": (bench_step, md_step), "knobs": (bench_knobs, md_knobs)}
 SECTIONS = ("features", "crop", "models", "render", "service", "stability", *DATASET_SECTIONS)
@@ -467,11 +481,14 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
     if "crop" in only:
         measure("crop", lambda: bench_crop(repeats=max(1, min(repeats, 3))), md_crop)
     if "models" in only:
-        for i, q in enumerate(quick):
-            # raw-pixel and transfer models use no quick image: measured with the first mode only
-            k, a = (kinds, arches) if i == 0 else (
-                tuple(x for x in (kinds or SVM_KINDS) if x.startswith("dsvm")), ())
-            measure("models" if q == "albedo" else f"models_quick_{q}",
+        plain_done = False
+        for q in quick:
+            # raw-pixel and transfer models read the block whatever the quick image (measured
+            # with the first such mode), and the noise image with halves (measured there)
+            full = q == "halves" or not plain_done
+            plain_done = plain_done or q != "halves"
+            k, a = (kinds, arches) if full else (tuple(x for x in (kinds or SVM_KINDS) if x.startswith("dsvm")), ())
+            measure("models" if q == "albedo" else "models_halves" if q == "halves" else f"models_quick_{q}",
                     lambda k=k, a=a, q=q: bench_models(data, Path(out_dir), a, k, q, heldout=heldout), md_models)
         measure("cost_accuracy", lambda: saved_comparisons(data, Path(out_dir), heldout), md_cost_accuracy)
     if "render" in only:

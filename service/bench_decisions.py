@@ -149,7 +149,7 @@ def bench_tradeoff(data: str, heldout: str | None = None, out_dir: str | Path = 
 
     train_stacks, test_stacks = split_stacks(data, heldout)
     bundled = _model_and_check(model, [s.scene for s in test_stacks])
-    test = split_tables(data, heldout, quick=bundled.quick)[1]
+    test = split_tables(data, heldout, **bundled.table_options())[1]
     scores = bundled.decision_function(test.X)
     model_curve = sweep(scores, test, DEFAULT_OFFSETS)
     model_default = sweep(scores, test, [bundled.offset])[0]
@@ -241,7 +241,7 @@ def bench_step(data: str, heldout: str | None = None, multiples: tuple[int, ...]
 
     _, test_stacks = split_stacks(data, heldout)
     m = _model_and_check(model, [s.scene for s in test_stacks])
-    test = split_tables(data, heldout, quick=m.quick)[1]
+    test = split_tables(data, heldout, **m.table_options())[1]
     c = float(load_flip_calibration()["c"])
     model_scores, flat = by_scene(test, m.decision_function(test.X)), by_scene(test, test.flat)
     flip_scores = {s.scene: -stack_flip_errors(s) for s in test_stacks}

@@ -9,9 +9,10 @@ from .cli import UsageError, emit_json, log
 
 #: learning.table.QUICK_MODES and renderer.criteria.CRITERIA, spelled out so the parser
 #: builds without importing torch or Mitsuba (tests/test_cli.py checks they agree)
-QUICK_MODES = ("albedo", "direct", "none")
+QUICK_MODES = ("halves", "albedo", "direct", "none")
 CRITERIA = ("model", "flip", "variance", "uniform", "oracle")
 DEFAULT_CRITERION = "flip"     # renderer.criteria.DEFAULT_CRITERION
+DEFAULT_INPUT = "halves"       # the input `train` uses unless told (README "Model inputs")
 
 
 def _positive_int(text: str) -> int:
@@ -65,8 +66,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("bench", help="measure the figures of BENCHMARKS.md")
     p.add_argument("what", nargs="*", default=["features", "crop"],
-                   help="sections: features, crop, models, render, service, stability, dataset, criteria, "
-                        "tradeoff, ablation, step, knobs (default: features crop)")
+                   help="sections: features, crop, models, render, service, stability, dataset, inputs, "
+                        "criteria, tradeoff, ablation, step, knobs (default: features crop)")
     p.add_argument("--data", default=None, help="labelled dataset of training scenes")
     p.add_argument("--heldout", default=None,
                    help="labelled dataset of held-out scenes every figure is measured on (make "
@@ -75,7 +76,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--arches", default=None,
                    help="models: comma-separated transfer baselines (default: all five; '' for none)")
     p.add_argument("--kinds", default=None, help="models: comma-separated SVM kinds (default: all six)")
-    p.add_argument("--quick", type=_quick_modes, default=("albedo",),
+    p.add_argument("--input", "--quick", dest="quick", type=_quick_modes, default=("albedo",),
                    help="models: the quick images of the feature models, comma-separated "
                         f"({', '.join(QUICK_MODES)}; default albedo)")
     p.add_argument("--update", default=None, metavar="FILE",
@@ -101,9 +102,13 @@ def _register_dataset(sub: argparse._SubParsersAction) -> None:
     p = dsub.add_parser("build", help="render and label stacks (format v1) for scenes")
     p.add_argument("--out", required=True, help="dataset directory (one sub-directory per scene)")
     p.add_argument("--scenes", default=None,
-                   help="comma-separated built-in names, XML files, or the sets 'training' (the "
-                        "training library, the default) and 'heldout' (scenes kept out of all training)")
+                   help="comma-separated built-in names, XML files, procedural scenes (proc-0042, or "
+                        "procedural:N for the first N, procedural:A-B for seeds A..B-1), or the sets "
+                        "'training' (the training library, the default) and 'heldout' (scenes kept out "
+                        "of all training)")
     p.add_argument("--resolution", type=_positive_int, default=512)
+    p.add_argument("--block", type=_positive_int, default=None,
+                   help="block side in pixels (default: a 4x4 grid, the paper's); must divide --resolution")
     p.add_argument("--step", type=_positive_int, default=101, help="spp added per level")
     p.add_argument("--levels", type=_positive_int, default=100)
     p.add_argument("--reference-spp", type=_positive_int, default=None,
@@ -131,6 +136,7 @@ def _register_dataset(sub: argparse._SubParsersAction) -> None:
 
 def cmd_dataset_build(args: argparse.Namespace) -> int:
     from renderer.dataset import build_dataset
+    from renderer.procedural import expand_procedural
     from renderer.scenes import list_scenes
     from renderer.stackbuild import BuildSettings
 
@@ -138,9 +144,17 @@ def cmd_dataset_build(args: argparse.Namespace) -> int:
     scenes = []
     for s in (args.scenes or "training").split(","):
         s = s.strip()
-        scenes += [name for name, _ in list_scenes(sets[s])] if s in sets else [s] if s else []
+        family = expand_procedural(s)
+        scenes += family if family is not None else [name for name, _ in list_scenes(sets[s])] \
+            if s in sets else [s] if s else []
     ref = args.reference_spp or 4 * args.step * args.levels
-    settings = BuildSettings(resolution=args.resolution, step=args.step, levels=args.levels,
+    grid = (4, 4)
+    if args.block is not None:
+        if args.resolution % args.block:
+            raise UsageError(f"--block {args.block} does not divide --resolution {args.resolution}: "
+                             "stacks keep a grid of equal blocks")
+        grid = (args.resolution // args.block,) * 2
+    settings = BuildSettings(resolution=args.resolution, step=args.step, levels=args.levels, grid=grid,
                              reference_spp=ref, seed=args.seed, tau=args.tau,
                              contact_sheet=not args.no_contact_sheets)
     summary = build_dataset(scenes, args.out, settings, workers=args.workers, scheduler=args.scheduler)
@@ -195,7 +209,8 @@ def _register_learning(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--heldout", default=None, metavar="DIR",
                    help="labelled dataset of held-out scenes to report on (then every scene of --data "
                         "is trained on, unless --test-scenes says otherwise)")
-    p.add_argument("--initial-scene", default=None, help="active kinds: the initially labelled scene")
+    p.add_argument("--initial-scene", default=None, help="active kinds: the initially labelled scene(s), comma-separated (default: the "
+                        "scenes closest to half converged, at least 500 sub-images)")
     p.add_argument("--label-budget", type=float, default=0.25,
                    help="active kinds: largest fraction of the pool's labels to query")
     p.add_argument("--no-cv", action="store_true", help="skip the C/gamma cross-validation")
@@ -203,10 +218,15 @@ def _register_learning(sub: argparse._SubParsersAction) -> None:
                    help="calibrate the decision offset on leave-one-scene-out scores of the "
                         "training scenes to keep early stops at or below this rate (default 0.05)")
     p.add_argument("--no-calibrate", action="store_true", help="keep the decision offset at 0")
-    p.add_argument("--quick", choices=QUICK_MODES, default="albedo",
-                   help="feature models: the quick image subtracted from the features: the "
-                        "albedo AOV (the paper's), direct lighting, or none (a flat image: "
-                        "features of the current block alone)")
+    p.add_argument("--input", "--quick", dest="quick", choices=QUICK_MODES, default=DEFAULT_INPUT,
+                   help="feature models' input: halves (noise features of the half buffers next to "
+                        "features of the block, README \"Model inputs\"), or the paper's quick image "
+                        "subtracted from the features: the albedo AOV, direct lighting, or none (a "
+                        f"flat image: features of the current block alone); default {DEFAULT_INPUT}")
+    p.add_argument("--composition", default=None,
+                   help="input halves: which parts of the half-buffer input a feature model reads, "
+                        "joined by '+' (n noise, c current, r ratios, l luminance, f FLIP; README "
+                        "\"Model inputs\"; default: the measured best, learning.noise_input.HALVES)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_train)
@@ -256,6 +276,21 @@ def _scene_list(text: str | None) -> list[str] | None:
     return [s.strip() for s in text.split(",") if s.strip()] if text else None
 
 
+def _composition(args: argparse.Namespace, raw: bool) -> dict[str, str]:
+    """{'composition': C} for a feature model on the half buffers, else {}."""
+    if raw or args.quick != "halves":
+        if args.composition is not None:
+            raise UsageError("--composition applies to feature models with --input halves only")
+        return {}
+    from learning.noise_input import HALVES, parts_of
+    composition = args.composition or HALVES
+    try:
+        parts_of(composition)
+    except ValueError as exc:
+        raise UsageError(f"--composition: {exc}") from None
+    return {"composition": composition}
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     from learning.bundle import Model, save_model
     from learning.evaluate import evaluate_model
@@ -265,7 +300,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if not 0 < args.label_budget <= 1:
         raise UsageError(f"--label-budget must be in (0, 1], got {args.label_budget}")
     raw = args.model.startswith("svm")
-    table = load_table(args.data, raw=raw, quick=args.quick)
+    table = load_table(args.data, raw=raw, quick=args.quick, **_composition(args, raw))
     if not 0 <= args.max_early_stop <= 1:
         raise UsageError(f"--max-early-stop must be in [0, 1], got {args.max_early_stop}")
     test_scenes = [] if args.test_scenes == "" else _scene_list(args.test_scenes)   # '': none
@@ -279,12 +314,13 @@ def cmd_train(args: argparse.Namespace) -> int:
                                quick=args.quick)
     if args.heldout:
         from learning.generalisation import check_disjoint
-        test = load_table(args.heldout, raw=raw, quick=args.quick)
+        test = load_table(args.heldout, raw=raw, quick=args.quick, **_composition(args, raw))
         check_disjoint(summary["train_scenes"], test.scenes())
         summary["heldout"] = {"data": str(args.heldout), "scenes": test.scenes()}
     else:
         test = table.subset(table.scene_mask(summary["test_scenes"]))
-    extra = {} if raw else {"quick": args.quick}
+    extra = {"quick": args.quick} if not raw or args.quick == "halves" else {}
+    extra.update(_composition(args, raw))
     metrics = evaluate_model(Model(est, {"kind": args.model, "input": summary["input"], **extra}), test) \
         if len(test) else {}
     save_model(est, args.out, kind=args.model, input=summary["input"], training=summary,
@@ -394,7 +430,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         result["threshold"] = result["criterion"].get("threshold")
     else:
         model = load_model(args.model)
-        table = load_table(args.data, raw=model.input == "raw", quick=model.quick)
+        table = load_table(args.data, **model.table_options())
         trained_on = set(model.manifest.get("training", {}).get("train_scenes", []))
         scenes = _scene_list(args.scenes) or [s for s in table.scenes() if s not in trained_on]
         if not scenes:

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from learning.bundle import BUNDLED_DIR, MANIFEST, Model, load_model
-from noisefeat.base import MIN_SIZE, N_FEATURES
+from noisefeat.base import MIN_SIZE
 from noisefeat.display import nonfinite_pixels
 
 from .oip import ApiError, ModelMetadata, TensorMetadata
@@ -91,13 +91,26 @@ class ServedModel:
 
     @property
     def inputs(self) -> list[TensorMetadata]:
-        """Raw-block and quick-'none' models accept (and ignore) `quick`: one client serves all."""
+        """Raw-block and quick-'none' models accept (and ignore) `quick`: one client serves all.
+        `halves` models take the half buffers `even` and `odd` instead of `blocks`."""
         image = [-1, -1, -1, 3]
-        inputs = [TensorMetadata(name="blocks", datatype="FP32", shape=image),
-                  TensorMetadata(name="quick", datatype="FP32", shape=image)]
+        if self.model.needs_halves:
+            inputs = [TensorMetadata(name="even", datatype="FP32", shape=image),
+                      TensorMetadata(name="odd", datatype="FP32", shape=image)]
+        else:
+            inputs = [TensorMetadata(name="blocks", datatype="FP32", shape=image),
+                      TensorMetadata(name="quick", datatype="FP32", shape=image)]
         if self.model.input == "features":
-            inputs.append(TensorMetadata(name="features", datatype="FP32", shape=[-1, N_FEATURES]))
+            inputs.append(TensorMetadata(name="features", datatype="FP32", shape=[-1, self.model.n_features]))
         return inputs
+
+    def image_inputs(self, blocks: np.ndarray) -> dict[str, np.ndarray]:
+        """The request tensors that ask about `blocks` as this model reads them (both half
+        buffers equal to the block for a `halves` model, the block as its own quick image
+        otherwise): warm-up and the stability matrix."""
+        if self.model.needs_halves:
+            return {"even": blocks, "odd": blocks}
+        return {"blocks": blocks, "quick": blocks} if self.model.needs_quick else {"blocks": blocks}
 
     def metadata(self, name: str | None = None) -> ModelMetadata:
         m = self.model.manifest
@@ -127,6 +140,10 @@ class ServedModel:
         try:
             if "features" in tensors:
                 verdict, score = self.model.score_inputs(self._features(tensors), offset)
+            elif self.model.needs_halves:
+                even, odd = self._halves(tensors)
+                params["nonfinite_pixels"] = [a + b for a, b in zip(_nonfinite(even), _nonfinite(odd))]
+                verdict, score = self.model.score_halves(even, odd, exposure=exposure, offset=offset)
             else:
                 blocks, quick = self._blocks(tensors)
                 params["nonfinite_pixels"] = _nonfinite(blocks)
@@ -141,11 +158,28 @@ class ServedModel:
 
     def _features(self, tensors: dict[str, np.ndarray]) -> np.ndarray:
         if len(tensors) > 1:
-            raise ApiError(400, "send either 'features' or 'blocks' (+ 'quick'), not both")
+            images = "'even' and 'odd'" if self.model.needs_halves else "'blocks' (+ 'quick')"
+            raise ApiError(400, f"send either 'features' or {images}, not both")
         X = tensors["features"]
-        if X.ndim != 2 or X.shape[1] != N_FEATURES:
-            raise ApiError(400, f"input 'features' must have shape [N, {N_FEATURES}], got {list(X.shape)}")
+        n = self.model.n_features
+        if X.ndim != 2 or X.shape[1] != n:
+            raise ApiError(400, f"input 'features' must have shape [N, {n}], got {list(X.shape)}")
         return X
+
+    def _halves(self, tensors: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        even, odd = tensors.get("even"), tensors.get("odd")
+        if even is None or odd is None:
+            raise ApiError(400, f"model {self.name!r} reads the half buffers of every block: send "
+                                "'even' and 'odd' (the means of the even and odd passes), FP32 [N, H, W, 3]")
+        if even.ndim != 4 or even.shape[-1] != 3:
+            raise ApiError(400, f"input 'even' must have shape [N, H, W, 3], got {list(even.shape)}")
+        if odd.shape != even.shape:
+            raise ApiError(400, f"inputs 'even' {list(even.shape)} and 'odd' {list(odd.shape)} must have "
+                                "the same shape")
+        if len(even) and min(even.shape[1:3]) < MIN_SIZE:
+            raise ApiError(400, f"blocks must be at least {MIN_SIZE}x{MIN_SIZE} pixels, got "
+                                f"{even.shape[1]}x{even.shape[2]}")
+        return even, odd
 
     def _blocks(self, tensors: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray | None]:
         blocks, quick = tensors.get("blocks"), tensors.get("quick")
@@ -231,5 +265,4 @@ class ModelRegistry:
 def _warm_up(served: ServedModel) -> None:
     """One tiny inference: builds the shared feature base before threads race for it."""
     if served.model.input == "features":
-        block = np.full((1, 32, 32, 3), 0.5, np.float32)
-        served.infer({"blocks": block, "quick": block})
+        served.infer(served.image_inputs(np.full((1, 32, 32, 3), 0.5, np.float32)))

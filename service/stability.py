@@ -44,6 +44,7 @@ def entry_points(model=None) -> dict[str, Entry]:
     from noisefeat import extract_features
     from renderer.criteria import BlockView, FlipCriterion, ModelCriterion, VarianceCriterion
     from service.oip import ApiError
+    from learning.noise_input import halves_input
     from service.registry import ServedModel
 
     m = model or load_model()
@@ -51,7 +52,7 @@ def entry_points(model=None) -> dict[str, Entry]:
 
     def service(blocks: np.ndarray) -> Any:  # sent as is: the protocol's FP32 rule decides
         try:
-            out, _ = served.infer({"blocks": blocks, "quick": blocks} if m.needs_quick else {"blocks": blocks})
+            out, _ = served.infer(served.image_inputs(blocks))
         except ApiError as exc:
             raise ValueError(f"HTTP {exc.status}: {exc}") from None
         return out["score"]
@@ -62,7 +63,11 @@ def entry_points(model=None) -> dict[str, Entry]:
                           half_spp=(8, 8) if halves else None, quick=x) for x in b]
 
     def render_model(blocks: np.ndarray) -> Any:
-        return ModelCriterion(m).decide(list(range(len(blocks))), views(blocks, False))
+        return ModelCriterion(m).decide(list(range(len(blocks))), views(blocks, m.needs_halves))
+
+    def model_decision(blocks: np.ndarray) -> Any:
+        b = np.asarray(blocks)
+        return (m.score_halves(b, b * 0.9) if m.needs_halves else m.score_blocks(b, b))[1]
 
     def render_flip(blocks: np.ndarray) -> Any:
         return FlipCriterion(0.02).decide(list(range(len(blocks))), views(blocks, True))
@@ -73,7 +78,8 @@ def entry_points(model=None) -> dict[str, Entry]:
     raw_svm, transfer = small_models()
     return {
         "extract_features": extract_features,
-        f"model decision ({m.name})": lambda b: m.score_blocks(b, b)[1],
+        f"model decision ({m.name})": model_decision,
+        "halves input": lambda b: halves_input(b, np.asarray(b) * 0.9),
         "model decision (svm, raw L* of 16x16 blocks)": lambda b: raw_svm.score_blocks(b)[1],
         f"model decision ({transfer.report_label()})": transfer.decision_function,
         "service infer": service,

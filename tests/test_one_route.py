@@ -15,7 +15,8 @@ import pytest
 from learning import read_stack, write_stack
 from learning.bundle import load_model, save_model
 from learning.evaluate import evaluate_model, stops_by_scene
-from learning.halves import flip_offset, stack_flip_errors
+from learning.accumulator import BlockAccumulator
+from learning.halves import flip_offset, recover_passes, stack_flip_errors
 from learning.metrics import stop_thresholds
 from learning.stoprule import StopRule, decide_active
 from learning.table import load_table, stack_flat
@@ -52,13 +53,15 @@ def data(tmp_path_factory):
     return root
 
 
-@pytest.fixture(scope="module")
-def model(data, tmp_path_factory):
-    table = load_table(data, progress=False, quick="none")
+@pytest.fixture(scope="module", params=["none", "halves"])
+def model(data, tmp_path_factory, request):
+    """A feature model on the current block alone (the paper's input with quick 'none') and
+    one on the half buffers (`halves`): both must decide the same way on every route."""
+    table = load_table(data, progress=False, quick=request.param)
     est, summary = train_model("dsvm", str(data), table=table, test_scenes=["cornell"], cv=False,
-                               quick="none", progress=False)
+                               quick=request.param, progress=False)
     path = save_model(est, tmp_path_factory.mktemp("m") / "m", kind="dsvm", input="features",
-                      training=summary, extra={"quick": "none"})
+                      training=summary, extra={"quick": request.param})
     return load_model(path)
 
 
@@ -92,7 +95,7 @@ def stop_spp(V, spp) -> list[int]:
 
 
 def test_model_stops_agree_on_every_route(data, model, server, monkeypatch, tmp_path):
-    table = load_table(data, progress=False, quick="none", scenes=["cornell"])
+    table = load_table(data, progress=False, quick=model.quick, scenes=["cornell"])
     stack = table.stacks["cornell"]
     assert table.flat.reshape(stack.n_levels, -1)[:, FLAT_BLOCK].all()
     off = offset_that_splits(model, table)
@@ -111,10 +114,20 @@ def test_model_stops_agree_on_every_route(data, model, server, monkeypatch, tmp_
     # 4. the HTTP service, asked about every active block (flat ones too) as a Triton client
     #    would, the stops held on the client side
     remote = RemoteModel(server.url, model="m", token=server.token)
+    assert remote.needs_halves == model.needs_halves
     active, stops = np.ones(stack.n_blocks, bool), [-1] * stack.n_blocks
-    for k, s in enumerate(stack.spp):
-        means = stack.blocks(k)
-        row = decide_active(active, s, MIN_SPP, lambda ids: remote.score_blocks(means[ids], offset=off)[0])
+    acc = BlockAccumulator(stack.grid, stack.block)
+    for k, _, n, pass_img in recover_passes(stack):
+        s, means = stack.spp[k], stack.blocks(k)
+        acc.add_many(list(range(stack.n_blocks)), stack.split(pass_img), n)
+
+        def ask(ids: list[int]) -> np.ndarray:
+            if not model.needs_halves:
+                return remote.score_blocks(means[ids], offset=off)[0]
+            halves = [acc.half_buffer(b) for b in ids]
+            return remote.score_halves(np.stack([h[0] for h in halves]).astype(np.float32),
+                                       np.stack([h[1] for h in halves]).astype(np.float32), offset=off)[0]
+        row = decide_active(active, s, MIN_SPP, ask)
         for b in np.flatnonzero(row > 0):
             stops[b] = s
     assert stops == truth
@@ -131,7 +144,7 @@ def test_model_stops_agree_on_every_route(data, model, server, monkeypatch, tmp_
 @pytest.mark.slow
 def test_the_evaluate_command_reports_the_same_stops(data, model):
     """`noisestop evaluate --criterion model --offset X` (the command itself) against the rule."""
-    table = load_table(data, progress=False, quick="none", scenes=["cornell"])
+    table = load_table(data, progress=False, quick=model.quick, scenes=["cornell"])
     off = offset_that_splits(model, table)
     out = subprocess.run([sys.executable, "-m", "service.cli", "evaluate", "--data", str(data), "--model",
                           str(model.path), "--scenes", "cornell", "--offset", str(off), "--min-spp",

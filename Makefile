@@ -46,8 +46,8 @@ test-fast: setup
 # Time: BENCHMARKS.md "make bench".
 bench: dataset heldout
 	$(NOISESTOP) bench features crop render service stability --update BENCHMARKS.md
-	$(NOISESTOP) bench dataset models criteria tradeoff ablation step knobs --data $(DATA) \
-		--heldout $(HELDOUT) --quick albedo,none --update BENCHMARKS.md
+	$(NOISESTOP) bench dataset inputs models criteria tradeoff ablation step knobs --data $(DATA) \
+		--heldout $(HELDOUT) --input halves,albedo --update BENCHMARKS.md
 
 # The training dataset (README "Datasets"): PROCEDURAL seeded procedural scenes
 # (renderer/procedural.py) plus the 14 built-in training scenes, each a 64x64 frame of one
@@ -75,11 +75,11 @@ heldout: setup
 	$(NOISESTOP) dataset check $(HELDOUT)
 
 # What ships to decide stops: the bundled model (learning/bundled: DSVM_AS on every scene of
-# the default dataset, quick image 'none', decision offset calibrated on leave-one-scene-out
-# scores for <= 5 % early stops) and flip's c (learning/flip.json: calibrated on the same
-# training scenes to the same target). Held-out figures: `make bench`.
+# the training dataset, input 'halves' in its measured composition, decision offset
+# calibrated on out-of-fold scores for <= 5 % early stops) and flip's c (learning/flip.json:
+# calibrated on the same training scenes to the same target). Held-out figures: `make bench`.
 model: setup
-	$(NOISESTOP) train --data $(DATA) --model dsvm_as --quick none --out learning/bundled \
+	$(NOISESTOP) train --data $(DATA) --model dsvm_as --input halves --out learning/bundled \
 		$(if $(wildcard $(HELDOUT)/*/meta.json),--heldout $(HELDOUT),--test-scenes '')
 	$(NOISESTOP) calibrate --criterion flip --data $(DATA)
 

@@ -13,6 +13,9 @@ estimates of one image, so their difference holds noise and no content. From the
 * `r`: the ratios n / c, as log10(n) - log10(c): noise against the content that masks it;
 * `l`: the block's mean L* of C, / 100: how bright the block is (noise of one L* amplitude
   is less visible on bright surfaces in FLIP's model);
+* `p`: log10 of `noisefeat.perceptual.pooled_colour_error(A, B)`, FLIP's colour pipeline
+  in separable filters: what the std features miss (chroma noise, and FLIP's concave
+  pooling, which weighs a few fireflies less than spread grain), at a fraction of its cost;
 * `f`: log10 of the half-buffer FLIP value e (`learning.halves.halves_flip`), the
   `flip` criterion's score: FLIP's perceptual model of the noise, at FLIP's cost.
 
@@ -34,16 +37,21 @@ import torch
 from noisefeat import FeatureBase, default_base
 from noisefeat.base import N_FEATURES
 from noisefeat.display import lightness
+from noisefeat.perceptual import pooled_colour_error
 
 #: std-pooling columns of the 26 features (FeatureBase order: 13 means, then 13 stds)
 STD_COLUMNS = np.arange(N_FEATURES // 2, N_FEATURES)
-#: columns of `halves_raw`: N's 26 features, C's 26, C's mean L*
-RAW_COLUMNS = 2 * N_FEATURES + 1
+#: columns of `halves_raw`: N's 26 features, C's 26, C's mean L*, the pooled colour error
+RAW_COLUMNS = 2 * N_FEATURES + 2
+LUMINANCE, PERCEPTUAL = RAW_COLUMNS - 2, RAW_COLUMNS - 1
+#: bumped whenever `halves_raw` computes anything differently: stored stacks' cached
+#: copies of older versions are then recomputed, never read
+RAW_VERSION = 2
 #: floors of the logs: L* spreads below 1e-3 are far below one 8-bit level; FLIP below 1e-4
 FEATURE_FLOOR, FLIP_FLOOR = 1e-3, 1e-4
-PARTS = {"f": 1, "n": len(STD_COLUMNS), "c": len(STD_COLUMNS), "r": len(STD_COLUMNS), "l": 1}
+PARTS = {"n": len(STD_COLUMNS), "c": len(STD_COLUMNS), "r": len(STD_COLUMNS), "l": 1, "p": 1, "f": 1}
 #: candidate compositions (parts joined by '+'), measured by `noisestop bench inputs`
-COMPOSITIONS = ("n", "n+c", "n+r", "n+c+l", "f", "f+n+c", "f+n+c+l")
+COMPOSITIONS = ("n", "n+c", "n+r", "n+c+l", "p", "p+l", "p+n+l", "p+c+l", "p+n+c+l", "f", "f+p+n+c+l")
 #: the composition of the `halves` input
 HALVES = "f"
 
@@ -78,9 +86,9 @@ def halves_mean(even: np.ndarray, odd: np.ndarray) -> np.ndarray:
 
 def halves_raw(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
                base: FeatureBase | None = None) -> np.ndarray:
-    """float32 [N, 53]: the 26 features of the noise image N, the 26 of the current image
-    C, and C's mean L*. Non-finite pixels follow the display rule (NaN/-Inf black, +Inf
-    white)."""
+    """float32 [N, 54]: the 26 features of the noise image N, the 26 of the current image
+    C, C's mean L* and the pooled colour error of A against B. Non-finite pixels follow
+    the display rule (NaN/-Inf black, +Inf white)."""
     a, b = _check_halves(even, odd)
     if not np.isfinite(exposure):
         raise ValueError(f"exposure must be finite, got {exposure}")
@@ -92,7 +100,8 @@ def halves_raw(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
         lc = lightness(torch.as_tensor(halves_mean(a, b)), exposure)
         n = len(a)
         both = base(torch.cat([la - lb, lc])[:, None])        # one batched call for N and C
-        out = torch.cat([both[:n], both[n:], lc.mean(dim=(1, 2))[:, None]], dim=1)
+        out = torch.cat([both[:n], both[n:], lc.mean(dim=(1, 2))[:, None],
+                         pooled_colour_error(a, b, exposure)[:, None]], dim=1)
     return out.numpy().astype(np.float32)
 
 
@@ -113,9 +122,14 @@ def compose(raw: np.ndarray | None, flip: np.ndarray | None, composition: str = 
         raw = np.asarray(raw, np.float64)
         if raw.ndim != 2 or raw.shape[1] != RAW_COLUMNS:
             raise ValueError(f"expected halves features [N, {RAW_COLUMNS}], got shape {raw.shape}")
-        n = np.log10(np.maximum(raw[:, STD_COLUMNS], FEATURE_FLOOR))
-        c = np.log10(np.maximum(raw[:, N_FEATURES + STD_COLUMNS], FEATURE_FLOOR))
-        cols.append({"n": n, "c": c, "r": n - c, "l": raw[:, -1:] / 100.0}[p])
+        if p == "l":
+            cols.append(raw[:, LUMINANCE:LUMINANCE + 1] / 100.0)
+        elif p == "p":
+            cols.append(np.log10(np.clip(raw[:, PERCEPTUAL:PERCEPTUAL + 1], FLIP_FLOOR, 1.0)))
+        else:
+            n = np.log10(np.maximum(raw[:, STD_COLUMNS], FEATURE_FLOOR))
+            c = np.log10(np.maximum(raw[:, N_FEATURES + STD_COLUMNS], FEATURE_FLOOR))
+            cols.append({"n": n, "c": c, "r": n - c}[p])
     return np.concatenate(cols, axis=1).astype(np.float32)
 
 
@@ -156,5 +170,5 @@ def layout(composition: str = HALVES) -> Sequence[str]:
              "n": [f"log10 std noise layer {i + 1}" for i in range(len(STD_COLUMNS))],
              "c": [f"log10 std current layer {i + 1}" for i in range(len(STD_COLUMNS))],
              "r": [f"log10 std ratio noise / current layer {i + 1}" for i in range(len(STD_COLUMNS))],
-             "l": ["mean L* of current / 100"]}
+             "l": ["mean L* of current / 100"], "p": ["log10 pooled colour error(A, B)"]}
     return [n for p in parts_of(composition) for n in names[p]]

@@ -20,7 +20,7 @@ from tqdm import tqdm
 from noisefeat import FeatureBase, default_base, extract_features
 from noisefeat.display import lightness
 
-from .noise_input import HALVES, RAW_COLUMNS, compose, halves_raw, needs, noise_lightness
+from .noise_input import HALVES, RAW_COLUMNS, RAW_VERSION, compose, halves_raw, needs, noise_lightness
 from .stack import Stack, list_stacks, read_stack
 
 log = logging.getLogger(__name__)
@@ -178,9 +178,9 @@ def _per_level_halves(stack: Stack, name: str, width: int, fn: Callable[[np.ndar
 
 def stack_halves_raw(stack: Stack, base: FeatureBase | None = None, exposure: float = 0.0,
                      progress: bool = False) -> np.ndarray:
-    """[K, n_blocks, 53] `noise_input.halves_raw` of every (level, block) (`_per_level_halves`)."""
+    """[K, n_blocks, 54] `noise_input.halves_raw` of every (level, block) (`_per_level_halves`)."""
     base = base or default_base()
-    return _per_level_halves(stack, f"halves-{base.hash}-e{exposure:g}", RAW_COLUMNS,
+    return _per_level_halves(stack, f"halves-v{RAW_VERSION}-{base.hash}-e{exposure:g}", RAW_COLUMNS,
                              lambda a, b: halves_raw(a, b, exposure, base), progress)
 
 

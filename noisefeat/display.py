@@ -74,3 +74,33 @@ def lightness(rgb: torch.Tensor, exposure: float = 0.0) -> torch.Tensor:
     small = y <= _LAB_EPS
     f = y.pow_(1.0 / 3.0) if not small.any() else torch.where(small, y * _LAB_SLOPE + 4.0 / 29.0, y.pow(1.0 / 3.0))
     return f.mul_(116.0).sub_(16.0)
+
+
+#: linear sRGB (D65) -> CIE XYZ, rows X, Y, Z (Y: the LUMA row, as `lightness`); D65 white
+_RGB_TO_XYZ = ((0.4124564, 0.3575761, 0.1804375), LUMA, (0.0193339, 0.1191920, 0.9503041))
+_WHITE = (0.95047, 1.0, 1.08883)
+
+
+def relative_xyz(rgb: torch.Tensor | np.ndarray, exposure: float = 0.0) -> torch.Tensor:
+    """CIE XYZ / white point of the display-referred image, [..., 3] -> [..., 3]."""
+    x = clipped_linear(torch.as_tensor(rgb), exposure)
+    return x @ (torch.tensor(_RGB_TO_XYZ, dtype=torch.float32).T / torch.tensor(_WHITE, dtype=torch.float32))
+
+
+def lab_f(t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """CIELab's f(t) of relative XYZ and its derivative f'(t) (one cube root for both)."""
+    small = t <= _LAB_EPS
+    f = torch.where(small, t * _LAB_SLOPE + 4.0 / 29.0, t.clamp_min(_LAB_EPS).pow(1.0 / 3.0))
+    return f, torch.where(small, torch.full_like(t, _LAB_SLOPE), f / (3.0 * t.clamp_min(_LAB_EPS)))
+
+
+def lab_from_f(f: torch.Tensor) -> torch.Tensor:
+    """L*a*b* from f of relative X, Y, Z (the last axis)."""
+    return torch.stack([116.0 * f[..., 1] - 16.0, 500.0 * (f[..., 0] - f[..., 1]),
+                        200.0 * (f[..., 1] - f[..., 2])], dim=-1)
+
+
+def lab(rgb: torch.Tensor | np.ndarray, exposure: float = 0.0) -> torch.Tensor:
+    """CIE L*a*b* of the display-referred image, [..., H, W, 3] -> [..., H, W, 3] (L* as
+    `lightness`, which uses the same luminance row)."""
+    return lab_from_f(lab_f(relative_xyz(rgb, exposure))[0])

@@ -306,8 +306,10 @@ class ModelCriterion(Criterion):
     For a local feature model the model input features(quick) - features(current) is
     computed here, in two timed steps (features, then the SVM), with the quick blocks'
     features cached per (block id, content hash): the quick image never changes during a
-    render, so its features are computed once per block, not once per pass. Any other
-    scorer (a remote server, a raw-input model) is called through ``score_blocks``.
+    render, so its features are computed once per block, not once per pass. A `halves`
+    model reads each block's two half buffers instead (`Model.inputs_from_halves`; remote:
+    ``score_halves``), from the second pass on. Any other scorer (a remote server, a
+    raw-input model) is called through ``score_blocks``.
     """
 
     name = "model"

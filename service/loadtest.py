@@ -122,24 +122,45 @@ class LocalServer:
         return self._log.read().decode(errors="replace")
 
 
-def make_request(blocks: int = 16, size: int = 128, binary: bool = False,
-                 seed: int = 0) -> tuple[bytes, dict[str, str]]:
-    """(body, headers) of one infer request for `blocks` random blocks and their quick images."""
+#: the two image inputs of a request, by what the served model reads
+IMAGE_INPUTS = {"blocks": ("blocks", "quick"), "halves": ("even", "odd")}
+
+
+def make_request(blocks: int = 16, size: int = 128, binary: bool = False, seed: int = 0,
+                 inputs: str = "blocks") -> tuple[bytes, dict[str, str]]:
+    """(body, headers) of one infer request for `blocks` random blocks and their quick images
+    (`inputs` 'blocks'), or their two half buffers (`inputs` 'halves')."""
     rng = np.random.default_rng(seed)
     current = rng.random((blocks, size, size, 3), dtype=np.float32)
-    quick = (0.5 * current + 0.25).astype(np.float32)
+    other = (0.5 * current + 0.25).astype(np.float32) if inputs == "blocks" else \
+        np.clip(current + rng.normal(0, 0.02, current.shape), 0, None).astype(np.float32)
+    named = tuple(zip(IMAGE_INPUTS[inputs], (current, other)))
     shape = list(current.shape)
     outputs = [{"name": n, "parameters": {"binary_data": binary}} for n in ("verdict", "score")]
     if not binary:
-        inputs = [{"name": n, "shape": shape, "datatype": "FP32", "data": a.ravel().tolist()}
-                  for n, a in (("blocks", current), ("quick", quick))]
-        return json.dumps({"inputs": inputs, "outputs": outputs}).encode(), \
+        tensors = [{"name": n, "shape": shape, "datatype": "FP32", "data": a.ravel().tolist()} for n, a in named]
+        return json.dumps({"inputs": tensors, "outputs": outputs}).encode(), \
             {"Content-Type": "application/json"}
-    inputs = [{"name": n, "shape": shape, "datatype": "FP32", "parameters": {"binary_data_size": a.nbytes}}
-              for n, a in (("blocks", current), ("quick", quick))]
-    header = json.dumps({"inputs": inputs, "outputs": outputs}).encode()
-    return header + current.tobytes() + quick.tobytes(), \
+    tensors = [{"name": n, "shape": shape, "datatype": "FP32", "parameters": {"binary_data_size": a.nbytes}}
+               for n, a in named]
+    header = json.dumps({"inputs": tensors, "outputs": outputs}).encode()
+    return header + current.tobytes() + other.tobytes(), \
         {"Content-Type": "application/octet-stream", HEADER_LENGTH: str(len(header))}
+
+
+def served_inputs(host: str, port: int, model: str, token: str | None, timeout: float) -> str:
+    """'halves' if the served model reads half buffers (its metadata lists 'even'), else 'blocks'."""
+    conn = http.client.HTTPConnection(host, port, timeout=timeout)
+    try:
+        conn.request("GET", f"/v2/models/{model}", headers={"Authorization": f"Bearer {token}"} if token else {})
+        resp = conn.getresponse()
+        body = resp.read()
+        if resp.status != 200:
+            raise ValueError(f"model {model!r} metadata: HTTP {resp.status}: {body[:200]!r}")
+        names = {t.get("name") for t in json.loads(body).get("inputs", [])}
+    finally:
+        conn.close()
+    return "halves" if "even" in names else "blocks"
 
 
 def run_load(url: str, *, model: str = "default", clients: int = 4, requests_per_client: int = 5,
@@ -159,7 +180,8 @@ def run_load(url: str, *, model: str = "default", clients: int = 4, requests_per
             and 0 < max_seconds <= MAX_SECONDS):
         raise ValueError(f"clients must be 1..{MAX_CLIENTS}, requests_per_client 1..{MAX_REQUESTS}, "
                          f"max_seconds (0, {MAX_SECONDS}]")
-    body, headers = make_request(blocks, size, binary)
+    body, headers = make_request(blocks, size, binary,
+                                 inputs=served_inputs(host, port, model, token, timeout))
     if token:
         headers["Authorization"] = f"Bearer {token}"
     path = f"/v2/models/{model}/infer"

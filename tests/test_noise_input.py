@@ -26,7 +26,7 @@ def test_layout_and_shapes(composition):
     assert x.shape == (3, n_inputs(composition)) == (3, len(layout(composition))) and x.dtype == np.float32
     empty = np.zeros((0, H, W, 3), np.float32)
     assert halves_input(empty, empty, composition=composition).shape == (0, n_inputs(composition))
-    assert halves_raw(a, b).shape == (3, 2 * N_FEATURES + 1)
+    assert halves_raw(a, b).shape == (3, 2 * N_FEATURES + 2)
     assert n_inputs(HALVES) >= 1
 
 

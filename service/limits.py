@@ -3,8 +3,10 @@
 `BodyLimitMiddleware` is plain ASGI so that it guards every route, including those whose
 body FastAPI would read itself: a declared Content-Length over the limit is answered 413
 at once, and the bytes actually received are counted too (chunked uploads declare no
-length, and a client may lie about it). The batch limit (items per request) is checked
-on the declared tensor shapes, before any tensor data is converted (oip.decode_tensors).
+length, and a client may lie about it). The batch limit (items per request), the largest
+block side and the pixel budget of a request (noisefeat.bounds: a 3.8 MB request of
+[1, 8, 40000, 3] once took the server to 23.7 GB) are checked on the declared tensor
+shapes, before any tensor data is converted (`Limits.check_shapes`, oip.decode_tensors).
 """
 from __future__ import annotations
 
@@ -14,10 +16,16 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from .oip import ApiError
+import anyio
+
+from noisefeat.bounds import DEFAULT_MAX_BLOCK_SIDE, DEFAULT_MAX_PIXELS, ENV as BOUNDS_ENV, MIN_SIDE
+
+from .oip import ApiError, RequestInput
 
 ENV_MAX_BODY = "NOISESTOP_MAX_BODY_BYTES"
 ENV_MAX_BATCH = "NOISESTOP_MAX_BATCH"
+ENV_MAX_BLOCK_SIDE = BOUNDS_ENV["max_block_side"]
+ENV_MAX_PIXELS = BOUNDS_ENV["max_pixels"]
 DEFAULT_MAX_BODY = 64 * 1024 * 1024   # 16 blocks of 128x128 + quick as JSON take ~30 MB
 DEFAULT_MAX_BATCH = 1024
 
@@ -26,19 +34,42 @@ DEFAULT_MAX_BATCH = 1024
 class Limits:
     max_body_bytes: int = DEFAULT_MAX_BODY
     max_batch: int = DEFAULT_MAX_BATCH
+    max_block_side: int = DEFAULT_MAX_BLOCK_SIDE
+    max_pixels: int = DEFAULT_MAX_PIXELS
 
     def __post_init__(self) -> None:
-        for name in ("max_body_bytes", "max_batch"):
+        for name in ("max_body_bytes", "max_batch", "max_block_side", "max_pixels"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a whole number >= 1, got {value!r}")
+            least = MIN_SIDE if name in ("max_block_side", "max_pixels") else 1
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                raise ValueError(f"{name} must be a whole number >= {least}, got {value!r}")
 
     @classmethod
     def from_env(cls, max_body_bytes: int | None = None, max_batch: int | None = None,
-                 environ: Mapping[str, str] = os.environ) -> "Limits":
+                 environ: Mapping[str, str] = os.environ, *, max_block_side: int | None = None,
+                 max_pixels: int | None = None) -> "Limits":
         """Explicit values win over the environment, which wins over the defaults."""
         return cls(max_body_bytes=max_body_bytes or _env_int(environ, ENV_MAX_BODY, DEFAULT_MAX_BODY),
-                   max_batch=max_batch or _env_int(environ, ENV_MAX_BATCH, DEFAULT_MAX_BATCH))
+                   max_batch=max_batch or _env_int(environ, ENV_MAX_BATCH, DEFAULT_MAX_BATCH),
+                   max_block_side=max_block_side or _env_int(environ, ENV_MAX_BLOCK_SIDE,
+                                                             DEFAULT_MAX_BLOCK_SIDE),
+                   max_pixels=max_pixels or _env_int(environ, ENV_MAX_PIXELS, DEFAULT_MAX_PIXELS))
+
+    def check_shapes(self, inputs: list[RequestInput]) -> None:
+        """413 for an image tensor [N, H, W, C] whose block side or pixel count (N x H x W)
+        is over the limit, judged on its declared shape alone."""
+        for t in inputs:
+            if len(t.shape) != 4:
+                continue
+            n, h, w = t.shape[:3]
+            if max(h, w) > self.max_block_side:
+                raise ApiError(413, f"input {t.name!r}: blocks of {h}x{w} pixels exceed the largest block "
+                                    f"side of this server, max_block_side = {self.max_block_side} "
+                                    f"(serve --max-block-side, {ENV_MAX_BLOCK_SIDE})")
+            if n * h * w > self.max_pixels:
+                raise ApiError(413, f"input {t.name!r}: {n} blocks of {h}x{w} are {n * h * w} pixels, over "
+                                    f"the pixel budget of a request, max_pixels = {self.max_pixels} "
+                                    f"(serve --max-pixels, {ENV_MAX_PIXELS}); send fewer blocks per request")
 
 
 def _env_int(environ: Mapping[str, str], key: str, default: int) -> int:
@@ -60,11 +91,14 @@ def too_large(limit: int) -> ApiError:
 
 
 class BodyLimitMiddleware:
-    """413 for bodies over `max_bytes`, by declared length first, then by bytes received."""
+    """413 for bodies over `max_bytes`, by declared length first, then by bytes received;
+    408 when a body stops arriving for `body_timeout` seconds (a slow upload otherwise
+    holds a request slot for as long as the client likes)."""
 
-    def __init__(self, app: Any, max_bytes: int) -> None:
+    def __init__(self, app: Any, max_bytes: int, body_timeout: float | None = None) -> None:
         self.app = app
         self.max_bytes = max_bytes
+        self.body_timeout = body_timeout
 
     async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
         if scope["type"] != "http":
@@ -83,12 +117,22 @@ class BodyLimitMiddleware:
                 await _send_error(send, too_large(self.max_bytes))
                 return
         received = 0
+        body_done = False
 
         async def counting_receive() -> dict:
-            nonlocal received
-            message = await receive()
+            nonlocal received, body_done
+            if body_done or self.body_timeout is None:
+                message = await receive()
+            else:
+                try:
+                    with anyio.fail_after(self.body_timeout):
+                        message = await receive()
+                except TimeoutError:
+                    raise ApiError(408, f"no request body bytes for {self.body_timeout:g} s "
+                                        "(serve --body-timeout)", headers={"Connection": "close"}) from None
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
+                body_done = not message.get("more_body", False)
                 if received > self.max_bytes:
                     raise too_large(self.max_bytes)  # rendered by the app's ApiError handler
             return message

@@ -98,12 +98,15 @@ def _integral(value: Any) -> Any:
     return int(value) if isinstance(value, float) and value.is_integer() else value
 
 
-Dim = Annotated[int, BeforeValidator(_integral), Field(ge=0)]
+#: a tensor dimension; numpy's own limits (64 axes, sizes below 2**63) turned into a 400
+MAX_DIM = 2**31 - 1
+MAX_RANK = 8
+Dim = Annotated[int, BeforeValidator(_integral), Field(ge=0, le=MAX_DIM)]
 
 
 class RequestInput(_Message):
     name: str
-    shape: list[Dim]
+    shape: list[Dim] = Field(max_length=MAX_RANK)
     datatype: Datatype
     parameters: Parameters | None = None
     data: list[Any] | None = Field(
@@ -159,6 +162,11 @@ def parse_request(header: bytes) -> InferenceRequest:
         raise ApiError(400, "invalid inference request: " + _summarise(exc)) from None
 
 
+def may_hold_bools(header: bytes) -> bool:
+    """False when the JSON text has no true/false literal anywhere (then no scan is needed)."""
+    return b"true" in header or b"false" in header
+
+
 def _summarise(exc: ValidationError, limit: int = 3) -> str:
     errs = exc.errors(include_url=False, include_input=False)
     parts = [f"{'.'.join(str(p) for p in e['loc']) or 'body'}: {e['msg']}" for e in errs[:limit]]
@@ -178,8 +186,29 @@ def param(params: Parameters | None, key: str, kinds: type | tuple[type, ...], d
     return value
 
 
-def decode_tensors(req: InferenceRequest, binary: bytes, max_batch: int) -> dict[str, np.ndarray]:
-    """Input tensors by name, shaped as declared; checks the batch limit before any copy."""
+def number_param(params: Parameters | None, key: str, default: float | None, low: float,
+                 high: float) -> float | None:
+    """A request parameter that must be a number in [low, high] (JSON true is not a number).
+
+    Compared before any conversion to float: a 400-digit integer is out of range, not an
+    OverflowError (issue 14), and NaN or Inf is never in range."""
+    value = (params or {}).get(key, default)
+    if value is default:
+        return value
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ApiError(400, f"parameter {key!r} must be a number in [{low:g}, {high:g}], got {value!r}")
+    if not low <= value <= high:   # int vs float comparison is exact in Python; NaN fails it
+        shown = value if isinstance(value, float) or abs(value) < 10**30 else f"a {len(str(abs(value)))}-digit number"
+        raise ApiError(400, f"parameter {key!r} must be a number in [{low:g}, {high:g}], got {shown}")
+    return float(value)
+
+
+def decode_tensors(req: InferenceRequest, binary: bytes, max_batch: int,
+                   scan_bools: bool = True) -> dict[str, np.ndarray]:
+    """Input tensors by name, shaped as declared; checks the batch limit before any copy.
+
+    `scan_bools=False` skips looking for JSON true/false among numbers (callers that know
+    the JSON text holds no such literal: `may_hold_bools`)."""
     names = [t.name for t in req.inputs]
     if len(set(names)) != len(names):
         raise ApiError(400, f"input names must be unique, got {names}")
@@ -209,7 +238,7 @@ def decode_tensors(req: InferenceRequest, binary: bytes, max_batch: int) -> dict
         elif t.data is None:
             raise ApiError(400, f"input {t.name!r} has neither data nor binary_data_size")
         else:
-            flat = _json_values(t.name, t.data, dtype)
+            flat = _json_values(t.name, t.data, dtype, scan_bools)
             if flat.size != count:
                 raise ApiError(400, f"input {t.name!r}: {flat.size} values for shape {t.shape} "
                                     f"({count} expected)")
@@ -219,19 +248,37 @@ def decode_tensors(req: InferenceRequest, binary: bytes, max_batch: int) -> dict
     return arrays
 
 
-def _json_values(name: str, data: list[Any], dtype: np.dtype) -> np.ndarray:
+def _json_values(name: str, data: list[Any], dtype: np.dtype, scan_bools: bool = True) -> np.ndarray:
     try:
         values = np.asarray(data)
     except (ValueError, TypeError, RecursionError):
         raise ApiError(400, f"input {name!r}: data is ragged or not all numbers") from None
-    kinds = "b" if dtype.kind == "b" else "biuf"
-    if values.size and values.dtype.kind not in kinds:
-        raise ApiError(400, f"input {name!r}: data must be numbers for {dtype.name}, got "
-                            f"{values.dtype.kind!r} values")
+    if values.size:
+        if dtype.kind == "b":
+            if values.dtype.kind != "b":
+                raise ApiError(400, f"input {name!r}: data must be true/false for BOOL")
+        elif values.dtype.kind not in "iuf":
+            got = "true/false" if values.dtype.kind == "b" else f"{values.dtype.kind!r}"
+            raise ApiError(400, f"input {name!r}: data must be numbers for {dtype.name}, got {got} values")
+        elif scan_bools and _holds_bool(data):   # numpy would read true as 1 (issue 14)
+            raise ApiError(400, f"input {name!r}: data must be numbers for {dtype.name}, got true/false "
+                                "among them")
     if values.size and dtype.kind in "iu" and values.dtype.kind == "f":
         raise ApiError(400, f"input {name!r}: integer datatype but fractional data")
     with np.errstate(over="ignore"):  # 1e300 as FP32 is +Inf, which the display rule reads
         return values.astype(dtype, copy=False).reshape(-1)
+
+
+def _holds_bool(data: list[Any]) -> bool:
+    """Whether nested lists hold a JSON true/false, which numpy would silently read as 1/0."""
+    stack = [data]
+    while stack:
+        items = stack.pop()
+        if items and isinstance(items[0], list):
+            stack.extend(items)
+        elif bool in set(map(type, items)):
+            return True
+    return False
 
 
 def encode_response(resp: InferenceResponse, tensors: dict[str, np.ndarray],

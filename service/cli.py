@@ -80,14 +80,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (UsageError, ValueError, OSError, RecursionError, MemoryError) as exc:
         if debug:
             raise
+        _close_progress_bars()
         print(f"noisestop {args.command}: error: {one_line(exc)}", file=sys.stderr)
         return 2
     except Exception as exc:   # a bug: still one line, with what it was
         if debug:
             raise
+        _close_progress_bars()
         print(f"noisestop {args.command}: error: unexpected {type(exc).__name__}: {one_line(exc)} "
               "(a bug; NOISESTOP_DEBUG=1 shows where)", file=sys.stderr)
         return 2
+
+
+def _close_progress_bars() -> None:
+    """A bar interrupted by the error would share its line; closed, it clears itself."""
+    tqdm = sys.modules.get("tqdm")
+    for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", ()) or ()):
+        try:
+            bar.close()
+        except Exception:   # a bar in a bad state must not hide the error line
+            pass
 
 
 def one_line(exc: BaseException, limit: int = 2000) -> str:

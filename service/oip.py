@@ -192,11 +192,11 @@ def number_param(params: Parameters | None, key: str, default: float | None, low
 
     Compared before any conversion to float: a 400-digit integer is out of range, not an
     OverflowError (issue 14), and NaN or Inf is never in range."""
-    value = (params or {}).get(key, default)
-    if value is default:
-        return value
+    value = (params or {}).get(key)
+    if value is None:               # absent or null: the default
+        return default
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ApiError(400, f"parameter {key!r} must be a number in [{low:g}, {high:g}], got {value!r}")
+        raise ApiError(400, f"parameter {key!r} must be a number in [{low:g}, {high:g}], got {str(value)[:80]!r}")
     if not low <= value <= high:   # int vs float comparison is exact in Python; NaN fails it
         shown = value if isinstance(value, float) or abs(value) < 10**30 else f"a {len(str(abs(value)))}-digit number"
         raise ApiError(400, f"parameter {key!r} must be a number in [{low:g}, {high:g}], got {shown}")

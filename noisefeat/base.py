@@ -20,6 +20,7 @@ model input. `layer_outputs` is the plain spatial route, kept for training and t
 """
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
@@ -87,7 +88,11 @@ class FeatureBase(nn.Module):
 
     def transfer(self, h: int, w: int) -> torch.Tensor:
         """Cumulative frequency responses [12, h, w//2+1] of layers 1..12 on an h x w block."""
-        responses, acc = [], None
+        return torch.stack(list(self._responses(h, w)))
+
+    def _responses(self, h: int, w: int) -> Iterator[torch.Tensor]:
+        """The cumulative responses of `transfer`, one layer at a time (bounded memory)."""
+        acc = None
         for conv in self.convs:
             k = conv.weight[0, 0]
             r = k.shape[-1] // 2
@@ -97,8 +102,7 @@ class FeatureBase(nn.Module):
             # conv2d is a cross-correlation: its transfer function is the conjugate FFT.
             resp = torch.conj(torch.fft.rfft2(emb))
             acc = resp if acc is None else acc * resp
-            responses.append(acc)
-        return torch.stack(responses)
+            yield acc
 
     def _operators(self, h: int, w: int) -> dict[str, torch.Tensor]:
         """Everything forward needs that depends only on the block size and the weights.
@@ -122,16 +126,19 @@ class FeatureBase(nn.Module):
     def _build_operators(self, h: int, w: int) -> dict[str, torch.Tensor]:
         """Only what forward reads is kept (~40 bytes a pixel of the block): the gain of
         every layer, the twelfth layer's response and the wavelet layer's operators."""
-        resp = self.transfer(h, w)
-        ops = {"resp12": resp[-1].clone(),
-               "gain": ((1.0 - resp).abs() ** 2 * column_weights(w, resp.shape[-1]))
-               .reshape(len(self.convs), -1).T.contiguous(),
-               "dc": resp[:, 0, 0].real.clone()}
+        col_w = column_weights(w, w // 2 + 1)
+        gains, dcs, acc = [], [], None
+        for acc in self._responses(h, w):        # layer by layer: ~60 bytes a pixel at most
+            gains.append(((1.0 - acc).abs() ** 2 * col_w).reshape(-1))
+            dcs.append(acc[0, 0].real)
+        assert acc is not None
+        ops = {"resp12": acc, "gain": torch.stack(gains, dim=1), "dc": torch.stack(dcs)}
+        del gains
         if h % 2 == 0 and w % 2 == 0:
             analysis, synthesis = spectral_operators(self.wavelet, h, w)
-            ops["analysis12"] = analysis * resp[-1]
+            ops["analysis12"] = analysis * acc
             ops["synthesis"] = synthesis
-            ops["col_w"] = column_weights(w, resp.shape[-1])
+            ops["col_w"] = col_w
             ops["mirror"] = mirror_index(h, w)
         return ops
 

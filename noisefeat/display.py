@@ -69,13 +69,16 @@ def display(rgb: torch.Tensor | np.ndarray, exposure: float = 0.0) -> torch.Tens
 def display_range(blocks: torch.Tensor | np.ndarray, exposure: float = 0.0) -> np.ndarray:
     """Per block of linear RGB [N, h, w, 3]: the largest per-channel (max - min) of its
     display-referred values, float64 [N] in [0, 1] (0 for an empty block)."""
-    d = display(blocks, exposure)
-    if d.ndim != 4 or d.shape[-1] != 3:
-        raise ValueError(f"expected linear RGB blocks [N, h, w, 3], got shape {tuple(d.shape)}")
-    if d.shape[0] == 0 or d.shape[1] * d.shape[2] == 0:
-        return np.zeros(d.shape[0])
-    flat = d.reshape(d.shape[0], -1, 3)
-    return (flat.amax(dim=1) - flat.amin(dim=1)).amax(dim=1).double().numpy()
+    x = clipped_linear(torch.as_tensor(blocks), exposure)
+    if x.ndim != 4 or x.shape[-1] != 3:
+        raise ValueError(f"expected linear RGB blocks [N, h, w, 3], got shape {tuple(x.shape)}")
+    if x.shape[0] == 0 or x.shape[1] * x.shape[2] == 0:
+        return np.zeros(x.shape[0])
+    # the sRGB transfer is monotonic: the encoded extremes are the extremes encoded, so
+    # only 2 x 3 values per block are encoded (equal to the range of `display` up to one
+    # float32 rounding of torch's vectorised pow; memory: one copy of the blocks, not five)
+    flat = x.reshape(x.shape[0], -1, 3)
+    return (srgb_encode(flat.amax(dim=1)) - srgb_encode(flat.amin(dim=1))).amax(dim=1).double().numpy()
 
 
 def lightness(rgb: torch.Tensor, exposure: float = 0.0) -> torch.Tensor:

@@ -159,6 +159,9 @@ def _state(data: dict[str, np.ndarray], sizes: list[int], grid: tuple[int, int],
         if got is None or got.shape != (2,) or got.dtype.kind != "i" or tuple(int(v) for v in got) != tuple(want):
             raise ValueError(f"accumulator {key} {None if got is None else got.tolist()} is not the render's {list(want)}")
     bh, bw = block
+    if int(_get(acc_state, "version", "int64", ())) != BlockAccumulator.STATE_VERSION:
+        raise ValueError(f"accumulator state version {acc_state['version']}, this code reads "
+                         f"{BlockAccumulator.STATE_VERSION}")
     for key, dtype, shape in (("sum", "float64", (2, n, bh, bw, 3)), ("weight", "int64", (2, n, bh, bw)),
                               ("spp", "int64", (n, 2)), ("passes", "int64", (n,)), ("nonfinite", "int64", (n,))):
         arr = _get(acc_state, key, dtype, shape)

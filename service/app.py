@@ -32,7 +32,7 @@ from noisefeat.display import EXPOSURE_RANGE
 
 from .auth import require_token
 from .connections import InFlightLimitMiddleware
-from .limits import BodyLimitMiddleware, Limits
+from .limits import BodyLimitMiddleware, Limits, MemoryBudget
 from .metrics import ServiceMetrics
 from .oip import (BINARY_EXTENSION, HEADER_LENGTH, ApiError, ErrorResponse, InferenceRequest,
                   InferenceResponse, LiveResponse, ModelMetadata, ModelReadyResponse, ReadyResponse,
@@ -50,7 +50,8 @@ _DESCRIPTIONS = {400: "bad request (shape, datatype, data, parameter out of rang
                  408: "request body stopped arriving (serve --body-timeout)",
                  413: "body, batch, block side or pixel count over the server's limit",
                  415: "compressed request body",
-                 503: "too many requests in flight (serve --limit-concurrency); retry after Retry-After"}
+                 503: "too many requests in flight (serve --limit-concurrency, --memory-budget); "
+                      "retry after Retry-After"}
 
 
 # A decimal string (HTTP headers are text); absent: the whole body is JSON.
@@ -98,7 +99,9 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
     app.state.registry = registry
     app.state.limits = limits
     app.state.metrics = metrics
-    app.add_middleware(BodyLimitMiddleware, max_bytes=limits.max_body_bytes, body_timeout=body_timeout)
+    app.state.memory_budget = MemoryBudget(limits.memory_budget)
+    app.add_middleware(BodyLimitMiddleware, max_bytes=limits.max_body_bytes, body_timeout=body_timeout,
+                       budget=app.state.memory_budget)
     metrics.instrument(app, dependencies=[Depends(require_token)], tags=["metrics"], responses={
         200: {"description": "Prometheus text format",
               "content": {"text/plain": {"schema": {"type": "string"}}}},
@@ -205,7 +208,7 @@ def _api_routes(registry: ModelRegistry) -> APIRouter:
 async def _infer(request: Request, served: ServedModel, header_length: str | None) -> Response:
     if request.headers.get("content-encoding", "identity").strip().lower() not in ("identity", ""):
         raise ApiError(415, "compressed request bodies are not accepted (Content-Encoding must be identity)")
-    body = await request.body()  # counted against the limit by BodyLimitMiddleware
+    body = [await _read_body(request)]  # counted against the limit by BodyLimitMiddleware
     state = request.app.state
     length = None if header_length is None else int(header_length)
     content, json_length = await anyio.to_thread.run_sync(
@@ -215,16 +218,42 @@ async def _infer(request: Request, served: ServedModel, header_length: str | Non
     return Response(content, media_type=BINARY_MEDIA, headers={HEADER_LENGTH: str(json_length)})
 
 
-def _infer_sync(served: ServedModel, body: bytes, header_length: int | None, limits: Limits,
+async def _read_body(request: Request) -> bytearray:
+    """The body in one buffer sized by Content-Length when declared (Starlette's
+    `request.body()` joins a list of chunks: twice the body at its peak)."""
+    declared = request.headers.get("content-length", "")
+    buf = bytearray(int(declared)) if declared.isdigit() else bytearray()
+    pos = 0
+    async for chunk in request.stream():
+        if pos + len(chunk) > len(buf):
+            buf[pos:] = chunk                          # more than declared (or none declared)
+        else:
+            buf[pos:pos + len(chunk)] = chunk
+        pos += len(chunk)
+    del buf[pos:]                                      # less than declared
+    return buf
+
+
+def _infer_sync(served: ServedModel, body: list[bytearray], header_length: int | None, limits: Limits,
                 metrics: ServiceMetrics) -> tuple[bytes, int | None]:
-    """Decode, classify, encode: everything CPU-bound about one request, in a worker thread."""
-    head, tail = split_body(body, header_length)
+    """Decode, classify, encode: everything CPU-bound about one request, in a worker thread.
+    `body` is a one-item list, emptied once the tensors are decoded so that the request's
+    bytes are freed before the model runs."""
+    if header_length is None:                  # all JSON: parsed in place
+        head, tail = body[0], b""
+    else:
+        head, tail = split_body(memoryview(body[0]), header_length)
+        head = bytes(head)
     req = parse_request(head)
     exposure = number_param(req.parameters, "exposure", 0.0, *EXPOSURE_RANGE)
     offset = number_param(req.parameters, "offset", None, -OFFSET_LIMIT, OFFSET_LIMIT)
     limits.check_shapes(req.inputs)       # what the request declares, before any tensor is built
     wanted = _requested_outputs(req)
     tensors = decode_tensors(req, tail, limits.max_batch, scan_bools=may_hold_bools(head))
+    del head, tail
+    body.clear()
+    for t in req.inputs:       # the parsed JSON values (~10x the body): no longer needed
+        t.data = None
     arrays, parameters = served.infer(tensors, exposure, offset)
     metrics.record(served.name, arrays["verdict"], parameters)
     resp = InferenceResponse(

@@ -620,6 +620,10 @@ def _register_serve(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-pixels", type=_int_in(MIN_SIDE, 1 << 31), default=None,
                    help="pixels of one request, blocks x height x width (default: $NOISESTOP_MAX_PIXELS "
                         "or 4194304); over it: 413")
+    p.add_argument("--memory-budget", type=_int_in(1 << 20, 1 << 44), default=None,
+                   help="bytes of working memory all requests in flight may take together (default: "
+                        "$NOISESTOP_MEMORY_BUDGET or what one request of --max-body-bytes takes, 16x its "
+                        "body); a request waits for its share, then gets 503")
     p.add_argument("--threads", type=_int_in(1, 256), default=2,
                    help="requests classified at the same time")
     p.add_argument("--limit-concurrency", type=_int_in(1, 65536), default=64,
@@ -649,7 +653,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         inference_threads=args.threads, graceful_timeout=args.graceful_timeout, offset=args.offset,
         max_block_side=args.max_block_side, max_pixels=args.max_pixels,
         limit_concurrency=args.limit_concurrency, max_connections=args.max_connections,
-        header_timeout=args.header_timeout, body_timeout=args.body_timeout, keep_alive=args.keep_alive)
+        header_timeout=args.header_timeout, body_timeout=args.body_timeout, keep_alive=args.keep_alive,
+        memory_budget=args.memory_budget)
     return 0
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -26,8 +27,16 @@ ENV_MAX_BODY = "NOISESTOP_MAX_BODY_BYTES"
 ENV_MAX_BATCH = "NOISESTOP_MAX_BATCH"
 ENV_MAX_BLOCK_SIDE = BOUNDS_ENV["max_block_side"]
 ENV_MAX_PIXELS = BOUNDS_ENV["max_pixels"]
+ENV_MEMORY_BUDGET = "NOISESTOP_MEMORY_BUDGET"
 DEFAULT_MAX_BODY = 64 * 1024 * 1024   # 16 blocks of 128x128 + quick as JSON take ~30 MB
 DEFAULT_MAX_BATCH = 1024
+#: working memory a request takes per byte of its body, at its peak (measured, BENCHMARKS.md
+#: "Reliability under attack": binary tensors ~10x, JSON ~15x: parsed numbers are Python
+#: objects), plus a fixed part
+MEMORY_PER_BODY_BYTE = 16
+MEMORY_PER_REQUEST = 1 << 20
+#: by default one request of the largest body at a time, or many smaller ones at once
+DEFAULT_MEMORY_BUDGET = MEMORY_PER_BODY_BYTE * DEFAULT_MAX_BODY + MEMORY_PER_REQUEST
 
 
 @dataclass(frozen=True)
@@ -36,6 +45,9 @@ class Limits:
     max_batch: int = DEFAULT_MAX_BATCH
     max_block_side: int = DEFAULT_MAX_BLOCK_SIDE
     max_pixels: int = DEFAULT_MAX_PIXELS
+    #: working memory all requests in flight may claim together (None: the cost of one
+    #: request of the largest body); see `MemoryBudget`
+    memory_budget: int | None = None
 
     def __post_init__(self) -> None:
         for name in ("max_body_bytes", "max_batch", "max_block_side", "max_pixels"):
@@ -43,17 +55,26 @@ class Limits:
             least = MIN_SIDE if name in ("max_block_side", "max_pixels") else 1
             if isinstance(value, bool) or not isinstance(value, int) or value < least:
                 raise ValueError(f"{name} must be a whole number >= {least}, got {value!r}")
+        if self.memory_budget is None:
+            object.__setattr__(self, "memory_budget", request_cost(self.max_body_bytes))
+        elif isinstance(self.memory_budget, bool) or not isinstance(self.memory_budget, int) \
+                or self.memory_budget < request_cost(self.max_body_bytes):
+            raise ValueError(f"memory_budget must be a whole number of bytes >= {request_cost(self.max_body_bytes)} "
+                             f"(what one request of max_body_bytes = {self.max_body_bytes} may take), "
+                             f"got {self.memory_budget!r}")
 
     @classmethod
     def from_env(cls, max_body_bytes: int | None = None, max_batch: int | None = None,
                  environ: Mapping[str, str] = os.environ, *, max_block_side: int | None = None,
-                 max_pixels: int | None = None) -> "Limits":
+                 max_pixels: int | None = None, memory_budget: int | None = None) -> "Limits":
         """Explicit values win over the environment, which wins over the defaults."""
+        budget = memory_budget or (_env_int(environ, ENV_MEMORY_BUDGET, 0) or None)
         return cls(max_body_bytes=max_body_bytes or _env_int(environ, ENV_MAX_BODY, DEFAULT_MAX_BODY),
                    max_batch=max_batch or _env_int(environ, ENV_MAX_BATCH, DEFAULT_MAX_BATCH),
                    max_block_side=max_block_side or _env_int(environ, ENV_MAX_BLOCK_SIDE,
                                                              DEFAULT_MAX_BLOCK_SIDE),
-                   max_pixels=max_pixels or _env_int(environ, ENV_MAX_PIXELS, DEFAULT_MAX_PIXELS))
+                   max_pixels=max_pixels or _env_int(environ, ENV_MAX_PIXELS, DEFAULT_MAX_PIXELS),
+                   memory_budget=budget)
 
     def check_shapes(self, inputs: list[RequestInput]) -> None:
         """413 for an image tensor [N, H, W, C] whose block side or pixel count (N x H x W)
@@ -70,6 +91,52 @@ class Limits:
                 raise ApiError(413, f"input {t.name!r}: {n} blocks of {h}x{w} are {n * h * w} pixels, over "
                                     f"the pixel budget of a request, max_pixels = {self.max_pixels} "
                                     f"(serve --max-pixels, {ENV_MAX_PIXELS}); send fewer blocks per request")
+
+
+def request_cost(body_bytes: int) -> int:
+    """Working memory a request of `body_bytes` is counted for (`MEMORY_PER_BODY_BYTE`)."""
+    return MEMORY_PER_BODY_BYTE * body_bytes + MEMORY_PER_REQUEST
+
+
+class MemoryBudget:
+    """Admission by memory: requests in flight claim `request_cost(body)` bytes of `total`
+    before their body is read, first come first served, and give them back when answered.
+
+    Why: limits per request bound one request; without this, 64 requests in flight of the
+    largest body would still take 64 times that. A request waits (its upload held back by
+    TCP flow control) while the budget is taken, and is answered 503 after `timeout`
+    seconds. One event loop: no lock is needed."""
+
+    def __init__(self, total: int, timeout: float = 30.0) -> None:
+        self.total = total
+        self.timeout = timeout
+        self.used = 0
+        self._waiters: deque[tuple[int, anyio.Event]] = deque()
+
+    async def acquire(self, n: int) -> bool:
+        """Claim n bytes (n <= total); False if not granted within the timeout."""
+        if not self._waiters and self.used + n <= self.total:
+            self.used += n
+            return True
+        entry = (n, anyio.Event())
+        self._waiters.append(entry)
+        with anyio.move_on_after(self.timeout):
+            await entry[1].wait()
+        if entry[1].is_set():            # granted (possibly just as the time ran out)
+            return True
+        self._waiters.remove(entry)
+        self._grant()
+        return False
+
+    def release(self, n: int) -> None:
+        self.used -= n
+        self._grant()
+
+    def _grant(self) -> None:
+        while self._waiters and self.used + self._waiters[0][0] <= self.total:
+            n, event = self._waiters.popleft()
+            self.used += n
+            event.set()
 
 
 def _env_int(environ: Mapping[str, str], key: str, default: int) -> int:
@@ -95,10 +162,12 @@ class BodyLimitMiddleware:
     408 when a body stops arriving for `body_timeout` seconds (a slow upload otherwise
     holds a request slot for as long as the client likes)."""
 
-    def __init__(self, app: Any, max_bytes: int, body_timeout: float | None = None) -> None:
+    def __init__(self, app: Any, max_bytes: int, body_timeout: float | None = None,
+                 budget: MemoryBudget | None = None) -> None:
         self.app = app
         self.max_bytes = max_bytes
         self.body_timeout = body_timeout
+        self.budget = budget
 
     async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
         if scope["type"] != "http":
@@ -116,6 +185,21 @@ class BodyLimitMiddleware:
             if length > self.max_bytes:
                 await _send_error(send, too_large(self.max_bytes))
                 return
+        cost = 0
+        if self.budget is not None and scope.get("method") in ("POST", "PUT", "PATCH"):
+            cost = request_cost(self.max_bytes if declared is None else length)
+            if not await self.budget.acquire(cost):
+                await _send_error(send, ApiError(503, "server busy: the memory for requests in flight is taken "
+                                                      f"(serve --memory-budget, {ENV_MEMORY_BUDGET}); retry",
+                                                 headers={"Retry-After": "1"}))
+                return
+        try:
+            await self._guarded(scope, receive, send)
+        finally:
+            if cost:
+                self.budget.release(cost)
+
+    async def _guarded(self, scope: dict, receive: Any, send: Any) -> None:
         received = 0
         body_done = False
 

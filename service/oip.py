@@ -15,7 +15,7 @@ from typing import Annotated, Any
 
 import numpy as np
 import pydantic_core
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainValidator, ValidationError
 
 HEADER_LENGTH = "Inference-Header-Content-Length"
 BINARY_EXTENSION = "binary_tensor_data"
@@ -104,12 +104,23 @@ MAX_RANK = 8
 Dim = Annotated[int, BeforeValidator(_integral), Field(ge=0, le=MAX_DIM)]
 
 
+def _list_as_is(value: Any) -> list[Any]:
+    """Tensor data is kept as parsed (validating list[Any] copies it: 8 bytes a value);
+    `decode_tensors` checks its contents."""
+    if not isinstance(value, list):
+        raise ValueError("data must be a list")
+    return value
+
+
+TensorData = Annotated[list[Any], PlainValidator(_list_as_is, json_schema_input_type=list[Any])]
+
+
 class RequestInput(_Message):
     name: str
     shape: list[Dim] = Field(max_length=MAX_RANK)
     datatype: Datatype
     parameters: Parameters | None = None
-    data: list[Any] | None = Field(
+    data: TensorData | None = Field(
         default=None, description="row-major values, flat or nested; omitted for binary data")
 
 
@@ -141,10 +152,10 @@ class InferenceResponse(_Message):
     outputs: list[ResponseOutput]
 
 
-def split_body(body: bytes, header_length: int | None) -> tuple[bytes, bytes]:
-    """(JSON header, binary tail) of a request body."""
+def split_body(body: bytes | memoryview, header_length: int | None) -> tuple[bytes | memoryview, bytes | memoryview]:
+    """(JSON header, binary tail) of a request body (slices of a memoryview: no copy)."""
     if header_length is None:
-        return body, b""
+        return body, body[len(body):]
     if not 0 < header_length <= len(body):
         raise ApiError(400, f"{HEADER_LENGTH} is {header_length} but the body holds {len(body)} bytes")
     return body[:header_length], body[header_length:]
@@ -203,7 +214,7 @@ def number_param(params: Parameters | None, key: str, default: float | None, low
     return float(value)
 
 
-def decode_tensors(req: InferenceRequest, binary: bytes, max_batch: int,
+def decode_tensors(req: InferenceRequest, binary: bytes | memoryview, max_batch: int,
                    scan_bools: bool = True) -> dict[str, np.ndarray]:
     """Input tensors by name, shaped as declared; checks the batch limit before any copy.
 

@@ -9,7 +9,8 @@ Connection settings (issue 14; service.connections): request headers must arrive
 `header_timeout` seconds of a connection opening (or of its previous response), a body may
 stall for `body_timeout` seconds, an idle kept-alive connection is closed after
 `keep_alive` seconds; at most `limit_concurrency` requests are in flight (health probes
-and /metrics exempt) and at most `max_connections` connections are open.
+and /metrics exempt), together within `memory_budget` bytes of working memory
+(service.limits.MemoryBudget), and at most `max_connections` connections are open.
 """
 from __future__ import annotations
 
@@ -47,7 +48,7 @@ def build(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", 
           inference_threads: int = 2, offset: float | None = None,
           max_block_side: int | None = None, max_pixels: int | None = None,
           limit_concurrency: int | None = DEFAULT_LIMIT_CONCURRENCY,
-          body_timeout: float | None = DEFAULT_BODY_TIMEOUT):
+          body_timeout: float | None = DEFAULT_BODY_TIMEOUT, memory_budget: int | None = None):
     """The app `run` serves, with models loaded and settings checked (tests use it too).
     `offset` overrides every model's calibrated decision offset (`serve --offset`)."""
     secret = resolve_token(token, token_file)
@@ -56,7 +57,7 @@ def build(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", 
         log.warning("no token (%s / %s): running UNAUTHENTICATED, on loopback %s only",
                     "NOISESTOP_TOKEN", "NOISESTOP_TOKEN_FILE", host)
     limits = Limits.from_env(max_body_bytes=max_body_bytes, max_batch=max_batch,
-                             max_block_side=max_block_side, max_pixels=max_pixels)
+                             max_block_side=max_block_side, max_pixels=max_pixels, memory_budget=memory_budget)
     if isinstance(inference_threads, bool) or not isinstance(inference_threads, int) or not 1 <= inference_threads <= 256:
         raise ValueError(f"inference_threads must be 1..256, got {inference_threads!r}")
     if limit_concurrency is not None and (isinstance(limit_concurrency, bool) or not isinstance(limit_concurrency, int)
@@ -77,7 +78,8 @@ def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", po
         max_block_side: int | None = None, max_pixels: int | None = None,
         limit_concurrency: int | None = DEFAULT_LIMIT_CONCURRENCY,
         max_connections: int = DEFAULT_MAX_CONNECTIONS, header_timeout: float = DEFAULT_HEADER_TIMEOUT,
-        body_timeout: float | None = DEFAULT_BODY_TIMEOUT, keep_alive: int = DEFAULT_KEEP_ALIVE) -> None:
+        body_timeout: float | None = DEFAULT_BODY_TIMEOUT, keep_alive: int = DEFAULT_KEEP_ALIVE,
+        memory_budget: int | None = None) -> None:
     """Serve `models` ({name: bundle path or None for the bundled model}; empty: the bundled
     model) until SIGTERM/SIGINT. The token defaults to NOISESTOP_TOKEN / NOISESTOP_TOKEN_FILE;
     limits default to NOISESTOP_MAX_BODY_BYTES / NOISESTOP_MAX_BATCH / NOISESTOP_MAX_BLOCK_SIDE /
@@ -94,13 +96,15 @@ def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", po
     app = build(models, host, token=token, token_file=token_file, max_body_bytes=max_body_bytes,
                 max_batch=max_batch, inference_threads=inference_threads, offset=offset,
                 max_block_side=max_block_side, max_pixels=max_pixels, limit_concurrency=limit_concurrency,
-                body_timeout=body_timeout)
+                body_timeout=body_timeout, memory_budget=memory_budget)
     limits = app.state.limits
     log.info("listening on http://%s:%d (%s; body limit %d bytes, batch limit %d, block side %d px, "
-             "%d pixels a request; %s requests in flight, %d connections, headers within %g s)",
+             "%d pixels a request, %d bytes of memory for requests in flight; %s requests in flight, "
+             "%d connections, headers within %g s)",
              f"[{host}]" if ":" in host else host, port,
              "token required" if app.state.token else "no token, loopback only",
              limits.max_body_bytes, limits.max_batch, limits.max_block_side, limits.max_pixels,
+             limits.memory_budget,
              limit_concurrency if limit_concurrency is not None else "unlimited", max_connections,
              header_timeout)
     config = uvicorn.Config(app, host=host, port=port, log_config=None, log_level=log_level,

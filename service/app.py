@@ -32,7 +32,7 @@ from noisefeat.display import EXPOSURE_RANGE
 
 from .auth import require_token
 from .connections import InFlightLimitMiddleware
-from .limits import BodyLimitMiddleware, Limits, MemoryBudget
+from .limits import BodyLimitMiddleware, Limits, MemoryBudget, release_memory
 from .metrics import ServiceMetrics
 from .oip import (BINARY_EXTENSION, HEADER_LENGTH, ApiError, ErrorResponse, InferenceRequest,
                   InferenceResponse, LiveResponse, ModelMetadata, ModelReadyResponse, ReadyResponse,
@@ -211,8 +211,11 @@ async def _infer(request: Request, served: ServedModel, header_length: str | Non
     body = [await _read_body(request)]  # counted against the limit by BodyLimitMiddleware
     state = request.app.state
     length = None if header_length is None else int(header_length)
-    content, json_length = await anyio.to_thread.run_sync(
-        _infer_sync, served, body, length, state.limits, state.metrics, limiter=state.limiter)
+    try:
+        content, json_length = await anyio.to_thread.run_sync(
+            _infer_sync, served, body, length, state.limits, state.metrics, limiter=state.limiter)
+    finally:
+        release_memory()
     if json_length is None:
         return Response(content, media_type="application/json")
     return Response(content, media_type=BINARY_MEDIA, headers={HEADER_LENGTH: str(json_length)})

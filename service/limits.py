@@ -10,10 +10,13 @@ shapes, before any tensor data is converted (`Limits.check_shapes`, oip.decode_t
 """
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import functools
 import json
 import os
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -137,6 +140,23 @@ class MemoryBudget:
             n, event = self._waiters.popleft()
             self.used += n
             event.set()
+
+
+@functools.cache
+def _malloc_trim() -> Callable[[int], int] | None:
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):   # not glibc: nothing to do
+        return None
+
+
+def release_memory() -> None:
+    """Give the heap's free pages back to the system after a request (glibc keeps them, so
+    the resident size would stay at its high-water mark and the next large request would
+    start from there)."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
 
 
 def _env_int(environ: Mapping[str, str], key: str, default: int) -> int:

@@ -186,7 +186,7 @@ def over_the_limit(url: str, token: str | None, limit: int) -> dict[str, Any]:
             s.sendall((f"POST /v2/models/default/infer HTTP/1.1\r\nHost: x\r\n{auth}Content-Length: 100\r\n"
                        "Content-Type: application/json\r\n\r\n{").encode())
             held.append(s)
-        time.sleep(0.3)                          # let the server start reading them
+        time.sleep(0.3 + 0.01 * limit)           # let the server start reading them
         extra = http.client.HTTPConnection(host, port, timeout=30)
         extra.request("POST", "/v2/models/default/infer", body=b"{}",
                       headers={"Content-Type": "application/json",

@@ -41,6 +41,13 @@ class FeatureBaseInfo(_Strict):
     wavelet: str | None = None
 
 
+class TrainingInfo(_Strict):
+    """The parts of `training` that commands read (evaluate: the scenes not to test on)."""
+
+    train_scenes: list[str] = []
+    test_scenes: list[str] = []
+
+
 class Manifest(_Strict):
     """manifest.json as `learning.bundle.save_model` writes it (unknown keys are kept)."""
 
@@ -57,7 +64,7 @@ class Manifest(_Strict):
     model_version: str | None = Field(default=None, min_length=1, max_length=64)
     model_sha256: str | None = None
     params: dict[str, Any] = {}
-    training: dict[str, Any] = {}
+    training: TrainingInfo = TrainingInfo()
     metrics: dict[str, Any] = {}
     versions: dict[str, Any] = {}
 

@@ -106,6 +106,8 @@ def check_stack(d: str | os.PathLike, deep: bool = True) -> list[Problem]:
         meta = json.loads(meta_path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         return [Problem(meta_path, f"meta.json is not valid JSON: {exc}")]
+    except RecursionError:
+        return [Problem(meta_path, "meta.json is nested too deeply to be a stack description")]
     problems = [Problem(meta_path, msg) for msg in validate_meta(meta)]
     if not isinstance(meta, dict):
         return problems

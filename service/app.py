@@ -26,6 +26,7 @@ from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from pydantic.json_schema import models_json_schema
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from learning.stoprule import OFFSET_LIMIT
 from noisefeat.display import EXPOSURE_RANGE
@@ -227,12 +228,15 @@ async def _read_body(request: Request) -> bytearray:
     declared = request.headers.get("content-length", "")
     buf = bytearray(int(declared)) if declared.isdigit() else bytearray()
     pos = 0
-    async for chunk in request.stream():
-        if pos + len(chunk) > len(buf):
-            buf[pos:] = chunk                          # more than declared (or none declared)
-        else:
-            buf[pos:pos + len(chunk)] = chunk
-        pos += len(chunk)
+    try:
+        async for chunk in request.stream():
+            if pos + len(chunk) > len(buf):
+                buf[pos:] = chunk                      # more than declared (or none declared)
+            else:
+                buf[pos:pos + len(chunk)] = chunk
+            pos += len(chunk)
+    except ClientDisconnect:   # the client went away mid-body: its problem, not a server error
+        raise ApiError(400, f"client disconnected after {pos} body bytes") from None
     del buf[pos:]                                      # less than declared
     return buf
 

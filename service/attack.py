@@ -186,17 +186,23 @@ def over_the_limit(url: str, token: str | None, limit: int) -> dict[str, Any]:
             s.sendall((f"POST /v2/models/default/infer HTTP/1.1\r\nHost: x\r\n{auth}Content-Length: 100\r\n"
                        "Content-Type: application/json\r\n\r\n{").encode())
             held.append(s)
-        time.sleep(0.3 + 0.01 * limit)           # let the server start reading them
-        extra = http.client.HTTPConnection(host, port, timeout=30)
-        extra.request("POST", "/v2/models/default/infer", body=b"{}",
-                      headers={"Content-Type": "application/json",
-                               **({"Authorization": f"Bearer {token}"} if token else {})})
-        resp = extra.getresponse()
-        body = resp.read()
-        retry_after = resp.getheader("Retry-After")
-        extra.close()
+        deadline = time.monotonic() + 20         # the server reads the held ones as it gets to them
+        attempts = 0
+        while True:
+            attempts += 1
+            extra = http.client.HTTPConnection(host, port, timeout=30)
+            extra.request("POST", "/v2/models/default/infer", body=b"{}",
+                          headers={"Content-Type": "application/json",
+                                   **({"Authorization": f"Bearer {token}"} if token else {})})
+            resp = extra.getresponse()
+            body = resp.read()
+            retry_after = resp.getheader("Retry-After")
+            extra.close()
+            if resp.status == 503 or time.monotonic() > deadline:
+                break
+            time.sleep(0.1)
         health = _get(host, port, "/v2/health/ready")
-        return {"held": limit, "extra_status": resp.status, "retry_after": retry_after,
+        return {"held": limit, "extra_status": resp.status, "retry_after": retry_after, "attempts": attempts,
                 "error": json.loads(body).get("error") if body.startswith(b"{") else None,
                 "health_status": health[0]}
     finally:

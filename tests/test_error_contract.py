@@ -221,6 +221,7 @@ def test_bad_bundles_are_refused_in_one_line(capsys, tmp_path, good_bundle, case
     assert_one_line_error(rc, err, needle)
 
 
+@pytest.mark.timeout(300)   # were the warm-up to pass, serve would bind and serve forever
 def test_a_bundle_failing_serves_warm_up(capsys, tmp_path, good_bundle):
     """Every array valid, but the scores overflow to Inf: serve stops before binding the port."""
     bundle = tmp_path / "inf"

@@ -3,9 +3,10 @@
 Every server serves its first model also as `default` (DESIGN.md "HTTP API"). Inference is
 called from worker threads: the estimators only read their fitted arrays (libsvm's
 predict and StandardScaler.transform keep no state) and the feature base runs under
-torch.inference_mode; its per-block-size operator cache is a dict whose worst race is
-computing one entry twice, and `load` fills it (and builds the shared feature base) before
-the first request arrives.
+torch.inference_mode; its per-block-size operator cache is a locked, byte-bounded LRU
+(noisefeat.cache) whose worst race is computing one entry twice, and `load` warms it up
+(and builds the shared feature base) before the first request arrives. Every model must
+answer that warm-up inference, or the server does not start.
 """
 from __future__ import annotations
 

@@ -24,8 +24,9 @@ from noisefeat.display import display_range
 CONVERGED = np.int8(1)
 NOISY = np.int8(-1)
 FLAT_TOLERANCE = 1.0 / 255.0  # one 8-bit code value of the display transform
-#: offsets are finite and at most this far from 0 (an SVM's scores are a few units; an
-#: offset beyond any score only means "never" or "always", but 1e300 or NaN means a bug)
+#: offsets a user, a request or a bundle may set are finite and at most this far from 0 (an
+#: SVM's scores are a few units; an offset beyond any score only means "never" or "always",
+#: but 1e300 or NaN in a request or a bundle means a mistake or an attack)
 OFFSET_LIMIT = 1e6
 
 
@@ -76,7 +77,10 @@ class StopRule:
     min_spp: int | None = None
 
     def __post_init__(self) -> None:
-        check_offset(self.offset)
+        # any finite offset is a rule (stability matrix: 1e308 included); the user-facing
+        # entry points hold offsets to OFFSET_LIMIT (`check_offset`)
+        if not np.isfinite(self.offset):
+            raise ValueError(f"offset must be a finite number, got {self.offset!r}")
         if self.min_spp is not None and (isinstance(self.min_spp, bool) or int(self.min_spp) != self.min_spp
                                          or self.min_spp < 1):
             raise ValueError(f"min_spp must be a positive integer or None, got {self.min_spp!r}")

@@ -21,7 +21,8 @@ import skops.io as sio
 
 from noisefeat import FeatureBase, default_base, extract_features
 
-from .estimators import RBFSVM, check_inputs
+from .bundle_check import check_estimator, check_model_file, file_sha256, read_manifest
+from .estimators import RBFSVM
 from .noise_input import HALVES, halves_input, halves_mean, n_inputs, noise_lightness
 from .stoprule import StopRule, flat_blocks
 from .table import QUICK_MODES, feature_input, raw_input
@@ -190,6 +191,7 @@ def save_model(estimator: RBFSVM, path: str | os.PathLike, *, kind: str, input: 
     base = base or default_base()
     tmp = path / (MODEL_FILE + ".tmp")
     sio.dump(estimator, tmp)
+    digest = file_sha256(tmp)
     os.replace(tmp, path / MODEL_FILE)
     manifest = {
         "format": FORMAT, "version": VERSION, "kind": kind, "name": name or kind, "input": input,
@@ -199,7 +201,7 @@ def save_model(estimator: RBFSVM, path: str | os.PathLike, *, kind: str, input: 
         "support_vectors": int(estimator.n_support_), "parameters": int(estimator.n_parameters()),
         "params": {k: v for k, v in estimator.get_params().items() if isinstance(v, (int, float, str, bool, type(None)))},
         "training": training or {}, "metrics": metrics or {}, "versions": _versions(),
-        **(extra or {}),
+        "model_sha256": digest, **(extra or {}),
     }
     tmp = path / (MANIFEST + ".tmp")
     tmp.write_text(json.dumps(manifest, indent=2, default=_json_default))
@@ -216,50 +218,48 @@ def _json_default(o: Any) -> Any:
 
 
 def load_model(path: str | os.PathLike | None = None, base: FeatureBase | None = None) -> Model:
-    """Load a bundle (None: the model bundled with the package); no pickle involved."""
+    """Load a bundle (None: the model bundled with the package); no pickle involved.
+
+    Everything is validated before the model answers anything (`learning.bundle_check`):
+    the manifest's schema, the model file's hash and size, the allowed types, every fitted
+    array the estimator reads, and the feature base. Any problem is a ValueError (or
+    FileNotFoundError) naming the file."""
     path = BUNDLED_DIR if path is None else Path(path)
     if path.is_file() and path.name == MANIFEST:
         path = path.parent
     if not (path / MANIFEST).is_file():
         raise FileNotFoundError(f"{path}: not a noisestop model bundle (no {MANIFEST})")
-    try:
-        manifest = json.loads((path / MANIFEST).read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path / MANIFEST}: not valid JSON ({exc})") from exc
-    if manifest.get("format") != FORMAT or manifest.get("version") != VERSION:
-        raise ValueError(f"{path}: unsupported bundle format {manifest.get('format')!r} "
-                         f"version {manifest.get('version')!r}")
+    manifest = read_manifest(path / MANIFEST)
     model_file = path / MODEL_FILE
     if not model_file.is_file():
         raise FileNotFoundError(f"{model_file}: missing")
+    check_model_file(model_file, manifest)
     try:
         untrusted = sio.get_untrusted_types(file=model_file)
-    except Exception as exc:
-        raise ValueError(f"{model_file}: unreadable skops file ({exc})") from exc
+    except Exception as exc:     # skops raises many kinds of errors on a malformed file
+        raise ValueError(f"{model_file}: unreadable skops file ({type(exc).__name__}: {exc})") from None
     unknown = [t for t in untrusted if t not in ALLOWED_TYPES]
     if unknown:
         raise ValueError(f"{model_file}: refuses to load unknown types {unknown}")
-    estimator = sio.load(model_file, trusted=untrusted)
-    if not isinstance(estimator, RBFSVM):
-        raise ValueError(f"{model_file}: holds a {type(estimator).__name__}, not a noisestop SVM")
-    if not hasattr(estimator, "offset_"):      # bundles written before the offset was fitted
-        estimator.offset_ = float(manifest.get("offset", getattr(estimator, "offset", 0.0)))
-    if not math.isfinite(float(estimator.offset_)):
-        raise ValueError(f"{model_file}: decision offset {estimator.offset_!r} is not a finite number")
-    if manifest.get("input") == "features":
+    try:
+        estimator = sio.load(model_file, trusted=untrusted)
+    except Exception as exc:     # e.g. a spoofed type name: AttributeError inside skops
+        raise ValueError(f"{model_file}: unreadable skops file ({type(exc).__name__}: {exc})") from None
+    if isinstance(estimator, RBFSVM) and "offset_" not in vars(estimator):   # written before offset_ was fitted
+        estimator.offset_ = float(manifest.get("offset") if manifest.get("offset") is not None
+                                  else getattr(estimator, "offset", 0.0))
+    try:
+        check_estimator(estimator, manifest.get("n_features"))
+    except ValueError as exc:
+        raise ValueError(f"{model_file}: {exc}") from None
+    if manifest["input"] == "features":
         running = (base or default_base()).hash
-        trained = (manifest.get("feature_base") or {}).get("hash")
+        trained = manifest["feature_base"]["hash"]
         if trained != running:
             raise ValueError(
                 f"{path}: trained on feature base {trained}, but this noisestop runs feature base "
                 f"{running}: its verdicts would be wrong. Retrain it (noisestop train) or use "
                 f"the weights it was trained with.")
-    check_inputs(np.zeros((1, estimator.n_features_in_)), estimator.n_features_in_)
-    quick = manifest.get("quick")
-    allowed = QUICK_MODES if manifest.get("input") == "features" else (None, "none", "halves")
-    if quick is not None and quick not in allowed:
-        raise ValueError(f"{path}: unknown input mode quick={quick!r} for a {manifest.get('input')} model "
-                         f"(one of {', '.join(str(q) for q in allowed if q)})")
     model = Model(estimator, manifest, path)
     if model.composition is not None:
         try:
@@ -269,4 +269,7 @@ def load_model(path: str | os.PathLike | None = None, base: FeatureBase | None =
         if width != model.n_features:
             raise ValueError(f"{path}: input composition {model.composition!r} has {width} columns, but the "
                              f"model was fitted on {model.n_features}")
+    elif model.input == "features" and model.n_features != 26:
+        raise ValueError(f"{path}: a feature model on the {model.quick} input reads 26 features, this one "
+                         f"was fitted on {model.n_features}")
     return model

@@ -1,8 +1,11 @@
 """Dataset checker: every problem of every stack under a root, not just the first one.
 
 Used by tests, by `dataset build` after a build, and by users before a long training run.
-Errors make a stack unusable or its labels wrong; warnings are oddities worth a look
-(non-finite pixels in a level, human thresholds between levels, stray files).
+Errors make a stack unusable or its labels wrong, or put files in it that the format does
+not have: an image with no finite pixel (damage, not the odd NaN a renderer emits), a
+stray file in a stack or its levels (issue 14: these used to pass as "0 errors").
+Warnings are oddities worth a look (some non-finite pixels in a level, human thresholds
+between levels, unlisted level files, leftovers of an interrupted write).
 """
 from __future__ import annotations
 
@@ -16,8 +19,12 @@ from typing import Any
 import numpy as np
 
 from .exr import read_exr
-from .stack import (LEVELS_DIR, META, PARTIAL, QUICK, QUICK_NONE, REFERENCE, level_name,
+from .stack import (EXTRA_QUICK, LEVELS_DIR, META, PARTIAL, QUICK, QUICK_NONE, REFERENCE, level_name,
                     validate_meta)
+
+#: what a stack directory may hold besides its images (learning.table's cache, a build's
+#: checkpoint directory); anything else is a stray file
+KNOWN_ENTRIES = {META, PARTIAL, REFERENCE, QUICK, LEVELS_DIR, ".cache", ".build", *EXTRA_QUICK.values()}
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +80,20 @@ def _pos_int(x: Any) -> bool:
     return isinstance(x, int) and not isinstance(x, bool) and x > 0
 
 
+def _stray_entries(d: Path) -> list[Problem]:
+    """Entries of a stack directory that the format does not have."""
+    out = []
+    for p in sorted(d.iterdir()):
+        if p.name in KNOWN_ENTRIES:
+            continue
+        if p.name.startswith(".") and p.name.endswith(".tmp"):
+            out.append(Problem(p, "leftover of an interrupted write; safe to remove", WARNING))
+        else:
+            out.append(Problem(p, "stray file in a stack directory (not part of the stack format); "
+                                  "remove it or move it out of the dataset"))
+    return out
+
+
 def check_stack(d: str | os.PathLike, deep: bool = True) -> list[Problem]:
     """Every problem of one stack directory."""
     d = Path(d)
@@ -85,6 +106,8 @@ def check_stack(d: str | os.PathLike, deep: bool = True) -> list[Problem]:
         meta = json.loads(meta_path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         return [Problem(meta_path, f"meta.json is not valid JSON: {exc}")]
+    except RecursionError:
+        return [Problem(meta_path, "meta.json is nested too deeply to be a stack description")]
     problems = [Problem(meta_path, msg) for msg in validate_meta(meta)]
     if not isinstance(meta, dict):
         return problems
@@ -131,15 +154,23 @@ def check_stack(d: str | os.PathLike, deep: bool = True) -> list[Problem]:
         if is_ref:
             ref_shape = got
         bad = int(np.count_nonzero(~np.isfinite(img)))
-        if bad:
+        if bad and bad == img.size:
+            problems.append(Problem(path, f"{what} has no finite value (all {bad} are NaN/Inf): damaged"))
+        elif bad:
             problems.append(Problem(path, f"{what} has {bad} NaN/Inf value(s)",
                                     ERROR if is_ref else WARNING))
 
     listed = {level_name(s).split("/")[1] for s in spp}
     if (d / LEVELS_DIR).is_dir():
-        for p in sorted((d / LEVELS_DIR).glob("*.exr")):
-            if p.name not in listed:
+        for p in sorted((d / LEVELS_DIR).iterdir()):
+            if p.name in listed:
+                continue
+            if p.suffix == ".exr" and p.is_file() and not p.name.startswith("."):
                 problems.append(Problem(p, "level file not listed in meta.json spp", WARNING))
+            else:
+                problems.append(Problem(p, "stray file in levels/ (only the level EXRs of meta.json "
+                                           "belong there); remove it"))
+    problems.extend(_stray_entries(d))
 
     th = meta.get("thresholds")
     if isinstance(th, list) and spp and spp == raw_spp:

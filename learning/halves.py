@@ -25,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from noisefeat.display import check_exposure
+
 from .observer import DEFAULT_PPD, display, flip_map
 from .stack import Stack
 
@@ -74,8 +76,7 @@ def halves_flip(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
     if even.shape != odd.shape or even.ndim != 4 or even.shape[-1] != 3:
         raise ValueError(f"half buffers must be two [N, h, w, 3] arrays of one shape, got "
                          f"{even.shape} and {odd.shape}")
-    if not np.isfinite(exposure):
-        raise ValueError(f"exposure must be finite, got {exposure}")
+    exposure = check_exposure(exposure)
     out = np.empty(len(even))
     for i, (a, b) in enumerate(zip(even, odd)):
         out[i] = float(np.mean(flip_map(display(a, exposure), display(b, exposure), ppd), dtype=np.float64))

@@ -221,7 +221,29 @@ class Stack:
         if img.shape != (self.height, self.width, 3):
             raise ValueError(f"{path}: image is {img.shape[1]}x{img.shape[0]}, meta.json says "
                              f"{self.width}x{self.height}")
+        if img.size and not np.isfinite(img).any():     # a few NaN pixels happen; none finite is damage
+            raise ValueError(f"{path}: no finite pixel (all NaN/Inf): a damaged image; rebuild it "
+                             "(`noisestop dataset check` lists every such file)")
         return img
+
+    def files(self) -> list[Path]:
+        """Every file this stack's data is read from: meta.json, levels, reference, quick images."""
+        out = [self.path / META, *(self.level_path(k) for k in range(self.n_levels)), self.reference_path]
+        if self.has_quick:
+            out.append(self.quick_path)
+        out += [self.path / name for name in EXTRA_QUICK.values() if (self.path / name).exists()]
+        return out
+
+    def content_key(self) -> str:
+        """A short hash of the bytes of every file in `files()`: what anything computed from
+        the stack and cached next to it is valid for. A file rewritten, truncated, replaced
+        or removed changes it (a missing file raises FileNotFoundError naming it); a copy of
+        the stack (new modification times) keeps it. Each file is hashed once per process
+        while its size and modification time stay the same (`file_digest`)."""
+        h = hashlib.sha256()
+        for p in self.files():
+            h.update(f"{p.relative_to(self.path)}\0{file_digest(p)}\0".encode())
+        return h.hexdigest()[:32]
 
     def level(self, k: int) -> np.ndarray:
         """Level k (index into `spp`, negative allowed): linear RGB [H, W, 3] float32."""
@@ -288,9 +310,33 @@ class Stack:
         return out
 
 
+_DIGESTS: dict[tuple[str, int, int, int], str] = {}
+
+
+def file_digest(path: Path) -> str:
+    """SHA-256 of a file's bytes, remembered per (path, inode, size, mtime) for this process."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: missing") from None
+    sig = (os.fspath(path), st.st_ino, st.st_size, st.st_mtime_ns)
+    digest = _DIGESTS.get(sig)
+    if digest is None:
+        h = hashlib.sha256()
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+        digest = _DIGESTS[sig] = h.hexdigest()
+        if len(_DIGESTS) > 100_000:
+            _DIGESTS.clear()
+    return digest
+
+
 def _load_json(path: Path) -> Any:
     try:
         return json.loads(path.read_text(encoding="utf-8"))
+    except RecursionError:
+        raise ValueError(f"{path}: not a stack description (JSON nested too deeply)") from None
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: not valid JSON: {exc}") from exc
     except UnicodeDecodeError as exc:

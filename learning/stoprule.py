@@ -24,6 +24,20 @@ from noisefeat.display import display_range
 CONVERGED = np.int8(1)
 NOISY = np.int8(-1)
 FLAT_TOLERANCE = 1.0 / 255.0  # one 8-bit code value of the display transform
+#: offsets a user, a request or a bundle may set are finite and at most this far from 0 (an
+#: SVM's scores are a few units; an offset beyond any score only means "never" or "always",
+#: but 1e300 or NaN in a request or a bundle means a mistake or an attack)
+OFFSET_LIMIT = 1e6
+
+
+def check_offset(offset: float) -> float:
+    """`offset` as a float if it is a number within +-OFFSET_LIMIT, else ValueError."""
+    if isinstance(offset, bool) or not isinstance(offset, (int, float, np.integer, np.floating)) \
+            or not -OFFSET_LIMIT <= offset <= OFFSET_LIMIT:
+        shown = offset if not isinstance(offset, int) or abs(offset) < 10**30 else \
+            f"a {len(str(abs(offset)))}-digit number"
+        raise ValueError(f"offset must be a finite number in [{-OFFSET_LIMIT:g}, {OFFSET_LIMIT:g}], got {shown}")
+    return float(offset)
 
 
 def flat_blocks(blocks: np.ndarray, exposure: float = 0.0) -> np.ndarray:
@@ -63,6 +77,8 @@ class StopRule:
     min_spp: int | None = None
 
     def __post_init__(self) -> None:
+        # any finite offset is a rule (stability matrix: 1e308 included); the user-facing
+        # entry points hold offsets to OFFSET_LIMIT (`check_offset`)
         if not np.isfinite(self.offset):
             raise ValueError(f"offset must be a finite number, got {self.offset!r}")
         if self.min_spp is not None and (isinstance(self.min_spp, bool) or int(self.min_spp) != self.min_spp

@@ -2,12 +2,14 @@
 
 The model input of the paper is features(quick) - features(level) per block; the raw SVM
 uses the flattened L* block. Both are computed once per stack and feature base, and
-cached next to the stack (`.cache/features-<basehash>.npz`, written atomically), since a
-dataset is read by every train and evaluate run.
+cached next to the stack (`.cache/features-<basehash>.npz`, written atomically, valid for
+the stack's content key only: `cached_array`), since a dataset is read by every train and
+evaluate run.
 """
 from __future__ import annotations
 
 import logging
+import math
 import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -21,6 +23,7 @@ from noisefeat import FeatureBase, default_base, extract_features
 from noisefeat.display import lightness
 
 from .noise_input import HALVES, RAW_COLUMNS, RAW_VERSION, compose, halves_raw, needs, noise_lightness
+from .npz import read_npz
 from .stack import Stack, list_stacks, read_stack
 
 log = logging.getLogger(__name__)
@@ -78,20 +81,32 @@ def _atomic_savez(path: Path, **arrays: np.ndarray) -> None:
 def cached_array(stack: Stack, name: str, shape: tuple[int, ...], compute: Callable[[], np.ndarray],
                  dtype: type | None = None) -> np.ndarray:
     """An array computed from a stack, kept in `<stack>/.cache/<name>.npz` (written
-    atomically): read back when it has the expected shape (and dtype), else computed again."""
+    atomically) with the stack's content key (`Stack.content_key`: size and mtime of every
+    level, the reference, the quick images and meta.json). Read back only when the key,
+    shape (and dtype) match and the file is intact; else computed again from the stack,
+    so a changed or damaged stack is recomputed (and a damaged file refused there), never
+    trusted (issue 14: the key used to name only the feature base and the options)."""
     cache = stack.path / CACHE_DIR / f"{name}.npz"
+    key = stack.content_key()
     if cache.exists():
         try:
-            with np.load(cache, allow_pickle=False) as z:
-                arr = z[z.files[0]]          # the one array of the file
-            if arr.shape == shape and (dtype is None or arr.dtype == dtype):
+            z = read_npz(cache, max_bytes=_cache_limit(shape))
+            arr, stored = z.get("a"), z.get("key")
+            if arr is not None and stored is not None and str(stored) == key and arr.shape == shape \
+                    and (dtype is None or arr.dtype == dtype):
                 return arr
-        except Exception as exc:
+            log.info("%s: made from other stack contents; recomputing", cache)
+        except ValueError as exc:
             log.warning("%s: unreadable cache (%s); recomputing", cache, exc)
     arr = compute()
     cache.parent.mkdir(exist_ok=True)
-    _atomic_savez(cache, a=arr)
+    if stack.content_key() == key:      # the stack did not change while we read it
+        _atomic_savez(cache, a=arr, key=np.array(key))
     return arr
+
+
+def _cache_limit(shape: tuple[int, ...]) -> int:
+    return 8 * math.prod(shape) + (1 << 16)
 
 
 #: inputs a feature model can be trained with: the content-free noise features of the half

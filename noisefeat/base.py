@@ -20,13 +20,15 @@ model input. `layer_outputs` is the plain spatial route, kept for training and t
 """
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
 from torch import nn
 
+from .cache import ByteLRU, default_max_bytes
 from .weights import KERNEL_SIZES, kernels_hash, load_kernels
-from .wavelet import alias_average, lowpass_projection, spectral_operators
+from .wavelet import alias_average, lowpass_projection, mirror_index, spectral_operators
 
 N_LAYERS = len(KERNEL_SIZES) + 1
 N_FEATURES = 2 * N_LAYERS
@@ -49,7 +51,8 @@ def column_weights(w: int, wr: int) -> torch.Tensor:
 class FeatureBase(nn.Module):
     """The noise-feature base of the paper (12 conv layers + 1 wavelet layer)."""
 
-    def __init__(self, weights: str | Path | None = None, wavelet: str = "haar") -> None:
+    def __init__(self, weights: str | Path | None = None, wavelet: str = "haar",
+                 operator_cache_bytes: int | None = None) -> None:
         super().__init__()
         kernels, self.weights_name = load_kernels(weights)
         self.wavelet = wavelet
@@ -59,7 +62,9 @@ class FeatureBase(nn.Module):
             with torch.no_grad():
                 conv.weight.copy_(w.reshape(1, 1, k, k))
             self.convs.append(conv)
-        self._transfer_cache: dict[tuple[int, int], tuple[tuple, dict[str, torch.Tensor]]] = {}
+        # per block size, bounded by bytes (noisefeat.cache: ~40 bytes a pixel per size)
+        self._transfer_cache = ByteLRU(default_max_bytes() if operator_cache_bytes is None
+                                       else operator_cache_bytes)
 
     # -- identity -------------------------------------------------------------------
     def kernels(self) -> list[torch.Tensor]:
@@ -83,7 +88,11 @@ class FeatureBase(nn.Module):
 
     def transfer(self, h: int, w: int) -> torch.Tensor:
         """Cumulative frequency responses [12, h, w//2+1] of layers 1..12 on an h x w block."""
-        responses, acc = [], None
+        return torch.stack(list(self._responses(h, w)))
+
+    def _responses(self, h: int, w: int) -> Iterator[torch.Tensor]:
+        """The cumulative responses of `transfer`, one layer at a time (bounded memory)."""
+        acc = None
         for conv in self.convs:
             k = conv.weight[0, 0]
             r = k.shape[-1] // 2
@@ -93,8 +102,7 @@ class FeatureBase(nn.Module):
             # conv2d is a cross-correlation: its transfer function is the conjugate FFT.
             resp = torch.conj(torch.fft.rfft2(emb))
             acc = resp if acc is None else acc * resp
-            responses.append(acc)
-        return torch.stack(responses)
+            yield acc
 
     def _operators(self, h: int, w: int) -> dict[str, torch.Tensor]:
         """Everything forward needs that depends only on the block size and the weights.
@@ -112,20 +120,26 @@ class FeatureBase(nn.Module):
         # the cache would break a later autograd-tracked forward of the same size
         with torch.inference_mode(False), torch.no_grad():
             ops = self._build_operators(h, w)
-        self._transfer_cache[key] = (version, ops)
+        self._transfer_cache.put(key, (version, ops))
         return ops
 
     def _build_operators(self, h: int, w: int) -> dict[str, torch.Tensor]:
-        resp = self.transfer(h, w)
-        ops = {"resp": resp,
-               "gain": ((1.0 - resp).abs() ** 2 * column_weights(w, resp.shape[-1]))
-               .reshape(len(self.convs), -1).T.contiguous(),
-               "dc": resp[:, 0, 0].real}
+        """Only what forward reads is kept (~40 bytes a pixel of the block): the gain of
+        every layer, the twelfth layer's response and the wavelet layer's operators."""
+        col_w = column_weights(w, w // 2 + 1)
+        gains, dcs, acc = [], [], None
+        for acc in self._responses(h, w):        # layer by layer: ~60 bytes a pixel at most
+            gains.append(((1.0 - acc).abs() ** 2 * col_w).reshape(-1))
+            dcs.append(acc[0, 0].real)
+        assert acc is not None
+        ops = {"resp12": acc, "gain": torch.stack(gains, dim=1), "dc": torch.stack(dcs)}
+        del gains
         if h % 2 == 0 and w % 2 == 0:
             analysis, synthesis = spectral_operators(self.wavelet, h, w)
-            ops["analysis12"] = analysis * resp[-1]
+            ops["analysis12"] = analysis * acc
             ops["synthesis"] = synthesis
-            ops["col_w"] = column_weights(w, resp.shape[-1])
+            ops["col_w"] = col_w
+            ops["mirror"] = mirror_index(h, w)
         return ops
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -167,7 +181,7 @@ class FeatureBase(nn.Module):
         if "analysis12" in ops:
             # noise spectrum = X - S * Q(f mod (h/2, w/2)): evaluated per quadrant of the
             # half-spectrum (and its Nyquist column) instead of tiling Q.
-            q = alias_average(ops["analysis12"] * spec, h, w)             # [n, h/2, w/2]
+            q = alias_average(ops["analysis12"] * spec, h, w, ops["mirror"])             # [n, h/2, w/2]
             syn, cw = ops["synthesis"], ops["col_w"]
             hh, hw = h // 2, w // 2
             total = torch.zeros(n)
@@ -181,7 +195,7 @@ class FeatureBase(nn.Module):
             var = (total - (dc.real ** 2 + dc.imag ** 2)) / float(h * w) ** 2
             mean = dc.real / float(h * w) + mu.reshape(n) * (1.0 - low_dc)
             return mean, var.clamp_min(0.0).sqrt()
-        o12 = torch.fft.irfft2(spec * ops["resp"][-1], s=(h, w)) + mu * low_dc
+        o12 = torch.fft.irfft2(spec * ops["resp12"], s=(h, w)) + mu * low_dc
         noise13 = xs - lowpass_projection(o12, self.wavelet)
         mean = noise13.mean(dim=(-2, -1))
         var = ((noise13 - mean[:, None, None]) ** 2).mean(dim=(-2, -1))

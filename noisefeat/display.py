@@ -3,6 +3,10 @@
 Linear HDR RGB -> x 2**exposure -> clip to [0, 1] -> sRGB.  Non-finite pixels are never
 propagated: NaN and -Inf become 0 (black), +Inf becomes 1 (white, what clipping a very
 bright sample gives). Callers that need to report them count them with `nonfinite_pixels`.
+
+The exposure is a number of stops in `EXPOSURE_RANGE` ([-64, 64]: 2**64 is far beyond any
+useful display scaling and far inside float range). Outside it, `check_exposure` raises
+ValueError: `2.0 ** 2000` overflowed into a server error and a traceback (issue 14).
 """
 from __future__ import annotations
 
@@ -12,6 +16,7 @@ import torch
 # Rec. 709 / sRGB primaries, D65 white: relative luminance weights.
 LUMA = (0.2126, 0.7152, 0.0722)
 _LAB_EPS = (6.0 / 29.0) ** 3
+EXPOSURE_RANGE = (-64.0, 64.0)
 _LAB_SLOPE = 1.0 / (3.0 * (6.0 / 29.0) ** 2)
 
 
@@ -23,10 +28,22 @@ def nonfinite_pixels(rgb: torch.Tensor) -> torch.Tensor:
     return bad.flatten(start_dim=-2).sum(dim=-1) if bad.ndim >= 2 else bad.long()
 
 
+def check_exposure(exposure: float) -> float:
+    """`exposure` as a float if it is a number of stops in EXPOSURE_RANGE, else ValueError."""
+    low, high = EXPOSURE_RANGE
+    if isinstance(exposure, bool) or not isinstance(exposure, (int, float, np.integer, np.floating)) \
+            or not low <= exposure <= high:
+        shown = exposure if not isinstance(exposure, int) or abs(exposure) < 10**30 else \
+            f"a {len(str(abs(exposure)))}-digit number"
+        raise ValueError(f"exposure must be a number of stops in [{low:g}, {high:g}], got {shown}")
+    return float(exposure)
+
+
 def clipped_linear(rgb: torch.Tensor, exposure: float = 0.0) -> torch.Tensor:
     """Scale by 2**exposure, map non-finite values (rule above), clip to [0, 1]; float32."""
     x = rgb.to(torch.float32)
     if exposure != 0.0:
+        exposure = check_exposure(exposure)
         x = x * float(2.0 ** exposure)
     x = torch.nan_to_num(x, nan=0.0, posinf=1.0, neginf=0.0)  # always a fresh tensor
     return x.clamp_(0.0, 1.0)
@@ -52,13 +69,16 @@ def display(rgb: torch.Tensor | np.ndarray, exposure: float = 0.0) -> torch.Tens
 def display_range(blocks: torch.Tensor | np.ndarray, exposure: float = 0.0) -> np.ndarray:
     """Per block of linear RGB [N, h, w, 3]: the largest per-channel (max - min) of its
     display-referred values, float64 [N] in [0, 1] (0 for an empty block)."""
-    d = display(blocks, exposure)
-    if d.ndim != 4 or d.shape[-1] != 3:
-        raise ValueError(f"expected linear RGB blocks [N, h, w, 3], got shape {tuple(d.shape)}")
-    if d.shape[0] == 0 or d.shape[1] * d.shape[2] == 0:
-        return np.zeros(d.shape[0])
-    flat = d.reshape(d.shape[0], -1, 3)
-    return (flat.amax(dim=1) - flat.amin(dim=1)).amax(dim=1).double().numpy()
+    x = clipped_linear(torch.as_tensor(blocks), exposure)
+    if x.ndim != 4 or x.shape[-1] != 3:
+        raise ValueError(f"expected linear RGB blocks [N, h, w, 3], got shape {tuple(x.shape)}")
+    if x.shape[0] == 0 or x.shape[1] * x.shape[2] == 0:
+        return np.zeros(x.shape[0])
+    # the sRGB transfer is monotonic: the encoded extremes are the extremes encoded, so
+    # only 2 x 3 values per block are encoded (equal to the range of `display` up to one
+    # float32 rounding of torch's vectorised pow; memory: one copy of the blocks, not five)
+    flat = x.reshape(x.shape[0], -1, 3)
+    return (srgb_encode(flat.amax(dim=1)) - srgb_encode(flat.amin(dim=1))).amax(dim=1).double().numpy()
 
 
 def lightness(rgb: torch.Tensor, exposure: float = 0.0) -> torch.Tensor:

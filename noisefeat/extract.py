@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from .base import MIN_SIZE, FeatureBase
-from .display import lightness, nonfinite_pixels
+from .display import check_exposure, lightness, nonfinite_pixels
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +46,7 @@ def extract_features(blocks: np.ndarray | torch.Tensor, *, exposure: float = 0.0
     counted per block, logged, and returned when `return_nonfinite` is set.
     """
     t = _as_blocks(blocks)
-    if not np.isfinite(exposure):
-        raise ValueError(f"exposure must be finite, got {exposure}")
+    exposure = check_exposure(exposure)
     base = base or default_base()
     bad = nonfinite_pixels(t).numpy().astype(np.int64) if t.shape[0] else np.zeros(0, np.int64)
     if bad.any():

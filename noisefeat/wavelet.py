@@ -2,7 +2,8 @@
 
 The filter bank is PyWavelets' own: the 1D analysis and synthesis operators are read off
 `pywt.dwt` / `pywt.idwt` (mode 'periodization') applied to unit vectors, so the indexing
-convention is PyWavelets' by construction. They are run as strided circular filters in
+convention is PyWavelets' by construction (read at a small reference size and wrapped to
+the block's: linear in the block size, see `_taps`). They are run as strided circular filters in
 torch (a few shifted slices per tap), which is far cheaper than dense matrices.
 Odd sizes are extended by one replicated row/column and cropped back.
 """
@@ -30,14 +31,8 @@ def _normal_tensors(fn: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
-@lru_cache(maxsize=64)
-def _taps(wavelet: str, n: int) -> tuple[tuple[tuple[int, float], ...], tuple[tuple[int, float], ...]]:
-    """Non-zero taps (offset, weight) of the analysis row and synthesis column for even n.
-
-    Periodized analysis is stride-2 circulant: cA[k] = sum_m a[m] x[(2k + m) mod n];
-    synthesis (approximation only) is y[n'] = sum_m s[m] u[(n' - m) mod n] with u the
-    zero-upsampled coefficients (u[2k] = cA[k]).
-    """
+def _dense_taps(wavelet: str, n: int) -> tuple[tuple[tuple[int, float], ...], tuple[tuple[int, float], ...]]:
+    """Taps read off PyWavelets applied to the n unit vectors: O(n^2), for small n only."""
     eye = np.eye(n)
     analysis = pywt.dwt(eye, wavelet, mode="periodization", axis=1)[0]  # [n, n/2]: row j = A[:, j]
     a_row = analysis[:, 0]                                                # A[0, :]
@@ -46,6 +41,36 @@ def _taps(wavelet: str, n: int) -> tuple[tuple[tuple[int, float], ...], tuple[tu
     a = tuple((int(m), float(a_row[m])) for m in np.flatnonzero(np.abs(a_row) > 1e-12))
     s = tuple((int(m), float(s_col[m])) for m in np.flatnonzero(np.abs(s_col) > 1e-12))
     return a, s
+
+
+def _reference_size(wavelet: str) -> int:
+    """An even size at which no tap wraps onto another: four filter lengths."""
+    w = pywt.Wavelet(wavelet)
+    return 4 * max(w.dec_len, w.rec_len, 2)
+
+
+@lru_cache(maxsize=64)
+def _taps(wavelet: str, n: int) -> tuple[tuple[tuple[int, float], ...], tuple[tuple[int, float], ...]]:
+    """Non-zero taps (offset, weight) of the analysis row and synthesis column for even n.
+
+    Periodized analysis is stride-2 circulant: cA[k] = sum_m a[m] x[(2k + m) mod n];
+    synthesis (approximation only) is y[n'] = sum_m s[m] u[(n' - m) mod n] with u the
+    zero-upsampled coefficients (u[2k] = cA[k]).
+
+    Cost linear in n (issue 14: reading the taps off an n x n identity took 1.5 GB for
+    n = 8000 and killed the server at n = 40000): above a reference size of four filter
+    lengths the taps, as signed offsets, no longer depend on n, so they are read once at
+    that size and wrapped modulo n (tests compare both routes over many sizes and wavelets).
+    """
+    ref = _reference_size(wavelet)
+    if n <= ref:
+        return _dense_taps(wavelet, n)
+    a, s = _dense_taps(wavelet, ref)
+
+    def wrap(taps: tuple[tuple[int, float], ...]) -> tuple[tuple[int, float], ...]:
+        signed = ((m if m < ref // 2 else m - ref, w) for m, w in taps)
+        return tuple(sorted((m % n, w) for m, w in signed))
+    return wrap(a), wrap(s)
 
 
 def _project_last(x: torch.Tensor, wavelet: str) -> torch.Tensor:
@@ -76,7 +101,6 @@ def _response(taps: tuple[tuple[int, float], ...], n: int, sign: float) -> torch
     return out.to(torch.complex64)
 
 
-@lru_cache(maxsize=32)
 @_normal_tensors
 def spectral_operators(wavelet: str, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Analysis and synthesis responses on the rfft2 half-spectrum of an even h x w block.
@@ -96,7 +120,6 @@ def spectral_operators(wavelet: str, h: int, w: int) -> tuple[torch.Tensor, torc
     return analysis, synthesis
 
 
-@lru_cache(maxsize=32)
 @_normal_tensors
 def mirror_index(h: int, w: int) -> torch.Tensor:
     """Flat rfft2-half indices of G[-f1, w/2 - g2] for g2 in 0..w/2-1 (one gather)."""
@@ -106,14 +129,16 @@ def mirror_index(h: int, w: int) -> torch.Tensor:
     return (rows[:, None] * wr + cols[None, :]).reshape(-1)
 
 
-def alias_average(g: torch.Tensor, h: int, w: int) -> torch.Tensor:
+def alias_average(g: torch.Tensor, h: int, w: int, index: torch.Tensor | None = None) -> torch.Tensor:
     """Q(g) = 1/4 sum of G over the four aliases, on the quarter grid [.., h/2, w/2].
 
     G is the rfft2 half-spectrum [.., h, w//2+1] of a real signal (conjugate-symmetric),
-    so its columns beyond w/2 are conj(G[-f1, w - f2]): one precomputed gather.
+    so its columns beyond w/2 are conj(G[-f1, w - f2]): one gather, by `index`
+    (`mirror_index(h, w)`, which callers keep in their own bounded cache) or computed here.
     """
     half_w, half_h = w // 2, h // 2
     flat = g.reshape(*g.shape[:-2], -1)
-    mirrored = torch.conj(flat.index_select(-1, mirror_index(h, w)).reshape(*g.shape[:-2], h, half_w))
+    index = mirror_index(h, w) if index is None else index
+    mirrored = torch.conj(flat.index_select(-1, index).reshape(*g.shape[:-2], h, half_w))
     cols = g[..., :half_w] + mirrored                                 # [.., h, w/2]
     return 0.25 * (cols[..., :half_h, :] + cols[..., half_h:, :])      # [.., h/2, w/2]

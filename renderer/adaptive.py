@@ -8,7 +8,8 @@ Loop, one *pass* at a time (pass p adds `step` samples per pixel to every active
 3. once spp >= min_spp, ask the criterion about the active blocks only; a block it calls
    converged leaves the active set for good: never rendered, featured or asked again;
 4. checkpoint everything (accumulator, active set, verdict history, counters, timers, pass
-   index) atomically into out/checkpoint.npz (np.savez, read back with allow_pickle=False).
+   index) atomically into out/checkpoint.npz (`renderer.checkpoint`: digest-checked and
+   validated against the settings before a resume trusts it).
 
 It stops when no block is active or max_spp is reached. Because seeds depend only on
 (seed, block, pass) and the checkpoint holds all state, ``resume=True`` after a crash
@@ -19,8 +20,6 @@ criterion needs it; it is stored in the checkpoint so a resume does not re-rende
 """
 from __future__ import annotations
 
-import io
-import json
 import logging
 import math
 import os
@@ -34,21 +33,19 @@ import numpy as np
 from tqdm import tqdm
 
 from learning.accumulator import BlockAccumulator
-from learning.exr import atomic_write_bytes
 from learning.stack import Stack
 from learning.stoprule import decide_active
+from noisefeat.bounds import SizeBounds
 
 from .blocks import BlockRenderer
+from .checkpoint import CHECKPOINT, load_checkpoint, save_checkpoint
 from .criteria import COUNTER_NAMES, DEFAULT_CRITERION, TIMER_NAMES, BlockView, Criterion, build_criterion
-from .outputs import write_outputs
+from .outputs import prepare_output_dir, write_outputs
+from .settings import check_spp_settings, resolve_settings
 from .settings import describe as describe_settings
-from .settings import resolve_settings
 
 logger = logging.getLogger(__name__)
 
-CHECKPOINT = "checkpoint.npz"
-CHECKPOINT_FORMAT = "noisestop-adaptive-checkpoint"
-CHECKPOINT_VERSION = 1
 
 
 def scene_label(scene: str | os.PathLike) -> str:
@@ -61,71 +58,6 @@ def pass_sizes(step: int, max_spp: int) -> list[int]:
     """spp of every pass up to max_spp (the last one may be shorter)."""
     n = math.ceil(max_spp / step)
     return [min(step, max_spp - p * step) for p in range(n)]
-
-
-# ----------------------------------------------------------------------------- checkpoint
-
-
-def _str_array(text: str) -> np.ndarray:
-    return np.array(text)  # 0-d unicode array: no pickle needed
-
-
-def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    """np.savez into memory, then an atomic write (never a half-written checkpoint)."""
-    arrays: dict[str, np.ndarray] = {
-        "format": _str_array(CHECKPOINT_FORMAT),
-        "version": np.int64(CHECKPOINT_VERSION),
-        "settings": _str_array(json.dumps(state["settings"], sort_keys=True)),
-        "active": np.asarray(state["active"], bool),
-        "stop_spp": np.asarray(state["stop_spp"], np.int64),
-        "history": np.asarray(state["history"], np.int8).reshape(-1, len(state["active"])),
-        "history_spp": np.asarray(state["history_spp"], np.int64),
-        "rendered": np.asarray(state["rendered"], np.int64),
-        "pass_index": np.int64(state["pass_index"]),
-        "done": np.bool_(state["done"]),
-        "counter_names": np.array(list(state["counters"]), dtype=str),
-        "counter_values": np.array(list(state["counters"].values()), np.int64),
-        "timer_names": np.array(list(state["timers"]), dtype=str),
-        "timer_values": np.array(list(state["timers"].values()), np.float64),
-        "quick": np.zeros((0, 0, 3), np.float32) if state["quick"] is None else state["quick"],
-    }
-    for k, v in state["acc"].items():
-        arrays[f"acc_{k}"] = v
-    buf = io.BytesIO()
-    np.savez(buf, **arrays)
-    atomic_write_bytes(path, buf.getvalue())
-
-
-def load_checkpoint(path: Path, settings: dict[str, Any]) -> dict[str, Any]:
-    """Read a checkpoint written by `save_checkpoint` for the same settings, or raise ValueError."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError) as exc:
-        raise ValueError(f"{path}: unreadable checkpoint ({exc}); delete it to start over") from exc
-    if str(data.get("format", "")) != CHECKPOINT_FORMAT or int(data.get("version", -1)) != CHECKPOINT_VERSION:
-        raise ValueError(f"{path}: not a noisestop adaptive-render checkpoint (version {CHECKPOINT_VERSION})")
-    saved = json.loads(str(data["settings"]))
-    if saved != json.loads(json.dumps(settings, sort_keys=True)):
-        diff = [f"{k}: {saved.get(k)!r} then, {settings.get(k)!r} now"
-                for k in sorted(set(saved) | set(settings)) if saved.get(k) != settings.get(k)]
-        raise ValueError(f"{path}: checkpoint was made with other settings ({'; '.join(diff)}); "
-                         "rerun with the same options or without --resume to start over")
-    acc = BlockAccumulator.from_state({k[4:]: v for k, v in data.items() if k.startswith("acc_")})
-    quick = data["quick"]
-    return {
-        "acc": acc,
-        "active": data["active"].astype(bool),
-        "stop_spp": data["stop_spp"].astype(np.int64),
-        "history": data["history"].astype(np.int8),
-        "history_spp": data["history_spp"].astype(np.int64),
-        "rendered": data["rendered"].astype(np.int64),
-        "pass_index": int(data["pass_index"]),
-        "done": bool(data["done"]),
-        "counters": dict(zip(data["counter_names"].tolist(), data["counter_values"].tolist())),
-        "timers": dict(zip(data["timer_names"].tolist(), data["timer_values"].tolist())),
-        "quick": None if quick.size == 0 else quick,
-    }
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -143,17 +75,17 @@ def _resolve_criterion(criterion: Criterion | str, reference: Stack | None) -> C
 
 def _check_args(resolution: int | None, grid: Sequence[int], step: int, min_spp: int, max_spp: int
                 ) -> tuple[int, int]:
-    """Resolution None (the scene's own) passes; anything else must be a positive integer."""
-    for name, v in (("resolution", resolution), ("step", step), ("min_spp", min_spp), ("max_spp", max_spp)):
-        if name == "resolution" and v is None:
-            continue
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-            raise ValueError(f"{name} must be a positive integer, got {v!r}")
-    if len(grid) != 2 or any(int(g) < 1 for g in grid):
+    """Documented ranges (renderer.settings, noisefeat.bounds), checked before the scene is
+    loaded: resolution None (the scene's own) passes, else its frame and blocks must fit."""
+    check_spp_settings(step, min_spp, max_spp)
+    if len(grid) != 2 or any(isinstance(g, bool) or not isinstance(g, (int, np.integer)) or g < 1 for g in grid):
         raise ValueError(f"grid must be two positive integers (rows, columns), got {grid!r}")
-    if min_spp > max_spp:
-        raise ValueError(f"min_spp ({min_spp}) is above max_spp ({max_spp})")
-    return int(grid[0]), int(grid[1])
+    gh, gw = int(grid[0]), int(grid[1])
+    if resolution is not None:
+        if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or resolution < 1:
+            raise ValueError(f"resolution must be a positive integer, got {resolution!r}")
+        SizeBounds.from_env().check_frame(int(resolution), int(resolution), (gh, gw))
+    return gh, gw
 
 
 def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion: Criterion | str, *,
@@ -184,12 +116,12 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     resolution, grid, step, min_spp, max_spp = (values[k] for k in given)
     gh, gw = _check_args(resolution, grid, step, min_spp, max_spp)
     crit = _resolve_criterion(criterion, ref_stack)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = prepare_output_dir(out)           # exists or can be made, and writable: before any pass
     ckpt_path = out / CHECKPOINT
 
     variant = select_variant()
     br = BlockRenderer(load_scene(scene, resolution), (gh, gw))
+    SizeBounds.from_env().check_frame(br.height, br.width, (gh, gw))   # an XML film decides its own size
     n = br.n_blocks
     values["resolution"] = [br.width, br.height]
     logger.info("%s: %s, exposure %g", label, describe_settings(values, sources), getattr(crit, "exposure", 0.0))
@@ -209,7 +141,8 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
 
     state: dict[str, Any] | None = None
     if resume and ckpt_path.exists():
-        state = load_checkpoint(ckpt_path, settings)
+        state = load_checkpoint(ckpt_path, settings, sizes=sizes, grid=(gh, gw), block=br.block_shape,
+                                frame=(br.height, br.width))
         logger.info("%s: resuming after pass %d (%d active blocks)", ckpt_path, state["pass_index"],
                     int(state["active"].sum()))
     else:
@@ -421,8 +354,7 @@ def render_many(scenes: Sequence[str | os.PathLike], out: str | os.PathLike, cri
     dupes = sorted({x for x in labels if labels.count(x) > 1})
     if dupes:
         raise ValueError(f"scenes would share output directories: {', '.join(dupes)}")
-    root = Path(out).resolve()
-    root.mkdir(parents=True, exist_ok=True)
+    root = prepare_output_dir(Path(out).resolve())
     t0 = time.perf_counter()
     reports: dict[str, Any] = {}
     failed: dict[str, str] = {}
@@ -455,6 +387,7 @@ def render_command(scenes: str | Sequence[str], out: str | os.PathLike, *, crite
     names = [s.strip() for s in scenes.split(",") if s.strip()] if isinstance(scenes, str) else list(scenes)
     if not names:
         raise ValueError("no scene given")
+    prepare_output_dir(out)                 # a bad --out fails before any model or scene is loaded
     if criterion == "oracle" and reference is None:
         raise ValueError("--criterion oracle needs --reference DIR (a labelled dataset or stack of the scene)")
     if criterion != "model" and (model or server or offset is not None):

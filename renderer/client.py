@@ -10,8 +10,9 @@ true``. Responses are parsed whether the server answered in binary or in JSON.
 
 Errors are explicit: a 4xx answer raises ValueError and a 5xx answer ConnectionError,
 both quoting the server's ``{"error": ...}`` message; an unreachable server raises
-ConnectionError after a bounded number of retries. Only connection failures (refused,
-reset, dropped) are retried; a timeout or an HTTP error answer is not.
+ConnectionError after a bounded number of retries. Connection failures (refused, reset,
+dropped) are retried, and so is a 503 that carries Retry-After (a server at its in-flight
+or memory limit); a timeout or any other HTTP error answer is not.
 
 This module never imports the `service` package (DESIGN: renderer talks to the service
 over HTTP only).
@@ -127,7 +128,17 @@ class RemoteModel:
                     return resp.status, {k.lower(): v for k, v in resp.headers.items()}, resp.read()
             except urllib.error.HTTPError as exc:
                 with exc:
-                    return exc.code, {k.lower(): v for k, v in (exc.headers or {}).items()}, exc.read()
+                    status, answer = exc.code, exc.read()
+                    got = {k.lower(): v for k, v in (exc.headers or {}).items()}
+                retry_after = got.get("retry-after", "")
+                if status == 503 and retry_after.isdigit() and attempt <= self.retries:
+                    # a busy server (its in-flight or memory limit) says when to come back
+                    delay = min(float(retry_after), 30.0) + self.backoff * (attempt - 1)
+                    logger.warning("%s %s: server busy (503); retry %d/%d in %.2f s", method, url, attempt,
+                                   self.retries, delay)
+                    time.sleep(delay)
+                    continue
+                return status, got, answer
             except (TimeoutError, socket.timeout) as exc:
                 raise ConnectionError(f"{method} {url}: no answer within {self.timeout:g} s") from exc
             except (urllib.error.URLError, ConnectionError, http.client.RemoteDisconnected,

@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -25,6 +26,28 @@ FINAL_PNG = "final.png"
 SPP_MAP = "spp_map.png"
 REPORT = "report.json"
 COMPARE = "compare.png"
+
+
+def prepare_output_dir(path: str | os.PathLike) -> Path:
+    """`path` as an existing, writable directory, or a one-line error before any work.
+
+    Why (issue 14): `--out` naming a file ended in a FileExistsError traceback, and a
+    read-only folder failed only after the first pass had been rendered. Writability is
+    probed by creating and removing a file, which is what counts (permission bits do not
+    bind root, a read-only mount binds everyone)."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise NotADirectoryError(f"{p}: exists and is not a directory (the output must be a folder)")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PermissionError(f"{p}: cannot create the output folder ({exc.strerror or exc})") from None
+    try:
+        with tempfile.NamedTemporaryFile(dir=p, prefix=".write-probe-"):
+            pass
+    except OSError as exc:
+        raise PermissionError(f"{p}: the output folder is not writable ({exc.strerror or exc})") from None
+    return p
 
 
 def to_srgb8(image: np.ndarray, exposure: float = 0.0) -> np.ndarray:

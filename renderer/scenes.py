@@ -409,6 +409,8 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: int | None = No
         scene = mi.load_file(path, **params)
     except Exception as exc:  # Mitsuba raises RuntimeError with its parser message
         raise ValueError(f"{path}: Mitsuba could not load this scene: {exc}") from exc
+    if not scene.sensors():
+        raise ValueError(f"{path}: the scene has no <sensor> (camera) to render from; add one")
     size = tuple(int(v) for v in scene.sensors()[0].film().size())
     if resolution is not None and not params:
         logger.warning("%s declares no resolution parameter; keeping its film size %dx%d",

@@ -20,10 +20,16 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
+
 from learning.stack import Stack
 
 #: used only when neither the command line, the reference nor the scene says
 DEFAULTS: dict[str, Any] = {"grid": (4, 4), "step": 16, "min_spp": 16, "max_spp": 1024}
+#: documented ranges (issue 14): spp settings are whole numbers in [1, MAX_SPP], and a render
+#: makes at most MAX_PASSES passes (each appends a row to the checkpointed history)
+MAX_SPP = 1 << 20
+MAX_PASSES = 10_000
 KEYS = ("resolution", "grid", "step", "min_spp", "max_spp")
 SCENE = "scene"
 COMMAND_LINE = "command line"
@@ -68,6 +74,19 @@ def resolve_settings(given: Mapping[str, Any], reference: Stack | None = None
         values[loser] = values["max_spp" if loser == "min_spp" else "min_spp"]
         sources[loser] += f" (clipped to {loser.replace('_spp', '')} = the other bound)"
     return values, sources
+
+
+def check_spp_settings(step: Any, min_spp: Any, max_spp: Any) -> None:
+    """step, min_spp and max_spp in [1, MAX_SPP], min_spp <= max_spp, at most MAX_PASSES passes."""
+    for name, v in (("step", step), ("min_spp", min_spp), ("max_spp", max_spp)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= MAX_SPP:
+            raise ValueError(f"{name} must be a positive integer, at most {MAX_SPP}, got {v!r}")
+    if min_spp > max_spp:
+        raise ValueError(f"min_spp ({min_spp}) is above max_spp ({max_spp})")
+    passes = -(-int(max_spp) // int(step))
+    if passes > MAX_PASSES:
+        raise ValueError(f"max_spp {max_spp} in steps of {step} is {passes} passes, more than {MAX_PASSES}: "
+                         "take a larger step")
 
 
 def describe(values: Mapping[str, Any], sources: Mapping[str, str]) -> str:

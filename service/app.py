@@ -14,7 +14,6 @@ limiter), so the event loop keeps serving probes and uploads while the CPU works
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Annotated, Any
@@ -27,14 +26,19 @@ from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from pydantic.json_schema import models_json_schema
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
+
+from learning.stoprule import OFFSET_LIMIT
+from noisefeat.display import EXPOSURE_RANGE
 
 from .auth import require_token
-from .limits import BodyLimitMiddleware, Limits
+from .connections import InFlightLimitMiddleware
+from .limits import BodyLimitMiddleware, Limits, MemoryBudget, release_memory
 from .metrics import ServiceMetrics
 from .oip import (BINARY_EXTENSION, HEADER_LENGTH, ApiError, ErrorResponse, InferenceRequest,
                   InferenceResponse, LiveResponse, ModelMetadata, ModelReadyResponse, ReadyResponse,
                   RepositoryModel, RequestOutput, ResponseOutput, ServerMetadata, decode_tensors,
-                  encode_response, param, parse_request, split_body)
+                  encode_response, may_hold_bools, number_param, param, parse_request, split_body)
 from .registry import DEFAULT, OUTPUTS, ModelRegistry, ServedModel
 
 log = logging.getLogger(__name__)
@@ -42,9 +46,13 @@ log = logging.getLogger(__name__)
 SERVER_NAME = "noisestop"
 BINARY_MEDIA = "application/octet-stream"
 
-_DESCRIPTIONS = {400: "bad request (shape, datatype, data, JSON)", 401: "missing or wrong bearer token",
-                 404: "unknown model or version", 413: "body or batch over the server's limit",
-                 415: "compressed request body"}
+_DESCRIPTIONS = {400: "bad request (shape, datatype, data, parameter out of range, JSON)",
+                 401: "missing or wrong bearer token", 404: "unknown model or version",
+                 408: "request body stopped arriving (serve --body-timeout)",
+                 413: "body, batch, block side or pixel count over the server's limit",
+                 415: "compressed request body",
+                 503: "too many requests in flight (serve --limit-concurrency, --memory-budget); "
+                      "retry after Retry-After"}
 
 
 # A decimal string (HTTP headers are text); absent: the whole body is JSON.
@@ -67,8 +75,12 @@ def _version() -> str:
 
 
 def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Limits | None = None,
-               inference_threads: int = 2, metrics: ServiceMetrics | None = None) -> FastAPI:
-    """The ASGI app; models load in its lifespan (now, if `registry` is not loaded yet)."""
+               inference_threads: int = 2, metrics: ServiceMetrics | None = None,
+               limit_concurrency: int | None = None, body_timeout: float | None = None) -> FastAPI:
+    """The ASGI app; models load in its lifespan (now, if `registry` is not loaded yet).
+
+    `limit_concurrency`: most requests in flight, health probes and /metrics not counted
+    (None: no limit); `body_timeout`: seconds a request body may stall (None: no limit)."""
     limits = limits or Limits()
     metrics = metrics or ServiceMetrics()
 
@@ -88,7 +100,9 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
     app.state.registry = registry
     app.state.limits = limits
     app.state.metrics = metrics
-    app.add_middleware(BodyLimitMiddleware, max_bytes=limits.max_body_bytes)
+    app.state.memory_budget = MemoryBudget(limits.memory_budget)
+    app.add_middleware(BodyLimitMiddleware, max_bytes=limits.max_body_bytes, body_timeout=body_timeout,
+                       budget=app.state.memory_budget)
     metrics.instrument(app, dependencies=[Depends(require_token)], tags=["metrics"], responses={
         200: {"description": "Prometheus text format",
               "content": {"text/plain": {"schema": {"type": "string"}}}},
@@ -96,6 +110,8 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
     _add_error_handlers(app)
     app.include_router(_health_routes(registry))
     app.include_router(_api_routes(registry))
+    if limit_concurrency is not None:   # added last: the outermost, before any body is read
+        app.add_middleware(InFlightLimitMiddleware, limit=limit_concurrency)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
 
@@ -174,7 +190,7 @@ def _api_routes(registry: ModelRegistry) -> APIRouter:
         return ModelReadyResponse(name=model_name, ready=True)
 
     infer_doc: dict[str, Any] = dict(
-        responses={**_INFER_OK, **_errors(400, 401, 404, 413, 415)}, response_model=None,
+        responses={**_INFER_OK, **_errors(400, 401, 404, 408, 413, 415, 503)}, response_model=None,
         openapi_extra=_INFER_BODY, tags=["models"])
 
     @router.post("/models/{model_name}/infer", **infer_doc)
@@ -193,30 +209,59 @@ def _api_routes(registry: ModelRegistry) -> APIRouter:
 async def _infer(request: Request, served: ServedModel, header_length: str | None) -> Response:
     if request.headers.get("content-encoding", "identity").strip().lower() not in ("identity", ""):
         raise ApiError(415, "compressed request bodies are not accepted (Content-Encoding must be identity)")
-    body = await request.body()  # counted against the limit by BodyLimitMiddleware
+    body = [await _read_body(request)]  # counted against the limit by BodyLimitMiddleware
     state = request.app.state
     length = None if header_length is None else int(header_length)
-    content, json_length = await anyio.to_thread.run_sync(
-        _infer_sync, served, body, length, state.limits, state.metrics, limiter=state.limiter)
+    try:
+        content, json_length = await anyio.to_thread.run_sync(
+            _infer_sync, served, body, length, state.limits, state.metrics, limiter=state.limiter)
+    finally:
+        release_memory()
     if json_length is None:
         return Response(content, media_type="application/json")
     return Response(content, media_type=BINARY_MEDIA, headers={HEADER_LENGTH: str(json_length)})
 
 
-def _infer_sync(served: ServedModel, body: bytes, header_length: int | None, limits: Limits,
+async def _read_body(request: Request) -> bytearray:
+    """The body in one buffer sized by Content-Length when declared (Starlette's
+    `request.body()` joins a list of chunks: twice the body at its peak)."""
+    declared = request.headers.get("content-length", "")
+    buf = bytearray(int(declared)) if declared.isdigit() else bytearray()
+    pos = 0
+    try:
+        async for chunk in request.stream():
+            if pos + len(chunk) > len(buf):
+                buf[pos:] = chunk                      # more than declared (or none declared)
+            else:
+                buf[pos:pos + len(chunk)] = chunk
+            pos += len(chunk)
+    except ClientDisconnect:   # the client went away mid-body: its problem, not a server error
+        raise ApiError(400, f"client disconnected after {pos} body bytes") from None
+    del buf[pos:]                                      # less than declared
+    return buf
+
+
+def _infer_sync(served: ServedModel, body: list[bytearray], header_length: int | None, limits: Limits,
                 metrics: ServiceMetrics) -> tuple[bytes, int | None]:
-    """Decode, classify, encode: everything CPU-bound about one request, in a worker thread."""
-    head, tail = split_body(body, header_length)
+    """Decode, classify, encode: everything CPU-bound about one request, in a worker thread.
+    `body` is a one-item list, emptied once the tensors are decoded so that the request's
+    bytes are freed before the model runs."""
+    if header_length is None:                  # all JSON: parsed in place
+        head, tail = body[0], b""
+    else:
+        head, tail = split_body(memoryview(body[0]), header_length)
+        head = bytes(head)
     req = parse_request(head)
-    tensors = decode_tensors(req, tail, limits.max_batch)
-    exposure = param(req.parameters, "exposure", (int, float), 0.0)
-    if not math.isfinite(exposure):
-        raise ApiError(400, f"parameter 'exposure' must be finite, got {exposure}")
-    offset = param(req.parameters, "offset", (int, float), None)
-    if offset is not None and not math.isfinite(offset):
-        raise ApiError(400, f"parameter 'offset' must be finite, got {offset}")
+    exposure = number_param(req.parameters, "exposure", 0.0, *EXPOSURE_RANGE)
+    offset = number_param(req.parameters, "offset", None, -OFFSET_LIMIT, OFFSET_LIMIT)
+    limits.check_shapes(req.inputs)       # what the request declares, before any tensor is built
     wanted = _requested_outputs(req)
-    arrays, parameters = served.infer(tensors, float(exposure), None if offset is None else float(offset))
+    tensors = decode_tensors(req, tail, limits.max_batch, scan_bools=may_hold_bools(head))
+    del head, tail
+    body.clear()
+    for t in req.inputs:       # the parsed JSON values (~10x the body): no longer needed
+        t.data = None
+    arrays, parameters = served.infer(tensors, exposure, offset)
     metrics.record(served.name, arrays["verdict"], parameters)
     resp = InferenceResponse(
         model_name=served.name, model_version=served.version, id=req.id, parameters=parameters or None,

@@ -1,8 +1,11 @@
 """The `noisestop` command line (DESIGN.md "Command line").
 
 Logs and progress go to stderr; with --json, stdout carries one JSON object and nothing
-else. Bad input ends with a one-line error and exit status 2, never a traceback (set
-NOISESTOP_DEBUG=1 to see one).
+else. Every failure of a command ends with one line on stderr, `noisestop CMD: error:
+...`, and exit status 2, never a traceback (set NOISESTOP_DEBUG=1 to see one): bad input
+and unusable files say what is wrong with them; anything else is reported as an
+unexpected error with its type, which is a bug to report (issue 14 made this a contract,
+tests/test_error_contract.py holds every command to it).
 """
 from __future__ import annotations
 
@@ -12,7 +15,7 @@ import logging
 import os
 import sys
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, NoReturn
 
 log = logging.getLogger("noisestop")
 
@@ -40,9 +43,16 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    """argparse's usage errors as one line too (it prints the whole usage block first)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (--help for usage)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from . import commands
-    parser = argparse.ArgumentParser(
+    parser = _OneLineParser(
         prog="noisestop", description="Perceptual stopping for Monte Carlo path tracing.")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (stderr)")
     parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
@@ -67,11 +77,39 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("noisestop: interrupted", file=sys.stderr)
         return 130
-    except (UsageError, ValueError, FileNotFoundError, NotADirectoryError, PermissionError) as exc:
+    except (UsageError, ValueError, OSError, RecursionError, MemoryError) as exc:
         if debug:
             raise
-        print(f"noisestop {args.command}: error: {exc}", file=sys.stderr)
+        _close_progress_bars()
+        print(f"noisestop {args.command}: error: {one_line(exc)}", file=sys.stderr)
         return 2
+    except Exception as exc:   # a bug: still one line, with what it was
+        if debug:
+            raise
+        _close_progress_bars()
+        print(f"noisestop {args.command}: error: unexpected {type(exc).__name__}: {one_line(exc)} "
+              "(a bug; NOISESTOP_DEBUG=1 shows where)", file=sys.stderr)
+        return 2
+
+
+def _close_progress_bars() -> None:
+    """A bar interrupted by the error would share its line; closed, it clears itself."""
+    tqdm = sys.modules.get("tqdm")
+    for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", ()) or ()):
+        try:
+            bar.close()
+        except Exception:   # a bar in a bad state must not hide the error line
+            pass
+
+
+def one_line(exc: BaseException, limit: int = 2000) -> str:
+    """An exception's message on one line (Mitsuba's parser errors span several)."""
+    if isinstance(exc, MemoryError):
+        return "out of memory" + (f" ({exc})" if str(exc) else "")
+    if isinstance(exc, RecursionError):
+        return f"input nested too deeply ({exc})"
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= limit else text[:limit] + "..."
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from collections.abc import Callable
 
 from .cli import UsageError, emit_json, log
 
@@ -13,26 +14,71 @@ QUICK_MODES = ("halves", "albedo", "direct", "none")
 CRITERIA = ("model", "flip", "variance", "uniform", "oracle")
 DEFAULT_CRITERION = "flip"     # renderer.criteria.DEFAULT_CRITERION
 DEFAULT_INPUT = "halves"       # the input `train` uses unless told (README "Model inputs")
+#: documented ranges of the numeric arguments (issue 14), spelled out like the tables above
+#: (tests/test_cli.py checks they agree): renderer.settings.MAX_SPP, noisefeat.display.
+#: EXPOSURE_RANGE, learning.stoprule.OFFSET_LIMIT, noisefeat.bounds.MIN_SIDE. Frame and
+#: block sizes are also checked against noisefeat.bounds (environment-configurable) by the
+#: commands themselves.
+MAX_SPP = 1 << 20
+EXPOSURE_RANGE = (-64.0, 64.0)
+OFFSET_LIMIT = 1e6
+MIN_SIDE = 8
+MAX_SIDE = 65536
+MAX_SEED = 2**32 - 1
 
 
-def _positive_int(text: str) -> int:
+def _int_in(low: int, high: int | None = None) -> Callable[[str], int]:
+    """argparse type: a whole number in [low, high] (high None: no upper bound)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text[:40]!r}") from None
+        if value < low or (high is not None and value > high):
+            shown = value if len(str(value)) < 30 else f"a {len(str(value))}-digit number"
+            bound = f" and <= {high}" if high is not None else ""
+            raise argparse.ArgumentTypeError(f"expected a number >= {low}{bound}, got {shown}")
+        return value
+    parse.__name__ = "whole number"
+    return parse
+
+
+def _float_in(low: float, high: float, *, open_low: bool = False) -> Callable[[str], float]:
+    """argparse type: a finite number in [low, high] ((low, high] with open_low)."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text[:40]!r}") from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"expected a finite number, got {text[:40]!r}")
+        if value < low or value > high or (open_low and value == low):
+            raise argparse.ArgumentTypeError(
+                f"expected a number in {'(' if open_low else '['}{low:g}, {high:g}], got {value:g}")
+        return value
+    parse.__name__ = "number"
+    return parse
+
+
+_positive_int = _int_in(1)
+_spp = _int_in(1, MAX_SPP)
+_side = _int_in(1, MAX_SIDE)
+_seed = _int_in(0, MAX_SEED)
+_offset = _float_in(-OFFSET_LIMIT, OFFSET_LIMIT)
+_exposure = _float_in(*EXPOSURE_RANGE)
+_fraction = _float_in(0.0, 1.0, open_low=True)
+_rate = _float_in(0.0, 1.0)
+_seconds = _float_in(0.0, 3600.0, open_low=True)
+_threshold = _float_in(0.0, 1000.0)
+
+
+def _check_frame(height: int, width: int, grid: tuple[int, int], what: str) -> None:
+    """The frame and block bounds of noisefeat.bounds (environment-configurable), as a usage error."""
+    from noisefeat.bounds import SizeBounds
     try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a number >= 1, got {value}")
-    return value
-
-
-def _finite_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
-    return value
+        SizeBounds.from_env().check_frame(height, width, grid)
+    except ValueError as exc:
+        raise UsageError(f"{what}: {exc}") from None
 
 
 def _quick_modes(text: str) -> tuple[str, ...]:
@@ -53,10 +99,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("features", help="render a scene at low spp and print each block's 26 features")
     p.add_argument("--scene", default=None, help="built-in scene name or Mitsuba 3 XML file")
-    p.add_argument("--resolution", type=_positive_int, default=128)
-    p.add_argument("--spp", type=_positive_int, default=16)
-    p.add_argument("--grid", type=_positive_int, nargs=2, default=(4, 4), metavar=("ROWS", "COLS"))
-    p.add_argument("--exposure", type=float, default=0.0)
+    p.add_argument("--resolution", type=_side, default=128)
+    p.add_argument("--spp", type=_spp, default=16)
+    p.add_argument("--grid", type=_side, nargs=2, default=(4, 4), metavar=("ROWS", "COLS"))
+    p.add_argument("--exposure", type=_exposure, default=0.0)
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_features)
 
@@ -66,8 +112,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("bench", help="measure the figures of BENCHMARKS.md")
     p.add_argument("what", nargs="*", default=["features", "crop"],
-                   help="sections: features, crop, models, render, service, stability, dataset, inputs, "
-                        "criteria, tradeoff, ablation, step, knobs (default: features crop)")
+                   help="sections: features, crop, models, render, service, stability, reliability, dataset, "
+                        "inputs, criteria, tradeoff, ablation, step, knobs (default: features crop)")
     p.add_argument("--data", default=None, help="labelled dataset of training scenes")
     p.add_argument("--heldout", default=None,
                    help="labelled dataset of held-out scenes every figure is measured on (make "
@@ -81,7 +127,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         f"({', '.join(QUICK_MODES)}; default albedo)")
     p.add_argument("--update", default=None, metavar="FILE",
                    help="rewrite the marked sections of FILE (e.g. BENCHMARKS.md) with the results")
-    p.add_argument("--repeats", type=_positive_int, default=30)
+    p.add_argument("--repeats", type=_int_in(1, 10_000), default=30)
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_bench)
 
@@ -89,7 +135,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _add_pool_arguments(p: argparse.ArgumentParser, purpose: str) -> None:
     """--workers N | --scheduler ADDRESS: where per-scene tasks run (renderer.farm)."""
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=_positive_int, default=None,
+    where.add_argument("--workers", type=_int_in(1, 1024), default=None,
                        help=f"local process workers{purpose} (default: one per core)")
     where.add_argument("--scheduler", default=None,
                        help=f"Dask scheduler address{purpose}, e.g. tcp://host:8786")
@@ -106,15 +152,15 @@ def _register_dataset(sub: argparse._SubParsersAction) -> None:
                         "procedural:N for the first N, procedural:A-B for seeds A..B-1), or the sets "
                         "'training' (the training library, the default) and 'heldout' (scenes kept out "
                         "of all training)")
-    p.add_argument("--resolution", type=_positive_int, default=512)
-    p.add_argument("--block", type=_positive_int, default=None,
+    p.add_argument("--resolution", type=_side, default=512)
+    p.add_argument("--block", type=_int_in(MIN_SIDE, MAX_SIDE), default=None,
                    help="block side in pixels (default: a 4x4 grid, the paper's); must divide --resolution")
-    p.add_argument("--step", type=_positive_int, default=101, help="spp added per level")
-    p.add_argument("--levels", type=_positive_int, default=100)
-    p.add_argument("--reference-spp", type=_positive_int, default=None,
+    p.add_argument("--step", type=_spp, default=101, help="spp added per level")
+    p.add_argument("--levels", type=_int_in(1, 100_000), default=100)
+    p.add_argument("--reference-spp", type=_spp, default=None,
                    help="default: 4 x the last level")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--tau", type=float, default=0.02, help="virtual observer threshold on FLIP")
+    p.add_argument("--seed", type=_seed, default=0)
+    p.add_argument("--tau", type=_fraction, default=0.02, help="virtual observer threshold on FLIP")
     p.add_argument("--no-contact-sheets", action="store_true")
     _add_pool_arguments(p, "")
     p.add_argument("--json", action="store_true")
@@ -123,7 +169,7 @@ def _register_dataset(sub: argparse._SubParsersAction) -> None:
     p = dsub.add_parser("import-lisic", help="import a dataset in the LISIC layout")
     p.add_argument("src")
     p.add_argument("--out", required=True)
-    p.add_argument("--every", type=_positive_int, default=1, help="keep one image in EVERY")
+    p.add_argument("--every", type=_int_in(1, 1_000_000), default=1, help="keep one image in EVERY")
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_import_lisic)
 
@@ -147,13 +193,19 @@ def cmd_dataset_build(args: argparse.Namespace) -> int:
         family = expand_procedural(s)
         scenes += family if family is not None else [name for name, _ in list_scenes(sets[s])] \
             if s in sets else [s] if s else []
-    ref = args.reference_spp or 4 * args.step * args.levels
+    if args.step * args.levels > MAX_SPP:
+        raise UsageError(f"--step {args.step} x --levels {args.levels} is {args.step * args.levels} spp, "
+                         f"more than {MAX_SPP}")
+    ref = args.reference_spp or min(4 * args.step * args.levels, MAX_SPP)
+    if ref < args.step * args.levels:
+        raise UsageError(f"--reference-spp {ref} is below the last level's {args.step * args.levels} spp")
     grid = (4, 4)
     if args.block is not None:
         if args.resolution % args.block:
             raise UsageError(f"--block {args.block} does not divide --resolution {args.resolution}: "
                              "stacks keep a grid of equal blocks")
         grid = (args.resolution // args.block,) * 2
+    _check_frame(args.resolution, args.resolution, grid, "--resolution/--block")
     settings = BuildSettings(resolution=args.resolution, step=args.step, levels=args.levels, grid=grid,
                              reference_spp=ref, seed=args.seed, tau=args.tau,
                              contact_sheet=not args.no_contact_sheets)
@@ -211,10 +263,10 @@ def _register_learning(sub: argparse._SubParsersAction) -> None:
                         "is trained on, unless --test-scenes says otherwise)")
     p.add_argument("--initial-scene", default=None, help="active kinds: the initially labelled scene(s), comma-separated (default: the "
                         "scenes closest to half converged, at least 500 sub-images)")
-    p.add_argument("--label-budget", type=float, default=0.25,
+    p.add_argument("--label-budget", type=_fraction, default=0.25,
                    help="active kinds: largest fraction of the pool's labels to query")
     p.add_argument("--no-cv", action="store_true", help="skip the C/gamma cross-validation")
-    p.add_argument("--max-early-stop", type=float, default=0.05,
+    p.add_argument("--max-early-stop", type=_rate, default=0.05,
                    help="calibrate the decision offset on leave-one-scene-out scores of the "
                         "training scenes to keep early stops at or below this rate (default 0.05)")
     p.add_argument("--no-calibrate", action="store_true", help="keep the decision offset at 0")
@@ -227,16 +279,16 @@ def _register_learning(sub: argparse._SubParsersAction) -> None:
                    help="input halves: which parts of the half-buffer input a feature model reads, "
                         "joined by '+' (n noise, c current, r ratios, l luminance, f FLIP; README "
                         "\"Model inputs\"; default: the measured best, learning.noise_input.HALVES)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_seed, default=0)
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_train)
 
     p = sub.add_parser("calibrate", help="calibrate the flip criterion's c on training scenes")
     p.add_argument("--data", required=True, help="labelled dataset of training scenes (never held-out ones)")
     p.add_argument("--criterion", choices=("flip",), default="flip")
-    p.add_argument("--max-early-stop", type=float, default=0.05,
+    p.add_argument("--max-early-stop", type=_rate, default=0.05,
                    help="largest early-stop rate accepted on the training scenes (default 0.05)")
-    p.add_argument("--min-spp", type=_positive_int, default=None,
+    p.add_argument("--min-spp", type=_spp, default=None,
                    help="no decision below this many spp (default: from the first level)")
     p.add_argument("--out", default=None,
                    help="calibration file to write (default: the package's learning/flip.json)")
@@ -248,8 +300,8 @@ def _register_learning(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default=None,
                    help="safetensors file to write (default: the package's pretrained.safetensors)")
     p.add_argument("--test-scenes", default=None, help="scenes to keep out (default: every 4th by name)")
-    p.add_argument("--steps", type=_positive_int, default=400)
-    p.add_argument("--lr", type=float, default=0.003)
+    p.add_argument("--steps", type=_int_in(1, 1_000_000), default=400)
+    p.add_argument("--lr", type=_float_in(0.0, 10.0, open_low=True), default=0.003)
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_pretrain)
 
@@ -257,13 +309,13 @@ def _register_learning(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", required=True)
     p.add_argument("--model", default=None, help="model bundle (default: the bundled model)")
     p.add_argument("--criterion", default="model", choices=CRITERIA)
-    p.add_argument("--offset", type=_finite_float, default=None,
+    p.add_argument("--offset", type=_offset, default=None,
                    help="--criterion model: decision offset, the speed/accuracy knob (default: the "
                         "model's calibrated offset; larger stops later)")
-    p.add_argument("--threshold", type=_finite_float, default=None,
+    p.add_argument("--threshold", type=_threshold, default=None,
                    help="--criterion flip: c (default: the shipped calibration); --criterion "
                         "variance: the noise threshold (default 0.01)")
-    p.add_argument("--min-spp", type=_positive_int, default=None,
+    p.add_argument("--min-spp", type=_spp, default=None,
                    help="no decision below this many spp (default: from the first level)")
     p.add_argument("--scenes", default=None,
                    help="comma-separated scenes to evaluate (default: those the model was not trained on)")
@@ -482,33 +534,33 @@ def _register_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--criterion", choices=CRITERIA, default=None,
                    help=f"stopping criterion (default: model when --model, --server or --offset is "
                         f"given, else {DEFAULT_CRITERION}; README \"Deciding a stop\")")
-    p.add_argument("--offset", type=_finite_float, default=None,
+    p.add_argument("--offset", type=_offset, default=None,
                    help="--criterion model: decision offset, the speed/accuracy knob (default: the "
                         "model's calibrated offset; larger stops later)")
-    p.add_argument("--threshold", type=_finite_float, default=None,
+    p.add_argument("--threshold", type=_threshold, default=None,
                    help="--criterion flip: c, the FLIP between the half buffers a block must reach "
                         "(default: the shipped calibration); --criterion variance: Blender Cycles' "
                         "noise threshold (default 0.01)")
-    p.add_argument("--quantile", type=float, default=1.0,
+    p.add_argument("--quantile", type=_fraction, default=1.0,
                    help="--criterion variance: fraction of a block's pixels that must pass (default: all)")
     p.add_argument("--reference", default=None,
                    help="labelled dataset or stack of the scene: oracle thresholds, early-stop metrics")
-    p.add_argument("--exposure", type=float, default=0.0,
-                   help="display exposure (stops) the criteria judge the image at (default 0)")
+    p.add_argument("--exposure", type=_exposure, default=0.0,
+                   help="display exposure (stops, -64..64) the criteria judge the image at (default 0)")
     # None = not given: taken from --reference, then the scene, then the defaults shown
     # (renderer/settings.py); the report's settings_source says which
-    p.add_argument("--resolution", type=_positive_int, default=None,
+    p.add_argument("--resolution", type=_side, default=None,
                    help="square frame size (default: the reference's, else the scene's own: "
                         "256 for built-ins, the film size of an XML file)")
-    p.add_argument("--grid", type=_positive_int, nargs=2, default=None, metavar=("ROWS", "COLS"),
+    p.add_argument("--grid", type=_side, nargs=2, default=None, metavar=("ROWS", "COLS"),
                    help="blocks (default: the reference's, else 4 4)")
-    p.add_argument("--min-spp", type=_positive_int, default=None,
+    p.add_argument("--min-spp", type=_spp, default=None,
                    help="first decision (default: the reference's first level, else 16)")
-    p.add_argument("--max-spp", type=_positive_int, default=None,
+    p.add_argument("--max-spp", type=_spp, default=None,
                    help="most spp per block (default: the reference's last level, else 1024)")
-    p.add_argument("--step", type=_positive_int, default=None,
+    p.add_argument("--step", type=_spp, default=None,
                    help="spp added per pass (default: the reference's level step, else 16)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_seed, default=0)
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz")
     _add_pool_arguments(p, ", for several scenes")
     p.add_argument("--json", action="store_true")
@@ -554,20 +606,42 @@ def _register_serve(sub: argparse._SubParsersAction) -> None:
                         "first is also served as 'default'); none: the bundled model")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to listen on; anything but loopback needs a token")
-    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--port", type=_int_in(0, 65535), default=8000)
     p.add_argument("--token-file", default=None,
                    help="file holding the bearer token (default: $NOISESTOP_TOKEN, "
                         "else the file $NOISESTOP_TOKEN_FILE names)")
-    p.add_argument("--max-body-bytes", type=_positive_int, default=None,
+    p.add_argument("--max-body-bytes", type=_int_in(1, 1 << 40), default=None,
                    help="largest request body (default: $NOISESTOP_MAX_BODY_BYTES or 64 MiB)")
-    p.add_argument("--max-batch", type=_positive_int, default=None,
+    p.add_argument("--max-batch", type=_int_in(1, 1 << 20), default=None,
                    help="most blocks per request (default: $NOISESTOP_MAX_BATCH or 1024)")
-    p.add_argument("--threads", type=_positive_int, default=2,
+    p.add_argument("--max-block-side", type=_int_in(MIN_SIDE, MAX_SIDE), default=None,
+                   help="longest block side accepted, in pixels (default: $NOISESTOP_MAX_BLOCK_SIDE or "
+                        "2048); larger blocks are refused with 413 before any work")
+    p.add_argument("--max-pixels", type=_int_in(MIN_SIDE, 1 << 31), default=None,
+                   help="pixels of one request, blocks x height x width (default: $NOISESTOP_MAX_PIXELS "
+                        "or 4194304); over it: 413")
+    p.add_argument("--memory-budget", type=_int_in(1 << 20, 1 << 44), default=None,
+                   help="bytes of working memory all requests in flight may take together (default: "
+                        "$NOISESTOP_MEMORY_BUDGET or what one request of --max-body-bytes takes, 16x its "
+                        "body); a request waits for its share, then gets 503")
+    p.add_argument("--threads", type=_int_in(1, 256), default=2,
                    help="requests classified at the same time")
-    p.add_argument("--offset", type=_finite_float, default=None,
+    p.add_argument("--limit-concurrency", type=_int_in(1, 65536), default=64,
+                   help="most requests in flight; more are answered 503 with Retry-After (health "
+                        "probes and /metrics are never refused; default 64)")
+    p.add_argument("--max-connections", type=_int_in(1, 65536), default=1024,
+                   help="most open connections, idle ones included (default 1024)")
+    p.add_argument("--header-timeout", type=_seconds, default=10.0,
+                   help="seconds a connection has to send a request's headers, from opening or from "
+                        "its previous response (default 10; slow-header clients are closed)")
+    p.add_argument("--body-timeout", type=_seconds, default=30.0,
+                   help="seconds a request body may stall before a 408 (default 30)")
+    p.add_argument("--keep-alive", type=_int_in(1, 3600), default=5,
+                   help="seconds an idle kept-alive connection stays open (default 5)")
+    p.add_argument("--offset", type=_offset, default=None,
                    help="decision offset for every model served (default: each model's calibrated "
-                        "offset); a request's own 'offset' parameter overrides it")
-    p.add_argument("--graceful-timeout", type=float, default=30.0,
+                        f"offset; range +-{OFFSET_LIMIT:g}); a request's own 'offset' parameter overrides it")
+    p.add_argument("--graceful-timeout", type=_seconds, default=30.0,
                    help="seconds SIGTERM waits for requests in flight")
     p.set_defaults(handler=cmd_serve)
 
@@ -576,7 +650,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from service.serve import parse_model_specs, run
     run(parse_model_specs(args.model), args.host, args.port, token_file=args.token_file,
         max_body_bytes=args.max_body_bytes, max_batch=args.max_batch,
-        inference_threads=args.threads, graceful_timeout=args.graceful_timeout, offset=args.offset)
+        inference_threads=args.threads, graceful_timeout=args.graceful_timeout, offset=args.offset,
+        max_block_side=args.max_block_side, max_pixels=args.max_pixels,
+        limit_concurrency=args.limit_concurrency, max_connections=args.max_connections,
+        header_timeout=args.header_timeout, body_timeout=args.body_timeout, keep_alive=args.keep_alive,
+        memory_budget=args.memory_budget)
     return 0
 
 
@@ -601,6 +679,7 @@ def cmd_features(args: argparse.Namespace) -> int:
     from renderer.scenes import DEFAULT_SCENE, load_scene
     from renderer.variant import select_variant
 
+    _check_frame(args.resolution, args.resolution, tuple(args.grid), "--resolution/--grid")
     variant = select_variant()
     scene_name = args.scene or DEFAULT_SCENE
     t0 = time.perf_counter()

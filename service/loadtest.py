@@ -69,7 +69,8 @@ class LocalServer:
 
     def __init__(self, models: dict[str, str | None], *, port: int | None = None,
                  token: str | None = None, startup_timeout: float = 120.0,
-                 env: dict[str, str] | None = None, **serve_kwargs: Any) -> None:
+                 env: dict[str, str] | None = None, address_space: int | None = None,
+                 **serve_kwargs: Any) -> None:
         self.models = {k: (None if v is None else str(v)) for k, v in models.items()}
         self.port = port or free_port()
         self.token = token or secrets.token_urlsafe(24)
@@ -77,6 +78,7 @@ class LocalServer:
         self.startup_timeout = startup_timeout
         self.env = env or {}
         self.serve_kwargs = serve_kwargs
+        self.address_space = address_space     # RLIMIT_AS of the server process, bytes (None: no limit)
         self.process: subprocess.Popen | None = None
         self._log = tempfile.TemporaryFile()
 
@@ -88,7 +90,8 @@ class LocalServer:
         env = {**os.environ, **self.env, ENV_TOKEN: self.token}
         env.pop("NOISESTOP_TOKEN_FILE", None)
         self.process = subprocess.Popen([sys.executable, "-c", code, arg], env=env,
-                                        stdout=subprocess.DEVNULL, stderr=self._log)
+                                        stdout=subprocess.DEVNULL, stderr=self._log,
+                                        preexec_fn=self._limit if self.address_space else None)
         deadline = time.monotonic() + self.startup_timeout
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
@@ -101,6 +104,22 @@ class LocalServer:
                 time.sleep(0.2)
         self.__exit__(None, None, None)
         raise RuntimeError(f"server not ready after {self.startup_timeout} s:\n{self.log()}")
+
+    def _limit(self) -> None:
+        import resource
+        resource.setrlimit(resource.RLIMIT_AS, (self.address_space, self.address_space))
+
+    def memory(self) -> dict[str, int]:
+        """The server process's peak and current resident and virtual memory, bytes (Linux)."""
+        assert self.process is not None
+        fields = {"VmHWM": "peak_rss", "VmRSS": "rss", "VmPeak": "peak_vm", "VmSize": "vm"}
+        out = {}
+        with open(f"/proc/{self.process.pid}/status") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key in fields:
+                    out[fields[key]] = int(value.split()[0]) * 1024
+        return out
 
     def terminate(self, timeout: float = 60.0) -> int:
         """SIGTERM, then wait for the graceful shutdown; the exit status."""

@@ -15,7 +15,7 @@ from typing import Annotated, Any
 
 import numpy as np
 import pydantic_core
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainValidator, ValidationError
 
 HEADER_LENGTH = "Inference-Header-Content-Length"
 BINARY_EXTENSION = "binary_tensor_data"
@@ -98,15 +98,29 @@ def _integral(value: Any) -> Any:
     return int(value) if isinstance(value, float) and value.is_integer() else value
 
 
-Dim = Annotated[int, BeforeValidator(_integral), Field(ge=0)]
+#: a tensor dimension; numpy's own limits (64 axes, sizes below 2**63) turned into a 400
+MAX_DIM = 2**31 - 1
+MAX_RANK = 8
+Dim = Annotated[int, BeforeValidator(_integral), Field(ge=0, le=MAX_DIM)]
+
+
+def _list_as_is(value: Any) -> list[Any]:
+    """Tensor data is kept as parsed (validating list[Any] copies it: 8 bytes a value);
+    `decode_tensors` checks its contents."""
+    if not isinstance(value, list):
+        raise ValueError("data must be a list")
+    return value
+
+
+TensorData = Annotated[list[Any], PlainValidator(_list_as_is, json_schema_input_type=list[Any])]
 
 
 class RequestInput(_Message):
     name: str
-    shape: list[Dim]
+    shape: list[Dim] = Field(max_length=MAX_RANK)
     datatype: Datatype
     parameters: Parameters | None = None
-    data: list[Any] | None = Field(
+    data: TensorData | None = Field(
         default=None, description="row-major values, flat or nested; omitted for binary data")
 
 
@@ -138,10 +152,10 @@ class InferenceResponse(_Message):
     outputs: list[ResponseOutput]
 
 
-def split_body(body: bytes, header_length: int | None) -> tuple[bytes, bytes]:
-    """(JSON header, binary tail) of a request body."""
+def split_body(body: bytes | memoryview, header_length: int | None) -> tuple[bytes | memoryview, bytes | memoryview]:
+    """(JSON header, binary tail) of a request body (slices of a memoryview: no copy)."""
     if header_length is None:
-        return body, b""
+        return body, body[len(body):]
     if not 0 < header_length <= len(body):
         raise ApiError(400, f"{HEADER_LENGTH} is {header_length} but the body holds {len(body)} bytes")
     return body[:header_length], body[header_length:]
@@ -157,6 +171,11 @@ def parse_request(header: bytes) -> InferenceRequest:
         return InferenceRequest.model_validate(obj)
     except ValidationError as exc:
         raise ApiError(400, "invalid inference request: " + _summarise(exc)) from None
+
+
+def may_hold_bools(header: bytes) -> bool:
+    """False when the JSON text has no true/false literal anywhere (then no scan is needed)."""
+    return b"true" in header or b"false" in header
 
 
 def _summarise(exc: ValidationError, limit: int = 3) -> str:
@@ -178,8 +197,29 @@ def param(params: Parameters | None, key: str, kinds: type | tuple[type, ...], d
     return value
 
 
-def decode_tensors(req: InferenceRequest, binary: bytes, max_batch: int) -> dict[str, np.ndarray]:
-    """Input tensors by name, shaped as declared; checks the batch limit before any copy."""
+def number_param(params: Parameters | None, key: str, default: float | None, low: float,
+                 high: float) -> float | None:
+    """A request parameter that must be a number in [low, high] (JSON true is not a number).
+
+    Compared before any conversion to float: a 400-digit integer is out of range, not an
+    OverflowError (issue 14), and NaN or Inf is never in range."""
+    value = (params or {}).get(key)
+    if value is None:               # absent or null: the default
+        return default
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ApiError(400, f"parameter {key!r} must be a number in [{low:g}, {high:g}], got {str(value)[:80]!r}")
+    if not low <= value <= high:   # int vs float comparison is exact in Python; NaN fails it
+        shown = value if isinstance(value, float) or abs(value) < 10**30 else f"a {len(str(abs(value)))}-digit number"
+        raise ApiError(400, f"parameter {key!r} must be a number in [{low:g}, {high:g}], got {shown}")
+    return float(value)
+
+
+def decode_tensors(req: InferenceRequest, binary: bytes | memoryview, max_batch: int,
+                   scan_bools: bool = True) -> dict[str, np.ndarray]:
+    """Input tensors by name, shaped as declared; checks the batch limit before any copy.
+
+    `scan_bools=False` skips looking for JSON true/false among numbers (callers that know
+    the JSON text holds no such literal: `may_hold_bools`)."""
     names = [t.name for t in req.inputs]
     if len(set(names)) != len(names):
         raise ApiError(400, f"input names must be unique, got {names}")
@@ -209,7 +249,7 @@ def decode_tensors(req: InferenceRequest, binary: bytes, max_batch: int) -> dict
         elif t.data is None:
             raise ApiError(400, f"input {t.name!r} has neither data nor binary_data_size")
         else:
-            flat = _json_values(t.name, t.data, dtype)
+            flat = _json_values(t.name, t.data, dtype, scan_bools)
             if flat.size != count:
                 raise ApiError(400, f"input {t.name!r}: {flat.size} values for shape {t.shape} "
                                     f"({count} expected)")
@@ -219,19 +259,37 @@ def decode_tensors(req: InferenceRequest, binary: bytes, max_batch: int) -> dict
     return arrays
 
 
-def _json_values(name: str, data: list[Any], dtype: np.dtype) -> np.ndarray:
+def _json_values(name: str, data: list[Any], dtype: np.dtype, scan_bools: bool = True) -> np.ndarray:
     try:
         values = np.asarray(data)
     except (ValueError, TypeError, RecursionError):
         raise ApiError(400, f"input {name!r}: data is ragged or not all numbers") from None
-    kinds = "b" if dtype.kind == "b" else "biuf"
-    if values.size and values.dtype.kind not in kinds:
-        raise ApiError(400, f"input {name!r}: data must be numbers for {dtype.name}, got "
-                            f"{values.dtype.kind!r} values")
+    if values.size:
+        if dtype.kind == "b":
+            if values.dtype.kind != "b":
+                raise ApiError(400, f"input {name!r}: data must be true/false for BOOL")
+        elif values.dtype.kind not in "iuf":
+            got = "true/false" if values.dtype.kind == "b" else f"{values.dtype.kind!r}"
+            raise ApiError(400, f"input {name!r}: data must be numbers for {dtype.name}, got {got} values")
+        elif scan_bools and _holds_bool(data):   # numpy would read true as 1 (issue 14)
+            raise ApiError(400, f"input {name!r}: data must be numbers for {dtype.name}, got true/false "
+                                "among them")
     if values.size and dtype.kind in "iu" and values.dtype.kind == "f":
         raise ApiError(400, f"input {name!r}: integer datatype but fractional data")
     with np.errstate(over="ignore"):  # 1e300 as FP32 is +Inf, which the display rule reads
         return values.astype(dtype, copy=False).reshape(-1)
+
+
+def _holds_bool(data: list[Any]) -> bool:
+    """Whether nested lists hold a JSON true/false, which numpy would silently read as 1/0."""
+    stack = [data]
+    while stack:
+        items = stack.pop()
+        if items and isinstance(items[0], list):
+            stack.extend(items)
+        elif bool in set(map(type, items)):
+            return True
+    return False
 
 
 def encode_response(resp: InferenceResponse, tensors: dict[str, np.ndarray],

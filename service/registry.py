@@ -3,13 +3,13 @@
 Every server serves its first model also as `default` (DESIGN.md "HTTP API"). Inference is
 called from worker threads: the estimators only read their fitted arrays (libsvm's
 predict and StandardScaler.transform keep no state) and the feature base runs under
-torch.inference_mode; its per-block-size operator cache is a dict whose worst race is
-computing one entry twice, and `load` fills it (and builds the shared feature base) before
-the first request arrives.
+torch.inference_mode; its per-block-size operator cache is a locked, byte-bounded LRU
+(noisefeat.cache) whose worst race is computing one entry twice, and `load` warms it up
+(and builds the shared feature base) before the first request arrives. Every model must
+answer that warm-up inference, or the server does not start.
 """
 from __future__ import annotations
 
-import json
 import logging
 import math
 import re
@@ -22,6 +22,8 @@ import numpy as np
 import torch
 
 from learning.bundle import BUNDLED_DIR, MANIFEST, Model, load_model
+from learning.bundle_check import read_manifest
+from learning.stoprule import check_offset
 from noisefeat.base import MIN_SIZE
 from noisefeat.display import nonfinite_pixels
 
@@ -46,11 +48,8 @@ def bundle_name(path: str | None) -> str:
                 f"no model is bundled with this noisestop ({BUNDLED_DIR} holds no {MANIFEST}): "
                 f"pass --model PATH (a bundle written by `noisestop train`)")
         raise FileNotFoundError(f"{path}: not a noisestop model bundle (no {MANIFEST})")
-    try:
-        meta = json.loads(manifest.read_text())
-        return str(meta.get("name") or meta["kind"])
-    except (ValueError, KeyError, TypeError) as exc:
-        raise ValueError(f"{manifest}: unreadable manifest ({exc})") from None
+    meta = read_manifest(manifest)      # schema-checked (learning.bundle_check)
+    return str(meta.get("name") or meta["kind"])
 
 
 def parse_model_specs(specs: list[str] | None) -> dict[str, str | None]:
@@ -217,8 +216,8 @@ class ModelRegistry:
     offset: float | None = None     # `serve --offset`, for every model served
 
     def __post_init__(self) -> None:
-        if self.offset is not None and not math.isfinite(self.offset):
-            raise ValueError(f"offset must be a finite number, got {self.offset!r}")
+        if self.offset is not None:
+            self.offset = check_offset(self.offset)
         if not self.specs:
             self.specs = parse_model_specs(None)
         if DEFAULT in self.specs:
@@ -243,7 +242,11 @@ class ModelRegistry:
             model = load_model(path)
             served = ServedModel(name, model, time.perf_counter() - t0,
                                  version=str(model.manifest.get("model_version", "1")), offset=self.offset)
-            _warm_up(served)
+            try:
+                _warm_up(served)
+            except Exception as exc:   # whatever the model raises, serve stops here with one line
+                raise ValueError(f"model {name} ({path or 'the bundled model'}) failed its warm-up "
+                                 f"inference: {type(exc).__name__}: {getattr(exc, 'message', exc)}") from None
             self.models[name] = served
             log.info("model %s loaded from %s in %.2f s (%s, input %s, offset %.3g%s)", name,
                      path or "the bundled model", served.load_seconds,
@@ -263,6 +266,19 @@ class ModelRegistry:
 
 
 def _warm_up(served: ServedModel) -> None:
-    """One tiny inference: builds the shared feature base before threads race for it."""
-    if served.model.input == "features":
-        served.infer(served.image_inputs(np.full((1, 32, 32, 3), 0.5, np.float32)))
+    """One tiny inference through the very route requests take: builds the shared feature
+    base before threads race for it, and a model that cannot answer fails here, before
+    the port is bound, instead of at its first request."""
+    side = 32
+    if served.model.input == "raw":
+        n = served.model.n_features
+        side = next((h for h in range(MIN_SIZE, math.isqrt(n) + 1) if n % h == 0 and n // h >= MIN_SIZE), 0)
+        if not side:
+            return                         # no block of >= 8x8 pixels has n pixels: nothing to ask
+        blocks = np.full((1, side, n // side, 3), 0.5, np.float32)
+    else:
+        blocks = np.full((1, side, side, 3), 0.5, np.float32)
+    arrays, _ = served.infer(served.image_inputs(blocks))
+    if arrays["verdict"].shape != (1,) or not np.isfinite(arrays["score"]).all():
+        raise ValueError(f"answered {arrays['verdict'].shape} verdicts and scores {arrays['score'].tolist()} "
+                         "for one block")

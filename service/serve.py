@@ -4,6 +4,13 @@ Everything that can be wrong with the command (no token on a public address, a m
 model bundle, a bad limit) fails here, before the port is bound, with a one-line message.
 SIGTERM (and Ctrl-C) makes uvicorn stop accepting connections and finish the requests in
 flight before it exits, up to `graceful_timeout` seconds.
+
+Connection settings (issue 14; service.connections): request headers must arrive within
+`header_timeout` seconds of a connection opening (or of its previous response), a body may
+stall for `body_timeout` seconds, an idle kept-alive connection is closed after
+`keep_alive` seconds; at most `limit_concurrency` requests are in flight (health probes
+and /metrics exempt), together within `memory_budget` bytes of working memory
+(service.limits.MemoryBudget), and at most `max_connections` connections are open.
 """
 from __future__ import annotations
 
@@ -14,6 +21,7 @@ import uvicorn
 
 from .app import create_app
 from .auth import check_bind, resolve_token
+from .connections import guarded_protocol
 from .limits import Limits
 from .registry import ModelRegistry, parse_model_specs
 
@@ -22,10 +30,25 @@ log = logging.getLogger(__name__)
 __all__ = ["run", "build", "parse_model_specs"]
 
 
+DEFAULT_LIMIT_CONCURRENCY = 64
+DEFAULT_MAX_CONNECTIONS = 1024
+DEFAULT_HEADER_TIMEOUT = 10.0
+DEFAULT_BODY_TIMEOUT = 30.0
+DEFAULT_KEEP_ALIVE = 5
+
+
+def _check_seconds(name: str, value: float | None, high: float = 3600.0) -> None:
+    if value is not None and not (isinstance(value, (int, float)) and 0 < value <= high):
+        raise ValueError(f"{name} must be a number of seconds in (0, {high:g}], got {value!r}")
+
+
 def build(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", *,
           token: str | None = None, token_file: str | os.PathLike | None = None,
           max_body_bytes: int | None = None, max_batch: int | None = None,
-          inference_threads: int = 2, offset: float | None = None):
+          inference_threads: int = 2, offset: float | None = None,
+          max_block_side: int | None = None, max_pixels: int | None = None,
+          limit_concurrency: int | None = DEFAULT_LIMIT_CONCURRENCY,
+          body_timeout: float | None = DEFAULT_BODY_TIMEOUT, memory_budget: int | None = None):
     """The app `run` serves, with models loaded and settings checked (tests use it too).
     `offset` overrides every model's calibrated decision offset (`serve --offset`)."""
     secret = resolve_token(token, token_file)
@@ -33,34 +56,59 @@ def build(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", 
     if secret is None:
         log.warning("no token (%s / %s): running UNAUTHENTICATED, on loopback %s only",
                     "NOISESTOP_TOKEN", "NOISESTOP_TOKEN_FILE", host)
-    limits = Limits.from_env(max_body_bytes=max_body_bytes, max_batch=max_batch)
-    if inference_threads < 1:
-        raise ValueError(f"inference_threads must be >= 1, got {inference_threads}")
+    limits = Limits.from_env(max_body_bytes=max_body_bytes, max_batch=max_batch,
+                             max_block_side=max_block_side, max_pixels=max_pixels, memory_budget=memory_budget)
+    if isinstance(inference_threads, bool) or not isinstance(inference_threads, int) or not 1 <= inference_threads <= 256:
+        raise ValueError(f"inference_threads must be 1..256, got {inference_threads!r}")
+    if limit_concurrency is not None and (isinstance(limit_concurrency, bool) or not isinstance(limit_concurrency, int)
+                                          or limit_concurrency < 1):
+        raise ValueError(f"limit_concurrency must be a whole number >= 1, got {limit_concurrency!r}")
+    _check_seconds("body_timeout", body_timeout)
     registry = ModelRegistry(dict(models or {}), offset=offset)
     registry.load()
-    return create_app(registry, token=secret, limits=limits, inference_threads=inference_threads)
+    return create_app(registry, token=secret, limits=limits, inference_threads=inference_threads,
+                      limit_concurrency=limit_concurrency, body_timeout=body_timeout)
 
 
 def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", port: int = 8000, *,
         token: str | None = None, token_file: str | os.PathLike | None = None,
         max_body_bytes: int | None = None, max_batch: int | None = None,
-        inference_threads: int = 2, max_connections: int = 64, graceful_timeout: float = 30.0,
-        log_level: str | None = None, offset: float | None = None) -> None:
+        inference_threads: int = 2, graceful_timeout: float = 30.0,
+        log_level: str | None = None, offset: float | None = None,
+        max_block_side: int | None = None, max_pixels: int | None = None,
+        limit_concurrency: int | None = DEFAULT_LIMIT_CONCURRENCY,
+        max_connections: int = DEFAULT_MAX_CONNECTIONS, header_timeout: float = DEFAULT_HEADER_TIMEOUT,
+        body_timeout: float | None = DEFAULT_BODY_TIMEOUT, keep_alive: int = DEFAULT_KEEP_ALIVE,
+        memory_budget: int | None = None) -> None:
     """Serve `models` ({name: bundle path or None for the bundled model}; empty: the bundled
     model) until SIGTERM/SIGINT. The token defaults to NOISESTOP_TOKEN / NOISESTOP_TOKEN_FILE;
-    limits default to NOISESTOP_MAX_BODY_BYTES / NOISESTOP_MAX_BATCH. Logs go to the root logger
-    (uvicorn's own logging setup is off); `log_level` overrides uvicorn's level only."""
-    if not 0 <= port <= 65535:
-        raise ValueError(f"port must be 0..65535, got {port}")
+    limits default to NOISESTOP_MAX_BODY_BYTES / NOISESTOP_MAX_BATCH / NOISESTOP_MAX_BLOCK_SIDE /
+    NOISESTOP_MAX_PIXELS. Logs go to the root logger (uvicorn's own logging setup is off);
+    `log_level` overrides uvicorn's level only. Connection settings: module doc."""
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+        raise ValueError(f"port must be 0..65535, got {port!r}")
+    _check_seconds("graceful_timeout", graceful_timeout)
+    _check_seconds("header_timeout", header_timeout)
+    _check_seconds("keep_alive", keep_alive)
+    if isinstance(max_connections, bool) or not isinstance(max_connections, int) or max_connections < 1:
+        raise ValueError(f"max_connections must be a whole number >= 1, got {max_connections!r}")
+    protocol = guarded_protocol(header_timeout)
     app = build(models, host, token=token, token_file=token_file, max_body_bytes=max_body_bytes,
-                max_batch=max_batch, inference_threads=inference_threads, offset=offset)
+                max_batch=max_batch, inference_threads=inference_threads, offset=offset,
+                max_block_side=max_block_side, max_pixels=max_pixels, limit_concurrency=limit_concurrency,
+                body_timeout=body_timeout, memory_budget=memory_budget)
     limits = app.state.limits
-    log.info("listening on http://%s:%d (%s; body limit %d bytes, batch limit %d)",
+    log.info("listening on http://%s:%d (%s; body limit %d bytes, batch limit %d, block side %d px, "
+             "%d pixels a request, %d bytes of memory for requests in flight; %s requests in flight, "
+             "%d connections, headers within %g s)",
              f"[{host}]" if ":" in host else host, port,
              "token required" if app.state.token else "no token, loopback only",
-             limits.max_body_bytes, limits.max_batch)
+             limits.max_body_bytes, limits.max_batch, limits.max_block_side, limits.max_pixels,
+             limits.memory_budget,
+             limit_concurrency if limit_concurrency is not None else "unlimited", max_connections,
+             header_timeout)
     config = uvicorn.Config(app, host=host, port=port, log_config=None, log_level=log_level,
-                            timeout_graceful_shutdown=graceful_timeout,
-                            limit_concurrency=max_connections, server_header=False,
-                            proxy_headers=False)
+                            timeout_graceful_shutdown=graceful_timeout, http=protocol,
+                            timeout_keep_alive=keep_alive, limit_concurrency=max_connections,
+                            server_header=False, proxy_headers=False)
     uvicorn.Server(config).run()

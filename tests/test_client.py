@@ -20,6 +20,7 @@ class FakeOIP(BaseHTTPRequestHandler):
 
     seen: list = []          # (path, headers, parsed request) of every infer call
     fail_with: tuple | None = None
+    fail_once = False        # answer fail_with to the next request only
 
     def log_message(self, *args):  # keep test output clean
         pass
@@ -59,6 +60,8 @@ class FakeOIP(BaseHTTPRequestHandler):
             return
         if self.fail_with:
             self._send(*self.fail_with)
+            if type(self).fail_once:
+                type(self).fail_with = None
             return
         if self.path != "/v2/models/default/infer":
             self._send(404, {"error": "unknown model"})
@@ -101,6 +104,7 @@ class FakeOIP(BaseHTTPRequestHandler):
 def server():
     FakeOIP.seen = []
     FakeOIP.fail_with = None
+    FakeOIP.fail_once = False
     srv = ThreadingHTTPServer(("127.0.0.1", 0), FakeOIP)
     thread = threading.Thread(target=srv.serve_forever, daemon=True)
     thread.start()
@@ -172,6 +176,19 @@ def test_server_errors_carry_the_server_message(server):
     assert m.requests == 2                   # HTTP errors are not retried
     with pytest.raises(ValueError, match="404"):
         RemoteModel(server, model="nope", token=TOKEN).metadata()
+
+
+def test_busy_server_503_with_retry_after_is_retried(server):
+    """A server at its in-flight or memory limit (issue 14) answers 503 + Retry-After."""
+    m = RemoteModel(server, token=TOKEN, retries=2, backoff=0.0)
+    blocks, quick = blocks_and_quick(2)
+    FakeOIP.fail_with, FakeOIP.fail_once = (503, {"error": "server busy"}, b"", {"Retry-After": "0"}), True
+    verdict, _ = m.score_blocks(blocks, quick)
+    assert len(verdict) == 2 and m.requests == 2
+    FakeOIP.fail_with, FakeOIP.fail_once = (503, {"error": "server busy"}, b"", {"Retry-After": "0"}), False
+    with pytest.raises(ConnectionError, match="HTTP 503: server busy"):
+        m.score_blocks(blocks, quick)
+    assert m.requests == 2 + 3               # retried at most `retries` times
 
 
 def test_unreachable_server_retries_a_bounded_number_of_times():

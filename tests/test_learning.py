@@ -195,6 +195,11 @@ def test_bundle_refuses_foreign_types_and_other_feature_bases(tmp_path):
         load_model(tmp_path / "m")
     save_model(DSVM().fit(X, y), tmp_path / "evil", kind="dsvm", input="features")
     sio.dump({"payload": json.loads}, tmp_path / "evil" / "model.skops")   # a function inside
+    with pytest.raises(ValueError, match="model_sha256"):                  # the file changed
+        load_model(tmp_path / "evil")
+    manifest = json.loads((tmp_path / "evil" / "manifest.json").read_text())
+    del manifest["model_sha256"]                                            # the attacker edits both
+    (tmp_path / "evil" / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(ValueError, match="unknown types"):
         load_model(tmp_path / "evil")
     with pytest.raises(FileNotFoundError):

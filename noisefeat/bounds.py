@@ -1,0 +1,93 @@
+"""Size bounds on the images the method is asked about, checked before anything is allocated.
+
+Why: one request of 3.8 MB declaring a [1, 8, 40000, 3] tensor took a server to 23.7 GB
+(issue 14). The feature base's cost is now linear in the pixels of a block, but a block,
+a request and a rendered frame still need a ceiling that is named in the error a caller
+gets. The defaults are generous for the method (the paper's blocks are 128 and 200
+pixels, renders default to the model's training block) and each can be changed through
+the environment; the verdict service also takes them as `serve` options.
+
+* `max_block_side`: the longest side of one block, in pixels (NOISESTOP_MAX_BLOCK_SIDE,
+  default 2048). Blocks are at least `MIN_SIDE` (8) pixels a side: the feature base's
+  smallest, and what keeps a render from being cut into 1-pixel blocks that the flat rule
+  stops at once.
+* `max_pixels`: pixels of one request, blocks x height x width (NOISESTOP_MAX_PIXELS,
+  default 4 Mi = 16 blocks of 512x512); the service's memory per request follows it.
+* `max_frame_pixels`: pixels of one rendered frame (NOISESTOP_MAX_FRAME_PIXELS, default
+  16 Mi = 4096x4096); the render loop keeps about 200 bytes a pixel (float64 sums, half
+  buffers, checkpoint).
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+MIN_SIDE = 8
+DEFAULT_MAX_BLOCK_SIDE = 2048
+DEFAULT_MAX_PIXELS = 4 * 1024 * 1024
+DEFAULT_MAX_FRAME_PIXELS = 16 * 1024 * 1024
+ENV = {"max_block_side": "NOISESTOP_MAX_BLOCK_SIDE", "max_pixels": "NOISESTOP_MAX_PIXELS",
+       "max_frame_pixels": "NOISESTOP_MAX_FRAME_PIXELS"}
+
+
+@dataclass(frozen=True)
+class SizeBounds:
+    """The three ceilings above; every check raises ValueError naming the bound it hit."""
+
+    max_block_side: int = DEFAULT_MAX_BLOCK_SIDE
+    max_pixels: int = DEFAULT_MAX_PIXELS
+    max_frame_pixels: int = DEFAULT_MAX_FRAME_PIXELS
+
+    def __post_init__(self) -> None:
+        for name in ENV:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < MIN_SIDE:
+                raise ValueError(f"{name} must be a whole number >= {MIN_SIDE}, got {value!r}")
+
+    @classmethod
+    def from_env(cls, environ: Mapping[str, str] | None = None, **given: int | None) -> "SizeBounds":
+        """Explicit values win over the environment, which wins over the defaults."""
+        environ = os.environ if environ is None else environ
+        values = {}
+        for name, key in ENV.items():
+            if given.get(name) is not None:
+                values[name] = given[name]
+                continue
+            text = environ.get(key, "").strip()
+            if text:
+                try:
+                    values[name] = int(text)
+                except ValueError:
+                    raise ValueError(f"{key}={text!r}: expected a whole number") from None
+        unknown = set(given) - set(ENV)
+        if unknown:
+            raise TypeError(f"unknown bounds {sorted(unknown)}")
+        return cls(**values)
+
+    def check_block(self, height: int, width: int, what: str = "blocks") -> None:
+        """MIN_SIDE <= each side <= max_block_side."""
+        if min(height, width) < MIN_SIDE:
+            raise ValueError(f"{what} must be at least {MIN_SIDE}x{MIN_SIDE} pixels, got {height}x{width}")
+        if max(height, width) > self.max_block_side:
+            raise ValueError(f"{what} of {height}x{width} pixels exceed the largest block side, "
+                             f"max_block_side = {self.max_block_side} ({ENV['max_block_side']})")
+
+    def check_request(self, n: int, height: int, width: int) -> None:
+        """One request of n blocks of height x width: block sides, then the pixel budget."""
+        self.check_block(height, width)
+        pixels = n * height * width
+        if pixels > self.max_pixels:
+            raise ValueError(f"{n} blocks of {height}x{width} are {pixels} pixels, over the pixel "
+                             f"budget of a request, max_pixels = {self.max_pixels} ({ENV['max_pixels']})")
+
+    def check_frame(self, height: int, width: int, grid: tuple[int, int]) -> None:
+        """A rendered frame and its grid: the frame's pixels and the blocks it is cut into."""
+        if height < 1 or width < 1:
+            raise ValueError(f"frame must be at least 1x1 pixels, got {width}x{height}")
+        if height * width > self.max_frame_pixels:
+            raise ValueError(f"a {width}x{height} frame is {width * height} pixels, over the largest "
+                             f"frame, max_frame_pixels = {self.max_frame_pixels} "
+                             f"({ENV['max_frame_pixels']})")
+        gh, gw = grid
+        self.check_block(height // gh, width // gw, what=f"blocks of a {gh}x{gw} grid on a {width}x{height} frame")

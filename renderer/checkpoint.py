@@ -1,0 +1,185 @@
+"""The adaptive render's checkpoint (out/checkpoint.npz): written atomically, validated before use.
+
+What `--resume` trusts must be exactly what an interrupted run left (issue 14: a truncated
+or byte-flipped file ended in BadZipFile, CRC or KeyError tracebacks, and a checkpoint
+claiming pass 1,000,000 was accepted). So a checkpoint is read with `learning.npz`
+(member sizes against headers, no pickle), carries a SHA-256 digest of its arrays, was
+made with the same settings, and holds a state that the loop could have produced:
+
+* every array has its dtype and the shape the settings imply (n blocks, p passes, the
+  accumulator's grid and block, the frame of the quick image);
+* 0 <= p <= the passes of the settings, `done` only at the end or with no block active;
+* history is -1/0/+1, its spp the cumulative pass sizes; each pass rendered at most n blocks;
+* an active block has every pass's samples, a stopped one its stop spp, and it stopped
+  where its history says +1.
+
+Anything else is a ValueError naming the file and what is wrong; `--resume` never
+continues from a state it cannot vouch for.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from learning.accumulator import BlockAccumulator
+from learning.exr import atomic_write_bytes
+from learning.npz import check_digest, read_npz, savez_bytes
+
+CHECKPOINT = "checkpoint.npz"
+CHECKPOINT_FORMAT = "noisestop-adaptive-checkpoint"
+CHECKPOINT_VERSION = 2          # 2: content digest and validated state
+
+
+def _str_array(text: str) -> np.ndarray:
+    return np.array(text)  # 0-d unicode array: no pickle needed
+
+
+def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    """np.savez into memory with a digest, then an atomic write (never a half-written file)."""
+    arrays: dict[str, np.ndarray] = {
+        "format": _str_array(CHECKPOINT_FORMAT),
+        "version": np.int64(CHECKPOINT_VERSION),
+        "settings": _str_array(json.dumps(state["settings"], sort_keys=True)),
+        "active": np.asarray(state["active"], bool),
+        "stop_spp": np.asarray(state["stop_spp"], np.int64),
+        "history": np.asarray(state["history"], np.int8).reshape(-1, len(state["active"])),
+        "history_spp": np.asarray(state["history_spp"], np.int64),
+        "rendered": np.asarray(state["rendered"], np.int64),
+        "pass_index": np.int64(state["pass_index"]),
+        "done": np.bool_(state["done"]),
+        "counter_names": np.array(list(state["counters"]), dtype="<U64"),
+        "counter_values": np.array(list(state["counters"].values()), np.int64),
+        "timer_names": np.array(list(state["timers"]), dtype="<U64"),
+        "timer_values": np.array(list(state["timers"].values()), np.float64),
+        "quick": np.zeros((0, 0, 3), np.float32) if state["quick"] is None else state["quick"],
+    }
+    for k, v in state["acc"].items():
+        arrays[f"acc_{k}"] = v
+    atomic_write_bytes(path, savez_bytes(arrays, with_digest=True))
+
+
+def expected_bytes(frame: tuple[int, int], n_blocks: int, passes: int) -> int:
+    """An upper bound on a valid checkpoint's size: accumulator (float64 sums and int64
+    weights of two halves), quick image, per-pass history, plus slack for names."""
+    h, w = frame
+    return 2 * h * w * (3 * 8 + 8) + h * w * 3 * 4 + passes * (n_blocks + 24) + 16 * n_blocks + (1 << 20)
+
+
+def load_checkpoint(path: Path, settings: dict[str, Any], *, sizes: list[int], grid: tuple[int, int],
+                    block: tuple[int, int], frame: tuple[int, int]) -> dict[str, Any]:
+    """The state a checkpoint written by `save_checkpoint` for these settings holds, or ValueError."""
+    n = grid[0] * grid[1]
+    try:
+        data = read_npz(path, max_bytes=expected_bytes(frame, n, len(sizes)))
+        return _validated(path, data, settings, sizes, grid, block, frame)
+    except ValueError as exc:
+        if "start over" in str(exc):
+            raise
+        raise ValueError(f"{exc}; delete it (or rerun without --resume) to start over") from None
+
+
+def _get(data: dict[str, np.ndarray], key: str, dtype: str, shape: tuple[int, ...] | None = None) -> np.ndarray:
+    arr = data.get(key)
+    if arr is None:
+        raise ValueError(f"no {key!r}")
+    kind_ok = arr.dtype.kind == "U" if dtype == "U" else arr.dtype == np.dtype(dtype)
+    if not kind_ok:
+        raise ValueError(f"{key!r} is {arr.dtype}, expected {dtype}")
+    if shape is not None and arr.shape != shape:
+        raise ValueError(f"{key!r} has shape {list(arr.shape)}, expected {list(shape)}")
+    return arr
+
+
+def _validated(path: Path, data: dict[str, np.ndarray], settings: dict[str, Any], sizes: list[int],
+               grid: tuple[int, int], block: tuple[int, int], frame: tuple[int, int]) -> dict[str, Any]:
+    fmt, version = data.get("format"), data.get("version")
+    if fmt is None or fmt.shape != () or str(fmt) != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path}: not a noisestop adaptive-render checkpoint")
+    if version is None or version.shape != () or version.dtype.kind != "i" or int(version) != CHECKPOINT_VERSION:
+        raise ValueError(f"{path}: checkpoint version {None if version is None else version.tolist()!r}, this "
+                         f"noisestop reads version {CHECKPOINT_VERSION}")
+    try:
+        check_digest(path, data)
+        saved = json.loads(str(_get(data, "settings", "U", ())))
+    except (ValueError, RecursionError) as exc:
+        raise ValueError(f"{path}: {exc}" if str(path) not in str(exc) else str(exc)) from None
+    if saved != json.loads(json.dumps(settings, sort_keys=True)):
+        if not isinstance(saved, dict):
+            raise ValueError(f"{path}: settings are not an object")
+        diff = [f"{k}: {saved.get(k)!r} then, {settings.get(k)!r} now"
+                for k in sorted(set(saved) | set(settings)) if saved.get(k) != settings.get(k)]
+        raise ValueError(f"{path}: checkpoint was made with other settings ({'; '.join(diff)}); "
+                         "rerun with the same options or without --resume to start over")
+    try:
+        return _state(data, sizes, grid, block, frame)
+    except ValueError as exc:
+        raise ValueError(f"{path}: inconsistent checkpoint: {exc}") from None
+
+
+def _state(data: dict[str, np.ndarray], sizes: list[int], grid: tuple[int, int], block: tuple[int, int],
+           frame: tuple[int, int]) -> dict[str, Any]:
+    n = grid[0] * grid[1]
+    p = int(_get(data, "pass_index", "int64", ()))
+    if not 0 <= p <= len(sizes):
+        raise ValueError(f"pass {p} claimed, these settings make {len(sizes)} passes")
+    active = _get(data, "active", "bool", (n,))
+    stop_spp = _get(data, "stop_spp", "int64", (n,))
+    history = _get(data, "history", "int8", (p, n))
+    history_spp = _get(data, "history_spp", "int64", (p,))
+    rendered = _get(data, "rendered", "int64", (p,))
+    done = bool(_get(data, "done", "bool", ()))
+    cum = np.cumsum(sizes[:p], dtype=np.int64)
+    if not np.isin(history, (-1, 0, 1)).all():
+        raise ValueError("history holds values other than -1, 0, +1")
+    if not np.array_equal(history_spp, cum):
+        raise ValueError("history spp are not the cumulative pass sizes")
+    if ((rendered < 1) | (rendered > n)).any():
+        raise ValueError(f"a pass rendered a number of blocks outside 1..{n}")
+    if done != (p == len(sizes) or not active.any()):
+        raise ValueError(f"done is {done} at pass {p} of {len(sizes)} with {int(active.sum())} blocks active")
+    stopped_at = np.where((history > 0).any(axis=0), history_spp[np.argmax(history > 0, axis=0)] if p else 0, 0)
+    if not np.array_equal(~active, (history > 0).any(axis=0)) or not np.array_equal(stop_spp, stopped_at):
+        raise ValueError("stopped blocks and their stop spp disagree with the verdict history")
+    names = _get(data, "counter_names", "U")
+    values = _get(data, "counter_values", "int64", names.shape)
+    tnames = _get(data, "timer_names", "U")
+    tvalues = _get(data, "timer_values", "float64", tnames.shape)
+    if names.ndim != 1 or tnames.ndim != 1 or (values < 0).any() or not np.isfinite(tvalues).all() \
+            or (tvalues < 0).any():
+        raise ValueError("counters must be whole numbers >= 0 and timers finite seconds >= 0")
+    quick = _get(data, "quick", "float32")
+    if quick.shape not in ((0, 0, 3), (frame[0], frame[1], 3)):
+        raise ValueError(f"quick image of shape {list(quick.shape)}, the frame is {frame[1]}x{frame[0]}")
+    acc_state = {k[4:]: v for k, v in data.items() if k.startswith("acc_")}
+    for key, want in (("grid", grid), ("block", block)):
+        got = acc_state.get(key)
+        if got is None or got.shape != (2,) or got.dtype.kind != "i" or tuple(int(v) for v in got) != tuple(want):
+            raise ValueError(f"accumulator {key} {None if got is None else got.tolist()} is not the render's {list(want)}")
+    bh, bw = block
+    if int(_get(acc_state, "version", "int64", ())) != BlockAccumulator.STATE_VERSION:
+        raise ValueError(f"accumulator state version {acc_state['version']}, this code reads "
+                         f"{BlockAccumulator.STATE_VERSION}")
+    for key, dtype, shape in (("sum", "float64", (2, n, bh, bw, 3)), ("weight", "int64", (2, n, bh, bw)),
+                              ("spp", "int64", (n, 2)), ("passes", "int64", (n,)), ("nonfinite", "int64", (n,))):
+        arr = _get(acc_state, key, dtype, shape)
+        if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+            raise ValueError(f"accumulator {key!r} holds NaN or Inf")
+        most = {"weight": int(cum[-1]) if p else 0, "passes": p}.get(key)
+        if arr.dtype.kind == "i" and ((arr < 0).any() or (most is not None and (arr > most).any())):
+            raise ValueError(f"accumulator {key!r} out of range")
+    acc = BlockAccumulator.from_state(acc_state)
+    spp = np.array([acc.spp(b) for b in range(n)], np.int64)
+    full = int(cum[-1]) if p else 0
+    if not np.array_equal(spp[active], np.full(int(active.sum()), full)) or \
+            not np.array_equal(spp[~active], stop_spp[~active]):
+        raise ValueError("the accumulated samples disagree with the passes and stops")
+    return {
+        "acc": acc, "active": active.copy(), "stop_spp": stop_spp.copy(), "history": history.copy(),
+        "history_spp": history_spp.copy(), "rendered": rendered.copy(), "pass_index": p, "done": done,
+        "counters": dict(zip(names.tolist(), values.tolist())),
+        "timers": dict(zip(tnames.tolist(), tvalues.tolist())),
+        "quick": None if quick.size == 0 else quick,
+    }

@@ -1,0 +1,120 @@
+"""Connection guards: a header-read timeout and a limit on requests in flight.
+
+Why (issue 14): 64 idle half-open connections denied service to everyone for 40 s and
+more. uvicorn had no header-read timeout (its keep-alive timeout only runs between two
+requests of one connection) and its `limit_concurrency` counts open connections, idle
+ones included, and then answers 503 to every route, health probes too.
+
+* `guarded_protocol(header_timeout)`: uvicorn's h11 protocol with a deadline for the
+  request line and headers, armed when a connection opens and whenever it waits for a
+  new request; a connection that has not sent complete headers by then is closed (408
+  if it sent part of a request). Slow-header clients (slowloris) hold a connection for
+  `header_timeout` seconds at most.
+* `InFlightLimitMiddleware`: at most `limit` requests in flight (`serve
+  --limit-concurrency`); over it, 503 with Retry-After and an {"error"} body. Health probes
+  and /metrics are never counted nor refused, so a liveness probe does not kill a busy pod.
+* `BodyLimitMiddleware` (service.limits) adds the body-read timeout: a body that stops
+  arriving for `body_timeout` seconds is answered 408.
+
+uvicorn's own `limit_concurrency` stays on as the ceiling of open connections
+(`serve --max-connections`), far above what idle clients can hold for long.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+from typing import Any
+
+import h11
+from uvicorn.protocols.http.h11_impl import H11Protocol
+
+log = logging.getLogger(__name__)
+
+#: paths that are never counted against nor refused by the in-flight limit
+EXEMPT_PREFIXES = ("/v2/health/", "/metrics")
+_BODY_408 = b'{"error": "request headers took too long"}'
+_TIMEOUT_408 = (b"HTTP/1.1 408 Request Timeout\r\ncontent-type: application/json\r\nconnection: close\r\n"
+                b"content-length: " + str(len(_BODY_408)).encode() + b"\r\n\r\n" + _BODY_408)
+
+
+class _HeaderDeadlineProtocol(H11Protocol):
+    """H11Protocol with a deadline on reading each request's line and headers."""
+
+    header_timeout: float = 10.0
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._header_timer: asyncio.TimerHandle | None = None
+        self._partial = False
+        self._arm()
+
+    def data_received(self, data: bytes) -> None:
+        waiting = self.conn.their_state is h11.IDLE
+        if waiting and self._header_timer is None:     # a new request on a kept-alive connection
+            self._arm()
+        if waiting and data:
+            self._partial = True
+        super().data_received(data)
+        if self.conn.their_state is not h11.IDLE:       # request line and headers are in
+            self._disarm()
+            self._partial = False
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._disarm()
+        super().connection_lost(exc)
+
+    def _arm(self) -> None:
+        self._disarm()
+        self._header_timer = self.loop.call_later(self.header_timeout, self._expire)
+
+    def _disarm(self) -> None:
+        timer = getattr(self, "_header_timer", None)
+        if timer is not None:
+            timer.cancel()
+            self._header_timer = None
+
+    def _expire(self) -> None:
+        self._header_timer = None
+        if self.transport.is_closing() or self.conn.their_state is not h11.IDLE:
+            return
+        if self._partial:
+            self.transport.write(_TIMEOUT_408)
+        log.debug("closing a connection that sent no complete request headers in %.1f s", self.header_timeout)
+        self.transport.close()
+
+
+def guarded_protocol(header_timeout: float) -> type[H11Protocol]:
+    """The protocol class for `uvicorn.Config(http=...)` with this header deadline (seconds)."""
+    if not 0 < header_timeout <= 3600:
+        raise ValueError(f"header_timeout must be in (0, 3600] seconds, got {header_timeout!r}")
+    return type("HeaderDeadlineProtocol", (_HeaderDeadlineProtocol,), {"header_timeout": float(header_timeout)})
+
+
+class InFlightLimitMiddleware:
+    """503 (Retry-After: 1) beyond `limit` requests in flight; probes and metrics exempt."""
+
+    def __init__(self, app: Any, limit: int) -> None:
+        if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
+            raise ValueError(f"limit must be a whole number >= 1, got {limit!r}")
+        self.app = app
+        self.limit = limit
+        self.in_flight = 0
+
+    async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
+        if scope["type"] != "http" or scope["path"].startswith(EXEMPT_PREFIXES):
+            await self.app(scope, receive, send)
+            return
+        if self.in_flight >= self.limit:
+            body = json.dumps({"error": f"server busy: {self.in_flight} requests in flight, the limit "
+                                        f"is {self.limit} (serve --limit-concurrency); retry"}).encode()
+            await send({"type": "http.response.start", "status": 503, "headers": [
+                (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+                (b"retry-after", b"1")]})
+            await send({"type": "http.response.body", "body": body})
+            return
+        self.in_flight += 1     # one event loop: no lock needed
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            self.in_flight -= 1

@@ -1,0 +1,196 @@
+"""Issue 14, bounded fuzzing: the readers of untrusted bytes either answer or refuse cleanly.
+
+Hypothesis drives the binary tensor decoder (request header + tail), the manifest reader
+and the checkpoint reader with malformed, mutated and forged input. The only outcomes
+allowed are a result or the documented error (ApiError 4xx, ValueError); anything else
+(KeyError, IndexError, MemoryError, an ApiError 5xx...) fails the test. Example counts are
+fixed and small so that the suite stays bounded; the counts are reported in BENCHMARKS.md.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from learning.accumulator import BlockAccumulator
+from learning.bundle_check import read_manifest
+from learning.npz import read_npz, savez_bytes
+from renderer.checkpoint import load_checkpoint, save_checkpoint
+from service.limits import Limits
+from service.oip import DATATYPES, ApiError, decode_tensors, parse_request, split_body
+
+FUZZ = settings(max_examples=150, deadline=None, database=None,
+                suppress_health_check=list(HealthCheck))
+LIMITS = Limits(max_body_bytes=1 << 20, max_batch=64, max_block_side=64, max_pixels=4096)
+
+# --- binary tensor decoder -------------------------------------------------------------------
+
+dims = st.one_of(st.integers(0, 4), st.integers(0, 2**31 + 5), st.sampled_from([2**40, -1, 1.5, "2", None]))
+shapes = st.one_of(st.lists(dims, max_size=6), st.just("x"), st.none())
+inputs = st.fixed_dictionaries(
+    {"name": st.sampled_from(["blocks", "quick", "features", "even", ""]),
+     "shape": shapes,
+     "datatype": st.sampled_from([*DATATYPES, "BYTES", "fp32", 7])},
+    optional={"parameters": st.one_of(
+        st.fixed_dictionaries({"binary_data_size": st.one_of(st.integers(-5, 400), st.booleans(),
+                                                             st.just(10**400), st.text(max_size=3))}),
+        st.none(), st.just([])),
+        "data": st.one_of(st.lists(st.one_of(st.floats(allow_nan=True), st.integers(), st.booleans(),
+                                             st.text(max_size=2), st.lists(st.integers(), max_size=3)),
+                                   max_size=12), st.just("abc"), st.none())})
+
+
+def decode(body: bytes, header_length: int | None) -> dict[str, np.ndarray]:
+    """What the infer route does with a body before the model runs."""
+    head, tail = split_body(body, header_length)
+    req = parse_request(bytes(head))
+    LIMITS.check_shapes(req.inputs)
+    return decode_tensors(req, tail, LIMITS.max_batch)
+
+
+@FUZZ
+@given(header=st.fixed_dictionaries({"inputs": st.lists(inputs, max_size=3)},
+                                    optional={"parameters": st.dictionaries(st.text(max_size=5), st.integers())}),
+       tail=st.binary(max_size=600), cut=st.integers(-3, 3))
+def test_binary_tensor_decoder_answers_or_refuses(header, tail, cut):
+    head = json.dumps(header).replace("Infinity", "1e999").encode()
+    body = head + tail
+    length = max(0, len(head) + cut) if cut else len(head)
+    try:
+        arrays = decode(body, length)
+    except ApiError as exc:
+        assert 400 <= exc.status < 500 and exc.message
+        return
+    for name, arr in arrays.items():
+        assert isinstance(arr, np.ndarray) and arr.dtype in DATATYPES.values()
+
+
+@FUZZ
+@given(raw=st.binary(max_size=300))
+def test_json_request_parser_refuses_garbage(raw):
+    try:
+        decode(raw, None)
+    except ApiError as exc:
+        assert 400 <= exc.status < 500
+
+
+# --- manifest reader --------------------------------------------------------------------------
+
+json_values = st.recursive(
+    st.one_of(st.none(), st.booleans(), st.integers(), st.floats(), st.text(max_size=8)),
+    lambda children: st.one_of(st.lists(children, max_size=4), st.dictionaries(st.text(max_size=8), children,
+                                                                               max_size=4)),
+    max_leaves=20)
+GOOD_MANIFEST = {"format": "noisestop-model", "version": 1, "kind": "dsvm", "name": "m", "input": "features",
+                 "feature_base": {"hash": "abc"}, "n_features": 26, "offset": 0.0}
+
+
+@FUZZ
+@given(changes=st.dictionaries(st.sampled_from([*GOOD_MANIFEST, "quick", "composition", "model_sha256",
+                                                "training", "model_version"]), json_values, max_size=4),
+       raw=st.one_of(st.none(), st.binary(max_size=200)))
+def test_manifest_reader_answers_or_refuses(tmp_path_factory, changes, raw):
+    path = tmp_path_factory.mktemp("m") / "manifest.json"
+    path.write_bytes(raw if raw is not None else json.dumps({**GOOD_MANIFEST, **changes}).encode())
+    try:
+        manifest = read_manifest(path)
+    except ValueError as exc:
+        assert str(path) in str(exc) or "format" in str(exc)
+        return
+    assert manifest["input"] in ("features", "raw") and manifest["format"] == "noisestop-model"
+
+
+# --- checkpoint reader ------------------------------------------------------------------------
+
+GRID, BLOCK, FRAME, SIZES = (2, 2), (8, 8), (16, 16), [4, 4, 4, 4]
+SETTINGS = {"scene": "fuzz", "grid": list(GRID), "step": 4, "max_spp": 16}
+
+
+def _valid_checkpoint(path: Path) -> None:
+    """Two passes of a 2x2 grid, block 0 stopped at the second: what the loop would save."""
+    acc = BlockAccumulator(GRID, BLOCK)
+    rng = np.random.default_rng(0)
+    active = np.ones(4, bool)
+    history, stop_spp, rendered = [], np.zeros(4, np.int64), []
+    for p in range(2):
+        ids = np.flatnonzero(active).tolist()
+        acc.add_many(ids, rng.random((len(ids), *BLOCK, 3)).astype(np.float32), SIZES[p])
+        row = np.zeros(4, np.int8)
+        row[ids] = -1
+        if p == 1:
+            row[0], active[0], stop_spp[0] = 1, False, 8
+        history.append(row)
+        rendered.append(len(ids))
+    save_checkpoint(path, {"settings": SETTINGS, "active": active, "stop_spp": stop_spp,
+                           "history": np.stack(history), "history_spp": np.array([4, 8]),
+                           "rendered": np.array(rendered), "pass_index": 2, "done": False,
+                           "counters": {"decide_calls": 2}, "timers": {"wall_s": 0.5}, "quick": None,
+                           "acc": acc.state()})
+
+
+def _load(path: Path) -> dict:
+    return load_checkpoint(path, SETTINGS, sizes=SIZES, grid=GRID, block=BLOCK, frame=FRAME)
+
+
+@pytest.fixture(scope="module")
+def valid_checkpoint(tmp_path_factory) -> bytes:
+    path = tmp_path_factory.mktemp("ck") / "checkpoint.npz"
+    _valid_checkpoint(path)
+    state = _load(path)                                  # the reader accepts what the writer wrote
+    assert state["pass_index"] == 2 and state["stop_spp"].tolist() == [8, 0, 0, 0]
+    return path.read_bytes()
+
+
+@FUZZ
+@given(data=st.data())
+def test_checkpoint_reader_refuses_damaged_bytes(tmp_path_factory, valid_checkpoint, data):
+    raw = bytearray(valid_checkpoint)
+    for _ in range(data.draw(st.integers(1, 4))):
+        kind = data.draw(st.sampled_from(["flip", "truncate", "insert", "zero"]))
+        at = data.draw(st.integers(0, max(0, len(raw) - 1)))
+        if kind == "flip" and raw:
+            raw[at] ^= data.draw(st.integers(1, 255))
+        elif kind == "truncate":
+            del raw[at:]
+        elif kind == "insert":
+            raw[at:at] = data.draw(st.binary(min_size=1, max_size=8))
+        elif kind == "zero":
+            raw[at:at + 16] = bytes(len(raw[at:at + 16]))
+    path = tmp_path_factory.mktemp("ck") / "checkpoint.npz"
+    path.write_bytes(bytes(raw))
+    try:
+        state = _load(path)
+    except ValueError as exc:
+        assert "checkpoint.npz" in str(exc)
+        return
+    assert bytes(raw) == valid_checkpoint or state["pass_index"] == 2   # a no-op mutation
+
+
+@FUZZ
+@given(data=st.data())
+def test_checkpoint_reader_refuses_forged_states(tmp_path_factory, valid_checkpoint, data):
+    """Arrays replaced by others of any dtype and shape, the digest recomputed (a forger's
+    checkpoint): refused unless the state is one the loop could have saved."""
+    src = tmp_path_factory.mktemp("ck") / "src.npz"
+    src.write_bytes(valid_checkpoint)
+    arrays = read_npz(src)
+    arrays.pop("sha256")
+    key = data.draw(st.sampled_from(sorted(arrays)))
+    dtype = data.draw(st.sampled_from(["int64", "int8", "float64", "float32", "bool", "<U4"]))
+    shape = tuple(data.draw(st.lists(st.integers(0, 5), max_size=3)))
+    fill = data.draw(st.sampled_from([0, 1, -1, 10**6, np.nan]))
+    try:
+        arrays[key] = np.full(shape, fill, dtype=dtype)
+    except (ValueError, OverflowError, TypeError):
+        arrays[key] = np.zeros(shape, dtype=dtype)
+    path = tmp_path_factory.mktemp("ck") / "checkpoint.npz"
+    path.write_bytes(savez_bytes(arrays, with_digest=True))
+    try:
+        state = _load(path)
+    except ValueError:
+        return
+    assert 0 <= state["pass_index"] <= len(SIZES)

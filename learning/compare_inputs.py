@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -35,26 +36,36 @@ def with_composition(table: SubImageTable, composition: str) -> SubImageTable:
                          table.flat, table.stacks, table.decidable)
 
 
-def decision_ms(model: Model, block: tuple[int, int] = (64, 64), n: int = 16, repeats: int = 5) -> float:
-    """Milliseconds per block to turn half buffers (or a block and its quick image) into a
-    score, on one thread: what a render pays per active block and decision."""
+def per_block_ms(fn: Callable[[np.ndarray, np.ndarray], Any], block: tuple[int, int] = (64, 64),
+                 n: int = 16, repeats: int = 5) -> float:
+    """Median milliseconds per block of `fn(a, b)` on n half-buffer pairs, on one thread
+    after a warm-up call: what a render pays per active block and decision."""
     rng = np.random.default_rng(0)
     a = rng.random((n, *block, 3)).astype(np.float32)
     b = (a + rng.normal(0, 0.02, a.shape)).astype(np.float32)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        def once() -> None:
-            model.score_halves(a, b) if model.needs_halves else model.score_blocks(a, b)
-        once()
+        fn(a, b)
         t = []
         for _ in range(repeats):
             t0 = time.perf_counter()
-            once()
+            fn(a, b)
             t.append(time.perf_counter() - t0)
     finally:
         torch.set_num_threads(threads)
     return 1000.0 * float(np.median(t)) / n
+
+
+def decision_ms(model: Model, block: tuple[int, int] = (64, 64), n: int = 16, repeats: int = 5) -> float:
+    """Milliseconds per block to turn half buffers (or a block and its quick image) into a score."""
+    return per_block_ms(lambda a, b: model.score_halves(a, b) if model.needs_halves else model.score_blocks(a, b),
+                        block, n, repeats)
+
+
+def flip_ms() -> float:
+    """The flip criterion's score (FLIP between the half buffers) per 64x64 block, timed alike."""
+    return per_block_ms(lambda a, b: halves_input(a, b, composition="f"))
 
 
 def _row(name: str, quick: str, train: SubImageTable, test: SubImageTable, data: str,
@@ -91,12 +102,7 @@ def compare_inputs(data: str, heldout: str, compositions: tuple[str, ...] = COMP
         log.info("inputs: quick %s", q)
         rows.append(_row(f"quick {q}", q, *split_tables(data, heldout, quick=q), data))
     # the flip criterion's cost on the same blocks, for the cost column's scale
-    rng = np.random.default_rng(0)
-    a = rng.random((16, 64, 64, 3)).astype(np.float32)
-    t0 = time.perf_counter()
-    halves_input(a, a * 0.98, composition="f")
-    flip_ms = 1000.0 * (time.perf_counter() - t0) / 16
-    return {"rows": rows, "flip_ms_per_block": flip_ms, "train_scenes": train.scenes(),
+    return {"rows": rows, "flip_ms_per_block": flip_ms(), "train_scenes": train.scenes(),
             "heldout_scenes": test.scenes()}
 
 

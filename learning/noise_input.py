@@ -36,6 +36,7 @@ import torch
 
 from noisefeat import FeatureBase, default_base
 from noisefeat.base import N_FEATURES
+from noisefeat.bounds import SizeBounds
 from noisefeat.display import lightness
 from noisefeat.perceptual import pooled_colour_error
 
@@ -74,6 +75,8 @@ def _check_halves(even: np.ndarray, odd: np.ndarray) -> tuple[np.ndarray, np.nda
                          f"{a.shape} and {b.shape}")
     if not (np.issubdtype(a.dtype, np.floating) and np.issubdtype(b.dtype, np.floating)):
         raise ValueError(f"half buffers must be floating point, got {a.dtype} and {b.dtype}")
+    # the block bounds of every other model input (issue 14), whichever parts are computed
+    SizeBounds.from_env().check_block(a.shape[1], a.shape[2], "half-buffer blocks")
     return a, b
 
 

@@ -235,15 +235,23 @@ class Stack:
         return out
 
     def content_key(self) -> str:
-        """A short hash of the bytes of every file in `files()`: what anything computed from
-        the stack and cached next to it is valid for. A file rewritten, truncated, replaced
+        """A short hash of the bytes of every file in `files()` (of meta.json: its plan, the
+        labels left out): what anything computed from the stack and cached next to it is
+        valid for. A file rewritten, truncated, replaced
         or removed changes it (a missing file raises FileNotFoundError naming it); a copy of
         the stack (new modification times) keeps it. Each file is hashed once per process
         while its size and modification time stay the same (`file_digest`)."""
         h = hashlib.sha256()
         for p in self.files():
-            h.update(f"{p.relative_to(self.path)}\0{file_digest(p)}\0".encode())
+            digest = self._plan_digest() if p.name == META else file_digest(p)
+            h.update(f"{p.relative_to(self.path)}\0{digest}\0".encode())
         return h.hexdigest()[:32]
+
+    def _plan_digest(self) -> str:
+        """meta.json without its labels (`labeler`, `thresholds`): nothing cached next to a
+        stack is computed from them, so relabelling keeps the caches."""
+        plan = {k: v for k, v in self.meta().items() if k not in OPTIONAL_KEYS}
+        return hashlib.sha256(json.dumps(plan, sort_keys=True).encode()).hexdigest()
 
     def level(self, k: int) -> np.ndarray:
         """Level k (index into `spp`, negative allowed): linear RGB [H, W, 3] float32."""

@@ -9,6 +9,9 @@ own seed stream, so its noise is independent of the levels it judges. Every pass
 into Mitsuba calls of at most `max_lanes` samples in flight (a 4096-spp reference of a
 256x256 frame in one call would hold 268 M lanes in memory).
 
+A complete stack whose virtual-observer labels came from an older observer (another
+edge margin) is relabelled in place when the build is rerun; human labels are kept.
+
 Interrupted builds resume: images are written atomically by `learning.StackWriter`, and
 the float64 running sum is checkpointed (atomically) in `<scene>/.build/accum.npz` after
 each level, so a rerun continues from the last finished level.
@@ -27,7 +30,7 @@ import numpy as np
 from tqdm import tqdm
 
 from learning.exr import read_exr
-from learning.observer import VirtualObserver
+from learning.observer import VirtualObserver, relabel_if_stale
 from learning.stack import EXTRA_QUICK, REFERENCE, StackWriter, level_name, make_plan, read_stack
 
 from .blocks import BlockRenderer
@@ -143,8 +146,10 @@ def build_stack(scene: str, out_root: str | os.PathLike, settings: BuildSettings
     for kind in EXTRA_QUICK:     # cheap, and added to stacks built before they existed
         if not (out / EXTRA_QUICK[kind]).exists():
             writer.write_extra_quick(kind, br.quick_image(spp=settings.quick_spp, seed=settings.seed, kind=kind))
+    observer = VirtualObserver(tau=settings.tau, ppd=settings.ppd)
     if writer.is_complete:
-        log.info("%s: already built", out)
+        _, relabelled = relabel_if_stale(read_stack(out), observer)
+        log.info("%s: already built%s", out, ", relabelled by the current observer" if relabelled else "")
         return _summary(out, variant, time.perf_counter() - t_start, resumed=True, already_built=True)
 
     level_seed, reference_seed = 2 * settings.seed, 2 * settings.seed + 1
@@ -173,7 +178,6 @@ def build_stack(scene: str, out_root: str | os.PathLike, settings: BuildSettings
         bar.update(1)
     bar.close()
 
-    observer = VirtualObserver(tau=settings.tau, ppd=settings.ppd)
     levels = (read_exr(out / level_name(s)) for s in settings.spp)   # one at a time
     thresholds = observer.thresholds(read_exr(out / REFERENCE), levels, settings.spp, settings.grid)
     stack = writer.finish(thresholds, observer.labeler)

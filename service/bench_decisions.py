@@ -135,6 +135,7 @@ def bench_tradeoff(data: str, heldout: str | None = None, out_dir: str | Path = 
     simulation); the oracle is (1, 0). Plus per held-out scene, the bundled model and flip
     at their calibrated defaults, and where their samples went (spp maps)."""
     from learning.calibrate import DEFAULT_OFFSETS, sweep
+    from learning.compare_inputs import decision_ms, flip_ms
     from learning.evaluate import stops_by_scene
     from learning.generalisation import scene_groups, split_stacks, split_tables
     from learning.halves import FLIP_CANDIDATES, flip_offset, flip_sweep, load_flip_calibration, stack_flip_errors
@@ -170,9 +171,12 @@ def bench_tradeoff(data: str, heldout: str | None = None, out_dir: str | Path = 
     twin = f"{bundled.manifest['kind']} quick {bundled.quick}"        # the bundle's own kind, retrained
     drawn = {n: rows for n, rows in kinds.items() if n.split()[0] in PARETO_KINDS and n != twin}
     offsets = f"offset {DEFAULT_OFFSETS[0]:g}..{DEFAULT_OFFSETS[-1]:g}"
-    curves = [{"label": f"{bundled.name} quick {bundled.quick} (bundled), {offsets}", "rows": model_curve,
-               "lw": 2.2, "color": "C0"},
-              {"label": f"flip (no learning), c {FLIP_CANDIDATES[0]:g}..{FLIP_CANDIDATES[-1]:g}",
+    # each criterion's decision cost next to its curve (one thread, per 64x64 block)
+    model_ms, flip_cost = decision_ms(bundled), flip_ms()
+    curves = [{"label": f"{bundled.name} quick {bundled.quick} (bundled), {offsets}, {model_ms:.1f} ms/block",
+               "rows": model_curve, "lw": 2.2, "color": "C0"},
+              {"label": f"flip (no learning), c {FLIP_CANDIDATES[0]:g}..{FLIP_CANDIDATES[-1]:g}, "
+                        f"{flip_cost:.1f} ms/block",
                "rows": flip_curve, "lw": 2.2, "color": "black"},
               {"label": f"variance (Cycles), threshold {thresholds[0]:g}..{thresholds[-1]:g}", "rows": var,
                "marker": "x", "color": "grey"}]
@@ -224,9 +228,10 @@ def bench_step(data: str, heldout: str | None = None, multiples: tuple[int, ...]
     """Render step (spp per pass) against samples, early stops and wall time.
 
     Samples and early stops on the held-out stacks, deciding only every k-th level (step =
-    k x the dataset's step): the bundled model (exact: its input is the cumulative mean)
-    and flip (approximate: a k-times step pairs passes into other halves; the stored
-    half-buffer scores of every k-th level stand in for them). Wall time: real renders of
+    k x the dataset's step): the bundled model and flip (approximate for inputs read from
+    half buffers: a k-times step pairs passes into other halves; the stored half-buffer
+    scores of every k-th level stand in for them; exact for a quick-image model, whose
+    input is the cumulative mean). Wall time: real renders of
     `scene` with each criterion."""
     from learning.evaluate import by_scene
     from learning.generalisation import split_stacks, split_tables
@@ -243,7 +248,9 @@ def bench_step(data: str, heldout: str | None = None, multiples: tuple[int, ...]
     m = _model_and_check(model, [s.scene for s in test_stacks])
     test = split_tables(data, heldout, **m.table_options())[1]
     c = float(load_flip_calibration()["c"])
-    model_scores, flat = by_scene(test, m.decision_function(test.X)), by_scene(test, test.flat)
+    # a sub-image with no input yet (B empty at the first level of a `halves` model) never stops
+    scores = np.where(test.decidable, m.decision_function(test.X), -np.inf)
+    model_scores, flat = by_scene(test, scores), by_scene(test, test.flat)
     flip_scores = {s.scene: -stack_flip_errors(s) for s in test_stacks}
     flats = {s.scene: stack_flat(s) for s in test_stacks}
     rules = {"model": (m.rule(), model_scores, flat), "flip": (StopRule(flip_offset(c)), flip_scores, flats)}

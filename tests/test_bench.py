@@ -38,14 +38,14 @@ def split(tmp_path_factory) -> tuple[str, str]:
     return str(root / "train"), str(root / "heldout")
 
 
-def fixture_model(tmp_path, data=FIXTURE, test_scenes=None) -> Path:
-    """A quick-'none' DSVM trained on `data` (default split of the fixture: 'cornell' held
-    out, in its manifest; `test_scenes=[]`: every scene trained on)."""
-    table = load_table(data, progress=False, quick="none")
-    est, summary = train_model("dsvm", str(data), table=table, cv=False, quick="none", progress=False,
+def fixture_model(tmp_path, data=FIXTURE, test_scenes=None, quick="none") -> Path:
+    """A DSVM (quick 'none' unless told) trained on `data` (default split of the fixture:
+    'cornell' held out, in its manifest; `test_scenes=[]`: every scene trained on)."""
+    table = load_table(data, progress=False, quick=quick)
+    est, summary = train_model("dsvm", str(data), table=table, cv=False, quick=quick, progress=False,
                                test_scenes=test_scenes)
     return save_model(est, tmp_path / "m", kind="dsvm", input="features", training=summary,
-                      extra={"quick": "none"})
+                      extra={"quick": quick})
 
 
 @pytest.mark.slow
@@ -109,12 +109,21 @@ def test_ablation_rows_cover_every_switch(tmp_path, split):
 
 @pytest.mark.slow
 def test_step_sizes_thin_the_decisions(tmp_path, split):
+    from learning.bundle import load_model
+    from learning.evaluate import evaluate_model
+    from learning.generalisation import split_tables
     from service.bench import bench_step, md_step
-    model = fixture_model(tmp_path, split[0], [])
+    model = fixture_model(tmp_path, split[0], [], quick="halves")     # the shipped kind of input
     r = bench_step(*split, multiples=(1, 2), scene="cornell", model=str(model),
                    resolution=32, max_spp=192, out_png=str(tmp_path / "s.png"))
     steps = [x["step"] for x in r["rows"]]
     assert steps == [48, 96]
+    # at the stack's own step the rows are the one route's figures: no stop at the first
+    # level, where the second half buffer is still empty
+    m = load_model(model)
+    direct = evaluate_model(m, split_tables(*split, **m.table_options())[1])
+    for key in ("early_stop_rate", "spp_ratio_vs_oracle"):
+        assert r["rows"][0]["model"][key] == pytest.approx(direct[key])
     for name in ("model", "flip"):
         assert r["rows"][1][name]["passes"] <= 2
         # deciding less often can only stop later: never fewer samples

@@ -1,6 +1,7 @@
 """Issue 14: arrays cached next to a stack are valid for the stack's content only."""
 from __future__ import annotations
 
+import dataclasses
 import logging
 import shutil
 
@@ -62,3 +63,16 @@ def test_a_missing_or_all_nan_level_is_refused_not_served_from_cache(stack):
     write_exr(stack.level_path(2), np.full((32, 32, 3), np.nan, np.float32))
     with pytest.raises(ValueError, match="no finite pixel"):
         _cached(stack, calls)
+
+
+def test_relabelling_keeps_the_caches_and_a_changed_plan_does_not(stack):
+    from learning.stack import update_labels
+    calls = []
+    key = stack.content_key()
+    _cached(stack, calls)
+    relabelled = update_labels(stack, [16] * stack.n_blocks, {"name": "human"})
+    assert relabelled.content_key() == key                            # labels are not an input
+    _cached(relabelled, calls)
+    assert len(calls) == 1
+    other_plan = dataclasses.replace(relabelled, reference_spp=2 * relabelled.reference_spp)
+    assert other_plan.content_key() != key                            # the plan is an input

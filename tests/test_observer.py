@@ -5,7 +5,9 @@ import numpy as np
 import pytest
 
 from learning.observer import (VirtualObserver, block_errors, block_means, display, flip_map,
-                               label_stack, srgb_decode, thresholds_from_errors)
+                               label_stack, relabel_if_stale, srgb_decode,
+                               thresholds_from_errors)
+from learning.stack import read_stack, update_labels
 from learning.synthetic import make_synthetic_stack, synthetic_images
 
 SPP = [4, 8, 16, 32, 64, 128, 256, 512, 1024]
@@ -169,7 +171,48 @@ def test_virtual_observer_settings():
     obs = VirtualObserver(tau=0.03, ppd=40)
     assert obs.labeler == {"name": "flip", "tau": 0.03, "ppd": 40, "display": "clip+srgb",
                            "exposure": 0.0}
+    assert VirtualObserver(edge_margin=10).labeler["edge_margin"] == 10
     with pytest.raises(ValueError, match="tau"):
         VirtualObserver(tau=-1)
     with pytest.raises(ValueError, match="ppd"):
         VirtualObserver(ppd=0)
+
+
+# ----------------------------------------------------------------------------- edge margin
+
+def test_block_means_edge_margin_leaves_out_the_frame_border_only():
+    v = np.ones((8, 8))
+    v[0, :] = v[-1, :] = v[:, 0] = v[:, -1] = 100.0          # a 1-px frame border
+    np.testing.assert_allclose(block_means(v, (2, 2), edge_margin=1), [1.0] * 4)
+    assert block_means(v, (2, 2))[0] > 1.0                    # margin 0: the plain mean
+    # margin 2 leaves one interior pixel per 4x4 block; margin 4 leaves none -> plain mean
+    np.testing.assert_allclose(block_means(v, (2, 2), edge_margin=4), block_means(v, (2, 2)))
+    with pytest.raises(ValueError, match="edge_margin"):
+        block_means(v, (2, 2), edge_margin=-1)
+    with pytest.raises(ValueError, match="edge_margin"):
+        VirtualObserver(edge_margin=1.5)
+
+
+def test_edge_margin_makes_a_block_score_alike_alone_and_inside_a_larger_frame():
+    # The same 64x64 content alone and as the centre-left block of a 128x128 frame: with the
+    # margin the one-block frame's error is the inner part of the same FLIP field.
+    rng = np.random.default_rng(3)
+    big_ref = rng.random((128, 128, 3)).astype(np.float32) * 0.5 + 0.25
+    big_test = np.clip(big_ref + rng.normal(0, 0.05, big_ref.shape), 0, 1).astype(np.float32)
+    crop = (slice(32, 96), slice(0, 64))
+    alone = [block_errors(srgb_decode(big_ref[crop]), [srgb_decode(big_test[crop])], (1, 1),
+                          edge_margin=m)[0, 0] for m in (0, 10)]
+    inner = float(flip_map(big_ref, big_test)[crop][10:-10, 10:-10].mean())   # same pixels, framed
+    assert abs(alone[1] - inner) < abs(alone[0] - inner)
+    assert abs(alone[1] - inner) / inner < 0.02
+
+
+def test_relabel_if_stale_updates_flip_labels_and_keeps_human_ones(tmp_path):
+    st = make_synthetic_stack(tmp_path / "s", size=64, spp=[16, 64, 256, 1024])
+    obs = VirtualObserver()
+    assert relabel_if_stale(st, obs) == (st, False)           # current labeler: untouched
+    update_labels(st, [None] * 16, VirtualObserver(edge_margin=10).labeler)   # another observer's
+    again, did = relabel_if_stale(read_stack(st.path), obs)
+    assert did and again.labeler == obs.labeler and again.thresholds == st.thresholds
+    human = update_labels(again, [16] * 16, {"name": "human", "source": "LISIC"})
+    assert relabel_if_stale(human, obs) == (human, False)

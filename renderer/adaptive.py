@@ -24,7 +24,7 @@ import logging
 import math
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from concurrent.futures import as_completed
 from pathlib import Path
 from typing import Any
@@ -92,7 +92,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
                     resolution: int | None = None, grid: Sequence[int] | None = None, step: int | None = None,
                     min_spp: int | None = None, max_spp: int | None = None, seed: int = 0, resume: bool = False,
                     progress: bool = True, reference: Stack | str | os.PathLike | None = None,
-                    quick_spp: int = 16) -> dict[str, Any]:
+                    quick_spp: int = 16, defines: Mapping[str, str] | None = None) -> dict[str, Any]:
     """Render `scene` adaptively into `out`; return the report (also out/report.json).
 
     wall_s in the report runs from the call to the end of the last pass (writing the
@@ -102,7 +102,8 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     `reference`: a labelled Stack, or a dataset/stack directory holding this scene: adds
     early_stop_rate, spp_ratio_vs_oracle and per-block true thresholds to the report.
     Settings left None come from the reference, the scene or the defaults
-    (`renderer.settings`); the report's `settings_source` says which.
+    (`renderer.settings`); the report's `settings_source` says which. `defines`: an XML
+    scene's parameters, as `mitsuba -D key=value` (recorded in the report).
     """
     from .scenes import load_scene
     from .simulate import find_reference
@@ -120,7 +121,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     ckpt_path = out / CHECKPOINT
 
     variant = select_variant()
-    br = BlockRenderer(load_scene(scene, resolution), (gh, gw))
+    br = BlockRenderer(load_scene(scene, resolution, defines), (gh, gw))
     SizeBounds.from_env().check_frame(br.height, br.width, (gh, gw))   # an XML film decides its own size
     n = br.n_blocks
     values["resolution"] = [br.width, br.height]
@@ -215,6 +216,8 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     report = _report(label, br, settings, crit, state, acc, final["timers"], variant or current_variant(),
                      ref_stack)
     report["settings_source"] = {k: sources[k] for k in given}
+    if defines:
+        report["defines"] = dict(defines)
     image = acc.image().astype(np.float32)
     reference = None
     if ref_stack is not None:

@@ -30,7 +30,7 @@ from __future__ import annotations
 import logging
 import os
 import xml.etree.ElementTree as ET
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -385,18 +385,22 @@ def _resolution_params(path: str, resolution: int) -> dict[str, str]:
     return {}
 
 
-def load_scene(name_or_path: str | os.PathLike[str], resolution: int | None = None) -> Any:
+def load_scene(name_or_path: str | os.PathLike[str], resolution: int | None = None,
+               defines: Mapping[str, str] | None = None) -> Any:
     """Load a built-in scene by name, or any Mitsuba 3 XML file, as an ``mi.Scene``.
 
     Built-ins default to 256x256 when `resolution` is None. For XML files see
     `_resolution_params`: if the file exposes no size parameter, its own film size is
-    kept and a warning says so.
+    kept and a warning says so. `defines` are the file's `<default>` parameters set as
+    `mitsuba -D key=value` sets them (they win over the resolution parameters).
     """
     select_variant()
     import mitsuba as mi
 
     name_or_path = os.fspath(name_or_path)
     if name_or_path in SCENES or procedural_seed(name_or_path) is not None:
+        if defines:
+            raise ValueError(f"-D sets parameters of an XML scene; {name_or_path!r} is built in")
         return mi.load_dict(scene_dict(name_or_path, 256 if resolution is None else resolution))
     looks_like_file = name_or_path.lower().endswith(".xml") or os.sep in name_or_path
     if not looks_like_file and not os.path.exists(name_or_path):
@@ -405,6 +409,7 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: int | None = No
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{name_or_path}: scene file not found")
     params = _resolution_params(path, resolution) if resolution is not None else {}
+    params.update(dict(defines or {}))
     try:
         scene = mi.load_file(path, **params)
     except Exception as exc:  # Mitsuba raises RuntimeError with its parser message
@@ -412,7 +417,7 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: int | None = No
     if not scene.sensors():
         raise ValueError(f"{path}: the scene has no <sensor> (camera) to render from; add one")
     size = tuple(int(v) for v in scene.sensors()[0].film().size())
-    if resolution is not None and not params:
+    if resolution is not None and not (set(params) - set(defines or {})):
         logger.warning("%s declares no resolution parameter; keeping its film size %dx%d",
                        path, size[0], size[1])
     logger.info("loaded %s (%dx%d)", path, size[0], size[1])

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import time
 from collections.abc import Callable
 
@@ -79,6 +80,17 @@ def _check_frame(height: int, width: int, grid: tuple[int, int], what: str) -> N
         SizeBounds.from_env().check_frame(height, width, grid)
     except ValueError as exc:
         raise UsageError(f"{what}: {exc}") from None
+
+
+_DEFINE_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+def _define(text: str) -> tuple[str, str]:
+    """`-D key=value`: key a name as in an XML scene's <default name=...>, value non-empty."""
+    key, sep, value = text.partition("=")
+    if not sep or not _DEFINE_KEY.fullmatch(key.strip()) or not value.strip():
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE with KEY a parameter name, got {text!r}")
+    return key.strip(), value.strip()
 
 
 def _quick_modes(text: str) -> tuple[str, ...]:
@@ -547,6 +559,9 @@ def _register_render(sub: argparse._SubParsersAction) -> None:
                    help="labelled dataset or stack of the scene: oracle thresholds, early-stop metrics")
     p.add_argument("--exposure", type=_exposure, default=0.0,
                    help="display exposure (stops, -64..64) the criteria judge the image at (default 0)")
+    p.add_argument("-D", dest="defines", type=_define, action="append", default=None, metavar="KEY=VALUE",
+                   help="set a <default> parameter of an XML scene, as mitsuba -D does (repeatable), "
+                        "e.g. -D integrator=path")
     # None = not given: taken from --reference, then the scene, then the defaults shown
     # (renderer/settings.py); the report's settings_source says which
     p.add_argument("--resolution", type=_side, default=None,
@@ -581,7 +596,8 @@ def cmd_render(args: argparse.Namespace) -> int:
             quantile=args.quantile, offset=args.offset, workers=args.workers, scheduler=args.scheduler,
             exposure=args.exposure,
             resolution=args.resolution, grid=None if args.grid is None else tuple(args.grid), step=args.step,
-            min_spp=args.min_spp, max_spp=args.max_spp, seed=args.seed, resume=args.resume)
+            min_spp=args.min_spp, max_spp=args.max_spp, seed=args.seed, resume=args.resume,
+            defines=dict(args.defines) if args.defines else None)
     except ConnectionError as exc:      # verdict server unreachable or failing
         raise UsageError(str(exc)) from exc
     single = "blocks" in result         # one scene: its report; several: a summary

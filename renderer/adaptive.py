@@ -92,7 +92,8 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
                     resolution: int | None = None, grid: Sequence[int] | None = None, step: int | None = None,
                     min_spp: int | None = None, max_spp: int | None = None, seed: int = 0, resume: bool = False,
                     progress: bool = True, reference: Stack | str | os.PathLike | None = None,
-                    quick_spp: int = 16, defines: Mapping[str, str] | None = None) -> dict[str, Any]:
+                    quick_spp: int = 16, defines: Mapping[str, str] | None = None,
+                    time_limit: float | None = None) -> dict[str, Any]:
     """Render `scene` adaptively into `out`; return the report (also out/report.json).
 
     wall_s in the report runs from the call to the end of the last pass (writing the
@@ -103,8 +104,12 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     early_stop_rate, spp_ratio_vs_oracle and per-block true thresholds to the report.
     Settings left None come from the reference, the scene or the defaults
     (`renderer.settings`); the report's `settings_source` says which. `defines`: an XML
-    scene's parameters, as `mitsuba -D key=value` (recorded in the report).
+    scene's parameters, as `mitsuba -D key=value` (recorded in the report). `time_limit`:
+    seconds this call may run; the pass under way when it is reached is finished, then the
+    outputs and the checkpoint are written and `resume` continues from there.
     """
+    if time_limit is not None and not (math.isfinite(time_limit) and time_limit > 0):
+        raise ValueError(f"time limit must be a positive number of seconds, got {time_limit!r}")
     from .scenes import load_scene
     from .simulate import find_reference
     from .variant import current_variant, select_variant
@@ -178,6 +183,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
                            "wall_s": wall}}
 
     p = state["pass_index"]
+    time_limit_reached = False
     bar = tqdm(total=len(sizes), initial=p, desc=f"{label} passes", unit="pass",
                disable=not progress, leave=False)
     while not state["done"]:
@@ -210,6 +216,11 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
         save_checkpoint(ckpt_path, snapshot())
         bar.set_postfix(spp=spp, active=int(state["active"].sum()), refresh=False)
         bar.update(1)
+        if time_limit is not None and not state["done"] and time.perf_counter() - t_start >= time_limit:
+            time_limit_reached = True
+            logger.info("%s: time limit of %gs reached after pass %d (%d blocks still active); "
+                        "--resume continues", label, time_limit, p, int(state["active"].sum()))
+            break
     bar.close()
 
     final = snapshot()
@@ -218,6 +229,8 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     report["settings_source"] = {k: sources[k] for k in given}
     if defines:
         report["defines"] = dict(defines)
+    if time_limit is not None:
+        report["time_limit"] = {"seconds": float(time_limit), "reached": time_limit_reached}
     image = acc.image().astype(np.float32)
     reference = None
     if ref_stack is not None:

@@ -559,6 +559,9 @@ def _register_render(sub: argparse._SubParsersAction) -> None:
                    help="labelled dataset or stack of the scene: oracle thresholds, early-stop metrics")
     p.add_argument("--exposure", type=_exposure, default=0.0,
                    help="display exposure (stops, -64..64) the criteria judge the image at (default 0)")
+    p.add_argument("--time-limit", type=_float_in(0.0, 1e9, open_low=True), default=None, metavar="S",
+                   help="stop after the pass under way at S seconds, writing the outputs and the "
+                        "checkpoint (--resume continues)")
     p.add_argument("-D", dest="defines", type=_define, action="append", default=None, metavar="KEY=VALUE",
                    help="set a <default> parameter of an XML scene, as mitsuba -D does (repeatable), "
                         "e.g. -D integrator=path")
@@ -597,7 +600,7 @@ def cmd_render(args: argparse.Namespace) -> int:
             exposure=args.exposure,
             resolution=args.resolution, grid=None if args.grid is None else tuple(args.grid), step=args.step,
             min_spp=args.min_spp, max_spp=args.max_spp, seed=args.seed, resume=args.resume,
-            defines=dict(args.defines) if args.defines else None)
+            defines=dict(args.defines) if args.defines else None, time_limit=args.time_limit)
     except ConnectionError as exc:      # verdict server unreachable or failing
         raise UsageError(str(exc)) from exc
     single = "blocks" in result         # one scene: its report; several: a summary

@@ -226,3 +226,21 @@ def test_bad_arguments(tmp_path):
     with pytest.raises(ValueError, match="unknown criterion"):
         adaptive_render("cornell", tmp_path, "bogus", **TINY)
     assert adaptive.pass_sizes(16, 40) == [16, 16, 8]
+
+
+def test_time_limit_stops_cleanly_and_resume_finishes_the_same_image(tmp_path):
+    ref = adaptive_render("cornell", tmp_path / "a", VarianceCriterion(0.3), **TINY)
+    assert ref["passes"] > 2 and "time_limit" not in ref
+    cut = adaptive_render("cornell", tmp_path / "b", VarianceCriterion(0.3), time_limit=1e-6, **TINY)
+    assert cut["time_limit"] == {"seconds": 1e-6, "reached": True} and cut["passes"] == 1
+    assert (tmp_path / "b" / "final.exr").exists() and (tmp_path / "b" / "report.json").exists()
+    with np.load(tmp_path / "b" / CHECKPOINT, allow_pickle=False) as z:
+        assert int(z["pass_index"]) == 1 and not bool(z["done"])
+    resumed = adaptive_render("cornell", tmp_path / "b", VarianceCriterion(0.3), resume=True, **TINY)
+    assert without_timing(resumed) == without_timing(ref)
+    np.testing.assert_array_equal(read_exr(tmp_path / "b" / "final.exr"), read_exr(tmp_path / "a" / "final.exr"))
+    roomy = adaptive_render("cornell", tmp_path / "c", VarianceCriterion(0.3), time_limit=1e6, **TINY)
+    assert roomy["time_limit"]["reached"] is False and roomy["passes"] == ref["passes"]
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="time limit"):
+            adaptive_render("cornell", tmp_path / "d", VarianceCriterion(0.3), time_limit=bad, **TINY)

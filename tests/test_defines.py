@@ -84,3 +84,9 @@ def test_d_on_a_built_in_scene_is_refused(tmp_path, capsys):
     rc, _, err = _run(capsys, "render", "--scene", "cornell", "--out", str(tmp_path / "o"),
                       "-D", "integrator=path", "--criterion", "uniform", "--max-spp", "16")
     assert rc == 2 and "built in" in _one_error_line(err)
+
+
+@pytest.mark.parametrize("value", ["-5", "0", "nan", "soon"])
+def test_bad_time_limit_is_a_one_line_usage_error(value, tmp_path, capsys):
+    rc, _, err = _run(capsys, "render", "--scene", "cornell", "--out", str(tmp_path / "o"), "--time-limit", value)
+    assert rc == 2 and "--time-limit" in _one_error_line(err)

@@ -16,6 +16,7 @@ import os
 import secrets
 import threading
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -116,6 +117,11 @@ def _read_rgb(path: str | os.PathLike, kind: str, srgb: bool) -> np.ndarray:
     mi = _mi()
     fmt = mi.Bitmap.FileFormat.OpenEXR if kind == "EXR" else mi.Bitmap.FileFormat.PNG
     bm = _load(path, fmt, kind)
+    if bm.pixel_format() == mi.Bitmap.PixelFormat.MultiChannel:   # e.g. final.exr: RGB + spp + mask
+        channels = _channels(bm, path)
+        if not {"R", "G", "B"} <= set(channels):
+            raise ValueError(f"{path}: no R, G, B channels among {sorted(channels)}")
+        return np.stack([channels[c] for c in "RGB"], axis=-1)
     try:
         bm = bm.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=srgb)
     except RuntimeError as exc:
@@ -127,8 +133,41 @@ def _read_rgb(path: str | os.PathLike, kind: str, srgb: bool) -> np.ndarray:
 
 
 def read_exr(path: str | os.PathLike) -> np.ndarray:
-    """EXR -> float32 [H, W, 3] linear RGB (alpha dropped, grey expanded to RGB)."""
+    """EXR -> float32 [H, W, 3] linear RGB (alpha dropped, grey expanded to RGB; of a
+    multi-channel file its R, G and B channels)."""
     return _read_rgb(path, "EXR", srgb=False)
+
+
+def _channels(bm: Any, path: Path) -> dict[str, np.ndarray]:
+    try:
+        names = [field.name for field in bm.struct_()]
+        data = np.array(bm, copy=True).astype(np.float32)
+    except RuntimeError as exc:
+        raise ValueError(f"{path}: unreadable channels: {exc}") from exc
+    data = data.reshape(data.shape[0], data.shape[1], len(names))
+    return {name: data[..., i] for i, name in enumerate(names)}
+
+
+def read_exr_channels(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Every channel of an EXR by name, float32 [H, W] each (final.exr: R, G, B, spp, converged)."""
+    path = Path(path)
+    return _channels(_load(path, _mi().Bitmap.FileFormat.OpenEXR, "EXR"), path)
+
+
+def write_exr_channels(path: str | os.PathLike, channels: dict[str, np.ndarray]) -> None:
+    """Write named float32 [H, W] channels as one EXR, atomically (readers that know only
+    RGB read the R, G and B channels)."""
+    path = Path(path)
+    if not channels:
+        raise ValueError(f"{path}: no channels to write")
+    arrays = [np.asarray(v, np.float32) for v in channels.values()]
+    if len({a.shape for a in arrays}) != 1 or arrays[0].ndim != 2:
+        raise ValueError(f"{path}: channels must be [H, W] arrays of one shape, got "
+                         f"{[a.shape for a in arrays]}")
+    mi = _mi()
+    bm = mi.Bitmap(np.ascontiguousarray(np.stack(arrays, axis=-1)),
+                   pixel_format=mi.Bitmap.PixelFormat.MultiChannel, channel_names=list(channels))
+    atomic_write_bytes(path, _encode(bm, mi.Bitmap.FileFormat.OpenEXR))
 
 
 def write_png(path: str | os.PathLike, srgb8: np.ndarray) -> None:

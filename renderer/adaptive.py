@@ -126,7 +126,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     ckpt_path = out / CHECKPOINT
 
     variant = select_variant()
-    br = BlockRenderer(load_scene(scene, resolution, defines), (gh, gw))
+    br = BlockRenderer(load_scene(scene, resolution, defines=defines), (gh, gw))
     SizeBounds.from_env().check_frame(br.height, br.width, (gh, gw))   # an XML film decides its own size
     n = br.n_blocks
     values["resolution"] = [br.width, br.height]

@@ -1,4 +1,5 @@
-"""What an adaptive render leaves on disk: final.exr, final.png, spp_map.png, report.json,
+"""What an adaptive render leaves on disk: final.exr (linear R, G, B, and per pixel its block's
+spp and converged mask, DESIGN), final.png, spp_map.png, report.json,
 and with a reference, compare.png (final next to reference, per-block FLIP against it).
 
 Every file is written atomically (temporary name, fsync, rename: `learning.exr`), so an
@@ -18,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from learning.exr import atomic_write_bytes, write_exr, write_png
+from learning.exr import atomic_write_bytes, write_exr_channels, write_png
 from noisefeat import display
 
 FINAL_EXR = "final.exr"
@@ -140,6 +141,16 @@ def compare_png(final8: np.ndarray, reference8: np.ndarray, grid: Sequence[int],
     return buf.getvalue()
 
 
+def per_pixel(values: Sequence[float], grid: Sequence[int], shape: Sequence[int]) -> np.ndarray:
+    """float32 [H, W]: each block's value (row-major blocks of `grid`) on its pixels."""
+    gh, gw = int(grid[0]), int(grid[1])
+    h, w = int(shape[0]), int(shape[1])
+    if h % gh or w % gw or len(values) != gh * gw:
+        raise ValueError(f"{len(values)} block values for a {gh}x{gw} grid on a {h}x{w} frame")
+    v = np.asarray(values, np.float32).reshape(gh, gw)
+    return np.repeat(np.repeat(v, h // gh, axis=0), w // gw, axis=1)
+
+
 def write_outputs(out: str | os.PathLike, image: np.ndarray, report: dict[str, Any],
                   reference: np.ndarray | None = None) -> dict[str, str]:
     """Write the outputs of a render into `out`; return their paths by name. With the
@@ -148,10 +159,13 @@ def write_outputs(out: str | os.PathLike, image: np.ndarray, report: dict[str, A
     out.mkdir(parents=True, exist_ok=True)
     img = np.asarray(image, np.float32)
     srgb8 = to_srgb8(img, report.get("exposure", 0.0))
-    write_exr(out / FINAL_EXR, img)
-    write_png(out / FINAL_PNG, srgb8)
     blocks = report["blocks"]
     spp = [b["spp"] for b in blocks]
+    converged = [float(b["converged"]) for b in blocks]
+    write_exr_channels(out / FINAL_EXR, {"R": img[..., 0], "G": img[..., 1], "B": img[..., 2],
+                                         "spp": per_pixel(spp, report["grid"], img.shape[:2]),
+                                         "converged": per_pixel(converged, report["grid"], img.shape[:2])})
+    write_png(out / FINAL_PNG, srgb8)
     atomic_write_bytes(out / SPP_MAP, spp_map_png(srgb8, report["grid"], spp,
                                                   [b["converged"] for b in blocks], report["max_spp"]))
     names = [FINAL_EXR, FINAL_PNG, SPP_MAP, REPORT]

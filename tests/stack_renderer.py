@@ -44,7 +44,7 @@ def live(monkeypatch, tmp_path, stack, crit, min_spp, name="live"):
         return made[-1]
 
     monkeypatch.setattr(adaptive, "BlockRenderer", fake_renderer)
-    monkeypatch.setattr("renderer.scenes.load_scene", lambda scene, resolution: scene)
+    monkeypatch.setattr("renderer.scenes.load_scene", lambda scene, resolution, defines=None: scene)
     report = adaptive.adaptive_render(stack.scene, tmp_path / name, crit, resolution=stack.width,
                                       grid=tuple(stack.grid), step=int(stack.spp[0]), min_spp=min_spp,
                                       max_spp=int(stack.spp[-1]), progress=False)

@@ -244,3 +244,20 @@ def test_time_limit_stops_cleanly_and_resume_finishes_the_same_image(tmp_path):
     for bad in (0.0, -1.0, float("nan")):
         with pytest.raises(ValueError, match="time limit"):
             adaptive_render("cornell", tmp_path / "d", VarianceCriterion(0.3), time_limit=bad, **TINY)
+
+
+def test_final_exr_carries_spp_and_the_converged_mask(tmp_path):
+    from learning.exr import read_exr_channels
+    rep = adaptive_render("cornell", tmp_path / "a", VarianceCriterion(0.3), **TINY)
+    ch = read_exr_channels(tmp_path / "a" / "final.exr")
+    assert {"R", "G", "B", "spp", "converged"} <= set(ch)
+    gh, gw = rep["grid"]
+    h, w = ch["spp"].shape
+    for b, block in enumerate(rep["blocks"]):
+        r, c = divmod(b, gw)
+        tile = (slice(r * h // gh, (r + 1) * h // gh), slice(c * w // gw, (c + 1) * w // gw))
+        assert (ch["spp"][tile] == block["spp"]).all()
+        assert (ch["converged"][tile] == float(block["converged"])).all()
+    assert 0 < ch["converged"].mean() < 1                  # some blocks stopped, some did not
+    np.testing.assert_array_equal(read_exr(tmp_path / "a" / "final.exr"),
+                                  np.stack([ch[c] for c in "RGB"], axis=-1))

@@ -142,7 +142,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
                 "exposure": float(getattr(crit, "exposure", 0.0)),
                 "step": int(step), "min_spp": int(min_spp), "max_spp": int(max_spp), "seed": int(seed),
                 "quick_spp": int(quick_spp), "quick": crit.quick_kind if crit.needs_quick else "none",
-                "criterion": crit.describe(), "variant": variant}
+                "criterion": crit.describe(), "variant": variant, "defines": dict(defines or {})}
     sizes = pass_sizes(step, max_spp)
 
     state: dict[str, Any] | None = None

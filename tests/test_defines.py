@@ -90,3 +90,17 @@ def test_d_on_a_built_in_scene_is_refused(tmp_path, capsys):
 def test_bad_time_limit_is_a_one_line_usage_error(value, tmp_path, capsys):
     rc, _, err = _run(capsys, "render", "--scene", "cornell", "--out", str(tmp_path / "o"), "--time-limit", value)
     assert rc == 2 and "--time-limit" in _one_error_line(err)
+
+
+def test_resume_with_other_d_values_is_refused(xml, tmp_path):
+    from renderer.adaptive import adaptive_render
+    from renderer.criteria import UniformCriterion
+    kw = dict(grid=(2, 2), step=8, min_spp=8, max_spp=32, progress=False)
+    adaptive_render(str(xml), tmp_path / "o", UniformCriterion(), time_limit=1e-6,
+                    defines={"integrator": "path", "light": "0.5"}, **kw)
+    with pytest.raises(ValueError, match="other settings.*defines"):
+        adaptive_render(str(xml), tmp_path / "o", UniformCriterion(), resume=True,
+                        defines={"integrator": "path", "light": "0.9"}, **kw)
+    done = adaptive_render(str(xml), tmp_path / "o", UniformCriterion(), resume=True,
+                           defines={"integrator": "path", "light": "0.5"}, **kw)
+    assert done["passes"] == 4

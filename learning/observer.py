@@ -232,8 +232,9 @@ def relabel_if_stale(stack: Stack, observer: VirtualObserver) -> tuple[Stack, bo
     never touched. Returns the stack as it now is and whether it was relabelled.
     """
     lab = stack.labeler
-    if not (isinstance(lab, Mapping) and lab.get("name") == "flip") or labeler_matches(lab, observer):
+    if not (isinstance(lab, Mapping) and lab.get("name") == "flip"):
         return stack, False
+    # the stack's own tau, ppd and exposure; the current observer's way of averaging
     obs = VirtualObserver(tau=float(lab.get("tau", observer.tau)), ppd=float(lab.get("ppd", observer.ppd)),
                           exposure=float(lab.get("exposure", observer.exposure)),
                           edge_margin=observer.edge_margin)

@@ -173,12 +173,9 @@ def bench_render(scene: str = "env_spheres", resolution: int = 256, max_spp: int
 
 
 def bench_service(clients: tuple[int, ...] = (1, 8, 32)) -> dict[str, Any]:
-    from learning.bundle import load_model
-
     from .loadtest import bench
-    pair = "even + odd half buffers" if load_model(None).needs_halves else "block + quick image"
-    return {str(c): {**bench(None, clients=c, requests_per_client=max(2, 64 // c), max_seconds=60),
-                     "inputs": pair} for c in clients}
+    return {str(c): bench(None, clients=c, requests_per_client=max(2, 64 // c), max_seconds=60)
+            for c in clients}
 
 
 def bench_ablation(data: str, heldout: str | None = None, out_png: str = "docs/ablation.png") -> dict[str, Any]:
@@ -402,7 +399,8 @@ def md_service(r: dict[str, Any]) -> str:
             lines.append(f"| {c} | {enc} | {x['requests']} | {x['requests_per_s']:.2f} | "
                          f"{x['blocks_per_s']:.0f} | {f(x['p50_ms'])} | {f(x['p99_ms'])} | {x['errors']} |")
     first = next(iter(r.values()))
-    return (f"16 blocks of 128x128 ({first.get('inputs', 'block + quick image')}) per request, "
+    sent = " + ".join(first["binary"].get("inputs", ("blocks", "quick")))
+    return (f"16 blocks of 128x128 ({sent}) per request, "
             f"model {first['model']}, loopback, "
             f"{first['cpus']} CPUs. Goal: p99 <= 25 ms at 8 clients with binary data, no errors "
             "at 32.\n\n" + "\n".join(lines))

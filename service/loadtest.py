@@ -188,7 +188,7 @@ def run_load(url: str, *, model: str = "default", clients: int = 4, requests_per
     """Throughput and latency of `clients` x `requests_per_client` infer requests.
 
     Returns requests, errors, wall_s, requests_per_s, blocks_per_s, p50_ms, p99_ms, mean_ms,
-    request_bytes. Requests not started before `max_seconds` are skipped (counted in
+    request_bytes, and the inputs sent (the two image tensors the served model reads). Requests not started before `max_seconds` are skipped (counted in
     `skipped`).
     """
     parts = urlsplit(url)
@@ -199,8 +199,8 @@ def run_load(url: str, *, model: str = "default", clients: int = 4, requests_per
             and 0 < max_seconds <= MAX_SECONDS):
         raise ValueError(f"clients must be 1..{MAX_CLIENTS}, requests_per_client 1..{MAX_REQUESTS}, "
                          f"max_seconds (0, {MAX_SECONDS}]")
-    body, headers = make_request(blocks, size, binary,
-                                 inputs=served_inputs(host, port, model, token, timeout))
+    kind = served_inputs(host, port, model, token, timeout)
+    body, headers = make_request(blocks, size, binary, inputs=kind)
     if token:
         headers["Authorization"] = f"Bearer {token}"
     path = f"/v2/models/{model}/infer"
@@ -255,7 +255,8 @@ def run_load(url: str, *, model: str = "default", clients: int = 4, requests_per
                                                                   "mean_ms": None}
     return {"encoding": "binary" if binary else "json", "clients": clients,
             "requests": len(latencies), "errors": len(errors), "skipped": skipped[0],
-            "blocks_per_request": blocks, "block_size": size, "request_bytes": len(body),
+            "blocks_per_request": blocks, "block_size": size, "inputs": list(IMAGE_INPUTS[kind]),
+            "request_bytes": len(body),
             "wall_s": wall, "requests_per_s": len(latencies) / wall,
             "blocks_per_s": len(latencies) * blocks / wall, **stats,
             "first_error": errors[0] if errors else None}

@@ -4,13 +4,13 @@ does not have still renders."""
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import pytest
 
 from renderer.scenes import load_scene
 from service import cli
+from test_error_contract import assert_one_line_error, run   # the one error contract's checks
 
 # A scene as papers publish them: its default integrator is the paper's own plugin.
 XML_FOREIGN_INTEGRATOR = """<scene version="3.0.0">
@@ -35,34 +35,20 @@ def xml(tmp_path: Path) -> Path:
     return path
 
 
-def _run(capsys, *argv: str) -> tuple[int, str, str]:
-    capsys.readouterr()
-    try:
-        rc = cli.main(list(argv))
-    except SystemExit as exc:          # argparse
-        rc = exc.code
-    out = capsys.readouterr()
-    return rc, out.out, out.err
-
-
-def _one_error_line(err: str) -> str:
-    lines = [line for line in re.split(r"[\r\n]", err) if line.strip() and "%|" not in line]
-    assert len(lines) == 1 and "Traceback" not in err, err
-    return lines[0]
-
-
 def test_without_d_the_foreign_integrator_is_a_one_line_error(xml, tmp_path, capsys):
-    rc, _, err = _run(capsys, "render", "--scene", str(xml), "--out", str(tmp_path / "o"),
-                      "--criterion", "uniform", "--max-spp", "16", "--step", "16", "--min-spp", "16")
-    assert rc == 2 and "my_paper_integrator" in _one_error_line(err)
+    rc, err = run(capsys, "render", "--scene", str(xml), "--out", str(tmp_path / "o"),
+                  "--criterion", "uniform", "--max-spp", "16", "--step", "16", "--min-spp", "16")
+    assert_one_line_error(rc, err, "my_paper_integrator")
 
 
 def test_d_sets_the_integrator_and_is_recorded(xml, tmp_path, capsys):
-    rc, out, err = _run(capsys, "render", "--scene", str(xml), "--out", str(tmp_path / "o"), "--json",
-                        "-D", "integrator=path", "-D", "light=0.5", "--criterion", "uniform",
-                        "--grid", "2", "2", "--step", "8", "--min-spp", "8", "--max-spp", "16")
-    assert rc == 0, err
-    report = json.loads(out)
+    capsys.readouterr()
+    rc = cli.main(["render", "--scene", str(xml), "--out", str(tmp_path / "o"), "--json",
+                   "-D", "integrator=path", "-D", "light=0.5", "--criterion", "uniform",
+                   "--grid", "2", "2", "--step", "8", "--min-spp", "8", "--max-spp", "16"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    report = json.loads(out.out)
     assert report["defines"] == {"integrator": "path", "light": "0.5"}
     assert report["resolution"] == [32, 32]
 
@@ -76,20 +62,20 @@ def test_d_values_reach_the_scene(xml):
 
 @pytest.mark.parametrize("arg", ["integrator", "=path", "integrator=", "bad key=1", "1x=2"])
 def test_bad_d_is_a_one_line_usage_error(arg, xml, tmp_path, capsys):
-    rc, _, err = _run(capsys, "render", "--scene", str(xml), "--out", str(tmp_path / "o"), "-D", arg)
-    assert rc == 2 and "KEY=VALUE" in _one_error_line(err)
+    rc, err = run(capsys, "render", "--scene", str(xml), "--out", str(tmp_path / "o"), "-D", arg)
+    assert_one_line_error(rc, err, "KEY=VALUE")
 
 
 def test_d_on_a_built_in_scene_is_refused(tmp_path, capsys):
-    rc, _, err = _run(capsys, "render", "--scene", "cornell", "--out", str(tmp_path / "o"),
+    rc, err = run(capsys, "render", "--scene", "cornell", "--out", str(tmp_path / "o"),
                       "-D", "integrator=path", "--criterion", "uniform", "--max-spp", "16")
-    assert rc == 2 and "built in" in _one_error_line(err)
+    assert_one_line_error(rc, err, "built in")
 
 
 @pytest.mark.parametrize("value", ["-5", "0", "nan", "soon"])
 def test_bad_time_limit_is_a_one_line_usage_error(value, tmp_path, capsys):
-    rc, _, err = _run(capsys, "render", "--scene", "cornell", "--out", str(tmp_path / "o"), "--time-limit", value)
-    assert rc == 2 and "--time-limit" in _one_error_line(err)
+    rc, err = run(capsys, "render", "--scene", "cornell", "--out", str(tmp_path / "o"), "--time-limit", value)
+    assert_one_line_error(rc, err, "--time-limit")
 
 
 def test_resume_with_other_d_values_is_refused(xml, tmp_path):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from extremes import CASES, extreme_halves
 from learning.noise_input import (COMPOSITIONS, FEATURE_FLOOR, FLIP_FLOOR, HALVES, compose, halves_input,
                                   halves_mean, halves_raw, layout, n_inputs, parts_of)
 from noisefeat.base import N_FEATURES
@@ -55,25 +56,10 @@ def test_identical_halves_have_no_noise():
     assert (x[:, 1 + n_inputs("n"):] > np.log10(FEATURE_FLOOR)).all()       # the content is still seen
 
 
-@pytest.mark.parametrize("case", ["black", "constant", "fireflies", "nan_inf", "tiny", "huge"])
+@pytest.mark.parametrize("case", [c for c in CASES if c != "empty"])
 def test_extreme_inputs_give_finite_bounded_features(case):
     base = RNG.random((2, H, W, 3)).astype(np.float32) * 0.3
-    a, b = base.copy(), (base * 0.9).astype(np.float32)
-    if case == "black":
-        a[:], b[:] = 0, 0
-    elif case == "constant":
-        a[:], b[:] = 0.5, 0.5
-    elif case == "fireflies":
-        a[:, 3, 5] = 1e30
-        b[:, 7, 1] = 3e38
-    elif case == "nan_inf":
-        a[0, 0, 0] = np.nan
-        a[1, 2, 2] = np.inf
-        b[0, 4, 4] = -np.inf
-    elif case == "tiny":
-        a, b = (a * 1e-30).astype(np.float32), (b * 1e-30).astype(np.float32)
-    elif case == "huge":
-        a, b = (a * 1e30).astype(np.float32), (b * 1e30).astype(np.float32)
+    a, b = extreme_halves(case, base, base * 0.9)
     x = halves_input(a, b, composition="f+n+c")
     assert np.isfinite(x).all()
     # log10 of FLIP (<= 1) and of an L* std (<= 100): from the floors up to 0 and 2

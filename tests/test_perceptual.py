@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from extremes import CASES, extreme_halves
 from learning.halves import halves_flip
 from noisefeat.display import lab, lightness
 from noisefeat.perceptual import csf_kernel, pooled_colour_error
@@ -67,26 +68,10 @@ def test_it_tracks_flip_between_the_halves():
     assert np.corrcoef(np.log10(mine), np.log10(flip))[0, 1] > 0.97
 
 
-@pytest.mark.parametrize("case", ["black", "constant", "fireflies", "nan_inf", "tiny", "huge", "empty"])
+@pytest.mark.parametrize("case", CASES)
 def test_extreme_inputs_give_finite_bounded_errors(case):
     a = RNG.random((2, 16, 16, 3)).astype(np.float32) * 0.5
-    b = (a * 0.9).astype(np.float32)
-    if case == "black":
-        a[:], b[:] = 0, 0
-    elif case == "constant":
-        a[:], b[:] = 0.5, 0.5
-    elif case == "fireflies":
-        a[:, 3, 5] = 3e38
-    elif case == "nan_inf":
-        a[0, 0, 0] = np.nan
-        b[1, 2, 2] = np.inf
-        a[1, 4, 4] = -np.inf
-    elif case == "tiny":
-        a, b = a * 1e-30, b * 1e-30
-    elif case == "huge":
-        a, b = a * 1e30, b * 1e30
-    elif case == "empty":
-        a, b = a[:0], b[:0]
+    a, b = extreme_halves(case, a, a * 0.9)
     e = pooled_colour_error(a, b).numpy()
     assert e.shape == (len(a),) and np.isfinite(e).all() and ((0 <= e) & (e <= 1)).all()
     if case in ("black", "constant", "huge"):      # equal display images: no error at all

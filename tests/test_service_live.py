@@ -190,6 +190,7 @@ def test_load_test_runs_both_encodings(live_url):
         r = run_load(f"http://{live_url}", token=TOKEN, clients=2, requests_per_client=2, blocks=2,
                      size=32, binary=binary, max_seconds=60)
         assert r["requests"] == 4 and r["errors"] == 0, r
+        assert r["inputs"] == ["blocks", "quick"]          # what the served (quick-image) model reads
         assert r["p50_ms"] > 0 and r["p99_ms"] >= r["p50_ms"] and r["blocks_per_s"] > 0
     with pytest.raises(ValueError, match="loopback"):
         run_load("http://example.org:80", clients=1, requests_per_client=1)

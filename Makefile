@@ -25,13 +25,13 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 	@bash scripts/install-llvm.sh
 
-# The main job: adaptive render of the default scene with the default criterion (flip;
-# README "Deciding a stop"). With the default dataset built, its thresholds give early-stop
-# figures and compare.png (final next to the reference) too.
-RUN_ARGS ?= --resolution 256 --step 16 --min-spp 16 --max-spp 640
+# The main job, showing what the product is for (renderer/showcase.py): the held-out
+# studio_preview rendered adaptively with the default criterion, then uniformly for the same
+# wall time; out/equal_time.png puts them side by side and one line sums up the samples
+# used, the speed-up and the blocks stopped. README "make run".
+RUN_SCENE ?= studio_preview
 run: setup
-	$(NOISESTOP) render --scene cornell --out $(OUT) $(RUN_ARGS) \
-		$(if $(wildcard $(LIBRARY)/cornell/meta.json),--reference $(LIBRARY)/cornell,)
+	$(PY) -m renderer.showcase --scene $(RUN_SCENE) --out $(OUT)
 
 test: setup
 	$(PY) -m pytest -q

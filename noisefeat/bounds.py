@@ -81,13 +81,18 @@ class SizeBounds:
             raise ValueError(f"{n} blocks of {height}x{width} are {pixels} pixels, over the pixel "
                              f"budget of a request, max_pixels = {self.max_pixels} ({ENV['max_pixels']})")
 
-    def check_frame(self, height: int, width: int, grid: tuple[int, int]) -> None:
-        """A rendered frame and its grid: the frame's pixels and the blocks it is cut into."""
+    def check_frame(self, height: int, width: int, grid: tuple[int, int],
+                    block: tuple[int, int] | None = None) -> None:
+        """A rendered frame and its blocks: the frame's pixels, and the blocks of `grid`
+        (or, when given, the `block` windows (height, width) it is cut into)."""
         if height < 1 or width < 1:
             raise ValueError(f"frame must be at least 1x1 pixels, got {width}x{height}")
         if height * width > self.max_frame_pixels:
             raise ValueError(f"a {width}x{height} frame is {width * height} pixels, over the largest "
                              f"frame, max_frame_pixels = {self.max_frame_pixels} "
                              f"({ENV['max_frame_pixels']})")
+        if block is not None:
+            self.check_block(block[0], block[1], what=f"blocks on a {width}x{height} frame")
+            return
         gh, gw = grid
         self.check_block(height // gh, width // gw, what=f"blocks of a {gh}x{gw} grid on a {width}x{height} frame")

@@ -9,10 +9,12 @@ Loop, one *pass* at a time (pass p adds `step` samples per pixel to every active
    converged leaves the active set for good: never rendered, featured or asked again;
 4. checkpoint everything (accumulator, active set, verdict history, counters, timers, pass
    index) atomically into out/checkpoint.npz (`renderer.checkpoint`: digest-checked and
-   validated against the settings before a resume trusts it).
+   validated against the settings before a resume trusts it), every `checkpoint_every`
+   seconds, at the end, at the time limit and on SIGINT/SIGTERM (`renderer.signals`):
+   a pass is never half-saved.
 
-It stops when no block is active or max_spp is reached. Because seeds depend only on
-(seed, block, pass) and the checkpoint holds all state, ``resume=True`` after a crash
+It stops when no block is active or max_spp is reached. Because samples depend only on
+(seed, pixel, pass) and the checkpoint holds all state, ``resume=True`` after a crash
 gives the very image and report (timings aside) of an uninterrupted run.
 
 The quick image (the kind the model was trained with, `quick_spp` samples) is rendered once, and only if the
@@ -37,12 +39,17 @@ from learning.stack import Stack
 from learning.stoprule import decide_active
 from noisefeat.bounds import SizeBounds
 
-from .blocks import BlockRenderer
+from .blocks import BlockRenderer, compose
 from .checkpoint import CHECKPOINT, load_checkpoint, save_checkpoint
 from .criteria import COUNTER_NAMES, DEFAULT_CRITERION, TIMER_NAMES, BlockView, Criterion, build_criterion
 from .outputs import prepare_output_dir, write_outputs
-from .settings import check_spp_settings, resolve_settings
+from .settings import DEFAULT, NOT_USED, check_spp_settings, resolve_settings
 from .settings import describe as describe_settings
+from .signals import DeferredStop
+
+#: what a render cost in Mitsuba, over every attempt (report.json "render_calls"); like the
+#: timings these depend on the process (a resumed run compiles its kernel again)
+RENDER_COUNTERS = ("mitsuba_calls", "kernel_launches", "kernel_compiles", "checkpoints", "samples_traced")
 
 logger = logging.getLogger(__name__)
 
@@ -73,27 +80,38 @@ def _resolve_criterion(criterion: Criterion | str, reference: Stack | None) -> C
                      f"got {type(criterion).__name__}")
 
 
-def _check_args(resolution: int | None, grid: Sequence[int], step: int, min_spp: int, max_spp: int
-                ) -> tuple[int, int]:
+def _check_args(resolution: Any, grid: Sequence[int] | None, block: int | None, step: int, min_spp: int,
+                max_spp: int) -> tuple[Any, tuple[int, int] | None]:
     """Documented ranges (renderer.settings, noisefeat.bounds), checked before the scene is
-    loaded: resolution None (the scene's own) passes, else its frame and blocks must fit."""
+    loaded: resolution None (the scene's own) passes, else its frame and blocks must fit.
+    Returns (resolution as N or (W, H), grid or None)."""
+    from .scenes import parse_resolution
+
     check_spp_settings(step, min_spp, max_spp)
-    if len(grid) != 2 or any(isinstance(g, bool) or not isinstance(g, (int, np.integer)) or g < 1 for g in grid):
-        raise ValueError(f"grid must be two positive integers (rows, columns), got {grid!r}")
-    gh, gw = int(grid[0]), int(grid[1])
+    bounds = SizeBounds.from_env()
+    if grid is not None:
+        if len(grid) != 2 or any(isinstance(g, bool) or not isinstance(g, (int, np.integer)) or g < 1
+                                 for g in grid):
+            raise ValueError(f"grid must be two positive integers (rows, columns), got {grid!r}")
+        grid = (int(grid[0]), int(grid[1]))
+    elif isinstance(block, bool) or not isinstance(block, (int, np.integer)):
+        raise ValueError(f"block must be a whole number of pixels, got {block!r}")
+    else:
+        bounds.check_block(int(block), int(block), what="--block")
     if resolution is not None:
-        if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or resolution < 1:
-            raise ValueError(f"resolution must be a positive integer, got {resolution!r}")
-        SizeBounds.from_env().check_frame(int(resolution), int(resolution), (gh, gw))
-    return gh, gw
+        resolution = parse_resolution(resolution)
+        w, h = resolution if isinstance(resolution, tuple) else (resolution, resolution)
+        bounds.check_frame(h, w, grid or (1, 1), block=None if grid else (int(block), int(block)))
+    return resolution, grid
 
 
 def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion: Criterion | str, *,
-                    resolution: int | None = None, grid: Sequence[int] | None = None, step: int | None = None,
+                    resolution: int | tuple[int, int] | str | None = None, grid: Sequence[int] | None = None,
+                    block: int | None = None, step: int | None = None,
                     min_spp: int | None = None, max_spp: int | None = None, seed: int = 0, resume: bool = False,
                     progress: bool = True, reference: Stack | str | os.PathLike | None = None,
                     quick_spp: int = 16, defines: Mapping[str, str] | None = None,
-                    time_limit: float | None = None) -> dict[str, Any]:
+                    time_limit: float | None = None, checkpoint_every: float = 30.0) -> dict[str, Any]:
     """Render `scene` adaptively into `out`; return the report (also out/report.json).
 
     wall_s in the report runs from the call to the end of the last pass (writing the
@@ -107,9 +125,12 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     scene's parameters, as `mitsuba -D key=value` (recorded in the report). `time_limit`:
     seconds this call may run; the pass under way when it is reached is finished, then the
     outputs and the checkpoint are written and `resume` continues from there.
+    `checkpoint_every`: seconds between checkpoints (0: after every pass).
     """
     if time_limit is not None and not (math.isfinite(time_limit) and time_limit > 0):
         raise ValueError(f"time limit must be a positive number of seconds, got {time_limit!r}")
+    if not (math.isfinite(checkpoint_every) and checkpoint_every >= 0):
+        raise ValueError(f"checkpoint interval must be 0 or more seconds, got {checkpoint_every!r}")
     from .scenes import load_scene
     from .simulate import find_reference
     from .variant import current_variant, select_variant
@@ -117,17 +138,25 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     t_start = time.perf_counter()
     label = scene_label(scene)
     ref_stack = find_reference(reference, label) if reference is not None else None
-    given = {"resolution": resolution, "grid": grid, "step": step, "min_spp": min_spp, "max_spp": max_spp}
+    given = {"resolution": resolution, "grid": grid, "block": block, "step": step, "min_spp": min_spp,
+             "max_spp": max_spp}
     values, sources = resolve_settings(given, ref_stack)
-    resolution, grid, step, min_spp, max_spp = (values[k] for k in given)
-    gh, gw = _check_args(resolution, grid, step, min_spp, max_spp)
+    resolution, grid, block, step, min_spp, max_spp = (values[k] for k in given)
+    resolution, grid = _check_args(resolution, grid, block, step, min_spp, max_spp)
     crit = _resolve_criterion(criterion, ref_stack)
     out = prepare_output_dir(out)           # exists or can be made, and writable: before any pass
     ckpt_path = out / CHECKPOINT
 
     variant = select_variant()
-    br = BlockRenderer(load_scene(scene, resolution, defines=defines), (gh, gw))
-    SizeBounds.from_env().check_frame(br.height, br.width, (gh, gw))   # an XML film decides its own size
+    scene_obj = load_scene(scene, resolution, defines=defines)
+    if block is not None and sources["block"] == DEFAULT:     # a frame smaller than the default block
+        crop = scene_obj.sensors()[0].film().crop_size()
+        if block > min(int(crop[0]), int(crop[1])):
+            block = min(int(crop[0]), int(crop[1]))
+            sources["block"] = f"{DEFAULT} (the frame's short side)"
+    br = BlockRenderer(scene_obj, grid=grid, block=block)
+    SizeBounds.from_env().check_frame(br.height, br.width, br.grid, block=br.block_shape)  # an XML film's own size
+    gh, gw = br.grid
     n = br.n_blocks
     values["resolution"] = [br.width, br.height]
     logger.info("%s: %s, exposure %g", label, describe_settings(values, sources), getattr(crit, "exposure", 0.0))
@@ -139,6 +168,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
             logger.warning("reference %s is %dx%d, the render %dx%d: thresholds compared anyway",
                            ref_stack.path, ref_stack.width, ref_stack.height, br.width, br.height)
     settings = {"scene": os.fspath(scene), "resolution": [br.width, br.height], "grid": [gh, gw],
+                "block": [br.block_h, br.block_w],
                 "exposure": float(getattr(crit, "exposure", 0.0)),
                 "step": int(step), "min_spp": int(min_spp), "max_spp": int(max_spp), "seed": int(seed),
                 "quick_spp": int(quick_spp), "quick": crit.quick_kind if crit.needs_quick else "none",
@@ -173,65 +203,92 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
             loop_timers["render_s"] += time.perf_counter() - t0
         quick_blocks = np.stack([state["quick"][br.block_slices(b)] for b in range(n)])
         crit.prepare(list(range(n)), quick_blocks)
+    done_before = {k: int(state["counters"].pop(k, 0)) for k in RENDER_COUNTERS}   # earlier attempts
     if state["counters"]:  # resumed: continue the counts (this overrides what prepare counted)
         crit.restore_counters(state["counters"], {k: v for k, v in state["timers"].items() if k in TIMER_NAMES})
+    written = {"checkpoints": 0}
+
+    def render_counts() -> dict[str, int]:
+        """What the render cost in Mitsuba calls and kernels, over every attempt."""
+        now = {"mitsuba_calls": br.mitsuba_calls, "kernel_launches": br.kernel_launches,
+               "kernel_compiles": br.kernel_compiles, "checkpoints": written["checkpoints"],
+               "samples_traced": br.samples_traced}
+        return {k: done_before[k] + now[k] for k in RENDER_COUNTERS}
+
+    def checkpoint() -> None:
+        written["checkpoints"] += 1
+        save_checkpoint(ckpt_path, snapshot())
 
     def snapshot() -> dict[str, Any]:
         wall = loop_timers["wall_s"] + (time.perf_counter() - t_start)
-        return {**state, "acc": acc.state(), "settings": settings, "counters": dict(crit.counters),
+        return {**state, "acc": acc.state(), "settings": settings,
+                "counters": {**dict(crit.counters), **render_counts()},
                 "timers": {**crit.timers, "render_s": loop_timers["render_s"], "setup_s": loop_timers["setup_s"],
                            "wall_s": wall}}
 
     p = state["pass_index"]
     time_limit_reached = False
+    last_saved = time.perf_counter()
     bar = tqdm(total=len(sizes), initial=p, desc=f"{label} passes", unit="pass",
                disable=not progress, leave=False)
-    while not state["done"]:
-        ids = np.flatnonzero(state["active"]).tolist()
-        if not ids or p >= len(sizes):
-            state["done"] = True
-            save_checkpoint(ckpt_path, snapshot())
-            break
-        t0 = time.perf_counter()
-        images = br.render_blocks(ids, sizes[p], seed, pass_index=p)
-        loop_timers["render_s"] += time.perf_counter() - t0
-        acc.add_many(ids, images, sizes[p])
-        spp = acc.spp(ids[0])
+    stop = DeferredStop()
+    with stop:
+        while not state["done"]:
+            ids = np.flatnonzero(state["active"]).tolist()
+            if not ids or p >= len(sizes):
+                state["done"] = True
+                checkpoint()
+                break
+            t0 = time.perf_counter()
+            images = br.render_blocks(ids, sizes[p], seed, pass_index=p)
+            loop_timers["render_s"] += time.perf_counter() - t0
+            acc.add_many(ids, images, sizes[p])
+            spp = acc.spp(ids[0])
 
-        def ask(ask_ids: list[int]) -> np.ndarray:
-            halves = crit.needs_halves  # two extra divisions per block: only when used
-            return crit.decide(ask_ids, [BlockView(
-                mean=acc.mean(b), spp=acc.spp(b), nonfinite=acc.nonfinite(b),
-                halves=acc.half_buffer(b) if halves else None,
-                half_spp=acc.half_spp(b) if halves else None,
-                quick=None if quick_blocks is None else quick_blocks[b]) for b in ask_ids])
-        verdict_row = decide_active(state["active"], spp, min_spp, ask)
-        state["stop_spp"][verdict_row > 0] = spp
-        state["history"] = np.vstack([state["history"], verdict_row[None]])
-        state["history_spp"] = np.append(state["history_spp"], spp)
-        state["rendered"] = np.append(state["rendered"], len(ids))
-        p += 1
-        state["pass_index"] = p
-        state["done"] = not state["active"].any() or p >= len(sizes)
-        save_checkpoint(ckpt_path, snapshot())
-        bar.set_postfix(spp=spp, active=int(state["active"].sum()), refresh=False)
-        bar.update(1)
-        if time_limit is not None and not state["done"] and time.perf_counter() - t_start >= time_limit:
-            time_limit_reached = True
-            logger.info("%s: time limit of %gs reached after pass %d (%d blocks still active); "
-                        "--resume continues", label, time_limit, p, int(state["active"].sum()))
-            break
+            def ask(ask_ids: list[int]) -> np.ndarray:
+                halves = crit.needs_halves  # two extra divisions per block: only when used
+                return crit.decide(ask_ids, [BlockView(
+                    mean=acc.mean(b), spp=acc.spp(b), nonfinite=acc.nonfinite(b),
+                    halves=acc.half_buffer(b) if halves else None,
+                    half_spp=acc.half_spp(b) if halves else None,
+                    quick=None if quick_blocks is None else quick_blocks[b]) for b in ask_ids])
+            verdict_row = decide_active(state["active"], spp, min_spp, ask)
+            state["stop_spp"][verdict_row > 0] = spp
+            state["history"] = np.vstack([state["history"], verdict_row[None]])
+            state["history_spp"] = np.append(state["history_spp"], spp)
+            state["rendered"] = np.append(state["rendered"], len(ids))
+            p += 1
+            state["pass_index"] = p
+            state["done"] = not state["active"].any() or p >= len(sizes)
+            bar.set_postfix(spp=spp, active=int(state["active"].sum()), refresh=False)
+            bar.update(1)
+            now = time.perf_counter()
+            time_limit_reached = time_limit is not None and not state["done"] and now - t_start >= time_limit
+            if state["done"] or time_limit_reached or stop.requested or now - last_saved >= checkpoint_every:
+                checkpoint()
+                last_saved = time.perf_counter()
+            if stop.requested and not state["done"]:
+                bar.close()
+                raise KeyboardInterrupt(f"{stop.requested} after pass {p}: checkpoint written to {ckpt_path}, "
+                                        "--resume continues")
+            if time_limit_reached:
+                logger.info("%s: time limit of %gs reached after pass %d (%d blocks still active); "
+                            "--resume continues", label, time_limit, p, int(state["active"].sum()))
+                break
     bar.close()
 
     final = snapshot()
     report = _report(label, br, settings, crit, state, acc, final["timers"], variant or current_variant(),
                      ref_stack)
-    report["settings_source"] = {k: sources[k] for k in given}
+    report["settings_source"] = {k: sources[k] for k in given if sources[k] != NOT_USED}
     if defines:
         report["defines"] = dict(defines)
     if time_limit is not None:
         report["time_limit"] = {"seconds": float(time_limit), "reached": time_limit_reached}
-    image = acc.image().astype(np.float32)
+    report["render_calls"] = render_counts()
+    image, spp_px, owner = compose([acc.mean(b) for b in range(n)], [br.window(b) for b in range(n)],
+                                   [acc.spp(b) for b in range(n)], (br.height, br.width))
+    image = image.astype(np.float32)
     reference = None
     if ref_stack is not None:
         reference = ref_stack.reference()
@@ -242,7 +299,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
         else:
             report["final_vs_reference"] = final_vs_reference(image, reference, (gh, gw), ref_stack,
                                                               float(settings["exposure"]), ~state["active"])
-    write_outputs(out, image, report, reference=reference)
+    write_outputs(out, image, report, spp=spp_px, converged=(~state["active"])[owner], reference=reference)
     logger.info("%s: %d passes, saved %.1f%% vs uniform, %.2f s", label, report["passes"],
                 100 * report["saved_vs_uniform"], report["wall_s"])
     return report
@@ -260,11 +317,11 @@ def _report(label: str, br: BlockRenderer, settings: dict[str, Any], crit: Crite
     blocks = []
     for b in range(n):
         asked = np.flatnonzero(history[:, b] != 0)
-        blocks.append({"id": b, "spp": int(spp[b]), "converged": bool(converged[b]),
+        blocks.append({"id": b, "window": list(br.window(b)), "spp": int(spp[b]), "converged": bool(converged[b]),
                        "stop_spp": int(state["stop_spp"][b]) if converged[b] else None,
                        "nonfinite": acc.nonfinite(b),
                        "history": [[int(hist_spp[i]), int(history[i, b])] for i in asked]})
-    pixels = br.block_h * br.block_w
+    pixels = br.block_h * br.block_w          # samples_spent counts shared window pixels once per window
     wall = float(timers.get("wall_s", 0.0))
     setup_s, render_s, features_s, decisions_s = (float(timers.get(k, 0.0))
                                                   for k in ("setup_s", "render_s", "features_s", "decisions_s"))

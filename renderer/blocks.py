@@ -1,22 +1,30 @@
-"""Block (crop-window) rendering and exact per-block accumulation.
+"""Block rendering: samples for any subset of a frame's blocks, the full-frame estimator.
 
-The paper cuts every image into a grid of blocks and keeps sampling only the blocks a
-human would still find noisy, so the renderer must be able to spend samples on any
-subset of blocks. `BlockRenderer` does that with the film's crop window, which Mitsuba 3
-exposes through ``mi.traverse(sensor)`` as ``film.crop_offset`` / ``film.crop_size``
-(``params.update()`` then notifies film and sensor). With a box reconstruction filter
-(what the built-in scenes use, see `renderer.scenes`) a block rendered alone is the same
-estimator as that block cut from a full-frame render.
+The paper cuts every image into blocks and keeps sampling only the blocks a human would
+still find noisy, so the renderer must spend samples on any subset of blocks, and a block
+rendered alone must be the very estimator of that block cut out of a full-frame render.
 
-JIT note: Mitsuba bakes the crop window into the compiled kernel (scalar parameters
-cannot be made opaque, mitsuba3 issue #908), so each distinct block costs one kernel
-compilation the first time it is rendered in a process (about 0.2 s on llvm, then
-cached in memory and in Dr.Jit's on-disk cache). Seeds are opaque: new passes never
-recompile.
+Geometry. Blocks are either a grid that divides the frame (``grid=(rows, cols)``: stacks,
+references) or windows of a given size in pixels (``block=64``: the live render of any
+film). With a size, windows start every `block` pixels and the last row and column are
+moved flush with the frame's edge, so an edge block smaller than the size is judged
+together with its neighbour's pixels: every window the criterion sees is a full
+``block x block`` window of one sample count, the size the model and the flip threshold
+were calibrated on. Overlapping pixels are traced once per pass and shared by the
+windows that hold them (`renderer.wavefront`); the final image takes each pixel from the
+covering window with the most samples (`compose`).
 
-`learning.accumulator.BlockAccumulator` keeps the float64 running
-sums so cumulative means are exact, plus two half buffers (even and odd passes) for the
-half-buffer criteria (Cycles-style variance, FLIP between the halves).
+Engines. On vectorised variants (llvm, cuda) `renderer.wavefront.WavefrontTracer` traces
+the pixels of all requested blocks in one kernel launch, its random numbers keyed per
+pixel, so any subset equals the full-frame trace bit for bit with a box filter, and up to
+float rounding (splat order) with a wide one such as the Gaussian of published scenes.
+On scalar variants each block is one ``mi.render`` of the film's crop window grown by the
+filter's guard band and cut back: the same estimator in distribution (Mitsuba seeds lanes
+by position, so not the same random numbers). ``mitsuba_calls``, ``kernel_launches`` and
+``kernel_compiles`` count what a render cost.
+
+`learning.accumulator.BlockAccumulator` keeps the float64 running sums so cumulative means
+are exact, plus two half buffers (even and odd passes) for the half-buffer criteria.
 """
 
 from __future__ import annotations
@@ -32,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from .variant import select_variant
+from .wavefront import WavefrontTracer, guard_band
 
 logger = logging.getLogger(__name__)
 
@@ -68,46 +77,100 @@ def _to_rgb(img: Any, where: str) -> np.ndarray:
 QUICK_KINDS = ("albedo", "direct")
 
 
-class BlockRenderer:
-    """Render any subset of a grid of blocks of one scene's first sensor.
+def tile_starts(size: int, block: int) -> list[int]:
+    """Window starts along one axis: every `block` pixels, the last one flush with the edge."""
+    if block > size:
+        raise ValueError(f"a block of {block} px is larger than the frame's {size} px side")
+    starts = list(range(0, size - block + 1, block))
+    if starts[-1] + block < size:
+        starts.append(size - block)
+    return starts
 
-    `grid` is (rows, columns); blocks are numbered row-major, block 0 top-left. If the
-    scene's film already has a crop window (possible in XML files), that window is the
-    frame that gets cut into blocks.
+
+def compose(means: Sequence[np.ndarray], windows: Sequence[tuple[int, int, int, int]],
+            spp: Sequence[int], frame: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(image [H, W, C], spp per pixel [H, W], owner block per pixel [H, W]) of a frame.
+
+    Each pixel comes from the window holding it with the most samples (with keyed random
+    numbers that window's samples include every other window's for the pixel).
+    """
+    h, w = frame
+    image = np.zeros((h, w, np.asarray(means[0]).shape[-1]), np.float64)
+    best = np.full((h, w), -1, np.int64)
+    owner = np.full((h, w), -1, np.int64)
+    for b in np.argsort(np.asarray(spp), kind="stable"):     # most samples written last
+        x, y, bw, bh = windows[b]
+        image[y:y + bh, x:x + bw] = means[b]
+        best[y:y + bh, x:x + bw] = spp[b]
+        owner[y:y + bh, x:x + bw] = b
+    if (owner < 0).any():
+        raise ValueError("the block windows do not cover the frame")
+    return image, best, owner
+
+
+class BlockRenderer:
+    """Render any subset of the blocks of one scene's first sensor.
+
+    Blocks are numbered row-major, block 0 top-left: a `grid` (rows, columns) that must
+    divide the frame, or windows of `block` pixels (see the module docstring). If the
+    film has a crop window (possible in XML files), that window is the frame. `engine`
+    'wavefront' or 'crop' overrides the choice by variant (tests).
     """
 
-    def __init__(self, scene: Any, grid: tuple[int, int] = (4, 4)) -> None:
-        select_variant()
+    def __init__(self, scene: Any, grid: tuple[int, int] | None = None, block: int | None = None,
+                 engine: str | None = None) -> None:
+        variant = select_variant()
         import mitsuba as mi
 
         self._mi = mi
         self.scene = scene
         self.sensor = scene.sensors()[0]
         film = self.sensor.film()
-        gh, gw = (int(g) for g in grid)
-        if gh < 1 or gw < 1:
-            raise ValueError(f"grid must be two positive integers (rows, columns), got {grid!r}")
-        self.grid = (gh, gw)
         self._frame_offset = (int(film.crop_offset()[0]), int(film.crop_offset()[1]))
         self.width, self.height = int(film.crop_size()[0]), int(film.crop_size()[1])
-        if self.width % gw or self.height % gh:
-            raise ValueError(
-                f"image {self.width}x{self.height} (WxH) cannot be cut into a {gh}x{gw} grid of equal "
-                f"blocks: width must be divisible by {gw} and height by {gh}"
-            )
-        self.block_h, self.block_w = self.height // gh, self.width // gw
-        radius = float(film.rfilter().radius())
-        if radius > 0.5 + 1e-6:
-            logger.warning(
-                "film reconstruction filter %s has radius %.2f px > 0.5: block edges rendered alone "
-                "differ slightly from a full-frame render (use rfilter 'box' for exact independence)",
-                film.rfilter().class_name(), radius,
-            )
+        if (grid is None) == (block is None):
+            raise ValueError("give the blocks either as a grid (rows, columns) or as a size in pixels")
+        if block is not None:
+            if isinstance(block, bool) or not isinstance(block, (int, np.integer)) or block < 1:
+                raise ValueError(f"block must be a positive number of pixels, got {block!r}")
+            if block > min(self.width, self.height):
+                raise ValueError(f"block of {block} px is larger than the {self.width}x{self.height} frame: "
+                                 f"take --block {min(self.width, self.height)} or less")
+            self.block_h = self.block_w = int(block)
+            self._xs, self._ys = tile_starts(self.width, int(block)), tile_starts(self.height, int(block))
+        else:
+            gh, gw = (int(g) for g in grid)  # type: ignore[union-attr]
+            if gh < 1 or gw < 1:
+                raise ValueError(f"grid must be two positive integers (rows, columns), got {grid!r}")
+            if self.width % gw or self.height % gh:
+                raise ValueError(
+                    f"image {self.width}x{self.height} (WxH) cannot be cut into a {gh}x{gw} grid of equal "
+                    f"blocks: width must be divisible by {gw} and height by {gh}")
+            self.block_h, self.block_w = self.height // gh, self.width // gw
+            self._xs = [c * self.block_w for c in range(gw)]
+            self._ys = [r * self.block_h for r in range(gh)]
+        self.grid = (len(self._ys), len(self._xs))
         # an XML scene may declare no integrator (mi.render then refuses): Mitsuba's path tracer
         self._integrator = scene.integrator()
         if self._integrator is None:
             logger.info("scene declares no integrator; using Mitsuba's 'path'")
             self._integrator = mi.load_dict({"type": "path"})
+        rfilter = film.rfilter()
+        self.guard = 0 if rfilter.is_box_filter() else guard_band(rfilter.radius())
+        if engine is None:
+            engine = "wavefront" if variant.split("_")[0] in ("llvm", "cuda") else "crop"
+        if engine not in ("wavefront", "crop"):
+            raise ValueError(f"engine must be 'wavefront' or 'crop', got {engine!r}")
+        self.engine = engine
+        self._tracer = WavefrontTracer(scene, self.sensor, self._integrator) if engine == "wavefront" else None
+        self.mitsuba_calls = 0
+        self.kernel_compiles = 0
+        self._crop_samples = 0
+        self._history = variant.split("_")[0] in ("llvm", "cuda")
+        if self._history:
+            import drjit as dr
+            dr.set_flag(dr.JitFlag.KernelHistory, True)
+            dr.kernel_history()                               # start counting from here
         self._params = mi.traverse(self.sensor)
         self._crop: tuple[int, int, int, int] | None = None
         self._set_crop(0, 0, self.width, self.height)
@@ -123,11 +186,22 @@ class BlockRenderer:
         """(block height, block width) in pixels."""
         return self.block_h, self.block_w
 
+    @property
+    def overlapping(self) -> bool:
+        """Whether edge windows overlap their neighbours (block size not dividing the frame)."""
+        return self._xs[-1] + self.block_w != len(self._xs) * self.block_w or \
+            self._ys[-1] + self.block_h != len(self._ys) * self.block_h
+
     def block_origin(self, block_id: int) -> tuple[int, int]:
         """(x, y) of the block's top-left pixel within the frame."""
         self._check_id(block_id)
         row, col = divmod(int(block_id), self.grid[1])
-        return col * self.block_w, row * self.block_h
+        return self._xs[col], self._ys[row]
+
+    def window(self, block_id: int) -> tuple[int, int, int, int]:
+        """(x, y, width, height) of the block within the frame."""
+        x, y = self.block_origin(block_id)
+        return x, y, self.block_w, self.block_h
 
     def block_slices(self, block_id: int) -> tuple[slice, slice]:
         """(rows, columns) slices that cut the block out of a [H, W, ...] frame."""
@@ -152,19 +226,46 @@ class BlockRenderer:
         self._params.update()
         self._crop = crop
 
+    def _count_kernels(self) -> None:
+        if self._history:
+            import drjit as dr
+            self.kernel_compiles += sum(1 for k in dr.kernel_history()
+                                        if k.get("type") == dr.KernelType.JIT and not k.get("cache_hit"))
+
     def _render(self, spp: int, mitsuba_seed: int, integrator: Any = None, where: str = "render") -> np.ndarray:
         if not isinstance(spp, (int, np.integer)) or spp < 1:
             raise ValueError(f"spp must be a positive integer, got {spp!r}")
         img = self._mi.render(self.scene, sensor=self.sensor,
                               integrator=self._integrator if integrator is None else integrator,
                               spp=int(spp), seed=int(mitsuba_seed))
+        self.mitsuba_calls += 1
+        self._count_kernels()
         return _to_rgb(img, where)
+
+    def _trace(self, mask: np.ndarray, spp: int, seed: int, pass_index: int) -> np.ndarray:
+        assert self._tracer is not None
+        if not isinstance(spp, (int, np.integer)) or spp < 1:
+            raise ValueError(f"spp must be a positive integer, got {spp!r}")
+        image = self._tracer.trace(mask, int(spp), derive_seed(seed, FULL_FRAME, pass_index))
+        self.mitsuba_calls += 1
+        self._count_kernels()
+        return image
+
+    @property
+    def kernel_launches(self) -> int:
+        """Kernel launches of the block passes (wavefront) or Mitsuba render calls (crop)."""
+        return self._tracer.launches if self._tracer is not None else self.mitsuba_calls
+
+    @property
+    def samples_traced(self) -> int:
+        """Samples of the block passes, guard bands and shared window pixels included."""
+        return self._tracer.samples if self._tracer is not None else self._crop_samples
 
     def render_blocks(self, block_ids: Sequence[int], spp: int, seed: int, pass_index: int = 0) -> np.ndarray:
         """`spp` new samples for each listed block: float32 [len(ids), bh, bw, 3].
 
-        Block b uses Mitsuba seed ``derive_seed(seed, b, pass_index)``: call again with a
-        new `pass_index` (or a new `seed`) for an independent pass of the same blocks.
+        Pass (seed, pass_index) always draws the same samples for a pixel: call again
+        with a new `pass_index` (or `seed`) for an independent pass of the same blocks.
         """
         ids = [int(b) for b in block_ids]
         for b in ids:
@@ -172,17 +273,34 @@ class BlockRenderer:
         if len(set(ids)) != len(ids):
             raise ValueError(f"duplicate block ids in {ids}: one call renders each block once")
         out = np.empty((len(ids), self.block_h, self.block_w, 3), dtype=np.float32)
+        if not ids:
+            return out
+        if self._tracer is not None:
+            mask = np.zeros((self.height, self.width), bool)
+            for b in ids:
+                mask[self.block_slices(b)] = True
+            frame = self._trace(mask, spp, seed, pass_index)
+            for i, b in enumerate(ids):
+                out[i] = frame[self.block_slices(b)]
+            return out
+        g = self.guard
         try:
             for i, b in enumerate(ids):
                 x0, y0 = self.block_origin(b)
-                self._set_crop(x0, y0, self.block_w, self.block_h)
-                out[i] = self._render(spp, derive_seed(seed, b, pass_index), where=f"block {b}")
+                gx, gy = min(g, x0), min(g, y0)          # the guard band, clipped to the frame
+                x1, y1 = min(self.width, x0 + self.block_w + g), min(self.height, y0 + self.block_h + g)
+                self._set_crop(x0 - gx, y0 - gy, x1 - x0 + gx, y1 - y0 + gy)
+                img = self._render(spp, derive_seed(seed, b, pass_index), where=f"block {b}")
+                self._crop_samples += int(spp) * img.shape[0] * img.shape[1]
+                out[i] = img[gy:gy + self.block_h, gx:gx + self.block_w]
         finally:
             self._set_crop(0, 0, self.width, self.height)  # leave the scene as we found it
         return out
 
     def render_full(self, spp: int, seed: int, pass_index: int = 0) -> np.ndarray:
         """`spp` samples for the whole frame: float32 [H, W, 3]."""
+        if self._tracer is not None:
+            return self._trace(np.ones((self.height, self.width), bool), spp, seed, pass_index)
         self._set_crop(0, 0, self.width, self.height)
         return self._render(spp, derive_seed(seed, FULL_FRAME, pass_index), where="full frame")
 
@@ -225,7 +343,7 @@ def measure_crop_cost(
     from .variant import current_variant
 
     scene = load_scene(scene_name, resolution)
-    r = BlockRenderer(scene, grid)
+    r = BlockRenderer(scene, grid=grid)
     ids = list(block_ids)
 
     t0 = time.perf_counter()

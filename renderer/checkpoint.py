@@ -61,11 +61,13 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     atomic_write_bytes(path, savez_bytes(arrays, with_digest=True))
 
 
-def expected_bytes(frame: tuple[int, int], n_blocks: int, passes: int) -> int:
+def expected_bytes(frame: tuple[int, int], n_blocks: int, passes: int, block: tuple[int, int] | None = None) -> int:
     """An upper bound on a valid checkpoint's size: accumulator (float64 sums and int64
-    weights of two halves), quick image, per-pass history, plus slack for names."""
+    weights of two halves, of every block window: overlapping windows hold more than the
+    frame), quick image, per-pass history, plus slack for names."""
     h, w = frame
-    return 2 * h * w * (3 * 8 + 8) + h * w * 3 * 4 + passes * (n_blocks + 24) + 16 * n_blocks + (1 << 20)
+    held = max(h * w, n_blocks * block[0] * block[1]) if block is not None else h * w
+    return 2 * held * (3 * 8 + 8) + h * w * 3 * 4 + passes * (n_blocks + 24) + 16 * n_blocks + (1 << 20)
 
 
 def load_checkpoint(path: Path, settings: dict[str, Any], *, sizes: list[int], grid: tuple[int, int],
@@ -73,7 +75,7 @@ def load_checkpoint(path: Path, settings: dict[str, Any], *, sizes: list[int], g
     """The state a checkpoint written by `save_checkpoint` for these settings holds, or ValueError."""
     n = grid[0] * grid[1]
     try:
-        data = read_npz(path, max_bytes=expected_bytes(frame, n, len(sizes)))
+        data = read_npz(path, max_bytes=expected_bytes(frame, n, len(sizes), block))
         return _validated(path, data, settings, sizes, grid, block, frame)
     except ValueError as exc:
         if "start over" in str(exc):

@@ -73,40 +73,56 @@ def write_report(path: str | os.PathLike, report: dict[str, Any]) -> Path:
     return path
 
 
-def spp_map_png(srgb8: np.ndarray, grid: Sequence[int], spp: Sequence[int],
-                converged: Sequence[bool], max_spp: int) -> bytes:
-    """PNG bytes: the image with the grid and each block's spp written on it.
+def spp_map_png(spp: np.ndarray, windows: Sequence[Sequence[int]], block_spp: Sequence[int],
+                converged: Sequence[bool], min_spp: int, max_spp: int) -> bytes:
+    """PNG bytes: a heat map of the samples per pixel, with a colour bar and a legend.
 
-    Green labels: the criterion stopped the block; orange: it ran to max spp.
+    Log2 colour scale from `min_spp` to `max_spp` (Cycles' debug sample count, LuxCore's
+    convergence pass); block windows outlined, blocks that ran to max spp without the
+    criterion stopping them outlined in red; each block's spp written on it when the
+    blocks are large enough to read.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.colors import LogNorm
     from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Rectangle
 
-    h, w = srgb8.shape[:2]
-    gh, gw = (int(g) for g in grid)
-    bh, bw = h // gh, w // gw
-    inches = max(4.0, w / 100.0)
-    fig = Figure(figsize=(inches, inches * h / w), dpi=100)
+    spp = np.asarray(spp, np.float64)
+    h, w = spp.shape
+    lo, hi = max(1, int(min_spp)), max(int(max_spp), int(min_spp) + 1)
+    inches = max(5.0, min(12.0, w / 80.0))
+    fig = Figure(figsize=(inches + 1.6, inches * h / w + 0.9), dpi=100)
     FigureCanvasAgg(fig)
-    ax = fig.add_axes((0, 0, 1, 1))
-    ax.imshow(srgb8, interpolation="nearest")
+    ax = fig.add_axes((0.02, 0.12, 0.78, 0.86))
+    im = ax.imshow(np.clip(spp, lo, hi), cmap="viridis", norm=LogNorm(lo, hi), interpolation="nearest")
     ax.set_axis_off()
-    for r in range(1, gh):
-        ax.axhline(r * bh - 0.5, color="cyan", lw=0.8, alpha=0.8)
-    for c in range(1, gw):
-        ax.axvline(c * bw - 0.5, color="cyan", lw=0.8, alpha=0.8)
-    size = max(6.0, min(14.0, 72.0 * inches / gw / 4.0))
-    for b, (s, ok) in enumerate(zip(spp, converged)):
-        r, c = divmod(b, gw)
-        ax.text(c * bw + bw / 2 - 0.5, r * bh + bh / 2 - 0.5, f"{int(s)}", ha="center", va="center",
-                fontsize=size, color="#7CFC00" if ok else ("#FFA500" if s >= max_spp else "white"),
-                bbox={"facecolor": "black", "alpha": 0.55, "pad": 1.5, "lw": 0})
+    ticks = [t for t in (2 ** np.arange(0, 31)) if lo <= t <= hi]
+    bar = fig.colorbar(im, ax=ax, fraction=0.05, pad=0.02)
+    bar.ax.minorticks_off()                       # log axes label 2x10^1-style minor ticks otherwise
+    bar.set_ticks(ticks, labels=[str(int(t)) for t in ticks])
+    bar.set_label("samples per pixel")
+    label_size = max(5.0, min(11.0, 0.25 * 72.0 * inches * (windows[0][2] / w))) if windows else 8.0
+    for (x, y, bw, bh), s, ok in zip(windows, block_spp, converged):
+        ran_out = not ok and s >= max_spp
+        ax.add_patch(Rectangle((x - 0.5, y - 0.5), bw, bh, fill=False, lw=1.6 if ran_out else 0.5,
+                               ec="red" if ran_out else "white", alpha=0.9 if ran_out else 0.35))
+        if len(windows) <= 64:
+            ax.text(x + bw / 2 - 0.5, y + bh / 2 - 0.5, f"{int(s)}", ha="center", va="center",
+                    fontsize=label_size, color="white",
+                    bbox={"facecolor": "black", "alpha": 0.45, "pad": 1.0, "lw": 0})
+    stopped = int(sum(bool(c) for c in converged))
+    ax.legend(handles=[Line2D([], [], color="grey", lw=0.8, label=f"stopped by the criterion ({stopped})"),
+                       Line2D([], [], color="red", lw=1.6, label=f"ran to max spp {max_spp} "
+                              f"({sum(1 for s, c in zip(block_spp, converged) if not c and s >= max_spp)})")],
+              loc="upper center", bbox_to_anchor=(0.5, -0.01), ncol=2, fontsize=8, frameon=False,
+              facecolor="none", labelcolor="black")
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
     return buf.getvalue()
 
 
-def compare_png(final8: np.ndarray, reference8: np.ndarray, grid: Sequence[int], spp: Sequence[int],
+def compare_png(final8: np.ndarray, reference8: np.ndarray, windows: Sequence[Sequence[int]], spp: Sequence[int],
                 errors: Sequence[float], tau: float) -> bytes:
     """PNG bytes: final image and reference side by side, each block of the final image
     labelled with its spp and its FLIP error against the reference (red: above the
@@ -114,26 +130,23 @@ def compare_png(final8: np.ndarray, reference8: np.ndarray, grid: Sequence[int],
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
+    from matplotlib.patches import Rectangle
+
     h, w = final8.shape[:2]
-    gh, gw = (int(g) for g in grid)
-    bh, bw = h // gh, w // gw
     inches = max(4.0, w / 100.0)
     fig = Figure(figsize=(2 * inches, inches * h / w + 0.3), dpi=100)
     FigureCanvasAgg(fig)
-    size = max(5.0, min(11.0, 60.0 * inches / gw / 4.0))
+    size = max(5.0, min(11.0, 0.2 * 72.0 * inches * (windows[0][2] / w)))
     for i, (img, title) in enumerate(((final8, "final (spp, FLIP vs reference)"), (reference8, "reference"))):
         ax = fig.add_axes((i / 2, 0, 0.5, h / (h + 30)))
         ax.imshow(img, interpolation="nearest")
         ax.set_axis_off()
         ax.set_title(title, fontsize=8)
-        for r in range(1, gh):
-            ax.axhline(r * bh - 0.5, color="cyan", lw=0.6, alpha=0.7)
-        for c in range(1, gw):
-            ax.axvline(c * bw - 0.5, color="cyan", lw=0.6, alpha=0.7)
+        for x, y, bw, bh in windows:
+            ax.add_patch(Rectangle((x - 0.5, y - 0.5), bw, bh, fill=False, ec="cyan", lw=0.6, alpha=0.7))
         if i == 0:
-            for b, (s, e) in enumerate(zip(spp, errors)):
-                r, c = divmod(b, gw)
-                ax.text(c * bw + bw / 2 - 0.5, r * bh + bh / 2 - 0.5, f"{int(s)}\n{e:.3f}", ha="center",
+            for (x, y, bw, bh), s, e in zip(windows, spp, errors):
+                ax.text(x + bw / 2 - 0.5, y + bh / 2 - 0.5, f"{int(s)}\n{e:.3f}", ha="center",
                         va="center", fontsize=size, color="red" if e > tau else "#7CFC00",
                         bbox={"facecolor": "black", "alpha": 0.55, "pad": 1.5, "lw": 0})
     buf = io.BytesIO()
@@ -141,38 +154,32 @@ def compare_png(final8: np.ndarray, reference8: np.ndarray, grid: Sequence[int],
     return buf.getvalue()
 
 
-def per_pixel(values: Sequence[float], grid: Sequence[int], shape: Sequence[int]) -> np.ndarray:
-    """float32 [H, W]: each block's value (row-major blocks of `grid`) on its pixels."""
-    gh, gw = int(grid[0]), int(grid[1])
-    h, w = int(shape[0]), int(shape[1])
-    if h % gh or w % gw or len(values) != gh * gw:
-        raise ValueError(f"{len(values)} block values for a {gh}x{gw} grid on a {h}x{w} frame")
-    v = np.asarray(values, np.float32).reshape(gh, gw)
-    return np.repeat(np.repeat(v, h // gh, axis=0), w // gw, axis=1)
-
-
-def write_outputs(out: str | os.PathLike, image: np.ndarray, report: dict[str, Any],
-                  reference: np.ndarray | None = None) -> dict[str, str]:
-    """Write the outputs of a render into `out`; return their paths by name. With the
-    reference image (and `final_vs_reference` in the report) also compare.png."""
+def write_outputs(out: str | os.PathLike, image: np.ndarray, report: dict[str, Any], *, spp: np.ndarray,
+                  converged: np.ndarray, reference: np.ndarray | None = None) -> dict[str, str]:
+    """Write the outputs of a render into `out`; return their paths by name. `spp` and
+    `converged` are per pixel [H, W] (`renderer.blocks.compose`). With the reference image
+    (and `final_vs_reference` in the report) also compare.png."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     img = np.asarray(image, np.float32)
+    if np.shape(spp) != img.shape[:2] or np.shape(converged) != img.shape[:2]:
+        raise ValueError(f"per-pixel spp {np.shape(spp)} / converged {np.shape(converged)} do not match "
+                         f"the image {img.shape[:2]}")
     srgb8 = to_srgb8(img, report.get("exposure", 0.0))
     blocks = report["blocks"]
-    spp = [b["spp"] for b in blocks]
-    converged = [float(b["converged"]) for b in blocks]
+    block_spp = [b["spp"] for b in blocks]
+    windows = [b["window"] for b in blocks]
     write_exr_channels(out / FINAL_EXR, {"R": img[..., 0], "G": img[..., 1], "B": img[..., 2],
-                                         "spp": per_pixel(spp, report["grid"], img.shape[:2]),
-                                         "converged": per_pixel(converged, report["grid"], img.shape[:2])})
+                                         "spp": np.asarray(spp, np.float32),
+                                         "converged": np.asarray(converged, np.float32)})
     write_png(out / FINAL_PNG, srgb8)
-    atomic_write_bytes(out / SPP_MAP, spp_map_png(srgb8, report["grid"], spp,
-                                                  [b["converged"] for b in blocks], report["max_spp"]))
+    atomic_write_bytes(out / SPP_MAP, spp_map_png(spp, windows, block_spp, [b["converged"] for b in blocks],
+                                                  report["min_spp"], report["max_spp"]))
     names = [FINAL_EXR, FINAL_PNG, SPP_MAP, REPORT]
     check = report.get("final_vs_reference")
     if reference is not None and check is not None:
         atomic_write_bytes(out / COMPARE, compare_png(srgb8, to_srgb8(reference, report.get("exposure", 0.0)),
-                                                      report["grid"], spp, check["errors"], check["tau"]))
+                                                      windows, block_spp, check["errors"], check["tau"]))
         names.append(COMPARE)
     write_report(out / REPORT, report)
     return {name: str(out / name) for name in names}

@@ -29,10 +29,11 @@ from __future__ import annotations
 
 import logging
 import os
-import xml.etree.ElementTree as ET
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
+
+import numpy as np
 
 from . import heldout
 from .procedural import procedural_scene, procedural_seed
@@ -348,77 +349,101 @@ def scene_dict(name: str, resolution: int) -> SceneDict:
 
 # ----------------------------------------------------------------------------- loading
 
-# Names of XML <default> parameters we know how to drive from a requested resolution.
-_SQUARE_PARAMS = ("resolution",)
-_PAIR_PARAMS = (("width", "height"), ("resx", "resy"), ("res_x", "res_y"))
+Resolution = int | tuple[int, int]
 
 
-def _xml_defaults(path: str) -> dict[str, str]:
-    """``<default name=... value=...>`` declarations at the top of a Mitsuba XML file."""
-    try:
-        root = ET.parse(path).getroot()
-    except ET.ParseError as exc:
-        raise ValueError(f"{path}: not a well-formed XML file: {exc}") from exc
-    return {el.get("name", ""): el.get("value", "") for el in root.iter("default")}
+def parse_resolution(text: str | int | Sequence[int]) -> Resolution:
+    """`--resolution` as given: N (the long side; the film's aspect ratio is kept) or
+    'WxH' (both sides). ValueError with the accepted forms otherwise."""
+    if isinstance(text, (int, np.integer)) and not isinstance(text, bool):
+        value: Resolution = int(text)
+    elif isinstance(text, str):
+        parts = text.lower().replace("×", "x").split("x")
+        try:
+            nums = [int(p) for p in parts]
+        except ValueError:
+            nums = []
+        if len(nums) not in (1, 2):
+            raise ValueError(f"resolution {text!r}: expected N (long side, aspect kept) or WxH, e.g. 512 or "
+                             "1280x720")
+        value = nums[0] if len(nums) == 1 else (nums[0], nums[1])
+    elif isinstance(text, Sequence) and len(text) == 2:
+        value = (int(text[0]), int(text[1]))
+    else:
+        raise ValueError(f"resolution {text!r}: expected N or WxH")
+    sides = value if isinstance(value, tuple) else (value,)
+    if any(v < 1 for v in sides):
+        raise ValueError(f"resolution {text!r}: sides must be positive whole numbers")
+    return value
 
 
-def _resolution_params(path: str, resolution: int) -> dict[str, str]:
-    """Parameters that make the XML file's film `resolution` wide, if the file allows it.
-
-    Mitsuba XML files can only be resized from outside through their ``$name``
-    parameters, and those differ between files. We recognise ``$resolution`` (square),
-    and ``$width/$height``, ``$resx/$resy`` (width set to `resolution`, height keeping
-    the file's aspect ratio). Anything else keeps the file's own film size.
-    """
-    defaults = _xml_defaults(path)
-    for name in _SQUARE_PARAMS:
-        if name in defaults:
-            return {name: str(resolution)}
-    for wname, hname in _PAIR_PARAMS:
-        if wname in defaults and hname in defaults:
-            try:
-                w, h = float(defaults[wname]), float(defaults[hname])
-            except ValueError:
-                continue
-            height = max(1, round(resolution * h / w)) if w > 0 else resolution
-            return {wname: str(resolution), hname: str(height)}
-    return {}
+def film_size_for(resolution: Resolution, width: int, height: int) -> tuple[int, int]:
+    """(W, H) for a film of width x height: N scales the long side to N, keeping the aspect."""
+    if isinstance(resolution, tuple):
+        return resolution
+    long_side = max(width, height)
+    scale = resolution / long_side
+    return (max(1, round(width * scale)), max(1, round(height * scale))) if width != height else \
+        (resolution, resolution)
 
 
-def load_scene(name_or_path: str | os.PathLike[str], resolution: int | None = None,
+def resize_film(scene: Any, size: tuple[int, int]) -> None:
+    """Set the first sensor's film to `size` (W, H), in place, as Mitsuba's own scene
+    parameters do (``film.size``; the sensor recomputes its projection, keeping its
+    horizontal field of view). A crop window set by the file is dropped, with a warning."""
+    import mitsuba as mi
+
+    sensor = scene.sensors()[0]
+    film = sensor.film()
+    if tuple(film.crop_size()) != tuple(film.size()) or tuple(film.crop_offset()) != (0, 0):
+        logger.warning("the film's crop window is dropped: the frame is resized to %dx%d", *size)
+    params = mi.traverse(sensor)
+    params["film.size"] = mi.ScalarVector2u(*size)
+    params["film.crop_size"] = mi.ScalarVector2u(*size)
+    params["film.crop_offset"] = mi.ScalarPoint2u(0, 0)
+    params.update()
+
+
+def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | str | None = None,
                defines: Mapping[str, str] | None = None) -> Any:
     """Load a built-in scene by name, or any Mitsuba 3 XML file, as an ``mi.Scene``.
 
-    Built-ins default to 256x256 when `resolution` is None. For XML files see
-    `_resolution_params`: if the file exposes no size parameter, its own film size is
-    kept and a warning says so. `defines` are the file's `<default>` parameters set as
-    `mitsuba -D key=value` sets them (they win over the resolution parameters).
+    `resolution` None keeps the film's own size (built-ins: 256x256); N scales the long
+    side to N keeping the aspect ratio; (W, H) or 'WxH' sets both (`resize_film`).
+    `defines` are the file's `<default>` parameters set as `mitsuba -D key=value` sets them.
     """
     select_variant()
     import mitsuba as mi
 
+    size = None if resolution is None else parse_resolution(resolution)
     name_or_path = os.fspath(name_or_path)
     if name_or_path in SCENES or procedural_seed(name_or_path) is not None:
         if defines:
             raise ValueError(f"-D sets parameters of an XML scene; {name_or_path!r} is built in")
-        return mi.load_dict(scene_dict(name_or_path, 256 if resolution is None else resolution))
+        side = 256 if size is None else max(size) if isinstance(size, tuple) else size
+        scene = mi.load_dict(scene_dict(name_or_path, side))
+        if isinstance(size, tuple) and size != (side, side):
+            resize_film(scene, size)
+        return scene
     looks_like_file = name_or_path.lower().endswith(".xml") or os.sep in name_or_path
     if not looks_like_file and not os.path.exists(name_or_path):
         raise _unknown(name_or_path)
     path = os.path.abspath(name_or_path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{name_or_path}: scene file not found")
-    params = _resolution_params(path, resolution) if resolution is not None else {}
-    params.update(dict(defines or {}))
     try:
-        scene = mi.load_file(path, **params)
+        scene = mi.load_file(path, **dict(defines or {}))
     except Exception as exc:  # Mitsuba raises RuntimeError with its parser message
         raise ValueError(f"{path}: Mitsuba could not load this scene: {exc}") from exc
     if not scene.sensors():
         raise ValueError(f"{path}: the scene has no <sensor> (camera) to render from; add one")
-    size = tuple(int(v) for v in scene.sensors()[0].film().size())
-    if resolution is not None and not (set(params) - set(defines or {})):
-        logger.warning("%s declares no resolution parameter; keeping its film size %dx%d",
-                       path, size[0], size[1])
-    logger.info("loaded %s (%dx%d)", path, size[0], size[1])
+    film = scene.sensors()[0].film()
+    own = (int(film.size()[0]), int(film.size()[1]))
+    if size is not None:
+        want = film_size_for(size, *own)
+        if want != own:
+            resize_film(scene, want)
+        logger.info("loaded %s (film %dx%d, rendered at %dx%d)", path, own[0], own[1], *want)
+    else:
+        logger.info("loaded %s (%dx%d)", path, *own)
     return scene

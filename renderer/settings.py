@@ -5,7 +5,7 @@ silently: each value is taken, in order, from
 
 1. the command line (or the caller's keyword argument), when given;
 2. the reference stack (`--reference`), whose levels the oracle's thresholds and the
-   early-stop figures are measured at: its grid, its square resolution, its first level
+   early-stop figures are measured at: its grid, its resolution, its first level
    as step and min spp (when the levels are evenly spaced) and its last level as max spp;
 3. the scene itself: the resolution of a built-in scene's registry entry or of a Mitsuba
    XML file's own film (`load_scene` with resolution None);
@@ -24,23 +24,26 @@ import numpy as np
 
 from learning.stack import Stack
 
-#: used only when neither the command line, the reference nor the scene says
-DEFAULTS: dict[str, Any] = {"grid": (4, 4), "step": 16, "min_spp": 16, "max_spp": 1024}
+#: used only when neither the command line, the reference nor the scene says. Blocks: windows
+#: of DEFAULT_BLOCK pixels, the block size the bundled model and flip's threshold were
+#: trained and calibrated on (data/train: 64x64 blocks), whatever the frame's size
+DEFAULT_BLOCK = 64
+DEFAULTS: dict[str, Any] = {"block": DEFAULT_BLOCK, "step": 16, "min_spp": 16, "max_spp": 1024}
 #: documented ranges (issue 14): spp settings are whole numbers in [1, MAX_SPP], and a render
 #: makes at most MAX_PASSES passes (each appends a row to the checkpointed history)
 MAX_SPP = 1 << 20
 MAX_PASSES = 10_000
-KEYS = ("resolution", "grid", "step", "min_spp", "max_spp")
+KEYS = ("resolution", "grid", "block", "step", "min_spp", "max_spp")
 SCENE = "scene"
 COMMAND_LINE = "command line"
 DEFAULT = "default"
+NOT_USED = "not used"        # grid when blocks are given by size, and block size with a grid
 
 
 def reference_settings(stack: Stack) -> dict[str, Any]:
     """The settings a reference stack implies (only those it determines)."""
     out: dict[str, Any] = {"grid": tuple(stack.grid), "max_spp": int(stack.spp[-1]), "min_spp": int(stack.spp[0])}
-    if stack.width == stack.height:
-        out["resolution"] = int(stack.width)
+    out["resolution"] = int(stack.width) if stack.width == stack.height else (int(stack.width), int(stack.height))
     spp = list(stack.spp)
     if all(b - a == spp[0] for a, b in zip([0, *spp[:-1]], spp)):   # spp = step, 2 step, 3 step...
         out["step"] = int(spp[0])
@@ -52,6 +55,8 @@ def resolve_settings(given: Mapping[str, Any], reference: Stack | None = None
     """(values, sources) for every key of KEYS; a None value in `given` means "not given".
 
     `resolution` may stay None: the scene decides it when loaded (source "scene").
+    Blocks are a `grid` or a `block` size, never both: a grid from the command line or
+    the reference wins, else the block size given or `DEFAULT_BLOCK` (the other is None).
     """
     unknown = set(given) - set(KEYS)
     if unknown:
@@ -59,7 +64,14 @@ def resolve_settings(given: Mapping[str, Any], reference: Stack | None = None
     implied = reference_settings(reference) if reference is not None else {}
     values: dict[str, Any] = {}
     sources: dict[str, str] = {}
+    blocks = "grid" if given.get("grid") is not None else "block" if given.get("block") is not None else \
+        "grid" if "grid" in implied else None
+    if given.get("grid") is not None and given.get("block") is not None:
+        raise ValueError("give the blocks either as --grid ROWS COLS or as --block PX, not both")
     for key in KEYS:
+        if key in ("grid", "block") and key != (blocks or "block"):
+            values[key], sources[key] = None, NOT_USED
+            continue
         if given.get(key) is not None:
             values[key], sources[key] = given[key], COMMAND_LINE
         elif key in implied:
@@ -95,4 +107,4 @@ def describe(values: Mapping[str, Any], sources: Mapping[str, str]) -> str:
         if isinstance(v, (list, tuple)):
             return "x".join(str(int(x)) for x in v)
         return f"{v:g}" if isinstance(v, float) else str(v)
-    return ", ".join(f"{k} {fmt(k, values[k])} ({sources[k]})" for k in KEYS if k in values)
+    return ", ".join(f"{k} {fmt(k, values[k])} ({sources[k]})" for k in KEYS if values.get(k) is not None)

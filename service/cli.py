@@ -74,8 +74,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     debug = os.environ.get("NOISESTOP_DEBUG") == "1"
     try:
         return int(args.handler(args) or 0)
-    except KeyboardInterrupt:
-        print("noisestop: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        _close_progress_bars()
+        print(f"noisestop: interrupted{': ' + one_line(exc) if str(exc) else ''}", file=sys.stderr)
         return 130
     except (UsageError, ValueError, OSError, RecursionError, MemoryError) as exc:
         if debug:

@@ -85,6 +85,20 @@ def _check_frame(height: int, width: int, grid: tuple[int, int], what: str) -> N
 _DEFINE_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
+def _resolution(text: str) -> int | tuple[int, int]:
+    """`--resolution N|WxH`, each side within the frame bounds' range."""
+    from renderer.scenes import parse_resolution
+
+    try:
+        value = parse_resolution(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    for side in value if isinstance(value, tuple) else (value,):
+        if side > MAX_SIDE:
+            raise argparse.ArgumentTypeError(f"a side of {side} px is over the largest, {MAX_SIDE}")
+    return value
+
+
 def _define(text: str) -> tuple[str, str]:
     """`-D key=value`: key a name as in an XML scene's <default name=...>, value non-empty."""
     key, sep, value = text.partition("=")
@@ -567,11 +581,17 @@ def _register_render(sub: argparse._SubParsersAction) -> None:
                         "e.g. -D integrator=path")
     # None = not given: taken from --reference, then the scene, then the defaults shown
     # (renderer/settings.py); the report's settings_source says which
-    p.add_argument("--resolution", type=_side, default=None,
-                   help="square frame size (default: the reference's, else the scene's own: "
-                        "256 for built-ins, the film size of an XML file)")
-    p.add_argument("--grid", type=_side, nargs=2, default=None, metavar=("ROWS", "COLS"),
-                   help="blocks (default: the reference's, else 4 4)")
+    p.add_argument("--resolution", type=_resolution, default=None, metavar="N|WxH",
+                   help="frame size: N scales the film's long side to N keeping its aspect ratio, WxH "
+                        "sets both (default: the reference's, else the scene's own: 256x256 for "
+                        "built-ins, the film of an XML file)")
+    blocks = p.add_mutually_exclusive_group()
+    blocks.add_argument("--block", type=_side, default=None, metavar="PX",
+                        help="blocks of PX x PX pixels; edge blocks are full windows moved flush with "
+                             "the frame's edge, overlapping their neighbour (default: the reference's "
+                             "grid, else the block size of the training data, renderer.settings)")
+    blocks.add_argument("--grid", type=_side, nargs=2, default=None, metavar=("ROWS", "COLS"),
+                        help="blocks as a grid that divides the frame (default: the reference's)")
     p.add_argument("--min-spp", type=_spp, default=None,
                    help="first decision (default: the reference's first level, else 16)")
     p.add_argument("--max-spp", type=_spp, default=None,
@@ -580,6 +600,9 @@ def _register_render(sub: argparse._SubParsersAction) -> None:
                    help="spp added per pass (default: the reference's level step, else 16)")
     p.add_argument("--seed", type=_seed, default=0)
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz")
+    p.add_argument("--checkpoint-every", type=_float_in(0.0, 1e9), default=30.0, metavar="S",
+                   help="seconds between checkpoints (also written at the end, at --time-limit and on "
+                        "Ctrl-C/SIGTERM); 0: after every pass (default 30)")
     _add_pool_arguments(p, ", for several scenes")
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_render)
@@ -598,7 +621,8 @@ def cmd_render(args: argparse.Namespace) -> int:
             server=args.server, reference=args.reference, threshold=args.threshold,
             quantile=args.quantile, offset=args.offset, workers=args.workers, scheduler=args.scheduler,
             exposure=args.exposure,
-            resolution=args.resolution, grid=None if args.grid is None else tuple(args.grid), step=args.step,
+            resolution=args.resolution, grid=None if args.grid is None else tuple(args.grid), block=args.block,
+            checkpoint_every=args.checkpoint_every, step=args.step,
             min_spp=args.min_spp, max_spp=args.max_spp, seed=args.seed, resume=args.resume,
             defines=dict(args.defines) if args.defines else None, time_limit=args.time_limit)
     except ConnectionError as exc:      # verdict server unreachable or failing

@@ -21,14 +21,26 @@ class StackRenderer:
         self.block_shape = tuple(stack.block)
         self.n_blocks = stack.n_blocks
         self.calls = []
+        self.kernel_compiles = self.samples_traced = 0
+
+    @property
+    def mitsuba_calls(self):
+        return len(self.calls)
+
+    kernel_launches = mitsuba_calls
 
     def block_slices(self, b):
         r, c = divmod(b, self.grid[1])
         return slice(r * self.block_h, (r + 1) * self.block_h), slice(c * self.block_w, (c + 1) * self.block_w)
 
+    def window(self, b):
+        rows, cols = self.block_slices(b)
+        return cols.start, rows.start, self.block_w, self.block_h
+
     def render_blocks(self, ids, spp, seed, pass_index=0):
         assert spp == self.step
         self.calls.append(list(ids))
+        self.samples_traced += len(ids) * self.block_h * self.block_w * spp
         return np.stack([self.passes[pass_index][b] for b in ids])
 
     def quick_image(self, spp=16, seed=0, kind="albedo"):
@@ -39,7 +51,7 @@ def live(monkeypatch, tmp_path, stack, crit, min_spp, name="live"):
     """adaptive_render over `stack`'s passes; returns (report, the renderer used)."""
     made = []
 
-    def fake_renderer(scene, grid):
+    def fake_renderer(scene, grid=None, block=None):
         made.append(StackRenderer(stack, grid))
         return made[-1]
 

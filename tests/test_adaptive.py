@@ -18,8 +18,9 @@ from renderer.criteria import ModelCriterion, OracleCriterion, UniformCriterion,
 
 pytestmark = pytest.mark.slow
 
-TINY = {"resolution": 32, "step": 4, "min_spp": 4, "max_spp": 24, "progress": False}
-TIMING_KEYS = {"wall_s", "timing"}
+TINY = {"resolution": 32, "grid": (4, 4), "step": 4, "min_spp": 4, "max_spp": 24, "progress": False,
+        "checkpoint_every": 0.0}    # every pass: the crash tests resume from the pass before the crash
+TIMING_KEYS = {"wall_s", "timing", "render_calls"}   # the process's own costs
 
 
 @pytest.fixture(scope="module")

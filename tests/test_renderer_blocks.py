@@ -1,4 +1,4 @@
-"""Crop-window block rendering and the exact block accumulator."""
+"""Block rendering (wavefront and crop engines, windows of any frame) and the exact block accumulator."""
 
 from __future__ import annotations
 
@@ -80,28 +80,129 @@ def _noise_var(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (a.astype(np.float64) - b) ** 2 / 4.0
 
 
-@pytest.mark.slow
-def test_crop_matches_full_frame_up_to_noise() -> None:
-    r = BlockRenderer(load_scene("checker", 32), grid=(4, 4))
-    ids = [5, 6, 9, 10, 3]
-    spp = 256
-    ca = r.render_blocks(ids, spp, seed=11, pass_index=0)
-    cb = r.render_blocks(ids, spp, seed=11, pass_index=1)
-    fa = r.render_full(spp, seed=11, pass_index=0)
-    fb = r.render_full(spp, seed=11, pass_index=1)
-    crop = (ca.astype(np.float64) + cb) / 2
-    full = (fa.astype(np.float64) + fb) / 2
-    ratios, shifted = [], []
+def _scene(name: str, size: int, rfilter: str = "box", width: int | None = None):
+    """A built-in scene with the film's reconstruction filter replaced (published scenes
+    mostly use Mitsuba's default, the Gaussian of radius 2 px)."""
+    import mitsuba as mi
+
+    from renderer.scenes import scene_dict
+
+    d = scene_dict(name, size)
+    d["sensor"]["film"]["rfilter"] = {"type": rfilter}
+    if width is not None:
+        d["sensor"]["film"]["width"] = width
+    return mi.load_dict(d)
+
+
+def _mixed_ratio(r: BlockRenderer, a: np.ndarray, b: np.ndarray, fa: np.ndarray, fb: np.ndarray,
+                 ids: list[int], shift: int = 0) -> float:
+    """Mean squared difference of two renders of the blocks over what their noise explains
+    (about 1 for the same estimator; `shift` moves the second one by pixels, a control)."""
+    ratios = []
+    for i, blk in enumerate(ids):
+        ys, xs = r.block_slices(blk)
+        xs = slice(xs.start - shift, xs.stop - shift)
+        crop, full = (a[i].astype(np.float64) + b[i]) / 2, (fa[ys, xs].astype(np.float64) + fb[ys, xs]) / 2
+        expected = _noise_var(a[i], b[i]).mean() + _noise_var(fa[ys, xs], fb[ys, xs]).mean()
+        ratios.append(((crop - full) ** 2).mean() / expected)
+    return float(np.mean(ratios))
+
+
+def test_blocks_are_the_full_frame_bit_for_bit_with_a_box_filter() -> None:
+    r = BlockRenderer(_scene("checker", 32), grid=(4, 4))
+    assert r.engine == "wavefront" and r.guard == 0
+    full = r.render_full(8, seed=11, pass_index=3)
+    ids = [5, 6, 9, 3]
+    blocks = r.render_blocks(ids, 8, seed=11, pass_index=3)
     for i, b in enumerate(ids):
-        ys, xs = r.block_slices(b)
-        expected = _noise_var(ca[i], cb[i]).mean() + _noise_var(fa[ys, xs], fb[ys, xs]).mean()
-        ratios.append(((crop[i] - full[ys, xs]) ** 2).mean() / expected)
-        xs1 = slice(xs.start - 1, xs.stop - 1)  # negative control: one pixel off
-        shifted.append(((crop[i] - full[ys, xs1]) ** 2).mean() / expected)
-    # mean squared difference is what noise alone explains (ratio ~ 1) ...
-    assert 0.5 < float(np.mean(ratios)) < 2.0, ratios
-    # ... and the test can tell a misplaced crop apart
-    assert float(np.mean(shifted)) > 3.0, shifted
+        np.testing.assert_array_equal(blocks[i], full[r.block_slices(b)])
+    # one block alone, too: its samples do not depend on what else is traced
+    np.testing.assert_array_equal(r.render_blocks([6], 8, seed=11, pass_index=3)[0], blocks[1])
+    other = r.render_blocks(ids, 8, seed=11, pass_index=4)
+    assert not np.array_equal(other, blocks)      # a new pass draws new samples
+
+
+def test_blocks_equal_the_full_frame_with_a_gaussian_filter() -> None:
+    """The guard band: a block traced alone gets every sample its filter footprint reaches."""
+    r = BlockRenderer(_scene("checker", 32, "gaussian"), grid=(4, 4))
+    assert r.guard == 2
+    full = r.render_full(8, seed=2)
+    ids = [5, 10, 15]
+    blocks = r.render_blocks(ids, 8, seed=2)
+    for i, b in enumerate(ids):
+        np.testing.assert_allclose(blocks[i], full[r.block_slices(b)], rtol=1e-5, atol=1e-6)
+    # control: without the guard band the block's edge pixels miss their neighbours' samples
+    r._tracer.guard = 0
+    bare = r.render_blocks([5], 8, seed=2)[0]
+    inner = (slice(2, -2), slice(2, -2))
+    assert np.abs(bare - full[r.block_slices(5)]).max() > 1e-3
+    np.testing.assert_allclose(bare[inner], full[r.block_slices(5)][inner], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_wavefront_is_mitsubas_estimator() -> None:
+    """The wavefront tracer against mi.render of the same film: differences are noise."""
+    import mitsuba as mi
+
+    for rfilter in ("box", "gaussian"):
+        scene = _scene("checker", 32, rfilter)
+        r = BlockRenderer(scene, grid=(4, 4))
+        ids = list(range(16))
+        a = r.render_blocks(ids, 256, seed=1, pass_index=0)
+        b = r.render_blocks(ids, 256, seed=1, pass_index=1)
+        fa, fb = (np.asarray(mi.render(scene, spp=256, seed=s), np.float32)[..., :3] for s in (7, 8))
+        assert 0.5 < _mixed_ratio(r, a, b, fa, fb, ids) < 2.0, rfilter
+        assert _mixed_ratio(r, a, b, fa, fb, [5, 6, 9, 10], shift=1) > 3.0   # the test can fail
+
+
+@pytest.mark.slow
+def test_crop_engine_with_guard_band_matches_full_frame_up_to_noise() -> None:
+    """Scalar variants render crop windows: same estimator in distribution, guard band included."""
+    r = BlockRenderer(_scene("checker", 32, "gaussian"), grid=(4, 4), engine="crop")
+    assert r.engine == "crop" and r.guard == 2
+    ids = [5, 6, 9, 10, 3]
+    a, b = (r.render_blocks(ids, 256, seed=11, pass_index=p) for p in (0, 1))
+    fa, fb = (r.render_full(256, seed=11, pass_index=p) for p in (0, 1))
+    assert 0.5 < _mixed_ratio(r, a, b, fa, fb, ids) < 2.0
+    assert _mixed_ratio(r, a, b, fa, fb, [5, 6, 9, 10], shift=1) > 3.0
+    assert r.mitsuba_calls == 2 * len(ids) + 2
+
+
+def test_one_kernel_compile_per_render_whatever_the_active_set() -> None:
+    r = BlockRenderer(_scene("cornell", 32), grid=(4, 4))
+    r.render_blocks(list(range(16)), 4, seed=0, pass_index=0)
+    first = r.kernel_compiles          # 0 or 1: Dr.Jit may already hold the kernel (memory or disk)
+    for p, ids in enumerate(([0, 1, 2], [7], [3, 12, 15], list(range(0, 16, 2))), start=1):
+        r.render_blocks(ids, 4 + p, seed=0, pass_index=p)      # other blocks, other spp, other pass
+    assert r.kernel_compiles == first
+    assert r.mitsuba_calls == 5 and r.kernel_launches == 5
+
+
+def test_block_windows_cover_any_frame_with_full_size_edge_windows() -> None:
+    r = BlockRenderer(_scene("sky", 70, width=100), block=32)
+    assert (r.width, r.height) == (100, 70) and r.grid == (3, 4) and r.overlapping
+    assert [r.block_origin(c)[0] for c in range(4)] == [0, 32, 64, 68]
+    assert [r.block_origin(4 * k)[1] for k in range(3)] == [0, 32, 38]
+    assert r.window(11) == (68, 38, 32, 32)
+    assert not BlockRenderer(_scene("sky", 64), block=32).overlapping
+    with pytest.raises(ValueError, match="larger than the 100x70 frame"):
+        BlockRenderer(_scene("sky", 70, width=100), block=71)
+    with pytest.raises(ValueError, match="either"):
+        BlockRenderer(_scene("sky", 64), grid=(2, 2), block=32)
+
+
+def test_compose_takes_each_pixel_from_the_window_with_most_samples() -> None:
+    from renderer.blocks import compose
+
+    windows = [(0, 0, 4, 4), (2, 0, 4, 4)]                  # 6x4 frame, columns 2-3 shared
+    means = [np.full((4, 4, 3), 1.0), np.full((4, 4, 3), 2.0)]
+    image, spp, owner = compose(means, windows, [64, 16], (4, 6))
+    assert (image[:, :4] == 1.0).all() and (image[:, 4:] == 2.0).all()
+    assert (spp[:, :4] == 64).all() and (spp[:, 4:] == 16).all() and (owner[:, 2:4] == 0).all()
+    image, spp, owner = compose(means, windows, [16, 64], (4, 6))
+    assert (image[:, 2:] == 2.0).all() and (image[:, :2] == 1.0).all()
+    with pytest.raises(ValueError, match="cover"):
+        compose(means, windows, [1, 1], (4, 7))
 
 
 def test_accumulator_means_are_exact() -> None:

@@ -107,10 +107,47 @@ def test_xml_resolution_parameter_is_used(tmp_path: Path) -> None:
     np.testing.assert_allclose(_render(scene), 0.25, rtol=1e-5)
 
 
-def test_xml_without_parameter_keeps_its_film(tmp_path: Path) -> None:
+def test_xml_film_is_scaled_keeping_its_aspect(tmp_path: Path) -> None:
     path = tmp_path / "fixed.xml"
     path.write_text(XML_FIXED)
-    assert _film_size(load_scene(str(path), 32)) == (20, 12)
+    assert _film_size(load_scene(str(path))) == (20, 12)            # its own film by default
+    assert _film_size(load_scene(str(path), 32)) == (32, 19)        # long side 32, aspect 5:3 kept
+    assert _film_size(load_scene(str(path), "40x10")) == (40, 10)   # both sides given
+    for bad in ("0", "12x", "axb", "1x2x3", "-4x4"):
+        with pytest.raises(ValueError, match="resolution"):
+            load_scene(str(path), bad)
+
+
+XML_SPHERE = """<scene version="3.0.0">
+  <integrator type="aov"><string name="aovs" value="d:depth"/></integrator>
+  <sensor type="perspective">
+    <float name="fov" value="40"/>
+    <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="48"/><integer name="height" value="24"/>
+      <rfilter type="box"/></film>
+  </sensor>
+  <shape type="sphere"><point name="center" x="0.6" y="0.2" z="0"/><float name="radius" value="0.5"/></shape>
+  <shape type="rectangle"><transform name="to_world"><scale value="5"/><translate z="-1"/></transform></shape>
+</scene>
+"""
+
+
+def test_scaled_film_shows_the_same_view(tmp_path: Path) -> None:
+    """Scaling keeps the camera's view: the 2x render, averaged down, is the 1x render."""
+    import mitsuba as mi
+
+    path = tmp_path / "sphere.xml"
+    path.write_text(XML_SPHERE)
+    def sphere(resolution=None, spp=16) -> np.ndarray:       # the sphere's silhouette (depth < 4.6)
+        return np.asarray(mi.render(load_scene(str(path), resolution), spp=spp))[..., 0] < 4.6
+
+    small, big = sphere(spp=64), sphere(96)
+    assert small.shape == (24, 48) and big.shape == (48, 96) and small.mean() > 0.05
+    down = big.reshape(24, 2, 48, 2).mean(axis=(1, 3)) > 0.5
+    assert (down != small).mean() < 0.02
+    # control: a stretched view (96x24, horizontal field kept) is not the same picture
+    wide = sphere("96x24").reshape(24, 48, 2).mean(axis=2) > 0.5
+    assert (wide != small).mean() > 0.04
 
 
 def test_xml_errors_name_the_file(tmp_path: Path) -> None:

@@ -15,8 +15,8 @@ k draws from a PCG32 stream seeded by TEA(p, k) and TEA(j, .) (`KeyedSampler`). 
 therefore gets the same samples whichever other pixels are traced with it, and any set of
 blocks is bit for bit the same estimator as those blocks cut out of a full-frame trace:
 
-* box filter (radius 1/2): each sample is summed into its own pixel (``dr.block_sum``
-  over the pixel's consecutive lanes), so blocks are independent;
+* box filter (radius 1/2): each sample is summed into its own pixel (the pixel's
+  consecutive lanes), so blocks are independent;
 * wider filters (the Gaussian of most published scenes): samples are splatted with the
   film's filter into a frame-sized ``mi.ImageBlock``, and the traced set is the requested
   pixels grown by a guard band of ``floor(radius + 1/2)`` pixels, every pixel whose samples
@@ -192,10 +192,12 @@ class WavefrontTracer:
         """Box filter: the mean of each pixel's own samples, float32 [n, 3]."""
         mi, dr = self._mi, self._dr
         _, rgb = self._samples(pixels, spp, key)
-        sums = [dr.block_sum(rgb[c], spp) for c in range(3)]
-        dr.eval(sums)
+        dr.eval(rgb)
         self.launches += 1
-        return np.stack([np.asarray(s) for s in sums], axis=1) / np.float32(spp)
+        # lanes are pixel-major: each pixel's spp samples are consecutive (numpy sums them
+        # faster than dr.block_sum on the llvm backend)
+        values = np.asarray(rgb, np.float32).reshape(3, pixels.size, spp)
+        return values.sum(axis=2, dtype=np.float64).T.astype(np.float32) / np.float32(spp)
 
     def _launch_splat(self, pixels: np.ndarray, spp: int, key: int) -> np.ndarray:
         """Any filter: weighted sums and weights [H * W, 4] splatted over the frame."""

@@ -442,7 +442,8 @@ DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "inputs": (bench_inp
                     "criteria": (bench_criteria, md_criteria),
                     "tradeoff": (bench_tradeoff, md_tradeoff), "ablation": (bench_ablation, md_ablation),
                     "step": (bench_step, md_step), "knobs": (bench_knobs, md_knobs)}
-SECTIONS = ("features", "crop", "models", "render", "service", "stability", "reliability", *DATASET_SECTIONS)
+SECTIONS = ("features", "crop", "models", "render", "passes", "service", "stability", "reliability",
+            *DATASET_SECTIONS)
 
 
 def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), data: str | None = None,
@@ -495,6 +496,9 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
         measure("cost_accuracy", lambda: saved_comparisons(data, Path(out_dir), heldout), md_cost_accuracy)
     if "render" in only:
         measure("render", bench_render, md_render)
+    if "passes" in only:
+        from .bench_passes import bench_passes, md_passes
+        measure("passes", bench_passes, md_passes)
     for name, (run, md) in DATASET_SECTIONS.items():
         if name in only:
             measure(name, lambda run=run, name=name: run(data, heldout, out_dir=out_dir) if name == "tradeoff"

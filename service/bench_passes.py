@@ -1,0 +1,143 @@
+"""`noisestop bench passes`: does wall time follow the samples (issue 16)?
+
+Three measurements, all warm, on this machine:
+
+* wall time of one block pass against the active pixels it traces (one kernel launch for
+  any set of blocks, `renderer.wavefront`), with the crop-window engine (one Mitsuba call
+  per block) beside it: a linear fit gives the constant per pass and the cost per pixel;
+* the flip criterion's decision time against the number of blocks asked at once;
+* adaptive renders (flip) against uniform sampling to the same max spp, at 256x256 and at
+  1280x720: the wall-time speed-up next to the sample ratio (uniform samples / spent
+  samples; ideal speed-up = ratio), and the share of wall time in features + decisions.
+"""
+from __future__ import annotations
+
+import statistics
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+PASS_SCENE = ("env_spheres", "640x384", 64, 32)          # scene, resolution, block, spp per pass
+RENDERS = (("env_spheres", 256, 32, 512), ("env_spheres", "1280x720", 32, 256))   # scene, res, step, max
+
+
+def _median(fn: Any, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def pass_cost(repeats: int = 3) -> dict[str, Any]:
+    """Seconds per pass against active pixels, per engine, with a least-squares line."""
+    from renderer.blocks import BlockRenderer
+    from renderer.scenes import load_scene
+
+    scene, res, block, spp = PASS_SCENE
+    out: dict[str, Any] = {"scene": scene, "resolution": res, "block": block, "spp": spp, "engines": {}}
+    for engine in ("wavefront", "crop"):
+        br = BlockRenderer(load_scene(scene, res), block=block, engine=engine)
+        n = br.n_blocks
+        rng = np.random.default_rng(0)
+        order = rng.permutation(n).tolist()
+        counts = sorted({1, 2, n // 8, n // 4, n // 2, n})
+        br.render_blocks(order, spp, seed=0)                       # compile once (crop: every window)
+        rows = []
+        for k in counts:
+            ids = sorted(order[:k])
+            s = _median(lambda ids=ids: br.render_blocks(ids, spp, seed=1, pass_index=k), repeats)
+            rows.append({"blocks": k, "pixels": k * block * block, "seconds": s})
+        x = np.array([r["pixels"] for r in rows], float)
+        y = np.array([r["seconds"] for r in rows], float)
+        slope, intercept = np.polyfit(x, y, 1)
+        fit = slope * x + intercept
+        r2 = 1.0 - float(((y - fit) ** 2).sum() / max(((y - y.mean()) ** 2).sum(), 1e-30))
+        out["engines"][engine] = {"rows": rows, "constant_s": float(intercept),
+                                  "ns_per_pixel_sample": float(slope / spp * 1e9), "r2": r2,
+                                  "kernel_compiles": br.kernel_compiles}
+    return out
+
+
+def decision_cost(repeats: int = 5, counts: tuple[int, ...] = (1, 4, 16, 64, 256)) -> dict[str, Any]:
+    """Seconds of one flip decision call against the number of 64x64 blocks it judges."""
+    from renderer.criteria import BlockView, FlipCriterion
+
+    rng = np.random.default_rng(0)
+    crit = FlipCriterion()
+    rows = []
+    for n in counts:
+        base = rng.random((n, 64, 64, 3)) * 0.5
+        a = base + rng.normal(0, 0.02, base.shape)
+        b = base + rng.normal(0, 0.02, base.shape)
+        views = [BlockView(mean=(a[i] + b[i]) / 2, spp=64, nonfinite=0, halves=(a[i], b[i]), half_spp=(32, 32),
+                           quick=None) for i in range(n)]
+        crit.decide(list(range(n)), views)                          # warm
+        s = _median(lambda views=views, n=n: crit.decide(list(range(n)), views), repeats)
+        rows.append({"blocks": n, "seconds": s, "ms_per_block": 1e3 * s / n})
+    return {"criterion": "flip", "block": 64, "rows": rows}
+
+
+def render_scaling(repeats: int = 1) -> list[dict[str, Any]]:
+    """Adaptive (flip) against uniform to the same max spp, per frame size."""
+    from renderer.adaptive import adaptive_render
+    from renderer.criteria import FlipCriterion, UniformCriterion
+
+    out = []
+    for scene, res, step, max_spp in RENDERS:
+        opts = {"resolution": res, "step": step, "min_spp": step, "max_spp": max_spp, "progress": False,
+                "checkpoint_every": 30.0}
+        runs: dict[str, list[dict[str, Any]]] = {"flip": [], "uniform": []}
+        with tempfile.TemporaryDirectory() as tmp:
+            adaptive_render(scene, Path(tmp) / "warm", UniformCriterion(), **{**opts, "max_spp": step})
+            for i in range(repeats):
+                for name, crit in (("flip", FlipCriterion()), ("uniform", UniformCriterion())):
+                    runs[name].append(adaptive_render(scene, Path(tmp) / f"{name}{i}", crit, **opts))
+        f, u = (sorted(runs[k], key=lambda r: r["wall_s"])[len(runs[k]) // 2] for k in ("flip", "uniform"))
+        sample_ratio = u["render_calls"]["samples_traced"] / f["render_calls"]["samples_traced"]
+        t = f["timing"]
+        out.append({"scene": scene, "resolution": f["resolution"], "step": step, "max_spp": max_spp,
+                    "blocks": len(f["blocks"]), "saved_vs_uniform": f["saved_vs_uniform"],
+                    "flip_wall_s": f["wall_s"], "uniform_wall_s": u["wall_s"],
+                    "speedup": u["wall_s"] / f["wall_s"], "sample_ratio": sample_ratio,
+                    "speedup_over_ratio": u["wall_s"] / f["wall_s"] / sample_ratio,
+                    "decision_share": (t["features_s"] + t["decisions_s"]) / f["wall_s"],
+                    "timing": t, "render_calls": f["render_calls"],
+                    "uniform_render_s": u["timing"]["render_s"]})
+    return out
+
+
+def bench_passes(repeats: int = 3) -> dict[str, Any]:
+    return {"passes": pass_cost(repeats), "decisions": decision_cost(), "renders": render_scaling()}
+
+
+def md_passes(r: dict[str, Any]) -> str:
+    p = r["passes"]
+    lines = [f"One pass of {p['spp']} spp on {p['scene']} at {p['resolution']}, {p['block']}-px blocks, "
+             "against the active pixels it traces (median of 3, warm):", "",
+             "| engine | " + " | ".join(f"{row['blocks']} blocks" for row in p["engines"]["wavefront"]["rows"])
+             + " | constant per pass | per pixel-sample | R^2 of the line |",
+             "|---|" + "---|" * (len(p["engines"]["wavefront"]["rows"]) + 3)]
+    for name, e in p["engines"].items():
+        lines.append(f"| {name} | " + " | ".join(f"{row['seconds']:.3f} s" for row in e["rows"])
+                     + f" | {e['constant_s'] * 1e3:.1f} ms | {e['ns_per_pixel_sample']:.0f} ns | {e['r2']:.3f} |")
+    d = r["decisions"]
+    lines += ["", "The flip criterion's decision time against the blocks judged in one call (64x64 blocks):", "",
+              "| blocks | " + " | ".join(str(row["blocks"]) for row in d["rows"]) + " |",
+              "|---|" + "---|" * len(d["rows"]),
+              "| ms per block | " + " | ".join(f"{row['ms_per_block']:.2f}" for row in d["rows"]) + " |"]
+    lines += ["", "Adaptive renders (flip) against uniform sampling to the same max spp (goal: speed-up >= 0.9x "
+              "the sample ratio; features + decisions < 2 % of wall time at 256x256, step 32):", "",
+              "| scene | frame | blocks | step / max spp | saved | sample ratio | flip wall | uniform wall "
+              "| speed-up | speed-up / sample ratio | features + decisions |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for x in r["renders"]:
+        w, h = x["resolution"]
+        lines.append(f"| {x['scene']} | {w}x{h} | {x['blocks']} | {x['step']} / {x['max_spp']} "
+                     f"| {100 * x['saved_vs_uniform']:.0f} % | {x['sample_ratio']:.2f}x | {x['flip_wall_s']:.1f} s "
+                     f"| {x['uniform_wall_s']:.1f} s | {x['speedup']:.2f}x | {x['speedup_over_ratio']:.2f} "
+                     f"| {100 * x['decision_share']:.1f} % |")
+    return "\n".join(lines)

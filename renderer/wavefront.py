@@ -71,9 +71,10 @@ def _keyed_sampler_class() -> type:
             """Streams come from `set_streams`; Mitsuba's own seeding is not used."""
 
         def set_streams(self, state: Any, sequence: Any) -> None:
-            # seed() after construction: the constructor would add arange(size) to both
-            # values, tying a lane's stream to its position in the wavefront
-            self.rng = mi.PCG32(size=dr.width(state))
+            # seed() on a default generator: a constructor given the size would add
+            # arange(size) to both values (tying a lane's stream to its position in the
+            # wavefront) and compile a small kernel for every new wavefront size
+            self.rng = mi.PCG32()
             self.rng.seed(state, sequence)
 
         def next_1d(self, active: Any = True) -> Any:
@@ -196,7 +197,9 @@ class WavefrontTracer:
         self.launches += 1
         # lanes are pixel-major: each pixel's spp samples are consecutive (numpy sums them
         # faster than dr.block_sum on the llvm backend)
-        values = np.asarray(rgb, np.float32).reshape(3, pixels.size, spp)
+        # (channel by channel: converting the Color3f at once would compile a copy kernel
+        # for every wavefront size)
+        values = np.stack([np.asarray(rgb[c], np.float32) for c in range(3)]).reshape(3, pixels.size, spp)
         return values.sum(axis=2, dtype=np.float64).T.astype(np.float32) / np.float32(spp)
 
     def _launch_splat(self, pixels: np.ndarray, spp: int, key: int) -> np.ndarray:

@@ -168,14 +168,40 @@ def test_crop_engine_with_guard_band_matches_full_frame_up_to_noise() -> None:
     assert r.mitsuba_calls == 2 * len(ids) + 2
 
 
-def test_one_kernel_compile_per_render_whatever_the_active_set() -> None:
-    r = BlockRenderer(_scene("cornell", 32), grid=(4, 4))
-    r.render_blocks(list(range(16)), 4, seed=0, pass_index=0)
-    first = r.kernel_compiles          # 0 or 1: Dr.Jit may already hold the kernel (memory or disk)
-    for p, ids in enumerate(([0, 1, 2], [7], [3, 12, 15], list(range(0, 16, 2))), start=1):
-        r.render_blocks(ids, 4 + p, seed=0, pass_index=p)      # other blocks, other spp, other pass
-    assert r.kernel_compiles == first
-    assert r.mitsuba_calls == 5 and r.kernel_launches == 5
+COMPILES = """
+import json, sys
+sys.path.insert(0, {tests!r})
+from test_renderer_blocks import _scene
+from renderer.blocks import BlockRenderer
+out = {{}}
+for rfilter in ("box", "gaussian"):
+    r = BlockRenderer(_scene("cornell", 32, rfilter), grid=(4, 4))
+    counts = []
+    for p, ids in enumerate((list(range(16)), [0, 1, 2], [7], [3, 12, 15], list(range(0, 16, 2)))):
+        r.render_blocks(ids, 4 + p, seed=0, pass_index=p)   # other blocks, other spp, other pass
+        counts.append(r.kernel_compiles)
+    out[rfilter] = [counts, r.mitsuba_calls, r.kernel_launches]
+print(json.dumps(out))
+"""
+
+
+def test_one_kernel_compile_per_render_whatever_the_active_set(tmp_path) -> None:
+    """In a process with a cold Dr.Jit cache (its own HOME): the first pass compiles the
+    kernel, no later pass compiles anything, whatever blocks and spp it traces."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    tests = str(Path(__file__).parent)
+    env = {**os.environ, "HOME": str(tmp_path), "PYTHONPATH": os.pathsep.join([str(Path(tests).parent), tests])}
+    done = subprocess.run([sys.executable, "-c", COMPILES.format(tests=tests)], capture_output=True, text=True,
+                          env=env, timeout=300)
+    assert done.returncode == 0, done.stderr
+    for rfilter, (counts, calls, launches) in json.loads(done.stdout.splitlines()[-1]).items():
+        assert counts == [1] * 5, (rfilter, counts)
+        assert calls == launches == 5
 
 
 def test_block_windows_cover_any_frame_with_full_size_edge_windows() -> None:

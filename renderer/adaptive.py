@@ -27,7 +27,6 @@ import math
 import os
 import time
 from collections.abc import Mapping, Sequence
-from concurrent.futures import as_completed
 from pathlib import Path
 from typing import Any
 
@@ -41,8 +40,9 @@ from noisefeat.bounds import SizeBounds
 
 from .blocks import BlockRenderer, compose
 from .checkpoint import CHECKPOINT, load_checkpoint, save_checkpoint
-from .criteria import COUNTER_NAMES, DEFAULT_CRITERION, TIMER_NAMES, BlockView, Criterion, build_criterion
+from .criteria import TIMER_NAMES, BlockView, Criterion, build_criterion
 from .outputs import prepare_output_dir, write_outputs
+from .report import final_vs_reference, pass_sizes, render_report
 from .settings import DEFAULT, NOT_USED, check_spp_settings, resolve_settings
 from .settings import describe as describe_settings
 from .signals import DeferredStop
@@ -59,12 +59,6 @@ def scene_label(scene: str | os.PathLike) -> str:
     """Directory name of a scene: the built-in name, or an XML file's stem."""
     s = os.fspath(scene)
     return Path(s).stem if s.lower().endswith(".xml") else s
-
-
-def pass_sizes(step: int, max_spp: int) -> list[int]:
-    """spp of every pass up to max_spp (the last one may be shorter)."""
-    n = math.ceil(max_spp / step)
-    return [min(step, max_spp - p * step) for p in range(n)]
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -278,7 +272,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     bar.close()
 
     final = snapshot()
-    report = _report(label, br, settings, crit, state, acc, final["timers"], variant or current_variant(),
+    report = render_report(label, br, settings, crit, state, acc, final["timers"], variant or current_variant(),
                      ref_stack)
     report["settings_source"] = {k: sources[k] for k in given if sources[k] != NOT_USED}
     if defines:
@@ -303,176 +297,3 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     logger.info("%s: %d passes, saved %.1f%% vs uniform, %.2f s", label, report["passes"],
                 100 * report["saved_vs_uniform"], report["wall_s"])
     return report
-
-
-def _report(label: str, br: BlockRenderer, settings: dict[str, Any], crit: Criterion, state: dict[str, Any],
-            acc: BlockAccumulator, timers: dict[str, float], variant: str | None,
-            ref: Stack | None) -> dict[str, Any]:
-    n = br.n_blocks
-    max_spp = settings["max_spp"]
-    spp = np.array([acc.spp(b) for b in range(n)], np.int64)
-    converged = ~state["active"]
-    history = state["history"]
-    hist_spp = state["history_spp"]
-    blocks = []
-    for b in range(n):
-        asked = np.flatnonzero(history[:, b] != 0)
-        blocks.append({"id": b, "window": list(br.window(b)), "spp": int(spp[b]), "converged": bool(converged[b]),
-                       "stop_spp": int(state["stop_spp"][b]) if converged[b] else None,
-                       "nonfinite": acc.nonfinite(b),
-                       "history": [[int(hist_spp[i]), int(history[i, b])] for i in asked]})
-    pixels = br.block_h * br.block_w          # samples_spent counts shared window pixels once per window
-    wall = float(timers.get("wall_s", 0.0))
-    setup_s, render_s, features_s, decisions_s = (float(timers.get(k, 0.0))
-                                                  for k in ("setup_s", "render_s", "features_s", "decisions_s"))
-    c = crit.counters
-    described = crit.describe()
-    report: dict[str, Any] = {
-        "scene": label, "variant": variant, "criterion": described,
-        # the speed/accuracy knob the stops were made at: the model's decision offset
-        # (None for other criteria, and for a server's own offset), flip's or variance's threshold
-        "offset": described.get("offset"), "threshold": described.get("threshold"),
-        "resolution": [br.width, br.height], "grid": list(br.grid), "block": [br.block_h, br.block_w],
-        "step": settings["step"], "min_spp": settings["min_spp"], "max_spp": max_spp,
-        "seed": settings["seed"], "exposure": settings["exposure"], "quick": settings["quick"],
-        "passes": int(state["pass_index"]),
-        "samples_spent": int(spp.sum()) * pixels, "mean_spp": float(spp.mean()),
-        "saved_vs_uniform": 1.0 - float(spp.sum()) / (n * max_spp),
-        "blocks_converged": int(converged.sum()),
-        "wall_s": wall,
-        "timing": {"setup_s": setup_s, "render_s": render_s, "features_s": features_s,
-                   "decisions_s": decisions_s,
-                   "overhead_s": max(0.0, wall - setup_s - render_s - features_s - decisions_s)},
-        "counters": {"blocks_rendered_per_pass": state["rendered"].tolist(),
-                     "blocks_rendered": int(state["rendered"].sum()),
-                     "blocks_featured": int(c.get("blocks_featured", 0)),
-                     "decisions": int(c.get("blocks_asked", 0)),
-                     **{k: int(c.get(k, 0)) for k in COUNTER_NAMES}},
-        "blocks": blocks,
-    }
-    if ref is not None:
-        report.update(_against_reference(ref, spp, converged, settings))
-        for b, t in enumerate(ref.thresholds or []):
-            report["blocks"][b]["true_threshold"] = t
-    return report
-
-
-def _against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settings: dict[str, Any]) -> dict[str, Any]:
-    """DESIGN metrics of one live render against a labelled stack's true thresholds.
-
-    The oracle is what `OracleCriterion` would spend in this same loop: the first pass at
-    or after both min_spp and T_b (censored T_b: max_spp). A block stopped early is one the
-    criterion stopped below its true threshold (censored: any stop is early).
-    """
-    if ref.thresholds is None:
-        raise ValueError(f"{ref.path}: reference stack has no thresholds (not labelled)")
-    max_spp, min_spp = settings["max_spp"], settings["min_spp"]
-    cum = np.cumsum(pass_sizes(settings["step"], max_spp))
-    oracle = []
-    for t in ref.thresholds:
-        need = max(min_spp, t) if t is not None else None
-        ok = cum[cum >= need] if need is not None else cum[:0]
-        oracle.append(int(ok[0]) if ok.size else int(max_spp))
-    early = [bool(converged[b] and (t is None or spp[b] < t)) for b, t in enumerate(ref.thresholds)]
-    return {"reference": {"path": str(ref.path), "scene": ref.scene, "thresholds": list(ref.thresholds),
-                          "oracle_spp": oracle},
-            "early_stop_rate": float(np.mean(early)),
-            "spp_ratio_vs_oracle": float(spp.sum()) / float(sum(oracle))}
-
-
-def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int, int], ref: Stack,
-                       exposure: float = 0.0, stopped: np.ndarray | None = None) -> dict[str, Any]:
-    """What a person would see flipping between final.png and the reference: the virtual
-    observer's per-block FLIP error of the finished image, the blocks still above its
-    threshold (visible noise left), and among them those the criterion stopped (the others
-    ran out of samples at max spp)."""
-    from learning.observer import DEFAULT_TAU, VirtualObserver
-
-    tau = float((ref.labeler or {}).get("tau", DEFAULT_TAU))
-    obs = VirtualObserver(tau=tau, exposure=exposure)
-    e = obs.errors(reference, image[None], grid)[0]
-    visible = e > tau
-    out = {"tau": tau, "errors": [float(x) for x in e], "visible_noise_blocks": int(visible.sum())}
-    if stopped is not None:
-        out["visible_noise_stopped_blocks"] = int((visible & np.asarray(stopped, bool)).sum())
-    return out
-
-
-# ----------------------------------------------------------------------------- many scenes
-
-
-def _render_task(scene: str, out: str, criterion: Criterion | str, kwargs: dict[str, Any]) -> dict[str, Any]:
-    """What one worker runs: one scene, start to finish (or resume to finish)."""
-    from .farm import configure_worker_threads
-
-    configure_worker_threads()
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    return adaptive_render(scene, out, criterion, **kwargs)
-
-
-def render_many(scenes: Sequence[str | os.PathLike], out: str | os.PathLike, criterion: Criterion | str, *,
-                workers: int | None = None, scheduler: str | None = None, progress: bool = True,
-                **kwargs: Any) -> dict[str, Any]:
-    """`adaptive_render` for many scenes, one task per scene, into out/<scene>/.
-
-    Runs on `renderer.farm.executor` (local Dask processes or a cluster). Each task gets
-    its own copy of `criterion`. A failing scene does not stop the others: it is listed
-    under ``failed``. `kwargs` are `adaptive_render`'s keyword arguments.
-    """
-    from .farm import executor
-
-    if not scenes:
-        raise ValueError("no scenes to render")
-    labels = [scene_label(s) for s in scenes]
-    dupes = sorted({x for x in labels if labels.count(x) > 1})
-    if dupes:
-        raise ValueError(f"scenes would share output directories: {', '.join(dupes)}")
-    root = prepare_output_dir(Path(out).resolve())
-    t0 = time.perf_counter()
-    reports: dict[str, Any] = {}
-    failed: dict[str, str] = {}
-    kwargs = {**kwargs, "progress": False}
-    with executor(workers, scheduler) as pool:
-        futures = {pool.submit(_render_task, os.fspath(s), str(root / lab), criterion, kwargs): lab
-                   for s, lab in zip(scenes, labels)}
-        for fut in tqdm(as_completed(futures), total=len(futures), desc="scenes", unit="scene",
-                        disable=not progress):
-            lab = futures[fut]
-            try:
-                reports[lab] = fut.result()
-            except Exception as exc:  # one bad scene must not lose the others' work
-                failed[lab] = f"{type(exc).__name__}: {exc}"
-                logger.error("scene %s failed: %s", lab, failed[lab])
-    return {"out": str(root), "wall_s": time.perf_counter() - t0,
-            "scenes": dict(sorted(reports.items())), "failed": failed}
-
-
-def render_command(scenes: str | Sequence[str], out: str | os.PathLike, *, criterion: str = DEFAULT_CRITERION,
-                   model: str | None = None, server: str | None = None, reference: str | None = None,
-                   threshold: float | None = None, quantile: float = 1.0, offset: float | None = None,
-                   workers: int | None = None, scheduler: str | None = None, exposure: float = 0.0,
-                   **kwargs: Any) -> dict[str, Any]:
-    """What `noisestop render` runs: one scene -> its report; several -> `render_many`'s summary.
-
-    `scenes`: a name, an XML path, or a comma-separated list. The model is loaded (or the
-    server contacted) once here; the oracle's thresholds come from `reference` per scene.
-    """
-    names = [s.strip() for s in scenes.split(",") if s.strip()] if isinstance(scenes, str) else list(scenes)
-    if not names:
-        raise ValueError("no scene given")
-    prepare_output_dir(out)                 # a bad --out fails before any model or scene is loaded
-    if criterion == "oracle" and reference is None:
-        raise ValueError("--criterion oracle needs --reference DIR (a labelled dataset or stack of the scene)")
-    if criterion != "model" and (model or server or offset is not None):
-        logger.warning("--model/--server/--offset are ignored with --criterion %s", criterion)
-    if criterion not in ("flip", "variance") and threshold is not None:
-        logger.warning("--threshold is ignored with --criterion %s", criterion)
-    crit: Criterion | str = criterion if criterion == "oracle" else build_criterion(
-        criterion, model=model, server=server, threshold=threshold, quantile=quantile,
-        exposure=exposure, offset=offset)
-    remote = getattr(crit, "model", None)
-    if server and criterion == "model" and hasattr(remote, "ready") and not remote.ready():
-        raise ConnectionError(f"{server}: the server answers but model {remote.model!r} is not ready")
-    if len(names) == 1:
-        return adaptive_render(names[0], out, crit, reference=reference, **kwargs)
-    return render_many(names, out, crit, workers=workers, scheduler=scheduler, reference=reference, **kwargs)

@@ -138,7 +138,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("bench", help="measure the figures of BENCHMARKS.md")
     p.add_argument("what", nargs="*", default=["features", "crop"],
-                   help="sections: features, crop, models, render, service, stability, reliability, dataset, "
+                   help="sections: features, crop, models, render, passes, service, stability, reliability, dataset, "
                         "inputs, criteria, tradeoff, ablation, step, knobs (default: features crop)")
     p.add_argument("--data", default=None, help="labelled dataset of training scenes")
     p.add_argument("--heldout", default=None,
@@ -609,7 +609,7 @@ def _register_render(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from renderer.adaptive import render_command
+    from renderer.render_many import render_command
     from renderer.outputs import format_report
     from renderer.scenes import DEFAULT_SCENE
 

@@ -12,7 +12,9 @@ from learning.estimators import DSVM
 from learning.exr import read_exr
 from learning.table import stack_features
 from renderer import adaptive
-from renderer.adaptive import CHECKPOINT, adaptive_render, render_command, render_many
+from renderer.adaptive import CHECKPOINT, adaptive_render
+from renderer.render_many import render_command, render_many
+from renderer.report import pass_sizes
 from renderer.blocks import BlockRenderer
 from renderer.criteria import ModelCriterion, OracleCriterion, UniformCriterion, VarianceCriterion
 
@@ -226,7 +228,7 @@ def test_bad_arguments(tmp_path):
         adaptive_render("cornell", tmp_path, UniformCriterion(), **{**TINY, "step": 0})
     with pytest.raises(ValueError, match="unknown criterion"):
         adaptive_render("cornell", tmp_path, "bogus", **TINY)
-    assert adaptive.pass_sizes(16, 40) == [16, 16, 8]
+    assert pass_sizes(16, 40) == [16, 16, 8]
 
 
 def test_time_limit_stops_cleanly_and_resume_finishes_the_same_image(tmp_path):

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from learning.exr import read_exr, read_exr_channels
-from renderer.adaptive import adaptive_render, pass_sizes
+from renderer.adaptive import adaptive_render
+from renderer.report import pass_sizes
 from renderer.blocks import BlockRenderer
 from renderer.criteria import VarianceCriterion
 from renderer.scenes import load_scene

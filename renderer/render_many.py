@@ -1,0 +1,96 @@
+"""`noisestop render` for one scene or many: the command facade, and many scenes as one
+Dask task each (`renderer.farm.executor`: local processes or a cluster)."""
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Sequence
+from concurrent.futures import as_completed
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from .adaptive import adaptive_render, scene_label
+from .criteria import DEFAULT_CRITERION, Criterion, build_criterion
+from .outputs import prepare_output_dir
+
+logger = logging.getLogger(__name__)
+
+
+def _render_task(scene: str, out: str, criterion: Criterion | str, kwargs: dict[str, Any]) -> dict[str, Any]:
+    """What one worker runs: one scene, start to finish (or resume to finish)."""
+    from .farm import configure_worker_threads
+
+    configure_worker_threads()
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    return adaptive_render(scene, out, criterion, **kwargs)
+
+
+def render_many(scenes: Sequence[str | os.PathLike], out: str | os.PathLike, criterion: Criterion | str, *,
+                workers: int | None = None, scheduler: str | None = None, progress: bool = True,
+                **kwargs: Any) -> dict[str, Any]:
+    """`adaptive_render` for many scenes, one task per scene, into out/<scene>/.
+
+    Runs on `renderer.farm.executor` (local Dask processes or a cluster). Each task gets
+    its own copy of `criterion`. A failing scene does not stop the others: it is listed
+    under ``failed``. `kwargs` are `adaptive_render`'s keyword arguments.
+    """
+    from .farm import executor
+
+    if not scenes:
+        raise ValueError("no scenes to render")
+    labels = [scene_label(s) for s in scenes]
+    dupes = sorted({x for x in labels if labels.count(x) > 1})
+    if dupes:
+        raise ValueError(f"scenes would share output directories: {', '.join(dupes)}")
+    root = prepare_output_dir(Path(out).resolve())
+    t0 = time.perf_counter()
+    reports: dict[str, Any] = {}
+    failed: dict[str, str] = {}
+    kwargs = {**kwargs, "progress": False}
+    with executor(workers, scheduler) as pool:
+        futures = {pool.submit(_render_task, os.fspath(s), str(root / lab), criterion, kwargs): lab
+                   for s, lab in zip(scenes, labels)}
+        for fut in tqdm(as_completed(futures), total=len(futures), desc="scenes", unit="scene",
+                        disable=not progress):
+            lab = futures[fut]
+            try:
+                reports[lab] = fut.result()
+            except Exception as exc:  # one bad scene must not lose the others' work
+                failed[lab] = f"{type(exc).__name__}: {exc}"
+                logger.error("scene %s failed: %s", lab, failed[lab])
+    return {"out": str(root), "wall_s": time.perf_counter() - t0,
+            "scenes": dict(sorted(reports.items())), "failed": failed}
+
+
+def render_command(scenes: str | Sequence[str], out: str | os.PathLike, *, criterion: str = DEFAULT_CRITERION,
+                   model: str | None = None, server: str | None = None, reference: str | None = None,
+                   threshold: float | None = None, quantile: float = 1.0, offset: float | None = None,
+                   workers: int | None = None, scheduler: str | None = None, exposure: float = 0.0,
+                   **kwargs: Any) -> dict[str, Any]:
+    """What `noisestop render` runs: one scene -> its report; several -> `render_many`'s summary.
+
+    `scenes`: a name, an XML path, or a comma-separated list. The model is loaded (or the
+    server contacted) once here; the oracle's thresholds come from `reference` per scene.
+    """
+    names = [s.strip() for s in scenes.split(",") if s.strip()] if isinstance(scenes, str) else list(scenes)
+    if not names:
+        raise ValueError("no scene given")
+    prepare_output_dir(out)                 # a bad --out fails before any model or scene is loaded
+    if criterion == "oracle" and reference is None:
+        raise ValueError("--criterion oracle needs --reference DIR (a labelled dataset or stack of the scene)")
+    if criterion != "model" and (model or server or offset is not None):
+        logger.warning("--model/--server/--offset are ignored with --criterion %s", criterion)
+    if criterion not in ("flip", "variance") and threshold is not None:
+        logger.warning("--threshold is ignored with --criterion %s", criterion)
+    crit: Criterion | str = criterion if criterion == "oracle" else build_criterion(
+        criterion, model=model, server=server, threshold=threshold, quantile=quantile,
+        exposure=exposure, offset=offset)
+    remote = getattr(crit, "model", None)
+    if server and criterion == "model" and hasattr(remote, "ready") and not remote.ready():
+        raise ConnectionError(f"{server}: the server answers but model {remote.model!r} is not ready")
+    if len(names) == 1:
+        return adaptive_render(names[0], out, crit, reference=reference, **kwargs)
+    return render_many(names, out, crit, workers=workers, scheduler=scheduler, reference=reference, **kwargs)

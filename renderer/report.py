@@ -1,0 +1,113 @@
+"""The adaptive render's report.json: per block window, spp and verdict history; totals;
+and, against a labelled reference stack, DESIGN's early-stop metrics and what a person
+would see flipping between final.png and the reference."""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from learning.accumulator import BlockAccumulator
+from learning.stack import Stack
+
+from .blocks import BlockRenderer
+from .criteria import COUNTER_NAMES, Criterion
+
+
+def pass_sizes(step: int, max_spp: int) -> list[int]:
+    """spp of every pass up to max_spp (the last one may be shorter)."""
+    n = -(-int(max_spp) // int(step))
+    return [min(step, max_spp - p * step) for p in range(n)]
+
+
+def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit: Criterion, state: dict[str, Any],
+            acc: BlockAccumulator, timers: dict[str, float], variant: str | None,
+            ref: Stack | None) -> dict[str, Any]:
+    n = br.n_blocks
+    max_spp = settings["max_spp"]
+    spp = np.array([acc.spp(b) for b in range(n)], np.int64)
+    converged = ~state["active"]
+    history = state["history"]
+    hist_spp = state["history_spp"]
+    blocks = []
+    for b in range(n):
+        asked = np.flatnonzero(history[:, b] != 0)
+        blocks.append({"id": b, "window": list(br.window(b)), "spp": int(spp[b]), "converged": bool(converged[b]),
+                       "stop_spp": int(state["stop_spp"][b]) if converged[b] else None,
+                       "nonfinite": acc.nonfinite(b),
+                       "history": [[int(hist_spp[i]), int(history[i, b])] for i in asked]})
+    pixels = br.block_h * br.block_w          # samples_spent counts shared window pixels once per window
+    wall = float(timers.get("wall_s", 0.0))
+    setup_s, render_s, features_s, decisions_s = (float(timers.get(k, 0.0))
+                                                  for k in ("setup_s", "render_s", "features_s", "decisions_s"))
+    c = crit.counters
+    described = crit.describe()
+    report: dict[str, Any] = {
+        "scene": label, "variant": variant, "criterion": described,
+        # the speed/accuracy knob the stops were made at: the model's decision offset
+        # (None for other criteria, and for a server's own offset), flip's or variance's threshold
+        "offset": described.get("offset"), "threshold": described.get("threshold"),
+        "resolution": [br.width, br.height], "grid": list(br.grid), "block": [br.block_h, br.block_w],
+        "step": settings["step"], "min_spp": settings["min_spp"], "max_spp": max_spp,
+        "seed": settings["seed"], "exposure": settings["exposure"], "quick": settings["quick"],
+        "passes": int(state["pass_index"]),
+        "samples_spent": int(spp.sum()) * pixels, "mean_spp": float(spp.mean()),
+        "saved_vs_uniform": 1.0 - float(spp.sum()) / (n * max_spp),
+        "blocks_converged": int(converged.sum()),
+        "wall_s": wall,
+        "timing": {"setup_s": setup_s, "render_s": render_s, "features_s": features_s,
+                   "decisions_s": decisions_s,
+                   "overhead_s": max(0.0, wall - setup_s - render_s - features_s - decisions_s)},
+        "counters": {"blocks_rendered_per_pass": state["rendered"].tolist(),
+                     "blocks_rendered": int(state["rendered"].sum()),
+                     "blocks_featured": int(c.get("blocks_featured", 0)),
+                     "decisions": int(c.get("blocks_asked", 0)),
+                     **{k: int(c.get(k, 0)) for k in COUNTER_NAMES}},
+        "blocks": blocks,
+    }
+    if ref is not None:
+        report.update(against_reference(ref, spp, converged, settings))
+        for b, t in enumerate(ref.thresholds or []):
+            report["blocks"][b]["true_threshold"] = t
+    return report
+
+
+def against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settings: dict[str, Any]) -> dict[str, Any]:
+    """DESIGN metrics of one live render against a labelled stack's true thresholds.
+
+    The oracle is what `OracleCriterion` would spend in this same loop: the first pass at
+    or after both min_spp and T_b (censored T_b: max_spp). A block stopped early is one the
+    criterion stopped below its true threshold (censored: any stop is early).
+    """
+    if ref.thresholds is None:
+        raise ValueError(f"{ref.path}: reference stack has no thresholds (not labelled)")
+    max_spp, min_spp = settings["max_spp"], settings["min_spp"]
+    cum = np.cumsum(pass_sizes(settings["step"], max_spp))
+    oracle = []
+    for t in ref.thresholds:
+        need = max(min_spp, t) if t is not None else None
+        ok = cum[cum >= need] if need is not None else cum[:0]
+        oracle.append(int(ok[0]) if ok.size else int(max_spp))
+    early = [bool(converged[b] and (t is None or spp[b] < t)) for b, t in enumerate(ref.thresholds)]
+    return {"reference": {"path": str(ref.path), "scene": ref.scene, "thresholds": list(ref.thresholds),
+                          "oracle_spp": oracle},
+            "early_stop_rate": float(np.mean(early)),
+            "spp_ratio_vs_oracle": float(spp.sum()) / float(sum(oracle))}
+
+
+def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int, int], ref: Stack,
+                       exposure: float = 0.0, stopped: np.ndarray | None = None) -> dict[str, Any]:
+    """What a person would see flipping between final.png and the reference: the virtual
+    observer's per-block FLIP error of the finished image, the blocks still above its
+    threshold (visible noise left), and among them those the criterion stopped (the others
+    ran out of samples at max spp)."""
+    from learning.observer import DEFAULT_TAU, VirtualObserver
+
+    tau = float((ref.labeler or {}).get("tau", DEFAULT_TAU))
+    obs = VirtualObserver(tau=tau, exposure=exposure)
+    e = obs.errors(reference, image[None], grid)[0]
+    visible = e > tau
+    out = {"tau": tau, "errors": [float(x) for x in e], "visible_noise_blocks": int(visible.sum())}
+    if stopped is not None:
+        out["visible_noise_stopped_blocks"] = int((visible & np.asarray(stopped, bool)).sum())
+    return out

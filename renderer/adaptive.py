@@ -33,15 +33,14 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from learning.accumulator import BlockAccumulator
 from learning.stack import Stack
-from learning.stoprule import decide_active
 from noisefeat.bounds import SizeBounds
 
 from .blocks import BlockRenderer, compose
 from .checkpoint import CHECKPOINT, load_checkpoint, save_checkpoint
-from .criteria import TIMER_NAMES, BlockView, Criterion, build_criterion
+from .criteria import TIMER_NAMES, Criterion, build_criterion
 from .outputs import prepare_output_dir, write_outputs
+from .passloop import PassLoop
 from .report import final_vs_reference, pass_sizes, render_report
 from .settings import DEFAULT, NOT_USED, check_spp_settings, resolve_settings
 from .settings import describe as describe_settings
@@ -180,14 +179,10 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
             logger.info("%s: no checkpoint, starting from the beginning", ckpt_path)
         elif ckpt_path.exists():
             logger.warning("%s: existing checkpoint ignored and replaced (use resume to continue it)", ckpt_path)
-        state = {"acc": BlockAccumulator((gh, gw), br.block_shape), "active": np.ones(n, bool),
-                 "stop_spp": np.zeros(n, np.int64), "history": np.zeros((0, n), np.int8),
-                 "history_spp": np.zeros(0, np.int64), "rendered": np.zeros(0, np.int64),
-                 "pass_index": 0, "done": False, "counters": {}, "timers": {}, "quick": None}
+        state = {"pass_index": 0, "done": False, "counters": {}, "timers": {}, "quick": None}
     loop_timers = {"render_s": 0.0, "wall_s": 0.0, "setup_s": 0.0,
                    **{k: float(v) for k, v in state["timers"].items() if k in ("render_s", "wall_s", "setup_s")}}
     loop_timers["setup_s"] += time.perf_counter() - t_start  # imports, scene load, checkpoint read
-    acc: BlockAccumulator = state["acc"]
     crit.reset_counters()
     quick_blocks = None
     if crit.needs_quick:
@@ -197,6 +192,10 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
             loop_timers["render_s"] += time.perf_counter() - t0
         quick_blocks = np.stack([state["quick"][br.block_slices(b)] for b in range(n)])
         crit.prepare(list(range(n)), quick_blocks)
+    loop = PassLoop(crit, (gh, gw), br.block_shape, min_spp, quick_blocks)
+    if "acc" in state:                       # resumed
+        loop.restore(state)
+    acc = loop.acc
     done_before = {k: int(state["counters"].pop(k, 0)) for k in RENDER_COUNTERS}   # earlier attempts
     if state["counters"]:  # resumed: continue the counts (this overrides what prepare counted)
         crit.restore_counters(state["counters"], {k: v for k, v in state["timers"].items() if k in TIMER_NAMES})
@@ -215,7 +214,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
 
     def snapshot() -> dict[str, Any]:
         wall = loop_timers["wall_s"] + (time.perf_counter() - t_start)
-        return {**state, "acc": acc.state(), "settings": settings,
+        return {**state, **loop.state(), "settings": settings,
                 "counters": {**dict(crit.counters), **render_counts()},
                 "timers": {**crit.timers, "render_s": loop_timers["render_s"], "setup_s": loop_timers["setup_s"],
                            "wall_s": wall}}
@@ -228,7 +227,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     stop = DeferredStop()
     with stop:
         while not state["done"]:
-            ids = np.flatnonzero(state["active"]).tolist()
+            ids = loop.active_ids
             if not ids or p >= len(sizes):
                 state["done"] = True
                 checkpoint()
@@ -236,25 +235,12 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
             t0 = time.perf_counter()
             images = br.render_blocks(ids, sizes[p], seed, pass_index=p)
             loop_timers["render_s"] += time.perf_counter() - t0
-            acc.add_many(ids, images, sizes[p])
+            loop.add_pass(ids, images, sizes[p])
             spp = acc.spp(ids[0])
-
-            def ask(ask_ids: list[int]) -> np.ndarray:
-                halves = crit.needs_halves  # two extra divisions per block: only when used
-                return crit.decide(ask_ids, [BlockView(
-                    mean=acc.mean(b), spp=acc.spp(b), nonfinite=acc.nonfinite(b),
-                    halves=acc.half_buffer(b) if halves else None,
-                    half_spp=acc.half_spp(b) if halves else None,
-                    quick=None if quick_blocks is None else quick_blocks[b]) for b in ask_ids])
-            verdict_row = decide_active(state["active"], spp, min_spp, ask)
-            state["stop_spp"][verdict_row > 0] = spp
-            state["history"] = np.vstack([state["history"], verdict_row[None]])
-            state["history_spp"] = np.append(state["history_spp"], spp)
-            state["rendered"] = np.append(state["rendered"], len(ids))
             p += 1
             state["pass_index"] = p
-            state["done"] = not state["active"].any() or p >= len(sizes)
-            bar.set_postfix(spp=spp, active=int(state["active"].sum()), refresh=False)
+            state["done"] = not loop.active.any() or p >= len(sizes)
+            bar.set_postfix(spp=spp, active=len(loop.active_ids), refresh=False)
             bar.update(1)
             now = time.perf_counter()
             time_limit_reached = time_limit is not None and not state["done"] and now - t_start >= time_limit
@@ -267,12 +253,12 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
                                         "--resume continues")
             if time_limit_reached:
                 logger.info("%s: time limit of %gs reached after pass %d (%d blocks still active); "
-                            "--resume continues", label, time_limit, p, int(state["active"].sum()))
+                            "--resume continues", label, time_limit, p, len(loop.active_ids))
                 break
     bar.close()
 
     final = snapshot()
-    report = render_report(label, br, settings, crit, state, acc, final["timers"], variant or current_variant(),
+    report = render_report(label, br, settings, crit, {**state, **loop.state()}, acc, final["timers"], variant or current_variant(),
                      ref_stack)
     report["settings_source"] = {k: sources[k] for k in given if sources[k] != NOT_USED}
     if defines:
@@ -292,8 +278,8 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
             reference = None
         else:
             report["final_vs_reference"] = final_vs_reference(image, reference, (gh, gw), ref_stack,
-                                                              float(settings["exposure"]), ~state["active"])
-    write_outputs(out, image, report, spp=spp_px, converged=(~state["active"])[owner], reference=reference)
+                                                              float(settings["exposure"]), ~loop.active)
+    write_outputs(out, image, report, spp=spp_px, converged=(~loop.active)[owner], reference=reference)
     logger.info("%s: %d passes, saved %.1f%% vs uniform, %.2f s", label, report["passes"],
                 100 * report["saved_vs_uniform"], report["wall_s"])
     return report

@@ -7,10 +7,9 @@ B = odd passes). With a constant step every pass has the same size and A and B h
 equal sample counts, as in the live loop; with a varying step (e.g. doubling spp) halves
 are unbalanced and a warning says so.
 
-`simulate_stack` then replays the live loop's control flow through the stop rule's
-`decide_active` (the live loop calls the same function): once spp >= min_spp, after each
-level, only the still-active blocks are asked, and a block once converged stays
-converged and is never asked again. The verdict matrix V [K, B] therefore holds -1 up to
+`simulate_stack` then runs the live loop's own pass step (`renderer.passloop.PassLoop`):
+once spp >= min_spp, after each level, only the still-active blocks are asked, and a block
+once converged stays converged and is never asked again. The verdict matrix V [K, B] therefore holds -1 up to
 the level where the loop would have stopped the block and +1 from there on, which is what
 `learning.metrics.evaluate_verdicts` scores.
 """
@@ -25,14 +24,13 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from learning.accumulator import BlockAccumulator
 from learning.generalisation import scene_groups
 from learning.halves import check_constant_step, recover_passes
 from learning.metrics import evaluate_verdicts
 from learning.stack import Stack, list_stacks, read_stack
-from learning.stoprule import decide_active
 
-from .criteria import BlockView, Criterion
+from .criteria import Criterion
+from .passloop import PassLoop
 
 logger = logging.getLogger(__name__)
 
@@ -48,38 +46,21 @@ def simulate_stack(stack: Stack, criterion: Criterion, min_spp: int | None = Non
     n = stack.n_blocks
     K = stack.n_levels
     V = np.full((K, n), -1, np.int8)
-    active = np.ones(n, bool)
     quick = stack.split(stack.quick()) if criterion.needs_quick else None
     if quick is not None:
         criterion.prepare(list(range(n)), quick)
-    acc = None
     if criterion.needs_halves:
         check_constant_step(stack)
-        acc = BlockAccumulator(stack.grid, stack.block)
+    loop = PassLoop(criterion, tuple(stack.grid), tuple(stack.block), min_spp, quick)
     bar = tqdm(total=K, desc=f"{stack.scene} simulate", unit="lvl", disable=not progress, leave=False)
-    for k, level, pass_spp, pass_img in recover_passes(stack):
+    for k, _, pass_spp, pass_img in recover_passes(stack):
         bar.update(1)
-        if not active.any():
+        ids = loop.active_ids
+        if not ids:
             V[k:] = 1
             break
-        if acc is not None:
-            pass_blocks = stack.split(pass_img)
-            for b in np.flatnonzero(active):  # converged blocks are never rendered again, nor accumulated
-                acc.add(int(b), pass_blocks[b], pass_spp)
-        if k > 0:
-            V[k] = V[k - 1]
-        spp = int(stack.spp[k])
-        means = stack.split(level)
-
-        def ask(ids: list[int], means: np.ndarray = means, spp: int = spp) -> np.ndarray:
-            return criterion.decide(ids, [BlockView(
-                mean=means[b], spp=spp,
-                halves=acc.half_buffer(b) if acc is not None else None,
-                half_spp=acc.half_spp(b) if acc is not None else None,
-                quick=None if quick is None else quick[b],
-                nonfinite=acc.nonfinite(b) if acc is not None else 0) for b in ids])
-        row = decide_active(active, spp, min_spp, ask)
-        V[k, row > 0] = 1
+        loop.add_pass(ids, stack.split(pass_img)[ids], pass_spp)   # stopped blocks get no more samples
+        V[k, ~loop.active] = 1
     bar.close()
     return V
 

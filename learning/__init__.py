@@ -1,10 +1,21 @@
-"""learning: dataset format, virtual observer, models, Algorithm 1, metrics, model bundles."""
-from .check import Problem, check_dataset
-from .lisic import import_lisic
-from .observer import VirtualObserver, label_stack
-from .stack import Stack, StackWriter, list_stacks, make_plan, read_stack, update_labels, write_stack
-from .synthetic import make_synthetic_stack
+"""learning: dataset format, virtual observer, models, Algorithm 1, metrics, model bundles.
 
-__all__ = ["Stack", "StackWriter", "read_stack", "write_stack", "make_plan", "list_stacks",
-           "update_labels", "VirtualObserver", "label_stack", "check_dataset", "Problem",
-           "import_lisic", "make_synthetic_stack"]
+DESIGN's stable names, loaded on first use (PEP 562): `learning.names` and the command-line
+parser stay free of torch and Mitsuba.
+"""
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_HOMES = {"Stack": "stack", "StackWriter": "stack", "read_stack": "stack", "write_stack": "stack",
+          "make_plan": "stack", "list_stacks": "stack", "update_labels": "stack",
+          "VirtualObserver": "observer", "label_stack": "observer", "check_dataset": "check", "Problem": "check",
+          "import_lisic": "lisic", "make_synthetic_stack": "synthetic", "load_model": "bundle"}
+__all__ = list(_HOMES)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _HOMES:
+        raise AttributeError(f"module 'learning' has no attribute {name!r}")
+    return getattr(importlib.import_module(f".{_HOMES[name]}", __name__), name)

@@ -14,7 +14,6 @@ from __future__ import annotations
 import logging
 import os
 import secrets
-import threading
 from pathlib import Path
 from typing import Any
 
@@ -22,17 +21,14 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-_variant_lock = threading.Lock()
-
-
 def _mi():
-    """Mitsuba with some variant set (Bitmap needs one); never overrides a chosen variant."""
+    """Mitsuba with the process's variant set (Bitmap needs one): the one choice of
+    `learning.variant`, so reading an EXR first never pins a slower variant."""
+    from .variant import select_variant
+
+    select_variant()
     import mitsuba as mi
 
-    if mi.variant() is None:
-        with _variant_lock:
-            if mi.variant() is None:
-                mi.set_variant("scalar_rgb")  # always built; Bitmap works the same in all
     return mi
 
 

@@ -21,13 +21,11 @@ import numpy as np
 
 from noisefeat.display import display_range
 
+from .names import OFFSET_LIMIT
+
 CONVERGED = np.int8(1)
 NOISY = np.int8(-1)
 FLAT_TOLERANCE = 1.0 / 255.0  # one 8-bit code value of the display transform
-#: offsets a user, a request or a bundle may set are finite and at most this far from 0 (an
-#: SVM's scores are a few units; an offset beyond any score only means "never" or "always",
-#: but 1e300 or NaN in a request or a bundle means a mistake or an attack)
-OFFSET_LIMIT = 1e6
 
 
 def check_offset(offset: float) -> float:

@@ -23,6 +23,7 @@ from noisefeat import FeatureBase, default_base, extract_features
 from noisefeat.display import lightness
 
 from .noise_input import HALVES, RAW_COLUMNS, RAW_VERSION, compose, halves_raw, needs, noise_lightness
+from .names import QUICK_MODES
 from .npz import read_npz
 from .stack import Stack, list_stacks, read_stack
 
@@ -109,10 +110,6 @@ def _cache_limit(shape: tuple[int, ...]) -> int:
     return 8 * math.prod(shape) + (1 << 16)
 
 
-#: inputs a feature model can be trained with: the content-free noise features of the half
-#: buffers (`halves`, learning.noise_input), or the paper's quick-image difference with the
-#: stack's own quick image (albedo), the extra direct-lighting image, or none (a flat image)
-QUICK_MODES = ("halves", "albedo", "direct", "none")
 
 
 def feature_input(current: np.ndarray, quick: np.ndarray | None = None) -> np.ndarray:

@@ -21,10 +21,10 @@ from .cv import select_hyperparameters
 from .estimators import DSVM, SVM, RBFSVM
 from .gram import GramRBF, SharedGram, index_column
 from .table import SubImageTable, load_table
+from .names import SVM_KINDS
 
 log = logging.getLogger(__name__)
 
-SVM_KINDS = ("svm", "dsvm", "svm_al", "dsvm_al", "svm_as", "dsvm_as")
 CV_MAX_SAMPLES = 4000
 CV_MAX_SAMPLES_RAW = 1000   # 4096-dim raw blocks: each RBF fit costs ~100x a 26-feature one
 AL_BATCH = 16               # labels queried per active-learning round

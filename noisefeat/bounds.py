@@ -23,6 +23,8 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+#: display exposure, in stops, every entry point accepts (noisefeat.display)
+EXPOSURE_RANGE = (-64.0, 64.0)
 MIN_SIDE = 8
 DEFAULT_MAX_BLOCK_SIDE = 2048
 DEFAULT_MAX_PIXELS = 4 * 1024 * 1024

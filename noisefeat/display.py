@@ -13,10 +13,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .bounds import EXPOSURE_RANGE
+
 # Rec. 709 / sRGB primaries, D65 white: relative luminance weights.
 LUMA = (0.2126, 0.7152, 0.0722)
 _LAB_EPS = (6.0 / 29.0) ** 3
-EXPOSURE_RANGE = (-64.0, 64.0)
 _LAB_SLOPE = 1.0 / (3.0 * (6.0 / 29.0) ** 2)
 
 

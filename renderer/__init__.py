@@ -1,7 +1,19 @@
-"""renderer: Mitsuba scene library, block rendering, stack building, the adaptive loop, farm."""
-from .blocks import BlockRenderer
-from .scenes import DEFAULT_SCENE, list_scenes, load_scene
-from .variant import select_variant
+"""renderer: Mitsuba scene library, block rendering, stack building, the adaptive loop, farm.
 
-__all__ = ["BlockRenderer", "DEFAULT_SCENE", "list_scenes", "load_scene",
-           "select_variant"]
+Names are loaded on first use (PEP 562), so `renderer.names` and the command-line parser
+do not import Mitsuba.
+"""
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_HOMES = {"BlockRenderer": "blocks", "DEFAULT_SCENE": "scenes", "list_scenes": "scenes",
+          "load_scene": "scenes", "adaptive_render": "adaptive"}
+__all__ = list(_HOMES)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _HOMES:
+        raise AttributeError(f"module 'renderer' has no attribute {name!r}")
+    return getattr(importlib.import_module(f".{_HOMES[name]}", __name__), name)

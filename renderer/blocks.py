@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from .variant import select_variant
+from learning.variant import select_variant
 from .wavefront import WavefrontTracer, guard_band
 
 logger = logging.getLogger(__name__)
@@ -340,7 +340,7 @@ def measure_crop_cost(
     ``ratio ~= len(block_ids) / n_blocks`` (a quarter for 4 of 16).
     """
     from .scenes import load_scene
-    from .variant import current_variant
+    from learning.variant import current_variant
 
     scene = load_scene(scene_name, resolution)
     r = BlockRenderer(scene, grid=grid)

@@ -12,7 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from learning.stack import Stack  # noqa: E402
-from noisefeat import display  # noqa: E402
+from noisefeat.display import display  # noqa: E402
 
 
 def _draw_grid(ax, stack: Stack, labels: list[str] | None = None) -> None:

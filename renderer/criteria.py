@@ -40,6 +40,8 @@ import numpy as np
 
 from learning.stoprule import CONVERGED, NOISY, StopRule, flat_blocks
 
+from .names import CRITERIA, DEFAULT_CRITERION
+
 logger = logging.getLogger(__name__)
 # decide_calls: calls to decide; blocks_asked: verdicts given; blocks_featured: blocks whose
 # current image went through the feature extractor (here or on a server); feature_rows:
@@ -474,10 +476,6 @@ class FlipCriterion(Criterion):
         return self.rule.verdict(score, flat)
 
 
-CRITERIA = ("model", "flip", "variance", "uniform", "oracle")
-#: what `noisestop render` and `make run` use unless told: the criterion that measured best
-#: on the held-out scenes at <= 5 % early stops (README "Deciding a stop", BENCHMARKS.md)
-DEFAULT_CRITERION = "flip"
 
 
 def build_criterion(kind: str, *, model: str | None = None, server: str | None = None,

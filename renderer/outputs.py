@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from learning.exr import atomic_write_bytes, write_exr_channels, write_png
-from noisefeat import display
+from noisefeat.display import display
 
 FINAL_EXR = "final.exr"
 FINAL_PNG = "final.png"

@@ -18,11 +18,12 @@ line, default 0 stops); the report records it too.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from learning.stack import Stack
+if TYPE_CHECKING:
+    from learning.stack import Stack
 
 #: used only when neither the command line, the reference nor the scene says. Blocks: windows
 #: of DEFAULT_BLOCK pixels, the block size the bundled model and flip's threshold were

@@ -35,7 +35,7 @@ from learning.stack import EXTRA_QUICK, REFERENCE, StackWriter, level_name, make
 
 from .blocks import BlockRenderer
 from .scenes import load_scene
-from .variant import select_variant
+from learning.variant import select_variant
 
 log = logging.getLogger(__name__)
 

@@ -457,7 +457,7 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
     cannot run (e.g. no dataset build on record) is reported in results["failed"] and the
     others still run."""
     from learning.train import SVM_KINDS
-    from renderer.variant import select_variant
+    from learning.variant import select_variant
     variant = select_variant()
     results: dict[str, Any] = {"variant": variant, "seconds": {}, "failed": {}}
     markdown: dict[str, str] = {}

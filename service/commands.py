@@ -7,23 +7,16 @@ import re
 import time
 from collections.abc import Callable
 
+# the choices and documented ranges (issue 14) come from their one home, in modules that
+# import nothing heavy; frame and block sizes are also checked against noisefeat.bounds
+# (environment-configurable) by the commands themselves
+from learning.names import DEFAULT_INPUT, OFFSET_LIMIT, QUICK_MODES, SVM_KINDS
+from noisefeat.bounds import EXPOSURE_RANGE, MIN_SIDE
+from renderer.names import CRITERIA, DEFAULT_CRITERION
+from renderer.settings import MAX_SPP
+
 from .cli import UsageError, emit_json, log
 
-#: learning.table.QUICK_MODES and renderer.criteria.CRITERIA, spelled out so the parser
-#: builds without importing torch or Mitsuba (tests/test_cli.py checks they agree)
-QUICK_MODES = ("halves", "albedo", "direct", "none")
-CRITERIA = ("model", "flip", "variance", "uniform", "oracle")
-DEFAULT_CRITERION = "flip"     # renderer.criteria.DEFAULT_CRITERION
-DEFAULT_INPUT = "halves"       # the input `train` uses unless told (README "Model inputs")
-#: documented ranges of the numeric arguments (issue 14), spelled out like the tables above
-#: (tests/test_cli.py checks they agree): renderer.settings.MAX_SPP, noisefeat.display.
-#: EXPOSURE_RANGE, learning.stoprule.OFFSET_LIMIT, noisefeat.bounds.MIN_SIDE. Frame and
-#: block sizes are also checked against noisefeat.bounds (environment-configurable) by the
-#: commands themselves.
-MAX_SPP = 1 << 20
-EXPOSURE_RANGE = (-64.0, 64.0)
-OFFSET_LIMIT = 1e6
-MIN_SIDE = 8
 MAX_SIDE = 65536
 MAX_SEED = 2**32 - 1
 
@@ -275,8 +268,6 @@ def cmd_dataset_check(args: argparse.Namespace) -> int:
 
 
 def _register_learning(sub: argparse._SubParsersAction) -> None:
-    from learning.train import SVM_KINDS
-
     p = sub.add_parser("train", help="train a model on a dataset (scenes held out for evaluation)")
     p.add_argument("--data", required=True, help="dataset directory")
     p.add_argument("--model", default="dsvm_as", choices=SVM_KINDS, help="model kind (default dsvm_as)")
@@ -720,7 +711,7 @@ def cmd_features(args: argparse.Namespace) -> int:
     from noisefeat import FEATURE_NAMES, extract_features, split_blocks
     from renderer.blocks import BlockRenderer
     from renderer.scenes import DEFAULT_SCENE, load_scene
-    from renderer.variant import select_variant
+    from learning.variant import select_variant
 
     _check_frame(args.resolution, args.resolution, tuple(args.grid), "--resolution/--grid")
     variant = select_variant()

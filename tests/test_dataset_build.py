@@ -101,7 +101,7 @@ def test_exr_write_survives_worker_thread_setup(tmp_path):
     code = (
         "import os, numpy as np\n"
         "os.environ['NOISESTOP_THREADS'] = '1'\n"
-        "from renderer.variant import select_variant; select_variant()\n"
+        "from learning.variant import select_variant; select_variant()\n"
         "from renderer.farm import configure_worker_threads; configure_worker_threads()\n"
         "from learning.exr import write_exr\n"
         f"write_exr({str(tmp_path / 'x.exr')!r}, np.ones((16, 16, 3), np.float32))\n"

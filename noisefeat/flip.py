@@ -56,7 +56,7 @@ INV_ILLUMINANT = (1.052156925, 1.0, 0.918357670)
 #: Cz), x in degrees; Cz is the sum of two (FLIP's GaussianConstants a1, b1, a2, b2)
 CSF_Y, CSF_CX, CSF_CZ = (1.0, 0.0047), (1.0, 0.0053), ((34.1, 0.04), (13.5, 0.025))
 CSF_WIDEST_B = 0.04
-GW, QF = 0.082, 0.5                  # feature detector width (degrees) and exponent
+GW = 0.082                           # feature detector width (degrees); its exponent is 1/2
 #: tile length of the banded products (pixels of output per gathered window)
 TILE = 16
 #: pixels (blocks x height x width) per chunk: bounds the working memory (~100 bytes a
@@ -67,7 +67,10 @@ _f32 = np.float32
 
 
 def _check_ppd(ppd: float) -> float:
-    p = float(ppd)
+    try:
+        p = float(ppd)
+    except (TypeError, ValueError):
+        raise ValueError(f"ppd must be a positive number, got {ppd!r}") from None
     if not math.isfinite(p) or p <= 0:
         raise ValueError(f"ppd must be a positive finite number, got {ppd!r}")
     return p
@@ -276,7 +279,7 @@ def _flip_maps_linear(lin: torch.Tensor, ppd: float) -> torch.Tensor:
     edge = (dx * dx).addcmul_(dy, dy).sqrt_()
     point = (ddx * ddx).addcmul_(ddy, ddy).sqrt_()
     feature = torch.maximum((edge[:n] - edge[n:]).abs_(), (point[:n] - point[n:]).abs_())
-    feature = feature.mul_(1.0 / (116.0 * math.sqrt(2.0))).sqrt_()
+    feature = feature.mul_(1.0 / (116.0 * math.sqrt(2.0))).sqrt_()       # ^ 0.5 (FLIP's qf)
 
     # colour ^ (1 - feature) as exp((1 - feature) log colour); 0 ^ 0 is 1, as in powf
     err = colour.log_().mul_(feature.neg_().add_(1.0)).exp_().nan_to_num_(nan=1.0)

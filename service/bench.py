@@ -89,6 +89,64 @@ def bench_features(repeats: int = 30, n: int = 101, size: int = 128) -> dict[str
     }
 
 
+def _flip_evaluator_threads(n: int) -> bool:
+    """Set flip-evaluator's OpenMP threads (its own bundled libgomp, which torch's
+    set_num_threads does not reach); False if that library cannot be found."""
+    import ctypes
+    import glob
+    import os
+
+    import flip_evaluator
+    libs = glob.glob(os.path.join(os.path.dirname(flip_evaluator.__file__), os.pardir,
+                                  "flip_evaluator.libs", "libgomp*"))
+    try:
+        ctypes.CDLL(libs[0]).omp_set_num_threads(int(n))
+    except (IndexError, OSError, AttributeError):
+        return False
+    return True
+
+
+def flip_bench_halves(n: int, size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """n pairs of half buffers [size, size, 3]: smooth coloured shading with an edge, and
+    two independent noisy estimates of it (what a render's half buffers look like)."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:size, 0:size] / size
+    base = rng.random((n, 1, 1, 3)) * 0.6 * (0.3 + x + 0.5 * (y > 0.6))[None, ..., None]
+    a, b = (base * (1 + 0.1 * rng.standard_normal(base.shape[:3] + (3,))) for _ in range(2))
+    return np.clip(a, 0, None).astype(np.float32), np.clip(b, 0, None).astype(np.float32)
+
+
+def bench_flip(repeats: int = 30, shapes: tuple[tuple[int, int], ...] = ((16, 64), (16, 128)),
+               threads: tuple[int, ...] = (1, 2)) -> dict[str, Any]:
+    """FLIP between the half buffers (the flip criterion's score, the bundled model's input
+    `f`), warm, median of repeats: flip-evaluator one block per call (the reference) against
+    noisefeat.flip, all blocks at once, at each thread count; and how closely they agree."""
+    import os
+
+    from learning.halves import halves_flip, halves_flip_evaluator
+
+    load = [os.getloadavg()[0]]
+    before = torch.get_num_threads()
+    rows = []
+    try:
+        for t in threads:
+            torch.set_num_threads(t)
+            set_old = _flip_evaluator_threads(t)
+            for n, size in shapes:
+                a, b = flip_bench_halves(n, size)
+                new, old = halves_flip(a, b), halves_flip_evaluator(a, b)
+                t_new = _median_s(lambda: halves_flip(a, b), repeats)
+                t_old = _median_s(lambda: halves_flip_evaluator(a, b), max(3, repeats // 6))
+                rows.append({"threads": t, "evaluator_threads_set": set_old, "blocks": n, "size": size,
+                             "evaluator_ms": t_old * 1e3, "torch_ms": t_new * 1e3, "speedup": t_old / t_new,
+                             "max_rel_diff": float(np.max(np.abs(new - old) / old)), "mean_e": float(old.mean())})
+    finally:
+        torch.set_num_threads(before)
+        _flip_evaluator_threads(os.cpu_count() or 1)
+    load.append(os.getloadavg()[0])
+    return {"rows": rows, "cpus": os.cpu_count(), "load_avg": load, "repeats": repeats}
+
+
 def bench_crop(repeats: int = 3) -> dict[str, Any]:
     from renderer.blocks import measure_crop_cost
     return measure_crop_cost(repeats=repeats)
@@ -302,6 +360,20 @@ def md_features(f: dict[str, Any], variant: str) -> str:
     ])
 
 
+def md_flip(r: dict[str, Any]) -> str:
+    lines = [f"Median of {r['repeats']} warm calls (flip-evaluator: of {max(3, r['repeats'] // 6)}), "
+             f"{r['cpus']} CPUs, load average {r['load_avg'][0]:.1f} before and {r['load_avg'][1]:.1f} after "
+             "(above the thread count means other work shared the CPUs).", "",
+             "| threads | blocks per call | flip-evaluator, per call (ms) | per block (ms) | noisefeat.flip, "
+             "per call (ms) | per block (ms) | speed-up | max relative difference of e |",
+             "|---|---|---|---|---|---|---|---|"]
+    for x in r["rows"]:
+        lines.append(f"| {x['threads']} | {x['blocks']} of {x['size']}x{x['size']} | {x['evaluator_ms']:.1f} | "
+                     f"{x['evaluator_ms'] / x['blocks']:.2f} | {x['torch_ms']:.1f} | {x['torch_ms'] / x['blocks']:.3f} | "
+                     f"{x['speedup']:.1f}x | {x['max_rel_diff']:.1e} |")
+    return "\n".join(lines)
+
+
 def md_crop(c: dict[str, Any]) -> str:
     rows = ["| key | value |", "|---|---|"]
     rows += [f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |" for k, v in c.items()]
@@ -442,7 +514,7 @@ DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "inputs": (bench_inp
                     "criteria": (bench_criteria, md_criteria),
                     "tradeoff": (bench_tradeoff, md_tradeoff), "ablation": (bench_ablation, md_ablation),
                     "step": (bench_step, md_step), "knobs": (bench_knobs, md_knobs)}
-SECTIONS = ("features", "crop", "models", "render", "service", "stability", "reliability", *DATASET_SECTIONS)
+SECTIONS = ("features", "crop", "flip", "models", "render", "service", "stability", "reliability", *DATASET_SECTIONS)
 
 
 def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), data: str | None = None,
@@ -482,6 +554,8 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
         measure("features", lambda: bench_features(repeats), lambda r: md_features(r, variant))
     if "crop" in only:
         measure("crop", lambda: bench_crop(repeats=max(1, min(repeats, 3))), md_crop)
+    if "flip" in only:
+        measure("flip", lambda: bench_flip(repeats), md_flip)
     if "models" in only:
         plain_done = False
         for q in quick:

@@ -116,11 +116,51 @@ def flip_bench_halves(n: int, size: int, seed: int = 0) -> tuple[np.ndarray, np.
     return np.clip(a, 0, None).astype(np.float32), np.clip(b, 0, None).astype(np.float32)
 
 
+def flip_agreement(root: str) -> dict[str, Any]:
+    """Both routes on every (level, block) of the labelled stacks under `root` whose
+    calibration and bundled-model figures are on record: how far e differs, and whether any
+    decision does, at every candidate c of the flip criterion and for the bundled model at
+    its offset (only blocks flip would be asked about: not flat, level >= 1). Reads the
+    stacks, writes nothing (no cache)."""
+    from learning.bundle import load_model
+    from learning.halves import FLIP_CANDIDATES, halves_flip, halves_flip_evaluator
+    from learning.noise_input import compose
+    from learning.stack import list_stacks, read_stack
+    from learning.stoprule import flat_blocks
+    from learning.table import iter_stack_halves
+
+    old, new = [], []
+    for path in list_stacks(root):
+        stack = read_stack(path)
+        for k, even, odd in iter_stack_halves(stack):
+            ask = np.flatnonzero(~flat_blocks(stack.blocks(k)))
+            if ask.size:
+                old.append(halves_flip_evaluator(even[ask], odd[ask]))
+                new.append(halves_flip(even[ask], odd[ask]))
+    if not old:
+        raise ValueError(f"{root}: no blocks to compare (no stacks, or every block flat)")
+    e_old, e_new = np.concatenate(old), np.concatenate(new)
+    model = load_model(None)
+    s_old, s_new = (model.decision_function(compose(None, e, model.composition or "f")) for e in (e_old, e_new))
+    resolved = e_old >= 1e-3
+    rel = np.abs(e_new - e_old) / np.maximum(e_old, 1e-300)
+    return {"root": root, "values": int(e_old.size), "below_1e-3": int((~resolved).sum()),
+            "max_rel_diff": float(rel[resolved].max()) if resolved.any() else None,
+            "median_rel_diff": float(np.median(rel)), "max_abs_diff": float(np.abs(e_new - e_old).max()),
+            "flip_candidates": len(FLIP_CANDIDATES),
+            "flip_verdict_changes": int(sum(((e_old <= c) != (e_new <= c)).sum() for c in FLIP_CANDIDATES)),
+            "model": model.name, "model_composition": model.composition, "model_offset": model.offset,
+            "model_max_score_diff": float(np.abs(s_new - s_old).max()),
+            "model_max_score_diff_resolved": float(np.abs(s_new - s_old)[resolved].max()) if resolved.any() else None,
+            "model_verdict_changes": int(((s_old > model.offset) != (s_new > model.offset)).sum())}
+
+
 def bench_flip(repeats: int = 30, shapes: tuple[tuple[int, int], ...] = ((16, 64), (16, 128)),
-               threads: tuple[int, ...] = (1, 2)) -> dict[str, Any]:
+               threads: tuple[int, ...] = (1, 2), datasets: tuple[str, ...] = ()) -> dict[str, Any]:
     """FLIP between the half buffers (the flip criterion's score, the bundled model's input
     `f`), warm, median of repeats: flip-evaluator one block per call (the reference) against
-    noisefeat.flip, all blocks at once, at each thread count; and how closely they agree."""
+    noisefeat.flip, all blocks at once, at each thread count; how closely they agree, here
+    and on every block of the labelled `datasets` (`flip_agreement`)."""
     import os
 
     from learning.halves import halves_flip, halves_flip_evaluator
@@ -144,7 +184,8 @@ def bench_flip(repeats: int = 30, shapes: tuple[tuple[int, int], ...] = ((16, 64
         torch.set_num_threads(before)
         _flip_evaluator_threads(os.cpu_count() or 1)
     load.append(os.getloadavg()[0])
-    return {"rows": rows, "cpus": os.cpu_count(), "load_avg": load, "repeats": repeats}
+    return {"rows": rows, "cpus": os.cpu_count(), "load_avg": load, "repeats": repeats,
+            "datasets": [flip_agreement(d) for d in datasets]}
 
 
 def bench_crop(repeats: int = 3) -> dict[str, Any]:
@@ -371,6 +412,21 @@ def md_flip(r: dict[str, Any]) -> str:
         lines.append(f"| {x['threads']} | {x['blocks']} of {x['size']}x{x['size']} | {x['evaluator_ms']:.1f} | "
                      f"{x['evaluator_ms'] / x['blocks']:.2f} | {x['torch_ms']:.1f} | {x['torch_ms'] / x['blocks']:.3f} | "
                      f"{x['speedup']:.1f}x | {x['max_rel_diff']:.1e} |")
+    if r.get("datasets"):
+        lines += ["", "The two routes on every block the flip criterion is asked about (not flat, level >= 1) of "
+                  "the labelled stacks, and the decisions taken from them:", "",
+                  "| stacks | values of e | max relative difference (e >= 1e-3) | median relative difference "
+                  "| max absolute difference | flip verdicts changed, over every candidate c "
+                  "| bundled model: max score difference (e >= 1e-3 / all) | its verdicts changed |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for d in r["datasets"]:
+            def g(v: float | None) -> str:
+                return "-" if v is None else f"{v:.1e}"
+            lines.append(f"| {d['root']} | {d['values']} ({d['below_1e-3']} below 1e-3) | {g(d['max_rel_diff'])} | "
+                         f"{g(d['median_rel_diff'])} | {g(d['max_abs_diff'])} | {d['flip_verdict_changes']} "
+                         f"({d['flip_candidates']} values of c) | {g(d['model_max_score_diff_resolved'])} / "
+                         f"{g(d['model_max_score_diff'])} | {d['model_verdict_changes']} (offset "
+                         f"{d['model_offset']:g}) |")
     return "\n".join(lines)
 
 
@@ -555,7 +611,7 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
     if "crop" in only:
         measure("crop", lambda: bench_crop(repeats=max(1, min(repeats, 3))), md_crop)
     if "flip" in only:
-        measure("flip", lambda: bench_flip(repeats), md_flip)
+        measure("flip", lambda: bench_flip(repeats, datasets=tuple(d for d in (data, heldout) if d)), md_flip)
     if "models" in only:
         plain_done = False
         for q in quick:

@@ -205,3 +205,13 @@ def test_flip_section_times_both_routes_on_the_same_blocks_and_restores_threads(
         assert x["speedup"] == pytest.approx(x["evaluator_ms"] / x["torch_ms"])
     md = md_flip(r)
     assert "| 2 | 1 of 24x24 |" in md and "load average" in md and md.count("\n| ") == 5
+
+
+def test_flip_section_compares_both_routes_on_labelled_stacks():
+    from service.bench import bench_flip, md_flip
+    r = bench_flip(repeats=1, shapes=((1, 16),), threads=(1,), datasets=(str(FIXTURE),))
+    (d,) = r["datasets"]
+    assert d["values"] > 50 and d["max_abs_diff"] < 1e-5 and d["median_rel_diff"] < 1e-5
+    assert d["flip_verdict_changes"] == 0 and d["model_verdict_changes"] == 0
+    assert d["flip_candidates"] > 100 and d["model_max_score_diff"] < 1e-2
+    assert f"| {FIXTURE} | {d['values']} (" in md_flip(r)

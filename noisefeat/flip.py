@@ -190,14 +190,21 @@ def _along_w(x: torch.Tensor, ppd: float, groups: list[tuple[str, ...]]) -> list
     return out
 
 
-def _along_h(x: torch.Tensor, ppd: float, names: tuple[str, ...]) -> torch.Tensor:
-    """[B, H, *rest] -> [B, nT, k, T, *rest]: each filter along H, borders clamped."""
+def _along_h(x: torch.Tensor, ppd: float, names: tuple[str, ...], out: torch.Tensor | None = None,
+             add: bool = False) -> torch.Tensor:
+    """[B, H, *rest] -> [B, nT, k, T, *rest]: each filter along H, borders clamped; written
+    into (or, with `add`, added to) `out`, a contiguous tensor of that many elements."""
     b, h, rest = x.shape[0], x.shape[1], x.shape[2:]
     idx, t, count = _row_windows(h, _radius(ppd, names))
     win = x.index_select(1, idx).view(b * count, len(idx) // count, -1)
-    band = _band(ppd, names, t, transpose=True)
-    out = torch.bmm(band.expand(b * count, *band.shape), win)
-    return out.view(b, count, len(names), t, *rest)
+    band = _band(ppd, names, t, transpose=True).expand(b * count, len(names) * t, len(idx) // count)
+    if out is None:
+        res = torch.bmm(band, win)
+    elif add:
+        res = out.view(b * count, len(names) * t, -1).baddbmm_(band, win)
+    else:
+        res = torch.bmm(band, win, out=out.view(b * count, len(names) * t, -1))
+    return res.view(b, count, len(names), t, *rest)
 
 
 _LAB_EPS = (6.0 / 29.0) ** 3
@@ -254,10 +261,13 @@ def _flip_maps_linear(lin: torch.Tensor, ppd: float) -> torch.Tensor:
     (cxw,) = _along_w(cx, ppd, [("Cx",)])
     z1, z2 = _along_w(cz, ppd, [("Cz1",), ("Cz2",)])
     # the filtered Y, Cx, Cz planes, each [2N, nTh, Th, nTw, Tw]
-    opp = torch.stack([_along_h(ycsf[:, :, :, 0], ppd, ("Y",))[:, :, 0],
-                       _along_h(cxw[:, :, :, 0], ppd, ("Cx",))[:, :, 0],
-                       _along_h(z1[:, :, :, 0], ppd, ("Cz1",))[:, :, 0]])
-    opp[2] += _along_h(z2[:, :, :, 0], ppd, ("Cz2",))[:, :, 0]
+    th, nth = _tiling(h)
+    tw, ntw = _tiling(w)
+    opp = torch.empty(3, n2, nth, th, ntw, tw)
+    _along_h(ycsf[:, :, :, 0], ppd, ("Y",), out=opp[0])
+    _along_h(cxw[:, :, :, 0], ppd, ("Cx",), out=opp[1])
+    _along_h(z1[:, :, :, 0], ppd, ("Cz1",), out=opp[2])
+    _along_h(z2[:, :, :, 0], ppd, ("Cz2",), out=opp[2], add=True)
     shape = opp.shape
 
     # colour: back to linear RGB, clamped; XYZ / white; Lab; Hunt; HyAB ^ 0.7; compressed

@@ -155,6 +155,24 @@ def flip_agreement(root: str) -> dict[str, Any]:
             "model_verdict_changes": int(((s_old > model.offset) != (s_new > model.offset)).sum())}
 
 
+def _interleaved_medians(fast: Callable[[], Any], slow: Callable[[], Any], repeats: int,
+                         slow_repeats: int) -> tuple[float, float]:
+    """Median seconds of `fast` (repeats) and `slow` (slow_repeats), their runs interleaved
+    so that both see the same load when other work shares the machine."""
+    fast(), slow()
+    every = max(1, repeats // slow_repeats)
+    t_fast, t_slow = [], []
+    for i in range(repeats):
+        t0 = time.perf_counter()
+        fast()
+        t_fast.append(time.perf_counter() - t0)
+        if i % every == 0 and len(t_slow) < slow_repeats:
+            t0 = time.perf_counter()
+            slow()
+            t_slow.append(time.perf_counter() - t0)
+    return statistics.median(t_fast), statistics.median(t_slow)
+
+
 def bench_flip(repeats: int = 30, shapes: tuple[tuple[int, int], ...] = ((16, 64), (16, 128)),
                threads: tuple[int, ...] = (1, 2), datasets: tuple[str, ...] = ()) -> dict[str, Any]:
     """FLIP between the half buffers (the flip criterion's score, the bundled model's input
@@ -175,8 +193,8 @@ def bench_flip(repeats: int = 30, shapes: tuple[tuple[int, int], ...] = ((16, 64
             for n, size in shapes:
                 a, b = flip_bench_halves(n, size)
                 new, old = halves_flip(a, b), halves_flip_evaluator(a, b)
-                t_new = _median_s(lambda: halves_flip(a, b), repeats)
-                t_old = _median_s(lambda: halves_flip_evaluator(a, b), max(3, repeats // 6))
+                t_new, t_old = _interleaved_medians(lambda: halves_flip(a, b), lambda: halves_flip_evaluator(a, b),
+                                                    repeats, max(3, repeats // 6))
                 rows.append({"threads": t, "evaluator_threads_set": set_old, "blocks": n, "size": size,
                              "evaluator_ms": t_old * 1e3, "torch_ms": t_new * 1e3, "speedup": t_old / t_new,
                              "max_rel_diff": float(np.max(np.abs(new - old) / old)), "mean_e": float(old.mean())})
@@ -402,7 +420,7 @@ def md_features(f: dict[str, Any], variant: str) -> str:
 
 
 def md_flip(r: dict[str, Any]) -> str:
-    lines = [f"Median of {r['repeats']} warm calls (flip-evaluator: of {max(3, r['repeats'] // 6)}), "
+    lines = [f"Median of {r['repeats']} warm calls (flip-evaluator: of {max(3, r['repeats'] // 6)}, interleaved), "
              f"{r['cpus']} CPUs, load average {r['load_avg'][0]:.1f} before and {r['load_avg'][1]:.1f} after "
              "(above the thread count means other work shared the CPUs).", "",
              "| threads | blocks per call | flip-evaluator, per call (ms) | per block (ms) | noisefeat.flip, "

@@ -84,6 +84,7 @@ def spatial_radius(ppd: float) -> int:
 
 
 def feature_sigma(ppd: float) -> float:
+    """FLIP's edge/point detector's standard deviation in pixels (0.5 x 0.082 degrees)."""
     return float(_f32(0.5) * _f32(GW) * _f32(ppd))
 
 
@@ -129,8 +130,8 @@ def _tiling(n: int) -> tuple[int, int]:
 
 def trimmed(kernel: np.ndarray, tol: float = 1e-9) -> np.ndarray:
     """`kernel` without the outer taps below `tol` x its peak: they cannot change a float32
-    sum (FLIP's Y and Cx filters span 21 taps at 67 ppd, but their outer six on each side
-    weigh under 1e-9 of the centre one), and a narrower filter costs less."""
+    sum (FLIP's Y and Cx filters span 21 taps at 67 ppd, but their outer four and three on
+    each side weigh under 1e-9 of the centre one), and a narrower filter costs less."""
     small = np.abs(kernel) < tol * np.abs(kernel).max()
     cut = 0
     while cut < len(kernel) // 2 and small[cut] and small[-1 - cut]:

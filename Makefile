@@ -45,7 +45,7 @@ test-fast: setup
 # none) is saved in out/bench, where the trade-off chart finds every model's offset curve.
 # Time: BENCHMARKS.md "make bench".
 bench: dataset heldout
-	$(NOISESTOP) bench features crop render service stability reliability --update BENCHMARKS.md
+	$(NOISESTOP) bench features crop flip render passes service stability reliability --update BENCHMARKS.md
 	$(NOISESTOP) bench dataset inputs models criteria tradeoff ablation step knobs --data $(DATA) \
 		--heldout $(HELDOUT) --input halves,albedo --update BENCHMARKS.md
 

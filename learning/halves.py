@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from noisefeat.display import check_exposure
+from noisefeat.flip import mean_flip_halves
 
 from .observer import DEFAULT_PPD, display, flip_map
 from .stack import Stack
@@ -65,18 +66,35 @@ def check_constant_step(stack: Stack) -> None:
                     "so the half buffers A/B are unbalanced", stack.path, steps[:4].tolist())
 
 
+def _check_halves(even: np.ndarray, odd: np.ndarray, exposure: float) -> tuple[np.ndarray, np.ndarray, float]:
+    even, odd = np.asarray(even), np.asarray(odd)
+    if even.shape != odd.shape or even.ndim != 4 or even.shape[-1] != 3:
+        raise ValueError(f"half buffers must be two [N, h, w, 3] arrays of one shape, got "
+                         f"{even.shape} and {odd.shape}")
+    if not (np.issubdtype(even.dtype, np.floating) and np.issubdtype(odd.dtype, np.floating)):
+        raise ValueError(f"half buffers must be floating point, got {even.dtype} and {odd.dtype}")
+    return even, odd, check_exposure(exposure)
+
+
 def halves_flip(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
                 ppd: float = DEFAULT_PPD) -> np.ndarray:
     """e float64 [N]: per block, the mean raw FLIP between display(A) and display(B).
 
     `even`, `odd`: linear RGB blocks [N, h, w, 3] (the two half-buffer means). Non-finite
     values follow the display rule (NaN/-Inf black, +Inf white), so e is always finite.
+    Computed for all blocks at once by `noisefeat.flip` (FLIP's LDR pipeline in torch, each
+    block alone), which agrees with `flip-evaluator` (`halves_flip_evaluator`) to float32
+    rounding at a small fraction of its cost (BENCHMARKS.md "FLIP between the halves").
     """
-    even, odd = np.asarray(even), np.asarray(odd)
-    if even.shape != odd.shape or even.ndim != 4 or even.shape[-1] != 3:
-        raise ValueError(f"half buffers must be two [N, h, w, 3] arrays of one shape, got "
-                         f"{even.shape} and {odd.shape}")
-    exposure = check_exposure(exposure)
+    even, odd, exposure = _check_halves(even, odd, exposure)
+    return mean_flip_halves(even, odd, exposure, ppd).numpy()
+
+
+def halves_flip_evaluator(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
+                          ppd: float = DEFAULT_PPD) -> np.ndarray:
+    """`halves_flip` by NVIDIA's `flip-evaluator`, one block per call: the reference
+    implementation that the torch route is tested and timed against."""
+    even, odd, exposure = _check_halves(even, odd, exposure)
     out = np.empty(len(even))
     for i, (a, b) in enumerate(zip(even, odd)):
         out[i] = float(np.mean(flip_map(display(a, exposure), display(b, exposure), ppd), dtype=np.float64))

@@ -17,7 +17,8 @@ estimates of one image, so their difference holds noise and no content. From the
   in separable filters: what the std features miss (chroma noise, and FLIP's concave
   pooling, which weighs a few fireflies less than spread grain), at a fraction of its cost;
 * `f`: log10 of the half-buffer FLIP value e (`learning.halves.halves_flip`), the
-  `flip` criterion's score: FLIP's perceptual model of the noise, at FLIP's cost.
+  `flip` criterion's score: FLIP's perceptual model of the noise, computed for all blocks
+  at once by `noisefeat.flip` (the same figure as flip-evaluator to float32 rounding).
 
 Logs, because noise falls as 1/sqrt(spp) and a radial-basis SVM compares distances: in
 log scale equal ratios of noise are equal steps whatever the exposure. `COMPOSITIONS`

@@ -189,3 +189,29 @@ def test_knobs_train_each_setting_and_mark_the_default(split):
     assert all(0 <= x["precision"] <= 1 and np.isfinite(x["spp_ratio_vs_oracle"]) for x in r["rows"])
     md = md_knobs(r)
     assert md.count("\n") == 2 + 2 + len(r["rows"]) - 1 and "16 *" in md
+
+
+def test_flip_section_times_both_routes_on_the_same_blocks_and_restores_threads():
+    import torch
+
+    from service.bench import bench_flip, md_flip
+    before = torch.get_num_threads()
+    r = bench_flip(repeats=1, shapes=((2, 16), (1, 24)), threads=(1, 2))
+    assert torch.get_num_threads() == before
+    assert [(x["threads"], x["blocks"], x["size"]) for x in r["rows"]] == [(1, 2, 16), (1, 1, 24), (2, 2, 16), (2, 1, 24)]
+    for x in r["rows"]:
+        assert x["evaluator_ms"] > 0 and x["torch_ms"] > 0 and x["mean_e"] > 0.01
+        assert x["max_rel_diff"] < 1e-4                      # the same figure from both routes
+        assert x["speedup"] == pytest.approx(x["evaluator_ms"] / x["torch_ms"])
+    md = md_flip(r)
+    assert "| 2 | 1 of 24x24 |" in md and "load average" in md and md.count("\n| ") == 5
+
+
+def test_flip_section_compares_both_routes_on_labelled_stacks():
+    from service.bench import bench_flip, md_flip
+    r = bench_flip(repeats=1, shapes=((1, 16),), threads=(1,), datasets=(str(FIXTURE),))
+    (d,) = r["datasets"]
+    assert d["values"] > 50 and d["max_abs_diff"] < 1e-5 and d["median_rel_diff"] < 1e-5
+    assert d["flip_verdict_changes"] == 0 and d["model_verdict_changes"] == 0
+    assert d["flip_candidates"] > 100 and d["model_max_score_diff"] < 1e-2
+    assert f"| {FIXTURE} | {d['values']} (" in md_flip(r)

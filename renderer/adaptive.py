@@ -22,11 +22,12 @@ criterion needs it; it is stored in the checkpoint so a resume does not re-rende
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +62,21 @@ def scene_label(scene: str | os.PathLike) -> str:
 
 
 # ----------------------------------------------------------------------------- the loop
+
+
+@contextlib.contextmanager
+def _torch_threads(n: int) -> Iterator[None]:
+    """Torch on `n` threads for the decisions between two passes (measured, BENCHMARKS.md
+    "Block passes and scaling"): right after a kernel, Dr.Jit's worker threads still spin on
+    both cores, and torch's OpenMP team stalled against them, 50x slower than one thread."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def _resolve_criterion(criterion: Criterion | str, reference: Stack | None) -> Criterion:
@@ -235,7 +251,8 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
             t0 = time.perf_counter()
             images = br.render_blocks(ids, sizes[p], seed, pass_index=p)
             loop_timers["render_s"] += time.perf_counter() - t0
-            loop.add_pass(ids, images, sizes[p])
+            with _torch_threads(1):
+                loop.add_pass(ids, images, sizes[p])
             spp = acc.spp(ids[0])
             p += 1
             state["pass_index"] = p

@@ -23,41 +23,27 @@ import http.client
 import json
 import logging
 import math
-import os
 import socket
 import time
 import urllib.error
 import urllib.parse
 import urllib.request
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from .token import resolve_token
+
 logger = logging.getLogger(__name__)
 
 HEADER_LENGTH = "Inference-Header-Content-Length"
-ENV_TOKEN = "NOISESTOP_TOKEN"
-ENV_TOKEN_FILE = "NOISESTOP_TOKEN_FILE"
 _DTYPES = {"FP32": "<f4", "FP64": "<f8", "FP16": "<f2", "INT8": "i1", "INT16": "<i2", "INT32": "<i4",
            "INT64": "<i8", "UINT8": "u1", "UINT16": "<u2", "UINT32": "<u4", "UINT64": "<u8", "BOOL": "?"}
 
 
 def default_token() -> str | None:
-    """NOISESTOP_TOKEN, else the contents of the file NOISESTOP_TOKEN_FILE names, else None."""
-    token = os.environ.get(ENV_TOKEN, "").strip()
-    if token:
-        return token
-    path = os.environ.get(ENV_TOKEN_FILE)
-    if path:
-        try:
-            token = Path(path).read_text(encoding="utf-8").strip()
-        except OSError as exc:
-            raise FileNotFoundError(f"{path}: cannot read the token file named by {ENV_TOKEN_FILE} ({exc})") from exc
-        if not token:
-            raise ValueError(f"{path}: token file named by {ENV_TOKEN_FILE} is empty")
-        return token
-    return None
+    """The token from the environment, by the server's own rule (`renderer.token`)."""
+    return resolve_token()
 
 
 class RemoteModel:

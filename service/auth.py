@@ -1,7 +1,7 @@
 """Bearer-token authentication, and the rule that a server without a token stays on loopback.
 
 The token comes from NOISESTOP_TOKEN or from the file NOISESTOP_TOKEN_FILE names (a Docker
-or Kubernetes secret). A wrong or missing token gets the same fixed 401 (no hint of which),
+or Kubernetes secret; the rule is `renderer.token`, shared with the client). A wrong or missing token gets the same fixed 401 (no hint of which),
 and tokens are compared in constant time (hmac.compare_digest) so response timing does not
 leak how much of a guess was right.
 """
@@ -9,45 +9,20 @@ from __future__ import annotations
 
 import hmac
 import ipaddress
-import os
-from collections.abc import Mapping
-from pathlib import Path
 from typing import Annotated
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from renderer.token import ENV_TOKEN, ENV_TOKEN_FILE, resolve_token
+
 from .oip import ApiError
 
-ENV_TOKEN = "NOISESTOP_TOKEN"
-ENV_TOKEN_FILE = "NOISESTOP_TOKEN_FILE"
+__all__ = ["ENV_TOKEN", "ENV_TOKEN_FILE", "resolve_token", "check_bind", "is_loopback", "bearer"]
+
 UNAUTHORIZED = "unauthorized"
 
 bearer = HTTPBearer(auto_error=False, description=f"the server's token ({ENV_TOKEN} or {ENV_TOKEN_FILE})")
-
-
-def resolve_token(token: str | None = None, token_file: str | os.PathLike | None = None,
-                  environ: Mapping[str, str] = os.environ) -> str | None:
-    """The token to require: explicit arguments first, then the environment; None if none."""
-    if token is None and token_file is None:
-        token, token_file = environ.get(ENV_TOKEN) or None, environ.get(ENV_TOKEN_FILE) or None
-    if token is not None and token_file is not None:
-        raise ValueError(f"set either {ENV_TOKEN} or {ENV_TOKEN_FILE}, not both")
-    if token_file is not None:
-        path = Path(token_file)
-        try:
-            token = path.read_text(encoding="utf-8").strip()
-        except FileNotFoundError:
-            raise FileNotFoundError(f"{path}: token file ({ENV_TOKEN_FILE}) does not exist") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ValueError(f"{path}: token file is unreadable ({exc})") from None
-        if not token:
-            raise ValueError(f"{path}: token file is empty")
-    elif token is not None:
-        token = token.strip()
-        if not token:
-            raise ValueError(f"{ENV_TOKEN} is set but empty")
-    return token
 
 
 def is_loopback(host: str) -> bool:

@@ -10,7 +10,7 @@ import pytest
 
 from service.loadtest import LocalServer, make_demo_bundle
 
-RENDER = ["--scene", "cornell", "--resolution", "64", "--step", "4", "--min-spp", "4",
+RENDER = ["--scene", "cornell", "--resolution", "64", "--grid", "4", "4", "--step", "4", "--min-spp", "4",
           "--max-spp", "32", "--json"]
 
 

@@ -105,3 +105,18 @@ def test_registry_default_alias(demo):
     reg.load()
     assert reg.ready and reg.get("default") is reg.get("first") is not reg.get("second")
     assert reg.names() == ["default", "first", "second"]
+
+
+def test_client_and_server_read_the_token_by_one_rule(tmp_path, monkeypatch):
+    """The client used to let NOISESTOP_TOKEN win where the server refused both: now both refuse."""
+    from renderer.client import default_token
+
+    f = tmp_path / "token.txt"
+    f.write_text("from-file\n")
+    monkeypatch.setenv("NOISESTOP_TOKEN", "abc")
+    monkeypatch.setenv("NOISESTOP_TOKEN_FILE", str(f))
+    for read in (default_token, resolve_token):
+        with pytest.raises(ValueError, match="not both"):
+            read()
+    monkeypatch.delenv("NOISESTOP_TOKEN")
+    assert default_token() == resolve_token() == "from-file"

@@ -17,7 +17,7 @@ from sklearn.preprocessing import StandardScaler
 from sklearn.svm import SVC
 from sklearn.utils.validation import check_is_fitted
 
-from .stoprule import StopRule
+from .stoprule import OffsetClassifierMixin
 
 LABELS = (-1, 1)
 
@@ -48,7 +48,7 @@ def check_labels(y: np.ndarray) -> np.ndarray:
     return y.astype(np.int64)
 
 
-class RBFSVM(ClassifierMixin, BaseEstimator):
+class RBFSVM(OffsetClassifierMixin, ClassifierMixin, BaseEstimator):
     """RBF SVC (optionally on standardised inputs) with a movable decision offset.
 
     A training set with one class only cannot define a hyperplane: the model then answers
@@ -111,11 +111,6 @@ class RBFSVM(ClassifierMixin, BaseEstimator):
             X = np.clip(X, rng[0], rng[1])
         Z = self.scaler_.transform(X) if self.scaler_ is not None else X
         return self.svc_.decision_function(Z)
-
-    def predict(self, X: np.ndarray) -> np.ndarray:
-        """-1 / +1 per row by the stop rule's verdict at `offset_` (no flat-block test here:
-        rows of features do not show whether their block was flat)."""
-        return StopRule(float(self.offset_)).verdict(self.decision_function(X))
 
     @property
     def n_support_(self) -> int:

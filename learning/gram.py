@@ -21,7 +21,7 @@ from sklearn.svm import SVC
 from sklearn.utils.validation import check_is_fitted
 
 from .estimators import LABELS, check_inputs, check_labels
-from .stoprule import StopRule
+from .stoprule import OffsetClassifierMixin
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +70,7 @@ def index_column(indices: np.ndarray) -> np.ndarray:
     return np.asarray(indices, dtype=np.float64).reshape(-1, 1)
 
 
-class GramRBF(ClassifierMixin, BaseEstimator):
+class GramRBF(OffsetClassifierMixin, ClassifierMixin, BaseEstimator):
     """RBF SVC on the rows of a `SharedGram`, addressed by index (fit columns only).
 
     Same contract as `estimators.RBFSVM` without standardisation: decision_function is the
@@ -116,5 +116,3 @@ class GramRBF(ClassifierMixin, BaseEstimator):
             raise ValueError("row index outside the Gram matrix")
         return self.svc_.decision_function(self.gram.K[np.ix_(idx, self.train_index_)])
 
-    def predict(self, X: np.ndarray) -> np.ndarray:
-        return StopRule(float(self.offset_)).verdict(self.decision_function(X))

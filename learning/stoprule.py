@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -117,3 +118,16 @@ class StopRule:
             V[k, row > 0] = CONVERGED
         return V
 
+
+class OffsetClassifierMixin:
+    """`predict` of every model: the stop rule's verdict on `decision_function` at the
+    fitted `offset_` (scikit-learn's `FixedThresholdClassifier` on the decision function,
+    the offset playing `TunedThresholdClassifierCV.best_threshold_`, calibrated out of
+    fold by `learning.calibrate`). No flat-block test here: rows of features do not show
+    whether their block was flat (`learning.bundle.Model` adds it)."""
+
+    offset_: float
+
+    def predict(self, X: Any) -> np.ndarray:
+        """-1 / +1 per row."""
+        return StopRule(float(self.offset_)).verdict(self.decision_function(X))  # type: ignore[attr-defined]

@@ -45,7 +45,7 @@ from tqdm import tqdm
 from noisefeat.display import display
 
 from .estimators import LABELS, check_labels
-from .stoprule import StopRule
+from .stoprule import OffsetClassifierMixin
 
 log = logging.getLogger(__name__)
 
@@ -269,7 +269,7 @@ def make_head(n_features: int, mean: torch.Tensor | None = None,
 
 # ---------------------------------------------------------------------------- estimator
 
-class TransferClassifier(ClassifierMixin, BaseEstimator):
+class TransferClassifier(OffsetClassifierMixin, ClassifierMixin, BaseEstimator):
     """A conv base (ImageNet weights when found locally) + the paper's head; labels -1/+1.
 
     X is linear RGB blocks [N, h, w, 3] (display transform, resize, ImageNet normalisation
@@ -510,10 +510,6 @@ class TransferClassifier(ClassifierMixin, BaseEstimator):
         """[n, 2]: P(noisy), P(converged) (columns follow classes_ = [-1, 1])."""
         p = 1.0 / (1.0 + np.exp(-self.decision_function(X)))
         return np.stack([1.0 - p, p], axis=1)
-
-    def predict(self, X: np.ndarray | torch.Tensor) -> np.ndarray:
-        """The stop rule's verdict at the fitted `offset_` (0 after fit)."""
-        return StopRule(float(self.offset_)).verdict(self.decision_function(X))
 
     def n_parameters(self, trainable_only: bool = False) -> int:
         """Numbers the model uses (base + head incl. its standardisation), or only the trained ones."""

@@ -10,37 +10,17 @@ tests/test_error_contract.py holds every command to it).
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import sys
 from collections.abc import Callable, Sequence
-from typing import Any, NoReturn
+from typing import NoReturn
 
-log = logging.getLogger("noisestop")
+from .console import UsageError, emit_json, log, one_line
+
+__all__ = ["main", "build_parser", "UsageError", "emit_json", "log", "one_line"]
 
 Handler = Callable[[argparse.Namespace], int]
-
-
-class UsageError(ValueError):
-    """A problem with what the user asked for: reported in one line, exit status 2."""
-
-
-def emit_json(obj: Any) -> None:
-    """The only thing a --json command writes to stdout."""
-    sys.stdout.write(json.dumps(obj, indent=None, default=_json_default) + "\n")
-    sys.stdout.flush()
-
-
-def _json_default(o: Any) -> Any:
-    import numpy as np
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if hasattr(o, "__fspath__"):
-        return os.fspath(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 class _OneLineParser(argparse.ArgumentParser):
@@ -101,16 +81,6 @@ def _close_progress_bars() -> None:
             bar.close()
         except Exception:   # a bar in a bad state must not hide the error line
             pass
-
-
-def one_line(exc: BaseException, limit: int = 2000) -> str:
-    """An exception's message on one line (Mitsuba's parser errors span several)."""
-    if isinstance(exc, MemoryError):
-        return "out of memory" + (f" ({exc})" if str(exc) else "")
-    if isinstance(exc, RecursionError):
-        return f"input nested too deeply ({exc})"
-    text = " ".join(str(exc).split()) or type(exc).__name__
-    return text if len(text) <= limit else text[:limit] + "..."
 
 
 if __name__ == "__main__":

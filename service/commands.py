@@ -15,7 +15,7 @@ from noisefeat.bounds import EXPOSURE_RANGE, MIN_SIDE
 from renderer.names import CRITERIA, DEFAULT_CRITERION
 from renderer.settings import MAX_SPP
 
-from .cli import UsageError, emit_json, log
+from .console import UsageError, emit_json, log
 
 MAX_SIDE = 65536
 MAX_SEED = 2**32 - 1

@@ -1,0 +1,99 @@
+"""Issue 17: the house rules, checked on the source: dependencies point one way
+(noisefeat <- learning <- renderer <- service, DESIGN.md), and no two modules import each
+other at load time, directly or around a circle."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("noisefeat", "learning", "renderer", "service")
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for pkg in PACKAGES:
+        for path in (ROOT / pkg).rglob("*.py"):
+            rel = path.relative_to(ROOT).with_suffix("")
+            parts = list(rel.parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            out[".".join(parts)] = path
+    return out
+
+
+def _load_time_imports(name: str, path: Path, known: set[str]) -> set[str]:
+    """Modules of the project imported at module level (not inside functions)."""
+    tree = ast.parse(path.read_text())
+    package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+    found: set[str] = set()
+    for node in tree.body:
+        if isinstance(node, ast.If):               # `if TYPE_CHECKING:` blocks are not load time
+            continue
+        if isinstance(node, ast.Import):
+            targets = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[:len(base) - (node.level - 1)]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            targets = [mod] + [f"{mod}.{a.name}" for a in node.names]
+        else:
+            continue
+        for t in targets:
+            while t and t not in known:
+                t = t.rpartition(".")[0]
+            if t and t != name:
+                found.add(t)
+    return found
+
+
+def _graph() -> dict[str, set[str]]:
+    mods = _modules()
+    known = set(mods)
+    return {name: _load_time_imports(name, path, known) for name, path in mods.items()}
+
+
+def test_dependencies_point_one_way() -> None:
+    rank = {pkg: i for i, pkg in enumerate(PACKAGES)}
+    upward = [(a, b) for a, deps in _graph().items() for b in deps
+              if rank[b.split(".")[0]] > rank[a.split(".")[0]]]
+    assert upward == []
+
+
+def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Circles of load-time imports (a package's __init__ importing its own sub-modules aside)."""
+    state: dict[str, int] = {}
+    cycles: list[list[str]] = []
+
+    def visit(node: str, stack: list[str]) -> None:
+        state[node] = 1
+        for dep in sorted(graph.get(node, ())):
+            if state.get(dep) == 1:
+                cycles.append(stack[stack.index(dep):] + [dep])
+            elif dep not in state:
+                visit(dep, stack + [dep])
+        state[node] = 2
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node, [node])
+    return [c for c in cycles if not all(m == c[0] or m.startswith(c[0] + ".") or c[0].startswith(m + ".")
+                                         for m in c)]
+
+
+def test_no_import_circle() -> None:
+    assert find_cycles(_graph()) == []
+
+
+def test_the_checker_sees_a_circle(tmp_path) -> None:
+    """Control: a made-up pair of modules importing each other is found."""
+    known = {"a.x", "a.y", "a.z"}
+    (tmp_path / "x.py").write_text("from a.y import f\n")
+    (tmp_path / "y.py").write_text("from .z import g\n")
+    (tmp_path / "z.py").write_text("import a.x\n")
+    graph = {n: _load_time_imports(n, tmp_path / f"{n[2:]}.py", known) for n in known}
+    assert graph == {"a.x": {"a.y"}, "a.y": {"a.z"}, "a.z": {"a.x"}}
+    assert find_cycles(graph) == [["a.x", "a.y", "a.z", "a.x"]]

@@ -18,13 +18,16 @@ from typing import Any
 
 import numpy as np
 import skops.io as sio
+import torch
 
 from noisefeat import FeatureBase, default_base, extract_features
+from noisefeat.display import nonfinite_pixels
+from noisefeat.extract import analyse_blocks
 
 from .bundle_check import check_estimator, check_model_file, file_sha256, read_manifest
 from .estimators import RBFSVM
-from .noise_input import HALVES, halves_input, halves_mean, n_inputs, noise_lightness
-from .stoprule import StopRule, flat_blocks
+from .noise_input import HALVES, halves_input, halves_input_and_stats, halves_mean, n_inputs, noise_lightness
+from .stoprule import FLAT_TOLERANCE, StopRule, flat_blocks
 from .table import QUICK_MODES, feature_input, raw_input
 
 FORMAT = "noisestop-model"
@@ -164,16 +167,63 @@ class Model:
                      exposure: float = 0.0, offset: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(verdict int8 [N], score float [N]) for linear RGB blocks: the stop rule's verdict,
         flat blocks included (they are converged whatever their score)."""
+        verdict, score, _ = self.assess_blocks(blocks, quick, exposure, offset)
+        return verdict, score
+
+    def assess_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None, exposure: float = 0.0,
+                      offset: float | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """`score_blocks` plus the non-finite pixel counts per block of what was read
+        ({'blocks': [N]} and 'quick' when the model reads it): a feature model gets
+        features, counts and the flat test from one fused pass per image (the server's route)."""
+        if self.input == "features" and not self.needs_halves:
+            if self.needs_quick and quick is None:
+                raise ValueError("a feature model needs the quick image of every block")
+            base = default_base()
+            feats, stats = analyse_blocks(blocks, exposure=exposure, base=base, display_range=True)
+            counts = {"blocks": stats.nonfinite}
+            quick_feats = None
+            if self.needs_quick:
+                quick_feats, quick_stats = analyse_blocks(quick, exposure=exposure, base=base)
+                counts["quick"] = quick_stats.nonfinite
+            flat = stats.display_range <= FLAT_TOLERANCE
+            verdict, score = self.score_inputs(feature_input(feats, quick_feats), offset, flat)
+            return verdict, score, counts
         flat = flat_blocks(blocks, exposure) if len(blocks) else np.zeros(0, bool)
-        return self.score_inputs(self.inputs_from_blocks(blocks, quick, exposure=exposure), offset, flat)
+        x = self.inputs_from_blocks(blocks, quick, exposure=exposure)
+        counts = {"blocks": _nonfinite(blocks)}
+        if self.needs_quick and quick is not None:
+            counts["quick"] = _nonfinite(quick)
+        return (*self.score_inputs(x, offset, flat), counts)
 
     def score_halves(self, even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
                      offset: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(verdict int8 [N], score float [N]) for the half buffers of N blocks (a `halves`
         model); the block judged is their mean, which is also what the flat test reads."""
-        x = self.inputs_from_halves(even, odd, exposure)
-        flat = flat_blocks(halves_mean(np.asarray(even), np.asarray(odd)), exposure) if len(x) else np.zeros(0, bool)
-        return self.score_inputs(x, offset, flat)
+        verdict, score, _ = self.assess_halves(even, odd, exposure, offset)
+        return verdict, score
+
+    def assess_halves(self, even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
+                      offset: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`score_halves` plus the non-finite pixels per block of both half buffers [N],
+        counted in the pass that computes the input (the server's route)."""
+        if not self.needs_halves:
+            raise ValueError(f"this model reads {'raw blocks' if self.input == 'raw' else 'blocks'}"
+                             f"{' and their quick images' if self.needs_quick else ''}, not half buffers")
+        if self.input == "raw":
+            x = self.inputs_from_halves(even, odd, exposure)
+            flat = flat_blocks(halves_mean(np.asarray(even), np.asarray(odd)), exposure) if len(x) \
+                else np.zeros(0, bool)
+            return (*self.score_inputs(x, offset, flat), _nonfinite(even) + _nonfinite(odd))
+        x, stats = halves_input_and_stats(even, odd, exposure, composition=self.composition or HALVES)
+        return (*self.score_inputs(x, offset, stats.display_range <= FLAT_TOLERANCE), stats.nonfinite)
+
+
+def _nonfinite(rgb: np.ndarray) -> np.ndarray:
+    """int64 [N]: pixels holding a NaN or Inf channel, per block of [N, h, w, 3]."""
+    rgb = np.asarray(rgb)
+    if not len(rgb):
+        return np.zeros(0, np.int64)
+    return nonfinite_pixels(torch.as_tensor(rgb)).numpy().astype(np.int64)
 
 
 def save_model(estimator: RBFSVM, path: str | os.PathLike, *, kind: str, input: str,

@@ -36,9 +36,27 @@ MIN_SIZE = 8
 FEATURE_NAMES: tuple[str, ...] = tuple(
     [f"mean_{i + 1:02d}" for i in range(N_LAYERS)] + [f"std_{i + 1:02d}" for i in range(N_LAYERS)])
 _F32_MAX = torch.finfo(torch.float32).max
-#: columns of the gain matrix: the 12 conv layers, zero-padded (a [*, 16] matmul is the fastest
-#: shape on this CPU: measured 2x faster than [*, 12])
+#: columns of the gain matrix: the 12 conv layers, zero-padded (see _build_operators)
 _GAIN_COLUMNS = 16
+
+
+#: longest run of terms one float32 matmul sums (`_weighted_sums`)
+_SEGMENT = 1 << 15
+
+
+def _weighted_sums(power: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """power [n, K] @ weights [K, ...] in segments of `_SEGMENT` terms, partial sums added.
+
+    Why: one float32 matmul over the ~1 M spectrum terms of a 1024x1024 block drifted by
+    4e-4 (relative) from the float64 value; sums of 32 k terms stay at float32 rounding.
+    Blocks up to 128x128 take one matmul."""
+    k = power.shape[1]
+    if k <= _SEGMENT:
+        return power @ weights
+    total = power[:, :_SEGMENT] @ weights[:_SEGMENT]
+    for start in range(_SEGMENT, k, _SEGMENT):
+        total = total + power[:, start:start + _SEGMENT] @ weights[start:start + _SEGMENT]
+    return total
 
 
 def column_weights(w: int, wr: int) -> torch.Tensor:
@@ -65,7 +83,7 @@ class FeatureBase(nn.Module):
             with torch.no_grad():
                 conv.weight.copy_(w.reshape(1, 1, k, k))
             self.convs.append(conv)
-        # per block size, bounded by bytes (noisefeat.cache: ~40 bytes a pixel per size)
+        # per block size, bounded by bytes (noisefeat.cache: ~80 bytes a pixel per size)
         self._transfer_cache = ByteLRU(default_max_bytes() if operator_cache_bytes is None
                                        else operator_cache_bytes)
 
@@ -127,18 +145,24 @@ class FeatureBase(nn.Module):
         return ops
 
     def _build_operators(self, h: int, w: int) -> dict[str, torch.Tensor]:
-        """Only what `features_centred` reads is kept (~45 bytes a pixel of the block): the
-        gain of every layer (padded to 16 columns, the fastest matmul shape here), the
-        wavelet layer's operators, and the twelfth layer's response for odd sizes."""
-        col_w = column_weights(w, w // 2 + 1)
-        gains, dcs, acc = [], [], None
-        for acc in self._responses(h, w):        # layer by layer: ~60 bytes a pixel at most
-            gains.append(((1.0 - acc).abs() ** 2 * col_w).reshape(-1))
+        """Only what `features_centred` reads is kept (~80 bytes a pixel of the block): the
+        gain of every layer, the wavelet layer's operators, the twelfth layer's response
+        for odd sizes.
+
+        The gain matrix is [2 * h * (w//2+1), 16]: each bin twice, for the real and the
+        imaginary part of the interleaved spectrum (squaring the contiguous [.., 2] view is
+        ~4x faster than re*re + im*im on strided views), and 16 columns, 12 of them used (a
+        [n, K] x [K, 16] matmul is 2x faster than [K, 12] here): measured, BENCHMARKS.md
+        "Feature extraction"."""
+        wr = w // 2 + 1
+        col_w = column_weights(w, wr)
+        gain = torch.zeros(h * wr, 2, _GAIN_COLUMNS)
+        dcs, acc = [], None
+        for layer, acc in enumerate(self._responses(h, w)):    # one layer's temporaries at a time
+            gain[:, :, layer] = ((1.0 - acc).abs() ** 2 * col_w).reshape(-1, 1)
             dcs.append(acc[0, 0].real)
         assert acc is not None
-        gains += [torch.zeros_like(gains[0])] * (_GAIN_COLUMNS - len(gains))
-        ops = {"gain": torch.stack(gains, dim=1), "dc": torch.stack(dcs)}
-        del gains
+        ops = {"gain": gain.reshape(-1, _GAIN_COLUMNS), "dc": torch.stack(dcs)}
         if h % 2 == 0 and w % 2 == 0:
             hh, hw = h // 2, w // 2
             analysis, synthesis = spectral_operators(self.wavelet, h, w)
@@ -147,7 +171,7 @@ class FeatureBase(nn.Module):
             ops["analysis12"] = 0.25 * analysis * acc
             ops["synthesis"] = synthesis[:, :hw].reshape(2, hh, hw).contiguous()
             ops["synthesis_nyquist"] = synthesis[:, hw].reshape(2, hh).contiguous()
-            ops["col_w"] = col_w[:hw].expand(h, hw).reshape(-1).contiguous()
+            ops["col_w"] = col_w[:hw].repeat_interleave(2).repeat(h)
             ops["mirror"] = quarter_mirror_index(h, w)
         else:
             ops["resp12"] = acc
@@ -187,8 +211,8 @@ class FeatureBase(nn.Module):
         spec[:, 0, 0] = 0.0
         ops = self._operators(h, w)
         parts = torch.view_as_real(spec)
-        power = torch.mul(parts[..., 0], parts[..., 0]).addcmul_(parts[..., 1], parts[..., 1])
-        var = (power.reshape(n, -1) @ ops["gain"])[:, :N_LAYERS - 1] / float(h * w) ** 2   # [n, 12]
+        power = parts * parts                      # re^2, im^2 interleaved (x * x: 2x square() here)
+        var = _weighted_sums(power.reshape(n, -1), ops["gain"])[:, :N_LAYERS - 1] / float(h * w) ** 2   # [n, 12]
         std_conv = var.clamp_min(0.0).sqrt()
         mean_conv = mu.reshape(n, 1) * (1.0 - ops["dc"])[None, :]
         if "analysis12" in ops:
@@ -214,12 +238,11 @@ class FeatureBase(nn.Module):
         w = 2 * hw
         z = spec * ops["analysis12"]
         rows = z[:, :hh] + z[:, hh:]                                              # [n, h/2, w/2+1]
-        mirrored = rows.reshape(n, -1).index_select(-1, ops["mirror"]).reshape(n, hh, hw)
+        mirrored = torch.gather(rows.reshape(n, -1), 1, ops["mirror"].expand(n, -1)).reshape(n, hh, hw)
         q = rows[..., :hw] + mirrored.conj()                                      # [n, h/2, w/2]
         noise = torch.addcmul(spec[..., :hw].unflatten(1, (2, hh)), ops["synthesis"], q[:, None], value=-1)
         parts = torch.view_as_real(noise)
-        power = torch.mul(parts[..., 0], parts[..., 0]).addcmul_(parts[..., 1], parts[..., 1])
-        total = power.reshape(n, -1) @ ops["col_w"]
+        total = _weighted_sums((parts * parts).reshape(n, -1), ops["col_w"])
         nyq = spec[..., hw].unflatten(1, (2, hh)) - ops["synthesis_nyquist"] * q[..., 0].unsqueeze(1)
         total = total + torch.view_as_real(nyq).square().sum(dim=(1, 2, 3))
         dc = noise[:, 0, 0, 0]

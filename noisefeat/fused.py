@@ -4,21 +4,24 @@ Why: run as separate whole-batch steps, the display transform and L* cost as muc
 twelve layers (issue 16: 27-30 ms for 101 blocks of 128x128, 6.6x a matmul of the same
 multiply-adds): every step wrote a fresh full-size tensor (clip, nan_to_num, luminance,
 cube root, where, range normalisation, centring) and the non-finite count walked the
-blocks twice more. Here the blocks go through in chunks of `display.CHUNK_PIXELS` pixels,
-each through one short sequence of in-place operations on two work buffers that stay in
-cache:
+blocks twice more. Here the blocks go through one short sequence of in-place operations
+on two work buffers, in chunks of `display.CHUNK_PIXELS` pixels (which bounds the buffers
+of large batches):
 
 1. display transform and L* (`display.lightness_into`): one min/max pass says whether the
    chunk needs the non-finite rule or the clip at all (and gives the display range of the
    flat-block test when asked), one matrix-vector product gives the luminance, exp(log/3)
-   the cube root; the constant of L* is folded into the block mean;
+   the cube root, CIELab's toe only when some luminance is below its knee, and the
+   constant of L* goes into the block mean;
 2. each block centred in place (its mean kept), then `FeatureBase.features_centred`: one
    rfft2, the twelve layers by Parseval in one matmul, the wavelet layer in the same
    spectrum. L* lies in 0..100, so the range normalisation of `FeatureBase.forward` (for
    inputs of any magnitude) is not needed.
 
 The result equals the unfused route (display.lightness, then FeatureBase) within float32
-rounding (tests/test_fused.py, against a frozen copy of the code before issue 16).
+rounding (tests/test_fused.py, against a frozen copy of the code before issue 16), and a
+block's features do not depend on the other blocks of the call (up to float32 rounding of
+the batched matmuls).
 """
 from __future__ import annotations
 

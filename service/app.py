@@ -20,6 +20,7 @@ from typing import Annotated, Any
 
 import anyio
 import anyio.to_thread
+import numpy as np
 from fastapi import APIRouter, Depends, FastAPI, Header, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
@@ -209,9 +210,10 @@ def _api_routes(registry: ModelRegistry) -> APIRouter:
 async def _infer(request: Request, served: ServedModel, header_length: str | None) -> Response:
     if request.headers.get("content-encoding", "identity").strip().lower() not in ("identity", ""):
         raise ApiError(415, "compressed request bodies are not accepted (Content-Encoding must be identity)")
-    body = [await _read_body(request)]  # counted against the limit by BodyLimitMiddleware
     state = request.app.state
     length = None if header_length is None else int(header_length)
+    # counted against the limit by BodyLimitMiddleware
+    body = [await _read_body(request, TENSOR_ALIGNMENT if length is not None else 1, length or 0)]
     try:
         content, json_length = await anyio.to_thread.run_sync(
             _infer_sync, served, body, length, state.limits, state.metrics, limiter=state.limiter)
@@ -222,12 +224,29 @@ async def _infer(request: Request, served: ServedModel, header_length: str | Non
     return Response(content, media_type=BINARY_MEDIA, headers={HEADER_LENGTH: str(json_length)})
 
 
-async def _read_body(request: Request) -> bytearray:
+#: the binary tensors of a request are placed at this alignment in memory (`_read_body`), so
+#: that they are used where they arrived, as numpy views (oip.decode_tensors), with no copy
+TENSOR_ALIGNMENT = 64
+
+
+async def _read_body(request: Request, align: int = 1, at: int = 0) -> memoryview | bytearray:
     """The body in one buffer sized by Content-Length when declared (Starlette's
-    `request.body()` joins a list of chunks: twice the body at its peak)."""
+    `request.body()` joins a list of chunks: twice the body at its peak).
+
+    With `align` > 1 the body is placed in a slightly larger buffer so that its byte `at`
+    (where the binary tensors start, after the JSON header) lies on an `align`-byte
+    boundary, and a memoryview of the body is returned: the tensors can then be used in
+    place whatever the header's length. Without a declared length the body grows as it
+    arrives (and tensors that end up misaligned are copied by decode_tensors)."""
     declared = request.headers.get("content-length", "")
-    buf = bytearray(int(declared)) if declared.isdigit() else bytearray()
-    pos = 0
+    size = int(declared) if declared.isdigit() else 0
+    pad = 0
+    if align > 1 and size:
+        buf = bytearray(size + align)
+        pad = -(_address(buf) + at) % align
+    else:
+        buf = bytearray(size)
+    pos = pad
     try:
         async for chunk in request.stream():
             if pos + len(chunk) > len(buf):
@@ -236,16 +255,25 @@ async def _read_body(request: Request) -> bytearray:
                 buf[pos:pos + len(chunk)] = chunk
             pos += len(chunk)
     except ClientDisconnect:   # the client went away mid-body: its problem, not a server error
-        raise ApiError(400, f"client disconnected after {pos} body bytes") from None
+        raise ApiError(400, f"client disconnected after {pos - pad} body bytes") from None
+    if align > 1 and size:
+        return memoryview(buf)[pad:pos]
     del buf[pos:]                                      # less than declared
     return buf
 
 
-def _infer_sync(served: ServedModel, body: list[bytearray], header_length: int | None, limits: Limits,
-                metrics: ServiceMetrics) -> tuple[bytes, int | None]:
+def _address(buf: bytearray) -> int:
+    """Memory address of a bytearray's first byte."""
+    return np.frombuffer(buf, np.uint8).ctypes.data if len(buf) else 0
+
+
+def _infer_sync(served: ServedModel, body: list[bytearray | memoryview], header_length: int | None,
+                limits: Limits, metrics: ServiceMetrics) -> tuple[bytes, int | None]:
     """Decode, classify, encode: everything CPU-bound about one request, in a worker thread.
-    `body` is a one-item list, emptied once the tensors are decoded so that the request's
-    bytes are freed before the model runs."""
+
+    `body` is a one-item list, emptied once the tensors are decoded: a JSON body's text is
+    then freed before the model runs; binary tensors are views of the body (no copy), which
+    lives as long as they do."""
     if header_length is None:                  # all JSON: parsed in place
         head, tail = body[0], b""
     else:
@@ -258,6 +286,8 @@ def _infer_sync(served: ServedModel, body: list[bytearray], header_length: int |
     wanted = _requested_outputs(req)
     tensors = decode_tensors(req, tail, limits.max_batch, scan_bools=may_hold_bools(head))
     del head, tail
+    if isinstance(body[0], bytearray) and header_length is None:
+        body[0].clear()                        # the JSON text (no view of it is left)
     body.clear()
     for t in req.inputs:       # the parsed JSON values (~10x the body): no longer needed
         t.data = None

@@ -21,8 +21,9 @@ import skops.io as sio
 import torch
 
 from noisefeat import FeatureBase, default_base, extract_features
+from noisefeat.base import N_FEATURES
 from noisefeat.display import nonfinite_pixels
-from noisefeat.extract import analyse_blocks
+from noisefeat.extract import analyse_many
 
 from .bundle_check import check_estimator, check_model_file, file_sha256, read_manifest
 from .estimators import RBFSVM
@@ -174,26 +175,50 @@ class Model:
                       offset: float | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """`score_blocks` plus the non-finite pixel counts per block of what was read
         ({'blocks': [N]} and 'quick' when the model reads it): a feature model gets
-        features, counts and the flat test from one fused pass per image (the server's route)."""
+        features, counts and the flat test from one fused pass (the server's route)."""
         if self.input == "features" and not self.needs_halves:
-            if self.needs_quick and quick is None:
-                raise ValueError("a feature model needs the quick image of every block")
-            base = default_base()
-            feats, stats = analyse_blocks(blocks, exposure=exposure, base=base, display_range=True)
-            counts = {"blocks": stats.nonfinite}
-            quick_feats = None
-            if self.needs_quick:
-                quick_feats, quick_stats = analyse_blocks(quick, exposure=exposure, base=base)
-                counts["quick"] = quick_stats.nonfinite
-            flat = stats.display_range <= FLAT_TOLERANCE
-            verdict, score = self.score_inputs(feature_input(feats, quick_feats), offset, flat)
-            return verdict, score, counts
+            score, flat, counts = self.assess_feature_batches([(blocks, quick)], exposure)[0]
+            return self.rule(offset).verdict(score, flat), score, counts
         flat = flat_blocks(blocks, exposure) if len(blocks) else np.zeros(0, bool)
         x = self.inputs_from_blocks(blocks, quick, exposure=exposure)
         counts = {"blocks": _nonfinite(blocks)}
         if self.needs_quick and quick is not None:
             counts["quick"] = _nonfinite(quick)
         return (*self.score_inputs(x, offset, flat), counts)
+
+    def assess_feature_batches(self, batches: list[tuple[np.ndarray, np.ndarray | None]], exposure: float = 0.0
+                               ) -> list[tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]]:
+        """For a feature model, several (blocks, quick) batches of one block size at once
+        (a request's, or several requests'): one fused feature call and one SVM call for
+        all. Per batch: (score [N], flat [N], non-finite counts as in `assess_blocks`)."""
+        images, ranges = [], []
+        for blocks, quick in batches:
+            if self.needs_quick:
+                if quick is None:
+                    raise ValueError("a feature model needs the quick image of every block")
+                if np.shape(quick) != np.shape(blocks):
+                    raise ValueError(f"quick images {list(np.shape(quick))} and blocks {list(np.shape(blocks))} "
+                                     "must have the same shape")
+                images += [blocks, quick]
+                ranges += [True, False]
+            else:
+                images.append(blocks)
+                ranges.append(True)
+        results = iter(analyse_many(images, exposure=exposure, display_range=ranges))
+        rows, out = [], []
+        for _ in batches:
+            feats, stats = next(results)
+            counts = {"blocks": stats.nonfinite}
+            quick_feats = None
+            if self.needs_quick:
+                quick_feats, quick_stats = next(results)
+                counts["quick"] = quick_stats.nonfinite
+            rows.append(feature_input(feats, quick_feats))
+            out.append((stats.display_range <= FLAT_TOLERANCE, counts))
+        X = np.concatenate(rows) if rows else np.zeros((0, N_FEATURES), np.float32)
+        scores = self.decision_function(X) if len(X) else np.zeros(0)
+        bounds = np.cumsum([0] + [len(r) for r in rows])
+        return [(scores[a:b], flat, counts) for a, b, (flat, counts) in zip(bounds[:-1], bounds[1:], out)]
 
     def score_halves(self, even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
                      offset: float | None = None) -> tuple[np.ndarray, np.ndarray]:

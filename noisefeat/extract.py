@@ -58,13 +58,22 @@ def analyse_blocks(blocks: np.ndarray | torch.Tensor, *, exposure: float = 0.0,
     """(float32 [N, 26] features, RGBStats) of linear RGB blocks [N, H, W, 3]: the features,
     the non-finite pixel count of each block and, if `display_range`, its display range
     (what the flat-block test reads), all from the one fused pass."""
-    t = _as_blocks(blocks)
+    return analyse_many([blocks], exposure=exposure, base=base, display_range=[display_range])[0]
+
+
+def analyse_many(batches: list[np.ndarray | torch.Tensor], *, exposure: float = 0.0,
+                 base: FeatureBase | None = None,
+                 display_range: list[bool] | None = None) -> list[tuple[np.ndarray, RGBStats]]:
+    """`analyse_blocks` of several batches of blocks of one size in one fused call (a
+    request's blocks and quick images: one spectral pass for both)."""
+    ts = [_as_blocks(b) for b in batches]
     exposure = check_exposure(exposure)
     base = base or default_base()
     with torch.inference_mode():
-        feats, stats = fused.features(t, exposure, base, with_range=display_range)
-    _log_nonfinite(stats.nonfinite)
-    return feats.numpy(), stats
+        results = fused.features_of(ts, exposure, base, display_range)
+    for _, stats in results:
+        _log_nonfinite(stats.nonfinite)
+    return [(f.numpy(), stats) for f, stats in results]
 
 
 def _log_nonfinite(bad: np.ndarray) -> None:

@@ -58,25 +58,53 @@ def features(blocks: torch.Tensor, exposure: float, base: FeatureBase,
              with_range: bool = False) -> tuple[torch.Tensor, RGBStats]:
     """(float32 [N, 26] features, RGBStats) of linear RGB blocks [N, H, W, 3] (shape and
     exposure checked by the caller); the display range is computed only if `with_range`."""
-    n, h, w, _ = blocks.shape
-    feats = torch.empty(n, N_FEATURES, dtype=torch.float32)
-    stats = RGBStats(np.zeros(n, np.int64), np.full(n, np.nan))
-    if n == 0:
-        return feats, stats
-    step = min(n, chunk_blocks(h, w))
+    return features_of([blocks], exposure, base, [with_range])[0]
+
+
+def features_of(sources: list[torch.Tensor], exposure: float, base: FeatureBase,
+                with_range: list[bool] | None = None) -> list[tuple[torch.Tensor, RGBStats]]:
+    """`features` of several batches of blocks of one size at once (a request's blocks and
+    their quick images; or the blocks of several requests): per chunk, L* of each source
+    into one buffer, then one spectral call for all of them. No source is copied."""
+    with_range = with_range or [False] * len(sources)
+    if len({tuple(x.shape[1:]) for x in sources}) > 1:
+        raise ValueError(f"blocks of different sizes cannot share a call: {[tuple(x.shape) for x in sources]}")
+    out = [(torch.empty(len(x), N_FEATURES, dtype=torch.float32),
+            RGBStats(np.zeros(len(x), np.int64), np.full(len(x), np.nan))) for x in sources]
+    pending = [(k, i) for k, x in enumerate(sources) for i in range(len(x))]   # (source, block)
+    if not pending:
+        return out
+    _, h, w, _ = sources[0].shape
+    step = min(len(pending), chunk_blocks(h, w))
     g_buf = torch.empty(step, h, w, dtype=torch.float32)
     work = torch.empty(step, h, w, 3, dtype=torch.float32)
-    for i in range(0, n, step):
-        x = blocks[i:i + step].contiguous()
-        c = len(x)
-        g = g_buf[:c]
-        offset, bad, span = lightness_into(x, exposure, g, work[:c], extremes=with_range)
-        if bad is not None:
-            stats.nonfinite[i:i + c] = bad.numpy()
-        if span is not None:
-            stats.display_range[i:i + c] = span
-        feats[i:i + c] = base.features_centred(g, _centre(g) - offset)
-    return feats, stats
+    for start in range(0, len(pending), step):
+        chunk = pending[start:start + step]
+        runs = []                                    # (source, first block, count, slot in g_buf)
+        for slot, (k, i) in enumerate(chunk):
+            if runs and runs[-1][0] == k:
+                runs[-1][2] += 1
+            else:
+                runs.append([k, i, 1, slot])
+        mu_parts = []
+        for k, i, c, slot in runs:
+            g = g_buf[slot:slot + c]
+            offset, bad, span = lightness_into(sources[k][i:i + c].contiguous(), exposure, g, work[:c],
+                                               extremes=with_range[k])
+            stats = out[k][1]
+            if bad is not None:
+                stats.nonfinite[i:i + c] = bad.numpy()
+            if span is not None:
+                stats.display_range[i:i + c] = span
+            mu_parts.append(offset)
+        g = g_buf[:len(chunk)]
+        mu = _centre(g)
+        for (k, i, c, slot), offset in zip(runs, mu_parts):
+            mu[slot:slot + c] -= offset
+        feats = base.features_centred(g, mu)
+        for k, i, c, slot in runs:
+            out[k][0][i:i + c] = feats[slot:slot + c]
+    return out
 
 
 def _current(a: torch.Tensor, b: torch.Tensor, out: torch.Tensor, finite: bool) -> torch.Tensor:

@@ -33,6 +33,7 @@ from learning.stoprule import OFFSET_LIMIT
 from noisefeat.display import EXPOSURE_RANGE
 
 from .auth import require_token
+from .batching import MicroBatcher
 from .connections import InFlightLimitMiddleware
 from .limits import BodyLimitMiddleware, Limits, MemoryBudget, release_memory
 from .metrics import ServiceMetrics
@@ -77,11 +78,14 @@ def _version() -> str:
 
 def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Limits | None = None,
                inference_threads: int = 2, metrics: ServiceMetrics | None = None,
-               limit_concurrency: int | None = None, body_timeout: float | None = None) -> FastAPI:
+               limit_concurrency: int | None = None, body_timeout: float | None = None,
+               batch_window: float | None = None) -> FastAPI:
     """The ASGI app; models load in its lifespan (now, if `registry` is not loaded yet).
 
     `limit_concurrency`: most requests in flight, health probes and /metrics not counted
-    (None: no limit); `body_timeout`: seconds a request body may stall (None: no limit)."""
+    (None: no limit); `body_timeout`: seconds a request body may stall (None: no limit);
+    `batch_window`: seconds a request may wait to be classified together with others
+    (service.batching; None: every request alone)."""
     limits = limits or Limits()
     metrics = metrics or ServiceMetrics()
 
@@ -89,6 +93,9 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.limiter = anyio.CapacityLimiter(inference_threads)
         await anyio.to_thread.run_sync(registry.load)
+        if batch_window is not None:
+            app.state.batchers = {name: MicroBatcher(served, batch_window, anyio.CapacityLimiter(inference_threads))
+                                  for name, served in registry.models.items()}
         for name, served in registry.models.items():
             metrics.load_seconds.labels(name).set(served.load_seconds)
         log.info("serving %s; %r is %s", ", ".join(registry.models), DEFAULT, registry.default_name)
@@ -99,6 +106,7 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
                   description="Open Inference Protocol v2: is this sub-image still noisy to a human?")
     app.state.token = token
     app.state.registry = registry
+    app.state.batchers = {}
     app.state.limits = limits
     app.state.metrics = metrics
     app.state.memory_budget = MemoryBudget(limits.memory_budget)
@@ -214,9 +222,17 @@ async def _infer(request: Request, served: ServedModel, header_length: str | Non
     length = None if header_length is None else int(header_length)
     # counted against the limit by BodyLimitMiddleware
     body = [await _read_body(request, TENSOR_ALIGNMENT if length is not None else 1, length or 0)]
+    batcher = state.batchers.get(served.name)
     try:
-        content, json_length = await anyio.to_thread.run_sync(
-            _infer_sync, served, body, length, state.limits, state.metrics, limiter=state.limiter)
+        if batcher is None:
+            content, json_length = await anyio.to_thread.run_sync(
+                _infer_sync, served, body, length, state.limits, state.metrics, limiter=state.limiter)
+        else:                                  # decoded alone, classified with its neighbours
+            req, tensors, exposure, offset, wanted = await anyio.to_thread.run_sync(
+                _decode_sync, body, length, state.limits, limiter=state.limiter)
+            arrays, parameters = await batcher.infer(tensors, exposure, offset)
+            del tensors
+            content, json_length = _encode(served, req, wanted, arrays, parameters, state.metrics)
     finally:
         release_memory()
     if json_length is None:
@@ -233,20 +249,28 @@ async def _read_body(request: Request, align: int = 1, at: int = 0) -> memoryvie
     """The body in one buffer sized by Content-Length when declared (Starlette's
     `request.body()` joins a list of chunks: twice the body at its peak).
 
-    With `align` > 1 the body is placed in a slightly larger buffer so that its byte `at`
-    (where the binary tensors start, after the JSON header) lies on an `align`-byte
-    boundary, and a memoryview of the body is returned: the tensors can then be used in
-    place whatever the header's length. Without a declared length the body grows as it
-    arrives (and tensors that end up misaligned are copied by decode_tensors)."""
+    With `align` > 1 the body is placed in a slightly larger, uninitialised buffer so that
+    its byte `at` (where the binary tensors start, after the JSON header) lies on an
+    `align`-byte boundary, and a memoryview of the body is returned: the tensors are then
+    used in place whatever the header's length (oip.decode_tensors). Without a declared
+    length the body grows as it arrives (tensors that end up misaligned are copied)."""
     declared = request.headers.get("content-length", "")
     size = int(declared) if declared.isdigit() else 0
-    pad = 0
     if align > 1 and size:
-        buf = bytearray(size + align)
-        pad = -(_address(buf) + at) % align
-    else:
-        buf = bytearray(size)
-    pos = pad
+        store = np.empty(size + align, np.uint8)       # no zero-filling: every byte is written
+        pad = -(store.ctypes.data + at) % align
+        view, pos = memoryview(store), pad
+        try:
+            async for chunk in request.stream():
+                if pos + len(chunk) > len(view):     # more than declared: BodyLimit/h11 stop this
+                    raise ApiError(400, f"body longer than its Content-Length ({size} bytes)")
+                view[pos:pos + len(chunk)] = chunk
+                pos += len(chunk)
+        except ClientDisconnect:
+            raise ApiError(400, f"client disconnected after {pos - pad} body bytes") from None
+        return view[pad:pos]
+    buf = bytearray(size)
+    pos = 0
     try:
         async for chunk in request.stream():
             if pos + len(chunk) > len(buf):
@@ -255,21 +279,22 @@ async def _read_body(request: Request, align: int = 1, at: int = 0) -> memoryvie
                 buf[pos:pos + len(chunk)] = chunk
             pos += len(chunk)
     except ClientDisconnect:   # the client went away mid-body: its problem, not a server error
-        raise ApiError(400, f"client disconnected after {pos - pad} body bytes") from None
-    if align > 1 and size:
-        return memoryview(buf)[pad:pos]
+        raise ApiError(400, f"client disconnected after {pos} body bytes") from None
     del buf[pos:]                                      # less than declared
     return buf
 
 
-def _address(buf: bytearray) -> int:
-    """Memory address of a bytearray's first byte."""
-    return np.frombuffer(buf, np.uint8).ctypes.data if len(buf) else 0
-
-
 def _infer_sync(served: ServedModel, body: list[bytearray | memoryview], header_length: int | None,
                 limits: Limits, metrics: ServiceMetrics) -> tuple[bytes, int | None]:
-    """Decode, classify, encode: everything CPU-bound about one request, in a worker thread.
+    """Decode, classify, encode: everything CPU-bound about one request, in a worker thread."""
+    req, tensors, exposure, offset, wanted = _decode_sync(body, header_length, limits)
+    arrays, parameters = served.infer(tensors, exposure, offset)
+    return _encode(served, req, wanted, arrays, parameters, metrics)
+
+
+def _decode_sync(body: list[bytearray | memoryview], header_length: int | None, limits: Limits
+                 ) -> tuple[InferenceRequest, dict[str, np.ndarray], float, float | None, dict[str, bool]]:
+    """The request, its tensors, exposure, offset and wanted outputs.
 
     `body` is a one-item list, emptied once the tensors are decoded: a JSON body's text is
     then freed before the model runs; binary tensors are views of the body (no copy), which
@@ -291,7 +316,11 @@ def _infer_sync(served: ServedModel, body: list[bytearray | memoryview], header_
     body.clear()
     for t in req.inputs:       # the parsed JSON values (~10x the body): no longer needed
         t.data = None
-    arrays, parameters = served.infer(tensors, exposure, offset)
+    return req, tensors, exposure, offset, wanted
+
+
+def _encode(served: ServedModel, req: InferenceRequest, wanted: dict[str, bool], arrays: dict[str, np.ndarray],
+            parameters: dict[str, Any], metrics: ServiceMetrics) -> tuple[bytes, int | None]:
     metrics.record(served.name, arrays["verdict"], parameters)
     resp = InferenceResponse(
         model_name=served.name, model_version=served.version, id=req.id, parameters=parameters or None,

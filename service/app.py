@@ -33,7 +33,6 @@ from learning.stoprule import OFFSET_LIMIT
 from noisefeat.display import EXPOSURE_RANGE
 
 from .auth import require_token
-from .batching import MicroBatcher
 from .connections import InFlightLimitMiddleware
 from .limits import BodyLimitMiddleware, Limits, MemoryBudget, release_memory
 from .metrics import ServiceMetrics
@@ -78,14 +77,15 @@ def _version() -> str:
 
 def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Limits | None = None,
                inference_threads: int = 2, metrics: ServiceMetrics | None = None,
-               limit_concurrency: int | None = None, body_timeout: float | None = None,
-               batch_window: float | None = None) -> FastAPI:
+               limit_concurrency: int | None = None, body_timeout: float | None = None) -> FastAPI:
     """The ASGI app; models load in its lifespan (now, if `registry` is not loaded yet).
 
     `limit_concurrency`: most requests in flight, health probes and /metrics not counted
-    (None: no limit); `body_timeout`: seconds a request body may stall (None: no limit);
-    `batch_window`: seconds a request may wait to be classified together with others
-    (service.batching; None: every request alone)."""
+    (None: no limit); `body_timeout`: seconds a request body may stall (None: no limit).
+
+    Requests are classified one by one, 2 at a time (`inference_threads`): a micro-batching
+    window across concurrent requests was measured slower (BENCHMARKS.md "Verdict
+    service", issue 16) and is not kept."""
     limits = limits or Limits()
     metrics = metrics or ServiceMetrics()
 
@@ -93,9 +93,6 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.limiter = anyio.CapacityLimiter(inference_threads)
         await anyio.to_thread.run_sync(registry.load)
-        if batch_window is not None:
-            app.state.batchers = {name: MicroBatcher(served, batch_window, anyio.CapacityLimiter(inference_threads))
-                                  for name, served in registry.models.items()}
         for name, served in registry.models.items():
             metrics.load_seconds.labels(name).set(served.load_seconds)
         log.info("serving %s; %r is %s", ", ".join(registry.models), DEFAULT, registry.default_name)
@@ -106,7 +103,6 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
                   description="Open Inference Protocol v2: is this sub-image still noisy to a human?")
     app.state.token = token
     app.state.registry = registry
-    app.state.batchers = {}
     app.state.limits = limits
     app.state.metrics = metrics
     app.state.memory_budget = MemoryBudget(limits.memory_budget)
@@ -222,17 +218,9 @@ async def _infer(request: Request, served: ServedModel, header_length: str | Non
     length = None if header_length is None else int(header_length)
     # counted against the limit by BodyLimitMiddleware
     body = [await _read_body(request, TENSOR_ALIGNMENT if length is not None else 1, length or 0)]
-    batcher = state.batchers.get(served.name)
     try:
-        if batcher is None:
-            content, json_length = await anyio.to_thread.run_sync(
-                _infer_sync, served, body, length, state.limits, state.metrics, limiter=state.limiter)
-        else:                                  # decoded alone, classified with its neighbours
-            req, tensors, exposure, offset, wanted = await anyio.to_thread.run_sync(
-                _decode_sync, body, length, state.limits, limiter=state.limiter)
-            arrays, parameters = await batcher.infer(tensors, exposure, offset)
-            del tensors
-            content, json_length = _encode(served, req, wanted, arrays, parameters, state.metrics)
+        content, json_length = await anyio.to_thread.run_sync(
+            _infer_sync, served, body, length, state.limits, state.metrics, limiter=state.limiter)
     finally:
         release_memory()
     if json_length is None:

@@ -156,44 +156,6 @@ class ServedModel:
             if arr.dtype != np.float32:
                 raise ApiError(400, f"input {name!r} must be FP32")
 
-    def infer_batch(self, items: list[tuple[dict[str, np.ndarray], float, float | None]]
-                    ) -> list[tuple[dict[str, np.ndarray], dict[str, Any]] | ApiError]:
-        """`infer` of several requests (tensors, exposure, offset), each answered as if alone:
-        the image requests of a feature model that share a block size and an exposure go
-        through one fused feature call and one SVM call (service.batching); any other
-        request, and every request of a group whose joint call fails, goes alone."""
-        results: list[Any] = [None] * len(items)
-        groups: dict[tuple, list[tuple[int, np.ndarray, np.ndarray | None, float | None]]] = {}
-        for i, (tensors, exposure, offset) in enumerate(items):
-            if self.model.input == "features" and not self.model.needs_halves and "features" not in tensors:
-                try:
-                    self._check_names(tensors)
-                    blocks, quick = self._blocks(tensors)
-                except ApiError as exc:
-                    results[i] = exc
-                    continue
-                groups.setdefault((blocks.shape[1:], exposure), []).append(
-                    (i, blocks, quick if self.model.needs_quick else None, offset))
-        for (_, exposure), members in groups.items():
-            try:
-                answers = self.model.assess_feature_batches([(b, q) for _, b, q, _ in members], exposure)
-            except ValueError:                       # someone's input: let each go alone
-                continue
-            for (i, _, _, req_offset), (score, flat, counts) in zip(members, answers):
-                offset = self.effective_offset if req_offset is None else float(req_offset)
-                params: dict[str, Any] = {"offset": offset, "nonfinite_pixels": [int(c) for c in counts["blocks"]]}
-                if "quick" in counts:
-                    params["nonfinite_quick_pixels"] = [int(c) for c in counts["quick"]]
-                results[i] = ({"verdict": self.model.rule(offset).verdict(score, flat),
-                               "score": np.asarray(score, np.float32)}, params)
-        for i, (tensors, exposure, offset) in enumerate(items):
-            if results[i] is None:
-                try:
-                    results[i] = self.infer(tensors, exposure, offset)
-                except ApiError as exc:
-                    results[i] = exc
-        return results
-
     def _features(self, tensors: dict[str, np.ndarray]) -> np.ndarray:
         if len(tensors) > 1:
             images = "'even' and 'odd'" if self.model.needs_halves else "'blocks' (+ 'quick')"

@@ -48,8 +48,7 @@ def build(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", 
           inference_threads: int = 2, offset: float | None = None,
           max_block_side: int | None = None, max_pixels: int | None = None,
           limit_concurrency: int | None = DEFAULT_LIMIT_CONCURRENCY,
-          body_timeout: float | None = DEFAULT_BODY_TIMEOUT, memory_budget: int | None = None,
-          batch_window: float | None = None):
+          body_timeout: float | None = DEFAULT_BODY_TIMEOUT, memory_budget: int | None = None):
     """The app `run` serves, with models loaded and settings checked (tests use it too).
     `offset` overrides every model's calibrated decision offset (`serve --offset`)."""
     secret = resolve_token(token, token_file)
@@ -68,7 +67,7 @@ def build(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", 
     registry = ModelRegistry(dict(models or {}), offset=offset)
     registry.load()
     return create_app(registry, token=secret, limits=limits, inference_threads=inference_threads,
-                      limit_concurrency=limit_concurrency, body_timeout=body_timeout, batch_window=batch_window)
+                      limit_concurrency=limit_concurrency, body_timeout=body_timeout)
 
 
 def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", port: int = 8000, *,
@@ -80,7 +79,7 @@ def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", po
         limit_concurrency: int | None = DEFAULT_LIMIT_CONCURRENCY,
         max_connections: int = DEFAULT_MAX_CONNECTIONS, header_timeout: float = DEFAULT_HEADER_TIMEOUT,
         body_timeout: float | None = DEFAULT_BODY_TIMEOUT, keep_alive: int = DEFAULT_KEEP_ALIVE,
-        memory_budget: int | None = None, batch_window: float | None = None) -> None:
+        memory_budget: int | None = None) -> None:
     """Serve `models` ({name: bundle path or None for the bundled model}; empty: the bundled
     model) until SIGTERM/SIGINT. The token defaults to NOISESTOP_TOKEN / NOISESTOP_TOKEN_FILE;
     limits default to NOISESTOP_MAX_BODY_BYTES / NOISESTOP_MAX_BATCH / NOISESTOP_MAX_BLOCK_SIDE /
@@ -97,7 +96,7 @@ def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", po
     app = build(models, host, token=token, token_file=token_file, max_body_bytes=max_body_bytes,
                 max_batch=max_batch, inference_threads=inference_threads, offset=offset,
                 max_block_side=max_block_side, max_pixels=max_pixels, limit_concurrency=limit_concurrency,
-                body_timeout=body_timeout, memory_budget=memory_budget, batch_window=batch_window)
+                body_timeout=body_timeout, memory_budget=memory_budget)
     limits = app.state.limits
     log.info("listening on http://%s:%d (%s; body limit %d bytes, batch limit %d, block side %d px, "
              "%d pixels a request, %d bytes of memory for requests in flight; %s requests in flight, "

@@ -18,7 +18,7 @@ from extremes import CASES, extreme_halves
 from learning.noise_input import halves_input_and_stats, halves_mean, halves_raw
 from noisefeat import FeatureBase, extract_features, fused
 from noisefeat.display import display_range, lightness
-from noisefeat.extract import analyse_blocks
+from noisefeat.extract import analyse_blocks, analyse_many
 from reference_features import old_display_range, old_extract_features, old_halves_features, old_lightness
 
 ATOL, RTOL = 2e-4, 2e-4
@@ -182,3 +182,20 @@ def test_empty_batches(base):
     assert extract_features(np.zeros((0, 16, 16, 3), np.float32), base=base).shape == (0, 26)
     assert halves_raw(np.zeros((0, 16, 16, 3), np.float32), np.zeros((0, 16, 16, 3), np.float32)).shape == (0, 54)
     assert lightness(np.zeros((0, 3), np.float32)).shape == (0,)
+
+
+def test_several_batches_in_one_call_equal_separate_calls(base, monkeypatch):
+    """analyse_many (a request's blocks and quick images in one spectral pass) gives each
+    batch what analyse_blocks gives it alone, across a chunk boundary too."""
+    monkeypatch.setattr(fused, "CHUNK_PIXELS", 5 * 32 * 32)      # chunks of 5 blocks: 3 + 2 mixed
+    a = realistic(3, 32, 32, 15)
+    b = _nonfinite()[:, :16, :16].repeat(2, axis=1).repeat(2, axis=2)[:4]
+    together = analyse_many([a, b, a[:1]], base=base, display_range=[True, False, True])
+    for (feats, stats), x, with_range in zip(together, [a, b, a[:1]], [True, False, True]):
+        want, want_stats = analyse_blocks(x, base=base, display_range=with_range)
+        np.testing.assert_allclose(feats, want, atol=1e-5, rtol=1e-5)
+        np.testing.assert_array_equal(stats.nonfinite, want_stats.nonfinite)
+        np.testing.assert_array_equal(stats.display_range, want_stats.display_range)
+    assert np.isnan(together[1][1].display_range).all()            # not asked for
+    with pytest.raises(ValueError, match="different sizes"):
+        analyse_many([a, np.zeros((1, 16, 16, 3), np.float32)], base=base)

@@ -24,7 +24,8 @@ def default_base() -> FeatureBase:
     NOISESTOP_FEATURE_WEIGHTS (a path, 'smoothing' or 'pretrained') selects other weights,
     e.g. for the feature-base ablation.
     """
-    return FeatureBase(os.environ.get("NOISESTOP_FEATURE_WEIGHTS") or None).eval()
+    with torch.inference_mode(False):   # normal tensors even if first asked for under inference mode
+        return FeatureBase(os.environ.get("NOISESTOP_FEATURE_WEIGHTS") or None).eval()
 
 
 def _as_blocks(blocks: np.ndarray | torch.Tensor) -> torch.Tensor:

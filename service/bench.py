@@ -52,22 +52,27 @@ def matmul_rate(macs: int, repeats: int) -> float:
 
 class MachineLoad:
     """CPU time other processes used while a measurement ran, as a share of all CPUs
-    (Linux /proc/stat minus this process): BENCHMARKS says when a figure was taken on a
-    busy machine. None where /proc is missing."""
+    (Linux /proc/stat less this process and the processes in `mine`, e.g. a server under
+    test): BENCHMARKS says when a figure was taken on a busy machine. None without /proc."""
+
+    def __init__(self, mine: tuple[int, ...] = ()) -> None:
+        self.mine = mine
+        self.share: float | None = None
 
     def __enter__(self) -> "MachineLoad":
-        self._t0, self._busy0, self._own0 = time.perf_counter(), _busy_jiffies(), time.process_time()
-        self.share: float | None = None
+        self._t0, self._busy0, self._own0 = time.perf_counter(), _busy_jiffies(), self._own()
         return self
+
+    def _own(self) -> float:
+        return time.process_time() + sum(_process_cpu(p) or 0.0 for p in self.mine)
 
     def __exit__(self, *exc: Any) -> None:
         busy1 = _busy_jiffies()
         if self._busy0 is None or busy1 is None:
             return
         import os
-        hz = os.sysconf("SC_CLK_TCK")
         wall = time.perf_counter() - self._t0
-        others = (busy1 - self._busy0) / hz - (time.process_time() - self._own0)
+        others = (busy1 - self._busy0) / os.sysconf("SC_CLK_TCK") - (self._own() - self._own0)
         self.share = max(0.0, others / (wall * (os.cpu_count() or 1)))
 
 
@@ -78,6 +83,17 @@ def _busy_jiffies() -> int | None:
     except (OSError, ValueError):
         return None
     return sum(v) - v[3] - v[4]          # all but idle and iowait
+
+
+def _process_cpu(pid: int) -> float | None:
+    """CPU seconds (user + system) of a process, all its threads (Linux)."""
+    import os
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def bench_features(repeats: int = 30, n: int = 101, size: int = 128) -> dict[str, Any]:
@@ -212,12 +228,6 @@ def bench_render(scene: str = "env_spheres", resolution: int = 256, max_spp: int
         out[name]["speedup_vs_uniform"] = out["uniform"]["wall_s"] / out[name]["wall_s"]
         out[name]["decision_share"] = decide / out[name]["wall_s"]
     return {"scene": scene, "resolution": resolution, "max_spp": max_spp, "repeats": repeats, **out}
-
-
-def bench_service(clients: tuple[int, ...] = (1, 8, 32)) -> dict[str, Any]:
-    from .loadtest import bench
-    return {str(c): bench(None, clients=c, requests_per_client=max(2, 64 // c), max_seconds=60)
-            for c in clients}
 
 
 def bench_ablation(data: str, heldout: str | None = None, out_png: str = "docs/ablation.png") -> dict[str, Any]:
@@ -439,23 +449,6 @@ def md_render(r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def md_service(r: dict[str, Any]) -> str:
-    lines = ["| clients | encoding | requests | req/s | blocks/s | p50 (ms) | p99 (ms) | errors |",
-             "|---|---|---|---|---|---|---|---|"]
-    for c, res in r.items():
-        for enc in ("json", "binary"):
-            x = res[enc]
-            f = (lambda v: "-" if v is None else f"{v:.0f}")
-            lines.append(f"| {c} | {enc} | {x['requests']} | {x['requests_per_s']:.2f} | "
-                         f"{x['blocks_per_s']:.0f} | {f(x['p50_ms'])} | {f(x['p99_ms'])} | {x['errors']} |")
-    first = next(iter(r.values()))
-    sent = " + ".join(first["binary"].get("inputs", ("blocks", "quick")))
-    return (f"16 blocks of 128x128 ({sent}) per request, "
-            f"model {first['model']}, loopback, "
-            f"{first['cpus']} CPUs. Goal: p99 <= 25 ms at 8 clients with binary data, no errors "
-            "at 32.\n\n" + "\n".join(lines))
-
-
 def md_ablation(r: dict[str, Any]) -> str:
     scene, res, spp = r["quick_scene"]
     lines = [f"![feature-pipeline ablation]({r['plot']})", "",
@@ -552,6 +545,7 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
     if "stability" in only:
         measure("stability", stability_section, md_stability)
     if "service" in only:
+        from .bench_service import bench_service, md_service
         measure("service", bench_service, md_service)
     if "reliability" in only:
         from .reliability import bench_reliability, md_reliability

@@ -156,3 +156,26 @@ def test_heap_is_trimmed_only_when_much_of_it_is_free(monkeypatch):
     assert limits.release_memory() is True and trimmed == [0, 0]
     monkeypatch.setattr(limits, "_libc", lambda: (None, None))               # not glibc
     assert limits.release_memory() is False
+
+
+def test_service_bench_merges_rounds_and_writes_every_figure(bundle):
+    """The bench's bookkeeping (no timing asserted): rounds merge cell by cell into medians
+    with every round's p99 kept, errors summed; the markdown carries each figure; the
+    stage breakdown of one request names each stage."""
+    from service.bench_service import _merge, md_service, stage_times
+
+    def run(p99, errors):
+        return {"clients": 8, "encoding": "binary", "requests": 10, "errors": errors, "requests_per_s": 40.0,
+                "p50_ms": p99 / 2, "p99_ms": p99, "other_load": 0.5,
+                "server_cpu_ms": {"event loop": 10.0, "inference": p99 / 10}}
+    merged = _merge([{"ready_s": 4.0, "runs": [run(p, e)]} for p, e in ((300.0, 0), (100.0, 1), (200.0, 0))])
+    cell = merged["runs"][0]
+    assert cell["p99_ms"] == 200.0 and cell["p99_rounds"] == [300.0, 100.0, 200.0]
+    assert cell["errors"] == 1 and cell["requests"] == 30 and cell["server_cpu_ms"]["inference"] == 20.0
+    stages = stage_times(bundle, repeats=1)
+    assert {"decode_ms", "features_ms", "flip_ms", "svm_ms", "encode_ms", "in_process_ms"} <= set(stages)
+    assert stages["flip_ms"] == 0.0 and stages["features_ms"] > 0 and stages["request_mb"] > 6
+    text = md_service({"cpus": 2, "blocks": 16, "size": 128, "repeats": 3,
+                       "models": {"demo": {"stages": stages, **merged}}})
+    assert "| 8 | binary | 30 | 40.0 | 100 | 200 (300, 100, 200) | 1 | 10.0 / 20.0 | 50 % |" in text
+    assert "medians of 3 rounds" in text and "FLIP 0.0 ms" in text

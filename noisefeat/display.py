@@ -119,10 +119,13 @@ def block_extremes(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 _LUMA32 = torch.tensor(LUMA, dtype=torch.float32)
-#: L* = G - OFFSET, G as `lightness_into` leaves it: 116 Y^(1/3), with CIELab's linear toe
-#: below the knee as 116 (max(Y, eps)^(1/3) + slope (min(Y, eps) - eps)), whose second
-#: term is exactly 0 above the knee (so a block's G does not depend on its chunk's branch)
-OFFSET = 16.0
+#: L* = L_SCALE * (G - OFFSET), G as `lightness_into` leaves it: Y^(1/3), with CIELab's
+#: linear toe below the knee as max(Y, eps)^(1/3) + slope (min(Y, eps) - eps), whose second
+#: term is exactly 0 above the knee (so a block's G does not depend on its chunk's branch).
+#: The factor 116 is left to the caller: the features are linear in L*, so the fused path
+#: scales its 26 numbers a block instead of every pixel
+L_SCALE = 116.0
+OFFSET = 16.0 / 116.0
 #: pixels per chunk of `lightness` and of the fused feature path (128 blocks of 128x128):
 #: bounds the work buffers (about 40 bytes a pixel) of large batches. Smaller chunks that
 #: stay in cache measured slower on 2 threads: each operation pays torch's thread
@@ -133,11 +136,12 @@ CHUNK_PIXELS = 1 << 21
 def lightness_into(x: torch.Tensor, exposure: float, out: torch.Tensor, work: torch.Tensor,
                    extremes: bool = False) -> tuple[float, torch.Tensor | None, np.ndarray | None]:
     """L* of linear RGB x [..., 3] (contiguous, any float dtype) written to `out` [...]
-    float32 as G, where L* = G - offset; `work` is a float32 buffer shaped like x (overwritten).
+    float32 as G, where L* = L_SCALE * (G - offset); `work` is a float32 buffer shaped like x
+    (overwritten).
 
     Returns (OFFSET, non-finite pixel counts per block of a [c, h, w, 3] x or None when x
     holds none, the display range per block (`display_range`) if `extremes` else None).
-    `exposure` must be checked already (check_exposure). The constant offset is left to
+    `exposure` must be checked already (check_exposure). The scale and offset are left to
     the caller: the feature path subtracts each block's mean anyway.
     """
     raw = x
@@ -166,14 +170,14 @@ def lightness_into(x: torch.Tensor, exposure: float, out: torch.Tensor, work: to
         span = _encoded_range(lo, hi)
     torch.matmul(x, _LUMA32, out=out)
     # the cube root as exp(log(Y) / 3) on Y itself (its log is at most 4.7 in magnitude, so
-    # the log's rounding stays ~1e-7 relative), then x 116: L* within 2 float32 ulp
+    # the log's rounding stays ~1e-7 relative): L* within 2 float32 ulp
     if low >= _LAB_EPS * (1.0 + 1e-3):        # every Y above the knee (the weights sum to 1)
-        out.log_().mul_(1.0 / 3.0).exp_().mul_(116.0)
+        out.log_().mul_(1.0 / 3.0).exp_()
         return OFFSET, bad, span
     toe = work.view(-1)[:out.numel()].view(out.shape)        # x has been read: reuse its buffer
     torch.clamp_max(out, _LAB_EPS, out=toe).sub_(_LAB_EPS)   # min(Y, eps) - eps: 0 above the knee
     out.clamp_min_(_LAB_EPS).log_().mul_(1.0 / 3.0).exp_()
-    out.add_(toe, alpha=_LAB_SLOPE).mul_(116.0)
+    out.add_(toe, alpha=_LAB_SLOPE)
     return OFFSET, bad, span
 
 
@@ -197,7 +201,7 @@ def lightness(rgb: torch.Tensor | np.ndarray, exposure: float = 0.0) -> torch.Te
         for i in range(0, len(pixels), CHUNK_PIXELS):
             x = pixels[i:i + CHUNK_PIXELS].contiguous()
             o = out[i:i + len(x)]
-            o.sub_(lightness_into(x, exposure, o, work[:len(x)])[0])
+            o.sub_(lightness_into(x, exposure, o, work[:len(x)])[0]).mul_(L_SCALE)
     return out.reshape(t.shape[:-1])
 
 

@@ -11,8 +11,8 @@ of large batches):
 1. display transform and L* (`display.lightness_into`): one min/max pass says whether the
    chunk needs the non-finite rule or the clip at all (and gives the display range of the
    flat-block test when asked), one matrix-vector product gives the luminance, exp(log/3)
-   the cube root, CIELab's toe only when some luminance is below its knee, and the
-   constant of L* goes into the block mean;
+   the cube root, CIELab's toe only when some luminance is below its knee; the constant
+   of L* goes into the block mean and its factor 116 into the 26 features of each block;
 2. each block centred in place (its mean kept), then `FeatureBase.features_centred`: one
    rfft2, the twelve layers by Parseval in one matmul, the wavelet layer in the same
    spectrum. L* lies in 0..100, so the range normalisation of `FeatureBase.forward` (for
@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from .base import N_FEATURES, FeatureBase
-from .display import CHUNK_PIXELS, display_range, lightness_into, nonfinite_pixels
+from .display import CHUNK_PIXELS, L_SCALE, display_range, lightness_into, nonfinite_pixels
 
 
 @dataclass
@@ -101,7 +101,7 @@ def features_of(sources: list[torch.Tensor], exposure: float, base: FeatureBase,
         mu = _centre(g)
         for (k, i, c, slot), offset in zip(runs, mu_parts):
             mu[slot:slot + c] -= offset
-        feats = base.features_centred(g, mu)
+        feats = base.features_centred(g, mu).mul_(L_SCALE)      # features are linear in L*
         for k, i, c, slot in runs:
             out[k][0][i:i + c] = feats[slot:slot + c]
     return out
@@ -156,9 +156,9 @@ def halves_features(even: torch.Tensor, odd: torch.Tensor, exposure: float, base
         mu = _centre(both)
         mu[:c] -= off_a - off_b
         mu[c:] -= off_c
-        out = base.features_centred(both, mu)
+        out = base.features_centred(both, mu).mul_(L_SCALE)      # features are linear in L*
         noise_f[i:i + c], current_f[i:i + c] = out[:c], out[c:]
-        mean_l[i:i + c] = mu[c:]
+        mean_l[i:i + c] = mu[c:] * L_SCALE
     return noise_f, current_f, mean_l, stats
 
 

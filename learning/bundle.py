@@ -18,13 +18,17 @@ from typing import Any
 
 import numpy as np
 import skops.io as sio
+import torch
 
 from noisefeat import FeatureBase, default_base, extract_features
+from noisefeat.base import N_FEATURES
+from noisefeat.display import nonfinite_pixels
+from noisefeat.extract import analyse_many
 
 from .bundle_check import check_estimator, check_model_file, file_sha256, read_manifest
 from .estimators import RBFSVM
-from .noise_input import HALVES, halves_input, halves_mean, n_inputs, noise_lightness
-from .stoprule import StopRule, flat_blocks
+from .noise_input import HALVES, halves_input, halves_input_and_stats, halves_mean, n_inputs, noise_lightness
+from .stoprule import FLAT_TOLERANCE, StopRule, flat_blocks
 from .table import QUICK_MODES, feature_input, raw_input
 
 FORMAT = "noisestop-model"
@@ -164,16 +168,87 @@ class Model:
                      exposure: float = 0.0, offset: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(verdict int8 [N], score float [N]) for linear RGB blocks: the stop rule's verdict,
         flat blocks included (they are converged whatever their score)."""
+        verdict, score, _ = self.assess_blocks(blocks, quick, exposure, offset)
+        return verdict, score
+
+    def assess_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None, exposure: float = 0.0,
+                      offset: float | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """`score_blocks` plus the non-finite pixel counts per block of what was read
+        ({'blocks': [N]} and 'quick' when the model reads it): a feature model gets
+        features, counts and the flat test from one fused pass (the server's route)."""
+        if self.input == "features" and not self.needs_halves:
+            score, flat, counts = self.assess_feature_batches([(blocks, quick)], exposure)[0]
+            return self.rule(offset).verdict(score, flat), score, counts
         flat = flat_blocks(blocks, exposure) if len(blocks) else np.zeros(0, bool)
-        return self.score_inputs(self.inputs_from_blocks(blocks, quick, exposure=exposure), offset, flat)
+        x = self.inputs_from_blocks(blocks, quick, exposure=exposure)
+        counts = {"blocks": _nonfinite(blocks)}
+        if self.needs_quick and quick is not None:
+            counts["quick"] = _nonfinite(quick)
+        return (*self.score_inputs(x, offset, flat), counts)
+
+    def assess_feature_batches(self, batches: list[tuple[np.ndarray, np.ndarray | None]], exposure: float = 0.0
+                               ) -> list[tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]]:
+        """For a feature model, several (blocks, quick) batches of one block size at once
+        (a request's, or several requests'): one fused feature call and one SVM call for
+        all. Per batch: (score [N], flat [N], non-finite counts as in `assess_blocks`)."""
+        images, ranges = [], []
+        for blocks, quick in batches:
+            if self.needs_quick:
+                if quick is None:
+                    raise ValueError("a feature model needs the quick image of every block")
+                if np.shape(quick) != np.shape(blocks):
+                    raise ValueError(f"quick images {list(np.shape(quick))} and blocks {list(np.shape(blocks))} "
+                                     "must have the same shape")
+                images += [blocks, quick]
+                ranges += [True, False]
+            else:
+                images.append(blocks)
+                ranges.append(True)
+        results = iter(analyse_many(images, exposure=exposure, display_range=ranges))
+        rows, out = [], []
+        for _ in batches:
+            feats, stats = next(results)
+            counts = {"blocks": stats.nonfinite}
+            quick_feats = None
+            if self.needs_quick:
+                quick_feats, quick_stats = next(results)
+                counts["quick"] = quick_stats.nonfinite
+            rows.append(feature_input(feats, quick_feats))
+            out.append((stats.display_range <= FLAT_TOLERANCE, counts))
+        X = np.concatenate(rows) if rows else np.zeros((0, N_FEATURES), np.float32)
+        scores = self.decision_function(X) if len(X) else np.zeros(0)
+        bounds = np.cumsum([0] + [len(r) for r in rows])
+        return [(scores[a:b], flat, counts) for a, b, (flat, counts) in zip(bounds[:-1], bounds[1:], out)]
 
     def score_halves(self, even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
                      offset: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(verdict int8 [N], score float [N]) for the half buffers of N blocks (a `halves`
         model); the block judged is their mean, which is also what the flat test reads."""
-        x = self.inputs_from_halves(even, odd, exposure)
-        flat = flat_blocks(halves_mean(np.asarray(even), np.asarray(odd)), exposure) if len(x) else np.zeros(0, bool)
-        return self.score_inputs(x, offset, flat)
+        verdict, score, _ = self.assess_halves(even, odd, exposure, offset)
+        return verdict, score
+
+    def assess_halves(self, even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
+                      offset: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`score_halves` plus the non-finite pixels per block of both half buffers [N],
+        counted in the pass that computes the input (the server's route)."""
+        if not self.needs_halves:
+            raise ValueError(f"this model reads {'raw blocks' if self.input == 'raw' else 'blocks'}"
+                             f"{' and their quick images' if self.needs_quick else ''}, not half buffers")
+        if self.input == "raw":
+            x = self.inputs_from_halves(even, odd, exposure)
+            flat = flat_blocks(halves_mean(np.asarray(even), np.asarray(odd)), exposure) if len(x) \
+                else np.zeros(0, bool)
+            return (*self.score_inputs(x, offset, flat), _nonfinite(even) + _nonfinite(odd))
+        x, stats = halves_input_and_stats(even, odd, exposure, composition=self.composition or HALVES)
+        return (*self.score_inputs(x, offset, stats.display_range <= FLAT_TOLERANCE), stats.nonfinite)
+
+
+def _nonfinite(rgb: np.ndarray) -> np.ndarray:
+    """int64 [N]: pixels holding a NaN or Inf channel, per block of [N, h, w, 3]."""
+    rgb = np.asarray(rgb)
+    if not len(rgb):
+        return np.zeros(0, np.int64)
+    return nonfinite_pixels(torch.as_tensor(rgb)).numpy().astype(np.int64)
 
 
 def save_model(estimator: RBFSVM, path: str | os.PathLike, *, kind: str, input: str,

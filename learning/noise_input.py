@@ -35,10 +35,11 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from noisefeat import FeatureBase, default_base
+from noisefeat import FeatureBase, default_base, fused
 from noisefeat.base import N_FEATURES
 from noisefeat.bounds import SizeBounds
-from noisefeat.display import lightness
+from noisefeat.display import check_exposure, lightness
+from noisefeat.fused import RGBStats
 from noisefeat.perceptual import pooled_colour_error
 
 #: std-pooling columns of the 26 features (FeatureBase order: 13 means, then 13 stds)
@@ -92,21 +93,30 @@ def halves_raw(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
                base: FeatureBase | None = None) -> np.ndarray:
     """float32 [N, 54]: the 26 features of the noise image N, the 26 of the current image
     C, C's mean L* and the pooled colour error of A against B. Non-finite pixels follow
-    the display rule (NaN/-Inf black, +Inf white)."""
+    the display rule (NaN/-Inf black, +Inf white).
+
+    N and C come from the fused path (`noisefeat.fused.halves_features`): L* of A and of B
+    once each, both images through one spectral call per chunk of blocks."""
+    return halves_analysis(even, odd, exposure, base)[0]
+
+
+def halves_analysis(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
+                    base: FeatureBase | None = None, display_range: bool = False,
+                    colour: bool = True) -> tuple[np.ndarray, RGBStats]:
+    """(`halves_raw` rows, RGBStats: non-finite pixels of A plus B, C's display range if
+    asked) from one fused pass; `colour=False` leaves the pooled colour error column 0 (a
+    composition without the `p` part does not read it)."""
     a, b = _check_halves(even, odd)
     if not np.isfinite(exposure):
         raise ValueError(f"exposure must be finite, got {exposure}")
+    exposure = check_exposure(exposure)
     base = base or default_base()
-    if a.shape[0] == 0:
-        return np.zeros((0, RAW_COLUMNS), np.float32)
     with torch.inference_mode():
-        la, lb = lightness(torch.as_tensor(a), exposure), lightness(torch.as_tensor(b), exposure)
-        lc = lightness(torch.as_tensor(halves_mean(a, b)), exposure)
-        n = len(a)
-        both = base(torch.cat([la - lb, lc])[:, None])        # one batched call for N and C
-        out = torch.cat([both[:n], both[n:], lc.mean(dim=(1, 2))[:, None],
-                         pooled_colour_error(a, b, exposure)[:, None]], dim=1)
-    return out.numpy().astype(np.float32)
+        noise, current, mean_l, stats = fused.halves_features(torch.as_tensor(a), torch.as_tensor(b), exposure,
+                                                              base, with_range=display_range)
+        colour_err = pooled_colour_error(a, b, exposure) if colour and len(a) else torch.zeros(len(a))
+        out = torch.cat([noise, current, mean_l[:, None], colour_err[:, None]], dim=1)
+    return out.numpy().astype(np.float32), stats
 
 
 def compose(raw: np.ndarray | None, flip: np.ndarray | None, composition: str = HALVES) -> np.ndarray:
@@ -146,15 +156,33 @@ def needs(composition: str) -> tuple[bool, bool]:
 def halves_input(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
                  base: FeatureBase | None = None, composition: str = HALVES) -> np.ndarray:
     """The `halves` model input [N, n_inputs] of N blocks' half buffers (render loop, server)."""
+    return halves_input_and_stats(even, odd, exposure, base, composition)[0]
+
+
+def halves_input_and_stats(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
+                           base: FeatureBase | None = None, composition: str = HALVES
+                           ) -> tuple[np.ndarray, RGBStats]:
+    """(`halves_input`, RGBStats of the half buffers: non-finite pixels of A plus B, and
+    the display range of C = (A + B) / 2 for the flat-block test), the statistics from the
+    same fused pass as the features (or from a pass of their own when the composition
+    reads none)."""
     from .halves import halves_flip
 
     a, b = _check_halves(even, odd)
     if not np.isfinite(exposure):
         raise ValueError(f"exposure must be finite, got {exposure}")
+    exposure = check_exposure(exposure)
     feats, flip = needs(composition)
-    return compose(halves_raw(a, b, exposure, base) if feats else None,
-                   halves_flip(a, b, exposure) if flip and len(a) else (np.zeros(0) if flip else None),
-                   composition)
+    if feats:
+        raw, stats = halves_analysis(a, b, exposure, base, display_range=True,
+                                     colour="p" in parts_of(composition))
+    else:
+        raw = None
+        with torch.inference_mode():
+            stats = fused.halves_stats(torch.as_tensor(a), torch.as_tensor(b), exposure)
+    x = compose(raw, halves_flip(a, b, exposure) if flip and len(a) else (np.zeros(0) if flip else None),
+                composition)
+    return x, stats
 
 
 def noise_lightness(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0) -> np.ndarray:

@@ -28,7 +28,7 @@ from torch import nn
 
 from .cache import ByteLRU, default_max_bytes
 from .weights import KERNEL_SIZES, kernels_hash, load_kernels
-from .wavelet import alias_average, lowpass_projection, mirror_index, spectral_operators
+from .wavelet import lowpass_projection, quarter_mirror_index, spectral_operators
 
 N_LAYERS = len(KERNEL_SIZES) + 1
 N_FEATURES = 2 * N_LAYERS
@@ -36,6 +36,27 @@ MIN_SIZE = 8
 FEATURE_NAMES: tuple[str, ...] = tuple(
     [f"mean_{i + 1:02d}" for i in range(N_LAYERS)] + [f"std_{i + 1:02d}" for i in range(N_LAYERS)])
 _F32_MAX = torch.finfo(torch.float32).max
+#: columns of the gain matrix: the 12 conv layers, zero-padded (see _build_operators)
+_GAIN_COLUMNS = 16
+
+
+#: longest run of terms one float32 matmul sums (`_weighted_sums`)
+_SEGMENT = 1 << 15
+
+
+def _weighted_sums(power: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """power [n, K] @ weights [K, ...] in segments of `_SEGMENT` terms, partial sums added.
+
+    Why: one float32 matmul over the ~1 M spectrum terms of a 1024x1024 block drifted by
+    4e-4 (relative) from the float64 value; sums of 32 k terms stay at float32 rounding.
+    Blocks up to 128x128 take one matmul."""
+    k = power.shape[1]
+    if k <= _SEGMENT:
+        return power @ weights
+    total = power[:, :_SEGMENT] @ weights[:_SEGMENT]
+    for start in range(_SEGMENT, k, _SEGMENT):
+        total = total + power[:, start:start + _SEGMENT] @ weights[start:start + _SEGMENT]
+    return total
 
 
 def column_weights(w: int, wr: int) -> torch.Tensor:
@@ -62,7 +83,7 @@ class FeatureBase(nn.Module):
             with torch.no_grad():
                 conv.weight.copy_(w.reshape(1, 1, k, k))
             self.convs.append(conv)
-        # per block size, bounded by bytes (noisefeat.cache: ~40 bytes a pixel per size)
+        # per block size, bounded by bytes (noisefeat.cache: ~80 bytes a pixel per size)
         self._transfer_cache = ByteLRU(default_max_bytes() if operator_cache_bytes is None
                                        else operator_cache_bytes)
 
@@ -124,22 +145,36 @@ class FeatureBase(nn.Module):
         return ops
 
     def _build_operators(self, h: int, w: int) -> dict[str, torch.Tensor]:
-        """Only what forward reads is kept (~40 bytes a pixel of the block): the gain of
-        every layer, the twelfth layer's response and the wavelet layer's operators."""
-        col_w = column_weights(w, w // 2 + 1)
-        gains, dcs, acc = [], [], None
-        for acc in self._responses(h, w):        # layer by layer: ~60 bytes a pixel at most
-            gains.append(((1.0 - acc).abs() ** 2 * col_w).reshape(-1))
+        """Only what `features_centred` reads is kept (~80 bytes a pixel of the block): the
+        gain of every layer, the wavelet layer's operators, the twelfth layer's response
+        for odd sizes.
+
+        The gain matrix is [2 * h * (w//2+1), 16]: each bin twice, for the real and the
+        imaginary part of the interleaved spectrum (squaring the contiguous [.., 2] view is
+        ~4x faster than re*re + im*im on strided views), and 16 columns, 12 of them used (a
+        [n, K] x [K, 16] matmul is 2x faster than [K, 12] here): measured, BENCHMARKS.md
+        "Feature extraction"."""
+        wr = w // 2 + 1
+        col_w = column_weights(w, wr)
+        gain = torch.zeros(h * wr, 2, _GAIN_COLUMNS)
+        dcs, acc = [], None
+        for layer, acc in enumerate(self._responses(h, w)):    # one layer's temporaries at a time
+            gain[:, :, layer] = ((1.0 - acc).abs() ** 2 * col_w).reshape(-1, 1)
             dcs.append(acc[0, 0].real)
         assert acc is not None
-        ops = {"resp12": acc, "gain": torch.stack(gains, dim=1), "dc": torch.stack(dcs)}
-        del gains
+        ops = {"gain": gain.reshape(-1, _GAIN_COLUMNS), "dc": torch.stack(dcs)}
         if h % 2 == 0 and w % 2 == 0:
+            hh, hw = h // 2, w // 2
             analysis, synthesis = spectral_operators(self.wavelet, h, w)
-            ops["analysis12"] = analysis * acc
-            ops["synthesis"] = synthesis
-            ops["col_w"] = col_w
-            ops["mirror"] = mirror_index(h, w)
+            # 1/4 of the alias average folded in; the synthesis split by row halves, as the
+            # noise spectrum is evaluated on [2, h/2, w/2] views (see _wavelet_even)
+            ops["analysis12"] = 0.25 * analysis * acc
+            ops["synthesis"] = synthesis[:, :hw].reshape(2, hh, hw).contiguous()
+            ops["synthesis_nyquist"] = synthesis[:, hw].reshape(2, hh).contiguous()
+            ops["col_w"] = col_w[:hw].repeat_interleave(2).repeat(h)
+            ops["mirror"] = quarter_mirror_index(h, w)
+        else:
+            ops["resp12"] = acc
         return ops
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -156,46 +191,70 @@ class FeatureBase(nn.Module):
         xs = (x / scale).to(torch.float32)
         scale = scale.to(torch.float32) if scale.dtype != torch.float64 else scale
         mu = xs.mean(dim=(-2, -1), keepdim=True)
-        xc = xs - mu
+        feats = self.features_centred(xs - mu, mu.reshape(n)) * scale.reshape(n, 1)
+        return torch.nan_to_num(feats.clamp(-_F32_MAX, _F32_MAX), nan=0.0, posinf=_F32_MAX, neginf=-_F32_MAX)
+
+    def features_centred(self, xc: torch.Tensor, mu: torch.Tensor) -> torch.Tensor:
+        """The 26 features of blocks given as their centred values xc [N, H, W] (float32,
+        each block of mean zero) and their means mu [N]: what `forward` computes after its
+        range normalisation, and what the fused extraction (noisefeat.fused) calls on L*
+        blocks, whose range (0..100) needs none.
+
+        One rfft2 per block; every conv layer's noise variance is a weighted sum of the
+        power spectrum (Parseval: one matmul for the twelve), its mean follows from mu and
+        the layer's DC gain, and the wavelet layer is evaluated in the same spectrum.
+        """
+        n, h, w = xc.shape
         spec = torch.fft.rfft2(xc)
+        # mean zero by contract: the DC bin holds only the rounding left by the centring (a
+        # constant block's would read as a 1e-12 wavelet-layer mean)
+        spec[:, 0, 0] = 0.0
         ops = self._operators(h, w)
-        power = (spec.real ** 2 + spec.imag ** 2).reshape(n, -1)     # [n, h*(w//2+1)]
-        var = (power @ ops["gain"]) / float(h * w) ** 2              # [n, 12], Parseval
+        parts = torch.view_as_real(spec)
+        power = parts * parts                      # re^2, im^2 interleaved (x * x: 2x square() here)
+        var = _weighted_sums(power.reshape(n, -1), ops["gain"])[:, :N_LAYERS - 1] / float(h * w) ** 2   # [n, 12]
         std_conv = var.clamp_min(0.0).sqrt()
         mean_conv = mu.reshape(n, 1) * (1.0 - ops["dc"])[None, :]
-        mean13, std13 = self._wavelet_layer(xs, spec, ops, mu)
-        means = torch.cat([mean_conv, mean13.reshape(n, 1)], dim=1)
-        stds = torch.cat([std_conv, std13.reshape(n, 1)], dim=1)
-        feats = (torch.cat([means, stds], dim=1) * scale.reshape(n, 1)).clamp(-_F32_MAX, _F32_MAX)
-        return torch.nan_to_num(feats, nan=0.0, posinf=_F32_MAX, neginf=-_F32_MAX)
-
-    def _wavelet_layer(self, xs: torch.Tensor, spec: torch.Tensor, ops: dict[str, torch.Tensor],
-                       mu: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Mean and std of input - P(O_12), P the wavelet low-pass projection.
-
-        Even sizes stay in the frequency domain (aliasing form of the periodized DWT, see
-        wavelet.spectral_operators); odd sizes take one inverse FFT and the spatial filters.
-        """
-        n, h, w = xs.shape
-        low_dc = ops["dc"][-1]
         if "analysis12" in ops:
-            # noise spectrum = X - S * Q(f mod (h/2, w/2)): evaluated per quadrant of the
-            # half-spectrum (and its Nyquist column) instead of tiling Q.
-            q = alias_average(ops["analysis12"] * spec, h, w, ops["mirror"])             # [n, h/2, w/2]
-            syn, cw = ops["synthesis"], ops["col_w"]
-            hh, hw = h // 2, w // 2
-            total = torch.zeros(n)
-            for rows in (slice(0, hh), slice(hh, h)):
-                part = spec[:, rows, :hw] - syn[rows, :hw] * q
-                total += ((part.real ** 2 + part.imag ** 2) * cw[:hw]).sum(dim=(-2, -1))
-                nyq = spec[:, rows, hw] - syn[rows, hw] * q[:, :, 0]
-                total += (nyq.real ** 2 + nyq.imag ** 2).sum(dim=-1)
-                if rows.start == 0:
-                    dc = part[:, 0, 0]
-            var = (total - (dc.real ** 2 + dc.imag ** 2)) / float(h * w) ** 2
-            mean = dc.real / float(h * w) + mu.reshape(n) * (1.0 - low_dc)
-            return mean, var.clamp_min(0.0).sqrt()
-        o12 = torch.fft.irfft2(spec * ops["resp12"], s=(h, w)) + mu * low_dc
+            mean13, std13 = self._wavelet_even(spec, ops, mu)
+        else:
+            mean13, std13 = self._wavelet_odd(xc + mu.reshape(n, 1, 1), spec, ops, mu)
+        return torch.cat([mean_conv, mean13.reshape(n, 1), std_conv, std13.reshape(n, 1)], dim=1)
+
+    @staticmethod
+    def _wavelet_even(spec: torch.Tensor, ops: dict[str, torch.Tensor],
+                      mu: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean and std of input - P(O_12), P the wavelet low-pass projection, on an even
+        block: the noise spectrum X - S * Q(f mod (h/2, w/2)) with Q the alias average of
+        the analysis response times X (aliasing form of the periodized DWT, see
+        wavelet.spectral_operators), never leaving the frequency domain.
+
+        The two row aliases are summed first (half the spectrum), the two column aliases
+        then meet through one gather on the quarter grid (conjugate symmetry of a real
+        block's spectrum); the noise spectrum is formed on [2, h/2, w/2] views of the half
+        spectrum in one multiply-subtract, plus its Nyquist column."""
+        n, h, wr = spec.shape
+        hh, hw = h // 2, wr - 1
+        w = 2 * hw
+        z = spec * ops["analysis12"]
+        rows = z[:, :hh] + z[:, hh:]                                              # [n, h/2, w/2+1]
+        mirrored = torch.gather(rows.reshape(n, -1), 1, ops["mirror"].expand(n, -1)).reshape(n, hh, hw)
+        q = rows[..., :hw] + mirrored.conj()                                      # [n, h/2, w/2]
+        noise = torch.addcmul(spec[..., :hw].unflatten(1, (2, hh)), ops["synthesis"], q[:, None], value=-1)
+        parts = torch.view_as_real(noise)
+        total = _weighted_sums((parts * parts).reshape(n, -1), ops["col_w"])
+        nyq = spec[..., hw].unflatten(1, (2, hh)) - ops["synthesis_nyquist"] * q[..., 0].unsqueeze(1)
+        total = total + torch.view_as_real(nyq).square().sum(dim=(1, 2, 3))
+        dc = noise[:, 0, 0, 0]
+        var = (total - (dc.real ** 2 + dc.imag ** 2)) / float(h * w) ** 2
+        mean = dc.real / float(h * w) + mu.reshape(n) * (1.0 - ops["dc"][-1])
+        return mean, var.clamp_min(0.0).sqrt()
+
+    def _wavelet_odd(self, xs: torch.Tensor, spec: torch.Tensor, ops: dict[str, torch.Tensor],
+                     mu: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Odd sizes: one inverse FFT to O_12 and the spatial wavelet filters."""
+        n, h, w = xs.shape
+        o12 = torch.fft.irfft2(spec * ops["resp12"], s=(h, w)) + mu.reshape(n, 1, 1) * ops["dc"][-1]
         noise13 = xs - lowpass_projection(o12, self.wavelet)
         mean = noise13.mean(dim=(-2, -1))
         var = ((noise13 - mean[:, None, None]) ** 2).mean(dim=(-2, -1))

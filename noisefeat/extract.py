@@ -1,4 +1,5 @@
-"""numpy-facing feature extraction: linear RGB blocks -> display -> L* -> 26 features."""
+"""numpy-facing feature extraction: linear RGB blocks -> display -> L* -> 26 features
+(through the fused path of noisefeat.fused)."""
 from __future__ import annotations
 
 import logging
@@ -8,8 +9,10 @@ from functools import lru_cache
 import numpy as np
 import torch
 
+from . import fused
 from .base import MIN_SIZE, FeatureBase
-from .display import check_exposure, lightness, nonfinite_pixels
+from .display import check_exposure
+from .fused import RGBStats
 
 log = logging.getLogger(__name__)
 
@@ -21,7 +24,8 @@ def default_base() -> FeatureBase:
     NOISESTOP_FEATURE_WEIGHTS (a path, 'smoothing' or 'pretrained') selects other weights,
     e.g. for the feature-base ablation.
     """
-    return FeatureBase(os.environ.get("NOISESTOP_FEATURE_WEIGHTS") or None).eval()
+    with torch.inference_mode(False):   # normal tensors even if first asked for under inference mode
+        return FeatureBase(os.environ.get("NOISESTOP_FEATURE_WEIGHTS") or None).eval()
 
 
 def _as_blocks(blocks: np.ndarray | torch.Tensor) -> torch.Tensor:
@@ -42,17 +46,38 @@ def extract_features(blocks: np.ndarray | torch.Tensor, *, exposure: float = 0.0
     """Linear RGB [N, H, W, 3] -> float32 [N, 26] (see FeatureBase for the order).
 
     The model input is extract_features(quick) - extract_features(current).
-    Non-finite pixels follow the display rule (NaN/-Inf -> black, +Inf -> white); they are
-    counted per block, logged, and returned when `return_nonfinite` is set.
+    Non-finite pixels follow the display rule (NaN/-Inf read as black, +Inf as white); they
+    are counted per block, logged, and returned when `return_nonfinite` is set.
+    Computed by the fused path (noisefeat.fused): one chunked pass from RGB to features.
     """
-    t = _as_blocks(blocks)
+    feats, stats = analyse_blocks(blocks, exposure=exposure, base=base)
+    return (feats, stats.nonfinite) if return_nonfinite else feats
+
+
+def analyse_blocks(blocks: np.ndarray | torch.Tensor, *, exposure: float = 0.0,
+                   base: FeatureBase | None = None, display_range: bool = False) -> tuple[np.ndarray, RGBStats]:
+    """(float32 [N, 26] features, RGBStats) of linear RGB blocks [N, H, W, 3]: the features,
+    the non-finite pixel count of each block and, if `display_range`, its display range
+    (what the flat-block test reads), all from the one fused pass."""
+    return analyse_many([blocks], exposure=exposure, base=base, display_range=[display_range])[0]
+
+
+def analyse_many(batches: list[np.ndarray | torch.Tensor], *, exposure: float = 0.0,
+                 base: FeatureBase | None = None,
+                 display_range: list[bool] | None = None) -> list[tuple[np.ndarray, RGBStats]]:
+    """`analyse_blocks` of several batches of blocks of one size in one fused call (a
+    request's blocks and quick images: one spectral pass for both)."""
+    ts = [_as_blocks(b) for b in batches]
     exposure = check_exposure(exposure)
     base = base or default_base()
-    bad = nonfinite_pixels(t).numpy().astype(np.int64) if t.shape[0] else np.zeros(0, np.int64)
+    with torch.inference_mode():
+        results = fused.features_of(ts, exposure, base, display_range)
+    for _, stats in results:
+        _log_nonfinite(stats.nonfinite)
+    return [(f.numpy(), stats) for f, stats in results]
+
+
+def _log_nonfinite(bad: np.ndarray) -> None:
     if bad.any():
         log.warning("%d non-finite pixels in %d of %d blocks (NaN/-Inf read as black, +Inf as white)",
                     int(bad.sum()), int((bad > 0).sum()), len(bad))
-    with torch.inference_mode():
-        feats = base(lightness(t, exposure)[:, None]).numpy() if t.shape[0] else \
-            np.zeros((0, 26), np.float32)
-    return (feats, bad) if return_nonfinite else feats

@@ -121,24 +121,16 @@ def spectral_operators(wavelet: str, h: int, w: int) -> tuple[torch.Tensor, torc
 
 
 @_normal_tensors
-def mirror_index(h: int, w: int) -> torch.Tensor:
-    """Flat rfft2-half indices of G[-f1, w/2 - g2] for g2 in 0..w/2-1 (one gather)."""
-    wr = w // 2 + 1
-    rows = (-torch.arange(h)) % h
-    cols = w // 2 - torch.arange(w // 2)
-    return (rows[:, None] * wr + cols[None, :]).reshape(-1)
+def quarter_mirror_index(h: int, w: int) -> torch.Tensor:
+    """Flat indices into a [h/2, w/2+1] array R of R[-g1 mod h/2, w/2 - g2], for the quarter
+    grid g1 < h/2, g2 < w/2 (one gather).
 
-
-def alias_average(g: torch.Tensor, h: int, w: int, index: torch.Tensor | None = None) -> torch.Tensor:
-    """Q(g) = 1/4 sum of G over the four aliases, on the quarter grid [.., h/2, w/2].
-
-    G is the rfft2 half-spectrum [.., h, w//2+1] of a real signal (conjugate-symmetric),
-    so its columns beyond w/2 are conj(G[-f1, w - f2]): one gather, by `index`
-    (`mirror_index(h, w)`, which callers keep in their own bounded cache) or computed here.
+    Why: the alias average Q(g) = 1/4 sum of G over the four aliases of g needs, on the rfft2
+    half-spectrum, the columns beyond w/2, which are conj(G[-f1, w - f2]). Summing the two
+    row aliases first (R = G[:h/2] + G[h/2:]) turns both mirrored terms into one entry of R:
+    Q = 1/4 (R[g1, g2] + conj(R[-g1 mod h/2, w/2 - g2])).
     """
-    half_w, half_h = w // 2, h // 2
-    flat = g.reshape(*g.shape[:-2], -1)
-    index = mirror_index(h, w) if index is None else index
-    mirrored = torch.conj(flat.index_select(-1, index).reshape(*g.shape[:-2], h, half_w))
-    cols = g[..., :half_w] + mirrored                                 # [.., h, w/2]
-    return 0.25 * (cols[..., :half_h, :] + cols[..., half_h:, :])      # [.., h/2, w/2]
+    hh, hw = h // 2, w // 2
+    rows = (-torch.arange(hh)) % hh
+    cols = hw - torch.arange(hw)
+    return (rows[:, None] * (hw + 1) + cols[None, :]).reshape(-1)

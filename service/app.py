@@ -20,6 +20,7 @@ from typing import Annotated, Any
 
 import anyio
 import anyio.to_thread
+import numpy as np
 from fastapi import APIRouter, Depends, FastAPI, Header, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
@@ -80,7 +81,11 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
     """The ASGI app; models load in its lifespan (now, if `registry` is not loaded yet).
 
     `limit_concurrency`: most requests in flight, health probes and /metrics not counted
-    (None: no limit); `body_timeout`: seconds a request body may stall (None: no limit)."""
+    (None: no limit); `body_timeout`: seconds a request body may stall (None: no limit).
+
+    Requests are classified one by one, 2 at a time (`inference_threads`): a micro-batching
+    window across concurrent requests was measured slower (BENCHMARKS.md "Verdict
+    service", issue 16) and is not kept."""
     limits = limits or Limits()
     metrics = metrics or ServiceMetrics()
 
@@ -209,9 +214,10 @@ def _api_routes(registry: ModelRegistry) -> APIRouter:
 async def _infer(request: Request, served: ServedModel, header_length: str | None) -> Response:
     if request.headers.get("content-encoding", "identity").strip().lower() not in ("identity", ""):
         raise ApiError(415, "compressed request bodies are not accepted (Content-Encoding must be identity)")
-    body = [await _read_body(request)]  # counted against the limit by BodyLimitMiddleware
     state = request.app.state
     length = None if header_length is None else int(header_length)
+    # counted against the limit by BodyLimitMiddleware
+    body = [await _read_body(request, TENSOR_ALIGNMENT if length is not None else 1, length or 0)]
     try:
         content, json_length = await anyio.to_thread.run_sync(
             _infer_sync, served, body, length, state.limits, state.metrics, limiter=state.limiter)
@@ -222,11 +228,36 @@ async def _infer(request: Request, served: ServedModel, header_length: str | Non
     return Response(content, media_type=BINARY_MEDIA, headers={HEADER_LENGTH: str(json_length)})
 
 
-async def _read_body(request: Request) -> bytearray:
+#: the binary tensors of a request are placed at this alignment in memory (`_read_body`), so
+#: that they are used where they arrived, as numpy views (oip.decode_tensors), with no copy
+TENSOR_ALIGNMENT = 64
+
+
+async def _read_body(request: Request, align: int = 1, at: int = 0) -> memoryview | bytearray:
     """The body in one buffer sized by Content-Length when declared (Starlette's
-    `request.body()` joins a list of chunks: twice the body at its peak)."""
+    `request.body()` joins a list of chunks: twice the body at its peak).
+
+    With `align` > 1 the body is placed in a slightly larger, uninitialised buffer so that
+    its byte `at` (where the binary tensors start, after the JSON header) lies on an
+    `align`-byte boundary, and a memoryview of the body is returned: the tensors are then
+    used in place whatever the header's length (oip.decode_tensors). Without a declared
+    length the body grows as it arrives (tensors that end up misaligned are copied)."""
     declared = request.headers.get("content-length", "")
-    buf = bytearray(int(declared)) if declared.isdigit() else bytearray()
+    size = int(declared) if declared.isdigit() else 0
+    if align > 1 and size:
+        store = np.empty(size + align, np.uint8)       # no zero-filling: every byte is written
+        pad = -(store.ctypes.data + at) % align
+        view, pos = memoryview(store), pad
+        try:
+            async for chunk in request.stream():
+                if pos + len(chunk) > len(view):     # more than declared: BodyLimit/h11 stop this
+                    raise ApiError(400, f"body longer than its Content-Length ({size} bytes)")
+                view[pos:pos + len(chunk)] = chunk
+                pos += len(chunk)
+        except ClientDisconnect:
+            raise ApiError(400, f"client disconnected after {pos - pad} body bytes") from None
+        return view[pad:pos]
+    buf = bytearray(size)
     pos = 0
     try:
         async for chunk in request.stream():
@@ -241,11 +272,21 @@ async def _read_body(request: Request) -> bytearray:
     return buf
 
 
-def _infer_sync(served: ServedModel, body: list[bytearray], header_length: int | None, limits: Limits,
-                metrics: ServiceMetrics) -> tuple[bytes, int | None]:
-    """Decode, classify, encode: everything CPU-bound about one request, in a worker thread.
-    `body` is a one-item list, emptied once the tensors are decoded so that the request's
-    bytes are freed before the model runs."""
+def _infer_sync(served: ServedModel, body: list[bytearray | memoryview], header_length: int | None,
+                limits: Limits, metrics: ServiceMetrics) -> tuple[bytes, int | None]:
+    """Decode, classify, encode: everything CPU-bound about one request, in a worker thread."""
+    req, tensors, exposure, offset, wanted = _decode_sync(body, header_length, limits)
+    arrays, parameters = served.infer(tensors, exposure, offset)
+    return _encode(served, req, wanted, arrays, parameters, metrics)
+
+
+def _decode_sync(body: list[bytearray | memoryview], header_length: int | None, limits: Limits
+                 ) -> tuple[InferenceRequest, dict[str, np.ndarray], float, float | None, dict[str, bool]]:
+    """The request, its tensors, exposure, offset and wanted outputs.
+
+    `body` is a one-item list, emptied once the tensors are decoded: a JSON body's text is
+    then freed before the model runs; binary tensors are views of the body (no copy), which
+    lives as long as they do."""
     if header_length is None:                  # all JSON: parsed in place
         head, tail = body[0], b""
     else:
@@ -258,10 +299,16 @@ def _infer_sync(served: ServedModel, body: list[bytearray], header_length: int |
     wanted = _requested_outputs(req)
     tensors = decode_tensors(req, tail, limits.max_batch, scan_bools=may_hold_bools(head))
     del head, tail
+    if isinstance(body[0], bytearray) and header_length is None:
+        body[0].clear()                        # the JSON text (no view of it is left)
     body.clear()
     for t in req.inputs:       # the parsed JSON values (~10x the body): no longer needed
         t.data = None
-    arrays, parameters = served.infer(tensors, exposure, offset)
+    return req, tensors, exposure, offset, wanted
+
+
+def _encode(served: ServedModel, req: InferenceRequest, wanted: dict[str, bool], arrays: dict[str, np.ndarray],
+            parameters: dict[str, Any], metrics: ServiceMetrics) -> tuple[bytes, int | None]:
     metrics.record(served.name, arrays["verdict"], parameters)
     resp = InferenceResponse(
         model_name=served.name, model_version=served.version, id=req.id, parameters=parameters or None,

@@ -660,6 +660,9 @@ def _register_serve(sub: argparse._SubParsersAction) -> None:
                         "body); a request waits for its share, then gets 503")
     p.add_argument("--threads", type=_int_in(1, 256), default=2,
                    help="requests classified at the same time")
+    p.add_argument("--torch-threads", type=_int_in(1, 256), default=1,
+                   help="torch threads for each request being classified (default 1: requests "
+                        "already run --threads at a time)")
     p.add_argument("--limit-concurrency", type=_int_in(1, 65536), default=64,
                    help="most requests in flight; more are answered 503 with Retry-After (health "
                         "probes and /metrics are never refused; default 64)")
@@ -688,7 +691,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         max_block_side=args.max_block_side, max_pixels=args.max_pixels,
         limit_concurrency=args.limit_concurrency, max_connections=args.max_connections,
         header_timeout=args.header_timeout, body_timeout=args.body_timeout, keep_alive=args.keep_alive,
-        memory_budget=args.memory_budget)
+        memory_budget=args.memory_budget, torch_threads=args.torch_threads)
     return 0
 
 

@@ -5,8 +5,8 @@ more. uvicorn had no header-read timeout (its keep-alive timeout only runs betwe
 requests of one connection) and its `limit_concurrency` counts open connections, idle
 ones included, and then answers 503 to every route, health probes too.
 
-* `guarded_protocol(header_timeout)`: uvicorn's h11 protocol with a deadline for the
-  request line and headers, armed when a connection opens and whenever it waits for a
+* `guarded_protocol(header_timeout)`: uvicorn's h11 protocol (fed in `H11_PIECE` slices)
+  with a deadline for the request line and headers, armed when a connection opens and whenever it waits for a
   new request; a connection that has not sent complete headers by then is closed (408
   if it sent part of a request). Slow-header clients (slowloris) hold a connection for
   `header_timeout` seconds at most.
@@ -30,6 +30,12 @@ import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 log = logging.getLogger(__name__)
+
+#: bytes handed to h11 at a time. asyncio reads up to 256 KiB per call; h11 copies what it
+#: is given three times over, and a 6.3 MB request body (16 blocks of 128x128, two
+#: tensors) took 18 ms of the event loop in 256 KiB pieces against 3 ms in 64 KiB ones
+#: (measured; the copies then stay in cache). Issue 16.
+H11_PIECE = 64 * 1024
 
 #: paths that are never counted against nor refused by the in-flight limit
 EXEMPT_PREFIXES = ("/v2/health/", "/metrics")
@@ -55,7 +61,14 @@ class _HeaderDeadlineProtocol(H11Protocol):
             self._arm()
         if waiting and data:
             self._partial = True
-        super().data_received(data)
+        if len(data) <= H11_PIECE:
+            super().data_received(data)
+        else:
+            view = memoryview(data)
+            for start in range(0, len(data), H11_PIECE):
+                super().data_received(view[start:start + H11_PIECE])
+                if self.transport.is_closing():         # answered (e.g. 400): the rest is moot
+                    break
         if self.conn.their_state is not h11.IDLE:       # request line and headers are in
             self._disarm()
             self._partial = False

@@ -142,21 +142,46 @@ class MemoryBudget:
             event.set()
 
 
+class _MallInfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in
+                ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks",
+                 "fordblks", "keepcost")]
+
+
 @functools.cache
-def _malloc_trim() -> Callable[[int], int] | None:
+def _libc() -> tuple[Callable[[int], int] | None, Callable[[], _MallInfo2] | None]:
+    """glibc's malloc_trim and mallinfo2 (None where missing: not glibc, or glibc < 2.33)."""
     try:
-        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
-    except (OSError, AttributeError):   # not glibc: nothing to do
-        return None
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    except OSError:
+        return None, None
+    trim = getattr(libc, "malloc_trim", None)
+    info = getattr(libc, "mallinfo2", None)
+    if info is not None:
+        info.restype = _MallInfo2
+    return trim, info
 
 
-def release_memory() -> None:
-    """Give the heap's free pages back to the system after a request (glibc keeps them, so
-    the resident size would stay at its high-water mark and the next large request would
-    start from there)."""
-    trim = _malloc_trim()
-    if trim is not None:
-        trim(0)
+#: free heap bytes above which `release_memory` trims the heap
+RELEASE_ABOVE = 64 * 1024 * 1024
+
+
+def release_memory(above: int = RELEASE_ABOVE) -> bool:
+    """Give the heap's free pages back to the system after a request when more than `above`
+    bytes of it are free (glibc keeps them, so the resident size would stay at its
+    high-water mark and the next large request would start from there). True if trimmed.
+
+    Why not after every request (as issue 14 first did): trimming the few tens of MB an
+    ordinary request frees makes the next one fault them all back in; for 16 blocks of
+    128x128 that was 7.6 ms of CPU a request (issue 16, measured). Large requests, the
+    ones issue 14 was about, still leave a trimmed heap. Without mallinfo2: always trims."""
+    trim, info = _libc()
+    if trim is None:
+        return False
+    if info is not None and info().fordblks <= above:
+        return False
+    trim(0)
+    return True
 
 
 def _env_int(environ: Mapping[str, str], key: str, default: int) -> int:

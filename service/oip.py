@@ -218,6 +218,9 @@ def decode_tensors(req: InferenceRequest, binary: bytes | memoryview, max_batch:
                    scan_bools: bool = True) -> dict[str, np.ndarray]:
     """Input tensors by name, shaped as declared; checks the batch limit before any copy.
 
+    Binary tensors are numpy views of `binary` (no copy) when it is writable and they are
+    aligned (service.app._read_body places them so); otherwise copies.
+
     `scan_bools=False` skips looking for JSON true/false among numbers (callers that know
     the JSON text holds no such literal: `may_hold_bools`)."""
     names = [t.name for t in req.inputs]
@@ -244,7 +247,9 @@ def decode_tensors(req: InferenceRequest, binary: bytes | memoryview, max_batch:
             if offset + size > len(binary):
                 raise ApiError(400, f"input {t.name!r}: binary data truncated (needs {size} bytes "
                                     f"at offset {offset}, {len(binary) - offset} left)")
-            flat = np.frombuffer(binary, dtype=dtype, count=count, offset=offset).copy()  # writable
+            flat = np.frombuffer(binary, dtype=dtype, count=count, offset=offset)
+            if not flat.flags.aligned or not flat.flags.writeable:
+                flat = flat.copy()     # torch needs aligned, writable memory; else used in place
             offset += size
         elif t.data is None:
             raise ApiError(400, f"input {t.name!r} has neither data nor binary_data_size")

@@ -19,13 +19,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from learning.bundle import BUNDLED_DIR, MANIFEST, Model, load_model
 from learning.bundle_check import read_manifest
 from learning.stoprule import check_offset
 from noisefeat.base import MIN_SIZE
-from noisefeat.display import nonfinite_pixels
 
 from .oip import ApiError, ModelMetadata, TensorMetadata
 
@@ -127,13 +125,7 @@ class ServedModel:
         Verdicts come from the one stop rule at `offset` (the request's), else the server's
         `--offset`, else the model's calibrated one; blocks whose display image is flat are
         converged whatever their score (rows of `features` carry no image: no flat test)."""
-        unknown = sorted(set(tensors) - {t.name for t in self.inputs})
-        if unknown:
-            raise ApiError(400, f"model {self.name!r} has no input {unknown[0]!r}; it takes "
-                                f"{[t.name for t in self.inputs]}")
-        for name, arr in tensors.items():
-            if arr.dtype != np.float32:
-                raise ApiError(400, f"input {name!r} must be FP32")
+        self._check_names(tensors)
         offset = self.effective_offset if offset is None else float(offset)
         params: dict[str, Any] = {"offset": offset}
         try:
@@ -141,19 +133,28 @@ class ServedModel:
                 verdict, score = self.model.score_inputs(self._features(tensors), offset)
             elif self.model.needs_halves:
                 even, odd = self._halves(tensors)
-                params["nonfinite_pixels"] = [a + b for a, b in zip(_nonfinite(even), _nonfinite(odd))]
-                verdict, score = self.model.score_halves(even, odd, exposure=exposure, offset=offset)
+                verdict, score, bad = self.model.assess_halves(even, odd, exposure=exposure, offset=offset)
+                params["nonfinite_pixels"] = [int(c) for c in bad]
             else:
                 blocks, quick = self._blocks(tensors)
-                params["nonfinite_pixels"] = _nonfinite(blocks)
-                if self.model.needs_quick:
-                    params["nonfinite_quick_pixels"] = _nonfinite(quick)
-                else:
+                if not self.model.needs_quick:
                     quick = None  # raw-block and quick-'none' models read the current block only
-                verdict, score = self.model.score_blocks(blocks, quick, exposure=exposure, offset=offset)
+                verdict, score, bad = self.model.assess_blocks(blocks, quick, exposure=exposure, offset=offset)
+                params["nonfinite_pixels"] = [int(c) for c in bad["blocks"]]
+                if self.model.needs_quick:
+                    params["nonfinite_quick_pixels"] = [int(c) for c in bad["quick"]]
         except ValueError as exc:  # what the feature base and estimator reject
             raise ApiError(400, str(exc)) from None
         return {"verdict": verdict, "score": np.asarray(score, np.float32)}, params
+
+    def _check_names(self, tensors: dict[str, np.ndarray]) -> None:
+        unknown = sorted(set(tensors) - {t.name for t in self.inputs})
+        if unknown:
+            raise ApiError(400, f"model {self.name!r} has no input {unknown[0]!r}; it takes "
+                                f"{[t.name for t in self.inputs]}")
+        for name, arr in tensors.items():
+            if arr.dtype != np.float32:
+                raise ApiError(400, f"input {name!r} must be FP32")
 
     def _features(self, tensors: dict[str, np.ndarray]) -> np.ndarray:
         if len(tensors) > 1:
@@ -201,10 +202,6 @@ class ServedModel:
         elif quick is None and self.model.needs_quick:
             raise ApiError(400, f"model {self.name!r} needs input 'quick' (the quick image of every block)")
         return blocks, quick
-
-
-def _nonfinite(rgb: np.ndarray) -> list[int]:
-    return [int(c) for c in nonfinite_pixels(torch.from_numpy(rgb))] if len(rgb) else []
 
 
 @dataclass

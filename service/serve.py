@@ -35,6 +35,11 @@ DEFAULT_MAX_CONNECTIONS = 1024
 DEFAULT_HEADER_TIMEOUT = 10.0
 DEFAULT_BODY_TIMEOUT = 30.0
 DEFAULT_KEEP_ALIVE = 5
+#: torch threads per inference thread. Requests already run 2 at a time; intra-op threads on
+#: top of that measured no faster at 1 client and slower at 8 (p99 233/230/195 ms against
+#: 289/274/289 ms in three alternating runs, issue 16), and wait on one another whenever
+#: the machine is busy
+DEFAULT_TORCH_THREADS = 1
 
 
 def _check_seconds(name: str, value: float | None, high: float = 3600.0) -> None:
@@ -79,12 +84,13 @@ def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", po
         limit_concurrency: int | None = DEFAULT_LIMIT_CONCURRENCY,
         max_connections: int = DEFAULT_MAX_CONNECTIONS, header_timeout: float = DEFAULT_HEADER_TIMEOUT,
         body_timeout: float | None = DEFAULT_BODY_TIMEOUT, keep_alive: int = DEFAULT_KEEP_ALIVE,
-        memory_budget: int | None = None) -> None:
+        memory_budget: int | None = None, torch_threads: int = DEFAULT_TORCH_THREADS) -> None:
     """Serve `models` ({name: bundle path or None for the bundled model}; empty: the bundled
     model) until SIGTERM/SIGINT. The token defaults to NOISESTOP_TOKEN / NOISESTOP_TOKEN_FILE;
     limits default to NOISESTOP_MAX_BODY_BYTES / NOISESTOP_MAX_BATCH / NOISESTOP_MAX_BLOCK_SIDE /
     NOISESTOP_MAX_PIXELS. Logs go to the root logger (uvicorn's own logging setup is off);
-    `log_level` overrides uvicorn's level only. Connection settings: module doc."""
+    `log_level` overrides uvicorn's level only. Connection settings: module doc.
+    `torch_threads`: torch's intra-op threads for each of the `inference_threads`."""
     if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
         raise ValueError(f"port must be 0..65535, got {port!r}")
     _check_seconds("graceful_timeout", graceful_timeout)
@@ -92,6 +98,10 @@ def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", po
     _check_seconds("keep_alive", keep_alive)
     if isinstance(max_connections, bool) or not isinstance(max_connections, int) or max_connections < 1:
         raise ValueError(f"max_connections must be a whole number >= 1, got {max_connections!r}")
+    if isinstance(torch_threads, bool) or not isinstance(torch_threads, int) or not 1 <= torch_threads <= 256:
+        raise ValueError(f"torch_threads must be 1..256, got {torch_threads!r}")
+    import torch
+    torch.set_num_threads(torch_threads)     # before any inference thread starts: they inherit it
     protocol = guarded_protocol(header_timeout)
     app = build(models, host, token=token, token_file=token_file, max_body_bytes=max_body_bytes,
                 max_batch=max_batch, inference_threads=inference_threads, offset=offset,

@@ -22,12 +22,11 @@ criterion needs it; it is stored in the checkpoint so a resume does not re-rende
 """
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import os
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +40,7 @@ from .blocks import BlockRenderer, compose
 from .checkpoint import CHECKPOINT, load_checkpoint, save_checkpoint
 from .criteria import TIMER_NAMES, Criterion, build_criterion
 from .outputs import prepare_output_dir, write_outputs
-from .passloop import PassLoop
+from .passloop import PassLoop, torch_threads
 from .report import final_vs_reference, pass_sizes, render_report
 from .settings import DEFAULT, NOT_USED, check_spp_settings, resolve_settings
 from .settings import describe as describe_settings
@@ -62,21 +61,6 @@ def scene_label(scene: str | os.PathLike) -> str:
 
 
 # ----------------------------------------------------------------------------- the loop
-
-
-@contextlib.contextmanager
-def _torch_threads(n: int) -> Iterator[None]:
-    """Torch on `n` threads for the decisions between two passes (measured, BENCHMARKS.md
-    "Block passes and scaling"): right after a kernel, Dr.Jit's worker threads still spin on
-    both cores, and torch's OpenMP team stalled against them, 50x slower than one thread."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def _resolve_criterion(criterion: Criterion | str, reference: Stack | None) -> Criterion:
@@ -251,7 +235,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
             t0 = time.perf_counter()
             images = br.render_blocks(ids, sizes[p], seed, pass_index=p)
             loop_timers["render_s"] += time.perf_counter() - t0
-            with _torch_threads(1):
+            with torch_threads(1):
                 loop.add_pass(ids, images, sizes[p])
             spp = acc.spp(ids[0])
             p += 1

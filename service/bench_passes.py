@@ -66,6 +66,7 @@ def pass_cost(repeats: int = 3) -> dict[str, Any]:
 def decision_cost(repeats: int = 5, counts: tuple[int, ...] = (1, 4, 16, 64, 256)) -> dict[str, Any]:
     """Seconds of one flip decision call against the number of 64x64 blocks it judges."""
     from renderer.criteria import BlockView, FlipCriterion
+    from renderer.passloop import torch_threads
 
     rng = np.random.default_rng(0)
     crit = FlipCriterion()
@@ -76,8 +77,9 @@ def decision_cost(repeats: int = 5, counts: tuple[int, ...] = (1, 4, 16, 64, 256
         b = base + rng.normal(0, 0.02, base.shape)
         views = [BlockView(mean=(a[i] + b[i]) / 2, spp=64, nonfinite=0, halves=(a[i], b[i]), half_spp=(32, 32),
                            quick=None) for i in range(n)]
-        crit.decide(list(range(n)), views)                          # warm
-        s = _median(lambda views=views, n=n: crit.decide(list(range(n)), views), repeats)
+        with torch_threads(1):                                      # as the render loop decides
+            crit.decide(list(range(n)), views)                      # warm
+            s = _median(lambda views=views, n=n: crit.decide(list(range(n)), views), repeats)
         rows.append({"blocks": n, "seconds": s, "ms_per_block": 1e3 * s / n})
     return {"criterion": "flip", "block": 64, "rows": rows}
 

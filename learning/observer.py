@@ -30,6 +30,7 @@ import torch
 
 from noisefeat.display import display as _display
 from noisefeat.display import srgb_decode as _srgb_decode
+from noisefeat.flip import check_ppd
 
 from .stack import Stack, block_shape, update_labels
 
@@ -57,16 +58,6 @@ def srgb_decode(srgb01: np.ndarray) -> np.ndarray:
 
 # ----------------------------------------------------------------------------- FLIP
 
-def _check_ppd(ppd: float) -> float:
-    try:
-        p = float(ppd)
-    except (TypeError, ValueError):
-        raise ValueError(f"ppd must be a positive number, got {ppd!r}") from None
-    if not math.isfinite(p) or p <= 0:
-        raise ValueError(f"ppd must be a positive finite number, got {ppd!r}")
-    return p
-
-
 def _check_ldr(img: np.ndarray, name: str) -> np.ndarray:
     if not isinstance(img, np.ndarray):
         raise ValueError(f"{name} must be a numpy array, got {type(img).__name__}")
@@ -87,7 +78,7 @@ def flip_map(ref_srgb: np.ndarray, test_srgb: np.ndarray, ppd: float = DEFAULT_P
     """Raw LDR-FLIP error map [H, W] float32 in [0, 1] of two sRGB images in [0, 1]."""
     import flip_evaluator
 
-    p = _check_ppd(ppd)
+    p = check_ppd(ppd)
     ref = _check_ldr(ref_srgb, "reference")
     test = _check_ldr(test_srgb, "test image")
     if ref.shape != test.shape:
@@ -190,7 +181,7 @@ class VirtualObserver:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.tau) and self.tau >= 0):
             raise ValueError(f"tau must be a non-negative number, got {self.tau!r}")
-        _check_ppd(self.ppd)
+        check_ppd(self.ppd)
         _check_margin(self.edge_margin)
 
     @property

@@ -67,7 +67,8 @@ CHUNK_PIXELS = 1 << 16
 _f32 = np.float32
 
 
-def _check_ppd(ppd: float) -> float:
+def check_ppd(ppd: float) -> float:
+    """FLIP's pixels per degree as a positive finite float, else ValueError."""
     try:
         p = float(ppd)
     except (TypeError, ValueError):
@@ -330,7 +331,7 @@ def ldr_flip(reference: torch.Tensor | np.ndarray, test: torch.Tensor | np.ndarr
     [N, H, W, 3] each: what `flip_evaluator.evaluate(ref, test, "LDR", applyMagma=False)`
     returns for each pair alone (values outside [0, 1] are clamped, as FLIP clamps them)."""
     ref, tst = _check_pair(reference, test, "reference and test images")
-    p = _check_ppd(ppd)
+    p = check_ppd(ppd)
     n, h, w = ref.shape[:3]
     out = torch.zeros((n, h, w))
     if h * w == 0:
@@ -350,7 +351,7 @@ def mean_flip_halves(even: torch.Tensor | np.ndarray, odd: torch.Tensor | np.nda
     first, so the clipped linear values are what it computes on (to float32 rounding).
     A block whose two display images are identical gets exactly 0, as from FLIP."""
     a, b = _check_pair(even, odd, "half buffers")
-    p = _check_ppd(ppd)
+    p = check_ppd(ppd)
     n, h, w = a.shape[:3]
     out = torch.zeros(n, dtype=torch.float64)
     if h * w == 0:

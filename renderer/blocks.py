@@ -244,9 +244,7 @@ class BlockRenderer:
 
     def _trace(self, mask: np.ndarray, spp: int, seed: int, pass_index: int) -> np.ndarray:
         assert self._tracer is not None
-        if not isinstance(spp, (int, np.integer)) or spp < 1:
-            raise ValueError(f"spp must be a positive integer, got {spp!r}")
-        image = self._tracer.trace(mask, int(spp), derive_seed(seed, FULL_FRAME, pass_index))
+        image = self._tracer.trace(mask, spp, derive_seed(seed, FULL_FRAME, pass_index))
         self.mitsuba_calls += 1
         self._count_kernels()
         return image

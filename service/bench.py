@@ -21,8 +21,11 @@ from .bench_decisions import bench_criteria, bench_step, bench_tradeoff, md_crit
 log = logging.getLogger(__name__)
 
 
-def _median_s(fn: Callable[[], Any], repeats: int) -> float:
-    fn()
+def _median_s(fn: Callable[[], Any], repeats: int, warm: bool = True) -> float:
+    """Median seconds of `repeats` calls of `fn`, after one untimed call unless `warm` is False
+    (the caller has warmed it already)."""
+    if warm:
+        fn()
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()

@@ -12,25 +12,16 @@ Three measurements, all warm, on this machine:
 """
 from __future__ import annotations
 
-import statistics
 import tempfile
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from .bench import _median_s
+
 PASS_SCENE = ("env_spheres", "640x384", 64, 32)          # scene, resolution, block, spp per pass
 RENDERS = (("env_spheres", 256, 32, 512), ("studio_preview", "1280x720", 32, 1024))   # scene, res, step, max
-
-
-def _median(fn: Any, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def pass_cost(repeats: int = 3) -> dict[str, Any]:
@@ -50,7 +41,8 @@ def pass_cost(repeats: int = 3) -> dict[str, Any]:
         rows = []
         for k in counts:
             ids = sorted(order[:k])
-            s = _median(lambda ids=ids: br.render_blocks(ids, spp, seed=1, pass_index=k), repeats)
+            s = _median_s(lambda ids=ids: br.render_blocks(ids, spp, seed=1, pass_index=k), repeats,
+                          warm=False)
             rows.append({"blocks": k, "pixels": k * block * block, "seconds": s})
         x = np.array([r["pixels"] for r in rows], float)
         y = np.array([r["seconds"] for r in rows], float)
@@ -79,7 +71,7 @@ def decision_cost(repeats: int = 5, counts: tuple[int, ...] = (1, 4, 16, 64, 256
                            quick=None) for i in range(n)]
         with torch_threads(1):                                      # as the render loop decides
             crit.decide(list(range(n)), views)                      # warm
-            s = _median(lambda views=views, n=n: crit.decide(list(range(n)), views), repeats)
+            s = _median_s(lambda views=views, n=n: crit.decide(list(range(n)), views), repeats, warm=False)
         rows.append({"blocks": n, "seconds": s, "ms_per_block": 1e3 * s / n})
     return {"criterion": "flip", "block": 64, "rows": rows}
 
@@ -93,7 +85,7 @@ def block_costs(scene: str, resolution: Any, block: int, spp: int = 8) -> np.nda
 
     br = BlockRenderer(load_scene(scene, resolution), block=block)
     br.render_blocks([0], spp, seed=0)
-    return np.array([_median(lambda b=b: br.render_blocks([b], spp, seed=1, pass_index=b), 1) / spp
+    return np.array([_median_s(lambda b=b: br.render_blocks([b], spp, seed=1, pass_index=b), 1, warm=False) / spp
                      for b in range(br.n_blocks)])
 
 

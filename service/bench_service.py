@@ -26,20 +26,14 @@ from typing import Any
 
 import numpy as np
 
-from .bench import MachineLoad
+from .bench import MachineLoad, _median_s
 
 BLOCKS, SIZE = 16, 128
 CLIENTS = (1, 8, 32)
 
 
 def _median_ms(fn: Callable[[], Any], repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times) * 1e3
+    return _median_s(fn, repeats) * 1e3
 
 
 def stage_times(model: str | None, repeats: int = 9) -> dict[str, Any]:

@@ -1,5 +1,12 @@
 """learning: dataset format, virtual observer, models, Algorithm 1, metrics, model bundles.
 
+Sub-packages by job, each importing only those before it: `data` (the stack format, EXR,
+the virtual observer, checks and imports), `inputs` (what a model sees of a block: half
+buffers, feature tables), `models` (estimators, Algorithm 1, transfer baselines, bundles),
+`evaluation` (metrics, the protocol on held-out scenes, calibration of the knobs),
+`training` (train one model; train many and compare). Beneath them all: `stoprule`, the
+one rule that turns a score into a verdict, and `names`, the choices the command line offers.
+
 DESIGN's stable names, loaded on first use (PEP 562): `learning.names` and the command-line
 parser stay free of torch and Mitsuba.
 """
@@ -8,10 +15,11 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-_HOMES = {"Stack": "stack", "StackWriter": "stack", "read_stack": "stack", "write_stack": "stack",
-          "make_plan": "stack", "list_stacks": "stack", "update_labels": "stack",
-          "VirtualObserver": "observer", "label_stack": "observer", "check_dataset": "check", "Problem": "check",
-          "import_lisic": "lisic", "make_synthetic_stack": "synthetic", "load_model": "bundle"}
+_STACK = ("Stack", "StackWriter", "read_stack", "write_stack", "make_plan", "list_stacks", "update_labels")
+_HOMES = {**dict.fromkeys(_STACK, "data.stack"),
+          "VirtualObserver": "data.observer", "label_stack": "data.observer",
+          "check_dataset": "data.check", "Problem": "data.check", "import_lisic": "data.lisic",
+          "make_synthetic_stack": "data.synthetic", "load_model": "models.bundle"}
 __all__ = list(_HOMES)
 
 

@@ -2,10 +2,10 @@
 nothing, so the parser is built without torch or Mitsuba and never keeps a copy."""
 
 #: inputs a feature model can be trained with: the content-free noise features of the half
-#: buffers (`halves`, learning.noise_input), or the paper's quick-image difference with the
+#: buffers (`halves`, learning.inputs.noise_input), or the paper's quick-image difference with the
 #: stack's own quick image (albedo), the extra direct-lighting image, or none (a flat image)
 QUICK_MODES = ("halves", "albedo", "direct", "none")
-#: the SVM kinds `train --model` trains (the paper's models, learning.train)
+#: the SVM kinds `train --model` trains (the paper's models, learning.training.train)
 SVM_KINDS = ("svm", "dsvm", "svm_al", "dsvm_al", "svm_as", "dsvm_as")
 #: the input `train` uses unless told (README "Model inputs")
 DEFAULT_INPUT = "halves"

@@ -123,8 +123,8 @@ class OffsetClassifierMixin:
     """`predict` of every model: the stop rule's verdict on `decision_function` at the
     fitted `offset_` (scikit-learn's `FixedThresholdClassifier` on the decision function,
     the offset playing `TunedThresholdClassifierCV.best_threshold_`, calibrated out of
-    fold by `learning.calibrate`). No flat-block test here: rows of features do not show
-    whether their block was flat (`learning.bundle.Model` adds it)."""
+    fold by `learning.evaluation.calibrate`). No flat-block test here: rows of features do not show
+    whether their block was flat (`learning.models.bundle.Model` adds it)."""
 
     offset_: float
 

@@ -109,7 +109,7 @@ def features_of(sources: list[torch.Tensor], exposure: float, base: FeatureBase,
 
 def _current(a: torch.Tensor, b: torch.Tensor, out: torch.Tensor, finite: bool) -> torch.Tensor:
     """C = (A + B) / 2, a pixel not finite in one half counting as 0 there (the rule of
-    learning.noise_input.halves_mean), written to `out` when the inputs are float32."""
+    learning.inputs.noise_input.halves_mean), written to `out` when the inputs are float32."""
     if not finite:
         a, b = (torch.where(torch.isfinite(x).all(dim=-1, keepdim=True), x, torch.zeros((), dtype=x.dtype))
                 for x in (a, b))

@@ -13,7 +13,7 @@ inputs"), while the FeatureBase's std features, whose pooling is quadratic and b
 chroma, explain about three quarters of its variance.
 
 `pooled_colour_error(a, b)` is the `p` part of the `halves` model input
-(`learning.noise_input`). Non-finite pixels follow the display rule.
+(`learning.inputs.noise_input`). Non-finite pixels follow the display rule.
 """
 from __future__ import annotations
 

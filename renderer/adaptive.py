@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from learning.stack import Stack
+from learning.data.stack import Stack
 from noisefeat.bounds import SizeBounds
 
 from .blocks import BlockRenderer, compose
@@ -126,7 +126,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
         raise ValueError(f"checkpoint interval must be 0 or more seconds, got {checkpoint_every!r}")
     from .scenes import load_scene
     from .simulate import find_reference
-    from learning.variant import current_variant, select_variant
+    from learning.data.variant import current_variant, select_variant
 
     t_start = time.perf_counter()
     label = scene_label(scene)

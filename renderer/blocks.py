@@ -23,7 +23,7 @@ filter's guard band and cut back: the same estimator in distribution (Mitsuba se
 by position, so not the same random numbers). ``mitsuba_calls``, ``kernel_launches`` and
 ``kernel_compiles`` count what a render cost.
 
-`learning.accumulator.BlockAccumulator` keeps the float64 running sums so cumulative means
+`learning.data.accumulator.BlockAccumulator` keeps the float64 running sums so cumulative means
 are exact, plus two half buffers (even and odd passes) for the half-buffer criteria.
 """
 
@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from learning.variant import select_variant
+from learning.data.variant import select_variant
 from .wavefront import WavefrontTracer, guard_band
 
 logger = logging.getLogger(__name__)
@@ -73,7 +73,7 @@ def _to_rgb(img: Any, where: str) -> np.ndarray:
     raise ValueError(f"{where}: film has {c} channels; need 1 (luminance), 3 (rgb) or 4 (rgba)")
 
 
-#: quick images the renderer can make (learning.table.QUICK_MODES adds 'none')
+#: quick images the renderer can make (learning.inputs.table.QUICK_MODES adds 'none')
 QUICK_KINDS = ("albedo", "direct")
 
 
@@ -338,7 +338,7 @@ def measure_crop_cost(
     ``ratio ~= len(block_ids) / n_blocks`` (a quarter for 4 of 16).
     """
     from .scenes import load_scene
-    from learning.variant import current_variant
+    from learning.data.variant import current_variant
 
     scene = load_scene(scene_name, resolution)
     r = BlockRenderer(scene, grid=grid)

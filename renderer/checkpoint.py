@@ -2,7 +2,7 @@
 
 What `--resume` trusts must be exactly what an interrupted run left (issue 14: a truncated
 or byte-flipped file ended in BadZipFile, CRC or KeyError tracebacks, and a checkpoint
-claiming pass 1,000,000 was accepted). So a checkpoint is read with `learning.npz`
+claiming pass 1,000,000 was accepted). So a checkpoint is read with `learning.data.npz`
 (member sizes against headers, no pickle), carries a SHA-256 digest of its arrays, was
 made with the same settings, and holds a state that the loop could have produced:
 
@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from learning.accumulator import BlockAccumulator
-from learning.exr import atomic_write_bytes
-from learning.npz import check_digest, read_npz, savez_bytes
+from learning.data.accumulator import BlockAccumulator
+from learning.data.exr import atomic_write_bytes
+from learning.data.npz import check_digest, read_npz, savez_bytes
 
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_FORMAT = "noisestop-adaptive-checkpoint"

@@ -11,7 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from learning.stack import Stack  # noqa: E402
+from learning.data.stack import Stack  # noqa: E402
 from noisefeat.display import display  # noqa: E402
 
 

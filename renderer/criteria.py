@@ -8,11 +8,11 @@ measured offline is what runs online.
 
 Criteria:
 
-* `ModelCriterion`: a learned model (a `learning.bundle.Model` in-process, or a
+* `ModelCriterion`: a learned model (a `learning.models.bundle.Model` in-process, or a
   `renderer.client.RemoteModel` talking to a verdict server); both expose
   ``score_blocks(blocks, quick) -> (verdict, score)``.
 * `FlipCriterion`: training-free: FLIP between the display images of the two half
-  buffers (`learning.halves`), converged when at most a calibrated c.
+  buffers (`learning.inputs.halves`), converged when at most a calibrated c.
 * `VarianceCriterion`: Blender Cycles' adaptive-sampling pixel test, grouped per block.
 * `OracleCriterion`: the true thresholds of a labelled stack (the best possible stops).
 * `UniformCriterion`: never stops (every block rendered to max spp: the baseline).
@@ -297,7 +297,7 @@ class VarianceCriterion(Criterion):
 
 
 class ModelCriterion(Criterion):
-    """A learned verdict model: local `learning.bundle.Model` or a `RemoteModel`.
+    """A learned verdict model: local `learning.models.bundle.Model` or a `RemoteModel`.
 
     Verdicts follow the one stop rule: flat blocks are converged without asking the model;
     the others are converged when their score exceeds the offset (the model's calibrated
@@ -408,7 +408,7 @@ class ModelCriterion(Criterion):
             quick = np.stack([np.asarray(views[i].quick, np.float32) for i in ask]) if self.needs_quick else None
             self.counters["blocks_featured"] += len(ask)
             if self._local_features:
-                from learning.table import feature_input
+                from learning.inputs.table import feature_input
                 from noisefeat import extract_features
 
                 with single_torch_thread():
@@ -436,7 +436,7 @@ class FlipCriterion(Criterion):
     """Training-free: FLIP between display(A) and display(B), the two half buffers.
 
     e = mean over the block of the raw LDR-FLIP map between the display images of the
-    even-pass and odd-pass means (`learning.halves`); the block is converged when e <= c
+    even-pass and odd-pass means (`learning.inputs.halves`); the block is converged when e <= c
     (the stop rule with score -e), or at once when flat. `c` defaults to the calibrated
     value shipped in `learning/flip.json` (training scenes only). A block whose odd half is
     still empty (one pass) has no estimate yet and stays noisy, so the first flip decision
@@ -449,7 +449,7 @@ class FlipCriterion(Criterion):
 
     def __init__(self, c: float | None = None, exposure: float = 0.0) -> None:
         super().__init__()
-        from learning.halves import flip_offset, load_flip_calibration
+        from learning.inputs.halves import flip_offset, load_flip_calibration
 
         if c is None:
             cal = load_flip_calibration()
@@ -463,7 +463,7 @@ class FlipCriterion(Criterion):
         return {"name": self.name, "threshold": self.c, "source": self.source}
 
     def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
-        from learning.halves import halves_flip
+        from learning.inputs.halves import halves_flip
 
         flat = self._flat(views, self.exposure)
         ask = [i for i, v in enumerate(views) if not flat[i] and min(v.half_spp or (0, 0)) > 0]
@@ -508,7 +508,7 @@ def build_criterion(kind: str, *, model: str | None = None, server: str | None =
             url, _, name = server.partition("#")
             return ModelCriterion(RemoteModel(url, model=name or "default", token=token), exposure=exposure,
                                   offset=offset)
-        from learning.bundle import load_model
+        from learning.models.bundle import load_model
 
         return ModelCriterion(load_model(model), exposure=exposure, offset=offset)
     raise ValueError(f"unknown criterion {kind!r}; choose one of {', '.join(CRITERIA)}")

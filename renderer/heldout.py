@@ -7,7 +7,7 @@ preview under an image-based light, procedural bitmap textures, a spot-lit dark 
 a corridor of lights. They are built at a level every 32 spp up to 2048 spp with an
 8192-spp reference (`make heldout`), long enough that most of their blocks converge
 inside the stack: a scene that never converges only tests "never stop early", so the
-evaluation reports such scenes apart (`learning.generalisation`).
+evaluation reports such scenes apart (`learning.evaluation.generalisation`).
 
 Textures and the environment map are made here from seeded numpy noise (no files, no
 downloads), so every machine builds the same scenes.
@@ -19,18 +19,18 @@ import math
 import numpy as np
 
 from .scene_kit import (
-    SceneDict,
-    T,
-    base,
-    bitmap_texture,
-    checker_texture,
-    cube,
-    diffuse,
-    panel,
-    rgb,
-    room_box,
-    value_noise,
-)
+                        SceneDict,
+                        T,
+                        base,
+                        bitmap_texture,
+                        checker_texture,
+                        cube,
+                        diffuse,
+                        panel,
+                        rgb,
+                        room_box,
+                        value_noise,
+                        )
 
 # ----------------------------------------------------------------------------- procedural images
 

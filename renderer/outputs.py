@@ -2,7 +2,7 @@
 spp and converged mask, DESIGN), final.png, spp_map.png, report.json,
 and with a reference, compare.png (final next to reference, per-block FLIP against it).
 
-Every file is written atomically (temporary name, fsync, rename: `learning.exr`), so an
+Every file is written atomically (temporary name, fsync, rename: `learning.data.exr`), so an
 interrupted run never leaves a truncated image that looks finished. The spp map is drawn
 with matplotlib's object API on an Agg canvas (no pyplot global state: safe in Dask
 worker threads).
@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from learning.exr import atomic_write_bytes, write_exr_channels, write_png
+from learning.data.exr import atomic_write_bytes, write_exr_channels, write_png
 from noisefeat.display import display
 
 FINAL_EXR = "final.exr"

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from learning.accumulator import BlockAccumulator
+from learning.data.accumulator import BlockAccumulator
 from learning.stoprule import decide_active
 
 from .criteria import BlockView, Criterion

@@ -7,8 +7,8 @@ from typing import Any
 
 import numpy as np
 
-from learning.accumulator import BlockAccumulator
-from learning.stack import Stack
+from learning.data.accumulator import BlockAccumulator
+from learning.data.stack import Stack
 
 from .blocks import BlockRenderer
 from .criteria import COUNTER_NAMES, Criterion
@@ -101,7 +101,7 @@ def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int
     observer's per-block FLIP error of the finished image, the blocks still above its
     threshold (visible noise left), and among them those the criterion stopped (the others
     ran out of samples at max spp)."""
-    from learning.observer import DEFAULT_TAU, VirtualObserver
+    from learning.data.observer import DEFAULT_TAU, VirtualObserver
 
     tau = float((ref.labeler or {}).get("tau", DEFAULT_TAU))
     obs = VirtualObserver(tau=tau, exposure=exposure)

@@ -38,7 +38,7 @@ import numpy as np
 from . import heldout
 from .procedural import procedural_scene, procedural_seed
 from .scene_kit import SceneDict, T, base, checker_texture, diffuse, rgb
-from learning.variant import select_variant
+from learning.data.variant import select_variant
 
 logger = logging.getLogger(__name__)
 

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from learning.stack import Stack
+    from learning.data.stack import Stack
 
 #: used only when neither the command line, the reference nor the scene says. Blocks: windows
 #: of DEFAULT_BLOCK pixels, the block size the bundled model and flip's threshold were

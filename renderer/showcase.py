@@ -81,7 +81,7 @@ def summary_line(a: dict[str, Any], u: dict[str, Any]) -> str:
 
 def showcase(scene: str = SCENE, out: str | Path = "out", **settings: Any) -> dict[str, Any]:
     """Adaptive, then uniform for the same time; write equal_time.png; return both reports."""
-    from learning.exr import atomic_write_bytes, read_exr
+    from learning.data.exr import atomic_write_bytes, read_exr
 
     root = prepare_output_dir(out)
     opts = {**SETTINGS, **settings}

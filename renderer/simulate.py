@@ -1,7 +1,7 @@
 """Run a stopping criterion over stored stacks instead of rendering (offline evaluation).
 
 Level k of a stack is the cumulative mean of spp[k] samples; the passes between levels
-come back exactly (`learning.halves.recover_passes`), and feeding them to a
+come back exactly (`learning.inputs.halves.recover_passes`), and feeding them to a
 `BlockAccumulator` gives the very half buffers the live loop keeps (A = even passes,
 B = odd passes). With a constant step every pass has the same size and A and B hold
 equal sample counts, as in the live loop; with a varying step (e.g. doubling spp) halves
@@ -11,7 +11,7 @@ are unbalanced and a warning says so.
 once spp >= min_spp, after each level, only the still-active blocks are asked, and a block
 once converged stays converged and is never asked again. The verdict matrix V [K, B] therefore holds -1 up to
 the level where the loop would have stopped the block and +1 from there on, which is what
-`learning.metrics.evaluate_verdicts` scores.
+`learning.evaluation.metrics.evaluate_verdicts` scores.
 """
 from __future__ import annotations
 
@@ -24,10 +24,10 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from learning.generalisation import scene_groups
-from learning.halves import check_constant_step, recover_passes
-from learning.metrics import evaluate_verdicts
-from learning.stack import Stack, list_stacks, read_stack
+from learning.evaluation.generalisation import scene_groups
+from learning.inputs.halves import check_constant_step, recover_passes
+from learning.evaluation.metrics import evaluate_verdicts
+from learning.data.stack import Stack, list_stacks, read_stack
 
 from .criteria import Criterion
 from .passloop import PassLoop

@@ -1,6 +1,6 @@
 """Build one labelled stack (dataset format v1) from a scene: levels, reference, quick.
 
-The extra quick images of `learning.stack.EXTRA_QUICK` (direct lighting) are rendered too,
+The extra quick images of `learning.data.stack.EXTRA_QUICK` (direct lighting) are rendered too,
 also into stacks that are already complete, so rerunning a build adds them.
 
 Levels are cumulative means at spp = step, 2*step, ...; each level adds one independent
@@ -29,13 +29,13 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from learning.exr import read_exr
-from learning.observer import VirtualObserver, relabel_if_stale
-from learning.stack import EXTRA_QUICK, REFERENCE, StackWriter, level_name, make_plan, read_stack
+from learning.data.exr import read_exr
+from learning.data.observer import VirtualObserver, relabel_if_stale
+from learning.data.stack import EXTRA_QUICK, REFERENCE, StackWriter, level_name, make_plan, read_stack
 
 from .blocks import BlockRenderer
 from .scenes import load_scene
-from learning.variant import select_variant
+from learning.data.variant import select_variant
 
 log = logging.getLogger(__name__)
 

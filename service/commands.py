@@ -243,7 +243,7 @@ def cmd_dataset_build(args: argparse.Namespace) -> int:
 
 
 def cmd_import_lisic(args: argparse.Namespace) -> int:
-    from learning.lisic import import_lisic
+    from learning.data.lisic import import_lisic
     dirs = import_lisic(args.src, args.out, every=args.every)
     if args.json:
         emit_json({"stacks": [str(d) for d in dirs]})
@@ -254,7 +254,7 @@ def cmd_import_lisic(args: argparse.Namespace) -> int:
 
 
 def cmd_dataset_check(args: argparse.Namespace) -> int:
-    from learning.check import ERROR, check_dataset
+    from learning.data.check import ERROR, check_dataset
     problems = check_dataset(args.dir, deep=not args.quick)
     errors = [p for p in problems if p.severity == ERROR]
     if args.json:
@@ -295,7 +295,7 @@ def _register_learning(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--composition", default=None,
                    help="input halves: which parts of the half-buffer input a feature model reads, "
                         "joined by '+' (n noise, c current, r ratios, l luminance, f FLIP; README "
-                        "\"Model inputs\"; default: the measured best, learning.noise_input.HALVES)")
+                        "\"Model inputs\"; default: the measured best, learning.inputs.noise_input.HALVES)")
     p.add_argument("--seed", type=_seed, default=0)
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_train)
@@ -351,7 +351,7 @@ def _composition(args: argparse.Namespace, raw: bool) -> dict[str, str]:
         if args.composition is not None:
             raise UsageError("--composition applies to feature models with --input halves only")
         return {}
-    from learning.noise_input import HALVES, parts_of
+    from learning.inputs.noise_input import HALVES, parts_of
     composition = args.composition or HALVES
     try:
         parts_of(composition)
@@ -361,10 +361,10 @@ def _composition(args: argparse.Namespace, raw: bool) -> dict[str, str]:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from learning.bundle import Model, save_model
-    from learning.evaluate import evaluate_model
-    from learning.table import load_table
-    from learning.train import train_model
+    from learning.models.bundle import Model, save_model
+    from learning.evaluation.evaluate import evaluate_model
+    from learning.inputs.table import load_table
+    from learning.training.train import train_model
 
     if not 0 < args.label_budget <= 1:
         raise UsageError(f"--label-budget must be in (0, 1], got {args.label_budget}")
@@ -382,7 +382,7 @@ def cmd_train(args: argparse.Namespace) -> int:
                                max_early_stop=None if args.no_calibrate else args.max_early_stop,
                                quick=args.quick)
     if args.heldout:
-        from learning.generalisation import check_disjoint
+        from learning.evaluation.generalisation import check_disjoint
         test = load_table(args.heldout, raw=raw, quick=args.quick, **_composition(args, raw))
         check_disjoint(summary["train_scenes"], test.scenes())
         summary["heldout"] = {"data": str(args.heldout), "scenes": test.scenes()}
@@ -418,7 +418,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def _refuse_heldout(scenes: list[str], what: str) -> None:
     """The built-in held-out scenes take no part in training or calibration."""
-    from learning.generalisation import check_disjoint
+    from learning.evaluation.generalisation import check_disjoint
     from renderer.scenes import list_scenes
     try:
         check_disjoint(scenes, [n for n, _ in list_scenes(heldout=True)])
@@ -431,8 +431,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from learning.halves import FLIP_CALIBRATION, calibrate_flip
-    from learning.stack import dataset_fingerprint, list_stacks, read_stack
+    from learning.evaluation.calibrate import calibrate_flip
+    from learning.inputs.halves import FLIP_CALIBRATION
+    from learning.data.stack import dataset_fingerprint, list_stacks, read_stack
 
     if not 0 <= args.max_early_stop <= 1:
         raise UsageError(f"--max-early-stop must be in [0, 1], got {args.max_early_stop}")
@@ -461,9 +462,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_pretrain(args: argparse.Namespace) -> int:
-    from learning.pretrain import pretrain_base
-    from learning.stack import list_stacks, read_stack
-    from learning.train import default_test_scenes
+    from learning.models.pretrain import pretrain_base
+    from learning.data.stack import list_stacks, read_stack
+    from learning.evaluation.generalisation import default_test_scenes
     from noisefeat.weights import PRETRAINED_FILE, save_kernels
 
     stacks = [read_stack(p) for p in list_stacks(args.data)]
@@ -484,9 +485,9 @@ def cmd_pretrain(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from learning.bundle import load_model
-    from learning.evaluate import evaluate_model
-    from learning.table import load_table
+    from learning.models.bundle import load_model
+    from learning.evaluation.evaluate import evaluate_model
+    from learning.inputs.table import load_table
 
     if args.criterion != "model" and args.offset is not None:
         log.warning("--offset is ignored with --criterion %s (it moves the model's decision)", args.criterion)
@@ -514,7 +515,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         test = table.subset(table.scene_mask(scenes))
         result = evaluate_model(model, test, offset=args.offset, min_spp=args.min_spp)
         result["model"] = model.name
-        from learning.plots import plot_thresholds
+        from learning.evaluation.plots import plot_thresholds
         result["plots"] = [str(p) for p in plot_thresholds(model, test, args.plots, offset=args.offset,
                                                            min_spp=args.min_spp)]
     if args.json:
@@ -525,7 +526,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _print_metrics(result: dict) -> None:
-    from learning.metrics import METRIC_NAMES
+    from learning.evaluation.metrics import METRIC_NAMES
     knob = (f"offset {result['offset']:g}" if result.get("offset") is not None else
             f"threshold {result['threshold']:g}" if result.get("threshold") is not None else "")
     if knob:
@@ -714,7 +715,7 @@ def cmd_features(args: argparse.Namespace) -> int:
     from noisefeat import FEATURE_NAMES, extract_features, split_blocks
     from renderer.blocks import BlockRenderer
     from renderer.scenes import DEFAULT_SCENE, load_scene
-    from learning.variant import select_variant
+    from learning.data.variant import select_variant
 
     _check_frame(args.resolution, args.resolution, tuple(args.grid), "--resolution/--grid")
     variant = select_variant()
@@ -747,7 +748,7 @@ def cmd_features(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from . import bench
+    from .lab import bench
     unknown = sorted(set(args.what) - set(bench.SECTIONS))
     if unknown:
         raise UsageError(f"unknown bench sections {unknown}; known: {', '.join(bench.SECTIONS)}")

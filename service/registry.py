@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from learning.bundle import BUNDLED_DIR, MANIFEST, Model, load_model
-from learning.bundle_check import read_manifest
+from learning.models.bundle import BUNDLED_DIR, MANIFEST, Model, load_model
+from learning.models.bundle_check import read_manifest
 from learning.stoprule import check_offset
 from noisefeat.base import MIN_SIZE
 
@@ -46,7 +46,7 @@ def bundle_name(path: str | None) -> str:
                 f"no model is bundled with this noisestop ({BUNDLED_DIR} holds no {MANIFEST}): "
                 f"pass --model PATH (a bundle written by `noisestop train`)")
         raise FileNotFoundError(f"{path}: not a noisestop model bundle (no {MANIFEST})")
-    meta = read_manifest(manifest)      # schema-checked (learning.bundle_check)
+    meta = read_manifest(manifest)      # schema-checked (learning.models.bundle_check)
     return str(meta.get("name") or meta["kind"])
 
 

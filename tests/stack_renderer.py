@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from learning.halves import recover_passes
+from learning.inputs.halves import recover_passes
 from noisefeat import split_blocks
 from renderer import adaptive
 

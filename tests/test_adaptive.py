@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from learning import make_synthetic_stack
-from learning.bundle import load_model, save_model
-from learning.estimators import DSVM
-from learning.exr import read_exr
-from learning.table import stack_features
+from learning.models.bundle import load_model, save_model
+from learning.models.estimators import DSVM
+from learning.data.exr import read_exr
+from learning.inputs.table import stack_features
 from renderer import adaptive
 from renderer.adaptive import CHECKPOINT, adaptive_render
 from renderer.render_many import render_command, render_many
@@ -175,7 +175,7 @@ def test_outputs_and_report(tmp_path):
     assert rep["samples_spent"] == 24 * 32 * 32
     assert rep["blocks"] == r["blocks"] and set(t) == {"setup_s", "render_s", "features_s", "decisions_s",
                                                        "overhead_s"}
-    from learning.exr import read_png
+    from learning.data.exr import read_png
     png = read_png(tmp_path / "spp_map.png")
     assert png.shape[0] >= 400 and png.std() > 0.05             # a real picture, not a blank canvas
 
@@ -250,7 +250,7 @@ def test_time_limit_stops_cleanly_and_resume_finishes_the_same_image(tmp_path):
 
 
 def test_final_exr_carries_spp_and_the_converged_mask(tmp_path):
-    from learning.exr import read_exr_channels
+    from learning.data.exr import read_exr_channels
     rep = adaptive_render("cornell", tmp_path / "a", VarianceCriterion(0.3), **TINY)
     ch = read_exr_channels(tmp_path / "a" / "final.exr")
     assert {"R", "G", "B", "spp", "converged"} <= set(ch)

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from learning.check import ERROR, WARNING, check_dataset, check_stack
-from learning.exr import read_exr, write_exr
-from learning.synthetic import make_synthetic_stack
+from learning.data.check import ERROR, WARNING, check_dataset, check_stack
+from learning.data.exr import read_exr, write_exr
+from learning.data.synthetic import make_synthetic_stack
 
 SPP = [4, 8, 16, 32]
 THRESHOLDS = [8, 16, 32, None] * 4

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from learning import make_synthetic_stack
-from learning.bundle import load_model, save_model
-from learning.estimators import DSVM
-from learning.table import stack_features
+from learning.models.bundle import load_model, save_model
+from learning.models.estimators import DSVM
+from learning.inputs.table import stack_features
 from noisefeat.display import display_range
 from renderer.criteria import (BlockView, ModelCriterion, OracleCriterion, UniformCriterion,
                                VarianceCriterion, build_criterion)
@@ -198,8 +198,8 @@ def test_model_criterion_uses_any_scorer():
 
 def test_model_criterion_without_quick_image(tmp_path):
     """A model trained with quick 'none' decides from the current blocks alone."""
-    from learning.bundle import load_model, save_model
-    from learning.estimators import DSVM
+    from learning.models.bundle import load_model, save_model
+    from learning.models.estimators import DSVM
     from renderer.criteria import BlockView, ModelCriterion
     rng = np.random.default_rng(0)
     X = rng.normal(size=(120, 26))

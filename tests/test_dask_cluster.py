@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from learning.exr import read_exr
+from learning.data.exr import read_exr
 
 DASK = shutil.which("dask", path=os.path.dirname(sys.executable)) or shutil.which("dask")
 

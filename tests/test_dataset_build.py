@@ -68,7 +68,7 @@ def test_dask_local_cluster_of_two_workers(tmp_path):
     assert read_stack(tmp_path / "sky").thresholds == [4] * 16
     # every run is on record; the bench reports the latest run that rendered anything
     from renderer.dataset import read_build_log
-    from service.bench import bench_dataset, md_dataset
+    from service.lab.bench import bench_dataset, md_dataset
     again = build_dataset(["cornell", "sky"], tmp_path, TINY, workers=1, progress=False)
     assert all(r["already_built"] for r in again["scenes"])
     runs = read_build_log(tmp_path)
@@ -82,7 +82,7 @@ def test_dask_local_cluster_of_two_workers(tmp_path):
 
 def test_dataset_without_a_build_log_is_a_clear_error(tmp_path):
     from renderer.dataset import BUILD_LOG
-    from service.bench import bench_dataset
+    from service.lab.bench import bench_dataset
     with pytest.raises(ValueError, match="no build run on record"):
         bench_dataset(str(tmp_path))
     (tmp_path / BUILD_LOG).write_text('{"scenes": [{"already_built": true}]}\n{"cut sh')
@@ -101,9 +101,9 @@ def test_exr_write_survives_worker_thread_setup(tmp_path):
     code = (
         "import os, numpy as np\n"
         "os.environ['NOISESTOP_THREADS'] = '1'\n"
-        "from learning.variant import select_variant; select_variant()\n"
+        "from learning.data.variant import select_variant; select_variant()\n"
         "from renderer.farm import configure_worker_threads; configure_worker_threads()\n"
-        "from learning.exr import write_exr\n"
+        "from learning.data.exr import write_exr\n"
         f"write_exr({str(tmp_path / 'x.exr')!r}, np.ones((16, 16, 3), np.float32))\n"
         "print('written')\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,

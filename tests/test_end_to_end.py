@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from service.loadtest import LocalServer, make_demo_bundle
+from service.lab.loadtest import LocalServer, make_demo_bundle
 
 RENDER = ["--scene", "cornell", "--resolution", "64", "--grid", "4", "4", "--step", "4", "--min-spp", "4",
           "--max-spp", "32", "--json"]

@@ -19,11 +19,11 @@ import numpy as np
 import pytest
 import skops.io as sio
 
-from learning.bundle import load_model
-from learning.exr import write_exr
-from learning.npz import read_npz, savez_bytes
+from learning.models.bundle import load_model
+from learning.data.exr import write_exr
+from learning.data.npz import read_npz, savez_bytes
 from service import cli
-from service.loadtest import make_demo_bundle
+from service.lab.loadtest import make_demo_bundle
 
 FIXTURE = Path(__file__).parent / "fixtures" / "dataset"
 RENDER = ["render", "--scene", "cornell", "--resolution", "32", "--grid", "2", "2", "--step", "16",
@@ -253,7 +253,7 @@ def _truncate(path: Path) -> None:
 
 
 def _all_nan(path: Path) -> None:
-    from learning.exr import read_exr
+    from learning.data.exr import read_exr
     write_exr(path, np.full_like(read_exr(path), np.nan))
 
 

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from extremes import CASES, extreme_halves
-from learning.halves import halves_flip, halves_flip_evaluator
-from learning.observer import display, flip_map
+from learning.inputs.halves import halves_flip, halves_flip_evaluator
+from learning.data.observer import display, flip_map
 from noisefeat import flip as F
 
 RNG = np.random.default_rng(16)

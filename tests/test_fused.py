@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from extremes import CASES, extreme_halves
-from learning.noise_input import halves_input_and_stats, halves_mean, halves_raw
+from learning.inputs.noise_input import halves_input_and_stats, halves_mean, halves_raw
 from noisefeat import FeatureBase, extract_features, fused
 from noisefeat.display import display_range, lightness
 from noisefeat.extract import analyse_blocks, analyse_many

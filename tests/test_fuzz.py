@@ -16,9 +16,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from learning.accumulator import BlockAccumulator
-from learning.bundle_check import read_manifest
-from learning.npz import read_npz, savez_bytes
+from learning.data.accumulator import BlockAccumulator
+from learning.models.bundle_check import read_manifest
+from learning.data.npz import read_npz, savez_bytes
 from renderer.checkpoint import load_checkpoint, save_checkpoint
 from service.limits import Limits
 from service.oip import DATATYPES, ApiError, decode_tensors, parse_request, split_body

@@ -9,12 +9,12 @@ import pytest
 from sklearn.base import clone
 from sklearn.metrics.pairwise import rbf_kernel
 
-import learning.gram as gram_mod
-from learning.active import ActiveSemiSupervised, SimulatedExpert
-from learning.estimators import SVM
-from learning.gram import GramRBF, SharedGram, index_column
-from learning.table import load_table
-from learning.train import fit_kind
+import learning.models.gram as gram_mod
+from learning.models.active import ActiveSemiSupervised, SimulatedExpert
+from learning.models.estimators import SVM
+from learning.models.gram import GramRBF, SharedGram, index_column
+from learning.inputs.table import load_table
+from learning.training.train import fit_kind
 
 FIXTURE = Path(__file__).parent / "fixtures" / "dataset"
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from learning import make_synthetic_stack
-from learning.halves import (calibrate_flip, flip_offset, flip_sweep, halves_flip, load_flip_calibration,
-                             stack_flip_errors)
+from learning.evaluation.calibrate import calibrate_flip, flip_sweep
+from learning.inputs.halves import flip_offset, halves_flip, load_flip_calibration, stack_flip_errors
 from learning.stoprule import StopRule
 from renderer.criteria import BlockView, FlipCriterion, build_criterion
 

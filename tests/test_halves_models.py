@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from learning.bundle import Model, load_model, save_model
-from learning.estimators import DSVM, SVM
-from learning.noise_input import HALVES, n_inputs, noise_lightness
-from learning.table import load_table
-from learning.train import cv_groups, initial_scenes, train_model
+from learning.models.bundle import Model, load_model, save_model
+from learning.models.estimators import DSVM, SVM
+from learning.inputs.noise_input import HALVES, n_inputs, noise_lightness
+from learning.inputs.table import load_table
+from learning.training.train import cv_groups, initial_scenes, train_model
 
 FIXTURE = Path(__file__).parent / "fixtures" / "dataset"
 

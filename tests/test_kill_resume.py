@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from learning.exr import read_exr
-from learning.npz import read_npz
+from learning.data.exr import read_exr
+from learning.data.npz import read_npz
 
 RENDER = ["render", "--scene", "cornell", "--resolution", "64", "--grid", "4", "4", "--step", "4",
           "--min-spp", "8", "--max-spp", "96", "--criterion", "variance", "--threshold", "0.2", "--json",

@@ -1,6 +1,7 @@
 """Issue 17: the house rules, checked on the source: dependencies point one way
-(noisefeat <- learning <- renderer <- service, DESIGN.md), and no two modules import each
-other at load time, directly or around a circle."""
+(noisefeat <- learning <- renderer <- service, DESIGN.md, and inside learning its
+sub-packages in the order of their jobs), and no two modules import each other at load
+time, directly or around a circle."""
 from __future__ import annotations
 
 import ast
@@ -8,6 +9,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("noisefeat", "learning", "renderer", "service")
+#: learning's rooms, each importing only from those before it (learning/__init__.py)
+LEARNING = {"names": 0, "stoprule": 0, "data": 1, "inputs": 2, "models": 3, "evaluation": 4, "training": 5}
 
 
 def _modules() -> dict[str, Path]:
@@ -97,3 +100,58 @@ def test_the_checker_sees_a_circle(tmp_path) -> None:
     graph = {n: _load_time_imports(n, tmp_path / f"{n[2:]}.py", known) for n in known}
     assert graph == {"a.x": {"a.y"}, "a.y": {"a.z"}, "a.z": {"a.x"}}
     assert find_cycles(graph) == [["a.x", "a.y", "a.z", "a.x"]]
+
+
+def _imports_anywhere(path: Path, package: str) -> set[str]:
+    """Every module a file names in an import, at load time or inside a function."""
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            base = package.split(".")[:len(package.split(".")) - (node.level - 1)] if node.level else []
+            mod = ".".join(base + ([node.module] if node.module else []))
+            found |= {mod} if node.module else {f"{mod}.{a.name}" for a in node.names}
+        elif isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+    return found
+
+
+def _learning_upward(root: Path) -> list[tuple[str, str]]:
+    out = []
+    for path in sorted(root.rglob("*.py")):
+        parts = path.relative_to(root).with_suffix("").parts
+        if parts[0] == "__init__":
+            continue
+        package = ".".join(["learning", *parts[:-1]])
+        for mod in _imports_anywhere(path, package):
+            target = mod.split(".")
+            if target[0] == "learning" and len(target) > 1 and \
+                    LEARNING.get(target[1], -1) > LEARNING[parts[0]]:
+                out.append((".".join(parts), mod))
+    return out
+
+
+def test_learning_sub_packages_point_one_way() -> None:
+    """data <- inputs <- models <- evaluation <- training, even in imports inside functions."""
+    rooms = [p.stem for p in (ROOT / "learning").iterdir()
+             if (p.suffix == ".py" and p.stem != "__init__") or (p / "__init__.py").is_file()]
+    assert sorted(rooms) == sorted(LEARNING)
+    assert _learning_upward(ROOT / "learning") == []
+
+
+def test_the_checker_sees_an_upward_import(tmp_path) -> None:
+    """Control: a data module that imports from training, inside a function, is found."""
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "x.py").write_text("def f():\n    from ..training.train import g\n")
+    (tmp_path / "models").mkdir()
+    (tmp_path / "models" / "y.py").write_text("from ..inputs.table import t\nfrom learning.data import x\n")
+    assert _learning_upward(tmp_path) == [("data.x", "learning.training.train")]
+
+
+def test_the_service_never_imports_the_lab() -> None:
+    """service/lab is the benchmark lab; of the service's rooms only the command line's
+    `bench` opens its door."""
+    rooms = [p for p in (ROOT / "service").glob("*.py") if p.stem != "commands"]
+    assert len(rooms) >= 8
+    found = [(p.stem, m) for p in rooms for m in _imports_anywhere(p, "service") if m.startswith("service.lab")]
+    assert found == []
+    assert any(m.startswith("service.lab") for m in _imports_anywhere(ROOT / "service" / "commands.py", "service"))

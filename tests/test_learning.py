@@ -2,22 +2,25 @@
 from __future__ import annotations
 
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
 import skops.io as sio
 
-from learning.active import (ActiveSemiSupervised, SimulatedExpert, class_centres,
-                             label_changing_rate)
-from learning.bundle import load_model, save_model
-from learning.cv import select_hyperparameters
-from learning.estimators import DSVM, SVM
-from learning.evaluate import by_scene
-from learning.metrics import evaluate_verdicts, stack_counts, stop_thresholds
-from learning.query import MarginQuery, RandomQuery
-from learning.table import load_table
-from learning.train import default_test_scenes, train_model
+from learning.evaluation.evaluate import by_scene
+from learning.evaluation.generalisation import default_test_scenes
+from learning.evaluation.metrics import evaluate_verdicts, stack_counts, stop_thresholds
+from learning.inputs.table import load_table
+from learning.models import bundle_check
+from learning.models.active import (ActiveSemiSupervised, SimulatedExpert, class_centres,
+                                    label_changing_rate)
+from learning.models.bundle import load_model, save_model
+from learning.models.cv import select_hyperparameters
+from learning.models.estimators import DSVM, SVM
+from learning.models.query import MarginQuery, RandomQuery
+from learning.training.train import train_model
 
 FIXTURE = Path(__file__).parent / "fixtures" / "dataset"
 
@@ -204,6 +207,31 @@ def test_bundle_refuses_foreign_types_and_other_feature_bases(tmp_path):
         load_model(tmp_path / "evil")
     with pytest.raises(FileNotFoundError):
         load_model(tmp_path / "nothing")
+
+
+def test_a_bundle_written_before_the_move_to_sub_packages_still_loads(tmp_path, monkeypatch):
+    """Issue 17 moved the estimators to learning.models; a bundle saved earlier names
+    learning.estimators in its skops schema and must load with the same decisions."""
+    X, y = toy(200)
+    save_model(DSVM().fit(X, y), tmp_path / "m", kind="dsvm", input="features")
+    model_file = tmp_path / "m" / "model.skops"
+    schema = zipfile.ZipFile(model_file).read("schema.json")
+    assert b'"learning.models.estimators"' in schema
+    old = tmp_path / "old.skops"
+    with zipfile.ZipFile(model_file) as src, zipfile.ZipFile(old, "w") as dst:
+        for info in src.infolist():
+            raw = src.read(info)
+            dst.writestr(info, raw.replace(b'"learning.models.estimators"', b'"learning.estimators"')
+                         if info.filename == "schema.json" else raw)
+    want = load_model(tmp_path / "m").decision_function(X)
+    old.replace(model_file)
+    manifest = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    manifest["model_sha256"] = bundle_check.file_sha256(model_file)
+    (tmp_path / "m" / "manifest.json").write_text(json.dumps(manifest))
+    np.testing.assert_array_equal(load_model(tmp_path / "m").decision_function(X), want)
+    monkeypatch.setattr(bundle_check, "MOVED_MODULES", {})       # control: without the map it cannot load
+    with pytest.raises(ValueError, match="skops"):
+        load_model(tmp_path / "m")
 
 
 # --- training on the fixture dataset -----------------------------------------------

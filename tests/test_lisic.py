@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from learning.check import ERROR, check_dataset
-from learning.exr import write_png
-from learning.lisic import import_lisic, read_config, scan_scene
-from learning.observer import display
-from learning.stack import read_stack
+from learning.data.check import ERROR, check_dataset
+from learning.data.exr import write_png
+from learning.data.lisic import import_lisic, read_config, scan_scene
+from learning.data.observer import display
+from learning.data.stack import read_stack
 
 SPP = [20, 40, 60, 80, 100]
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from extremes import CASES, extreme_halves
-from learning.noise_input import (COMPOSITIONS, FEATURE_FLOOR, FLIP_FLOOR, HALVES, compose, halves_input,
-                                  halves_mean, halves_raw, layout, n_inputs, parts_of)
+from learning.inputs.noise_input import (COMPOSITIONS, FEATURE_FLOOR, FLIP_FLOOR, HALVES, compose, halves_input,
+                                         halves_mean, halves_raw, layout, n_inputs, parts_of)
 from noisefeat.base import N_FEATURES
 
 RNG = np.random.default_rng(3)

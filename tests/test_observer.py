@@ -4,11 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from learning.observer import (VirtualObserver, block_errors, block_means, display, flip_map,
-                               label_stack, relabel_if_stale, srgb_decode,
-                               thresholds_from_errors)
-from learning.stack import read_stack, update_labels
-from learning.synthetic import make_synthetic_stack, synthetic_images
+from learning.data.observer import (VirtualObserver, block_errors, block_means, display, flip_map,
+                                    label_stack, relabel_if_stale, srgb_decode,
+                                    thresholds_from_errors)
+from learning.data.stack import read_stack, update_labels
+from learning.data.synthetic import make_synthetic_stack, synthetic_images
 
 SPP = [4, 8, 16, 32, 64, 128, 256, 512, 1024]
 

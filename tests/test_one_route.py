@@ -13,18 +13,18 @@ import numpy as np
 import pytest
 
 from learning import read_stack, write_stack
-from learning.bundle import load_model, save_model
-from learning.evaluate import evaluate_model, stops_by_scene
-from learning.accumulator import BlockAccumulator
-from learning.halves import flip_offset, recover_passes, stack_flip_errors
-from learning.metrics import stop_thresholds
+from learning.models.bundle import load_model, save_model
+from learning.evaluation.evaluate import evaluate_model, stops_by_scene
+from learning.data.accumulator import BlockAccumulator
+from learning.inputs.halves import flip_offset, recover_passes, stack_flip_errors
+from learning.evaluation.metrics import stop_thresholds
 from learning.stoprule import StopRule, decide_active
-from learning.table import load_table, stack_flat
-from learning.train import train_model
+from learning.inputs.table import load_table, stack_flat
+from learning.training.train import train_model
 from renderer.client import RemoteModel
 from renderer.criteria import FlipCriterion, ModelCriterion
 from renderer.simulate import evaluate_criterion, simulate_stack
-from service.loadtest import LocalServer
+from service.lab.loadtest import LocalServer
 from stack_renderer import live
 
 FIXTURE = Path(__file__).parent / "fixtures" / "dataset"

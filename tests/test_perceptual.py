@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from extremes import CASES, extreme_halves
-from learning.halves import halves_flip
+from learning.inputs.halves import halves_flip
 from noisefeat.display import lab, lightness
 from noisefeat.perceptual import csf_kernel, pooled_colour_error
 

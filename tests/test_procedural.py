@@ -10,7 +10,7 @@ import pytest
 from renderer.procedural import (expand_procedural, procedural_name, procedural_scene,
                                  procedural_seed)
 from renderer.scenes import load_scene, scene_dict
-from learning.variant import select_variant
+from learning.data.variant import select_variant
 
 
 def _plain(d):

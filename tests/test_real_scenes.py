@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from learning.exr import read_exr, read_exr_channels
+from learning.data.exr import read_exr, read_exr_channels
 from renderer.adaptive import adaptive_render
 from renderer.report import pass_sizes
 from renderer.blocks import BlockRenderer

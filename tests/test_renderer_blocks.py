@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from learning.accumulator import BlockAccumulator
+from learning.data.accumulator import BlockAccumulator
 from renderer.blocks import BlockRenderer, derive_seed
 from renderer.scenes import load_scene
 

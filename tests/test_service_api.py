@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from learning.bundle import load_model, save_model
-from learning.estimators import SVM
+from learning.models.bundle import load_model, save_model
+from learning.models.estimators import SVM
 from noisefeat import extract_features
 from service.app import create_app
 from service.limits import Limits
-from service.loadtest import make_demo_bundle
+from service.lab.loadtest import make_demo_bundle
 from service.registry import ModelRegistry
 
 TOKEN = "test-token-0123456789"
@@ -393,7 +393,7 @@ def test_openapi_documents_errors_and_the_infer_body(client):
 
 
 def test_quick_none_model_needs_no_quick_input(tmp_path):
-    from learning.estimators import DSVM
+    from learning.models.estimators import DSVM
     rng = np.random.default_rng(3)
     X = rng.normal(size=(80, 26))
     bundle = save_model(DSVM().fit(X, np.where(X[:, 0] > 0, 1, -1)), tmp_path / "qn", kind="dsvm",

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import http.client
 import json
-import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -15,14 +14,14 @@ import numpy as np
 import pytest
 import schemathesis
 from schemathesis import GenerationMode
-import uvicorn
 from hypothesis import HealthCheck, given, settings
 from schemathesis.checks import not_a_server_error
 from schemathesis.specs.openapi.checks import (content_type_conformance, negative_data_rejection,
                                                response_headers_conformance,
                                                response_schema_conformance, status_code_conformance)
 
-from service.loadtest import LocalServer, free_port, make_demo_bundle, make_request, run_load
+from service.lab.loadtest import LocalServer, make_demo_bundle, make_request, run_load
+from live_server import threaded_server
 from service.serve import build
 
 TOKEN = "live-test-token-abcdef"
@@ -38,17 +37,8 @@ def bundle(tmp_path_factory):
 def live_url(bundle):
     """uvicorn on 127.0.0.1:<free port> in a thread, with a token and small limits."""
     app = build({"dsvm_live": bundle}, "127.0.0.1", token=TOKEN, max_body_bytes=4_000_000, max_batch=64)
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "server did not start"
-        time.sleep(0.05)
-    yield f"127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(30)
+    with threaded_server(app) as port:
+        yield f"127.0.0.1:{port}"
 
 
 def _blocks(n=3, size=32, seed=0):
@@ -92,7 +82,7 @@ def _triton_infer(client, current, quick, binary):
 
 def test_tritonclient_infer_json_and_binary_agree(live_url, bundle):
     import tritonclient.http as httpclient
-    from learning.bundle import load_model
+    from learning.models.bundle import load_model
     current, quick = _blocks()
     client = httpclient.InferenceServerClient(url=live_url)
     try:

@@ -6,21 +6,19 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import threading
-import time
 
 import numpy as np
 import pytest
-import uvicorn
 from fastapi.testclient import TestClient
 
 import service.app as app_module
-from learning.bundle import load_model
+from learning.models.bundle import load_model
 from noisefeat.extract import analyse_blocks
 from service import limits
 from service.connections import H11_PIECE, guarded_protocol
-from service.loadtest import free_port, make_demo_bundle, make_request, run_load
+from service.lab.loadtest import make_demo_bundle, make_request, run_load
 from service.oip import HEADER_LENGTH
+from live_server import threaded_server
 from service.serve import build
 
 TOKEN = "perf-test-token-0123456789"
@@ -73,7 +71,7 @@ def test_binary_tensors_are_views_of_the_body_whatever_the_header_length(bundle,
 def test_one_fused_call_per_request_for_blocks_and_quick(bundle, monkeypatch):
     """A feature model's request: blocks and quick images go through noisefeat in one
     call (one spectral pass for both), and the verdicts equal the per-image computation."""
-    import learning.bundle as bundle_module
+    import learning.models.bundle as bundle_module
     calls = []
     many = bundle_module.analyse_many
 
@@ -101,7 +99,7 @@ def test_server_process_imports_no_mitsuba_or_matplotlib(bundle):
 import json, sys
 import service.cli, service.commands
 from fastapi.testclient import TestClient
-from service.loadtest import make_request
+from service.lab.loadtest import make_request
 from service.serve import build
 for spec, inputs in (({{"m": {bundle!r}}}, "blocks"), ({{"m": None}}, "halves")):
     with TestClient(build(spec, token="t" * 24)) as c:
@@ -124,25 +122,12 @@ print(json.dumps(sorted(sys.modules)))
 def test_large_binary_bodies_through_the_guarded_protocol(bundle):
     """16 blocks of 128x128 with their quick images (6.3 MB, far more than one H11_PIECE)
     over a real socket and the header-deadline protocol: every answer complete and right."""
-    app = build({"demo": bundle}, token=TOKEN)
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning",
-                                           http=guarded_protocol(10.0)))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "server did not start"
-        time.sleep(0.05)
-    try:
+    with threaded_server(build({"demo": bundle}, token=TOKEN), http=guarded_protocol(10.0)) as port:
         body, _ = make_request(16, 128, binary=True)
         assert len(body) > 20 * H11_PIECE
         r = run_load(f"http://127.0.0.1:{port}", token=TOKEN, model="demo", clients=2, requests_per_client=2,
                      blocks=16, size=128, binary=True, max_seconds=120)
         assert r["requests"] == 4 and r["errors"] == 0, r
-    finally:
-        server.should_exit = True
-        thread.join(30)
 
 
 def test_heap_is_trimmed_only_when_much_of_it_is_free(monkeypatch):
@@ -166,7 +151,7 @@ def test_service_bench_merges_rounds_and_writes_every_figure(bundle):
     """The bench's bookkeeping (no timing asserted): rounds merge cell by cell into medians
     with every round's p99 kept, errors summed; the markdown carries each figure; the
     stage breakdown of one request names each stage."""
-    from service.bench_service import _merge, md_service, stage_times
+    from service.lab.bench_service import _merge, md_service, stage_times
 
     def run(p99, errors):
         return {"clients": 8, "encoding": "binary", "requests": 10, "errors": errors, "requests_per_s": 40.0,

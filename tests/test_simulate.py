@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 
 from learning import make_synthetic_stack, write_stack
-from learning.bundle import load_model, save_model
-from learning.estimators import DSVM
-from learning.table import stack_features
+from learning.models.bundle import load_model, save_model
+from learning.models.estimators import DSVM
+from learning.inputs.table import stack_features
 from noisefeat import split_blocks
-from learning.accumulator import BlockAccumulator
+from learning.data.accumulator import BlockAccumulator
 from renderer.criteria import ModelCriterion, OracleCriterion, UniformCriterion, VarianceCriterion
-from learning.halves import recover_passes
+from learning.inputs.halves import recover_passes
 from renderer.simulate import criterion_factory, evaluate_criterion, evaluate_criterion_cli, find_reference, simulate_stack
 from stack_renderer import live
 

@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from learning.exr import read_exr, read_png, write_exr, write_png
-from learning.stack import (MID_GREY_LINEAR, StackWriter, list_stacks, make_plan, read_stack,
-                            update_labels, validate_meta, write_stack)
-from learning.synthetic import make_synthetic_stack, synthetic_images
+from learning.data.exr import read_exr, read_png, write_exr, write_png
+from learning.data.stack import (MID_GREY_LINEAR, StackWriter, list_stacks, make_plan, read_stack,
+                                 update_labels, validate_meta, write_stack)
+from learning.data.synthetic import make_synthetic_stack, synthetic_images
 
 RNG = np.random.default_rng(1)
 
@@ -88,7 +88,7 @@ def test_png_roundtrip_and_errors(tmp_path):
 
 
 def test_read_exr_drops_alpha_and_expands_grey(tmp_path):
-    from learning.exr import _mi
+    from learning.data.exr import _mi
 
     mi = _mi()
     rgba = _img(4, 5, seed=2)
@@ -102,7 +102,7 @@ def test_read_exr_drops_alpha_and_expands_grey(tmp_path):
 
 def test_exr_io_keeps_a_variant_chosen_by_someone_else(tmp_path):
     code = ("import mitsuba as mi, numpy as np; mi.set_variant('scalar_spectral');"
-            "from learning.exr import write_exr, read_exr;"
+            "from learning.data.exr import write_exr, read_exr;"
             f"write_exr({str(tmp_path / 'v.exr')!r}, np.ones((2, 2, 3), np.float32));"
             f"assert read_exr({str(tmp_path / 'v.exr')!r}).sum() == 12;"
             "print(mi.variant())")

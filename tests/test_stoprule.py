@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from learning.metrics import stop_thresholds
+from learning.evaluation.metrics import stop_thresholds
 from learning.stoprule import FLAT_TOLERANCE, StopRule, decide_active, flat_blocks
 
 SPP = [16, 32, 48, 64, 80]

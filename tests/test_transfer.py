@@ -14,8 +14,8 @@ import pytest
 import torch
 from sklearn.base import clone
 
-from learning import transfer as T
-from learning.transfer import TransferClassifier
+from learning.models import transfer as T
+from learning.models.transfer import TransferClassifier
 
 ARCH = "mobilenet_v2"  # the smallest base: tests stay fast
 
@@ -61,7 +61,7 @@ def _state_dict_file(path, arch: str = ARCH, seed: int = 1):
 
 def test_fit_predict_contract(caplog):
     X, y = _data()
-    with caplog.at_level(logging.WARNING, logger="learning.transfer"):
+    with caplog.at_level(logging.WARNING, logger="learning.models.transfer"):
         m = TransferClassifier(arch=ARCH, epochs=15, batch_size=16).fit(X, y)
     assert "UNTRAINED" in caplog.text and "random init" in caplog.text
     assert m.base_pretrained_ is False and m.report_label() == f"{ARCH} (untrained base)"
@@ -149,7 +149,7 @@ def test_wrong_or_broken_weights_file(tmp_path):
 def test_explicit_weights_file_is_loaded(tmp_path, caplog):
     path = _state_dict_file(tmp_path / "mine.pth")
     X, y = _data(n=8)
-    with caplog.at_level(logging.WARNING, logger="learning.transfer"):
+    with caplog.at_level(logging.WARNING, logger="learning.models.transfer"):
         m = TransferClassifier(arch=ARCH, weights=str(path), epochs=1).fit(X, y)
     assert "UNTRAINED" not in caplog.text
     assert m.base_pretrained_ is True and m.report_label() == f"{ARCH} (weights mine.pth)"
@@ -247,7 +247,7 @@ def test_missing_torchvision_names_the_arches(monkeypatch):
 
 def test_torchvision_shim_only_when_needed():
     """In a fresh interpreter: schemas are defined iff torchvision's C extension did not load."""
-    code = ("import learning.transfer as T, torch; tv = T.import_torchvision();"
+    code = ("import learning.models.transfer as T, torch; tv = T.import_torchvision();"
             "import torchvision.extension as E; m = tv.models.mobilenet_v2(weights=None);"
             "print(E._has_ops(), T._shim_lib is not None, hasattr(torch.ops.torchvision, 'nms'))")
     out = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True,

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from learning import variant as V
+from learning.data import variant as V
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -46,7 +46,7 @@ def test_old_libllvm_in_env_is_not_trusted(monkeypatch: pytest.MonkeyPatch, tmp_
 
 def test_env_override_to_scalar_in_fresh_process() -> None:
     code = ("import logging; logging.basicConfig(level=logging.INFO)\n"
-            "from learning.variant import select_variant, current_variant, variant_reason\n"
+            "from learning.data.variant import select_variant, current_variant, variant_reason\n"
             "v = select_variant(); assert select_variant() == v\n"
             "print(v, current_variant(), variant_reason(), sep='|')")
     res = _run(code, NOISESTOP_VARIANT="scalar_rgb")
@@ -60,7 +60,7 @@ def test_env_override_to_scalar_in_fresh_process() -> None:
 def test_detection_picks_llvm_here() -> None:
     if V.find_libllvm()[0] is None:
         pytest.skip("no libLLVM >= 16 on this machine")
-    code = ("import os\nfrom learning.variant import select_variant\n"
+    code = ("import os\nfrom learning.data.variant import select_variant\n"
             "print(select_variant(), os.environ['DRJIT_LIBLLVM_PATH'], sep='|')")
     res = _run(code, NOISESTOP_VARIANT=None, DRJIT_LIBLLVM_PATH=None)
     assert res.returncode == 0, res.stderr

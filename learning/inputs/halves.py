@@ -1,0 +1,152 @@
+"""Half buffers and the training-free `flip` score: FLIP between the two halves of a block.
+
+A progressive render can keep two half buffers per pixel, as Cycles does: A, the mean of
+the even-numbered passes, and B, the mean of the odd-numbered ones. They are two
+independent estimates of the same image, so display(A) against display(B) differs only
+by noise: no scene content is left in the comparison. The `flip` criterion measures that
+difference the way DESIGN's observer measures the difference to the reference: e = mean
+over the block of the raw LDR-FLIP map (67 pixels per degree) between display(A) and
+display(B), the map computed on the block alone (the live loop only has the active
+blocks). A block is converged when e <= c, with c calibrated on training scenes
+(`calibrate_flip`, shipped in `learning/flip.json`).
+
+On a stored stack the passes come back exactly from consecutive cumulative levels
+(`recover_passes`), and a `BlockAccumulator` fed with them holds the very half buffers the
+live loop keeps, so `stack_flip_errors` scores every (level, block) as the render would.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from noisefeat.display import check_exposure
+from noisefeat.flip import mean_flip_halves
+
+from ..data.observer import DEFAULT_PPD, display, flip_map
+from ..data.stack import Stack
+
+log = logging.getLogger(__name__)
+
+FLIP_CALIBRATION = Path(__file__).parents[1] / "flip.json"
+DEFAULT_C = 0.02   # used only when no calibration file ships (flip.json says what is shipped)
+
+
+def recover_passes(stack: Stack) -> Iterator[tuple[int, np.ndarray, int, np.ndarray]]:
+    """Yield (k, level_k [H, W, 3] float64, pass spp, pass_k [H, W, 3] float64), one level at a time.
+
+    Level k is the cumulative mean of spp[k] samples, so sum_k = spp[k] * L_k and the
+    pass between two levels is (sum_k - sum_{k-1}) / (spp[k] - spp[k-1]) (pass 0 = L_0).
+    Pixels whose stored level is non-finite give a non-finite pass; the accumulator drops
+    them exactly as it drops a renderer's non-finite samples.
+    """
+    prev_sum: np.ndarray | None = None
+    prev_spp = 0
+    for k, s in enumerate(stack.spp):
+        level = stack.level(k).astype(np.float64)
+        total = level * float(s)
+        n = int(s) - prev_spp
+        with np.errstate(invalid="ignore", over="ignore"):
+            pass_img = total / n if prev_sum is None else (total - prev_sum) / n
+        yield k, level, n, pass_img
+        prev_sum, prev_spp = total, int(s)
+
+
+def check_constant_step(stack: Stack) -> None:
+    """Warn when levels are not evenly spaced: the recovered passes then differ in size and
+    the half buffers A and B hold unequal sample counts."""
+    steps = np.diff([0, *stack.spp])
+    if len(set(steps.tolist())) > 1:
+        log.warning("%s: spp steps are not constant (%s...): recovered passes differ in size, "
+                    "so the half buffers A/B are unbalanced", stack.path, steps[:4].tolist())
+
+
+def _check_halves(even: np.ndarray, odd: np.ndarray, exposure: float) -> tuple[np.ndarray, np.ndarray, float]:
+    even, odd = np.asarray(even), np.asarray(odd)
+    if even.shape != odd.shape or even.ndim != 4 or even.shape[-1] != 3:
+        raise ValueError(f"half buffers must be two [N, h, w, 3] arrays of one shape, got "
+                         f"{even.shape} and {odd.shape}")
+    if not (np.issubdtype(even.dtype, np.floating) and np.issubdtype(odd.dtype, np.floating)):
+        raise ValueError(f"half buffers must be floating point, got {even.dtype} and {odd.dtype}")
+    return even, odd, check_exposure(exposure)
+
+
+def halves_flip(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
+                ppd: float = DEFAULT_PPD) -> np.ndarray:
+    """e float64 [N]: per block, the mean raw FLIP between display(A) and display(B).
+
+    `even`, `odd`: linear RGB blocks [N, h, w, 3] (the two half-buffer means). Non-finite
+    values follow the display rule (NaN/-Inf black, +Inf white), so e is always finite.
+    Computed for all blocks at once by `noisefeat.flip` (FLIP's LDR pipeline in torch, each
+    block alone), which agrees with `flip-evaluator` (`halves_flip_evaluator`) to float32
+    rounding at a small fraction of its cost (BENCHMARKS.md "FLIP between the halves").
+    """
+    even, odd, exposure = _check_halves(even, odd, exposure)
+    return mean_flip_halves(even, odd, exposure, ppd).numpy()
+
+
+def halves_flip_evaluator(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
+                          ppd: float = DEFAULT_PPD) -> np.ndarray:
+    """`halves_flip` by NVIDIA's `flip-evaluator`, one block per call: the reference
+    implementation that the torch route is tested and timed against."""
+    even, odd, exposure = _check_halves(even, odd, exposure)
+    out = np.empty(len(even))
+    for i, (a, b) in enumerate(zip(even, odd)):
+        out[i] = float(np.mean(flip_map(display(a, exposure), display(b, exposure), ppd), dtype=np.float64))
+    return out
+
+
+def flip_offset(c: float) -> float:
+    """The stop-rule offset that makes `score > offset` (score = -e) mean e <= c exactly."""
+    if not (np.isfinite(c) and c >= 0):
+        raise ValueError(f"flip threshold c must be a non-negative number, got {c!r}")
+    return float(np.nextafter(-float(c), -np.inf))
+
+
+def stack_flip_errors(stack: Stack, exposure: float = 0.0, ppd: float = DEFAULT_PPD,
+                      progress: bool = False) -> np.ndarray:
+    """e float64 [K, n_blocks] of a stack; NaN where B is still empty (one pass only) and
+    where the block's image is flat (the stop rule stops it whatever e is, so FLIP, the
+    expensive part, is not run there, as in the live loop).
+
+    Cached next to the stack (`.cache/flip-halves-*.npz`, atomic), since every
+    calibration and evaluation reads it.
+    """
+    from .table import cached_array, iter_stack_halves, stack_flat
+
+    flat = stack_flat(stack, exposure)
+    shape = (stack.n_levels, stack.n_blocks)
+
+    def compute() -> np.ndarray:
+        e = np.full(shape, np.nan)             # level 0 stays NaN: B is empty there
+        for k, even, odd in iter_stack_halves(stack, progress):
+            todo = np.flatnonzero(~flat[k])
+            if todo.size:
+                e[k, todo] = halves_flip(even[todo], odd[todo], exposure, ppd)
+        return e
+    return cached_array(stack, f"flip-halves-e{exposure:g}-ppd{ppd:g}", shape, compute)
+
+
+# ----------------------------------------------------------------------------- the shipped c
+
+
+def load_flip_calibration(path: str | os.PathLike | None = None) -> dict[str, Any]:
+    """The shipped calibration of c (`learning/flip.json`), or the fallback if none ships."""
+    p = Path(path) if path is not None else FLIP_CALIBRATION
+    if not p.is_file():
+        if path is not None:
+            raise FileNotFoundError(f"{p}: no flip calibration file")
+        log.warning("no flip calibration shipped (%s); using c = %g", p, DEFAULT_C)
+        return {"c": DEFAULT_C, "source": "fallback"}
+    try:
+        cal = json.loads(p.read_text())
+        c = float(cal["c"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{p}: unreadable flip calibration ({exc})") from None
+    flip_offset(c)
+    return cal

@@ -1,0 +1,275 @@
+"""What a model bundle must hold before anything uses it: its manifest's schema, the
+estimator's fitted arrays, and the model file's hash.
+
+Why (issue 14): crafted bundles loaded and then failed at the first verdict, or never did
+and answered wrong. A manifest nested 100,000 deep raised RecursionError; `"input":
+"Features"` (capitalised) skipped the feature-base check; a replaced fitted attribute
+raised AttributeError mid-request; a NaN offset loaded and the model never converged.
+libsvm reads the support vectors through the counts it is given, so inconsistent arrays
+would read out of bounds rather than raise. Everything here raises ValueError with the
+file and the field, before the estimator answers anything.
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+import re
+import zipfile
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from ..stoprule import OFFSET_LIMIT
+
+MAX_MANIFEST_BYTES = 16 * 1024 * 1024
+MAX_MODEL_BYTES = 2 * 1024 * 1024 * 1024      # uncompressed members of model.skops, all together
+MAX_FEATURES = 1 << 24                        # a 4096x4096 raw block
+MAX_SUPPORT_VECTORS = 1 << 22
+_HEX64 = re.compile(r"^[0-9a-f]{64}$")
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(strict=True, extra="allow")
+
+
+class FeatureBaseInfo(_Strict):
+    hash: str = Field(min_length=1, max_length=64)
+    weights: str | None = None
+    wavelet: str | None = None
+
+
+class TrainingInfo(_Strict):
+    """The parts of `training` that commands read (evaluate: the scenes not to test on)."""
+
+    train_scenes: list[str] = []
+    test_scenes: list[str] = []
+
+
+class Manifest(_Strict):
+    """manifest.json as `learning.models.bundle.save_model` writes it (unknown keys are kept)."""
+
+    format: Literal["noisestop-model"]
+    version: Literal[1]
+    kind: str = Field(min_length=1, max_length=64)
+    name: str | None = Field(default=None, min_length=1, max_length=64)
+    input: Literal["features", "raw"]
+    feature_base: FeatureBaseInfo | None = None
+    n_features: int | None = Field(default=None, ge=1, le=MAX_FEATURES)
+    offset: float | None = Field(default=None, allow_inf_nan=False, ge=-OFFSET_LIMIT, le=OFFSET_LIMIT)
+    quick: Literal["halves", "albedo", "direct", "none"] | None = None
+    composition: str | None = Field(default=None, min_length=1, max_length=64)
+    model_version: str | None = Field(default=None, min_length=1, max_length=64)
+    model_sha256: str | None = None
+    params: dict[str, Any] = {}
+    training: TrainingInfo = TrainingInfo()
+    metrics: dict[str, Any] = {}
+    versions: dict[str, Any] = {}
+
+
+def read_manifest(path: Path) -> dict[str, Any]:
+    """The manifest at `path` as a dict, validated against `Manifest`; ValueError otherwise."""
+    size = path.stat().st_size
+    if size > MAX_MANIFEST_BYTES:
+        raise ValueError(f"{path}: {size} bytes, more than a manifest may hold ({MAX_MANIFEST_BYTES})")
+    try:
+        raw = json.loads(path.read_bytes())
+    except RecursionError:
+        raise ValueError(f"{path}: not a manifest (JSON nested too deeply)") from None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(raw, dict):
+        raise ValueError(f"{path}: a manifest is a JSON object, got {type(raw).__name__}")
+    if raw.get("format") != "noisestop-model" or raw.get("version") != 1:
+        raise ValueError(f"{path.parent}: unsupported bundle format {raw.get('format')!r} "
+                         f"version {raw.get('version')!r}")
+    try:
+        Manifest.model_validate(raw)
+    except ValidationError as exc:
+        first = exc.errors(include_url=False, include_input=False)[0]
+        where = ".".join(str(p) for p in first["loc"]) or "manifest"
+        raise ValueError(f"{path}: {where}: {first['msg']}") from None
+    if raw["input"] == "raw" and raw.get("quick") not in (None, "none", "halves"):
+        raise ValueError(f"{path}: unknown input mode quick={raw['quick']!r} for a raw model "
+                         "(one of none, halves)")
+    if raw["input"] == "features" and raw.get("feature_base") is None:
+        raise ValueError(f"{path}: a feature model must name the feature base it was trained on")
+    if raw.get("model_sha256") is not None and not _HEX64.match(raw["model_sha256"]):
+        raise ValueError(f"{path}: model_sha256 must be 64 lowercase hex digits")
+    return raw
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def check_model_file(path: Path, manifest: dict[str, Any]) -> None:
+    """The model file is a zip whose members fit in memory, with the manifest's hash if it has one."""
+    want = manifest.get("model_sha256")
+    if want is not None and file_sha256(path) != want:
+        raise ValueError(f"{path}: content does not match the manifest's model_sha256 (changed or damaged)")
+    try:
+        with zipfile.ZipFile(path) as zf:
+            total = sum(i.file_size for i in zf.infolist())
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise ValueError(f"{path}: unreadable skops file ({exc})") from None
+    if total > MAX_MODEL_BYTES:
+        raise ValueError(f"{path}: unpacks to {total} bytes, more than a model may take ({MAX_MODEL_BYTES})")
+
+
+#: where our estimators lived before `learning` was cut into sub-packages (issue 17); a
+#: bundle written then names the old module in its skops schema, and skops finds a class
+#: by its module's name
+MOVED_MODULES = {"learning.estimators": "learning.models.estimators"}
+
+
+def model_bytes(path: Path) -> bytes:
+    """The model file's content, with the module names of estimators that have moved since
+    it was written replaced by their homes now, so that older bundles keep loading (the
+    allow-list then judges the current names)."""
+    data = path.read_bytes()
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as zf:
+            schema = zf.read("schema.json")
+            if not any(f'"{old}"'.encode() in schema for old in MOVED_MODULES):
+                return data
+            members = [(info, zf.read(info)) for info in zf.infolist()]
+        tree = json.loads(schema)
+    except (zipfile.BadZipFile, KeyError, OSError, ValueError, RecursionError) as exc:
+        raise ValueError(f"{path}: unreadable skops file ({type(exc).__name__}: {exc})") from None
+    todo = [tree]
+    while todo:                                   # iterative: a crafted schema may nest deep
+        node = todo.pop()
+        if isinstance(node, dict):
+            if node.get("__module__") in MOVED_MODULES:
+                node["__module__"] = MOVED_MODULES[node["__module__"]]
+            todo.extend(node.values())
+        elif isinstance(node, list):
+            todo.extend(node)
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as zf:
+        for info, raw in members:
+            zf.writestr(info, json.dumps(tree).encode() if info.filename == "schema.json" else raw)
+    return out.getvalue()
+
+
+# ----------------------------------------------------------------------------- estimator
+
+
+def _array(owner: str, name: str, value: Any, dtype: str, shape: tuple[int | None, ...]) -> np.ndarray:
+    """`value` must be an ndarray of `dtype` kind/size and `shape` (None: any), finite if float."""
+    where = f"{owner}.{name}"
+    if type(value) is not np.ndarray:
+        raise ValueError(f"{where} must be an array, got {type(value).__name__}")
+    if value.dtype != np.dtype(dtype):
+        raise ValueError(f"{where} must be {dtype}, got {value.dtype}")
+    if value.ndim != len(shape) or any(s is not None and s != v for s, v in zip(shape, value.shape)):
+        want = "x".join("n" if s is None else str(s) for s in shape) or "scalar"
+        raise ValueError(f"{where} must have shape {want}, got {list(value.shape)}")
+    if value.dtype.kind == "f" and not np.isfinite(value).all():
+        raise ValueError(f"{where} holds NaN or Inf")
+    return value
+
+
+def _number(where: str, value: Any, low: float, high: float, integer: bool = False) -> float:
+    kinds = (int, np.integer) if integer else (int, float, np.integer, np.floating)
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, kinds) or not math.isfinite(float(value)) \
+            or not low <= value <= high:
+        raise ValueError(f"{where} must be a {'whole ' if integer else ''}number in [{low:g}, {high:g}], got {value!r}")
+    return float(value)
+
+
+def check_estimator(est: Any, expected_features: int | None = None) -> None:
+    """Every fitted attribute an `RBFSVM` reads when it answers, by exact type, dtype and shape."""
+    from sklearn.preprocessing import StandardScaler
+    from sklearn.svm import SVC
+
+    from .estimators import DSVM, SVM, RBFSVM
+
+    if type(est) not in (RBFSVM, DSVM, SVM):
+        raise ValueError(f"holds a {type(est).__name__}, not a noisestop SVM")
+    d = int(_number("n_features_in_", getattr(est, "n_features_in_", None), 1, MAX_FEATURES, integer=True))
+    if expected_features is not None and d != expected_features:
+        raise ValueError(f"n_features_in_ is {d}, the manifest says {expected_features}")
+    classes = _array("estimator", "classes_", getattr(est, "classes_", None), "int64", (2,))
+    if classes.tolist() != [-1, 1]:
+        raise ValueError(f"classes_ must be [-1, 1], got {classes.tolist()}")
+    _number("offset_", getattr(est, "offset_", None), -OFFSET_LIMIT, OFFSET_LIMIT)
+    rng = getattr(est, "range_", None)
+    if rng is not None:
+        _array("estimator", "range_", rng, "float64", (2, d))
+        if (rng[0] > rng[1]).any():
+            raise ValueError("range_ has a lower bound above its upper bound")
+    scaler = getattr(est, "scaler_", None)
+    if scaler is not None:
+        if type(scaler) is not StandardScaler:
+            raise ValueError(f"scaler_ must be a StandardScaler, got {type(scaler).__name__}")
+        for flag in ("with_mean", "with_std"):
+            if not isinstance(getattr(scaler, flag, None), bool):
+                raise ValueError(f"scaler_.{flag} must be true or false")
+        if scaler.with_mean:
+            _array("scaler_", "mean_", getattr(scaler, "mean_", None), "float64", (d,))
+        if scaler.with_std and (_array("scaler_", "scale_", getattr(scaler, "scale_", None), "float64", (d,))
+                                <= 0).any():
+            raise ValueError("scaler_.scale_ must be positive")
+        if getattr(scaler, "n_features_in_", d) != d:
+            raise ValueError(f"scaler_.n_features_in_ is {scaler.n_features_in_}, the model takes {d}")
+    elif getattr(est, "standardize", False) is True and "scaler_" not in vars(est):
+        raise ValueError("scaler_ is missing")
+    svc = getattr(est, "svc_", None)
+    constant = getattr(est, "constant_", None)
+    if svc is None:
+        if constant not in (-1, 1) or isinstance(constant, bool):
+            raise ValueError(f"a model without svc_ must answer a constant -1 or 1, got constant_ = {constant!r}")
+        return
+    if constant is not None:
+        raise ValueError("constant_ must be None when svc_ is fitted")
+    if type(svc) is not SVC:
+        raise ValueError(f"svc_ must be an sklearn SVC, got {type(svc).__name__}")
+    _check_svc(svc, d)
+
+
+def _check_svc(svc: Any, d: int) -> None:
+    """The arrays and settings libsvm's decision function reads (sklearn.svm._base)."""
+    if svc.kernel != "rbf" or svc.__dict__.get("_sparse") is not False:
+        raise ValueError(f"svc_ must be a dense RBF SVC, got kernel {svc.kernel!r}")
+    if getattr(svc, "decision_function_shape", None) not in ("ovr", "ovo"):
+        raise ValueError("svc_.decision_function_shape must be 'ovr' or 'ovo'")
+    sv = _array("svc_", "support_vectors_", getattr(svc, "support_vectors_", None), "float64", (None, d))
+    n_sv = sv.shape[0]
+    if not 1 <= n_sv <= MAX_SUPPORT_VECTORS or not sv.flags.c_contiguous:
+        raise ValueError(f"svc_.support_vectors_ must hold 1..{MAX_SUPPORT_VECTORS} C-ordered rows, got {n_sv}")
+    support = _array("svc_", "support_", getattr(svc, "support_", None), "int32", (n_sv,))
+    if (support < 0).any():
+        raise ValueError("svc_.support_ holds negative indices")
+    counts = _array("svc_", "_n_support", getattr(svc, "_n_support", None), "int32", (2,))
+    if (counts < 0).any() or int(counts.sum()) != n_sv:
+        raise ValueError(f"svc_._n_support {counts.tolist()} does not add up to {n_sv} support vectors")
+    for name in ("dual_coef_", "_dual_coef_"):
+        _array("svc_", name, getattr(svc, name, None), "float64", (1, n_sv))
+    for name in ("intercept_", "_intercept_"):
+        _array("svc_", name, getattr(svc, name, None), "float64", (1,))
+    for name in ("_probA", "_probB"):
+        _array("svc_", name, getattr(svc, name, None), "float64", (None,))
+    classes = _array("svc_", "classes_", getattr(svc, "classes_", None), "int64", (2,))
+    if classes.tolist() != [-1, 1]:
+        raise ValueError(f"svc_.classes_ must be [-1, 1], got {classes.tolist()}")
+    _number("svc_._gamma", getattr(svc, "_gamma", None), 1e-300, 1e300)
+    _number("svc_.degree", getattr(svc, "degree", None), 0, 100, integer=True)
+    _number("svc_.coef0", getattr(svc, "coef0", None), -1e300, 1e300)
+    _number("svc_.cache_size", getattr(svc, "cache_size", None), 1e-3, 1e6)
+    _number("svc_.n_features_in_", getattr(svc, "n_features_in_", None), d, d, integer=True)
+    shape_fit = getattr(svc, "shape_fit_", None)
+    if not (isinstance(shape_fit, tuple) and len(shape_fit) == 2 and shape_fit[1] == d):
+        raise ValueError(f"svc_.shape_fit_ must be (n, {d}), got {shape_fit!r}")
+    if getattr(svc, "fit_status_", None) != 0 or not isinstance(getattr(svc, "break_ties", None), bool):
+        raise ValueError("svc_ is not a successfully fitted SVC (fit_status_ / break_ties)")
+    if getattr(svc, "_impl", "c_svc") != "c_svc":
+        raise ValueError("svc_ must be a C-SVC")

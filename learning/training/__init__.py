@@ -1,0 +1,3 @@
+"""Workflows: train one model (`train`); train many and compare them (`compare`,
+`compare_inputs`, `knobs`).
+"""

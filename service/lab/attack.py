@@ -1,0 +1,280 @@
+"""Attack scenarios against a running verdict server (issue 14), bounded and on loopback only.
+
+Each function drives one kind of abuse the attack found or the hardening must survive, and
+returns what happened as plain numbers, so that tests assert on them and `noisestop bench
+reliability` reports them (BENCHMARKS.md "Reliability under attack"):
+
+* `idle_flood`: N connections that send nothing or half a request line, while health
+  probes and one inference are timed; then how long the server takes to close them;
+* `slow_headers`: one header byte at a time (slowloris), until the server hangs up;
+* `stalled_body`: headers, then part of the body, then silence (expects 408);
+* `over_the_limit`: `limit` requests held in flight, one more (expects 503) and a probe (200);
+* `worst_shapes`: the largest and oddest requests the limits allow, and some they refuse.
+
+Nothing here sends more than a few hundred megabytes or runs longer than a minute.
+"""
+from __future__ import annotations
+
+import http.client
+import json
+import socket
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+from urllib.parse import urlsplit
+
+import numpy as np
+
+from ..auth import is_loopback
+from ..oip import HEADER_LENGTH
+
+MAX_CONNECTIONS = 512
+
+
+def _address(url: str) -> tuple[str, int]:
+    parts = urlsplit(url)
+    host = parts.hostname or ""
+    if parts.scheme != "http" or not is_loopback(host):
+        raise ValueError(f"{url}: attack scenarios run against a loopback http:// server only")
+    return host, parts.port or 80
+
+
+def _get(host: str, port: int, path: str, timeout: float = 10.0) -> tuple[int | str, float]:
+    """(status or error name, seconds) of one GET on a fresh connection."""
+    t0 = time.perf_counter()
+    conn = http.client.HTTPConnection(host, port, timeout=timeout)
+    try:
+        conn.request("GET", path)
+        resp = conn.getresponse()
+        resp.read()
+        return resp.status, time.perf_counter() - t0
+    except OSError as exc:
+        return type(exc).__name__, time.perf_counter() - t0
+    finally:
+        conn.close()
+
+
+def post(url: str, body: bytes, headers: dict[str, str], token: str | None = None,
+         path: str = "/v2/models/default/infer", timeout: float = 300.0) -> tuple[int | str, bytes]:
+    """(status or error name, body) of one POST; a server that hangs up early is an error name."""
+    host, port = _address(url)
+    conn = http.client.HTTPConnection(host, port, timeout=timeout)
+    auth = {"Authorization": f"Bearer {token}"} if token else {}
+    try:
+        conn.request("POST", path, body=body, headers={**auth, **headers})
+        resp = conn.getresponse()
+        return resp.status, resp.read()
+    except OSError as exc:
+        return type(exc).__name__, b""
+    finally:
+        conn.close()
+
+
+def _closed(sock: socket.socket, deadline: float) -> tuple[bool, bytes]:
+    """Wait until the server closes `sock` (or the deadline); (closed, bytes it sent)."""
+    got = b""
+    while time.monotonic() < deadline:
+        sock.settimeout(max(0.05, deadline - time.monotonic()))
+        try:
+            chunk = sock.recv(4096)
+        except TimeoutError:
+            break
+        except OSError:
+            return True, got
+        if not chunk:
+            return True, got
+        got += chunk
+    return False, got
+
+
+def idle_flood(url: str, n: int = 64, probes: int = 10, wait: float = 30.0,
+               infer: Callable[[], int | str] | None = None) -> dict[str, Any]:
+    """n idle connections (half silent, half with a partial request line) held open while
+    `probes` health checks (live and ready, alternating) and `infer` run; then the seconds
+    until the server has closed every one (at most `wait`)."""
+    host, port = _address(url)
+    if not 1 <= n <= MAX_CONNECTIONS:
+        raise ValueError(f"n must be 1..{MAX_CONNECTIONS}, got {n}")
+    socks = []
+    try:
+        for i in range(n):
+            s = socket.create_connection((host, port), timeout=10)
+            if i % 2:
+                s.sendall(b"GET /v2/health/live HTTP/1.1\r\nHost: x\r\n")   # never finished
+            socks.append(s)
+        t_open = time.monotonic()
+        health = [_get(host, port, "/v2/health/live" if i % 2 == 0 else "/v2/health/ready")
+                  for i in range(probes)]
+        infer_status = infer() if infer is not None else None
+        closed, statuses = 0, {}
+        deadline = t_open + wait
+        for s in socks:
+            ok, got = _closed(s, deadline)
+            closed += ok
+            code = got.split(b" ", 2)[1].decode() if got.startswith(b"HTTP/1.1 ") else "none"
+            statuses[code] = statuses.get(code, 0) + 1
+        return {"connections": n, "health_status": sorted({str(h[0]) for h in health}),
+                "health_ok": sum(h[0] == 200 for h in health), "probes": probes,
+                "health_max_s": max(h[1] for h in health), "health_median_s": float(np.median([h[1] for h in health])),
+                "infer_status": infer_status, "closed_by_server": closed,
+                "all_closed_after_s": time.monotonic() - t_open if closed == n else None,
+                "answers_before_close": statuses}
+    finally:
+        for s in socks:
+            s.close()
+
+
+def slow_headers(url: str, interval: float = 0.2, limit_s: float = 60.0) -> dict[str, Any]:
+    """Send a request's headers one byte every `interval` seconds; when did the server hang up?"""
+    host, port = _address(url)
+    line = b"GET /v2/health/live HTTP/1.1\r\nHost: x\r\n" + b"X-Slow: " + b"a" * 4000 + b"\r\n\r\n"
+    s = socket.create_connection((host, port), timeout=10)
+    t0 = time.monotonic()
+    sent, got = 0, b""
+    try:
+        while sent < len(line) and time.monotonic() - t0 < limit_s:
+            try:
+                s.sendall(line[sent:sent + 1])
+            except OSError:
+                break
+            sent += 1
+            s.settimeout(interval)
+            try:
+                chunk = s.recv(4096)
+                if not chunk:
+                    break
+                got += chunk
+            except TimeoutError:
+                continue
+            except OSError:
+                break
+        closed, rest = _closed(s, time.monotonic() + 5)
+        got += rest
+    finally:
+        s.close()
+    return {"bytes_sent": sent, "header_bytes": len(line), "cut_off": sent < len(line),
+            "after_s": time.monotonic() - t0, "status": got.split(b" ", 2)[1].decode()
+            if got.startswith(b"HTTP/1.1 ") else None}
+
+
+def stalled_body(url: str, token: str | None, declared: int = 1000, sent: int = 10,
+                 limit_s: float = 60.0) -> dict[str, Any]:
+    """Headers announcing `declared` body bytes, `sent` of them, then silence."""
+    host, port = _address(url)
+    s = socket.create_connection((host, port), timeout=limit_s)
+    auth = f"Authorization: Bearer {token}\r\n" if token else ""
+    t0 = time.monotonic()
+    try:
+        s.sendall((f"POST /v2/models/default/infer HTTP/1.1\r\nHost: x\r\n{auth}"
+                   f"Content-Type: application/json\r\nContent-Length: {declared}\r\n\r\n").encode() + b"{" * sent)
+        _, got = _closed(s, t0 + limit_s)
+    finally:
+        s.close()
+    status = got.split(b" ", 2)[1].decode() if got.startswith(b"HTTP/1.1 ") else None
+    return {"status": status, "after_s": time.monotonic() - t0}
+
+
+def over_the_limit(url: str, token: str | None, limit: int) -> dict[str, Any]:
+    """Hold `limit` requests in flight (stalled bodies), then send one more and probe health."""
+    host, port = _address(url)
+    auth = f"Authorization: Bearer {token}\r\n" if token else ""
+    held = []
+    try:
+        for _ in range(limit):
+            s = socket.create_connection((host, port), timeout=30)
+            s.sendall((f"POST /v2/models/default/infer HTTP/1.1\r\nHost: x\r\n{auth}Content-Length: 100\r\n"
+                       "Content-Type: application/json\r\n\r\n{").encode())
+            held.append(s)
+        deadline = time.monotonic() + 20         # the server reads the held ones as it gets to them
+        attempts = 0
+        while True:
+            attempts += 1
+            extra = http.client.HTTPConnection(host, port, timeout=30)
+            extra.request("POST", "/v2/models/default/infer", body=b"{}",
+                          headers={"Content-Type": "application/json",
+                                   **({"Authorization": f"Bearer {token}"} if token else {})})
+            resp = extra.getresponse()
+            body = resp.read()
+            retry_after = resp.getheader("Retry-After")
+            extra.close()
+            if resp.status == 503 or time.monotonic() > deadline:
+                break
+            time.sleep(0.1)
+        health = _get(host, port, "/v2/health/ready")
+        return {"held": limit, "extra_status": resp.status, "retry_after": retry_after, "attempts": attempts,
+                "error": json.loads(body).get("error") if body.startswith(b"{") else None,
+                "health_status": health[0]}
+    finally:
+        for s in held:
+            s.close()
+
+
+# --- the worst shapes ---------------------------------------------------------------------------
+
+def binary_request(shape: tuple[int, ...], names: tuple[str, ...] = ("blocks", "quick"),
+                   seed: int = 0) -> tuple[bytes, dict[str, str]]:
+    """Body and headers of a binary-tensor request of FP32 `shape` per input (random values)."""
+    n = int(np.prod(shape))
+    head = json.dumps({"inputs": [{"name": nm, "shape": list(shape), "datatype": "FP32",
+                                   "parameters": {"binary_data_size": 4 * n}} for nm in names]}).encode()
+    data = np.random.default_rng(seed).random(n, dtype=np.float32).tobytes()
+    return head + data * len(names), {HEADER_LENGTH: str(len(head)), "Content-Type": "application/octet-stream"}
+
+
+def nested_json_request(shape: tuple[int, int, int, int], value: bytes = b"0") -> tuple[bytes, dict[str, str]]:
+    """The costliest JSON to parse per byte: nested lists of one-character numbers."""
+    n, h, w, c = shape
+    pixel = b"[" + b",".join([value] * c) + b"]"
+    row = b"[" + b",".join([pixel] * w) + b"]"
+    image = b"[" + b",".join([row] * h) + b"]"
+    data = b"[" + b",".join([image] * n) + b"]"
+    inputs = b",".join(b'{"name":"%s","shape":%s,"datatype":"FP32","data":%s}'
+                       % (nm, json.dumps(list(shape)).encode(), data) for nm in (b"blocks", b"quick"))
+    return b'{"inputs":[' + inputs + b"]}", {"Content-Type": "application/json"}
+
+
+def worst_shapes(max_body: int) -> dict[str, Callable[[], tuple[bytes, dict[str, str]]]]:
+    """Named requests at and beyond the default limits (64 MiB body, 2048 px side, 4 Mi px)."""
+    side_px = lambda n: int((max_body - 4096) // (2 * 12 * n))     # noqa: E731 pixels a body holds
+    wide = side_px(1) // 2048
+    return {
+        "issue shape [1, 8, 40000, 3]": lambda: binary_request((1, 8, 40000, 3)),
+        f"widest block [1, {wide}, 2048, 3]": lambda: binary_request((1, wide, 2048, 3)),
+        "thin blocks [160, 8, 2048, 3]": lambda: binary_request((160, 8, 2048, 3)),
+        "many small blocks [1024, 40, 40, 3]": lambda: binary_request((1024, 40, 40, 3)),
+        "odd sizes [2, 999, 1001, 3]": lambda: binary_request((2, 999, 1001, 3)),
+        "pixel budget exceeded [2, 2048, 1100, 3] (one input)": lambda: binary_request((2, 2048, 1100, 3), ("blocks",)),
+        "nested JSON of one-digit numbers, ~body limit": lambda: nested_json_request(
+            (2, 1024, max(8, int(max_body * 0.98 / (2 * 2 * 1024 * 8))), 3)),
+        "body over the limit (declared)": lambda: (b"", {"Content-Length": str(max_body + 1),
+                                                         "Content-Type": "application/octet-stream"}),
+    }
+
+
+def run_worst_shapes(url: str, token: str | None, max_body: int, concurrent: int = 1,
+                     memory: Callable[[], dict[str, int]] | None = None) -> list[dict[str, Any]]:
+    """Each worst shape once (and `concurrent` copies at once of the largest binary one):
+    status, error message and, with `memory`, the server's peak RSS after it."""
+    out = []
+    for name, make in worst_shapes(max_body).items():
+        body, headers = make()
+        t0 = time.perf_counter()
+        status, answer = post(url, body, headers, token)
+        del body
+        row = {"request": name, "status": status, "seconds": time.perf_counter() - t0,
+               "error": json.loads(answer).get("error") if answer.startswith(b"{\"error") else None}
+        if memory is not None:
+            row.update(memory())
+        out.append(row)
+    if concurrent > 1:
+        name, make = next((k, v) for k, v in worst_shapes(max_body).items() if k.startswith("widest"))
+        body, headers = make()
+        with ThreadPoolExecutor(concurrent) as pool:
+            statuses = list(pool.map(lambda _: post(url, body, headers, token)[0], range(concurrent)))
+        row = {"request": f"{concurrent} x {name} at once", "status": ",".join(str(s) for s in statuses),
+               "statuses": statuses}
+        if memory is not None:
+            row.update(memory())
+        out.append(row)
+    return out

@@ -80,11 +80,11 @@ def test_the_parser_builds_without_torch_or_mitsuba():
 def test_bench_quick_list_is_parsed_and_bad_modes_are_refused():
     import argparse
 
-    from service.commands import _quick_modes
-    assert _quick_modes("albedo,none") == ("albedo", "none")
+    from service.commands.arguments import quick_modes
+    assert quick_modes("albedo,none") == ("albedo", "none")
     for bad in ("", "albedo,albedo", "sky"):
         with pytest.raises(argparse.ArgumentTypeError, match="distinct quick images"):
-            _quick_modes(bad)
+            quick_modes(bad)
     out = run("bench", "models", "--quick", "albedo,bogus")
     assert out.returncode == 2 and "bogus" in out.stderr and "Traceback" not in out.stderr
 

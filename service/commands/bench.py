@@ -1,0 +1,58 @@
+"""`noisestop bench`: the door to the benchmark lab (service/lab), which measures the figures of
+BENCHMARKS.md."""
+from __future__ import annotations
+
+import argparse
+
+from learning.names import QUICK_MODES
+
+from ..console import UsageError, emit_json, log
+from . import arguments as arg
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="measure the figures of BENCHMARKS.md")
+    p.add_argument("what", nargs="*", default=["features", "crop"],
+                   help="sections: features, crop, flip, models, render, passes, service, stability, reliability, "
+                        "dataset, inputs, criteria, tradeoff, ablation, step, knobs (default: features crop)")
+    p.add_argument("--data", default=None, help="labelled dataset of training scenes")
+    p.add_argument("--heldout", default=None,
+                   help="labelled dataset of held-out scenes every figure is measured on (make "
+                        "heldout); without it a quarter of --data is held out, with a warning")
+    p.add_argument("--out", default="out/bench", help="directory for plots")
+    p.add_argument("--arches", default=None,
+                   help="models: comma-separated transfer baselines (default: all five; '' for none)")
+    p.add_argument("--kinds", default=None, help="models: comma-separated SVM kinds (default: all six)")
+    p.add_argument("--input", "--quick", dest="quick", type=arg.quick_modes, default=("albedo",),
+                   help="models: the quick images of the feature models, comma-separated "
+                        f"({', '.join(QUICK_MODES)}; default albedo)")
+    p.add_argument("--update", default=None, metavar="FILE",
+                   help="rewrite the marked sections of FILE (e.g. BENCHMARKS.md) with the results")
+    p.add_argument("--repeats", type=arg.int_in(1, 10_000), default=30)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_bench)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from ..lab import bench
+    unknown = sorted(set(args.what) - set(bench.SECTIONS))
+    if unknown:
+        raise UsageError(f"unknown bench sections {unknown}; known: {', '.join(bench.SECTIONS)}")
+    arches = None if args.arches is None else tuple(a for a in args.arches.split(",") if a)
+    kinds = None if args.kinds is None else tuple(k for k in args.kinds.split(",") if k)
+
+    def update(name: str, markdown: str) -> None:   # section by section: ctrl-c loses nothing done
+        bench.update_markdown(Path(args.update), {name: markdown})
+        log.info("updated %s: section %s", args.update, name)
+    results = bench.run_all(repeats=args.repeats, only=tuple(args.what), data=args.data,
+                            out_dir=args.out, arches=arches, kinds=kinds, quick=args.quick,
+                            on_section=update if args.update else None, heldout=args.heldout)
+    if args.json:
+        emit_json(results)
+    else:
+        print(bench.format_results(results))
+    for name, why in results["failed"].items():
+        log.error("bench %s not measured: %s", name, why)
+    return 1 if results["failed"] else 0

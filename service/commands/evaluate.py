@@ -1,0 +1,85 @@
+"""`noisestop evaluate`: DESIGN's metrics on held-out scenes, overall and per scene."""
+from __future__ import annotations
+
+import argparse
+
+from renderer.names import CRITERIA
+
+from ..console import UsageError, emit_json, log
+from . import arguments as arg
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("evaluate", help="metrics on held-out scenes, overall and per scene")
+    p.add_argument("--data", required=True)
+    p.add_argument("--model", default=None, help="model bundle (default: the bundled model)")
+    p.add_argument("--criterion", default="model", choices=CRITERIA)
+    p.add_argument("--offset", type=arg.offset, default=None,
+                   help="--criterion model: decision offset, the speed/accuracy knob (default: the "
+                        "model's calibrated offset; larger stops later)")
+    p.add_argument("--threshold", type=arg.threshold, default=None,
+                   help="--criterion flip: c (default: the shipped calibration); --criterion "
+                        "variance: the noise threshold (default 0.01)")
+    p.add_argument("--min-spp", type=arg.spp, default=None,
+                   help="no decision below this many spp (default: from the first level)")
+    p.add_argument("--scenes", default=None,
+                   help="comma-separated scenes to evaluate (default: those the model was not trained on)")
+    p.add_argument("--plots", default="out/evaluate", help="directory for the plots")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_evaluate)
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from learning.models.bundle import load_model
+    from learning.evaluation.evaluate import evaluate_model
+    from learning.inputs.table import load_table
+
+    if args.criterion != "model" and args.offset is not None:
+        log.warning("--offset is ignored with --criterion %s (it moves the model's decision)", args.criterion)
+    if args.criterion not in ("flip", "variance") and args.threshold is not None:
+        log.warning("--threshold is ignored with --criterion %s", args.criterion)
+    if args.criterion != "model":
+        from renderer.simulate import evaluate_criterion_cli
+        result = evaluate_criterion_cli(args.data, args.criterion, arg.scene_list(args.scenes),
+                                        min_spp=args.min_spp, threshold=args.threshold)
+        result["threshold"] = result["criterion"].get("threshold")
+    else:
+        model = load_model(args.model)
+        table = load_table(args.data, **model.table_options())
+        trained_on = set(model.manifest.get("training", {}).get("train_scenes", []))
+        scenes = arg.scene_list(args.scenes) or [s for s in table.scenes() if s not in trained_on]
+        if not scenes:
+            raise UsageError(f"every scene of {args.data} was used to train this model; "
+                             "name the scenes to evaluate with --scenes")
+        leaked = sorted(set(scenes) & trained_on)
+        if leaked:
+            log.warning("evaluating on scenes the model was trained on: %s", ", ".join(leaked))
+        missing = sorted(set(scenes) - set(table.scenes()))
+        if missing:
+            raise UsageError(f"scenes not in {args.data}: {missing}")
+        test = table.subset(table.scene_mask(scenes))
+        result = evaluate_model(model, test, offset=args.offset, min_spp=args.min_spp)
+        result["model"] = model.name
+        from learning.evaluation.plots import plot_thresholds
+        result["plots"] = [str(p) for p in plot_thresholds(model, test, args.plots, offset=args.offset,
+                                                           min_spp=args.min_spp)]
+    if args.json:
+        emit_json(result)
+    else:
+        _print_metrics(result)
+    return 0
+
+
+def _print_metrics(result: dict) -> None:
+    from learning.evaluation.metrics import METRIC_NAMES
+    knob = (f"offset {result['offset']:g}" if result.get("offset") is not None else
+            f"threshold {result['threshold']:g}" if result.get("threshold") is not None else "")
+    if knob:
+        print(knob)
+    width = max(len(s) for s in ["overall", *result["per_scene"]])
+    print(f"{'':<{width}}  " + "  ".join(f"{m:>19}" for m in METRIC_NAMES))
+    rows = [("overall", result), *sorted(result["per_scene"].items())]
+    for name, r in rows:
+        print(f"{name:<{width}}  " + "  ".join(f"{r[m]:>19.4f}" for m in METRIC_NAMES))
+    for p in result.get("plots", []):
+        print(f"plot: {p}")

@@ -1,0 +1,103 @@
+"""`noisestop render`: the adaptive progressive render of one scene or many."""
+from __future__ import annotations
+
+import argparse
+
+from renderer.names import CRITERIA, DEFAULT_CRITERION
+
+from ..console import UsageError, emit_json, log
+from . import arguments as arg
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("render", help="adaptive progressive render: stop sampling blocks that look converged")
+    p.add_argument("--scene", default=None,
+                   help="built-in scene name or Mitsuba 3 XML file; several comma-separated (default: cornell)")
+    p.add_argument("--out", required=True, help="output directory (several scenes: one sub-directory each)")
+    source = p.add_mutually_exclusive_group()
+    source.add_argument("--model", default=None, help="model bundle directory (default: the bundled model)")
+    source.add_argument("--server", default=None,
+                        help="verdict server URL, e.g. http://host:8000 (token from NOISESTOP_TOKEN)")
+    p.add_argument("--criterion", choices=CRITERIA, default=None,
+                   help=f"stopping criterion (default: model when --model, --server or --offset is "
+                        f"given, else {DEFAULT_CRITERION}; README \"Deciding a stop\")")
+    p.add_argument("--offset", type=arg.offset, default=None,
+                   help="--criterion model: decision offset, the speed/accuracy knob (default: the "
+                        "model's calibrated offset; larger stops later)")
+    p.add_argument("--threshold", type=arg.threshold, default=None,
+                   help="--criterion flip: c, the FLIP between the half buffers a block must reach "
+                        "(default: the shipped calibration); --criterion variance: Blender Cycles' "
+                        "noise threshold (default 0.01)")
+    p.add_argument("--quantile", type=arg.fraction, default=1.0,
+                   help="--criterion variance: fraction of a block's pixels that must pass (default: all)")
+    p.add_argument("--reference", default=None,
+                   help="labelled dataset or stack of the scene: oracle thresholds, early-stop metrics")
+    p.add_argument("--exposure", type=arg.exposure, default=0.0,
+                   help="display exposure (stops, -64..64) the criteria judge the image at (default 0)")
+    p.add_argument("--time-limit", type=arg.float_in(0.0, 1e9, open_low=True), default=None, metavar="S",
+                   help="stop after the pass under way at S seconds, writing the outputs and the "
+                        "checkpoint (--resume continues)")
+    p.add_argument("-D", dest="defines", type=arg.define, action="append", default=None, metavar="KEY=VALUE",
+                   help="set a <default> parameter of an XML scene, as mitsuba -D does (repeatable), "
+                        "e.g. -D integrator=path")
+    # None = not given: taken from --reference, then the scene, then the defaults shown
+    # (renderer/settings.py); the report's settings_source says which
+    p.add_argument("--resolution", type=arg.resolution, default=None, metavar="N|WxH",
+                   help="frame size: N scales the film's long side to N keeping its aspect ratio, WxH "
+                        "sets both (default: the reference's, else the scene's own: 256x256 for "
+                        "built-ins, the film of an XML file)")
+    blocks = p.add_mutually_exclusive_group()
+    blocks.add_argument("--block", type=arg.side, default=None, metavar="PX",
+                        help="blocks of PX x PX pixels; edge blocks are full windows moved flush with "
+                             "the frame's edge, overlapping their neighbour (default: the reference's "
+                             "grid, else the block size of the training data, renderer.settings)")
+    blocks.add_argument("--grid", type=arg.side, nargs=2, default=None, metavar=("ROWS", "COLS"),
+                        help="blocks as a grid that divides the frame (default: the reference's)")
+    p.add_argument("--min-spp", type=arg.spp, default=None,
+                   help="first decision (default: the reference's first level, else 16)")
+    p.add_argument("--max-spp", type=arg.spp, default=None,
+                   help="most spp per block (default: the reference's last level, else 1024)")
+    p.add_argument("--step", type=arg.spp, default=None,
+                   help="spp added per pass (default: the reference's level step, else 16)")
+    p.add_argument("--seed", type=arg.seed, default=0)
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz")
+    p.add_argument("--checkpoint-every", type=arg.float_in(0.0, 1e9), default=30.0, metavar="S",
+                   help="seconds between checkpoints (also written at the end, at --time-limit and on "
+                        "Ctrl-C/SIGTERM); 0: after every pass (default 30)")
+    arg.add_pool_arguments(p, ", for several scenes")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_render)
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from renderer.render_many import render_command
+    from renderer.outputs import format_report
+    from renderer.scenes import DEFAULT_SCENE
+
+    criterion = args.criterion or ("model" if args.model or args.server or args.offset is not None
+                                   else DEFAULT_CRITERION)
+    try:
+        result = render_command(
+            args.scene or DEFAULT_SCENE, args.out, criterion=criterion, model=args.model,
+            server=args.server, reference=args.reference, threshold=args.threshold,
+            quantile=args.quantile, offset=args.offset, workers=args.workers, scheduler=args.scheduler,
+            exposure=args.exposure,
+            resolution=args.resolution, grid=None if args.grid is None else tuple(args.grid), block=args.block,
+            checkpoint_every=args.checkpoint_every, step=args.step,
+            min_spp=args.min_spp, max_spp=args.max_spp, seed=args.seed, resume=args.resume,
+            defines=dict(args.defines) if args.defines else None, time_limit=args.time_limit)
+    except ConnectionError as exc:      # verdict server unreachable or failing
+        raise UsageError(str(exc)) from exc
+    single = "blocks" in result         # one scene: its report; several: a summary
+    if args.json:
+        emit_json(result)
+    elif single:
+        print(format_report(result, args.out))
+    else:
+        for name, rep in result["scenes"].items():
+            print(format_report(rep, f"{result['out']}/{name}"), end="\n\n")
+    if not single:
+        for scene, err in result["failed"].items():
+            log.error("scene %s failed: %s", scene, err)
+        return 1 if result["failed"] else 0
+    return 0

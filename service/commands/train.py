@@ -1,0 +1,205 @@
+"""`noisestop train`, `calibrate` and `pretrain`: fitting a model, flip's c, the feature base's
+conv layers, on training scenes only."""
+from __future__ import annotations
+
+import argparse
+
+from learning.names import DEFAULT_INPUT, QUICK_MODES, SVM_KINDS
+
+from ..console import UsageError, emit_json
+from . import arguments as arg
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="train a model on a dataset (scenes held out for evaluation)")
+    p.add_argument("--data", required=True, help="dataset directory")
+    p.add_argument("--model", default="dsvm_as", choices=SVM_KINDS, help="model kind (default dsvm_as)")
+    p.add_argument("--out", required=True, help="model bundle directory to write")
+    p.add_argument("--test-scenes", default=None,
+                   help="comma-separated scenes of --data held out of training ('' for none; default: "
+                        "every 4th by name, none with --heldout)")
+    p.add_argument("--heldout", default=None, metavar="DIR",
+                   help="labelled dataset of held-out scenes to report on (then every scene of --data "
+                        "is trained on, unless --test-scenes says otherwise)")
+    p.add_argument("--initial-scene", default=None, help="active kinds: the initially labelled scene(s), comma-separated (default: the "
+                        "scenes closest to half converged, at least 500 sub-images)")
+    p.add_argument("--label-budget", type=arg.fraction, default=0.25,
+                   help="active kinds: largest fraction of the pool's labels to query")
+    p.add_argument("--no-cv", action="store_true", help="skip the C/gamma cross-validation")
+    p.add_argument("--max-early-stop", type=arg.rate, default=0.05,
+                   help="calibrate the decision offset on leave-one-scene-out scores of the "
+                        "training scenes to keep early stops at or below this rate (default 0.05)")
+    p.add_argument("--no-calibrate", action="store_true", help="keep the decision offset at 0")
+    p.add_argument("--input", "--quick", dest="quick", choices=QUICK_MODES, default=DEFAULT_INPUT,
+                   help="feature models' input: halves (noise features of the half buffers next to "
+                        "features of the block, README \"Model inputs\"), or the paper's quick image "
+                        "subtracted from the features: the albedo AOV, direct lighting, or none (a "
+                        f"flat image: features of the current block alone); default {DEFAULT_INPUT}")
+    p.add_argument("--composition", default=None,
+                   help="input halves: which parts of the half-buffer input a feature model reads, "
+                        "joined by '+' (n noise, c current, r ratios, l luminance, f FLIP; README "
+                        "\"Model inputs\"; default: the measured best, learning.inputs.noise_input.HALVES)")
+    p.add_argument("--seed", type=arg.seed, default=0)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_train)
+
+    p = sub.add_parser("calibrate", help="calibrate the flip criterion's c on training scenes")
+    p.add_argument("--data", required=True, help="labelled dataset of training scenes (never held-out ones)")
+    p.add_argument("--criterion", choices=("flip",), default="flip")
+    p.add_argument("--max-early-stop", type=arg.rate, default=0.05,
+                   help="largest early-stop rate accepted on the training scenes (default 0.05)")
+    p.add_argument("--min-spp", type=arg.spp, default=None,
+                   help="no decision below this many spp (default: from the first level)")
+    p.add_argument("--out", default=None,
+                   help="calibration file to write (default: the package's learning/flip.json)")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_calibrate)
+
+    p = sub.add_parser("pretrain", help="pre-train the feature base's conv layers as a denoiser")
+    p.add_argument("--data", required=True, help="dataset directory (training scenes only are used)")
+    p.add_argument("--out", default=None,
+                   help="safetensors file to write (default: the package's pretrained.safetensors)")
+    p.add_argument("--test-scenes", default=None, help="scenes to keep out (default: every 4th by name)")
+    p.add_argument("--steps", type=arg.int_in(1, 1_000_000), default=400)
+    p.add_argument("--lr", type=arg.float_in(0.0, 10.0, open_low=True), default=0.003)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_pretrain)
+
+
+def _composition(args: argparse.Namespace, raw: bool) -> dict[str, str]:
+    """{'composition': C} for a feature model on the half buffers, else {}."""
+    if raw or args.quick != "halves":
+        if args.composition is not None:
+            raise UsageError("--composition applies to feature models with --input halves only")
+        return {}
+    from learning.inputs.noise_input import HALVES, parts_of
+    composition = args.composition or HALVES
+    try:
+        parts_of(composition)
+    except ValueError as exc:
+        raise UsageError(f"--composition: {exc}") from None
+    return {"composition": composition}
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from learning.models.bundle import Model, save_model
+    from learning.evaluation.evaluate import evaluate_model
+    from learning.inputs.table import load_table
+    from learning.training.train import train_model
+
+    if not 0 < args.label_budget <= 1:
+        raise UsageError(f"--label-budget must be in (0, 1], got {args.label_budget}")
+    raw = args.model.startswith("svm")
+    table = load_table(args.data, raw=raw, quick=args.quick, **_composition(args, raw))
+    if not 0 <= args.max_early_stop <= 1:
+        raise UsageError(f"--max-early-stop must be in [0, 1], got {args.max_early_stop}")
+    test_scenes = [] if args.test_scenes == "" else arg.scene_list(args.test_scenes)   # '': none
+    if args.heldout and test_scenes is None:
+        test_scenes = []
+    _refuse_heldout([s for s in table.scenes() if s not in (test_scenes or [])], "train")
+    est, summary = train_model(args.model, args.data, test_scenes=test_scenes,
+                               initial_scene=args.initial_scene, cv=not args.no_cv, seed=args.seed,
+                               max_label_fraction=args.label_budget, table=table,
+                               max_early_stop=None if args.no_calibrate else args.max_early_stop,
+                               quick=args.quick)
+    if args.heldout:
+        from learning.evaluation.generalisation import check_disjoint
+        test = load_table(args.heldout, raw=raw, quick=args.quick, **_composition(args, raw))
+        check_disjoint(summary["train_scenes"], test.scenes())
+        summary["heldout"] = {"data": str(args.heldout), "scenes": test.scenes()}
+    else:
+        test = table.subset(table.scene_mask(summary["test_scenes"]))
+    extra = {"quick": args.quick} if not raw or args.quick == "halves" else {}
+    extra.update(_composition(args, raw))
+    metrics = evaluate_model(Model(est, {"kind": args.model, "input": summary["input"], **extra}), test) \
+        if len(test) else {}
+    save_model(est, args.out, kind=args.model, input=summary["input"], training=summary,
+               metrics={k: v for k, v in metrics.items() if k != "per_scene"}, extra=extra)
+    result = {"model": args.out, "kind": args.model, "train_s": summary["train_s"],
+              "offset": summary["offset"],
+              "labels": summary.get("n_labels"), "label_fraction": summary.get("label_fraction"),
+              "test_scenes": test.scenes(), **{k: metrics.get(k) for k in
+                                                         ("precision", "f1", "early_stop_rate")}}
+    if args.json:
+        emit_json(result)
+    else:
+        print(f"{args.model} -> {args.out}: trained in {summary['train_s']:.1f} s on "
+              f"{len(summary['train_scenes'])} scenes, {summary.get('n_labels')} labels "
+              f"({100 * summary.get('label_fraction', 1):.0f}% of the training sub-images)")
+        if "calibration" in summary:
+            c = summary["calibration"]["chosen"]
+            print(f"decision offset {summary['offset']:.2f}: leave-one-scene-out early stops "
+                  f"{c['early_stop_rate']:.3f}, samples {c['spp_ratio_vs_oracle']:.2f} x oracle")
+        if metrics:
+            print(f"held-out {', '.join(test.scenes())}: precision {metrics['precision']:.3f}, "
+                  f"f1 {metrics['f1']:.3f}, early stops {metrics['early_stop_rate']:.3f}, "
+                  f"samples {metrics['spp_ratio_vs_oracle']:.2f} x oracle")
+    return 0
+
+
+def _refuse_heldout(scenes: list[str], what: str) -> None:
+    """The built-in held-out scenes take no part in training or calibration."""
+    from learning.evaluation.generalisation import check_disjoint
+    from renderer.scenes import list_scenes
+    try:
+        check_disjoint(scenes, [n for n, _ in list_scenes(heldout=True)])
+    except ValueError as exc:
+        raise UsageError(f"{what}: {exc} (renderer/heldout.py)") from None
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    import datetime
+    import json
+    from pathlib import Path
+
+    from learning.evaluation.calibrate import calibrate_flip
+    from learning.inputs.halves import FLIP_CALIBRATION
+    from learning.data.stack import dataset_fingerprint, list_stacks, read_stack
+
+    if not 0 <= args.max_early_stop <= 1:
+        raise UsageError(f"--max-early-stop must be in [0, 1], got {args.max_early_stop}")
+    stacks = [read_stack(p) for p in list_stacks(args.data)]
+    if not stacks:
+        raise UsageError(f"{args.data}: no stacks found")
+    _refuse_heldout([s.scene for s in stacks], "calibrate")
+    cal = calibrate_flip(stacks, args.max_early_stop, min_spp=args.min_spp)
+    cal.update(criterion="flip", data=str(args.data), fingerprint=dataset_fingerprint(args.data),
+               observer={"ppd": 67, "display": "clip+srgb"},
+               calibrated=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
+    out = Path(args.out) if args.out else FLIP_CALIBRATION
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(json.dumps(cal, indent=1, default=float) + "\n")
+    tmp.replace(out)
+    chosen = cal["chosen"]
+    if args.json:
+        emit_json({"c": cal["c"], "out": str(out), **{k: chosen[k] for k in ("early_stop_rate",
+                                                                          "spp_ratio_vs_oracle")}})
+    else:
+        print(f"flip: c = {cal['c']:g} on {len(stacks)} training scenes: early stops "
+              f"{chosen['early_stop_rate']:.3f} (target {args.max_early_stop:g}), samples "
+              f"{chosen['spp_ratio_vs_oracle']:.3f} x oracle; wrote {out}")
+    return 0
+
+
+def cmd_pretrain(args: argparse.Namespace) -> int:
+    from learning.models.pretrain import pretrain_base
+    from learning.data.stack import list_stacks, read_stack
+    from learning.evaluation.generalisation import default_test_scenes
+    from noisefeat.weights import PRETRAINED_FILE, save_kernels
+
+    stacks = [read_stack(p) for p in list_stacks(args.data)]
+    held = set(arg.scene_list(args.test_scenes) or default_test_scenes([s.scene for s in stacks]))
+    train = [s for s in stacks if s.scene not in held]
+    base, report = pretrain_base(train, steps=args.steps, lr=args.lr)
+    out = args.out or PRETRAINED_FILE
+    save_kernels(out, base.kernels(), {"init": "denoiser pre-training", "scenes": ",".join(report["scenes"]),
+                                       "steps": str(args.steps), "lr": str(args.lr)})
+    report["out"], report["hash"] = str(out), base.hash
+    if args.json:
+        emit_json(report)
+    else:
+        print(f"conv base pre-trained on {len(train)} scenes ({report['pairs']} block pairs) in "
+              f"{report['seconds']:.0f} s: MSE(O_12, reference) {report['mse_smoothing_init']:.2f} "
+              f"-> {report['mse_trained']:.2f} (noisy input: {report['mse_noisy']:.2f}); wrote {out}")
+    return 0

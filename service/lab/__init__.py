@@ -1,6 +1,7 @@
-"""The benchmark lab behind `noisestop bench`: the figures of BENCHMARKS.md (`bench`, and
-`bench_decisions`, `bench_passes`, `bench_service` for the criteria, the render passes and
-the service), the load test and local server (`loadtest`), the stability matrix
-(`stability`), the reliability suite and its attacks (`reliability`, `attack`), and charts
-(`charts`). The verdict service never imports it.
+"""The benchmark lab behind `noisestop bench`: `bench` runs the sections that measure the
+figures of BENCHMARKS.md (`bench_features`, `bench_flip`, `bench_models`, `bench_passes`
+for renders and passes, `bench_decisions` for the criteria, `bench_service`, the stability
+matrix `stability`, the reliability suite `reliability` with its `attack`s) and rewrites
+their marked parts; `timing` (medians, machine load), `loadtest` (a local server and
+clients) and `charts` serve them. The verdict service never imports it.
 """

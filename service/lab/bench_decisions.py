@@ -147,7 +147,7 @@ def bench_tradeoff(data: str, heldout: str | None = None, out_dir: str | Path = 
     from renderer.simulate import evaluate_criterion
 
     from . import charts
-    from .bench import saved_comparisons
+    from .bench_models import saved_comparisons
 
     train_stacks, test_stacks = split_stacks(data, heldout)
     bundled = _model_and_check(model, [s.scene for s in test_stacks])

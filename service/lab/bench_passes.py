@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from .bench import _median_s
+from .timing import median_s
 
 PASS_SCENE = ("env_spheres", "640x384", 64, 32)          # scene, resolution, block, spp per pass
 RENDERS = (("env_spheres", 256, 32, 512), ("studio_preview", "1280x720", 32, 1024))   # scene, res, step, max
@@ -41,7 +41,7 @@ def pass_cost(repeats: int = 3) -> dict[str, Any]:
         rows = []
         for k in counts:
             ids = sorted(order[:k])
-            s = _median_s(lambda ids=ids: br.render_blocks(ids, spp, seed=1, pass_index=k), repeats,
+            s = median_s(lambda ids=ids: br.render_blocks(ids, spp, seed=1, pass_index=k), repeats,
                           warm=False)
             rows.append({"blocks": k, "pixels": k * block * block, "seconds": s})
         x = np.array([r["pixels"] for r in rows], float)
@@ -71,7 +71,7 @@ def decision_cost(repeats: int = 5, counts: tuple[int, ...] = (1, 4, 16, 64, 256
                            quick=None) for i in range(n)]
         with torch_threads(1):                                      # as the render loop decides
             crit.decide(list(range(n)), views)                      # warm
-            s = _median_s(lambda views=views, n=n: crit.decide(list(range(n)), views), repeats, warm=False)
+            s = median_s(lambda views=views, n=n: crit.decide(list(range(n)), views), repeats, warm=False)
         rows.append({"blocks": n, "seconds": s, "ms_per_block": 1e3 * s / n})
     return {"criterion": "flip", "block": 64, "rows": rows}
 
@@ -85,7 +85,7 @@ def block_costs(scene: str, resolution: Any, block: int, spp: int = 8) -> np.nda
 
     br = BlockRenderer(load_scene(scene, resolution), block=block)
     br.render_blocks([0], spp, seed=0)
-    return np.array([_median_s(lambda b=b: br.render_blocks([b], spp, seed=1, pass_index=b), 1, warm=False) / spp
+    return np.array([median_s(lambda b=b: br.render_blocks([b], spp, seed=1, pass_index=b), 1, warm=False) / spp
                      for b in range(br.n_blocks)])
 
 
@@ -158,4 +158,57 @@ def md_passes(r: dict[str, Any]) -> str:
     lines += ["", "Cost-weighted ratio: uniform's render time over the time of the samples the adaptive "
               "render spent, each block's samples weighted by that block's own cost per sample (measured "
               "alone): the speed-up the samples saved can buy when blocks differ in cost."]
+    return "\n".join(lines)
+
+
+def bench_render(scene: str = "env_spheres", resolution: int = 256, max_spp: int = 640,
+                 step: int = 16, model: str | None = None, repeats: int = 3) -> dict[str, Any]:
+    """Real renders: the model and flip criteria against uniform sampling to the same max
+    spp (warm).
+
+    The runs alternate `repeats` times and each reports its median run, so that a
+    passing disturbance on the machine does not decide the speed-up.
+    """
+    import tempfile
+
+    from learning.models.bundle import load_model
+    from renderer.adaptive import adaptive_render
+    from renderer.criteria import FlipCriterion, ModelCriterion, UniformCriterion
+    runs: dict[str, list[dict]] = {"model": [], "flip": [], "uniform": []}
+    m = load_model(model)
+    with tempfile.TemporaryDirectory() as tmp:
+        # warm-up: every block's kernel compiled once (Dr.Jit caches them), so neither timed
+        # run pays compilation and their order does not matter
+        adaptive_render(scene, Path(tmp) / "warm", UniformCriterion(), resolution=resolution,
+                        step=step, min_spp=step, max_spp=step, progress=False)
+        for i in range(repeats):
+            for name, crit in (("model", ModelCriterion(m)), ("flip", FlipCriterion()),
+                               ("uniform", UniformCriterion())):
+                rep = adaptive_render(scene, Path(tmp) / f"{name}{i}", crit, resolution=resolution,
+                                      step=step, min_spp=step, max_spp=max_spp, progress=False)
+                runs[name].append({"wall_s": rep["wall_s"], "saved_vs_uniform": rep["saved_vs_uniform"],
+                                   "timing": rep.get("timing")})
+    out = {name: {**sorted(r, key=lambda x: x["wall_s"])[len(r) // 2],
+                  "walls_s": [x["wall_s"] for x in r]} for name, r in runs.items()}
+    for name in ("model", "flip"):
+        t = out[name]["timing"] or {}
+        decide = float(t.get("features_s", 0) + t.get("decisions_s", 0))
+        out[name]["speedup_vs_uniform"] = out["uniform"]["wall_s"] / out[name]["wall_s"]
+        out[name]["decision_share"] = decide / out[name]["wall_s"]
+    return {"scene": scene, "resolution": resolution, "max_spp": max_spp, "repeats": repeats, **out}
+
+
+def md_render(r: dict[str, Any]) -> str:
+    u = r["uniform"]
+
+    def walls(x: dict) -> str:
+        return ", ".join(f"{w:.1f}" for w in x.get("walls_s", [x["wall_s"]]))
+    lines = [f"{r['scene']} at {r['resolution']}x{r['resolution']}, max {r['max_spp']} spp:", "",
+             f"| run | wall (s), median of {r.get('repeats', 1)} | all runs (s) | saved vs uniform "
+             "| speed-up vs uniform | features + decisions, share of wall time |", "|---|---|---|---|---|---|"]
+    for name in ("model", "flip"):
+        m = r[name]
+        lines.append(f"| {name} criterion | {m['wall_s']:.1f} | {walls(m)} | {m['saved_vs_uniform']:.3f} "
+                     f"| {m['speedup_vs_uniform']:.2f}x | {100 * m['decision_share']:.2f} % |")
+    lines.append(f"| uniform to max spp | {u['wall_s']:.1f} | {walls(u)} | 0 | 1 | - |")
     return "\n".join(lines)

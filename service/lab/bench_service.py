@@ -26,14 +26,14 @@ from typing import Any
 
 import numpy as np
 
-from .bench import MachineLoad, _median_s
+from .timing import MachineLoad, median_s
 
 BLOCKS, SIZE = 16, 128
 CLIENTS = (1, 8, 32)
 
 
 def _median_ms(fn: Callable[[], Any], repeats: int) -> float:
-    return _median_s(fn, repeats) * 1e3
+    return median_s(fn, repeats) * 1e3
 
 
 def stage_times(model: str | None, repeats: int = 9) -> dict[str, Any]:

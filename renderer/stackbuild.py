@@ -31,7 +31,8 @@ from tqdm import tqdm
 
 from learning.data.exr import read_exr
 from learning.data.observer import VirtualObserver, relabel_if_stale
-from learning.data.stack import EXTRA_QUICK, REFERENCE, StackWriter, level_name, make_plan, read_stack
+from learning.data.stack import EXTRA_QUICK, REFERENCE, level_name, read_stack
+from learning.data.stack_write import StackWriter, make_plan
 
 from .blocks import BlockRenderer
 from .scenes import load_scene

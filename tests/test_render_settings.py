@@ -35,7 +35,7 @@ def test_command_line_beats_reference_beats_defaults(stack):
 
 
 def test_uneven_reference_levels_imply_no_step(stack, tmp_path):
-    from learning.data.stack import write_stack
+    from learning.data.stack_write import write_stack
     st = write_stack(tmp_path / "u", scene="u", spp=[4, 8, 32], levels=[stack.level(k) for k in range(3)],
                      reference=stack.reference(), quick=None, reference_spp=stack.reference_spp,
                      grid=stack.grid)

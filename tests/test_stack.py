@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from learning.data.exr import read_exr, read_png, write_exr, write_png
-from learning.data.stack import (MID_GREY_LINEAR, StackWriter, list_stacks, make_plan, read_stack,
-                                 update_labels, validate_meta, write_stack)
+from learning.data.stack import MID_GREY_LINEAR, list_stacks, read_stack, update_labels, validate_meta
+from learning.data.stack_write import StackWriter, make_plan, write_stack
 from learning.data.synthetic import make_synthetic_stack, synthetic_images
 
 RNG = np.random.default_rng(1)

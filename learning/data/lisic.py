@@ -39,7 +39,8 @@ import numpy as np
 
 from .exr import read_png
 from .observer import srgb_decode
-from .stack import QUICK_NONE, StackWriter, block_shape, make_plan
+from .stack import QUICK_NONE, block_shape
+from .stack_write import StackWriter, make_plan
 
 log = logging.getLogger(__name__)
 

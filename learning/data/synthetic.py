@@ -14,7 +14,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .stack import Stack, write_stack
+from .stack import Stack
+from .stack_write import write_stack
 
 DEFAULT_SPP = (4, 8, 16, 32, 64, 128, 256, 512, 1024)
 

@@ -33,6 +33,21 @@ ENV = {"max_block_side": "NOISESTOP_MAX_BLOCK_SIDE", "max_pixels": "NOISESTOP_MA
        "max_frame_pixels": "NOISESTOP_MAX_FRAME_PIXELS"}
 
 
+def env_int(environ: Mapping[str, str], key: str, default: int, minimum: int | None = None) -> int:
+    """A whole number from the environment (`default` when unset or blank): the one parser of
+    every NOISESTOP_* size, budget and cache setting, with the variable named in its error."""
+    text = environ.get(key, "").strip()
+    if not text:
+        return default
+    try:
+        value = int(text)
+    except ValueError:
+        raise ValueError(f"{key}={text!r}: expected a whole number") from None
+    if minimum is not None and value < minimum:
+        raise ValueError(f"{key}={value}: expected a number >= {minimum}")
+    return value
+
+
 @dataclass(frozen=True)
 class SizeBounds:
     """The three ceilings above; every check raises ValueError naming the bound it hit."""
@@ -51,17 +66,8 @@ class SizeBounds:
     def from_env(cls, environ: Mapping[str, str] | None = None, **given: int | None) -> "SizeBounds":
         """Explicit values win over the environment, which wins over the defaults."""
         environ = os.environ if environ is None else environ
-        values = {}
-        for name, key in ENV.items():
-            if given.get(name) is not None:
-                values[name] = given[name]
-                continue
-            text = environ.get(key, "").strip()
-            if text:
-                try:
-                    values[name] = int(text)
-                except ValueError:
-                    raise ValueError(f"{key}={text!r}: expected a whole number") from None
+        values = {name: given[name] if given.get(name) is not None
+                  else env_int(environ, key, getattr(cls, name)) for name, key in ENV.items()}
         unknown = set(given) - set(ENV)
         if unknown:
             raise TypeError(f"unknown bounds {sorted(unknown)}")

@@ -90,13 +90,6 @@ class ByteLRU:
 def default_max_bytes(environ: Mapping[str, str] | None = None) -> int:
     """NOISESTOP_OPERATOR_CACHE_BYTES if set (a whole number >= 0), else 256 MiB."""
     import os
-    text = (os.environ if environ is None else environ).get(ENV_CACHE_BYTES, "").strip()
-    if not text:
-        return DEFAULT_MAX_BYTES
-    try:
-        value = int(text)
-    except ValueError:
-        raise ValueError(f"{ENV_CACHE_BYTES}={text!r}: expected a whole number of bytes") from None
-    if value < 0:
-        raise ValueError(f"{ENV_CACHE_BYTES}={value}: expected a number >= 0")
-    return value
+
+    from .bounds import env_int
+    return env_int(os.environ if environ is None else environ, ENV_CACHE_BYTES, DEFAULT_MAX_BYTES, minimum=0)

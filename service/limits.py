@@ -22,7 +22,7 @@ from typing import Any
 
 import anyio
 
-from noisefeat.bounds import DEFAULT_MAX_BLOCK_SIDE, DEFAULT_MAX_PIXELS, ENV as BOUNDS_ENV, MIN_SIDE
+from noisefeat.bounds import DEFAULT_MAX_BLOCK_SIDE, DEFAULT_MAX_PIXELS, ENV as BOUNDS_ENV, MIN_SIDE, env_int
 
 from .oip import ApiError, RequestInput
 
@@ -71,12 +71,13 @@ class Limits:
                  environ: Mapping[str, str] = os.environ, *, max_block_side: int | None = None,
                  max_pixels: int | None = None, memory_budget: int | None = None) -> "Limits":
         """Explicit values win over the environment, which wins over the defaults."""
-        budget = memory_budget or (_env_int(environ, ENV_MEMORY_BUDGET, 0) or None)
-        return cls(max_body_bytes=max_body_bytes or _env_int(environ, ENV_MAX_BODY, DEFAULT_MAX_BODY),
-                   max_batch=max_batch or _env_int(environ, ENV_MAX_BATCH, DEFAULT_MAX_BATCH),
-                   max_block_side=max_block_side or _env_int(environ, ENV_MAX_BLOCK_SIDE,
-                                                             DEFAULT_MAX_BLOCK_SIDE),
-                   max_pixels=max_pixels or _env_int(environ, ENV_MAX_PIXELS, DEFAULT_MAX_PIXELS),
+        def env(key: str, default: int) -> int:
+            return env_int(environ, key, default, minimum=1)
+        budget = memory_budget or (env(ENV_MEMORY_BUDGET, 0) or None)
+        return cls(max_body_bytes=max_body_bytes or env(ENV_MAX_BODY, DEFAULT_MAX_BODY),
+                   max_batch=max_batch or env(ENV_MAX_BATCH, DEFAULT_MAX_BATCH),
+                   max_block_side=max_block_side or env(ENV_MAX_BLOCK_SIDE, DEFAULT_MAX_BLOCK_SIDE),
+                   max_pixels=max_pixels or env(ENV_MAX_PIXELS, DEFAULT_MAX_PIXELS),
                    memory_budget=budget)
 
     def check_shapes(self, inputs: list[RequestInput]) -> None:
@@ -182,19 +183,6 @@ def release_memory(above: int = RELEASE_ABOVE) -> bool:
         return False
     trim(0)
     return True
-
-
-def _env_int(environ: Mapping[str, str], key: str, default: int) -> int:
-    text = environ.get(key, "").strip()
-    if not text:
-        return default
-    try:
-        value = int(text)
-    except ValueError:
-        raise ValueError(f"{key}={text!r}: expected a whole number") from None
-    if value < 1:
-        raise ValueError(f"{key}={value}: expected a number >= 1")
-    return value
 
 
 def too_large(limit: int) -> ApiError:

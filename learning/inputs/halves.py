@@ -66,14 +66,19 @@ def check_constant_step(stack: Stack) -> None:
                     "so the half buffers A/B are unbalanced", stack.path, steps[:4].tolist())
 
 
+def check_halves(even: np.ndarray, odd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two half buffers as arrays: linear RGB [N, h, w, 3] of one shape, floating point."""
+    a, b = np.asarray(even), np.asarray(odd)
+    if a.shape != b.shape or a.ndim != 4 or a.shape[-1] != 3:
+        raise ValueError(f"half buffers must be two linear RGB arrays [N, h, w, 3] of one shape, got "
+                         f"{a.shape} and {b.shape}")
+    if not (np.issubdtype(a.dtype, np.floating) and np.issubdtype(b.dtype, np.floating)):
+        raise ValueError(f"half buffers must be floating point, got {a.dtype} and {b.dtype}")
+    return a, b
+
+
 def _check_halves(even: np.ndarray, odd: np.ndarray, exposure: float) -> tuple[np.ndarray, np.ndarray, float]:
-    even, odd = np.asarray(even), np.asarray(odd)
-    if even.shape != odd.shape or even.ndim != 4 or even.shape[-1] != 3:
-        raise ValueError(f"half buffers must be two [N, h, w, 3] arrays of one shape, got "
-                         f"{even.shape} and {odd.shape}")
-    if not (np.issubdtype(even.dtype, np.floating) and np.issubdtype(odd.dtype, np.floating)):
-        raise ValueError(f"half buffers must be floating point, got {even.dtype} and {odd.dtype}")
-    return even, odd, check_exposure(exposure)
+    return (*check_halves(even, odd), check_exposure(exposure))
 
 
 def halves_flip(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,

@@ -42,6 +42,8 @@ from noisefeat.display import check_exposure, lightness
 from noisefeat.fused import RGBStats
 from noisefeat.perceptual import pooled_colour_error
 
+from .halves import check_halves, halves_flip
+
 #: std-pooling columns of the 26 features (FeatureBase order: 13 means, then 13 stds)
 STD_COLUMNS = np.arange(N_FEATURES // 2, N_FEATURES)
 #: columns of `halves_raw`: N's 26 features, C's 26, C's mean L*, the pooled colour error
@@ -71,12 +73,7 @@ def n_inputs(composition: str = HALVES) -> int:
 
 
 def _check_halves(even: np.ndarray, odd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    a, b = np.asarray(even), np.asarray(odd)
-    if a.shape != b.shape or a.ndim != 4 or a.shape[-1] != 3:
-        raise ValueError(f"half buffers must be two linear RGB arrays [N, h, w, 3] of one shape, got "
-                         f"{a.shape} and {b.shape}")
-    if not (np.issubdtype(a.dtype, np.floating) and np.issubdtype(b.dtype, np.floating)):
-        raise ValueError(f"half buffers must be floating point, got {a.dtype} and {b.dtype}")
+    a, b = check_halves(even, odd)
     # the block bounds of every other model input (issue 14), whichever parts are computed
     SizeBounds.from_env().check_block(a.shape[1], a.shape[2], "half-buffer blocks")
     return a, b
@@ -166,8 +163,6 @@ def halves_input_and_stats(even: np.ndarray, odd: np.ndarray, exposure: float = 
     the display range of C = (A + B) / 2 for the flat-block test), the statistics from the
     same fused pass as the features (or from a pass of their own when the composition
     reads none)."""
-    from .halves import halves_flip
-
     a, b = _check_halves(even, odd)
     if not np.isfinite(exposure):
         raise ValueError(f"exposure must be finite, got {exposure}")

@@ -1,11 +1,12 @@
 """Built-in scene library (Mitsuba 3 plugins only, no downloads) and XML scene loading.
 
-Every built-in scene is a Python dict for ``mi.load_dict`` made by a function of the
-image resolution alone (samples per pixel are chosen at render time, never here). The
-library spans the cases a perceptual stopping rule must get right: diffuse rooms,
-glossy and mirror inter-reflections, glass caustics, small and large lights,
-indirect-only lighting, noise-masking high-frequency textures, dark and bright
-exposures, plus two degenerate inputs (``allblack``, ``sky``).
+The library: the training scenes (`training_scenes`), the held-out ones (`heldout`) and the
+procedural family (`procedural`), listed in `SCENES`. Every built-in scene is a Python dict
+for ``mi.load_dict`` made by a function of the image resolution alone (samples per pixel
+are chosen at render time, never here). The library spans the cases a perceptual stopping
+rule must get right: diffuse rooms, glossy and mirror inter-reflections, glass caustics,
+small and large lights, indirect-only lighting, noise-masking high-frequency textures,
+dark and bright exposures, plus two degenerate inputs (``allblack``, ``sky``).
 
 Shared render settings, and why:
 
@@ -36,8 +37,9 @@ from typing import Any
 import numpy as np
 
 from . import heldout
+from . import training_scenes as training
 from .procedural import procedural_scene, procedural_seed
-from .scene_kit import SceneDict, T, base, checker_texture, diffuse, rgb
+from .scene_kit import SceneDict
 from learning.data.variant import select_variant
 
 logger = logging.getLogger(__name__)
@@ -55,254 +57,36 @@ class SceneSpec:
     tags: tuple[str, ...] = ()
 
 
-CB_WHITE = [0.885809, 0.698859, 0.666422]
-CB_RED = [0.570068, 0.0430135, 0.0443706]
-CB_GREEN = [0.105421, 0.37798, 0.076425]
-CB_LIGHT = [18.387, 13.9873, 6.75357]
-
-
-def _room(
-    floor: dict | None = None,
-    ceiling: dict | None = None,
-    back: dict | None = None,
-    left: dict | None = None,
-    right: dict | None = None,
-) -> SceneDict:
-    """The five walls of the [-1, 1]^3 Cornell room (open towards the camera at +z)."""
-    return {
-        "floor": {"type": "rectangle", "to_world": T().translate([0, -1, 0]).rotate([1, 0, 0], -90),
-                  "bsdf": floor or diffuse(CB_WHITE)},
-        "ceiling": {"type": "rectangle", "to_world": T().translate([0, 1, 0]).rotate([1, 0, 0], 90),
-                    "bsdf": ceiling or diffuse(CB_WHITE)},
-        "back": {"type": "rectangle", "to_world": T().translate([0, 0, -1]),
-                 "bsdf": back or diffuse(CB_WHITE)},
-        "left": {"type": "rectangle", "to_world": T().translate([-1, 0, 0]).rotate([0, 1, 0], 90),
-                 "bsdf": left or diffuse(CB_RED)},
-        "right": {"type": "rectangle", "to_world": T().translate([1, 0, 0]).rotate([0, 1, 0], -90),
-                  "bsdf": right or diffuse(CB_GREEN)},
-    }
-
-
-def _ceiling_light(radiance: float | list[float], sx: float = 0.23, sz: float = 0.19) -> dict:
-    """Downward-facing rectangular area light just under the ceiling."""
-    return {
-        "type": "rectangle",
-        "to_world": T().translate([0, 0.99, 0.01]).rotate([1, 0, 0], 90).scale([sx, sz, 1]),
-        "bsdf": diffuse(CB_WHITE),
-        "emitter": {"type": "area", "radiance": rgb(radiance)},
-    }
-
-
-def _boxes(bsdf_small: dict | None = None, bsdf_tall: dict | None = None) -> SceneDict:
-    return {
-        "small_box": {"type": "cube",
-                      "to_world": T().translate([0.335, -0.7, 0.38]).rotate([0, 1, 0], -17).scale(0.3),
-                      "bsdf": bsdf_small or diffuse(CB_WHITE)},
-        "tall_box": {"type": "cube",
-                     "to_world": T().translate([-0.33, -0.4, -0.28]).rotate([0, 1, 0], 17.5).scale([0.3, 0.61, 0.3]),
-                     "bsdf": bsdf_tall or diffuse(CB_WHITE)},
-    }
-
-
-def _cornell_like(resolution: int, light_scale: float = 1.0) -> SceneDict:
-    d = base(resolution)
-    d.update(_room())
-    d["light"] = _ceiling_light([c * light_scale for c in CB_LIGHT])
-    d.update(_boxes())
-    return d
-
-
-# ----------------------------------------------------------------------------- scenes
-
-
-def cornell(resolution: int) -> SceneDict:
-    return _cornell_like(resolution)
-
-
-def cornell_dark(resolution: int) -> SceneDict:
-    return _cornell_like(resolution, light_scale=0.04)
-
-
-def cornell_bright(resolution: int) -> SceneDict:
-    return _cornell_like(resolution, light_scale=12.0)
-
-
-def large_light(resolution: int) -> SceneDict:
-    d = base(resolution)
-    d.update(_room())
-    d["light"] = _ceiling_light([c * 0.075 for c in CB_LIGHT], sx=0.85, sz=0.85)
-    d.update(_boxes())
-    return d
-
-
-def small_light(resolution: int) -> SceneDict:
-    d = base(resolution)
-    d.update(_room())
-    d["light"] = {"type": "sphere", "center": [0.0, 0.85, 0.0], "radius": 0.025,
-                  "emitter": {"type": "area", "radiance": rgb([1400.0, 1100.0, 700.0])}}
-    d.update(_boxes())
-    return d
-
-
-def glossy(resolution: int) -> SceneDict:
-    d = base(resolution)
-    d.update(_room(back={"type": "roughplastic", "diffuse_reflectance": rgb(CB_WHITE), "alpha": 0.08}))
-    d["light"] = _ceiling_light(CB_LIGHT)
-    d["gold_sphere"] = {"type": "sphere", "center": [0.4, -0.6, 0.25], "radius": 0.4,
-                        "bsdf": {"type": "roughconductor", "material": "Au", "alpha": 0.15}}
-    d["plastic_box"] = {"type": "cube",
-                        "to_world": T().translate([-0.4, -0.45, -0.3]).rotate([0, 1, 0], 20).scale([0.3, 0.55, 0.3]),
-                        "bsdf": {"type": "roughplastic", "diffuse_reflectance": rgb([0.1, 0.2, 0.6]), "alpha": 0.05}}
-    return d
-
-
-def mirrors(resolution: int) -> SceneDict:
-    mirror = {"type": "conductor"}  # material 'none': a perfect mirror
-    d = base(resolution)
-    d.update(_room())
-    d["light"] = _ceiling_light([c * 0.4 for c in CB_LIGHT], sx=0.4, sz=0.3)
-    # Two facing mirror panels on the side walls: the spheres repeat down a hall of
-    # reflections that changes with the view point.
-    d["mirror_left"] = {"type": "rectangle", "bsdf": mirror,
-                        "to_world": T().translate([-0.98, -0.2, -0.2]).rotate([0, 1, 0], 90).scale([0.7, 0.55, 1])}
-    d["mirror_right"] = {"type": "rectangle", "bsdf": mirror,
-                         "to_world": T().translate([0.98, -0.2, -0.2]).rotate([0, 1, 0], -90).scale([0.7, 0.55, 1])}
-    d["diffuse_sphere"] = {"type": "sphere", "center": [-0.3, -0.65, 0.1], "radius": 0.35,
-                           "bsdf": diffuse([0.2, 0.3, 0.8])}
-    d["steel_sphere"] = {"type": "sphere", "center": [0.4, -0.7, -0.35], "radius": 0.3,
-                         "bsdf": {"type": "roughconductor", "material": "Cr", "alpha": 0.05}}
-    return d
-
-
-def glass_caustic(resolution: int) -> SceneDict:
-    d = base(resolution)
-    d.update(_room())
-    d["light"] = {"type": "sphere", "center": [0.0, 0.8, 0.0], "radius": 0.06,
-                  "emitter": {"type": "area", "radiance": rgb([220.0, 180.0, 120.0])}}
-    d["glass_sphere"] = {"type": "sphere", "center": [0.0, -0.55, 0.1], "radius": 0.45,
-                         "bsdf": {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0}}
-    return d
-
-
-def indirect(resolution: int) -> SceneDict:
-    d = base(resolution)
-    d.update(_room())
-    # Cove lighting: an upward-facing light on top of a shelf; the camera only sees the
-    # shelf's underside, the room is lit by the bounce off the ceiling.
-    d["shelf"] = {"type": "rectangle",
-                  "to_world": T().translate([0, 0.6, -0.2]).rotate([1, 0, 0], 90).scale([0.75, 0.55, 1]),
-                  "bsdf": diffuse(0.7)}
-    d["light"] = {"type": "rectangle",
-                  "to_world": T().translate([0, 0.605, -0.2]).rotate([1, 0, 0], -90).scale([0.7, 0.5, 1]),
-                  "emitter": {"type": "area", "radiance": rgb([5.0, 4.2, 3.2])}}
-    d.update(_boxes())
-    return d
-
-
-def checker(resolution: int) -> SceneDict:
-    def tex(c0: float | list[float], c1: float | list[float], scale: float) -> dict:
-        return {"type": "diffuse", "reflectance": checker_texture(c0, c1, scale)}
-
-    d = base(resolution)
-    d.update(_room(floor=tex(0.1, 0.8, 12), back=tex([0.7, 0.7, 0.2], [0.2, 0.2, 0.6], 20),
-                   left=tex(CB_RED, 0.8, 8), right=tex(CB_GREEN, 0.8, 8)))
-    d["light"] = _ceiling_light(CB_LIGHT, sx=0.35, sz=0.3)
-    d["sphere"] = {"type": "sphere", "center": [0.35, -0.6, 0.2], "radius": 0.4,
-                   "bsdf": tex(0.05, 0.9, 24)}
-    d["box"] = {"type": "cube",
-                "to_world": T().translate([-0.4, -0.45, -0.3]).rotate([0, 1, 0], 20).scale([0.3, 0.55, 0.3]),
-                "bsdf": tex([0.9, 0.5, 0.1], 0.1, 6)}
-    return d
-
-
-def _facing(p: list[float], a: list[float], b: list[float]) -> list[float]:
-    """Point a plate at `p` would look at so that it mirrors `a` into `b` (half vector)."""
-    def unit(v: list[float]) -> list[float]:
-        n = sum(x * x for x in v) ** 0.5
-        return [x / n for x in v]
-    ua = unit([ai - pi for ai, pi in zip(a, p)])
-    ub = unit([bi - pi for bi, pi in zip(b, p)])
-    h = unit([x + y for x, y in zip(ua, ub)])
-    return [pi + hi for pi, hi in zip(p, h)]
-
-
-def mis_plates(resolution: int) -> SceneDict:
-    """Veach-style MIS test: four plates of falling roughness, four lights of rising size."""
-    cam = [0.0, 2.0, 15.0]
-    d = base(resolution, origin=tuple(cam), target=(0.0, -1.8, 2.0), fov=30.0)
-    d["floor"] = {"type": "rectangle", "to_world": T().translate([0, -4.5, 0]).rotate([1, 0, 0], -90).scale(20),
-                  "bsdf": diffuse(0.3)}
-    d["backdrop"] = {"type": "rectangle", "to_world": T().translate([0, 0, -4]).scale(20), "bsdf": diffuse(0.3)}
-    light_y, light_z = 2.5, -1.5
-    plates = [(-3.6, 3.9, 0.20), (-2.5, 2.7, 0.08), (-1.4, 1.5, 0.03), (-0.3, 0.3, 0.005)]
-    for i, (y, z, alpha) in enumerate(plates):
-        centre = [0.0, y, z]
-        aim = _facing(centre, cam, [0.0, light_y, light_z])
-        d[f"plate{i}"] = {"type": "rectangle",
-                          "to_world": T().look_at(origin=centre, target=aim, up=[0, 1, 0]).scale([4.0, 0.5, 1]),
-                          "bsdf": {"type": "roughconductor", "material": "Cu", "alpha": alpha}}
-    lights = [(-3.0, 0.04, 600.0), (-1.0, 0.12, 70.0), (1.0, 0.35, 8.0), (3.0, 0.8, 1.5)]
-    for i, (x, r, L) in enumerate(lights):
-        d[f"light{i}"] = {"type": "sphere", "center": [x, light_y, light_z], "radius": r,
-                          "emitter": {"type": "area", "radiance": rgb(L)}}
-    return d
-
-
-def env_spheres(resolution: int) -> SceneDict:
-    d = base(resolution, origin=(0.0, 1.2, 5.0), target=(0.0, 0.0, 0.0))
-    d["sky"] = {"type": "constant", "radiance": rgb([0.6, 0.75, 1.0])}
-    d["ground"] = {"type": "rectangle", "to_world": T().translate([0, -0.5, 0]).rotate([1, 0, 0], -90).scale(8),
-                   "bsdf": diffuse(0.5)}
-    d["s_diffuse"] = {"type": "sphere", "center": [-1.1, 0.0, 0.0], "radius": 0.5, "bsdf": diffuse([0.8, 0.3, 0.2])}
-    d["s_glossy"] = {"type": "sphere", "center": [0.0, 0.0, 0.0], "radius": 0.5,
-                     "bsdf": {"type": "roughplastic", "diffuse_reflectance": rgb([0.2, 0.6, 0.3]), "alpha": 0.1}}
-    d["s_glass"] = {"type": "sphere", "center": [1.1, 0.0, 0.0], "radius": 0.5,
-                    "bsdf": {"type": "dielectric", "int_ior": 1.5}}
-    return d
-
-
-def allblack(resolution: int) -> SceneDict:
-    d = base(resolution)
-    d.update(_room())  # geometry but no emitter at all: every path carries zero radiance
-    d.update(_boxes())
-    return d
-
-
-def sky(resolution: int) -> SceneDict:
-    d = base(resolution)
-    d["sky"] = {"type": "constant", "radiance": rgb(0.5)}  # nothing else: a flat, noise-free image
-    return d
-
-
 SCENES: dict[str, SceneSpec] = {
     s.name: s
     for s in (
-        SceneSpec("cornell", "Cornell box, diffuse walls and boxes, small ceiling light", cornell, ("diffuse",)),
-        SceneSpec("cornell_dark", "Cornell box lit 25x dimmer: dark exposure, noise near black", cornell_dark,
+        SceneSpec("cornell", "Cornell box, diffuse walls and boxes, small ceiling light", training.cornell,
+                  ("diffuse",)),
+        SceneSpec("cornell_dark", "Cornell box lit 25x dimmer: dark exposure, noise near black", training.cornell_dark,
                   ("diffuse", "dark")),
         SceneSpec("cornell_bright", "Cornell box lit 12x brighter: overexposed, clipping hides noise",
-                  cornell_bright, ("diffuse", "bright")),
+                  training.cornell_bright, ("diffuse", "bright")),
         SceneSpec("large_light", "Cornell box under a ceiling-wide panel light: soft shadows, low noise",
-                  large_light, ("diffuse", "large-light")),
+                  training.large_light, ("diffuse", "large-light")),
         SceneSpec("small_light", "Cornell box lit by a tiny bright sphere light: hard shadows, fireflies",
-                  small_light, ("diffuse", "small-light")),
+                  training.small_light, ("diffuse", "small-light")),
         SceneSpec("glossy", "Rough gold sphere, rough plastic box and glossy back wall in a Cornell box",
-                  glossy, ("glossy",)),
-        SceneSpec("mirrors", "Two facing mirror walls: view-dependent inter-reflections of spheres", mirrors,
+                  training.glossy, ("glossy",)),
+        SceneSpec("mirrors", "Two facing mirror walls: view-dependent inter-reflections of spheres", training.mirrors,
                   ("mirror", "glossy")),
         SceneSpec("glass_caustic", "Glass sphere on the floor under a small light: refractive caustic",
-                  glass_caustic, ("dielectric", "caustic", "small-light")),
+                  training.glass_caustic, ("dielectric", "caustic", "small-light")),
         SceneSpec("indirect", "Light hidden on top of a shelf: the room is lit only by ceiling bounce",
-                  indirect, ("diffuse", "indirect")),
-        SceneSpec("checker", "High-frequency checkerboard textures everywhere: texture masks noise", checker,
+                  training.indirect, ("diffuse", "indirect")),
+        SceneSpec("checker", "High-frequency checkerboard textures everywhere: texture masks noise", training.checker,
                   ("textured",)),
-        SceneSpec("mis_plates", "Veach MIS plates: four roughness levels x four light sizes", mis_plates,
+        SceneSpec("mis_plates", "Veach MIS plates: four roughness levels x four light sizes", training.mis_plates,
                   ("glossy", "small-light", "large-light")),
         SceneSpec("env_spheres", "Diffuse, glossy and glass spheres on a ground plane under a uniform sky",
-                  env_spheres, ("environment", "dielectric", "glossy")),
+                  training.env_spheres, ("environment", "dielectric", "glossy")),
         SceneSpec("allblack", "Closed geometry with no light at all: an all-zero image (degenerate input)",
-                  allblack, ("degenerate",)),
-        SceneSpec("sky", "Constant environment and nothing else: a flat image (degenerate input)", sky,
+                  training.allblack, ("degenerate",)),
+        SceneSpec("sky", "Constant environment and nothing else: a flat image (degenerate input)", training.sky,
                   ("degenerate", "environment")),
         # held out: never used to train or calibrate anything (renderer/heldout.py)
         SceneSpec("studio_preview", "Material preview: three spheres on a plane under a studio environment map",

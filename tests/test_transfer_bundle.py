@@ -299,3 +299,25 @@ def test_simulation_makes_the_evaluate_stops(trained):
     got = simulate_stack(stack, crit)
     np.testing.assert_array_equal(stop_thresholds(got, stack.spp), stop_thresholds(V, stack.spp))
     assert crit.counters["blocks_featured"] > 0
+
+
+def test_calibration_offsets_follow_the_scores():
+    """The head's logits may run far past the SVMs' offset grid: the offsets tried span them."""
+    from learning.training.train_transfer import score_offsets
+    scores = np.array([np.nan, -np.inf, -30.0, 2.0, 45.5, 45.5])
+    offs = score_offsets(scores, steps=11)
+    assert offs == tuple(sorted(set(offs))) and 0.0 in offs
+    assert offs[0] == -30.0 and offs[-1] == 45.5 and len(offs) > 3
+    assert score_offsets(np.array([np.nan])) == (0.0,)
+
+
+@pytest.mark.slow
+def test_render_with_a_transfer_bundle(trained, tmp_path, capsys):
+    """`noisestop render --model M` with a transfer bundle: a real Mitsuba render."""
+    _, path, _ = trained
+    assert main(["render", "--scene", "cornell", "--model", str(path), "--resolution", "32", "--block", "16",
+                 "--step", "16", "--max-spp", "64", "--out", str(tmp_path / "r"), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert len(report["blocks"]) == 4 and report["criterion"]["model"]["input"] == "image"
+    assert report["offset"] == load_model(path).offset
+    assert all(16 <= b["spp"] <= 64 for b in report["blocks"])

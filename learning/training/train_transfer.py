@@ -24,9 +24,17 @@ from .train import split_scenes
 
 log = logging.getLogger(__name__)
 
-#: offsets the calibration tries: the head's score is a logit, which spans more than an
-#: SVM's few units (learning.evaluation.calibrate.DEFAULT_OFFSETS)
-LOGIT_OFFSETS = tuple(np.round(np.arange(-6.0, 12.01, 0.1), 2))
+#: how many offsets the calibration tries, at quantiles of the out-of-fold scores
+OFFSET_STEPS = 201
+
+
+def score_offsets(scores: np.ndarray, steps: int = OFFSET_STEPS) -> tuple[float, ...]:
+    """Offsets at the quantiles of the finite `scores` (and 0, the head's own boundary): the
+    head's score is a logit whose range depends on the run, wider than the SVMs' fixed grid
+    (learning.evaluation.calibrate.DEFAULT_OFFSETS) covers; the largest never stops a block."""
+    s = scores[np.isfinite(scores)]
+    q = np.quantile(s, np.linspace(0.0, 1.0, steps)) if len(s) else np.zeros(0)
+    return tuple(np.unique(np.round(np.append(q, 0.0), 3)).tolist())
 
 
 def _head_on(clf: TransferClassifier, table: SubImageTable) -> TransferClassifier:
@@ -80,7 +88,7 @@ def train_transfer(arch: str, data: str, *, quick: str = "halves", weights: str 
     if max_early_stop is not None:
         t2 = time.perf_counter()
         scores = out_of_fold_scores(lambda sub: _head_on(clf, sub), feats, train_scenes, progress=progress)
-        curve = sweep(scores, feats, LOGIT_OFFSETS)
+        curve = sweep(scores, feats, score_offsets(scores))
         chosen = choose_offset(curve, max_early_stop)
         clf.offset_ = chosen["offset"]
         summary["calibration"] = {"target_early_stop_rate": max_early_stop, "route": "stop rule",

@@ -295,6 +295,7 @@ def test_simulation_makes_the_evaluate_stops(trained):
     scores = model.decision_function(sub.X)
     off = float(np.quantile(scores[sub.decidable], 0.5))
     V = stops_by_scene(sub, scores, model.rule(off))["cornell"][0]
+    assert len(set(stop_thresholds(V, stack.spp).tolist())) > 2      # blocks stop at several spp
     crit = ModelCriterion(model, offset=off)
     got = simulate_stack(stack, crit)
     np.testing.assert_array_equal(stop_thresholds(got, stack.spp), stop_thresholds(V, stack.spp))

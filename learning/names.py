@@ -7,6 +7,14 @@ nothing, so the parser is built without torch or Mitsuba and never keeps a copy.
 QUICK_MODES = ("halves", "albedo", "direct", "none")
 #: the SVM kinds `train --model` trains (the paper's models, learning.training.train)
 SVM_KINDS = ("svm", "dsvm", "svm_al", "dsvm_al", "svm_as", "dsvm_as")
+#: the transfer-learning baselines `train --model` trains (learning.models.transfer.ARCHS:
+#: an ImageNet conv base + the paper's head; learning.training.train_transfer)
+TRANSFER_KINDS = ("vgg19", "mobilenet_v2", "inception_v3", "resnet50", "densenet201")
+#: every kind `train --model` accepts
+MODEL_KINDS = SVM_KINDS + TRANSFER_KINDS
+#: inputs a transfer baseline reads: the displayed noise picture of the half buffers
+#: (`halves`) or the block itself (`none`, the paper's); it takes no quick image
+TRANSFER_INPUTS = ("halves", "none")
 #: the input `train` uses unless told (README "Model inputs")
 DEFAULT_INPUT = "halves"
 #: offsets a user, a request or a bundle may set are finite and at most this far from 0 (an

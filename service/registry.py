@@ -31,6 +31,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT = "default"
 PLATFORM = "noisestop-sklearn"
+PLATFORM_IMAGE = "noisestop-torch"     # the transfer baselines: a torchvision base + a torch head
 INPUT_NAMES = ("blocks", "quick", "features")
 OUTPUTS = {"verdict": "INT8", "score": "FP32"}
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
@@ -89,7 +90,8 @@ class ServedModel:
     @property
     def inputs(self) -> list[TensorMetadata]:
         """Raw-block and quick-'none' models accept (and ignore) `quick`: one client serves all.
-        `halves` models take the half buffers `even` and `odd` instead of `blocks`."""
+        `halves` models take the half buffers `even` and `odd` instead of `blocks`; only
+        feature models take `features` (an image classifier reads pictures)."""
         image = [-1, -1, -1, 3]
         if self.model.needs_halves:
             inputs = [TensorMetadata(name="even", datatype="FP32", shape=image),
@@ -111,12 +113,17 @@ class ServedModel:
 
     def metadata(self, name: str | None = None) -> ModelMetadata:
         m = self.model.manifest
+        params: dict[str, Any] = {"kind": str(m.get("kind")), "input": self.model.input, "quick": self.model.quick,
+                                  "offset": self.effective_offset, "calibrated_offset": self.model.offset}
+        if self.model.input == "image":    # what its base transfers, and the one block size it reads
+            params.update(base=self.model.label, block=list(self.model.block_shape or ()))
+        else:
+            params["n_features"] = int(m.get("n_features", 0))
         return ModelMetadata(
-            name=name or self.name, versions=[self.version], platform=PLATFORM, inputs=self.inputs,
+            name=name or self.name, versions=[self.version],
+            platform=PLATFORM_IMAGE if self.model.input == "image" else PLATFORM, inputs=self.inputs,
             outputs=[TensorMetadata(name=k, datatype=v, shape=[-1]) for k, v in OUTPUTS.items()],
-            parameters={"kind": str(m.get("kind")), "input": self.model.input, "quick": self.model.quick,
-                        "offset": self.effective_offset, "calibrated_offset": self.model.offset,
-                        "n_features": int(m.get("n_features", 0))})
+            parameters=params)
 
     def infer(self, tensors: dict[str, np.ndarray], exposure: float = 0.0, offset: float | None = None
               ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -273,6 +280,8 @@ def _warm_up(served: ServedModel) -> None:
         if not side:
             return                         # no block of >= 8x8 pixels has n pixels: nothing to ask
         blocks = np.full((1, side, n // side, 3), 0.5, np.float32)
+    elif served.model.input == "image":    # an image classifier reads its training block size
+        blocks = np.full((1, *served.model.block_shape, 3), 0.5, np.float32)
     else:
         blocks = np.full((1, side, side, 3), 0.5, np.float32)
     arrays, _ = served.infer(served.image_inputs(blocks))

@@ -241,10 +241,16 @@ def stack_raw_blocks(stack: Stack, exposure: float = 0.0) -> np.ndarray:
 
 def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase | None = None,
                scenes: list[str] | None = None, progress: bool = True,
-               quick: str = "albedo", composition: str = HALVES) -> SubImageTable:
+               quick: str = "albedo", composition: str = HALVES, image: bool = False) -> SubImageTable:
     """All labelled stacks under root as one table: model inputs of `quick` (a `halves`
     table in `composition`); raw L* blocks instead of features if `raw` (with quick
-    'halves': the raw noise image; any other quick: the block itself)."""
+    'halves': the raw noise image; any other quick: the block itself); with `image`, the
+    pictures an image classifier reads, X [n, bh, bw, 3] (`learning.inputs.pictures`:
+    quick 'none' the block, 'halves' its noise picture)."""
+    if image:
+        from .pictures import stack_pictures
+        if raw:
+            raise ValueError("a table holds raw L* rows or pictures, not both")
     paths = list_stacks(root)
     if not paths:
         raise ValueError(f"{root}: no stacks found (no meta.json below it)")
@@ -260,14 +266,16 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
         if st.scene in stacks:
             raise ValueError(f"{p}: scene name {st.scene!r} appears twice in {root}")
         stacks[st.scene] = st
-        if raw:
+        if image:
+            x = stack_pictures(st, quick)
+        elif raw:
             x = stack_raw_halves(st) if quick == "halves" else stack_raw_blocks(st)
         elif quick == "halves":
             x = stack_halves_input(st, base, composition=composition)
         else:
             x = stack_features(st, base, quick=quick)
         k, b = x.shape[:2]
-        xs.append(x.reshape(k * b, -1))
+        xs.append(x.reshape(k * b, *x.shape[2:]) if image else x.reshape(k * b, -1))
         ys.append(st.labels().reshape(-1))
         sc.append(np.full(k * b, st.scene, dtype=object))
         lv.append(np.repeat(np.arange(k), b))
@@ -279,8 +287,8 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
         gid += k
     if not stacks:
         raise ValueError(f"{root}: no labelled stack matched")
-    if raw and len({x.shape[1] for x in xs}) > 1:
-        raise ValueError("raw-pixel models need one block size across the dataset")
+    if (raw or image) and len({x.shape[1:] for x in xs}) > 1:
+        raise ValueError(f"{'raw-pixel' if raw else 'image'} models need one block size across the dataset")
     return SubImageTable(np.concatenate(xs), np.concatenate(ys).astype(np.int8), np.concatenate(sc),
                          np.concatenate(lv), np.concatenate(bl), np.concatenate(sp),
                          np.concatenate(gr), np.concatenate(fl), stacks, np.concatenate(ok))

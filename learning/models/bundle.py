@@ -1,4 +1,5 @@
-"""Model bundles: a directory with manifest.json and model.skops, never a pickle.
+"""Model bundles: a directory with manifest.json and model.skops, never a pickle (the
+transfer baselines' bundles hold safetensors instead: `learning.models.transfer_bundle`).
 
 skops refuses types it does not know; we pass it an explicit allow-list (our estimator
 classes and the scikit-learn parts they hold), never `trusted=True`. The manifest records
@@ -305,6 +306,9 @@ def load_model(path: str | os.PathLike | None = None, base: FeatureBase | None =
     if not (path / MANIFEST).is_file():
         raise FileNotFoundError(f"{path}: not a noisestop model bundle (no {MANIFEST})")
     manifest = read_manifest(path / MANIFEST)
+    if manifest["input"] == "image":        # a transfer baseline: torchvision, loaded only here
+        from .transfer_bundle import load_transfer_model
+        return load_transfer_model(path, manifest)
     model_file = path / MODEL_FILE
     if not model_file.is_file():
         raise FileNotFoundError(f"{model_file}: missing")

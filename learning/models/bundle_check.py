@@ -23,6 +23,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from ..names import TRANSFER_INPUTS, TRANSFER_KINDS
 from ..stoprule import OFFSET_LIMIT
 
 MAX_MANIFEST_BYTES = 16 * 1024 * 1024
@@ -56,7 +57,7 @@ class Manifest(_Strict):
     version: Literal[1]
     kind: str = Field(min_length=1, max_length=64)
     name: str | None = Field(default=None, min_length=1, max_length=64)
-    input: Literal["features", "raw"]
+    input: Literal["features", "raw", "image"]
     feature_base: FeatureBaseInfo | None = None
     n_features: int | None = Field(default=None, ge=1, le=MAX_FEATURES)
     offset: float | None = Field(default=None, allow_inf_nan=False, ge=-OFFSET_LIMIT, le=OFFSET_LIMIT)
@@ -64,6 +65,7 @@ class Manifest(_Strict):
     composition: str | None = Field(default=None, min_length=1, max_length=64)
     model_version: str | None = Field(default=None, min_length=1, max_length=64)
     model_sha256: str | None = None
+    state_sha256: str | None = None
     params: dict[str, Any] = {}
     training: TrainingInfo = TrainingInfo()
     metrics: dict[str, Any] = {}
@@ -95,6 +97,19 @@ def read_manifest(path: Path) -> dict[str, Any]:
     if raw["input"] == "raw" and raw.get("quick") not in (None, "none", "halves"):
         raise ValueError(f"{path}: unknown input mode quick={raw['quick']!r} for a raw model "
                          "(one of none, halves)")
+    if raw["input"] == "image":
+        if raw["kind"] not in TRANSFER_KINDS:
+            raise ValueError(f"{path}: kind {raw['kind']!r} is not an image classifier "
+                             f"(one of {', '.join(TRANSFER_KINDS)})")
+        if raw.get("quick") not in TRANSFER_INPUTS:
+            raise ValueError(f"{path}: unknown input mode quick={raw.get('quick')!r} for an image "
+                             f"classifier (one of {', '.join(TRANSFER_INPUTS)})")
+        for field in ("model_sha256", "state_sha256"):
+            if not isinstance(raw.get(field), str) or not _HEX64.match(raw[field]):
+                raise ValueError(f"{path}: an image classifier's manifest needs {field}, 64 lowercase "
+                                 "hex digits")
+    elif raw["kind"] in TRANSFER_KINDS:
+        raise ValueError(f"{path}: kind {raw['kind']!r} is an image classifier, but input is {raw['input']!r}")
     if raw["input"] == "features" and raw.get("feature_base") is None:
         raise ValueError(f"{path}: a feature model must name the feature base it was trained on")
     if raw.get("model_sha256") is not None and not _HEX64.match(raw["model_sha256"]):

@@ -14,22 +14,19 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import torch
-
-from noisefeat.display import display, srgb_decode
-
 from ..evaluation.calibrate import DEFAULT_OFFSETS, sweep
 from ..evaluation.evaluate import evaluate_model, evaluate_scores, time_101_sub_images
 from ..evaluation.generalisation import scene_groups, split_tables
 from ..evaluation.plots import plot_learning_curves
-from ..inputs.table import SubImageTable, iter_stack_halves
+from ..inputs.pictures import rgb_blocks
+from ..inputs.table import SubImageTable
 from ..models.bundle import Model
 from ..stoprule import StopRule
-from .train import SVM_KINDS, train_model
+from ..names import SVM_KINDS, TRANSFER_KINDS
+from .train import train_model
 
 log = logging.getLogger(__name__)
-TRANSFER_ARCHES = ("vgg19", "mobilenet_v2", "inception_v3", "resnet50", "densenet201")
+TRANSFER_ARCHES = TRANSFER_KINDS
 PAPER = {"dsvm_as": "91 % / 93.4 %, 0.008 s per 101, 2095 s training", "svm_as": "99 %"}
 
 
@@ -58,34 +55,6 @@ def _curve(rows: list[dict]) -> list[dict]:
 
 
 ROW_METRICS = ("precision", "f1", "threshold_mse", "early_stop_rate", "spp_ratio_vs_oracle")
-
-
-def rgb_blocks(table: SubImageTable, halves: bool = False) -> np.ndarray:
-    """Linear RGB sub-images [n, h, w, 3] of every row of `table`, in row order.
-
-    With `halves`, each sub-image is the displayed noise image instead: linear RGB whose
-    display is 0.5 + display(A) - display(B) (clipped), a content-free picture of the
-    noise that an image classifier can read as it reads a block (the transfer baselines'
-    `halves` input); level 0, with no B yet, is flat grey."""
-    st0 = next(iter(table.stacks.values()))
-    out = np.empty((len(table), *st0.block, 3), np.float32)
-    for scene, st in table.stacks.items():
-        m = table.scene == scene
-        levels = ((k, st.blocks(int(k))) for k in np.unique(table.level[m])) if not halves else \
-            ((k, noise_picture(a, b)) for k, a, b in iter_stack_halves(st))
-        if halves:
-            out[m & (table.level == 0)] = srgb_decode(torch.tensor(0.5)).item()
-        for k, images in levels:
-            rows = np.flatnonzero(m & (table.level == k))
-            out[rows] = images[table.block[rows]]
-    return out
-
-
-def noise_picture(even: np.ndarray, odd: np.ndarray) -> np.ndarray:
-    """Linear RGB [N, h, w, 3] whose display is clip(0.5 + display(A) - display(B))."""
-    with torch.inference_mode():
-        d = (0.5 + display(even) - display(odd)).clamp_(0.0, 1.0)
-        return srgb_decode(d).numpy().astype(np.float32)
 
 
 def _transfer_row(arch: str, train: SubImageTable, test: SubImageTable, halves: bool = False) -> dict:

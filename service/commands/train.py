@@ -3,8 +3,9 @@ conv layers, on training scenes only."""
 from __future__ import annotations
 
 import argparse
+import os
 
-from learning.names import DEFAULT_INPUT, QUICK_MODES, SVM_KINDS
+from learning.names import DEFAULT_INPUT, MODEL_KINDS, QUICK_MODES, TRANSFER_INPUTS, TRANSFER_KINDS
 
 from ..console import UsageError, emit_json
 from . import arguments as arg
@@ -13,7 +14,12 @@ from . import arguments as arg
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train a model on a dataset (scenes held out for evaluation)")
     p.add_argument("--data", required=True, help="dataset directory")
-    p.add_argument("--model", default="dsvm_as", choices=SVM_KINDS, help="model kind (default dsvm_as)")
+    p.add_argument("--model", default="dsvm_as", choices=MODEL_KINDS,
+                   help="model kind (default dsvm_as); vgg19 ... densenet201: a transfer baseline "
+                        "(frozen conv base + the paper's head, README \"Transfer baselines\")")
+    p.add_argument("--weights", default=None, metavar="FILE",
+                   help="transfer baselines: a local ImageNet state_dict for the base (never downloaded; "
+                        "default: the torch hub cache, else an untrained base, labelled so)")
     p.add_argument("--out", required=True, help="model bundle directory to write")
     p.add_argument("--test-scenes", default=None,
                    help="comma-separated scenes of --data held out of training ('' for none; default: "
@@ -34,7 +40,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="feature models' input: halves (noise features of the half buffers next to "
                         "features of the block, README \"Model inputs\"), or the paper's quick image "
                         "subtracted from the features: the albedo AOV, direct lighting, or none (a "
-                        f"flat image: features of the current block alone); default {DEFAULT_INPUT}")
+                        f"flat image: features of the current block alone); default {DEFAULT_INPUT}. "
+                        "Transfer baselines: halves (the displayed noise picture of the half buffers) "
+                        "or none (the block itself, the paper's)")
     p.add_argument("--composition", default=None,
                    help="input halves: which parts of the half-buffer input a feature model reads, "
                         "joined by '+' (n noise, c current, r ratios, l luminance, f FLIP; README "
@@ -89,33 +97,59 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     if not 0 < args.label_budget <= 1:
         raise UsageError(f"--label-budget must be in (0, 1], got {args.label_budget}")
+    transfer = args.model in TRANSFER_KINDS
+    if transfer and (args.quick not in TRANSFER_INPUTS or args.composition is not None):
+        raise UsageError(f"--model {args.model} reads pictures: --input {' or '.join(TRANSFER_INPUTS)}, "
+                         f"no {'--composition' if args.quick in TRANSFER_INPUTS else '--input ' + args.quick}")
+    if args.weights is not None and not transfer:
+        raise UsageError("--weights applies to the transfer baselines only "
+                         f"({', '.join(TRANSFER_KINDS)})")
+    if args.weights is not None and not os.path.isfile(args.weights):
+        raise UsageError(f"--weights {args.weights}: no such file (ImageNet weights are never downloaded)")
     raw = args.model.startswith("svm")
-    table = load_table(args.data, raw=raw, quick=args.quick, **_composition(args, raw))
+    opts = {"image": True, "quick": args.quick} if transfer else \
+        {"raw": raw, "quick": args.quick, **_composition(args, raw)}
+    table = load_table(args.data, **opts)
     if not 0 <= args.max_early_stop <= 1:
         raise UsageError(f"--max-early-stop must be in [0, 1], got {args.max_early_stop}")
     test_scenes = [] if args.test_scenes == "" else arg.scene_list(args.test_scenes)   # '': none
     if args.heldout and test_scenes is None:
         test_scenes = []
     _refuse_heldout([s for s in table.scenes() if s not in (test_scenes or [])], "train")
-    est, summary = train_model(args.model, args.data, test_scenes=test_scenes,
-                               initial_scene=args.initial_scene, cv=not args.no_cv, seed=args.seed,
-                               max_label_fraction=args.label_budget, table=table,
-                               max_early_stop=None if args.no_calibrate else args.max_early_stop,
-                               quick=args.quick)
+    max_early_stop = None if args.no_calibrate else args.max_early_stop
+    if transfer:
+        from learning.models.transfer_bundle import TransferModel, save_transfer_model
+        from learning.training.train_transfer import train_transfer
+        try:
+            est, summary = train_transfer(args.model, args.data, quick=args.quick, weights=args.weights,
+                                          test_scenes=test_scenes, table=table, seed=args.seed,
+                                          max_early_stop=max_early_stop)
+        except (FileNotFoundError, ImportError) as exc:      # --weights missing, torchvision broken
+            raise UsageError(str(exc)) from None
+    else:
+        est, summary = train_model(args.model, args.data, test_scenes=test_scenes,
+                                   initial_scene=args.initial_scene, cv=not args.no_cv, seed=args.seed,
+                                   max_label_fraction=args.label_budget, table=table,
+                                   max_early_stop=max_early_stop, quick=args.quick)
     if args.heldout:
         from learning.evaluation.generalisation import check_disjoint
-        test = load_table(args.heldout, raw=raw, quick=args.quick, **_composition(args, raw))
+        test = load_table(args.heldout, **opts)
         check_disjoint(summary["train_scenes"], test.scenes())
         summary["heldout"] = {"data": str(args.heldout), "scenes": test.scenes()}
     else:
         test = table.subset(table.scene_mask(summary["test_scenes"]))
-    extra = {"quick": args.quick} if not raw or args.quick == "halves" else {}
-    extra.update(_composition(args, raw))
-    metrics = evaluate_model(Model(est, {"kind": args.model, "input": summary["input"], **extra}), test) \
-        if len(test) else {}
-    save_model(est, args.out, kind=args.model, input=summary["input"], training=summary,
-               metrics={k: v for k, v in metrics.items() if k != "per_scene"}, extra=extra)
+    extra = {"quick": args.quick} if transfer or not raw or args.quick == "halves" else {}
+    extra.update({} if transfer else _composition(args, raw))
+    model = (TransferModel if transfer else Model)(est, {"kind": args.model, "input": summary["input"], **extra})
+    metrics = evaluate_model(model, test) if len(test) else {}
+    metrics = {k: v for k, v in metrics.items() if k != "per_scene"}
+    if transfer:
+        save_transfer_model(est, args.out, quick=args.quick, training=summary, metrics=metrics)
+    else:
+        save_model(est, args.out, kind=args.model, input=summary["input"], training=summary,
+                   metrics=metrics, extra=extra)
     result = {"model": args.out, "kind": args.model, "train_s": summary["train_s"],
+              **({"base": summary["base"], "input": args.quick} if transfer else {}),
               "offset": summary["offset"],
               "labels": summary.get("n_labels"), "label_fraction": summary.get("label_fraction"),
               "test_scenes": test.scenes(), **{k: metrics.get(k) for k in
@@ -123,7 +157,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(result)
     else:
-        print(f"{args.model} -> {args.out}: trained in {summary['train_s']:.1f} s on "
+        print(f"{summary.get('base', args.model)} -> {args.out}: trained in {summary['train_s']:.1f} s on "
               f"{len(summary['train_scenes'])} scenes, {summary.get('n_labels')} labels "
               f"({100 * summary.get('label_fraction', 1):.0f}% of the training sub-images)")
         if "calibration" in summary:

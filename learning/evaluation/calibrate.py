@@ -11,6 +11,7 @@ chosen on (`choose_out_of_fold`); flip's c is chosen the same way.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -126,6 +127,24 @@ def choose_offset(curve: list[dict], max_early_stop: float = 0.05) -> dict:
     (`choose_out_of_fold`)."""
     return choose_out_of_fold(curve, max_early_stop, key="offset", larger_is_safer=True)
 
+
+
+def calibrate_offset(fit: Callable[[SubImageTable], Any], table: SubImageTable, scenes: Sequence[str],
+                     max_early_stop: float, offsets: Callable[[np.ndarray], Sequence[float]] | None = None,
+                     progress: bool = True) -> tuple[float, dict[str, Any]]:
+    """A model's offset from out-of-fold scores of the training `scenes` (`fit` trains on a
+    sub-table), and the calibration record a bundle keeps; `offsets(scores)` gives the
+    offsets tried (default `DEFAULT_OFFSETS`)."""
+    t0 = time.perf_counter()
+    scores = out_of_fold_scores(fit, table, list(scenes), progress=progress)
+    curve = sweep(scores, table, DEFAULT_OFFSETS if offsets is None else offsets(scores))
+    chosen = choose_offset(curve, max_early_stop)
+    return float(chosen["offset"]), {
+        "target_early_stop_rate": max_early_stop, "route": "stop rule",
+        "chosen": {k: v for k, v in chosen.items() if k not in ("per_scene", "groups")},
+        "per_scene": {sc: {k: v for k, v in m.items() if k != "counts"} for sc, m in chosen["per_scene"].items()},
+        "curve": [{k: v for k, v in r.items() if k not in ("per_scene", "groups")} for r in curve],
+        "seconds": time.perf_counter() - t0}
 
 FLIP_CANDIDATES = tuple(round(float(c), 4) for c in np.arange(0.005, 0.08001, 0.0005))
 

@@ -45,6 +45,7 @@ from tqdm import tqdm
 from noisefeat.display import display
 
 from ..stoprule import OffsetClassifierMixin
+from .bundle_check import file_sha256
 from .estimators import LABELS, check_labels
 
 log = logging.getLogger(__name__)
@@ -146,14 +147,6 @@ def find_cached_weights(arch: str) -> Path | None:
         if (folder / name).is_file():
             return folder / name
     return None
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _is_imagenet_file(arch: str, path: Path, sha: str) -> bool:
@@ -332,7 +325,7 @@ class TransferClassifier(OffsetClassifierMixin, ClassifierMixin, BaseEstimator):
         self.base_ = build_base(self.arch, path, int(self.random_state))
         self.base_pretrained_ = path is not None
         self.base_weights_ = str(path) if path is not None else None
-        self.base_sha256_ = _sha256(path) if path is not None else None
+        self.base_sha256_ = file_sha256(path) if path is not None else None
         if path is None:
             self.base_source_ = "untrained base"
             folder = Path(torch.hub.get_dir()) / "checkpoints"
@@ -567,7 +560,7 @@ class TransferClassifier(OffsetClassifierMixin, ClassifierMixin, BaseEstimator):
         if est.freeze_base and weights is not None:
             if not weights.is_file():
                 raise FileNotFoundError(f"{path}: its base weights {weights} are gone")
-            if _sha256(weights) != state["base_sha256"]:
+            if file_sha256(weights) != state["base_sha256"]:
                 raise ValueError(f"{path}: base weights {weights} changed since training "
                                  f"(SHA-256 differs): its verdicts would be wrong")
         est.base_ = build_base(est.arch, weights if est.freeze_base else None, int(est.random_state))

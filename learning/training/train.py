@@ -213,24 +213,13 @@ def train_model(kind: str, data: str, *, test_scenes: list[str] | None = None,
     summary.update(info)
     summary["train_s"] = time.perf_counter() - t1
     if max_early_stop is not None:
-        from ..evaluation.calibrate import choose_offset, out_of_fold_scores, sweep
+        from ..evaluation.calibrate import calibrate_offset
 
         def fold_fit(sub_table: SubImageTable) -> RBFSVM:
             return fit_kind(kind, sub_table.trainable(), sub_table.scenes(), C=C, gamma=gamma,
                             max_label_fraction=max_label_fraction, batch_size=batch_size)[0]
-        t2 = time.perf_counter()
-        train_table = table.subset(tr)
-        scores = out_of_fold_scores(fold_fit, train_table, train_scenes, progress=progress)
-        curve = sweep(scores, train_table)
-        chosen = choose_offset(curve, max_early_stop)
-        fitted.offset_ = chosen["offset"]
-        summary["calibration"] = {"target_early_stop_rate": max_early_stop, "route": "stop rule",
-                                  "chosen": {k: v for k, v in chosen.items() if k not in ("per_scene", "groups")},
-                                  "per_scene": {sc: {k: v for k, v in m.items() if k != "counts"}
-                                                for sc, m in chosen["per_scene"].items()},
-                                  "curve": [{k: v for k, v in r.items() if k not in ("per_scene", "groups")}
-                                            for r in curve],
-                                  "seconds": time.perf_counter() - t2}
+        fitted.offset_, summary["calibration"] = calibrate_offset(fold_fit, table.subset(tr), train_scenes,
+                                                                  max_early_stop, progress=progress)
     summary["C"], summary["gamma"] = float(fitted.C), fitted.gamma
     summary["offset"] = float(fitted.offset_)
     log.info("%s: trained on %d scenes in %.1f s (%s labels), offset %.2f", kind, len(train_scenes),

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from sklearn.base import clone
 
-from ..evaluation.calibrate import choose_offset, out_of_fold_scores, sweep
+from ..evaluation.calibrate import calibrate_offset
 from ..inputs.table import SubImageTable, load_table
 from ..models.transfer import TransferClassifier
 from ..names import TRANSFER_INPUTS, TRANSFER_KINDS
@@ -86,18 +86,8 @@ def train_transfer(arch: str, data: str, *, quick: str = "halves", weights: str 
                    base=clf.report_label(), base_source=clf.base_source_, weights=clf.base_weights_,
                    block=list(clf.block_shape_))
     if max_early_stop is not None:
-        t2 = time.perf_counter()
-        scores = out_of_fold_scores(lambda sub: _head_on(clf, sub), feats, train_scenes, progress=progress)
-        curve = sweep(scores, feats, score_offsets(scores))
-        chosen = choose_offset(curve, max_early_stop)
-        clf.offset_ = chosen["offset"]
-        summary["calibration"] = {"target_early_stop_rate": max_early_stop, "route": "stop rule",
-                                  "chosen": {k: v for k, v in chosen.items() if k not in ("per_scene", "groups")},
-                                  "per_scene": {sc: {k: v for k, v in m.items() if k != "counts"}
-                                                for sc, m in chosen["per_scene"].items()},
-                                  "curve": [{k: v for k, v in r.items() if k not in ("per_scene", "groups")}
-                                            for r in curve],
-                                  "seconds": time.perf_counter() - t2}
+        clf.offset_, summary["calibration"] = calibrate_offset(lambda sub: _head_on(clf, sub), feats, train_scenes,
+                                                               max_early_stop, score_offsets, progress=progress)
     clf.set_params(progress=False)      # a bundle's verdicts draw no progress bars
     summary["offset"] = float(clf.offset_)
     summary["parameters"] = int(clf.n_parameters())

@@ -14,6 +14,7 @@ import torch
 from noisefeat.display import display, srgb_decode
 
 from ..data.stack import Stack
+from .halves import check_halves
 from .table import SubImageTable, iter_stack_halves
 
 #: linear value whose display is mid grey: the noise picture of a block with no noise
@@ -36,10 +37,7 @@ def image_input(blocks: np.ndarray, exposure: float = 0.0) -> np.ndarray:
 def noise_picture(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0) -> np.ndarray:
     """Linear RGB [N, h, w, 3] whose display is clip(0.5 + display(A) - display(B)):
     finite whatever A and B hold (non-finite pixels follow the display rule)."""
-    even, odd = np.asarray(even), np.asarray(odd)
-    if even.ndim != 4 or even.shape[-1] != 3 or odd.shape != even.shape:
-        raise ValueError(f"expected two half buffers [N, h, w, 3] of one shape, got "
-                         f"{list(even.shape)} and {list(odd.shape)}")
+    even, odd = check_halves(even, odd)
     with torch.inference_mode():
         d = (0.5 + display(even, exposure) - display(odd, exposure)).clamp_(0.0, 1.0)
         return srgb_decode(d).numpy().astype(np.float32)

@@ -35,12 +35,13 @@ from tqdm import tqdm
 
 from learning.data.stack import Stack
 from noisefeat.bounds import SizeBounds
+from noisefeat.runtime import torch_threads
 
 from .blocks import BlockRenderer, compose
 from .checkpoint import CHECKPOINT, load_checkpoint, save_checkpoint
 from .criteria import TIMER_NAMES, Criterion, build_criterion
 from .outputs import prepare_output_dir, write_outputs
-from .passloop import PassLoop, torch_threads
+from .passloop import PassLoop
 from .report import final_vs_reference, pass_sizes, render_report
 from .settings import DEFAULT, NOT_USED, check_spp_settings, resolve_settings
 from .settings import describe as describe_settings

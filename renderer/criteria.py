@@ -27,20 +27,20 @@ degenerate scenes (``allblack``, ``sky``) stop at their first decision.
 """
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import logging
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
 
 from learning.stoprule import CONVERGED, NOISY, StopRule, flat_blocks
+from noisefeat.runtime import torch_threads
 
-from .names import CRITERIA, DEFAULT_CRITERION
+from .names import CRITERIA
 
 logger = logging.getLogger(__name__)
 # decide_calls: calls to decide; blocks_asked: verdicts given; blocks_featured: blocks whose
@@ -51,23 +51,6 @@ logger = logging.getLogger(__name__)
 COUNTER_NAMES = ("decide_calls", "blocks_asked", "blocks_featured", "feature_rows", "converged",
                  "flat_blocks", "nonfinite_blocks")
 TIMER_NAMES = ("features_s", "decisions_s")
-
-
-@contextlib.contextmanager
-def single_torch_thread() -> Iterator[None]:
-    """Run torch on one thread for a decision's few blocks.
-
-    Inside the render loop torch's OpenMP threads share the cores with Dr.Jit's pool and
-    spin-wait: features of 16 blocks of 64x64 took 47 ms per pass there against 2 ms alone.
-    A decision's batch is too small to gain from threads anyway.
-    """
-    import torch
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 @dataclass(frozen=True)
@@ -365,7 +348,7 @@ class ModelCriterion(Criterion):
                 for b, q in zip(ids, quick)]
         missing = [i for i, k in enumerate(keys) if k not in self._quick_cache]
         if missing:
-            with single_torch_thread():
+            with torch_threads(1):
                 feats = extract_features(np.ascontiguousarray(quick[missing], np.float32),
                                          exposure=self.exposure)
             self.counters["feature_rows"] += len(missing)
@@ -393,7 +376,7 @@ class ModelCriterion(Criterion):
             odd = np.stack([np.asarray(views[i].halves[1], np.float32) for i in ask])   # type: ignore[index]
             self.counters["blocks_featured"] += len(ask)
             if self._local:
-                with single_torch_thread():
+                with torch_threads(1):
                     t0 = time.perf_counter()
                     x = self.model.inputs_from_halves(even, odd, self.exposure)  # type: ignore[attr-defined]
                     self.counters["feature_rows"] += len(ask)
@@ -411,7 +394,7 @@ class ModelCriterion(Criterion):
                 from learning.inputs.table import feature_input
                 from noisefeat import extract_features
 
-                with single_torch_thread():
+                with torch_threads(1):
                     t0 = time.perf_counter()
                     quick_feats = self._quick_features([ids[i] for i in ask], quick) if self.needs_quick else None
                     x = feature_input(extract_features(blocks, exposure=self.exposure), quick_feats)

@@ -10,8 +10,7 @@ Because both judge the very same `BlockView`s, the two routes cannot drift apart
 """
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -82,18 +81,3 @@ class PassLoop:
         self.history = np.asarray(state["history"], np.int8).reshape(-1, len(self.active))
         self.history_spp = np.asarray(state["history_spp"], np.int64)
         self.rendered = np.asarray(state["rendered"], np.int64)
-
-
-@contextlib.contextmanager
-def torch_threads(n: int) -> Iterator[None]:
-    """Torch on `n` threads for the decisions between two passes (measured, BENCHMARKS.md
-    "Block passes and scaling"): right after a kernel, Dr.Jit's worker threads still spin on
-    both cores, and torch's OpenMP team stalled against them, 50x slower than one thread."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)

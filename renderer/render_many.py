@@ -13,7 +13,8 @@ from typing import Any
 from tqdm import tqdm
 
 from .adaptive import adaptive_render, scene_label
-from .criteria import DEFAULT_CRITERION, Criterion, build_criterion
+from .criteria import Criterion, build_criterion
+from .names import DEFAULT_CRITERION
 from .outputs import prepare_output_dir
 
 logger = logging.getLogger(__name__)

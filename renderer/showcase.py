@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from .adaptive import adaptive_render
-from .criteria import DEFAULT_CRITERION
+from .names import DEFAULT_CRITERION
 from .outputs import prepare_output_dir, to_srgb8
 
 logger = logging.getLogger(__name__)

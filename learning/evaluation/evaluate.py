@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from noisefeat.runtime import median_s
+
 from ..inputs.table import SubImageTable
 from ..models.bundle import Model
 from ..stoprule import StopRule
@@ -62,10 +64,4 @@ def time_101_sub_images(model: Model, block: tuple[int, int], repeats: int = 20)
 
     def score() -> None:
         model.score_halves(blocks, other) if model.needs_halves else model.score_blocks(blocks, other)
-    score()
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        score()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
+    return median_s(score, repeats)

@@ -16,7 +16,8 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-import torch
+
+from noisefeat.runtime import median_s, torch_threads
 
 from ..evaluation.evaluate import evaluate_model
 from ..evaluation.generalisation import split_tables
@@ -43,18 +44,8 @@ def per_block_ms(fn: Callable[[np.ndarray, np.ndarray], Any], block: tuple[int, 
     rng = np.random.default_rng(0)
     a = rng.random((n, *block, 3)).astype(np.float32)
     b = (a + rng.normal(0, 0.02, a.shape)).astype(np.float32)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        fn(a, b)
-        t = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            fn(a, b)
-            t.append(time.perf_counter() - t0)
-    finally:
-        torch.set_num_threads(threads)
-    return 1000.0 * float(np.median(t)) / n
+    with torch_threads(1):
+        return 1000.0 * median_s(lambda: fn(a, b), repeats) / n
 
 
 def decision_ms(model: Model, block: tuple[int, int] = (64, 64), n: int = 16, repeats: int = 5) -> float:

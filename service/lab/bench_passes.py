@@ -58,7 +58,7 @@ def pass_cost(repeats: int = 3) -> dict[str, Any]:
 def decision_cost(repeats: int = 5, counts: tuple[int, ...] = (1, 4, 16, 64, 256)) -> dict[str, Any]:
     """Seconds of one flip decision call against the number of 64x64 blocks it judges."""
     from renderer.criteria import BlockView, FlipCriterion
-    from renderer.passloop import torch_threads
+    from noisefeat.runtime import torch_threads
 
     rng = np.random.default_rng(0)
     crit = FlipCriterion()

@@ -26,7 +26,9 @@ from typing import Any
 
 import numpy as np
 
-from .timing import MachineLoad, median_s
+from noisefeat.runtime import median_s, torch_threads
+
+from .timing import MachineLoad
 
 BLOCKS, SIZE = 16, 128
 CLIENTS = (1, 8, 32)
@@ -39,16 +41,10 @@ def _median_ms(fn: Callable[[], Any], repeats: int) -> float:
 def stage_times(model: str | None, repeats: int = 9) -> dict[str, Any]:
     """Milliseconds of each stage of one binary request of BLOCKS blocks of SIZE x SIZE,
     on one torch thread as in the server (serve --torch-threads)."""
-    import torch
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        with MachineLoad() as load:
-            out = _stage_times(model, repeats)
-        out["other_load"] = load.share
-        return out
-    finally:
-        torch.set_num_threads(threads)
+    with torch_threads(1), MachineLoad() as load:
+        out = _stage_times(model, repeats)
+    out["other_load"] = load.share
+    return out
 
 
 def _stage_times(model: str | None, repeats: int) -> dict[str, Any]:

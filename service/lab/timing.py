@@ -8,23 +8,12 @@ import statistics
 import time
 from collections.abc import Callable
 from typing import Any
+
 import torch
 
+from noisefeat.runtime import median_s
 
 log = logging.getLogger(__name__)
-
-
-def median_s(fn: Callable[[], Any], repeats: int, warm: bool = True) -> float:
-    """Median seconds of `repeats` calls of `fn`, after one untimed call unless `warm` is False
-    (the caller has warmed it already)."""
-    if warm:
-        fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def direct_macs(n: int, h: int, w: int, wavelet_taps: int = 2) -> int:

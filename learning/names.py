@@ -21,3 +21,6 @@ DEFAULT_INPUT = "halves"
 #: SVM's scores are a few units; an offset beyond any score only means "never" or "always",
 #: but 1e300 or NaN in a request or a bundle means a mistake or an attack)
 OFFSET_LIMIT = 1e6
+#: the observer's noise target unless the user sets one (`--tau`, the HTTP `tau` parameter):
+#: the largest 16x16-tile mean FLIP against the reference a converged block may show
+DEFAULT_TAU = 0.02

@@ -29,8 +29,9 @@ in FLIP; only the order of the sums differs, so maps agree to float32 rounding (
 test_flip.py compares the two on realistic and extreme blocks).
 
 `ldr_flip(reference, test)` takes sRGB images in [0, 1] like `flip_evaluator.evaluate`;
-`mean_flip_halves(even, odd)` takes linear half buffers and follows the display rule
-(noisefeat.display: x 2^exposure, NaN/-Inf black, +Inf white, clip to [0, 1]).
+`flip_halves(even, odd)` takes linear half buffers, follows the display rule
+(noisefeat.display: x 2^exposure, NaN/-Inf black, +Inf white, clip to [0, 1]) and pools
+each block's map as the observer does (`noisefeat.pooling`).
 """
 from __future__ import annotations
 
@@ -42,6 +43,7 @@ import torch
 
 from .display import clipped_linear, srgb_decode
 from .perceptual import DEFAULT_PPD, PC, PT, QC
+from .pooling import DEFAULT_POOLING, check_pooling, pool_maps
 
 #: FLIP's linear sRGB -> XYZ (its exact rational entries) and XYZ -> linear sRGB (D65)
 RGB_TO_XYZ = ((10135552 / 24577794, 8788810 / 24577794, 4435075 / 24577794),
@@ -342,18 +344,21 @@ def ldr_flip(reference: torch.Tensor | np.ndarray, test: torch.Tensor | np.ndarr
     return out
 
 
-def mean_flip_halves(even: torch.Tensor | np.ndarray, odd: torch.Tensor | np.ndarray,
-                     exposure: float = 0.0, ppd: float = DEFAULT_PPD) -> torch.Tensor:
-    """float64 [N]: per block, the mean LDR-FLIP between display(even) and display(odd),
-    linear RGB half buffers [N, h, w, 3]; non-finite values follow the display rule.
+def flip_halves(even: torch.Tensor | np.ndarray, odd: torch.Tensor | np.ndarray,
+                exposure: float = 0.0, ppd: float = DEFAULT_PPD, pooling: str = DEFAULT_POOLING) -> np.ndarray:
+    """float64 [N]: per block, the LDR-FLIP map between display(even) and display(odd),
+    linear RGB half buffers [N, h, w, 3], pooled as the observer pools (`noisefeat.pooling`:
+    the largest 16x16 tile mean, or the block mean); non-finite values follow the display
+    rule.
 
     The display images are never encoded: FLIP decodes its sRGB input back to linear
     first, so the clipped linear values are what it computes on (to float32 rounding).
     A block whose two display images are identical gets exactly 0, as from FLIP."""
     a, b = _check_pair(even, odd, "half buffers")
     p = check_ppd(ppd)
+    check_pooling(pooling)
     n, h, w = a.shape[:3]
-    out = torch.zeros(n, dtype=torch.float64)
+    out = np.zeros(n)
     if h * w == 0:
         return out
     with torch.inference_mode():
@@ -365,6 +370,5 @@ def mean_flip_halves(even: torch.Tensor | np.ndarray, odd: torch.Tensor | np.nda
                 continue
             if len(differ) < m:
                 lin = lin.index_select(1, torch.tensor(differ + [m + k for k in differ]))
-            maps = _flip_maps_linear(lin, p)
-            out[[i + k for k in differ]] = maps.sum(dim=(1, 2), dtype=torch.float64) / (h * w)
+            out[[i + k for k in differ]] = pool_maps(_flip_maps_linear(lin, p).numpy(), pooling)
     return out

@@ -34,6 +34,7 @@ import numpy as np
 from tqdm import tqdm
 
 from learning.data.stack import Stack
+from learning.names import DEFAULT_TAU
 from noisefeat.bounds import SizeBounds
 from noisefeat.runtime import torch_threads
 
@@ -64,12 +65,12 @@ def scene_label(scene: str | os.PathLike) -> str:
 # ----------------------------------------------------------------------------- the loop
 
 
-def _resolve_criterion(criterion: Criterion | str, reference: Stack | None) -> Criterion:
+def _resolve_criterion(criterion: Criterion | str, reference: Stack | None, tau: float) -> Criterion:
     if isinstance(criterion, Criterion):
         return criterion
     if isinstance(criterion, str):
         th = reference.thresholds if reference is not None else None
-        return build_criterion(criterion, thresholds=th)
+        return build_criterion(criterion, thresholds=th, tau=tau)
     raise ValueError(f"criterion must be a Criterion or one of model/variance/uniform/oracle, "
                      f"got {type(criterion).__name__}")
 
@@ -105,7 +106,8 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
                     min_spp: int | None = None, max_spp: int | None = None, seed: int = 0, resume: bool = False,
                     progress: bool = True, reference: Stack | str | os.PathLike | None = None,
                     quick_spp: int = 16, defines: Mapping[str, str] | None = None,
-                    time_limit: float | None = None, checkpoint_every: float = 30.0) -> dict[str, Any]:
+                    time_limit: float | None = None, checkpoint_every: float = 30.0,
+                    tau: float = DEFAULT_TAU) -> dict[str, Any]:
     """Render `scene` adaptively into `out`; return the report (also out/report.json).
 
     wall_s in the report runs from the call to the end of the last pass (writing the
@@ -119,7 +121,9 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     scene's parameters, as `mitsuba -D key=value` (recorded in the report). `time_limit`:
     seconds this call may run; the pass under way when it is reached is finished, then the
     outputs and the checkpoint are written and `resume` continues from there.
-    `checkpoint_every`: seconds between checkpoints (0: after every pass).
+    `checkpoint_every`: seconds between checkpoints (0: after every pass). `tau`: the
+    noise target, recorded in the report; the reference's labels and the final-vs-reference
+    check use the observer at it (a criterion given by name is built for it too).
     """
     if time_limit is not None and not (math.isfinite(time_limit) and time_limit > 0):
         raise ValueError(f"time limit must be a positive number of seconds, got {time_limit!r}")
@@ -131,13 +135,13 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
 
     t_start = time.perf_counter()
     label = scene_label(scene)
-    ref_stack = find_reference(reference, label) if reference is not None else None
+    ref_stack = find_reference(reference, label, tau) if reference is not None else None
     given = {"resolution": resolution, "grid": grid, "block": block, "step": step, "min_spp": min_spp,
              "max_spp": max_spp}
     values, sources = resolve_settings(given, ref_stack)
     resolution, grid, block, step, min_spp, max_spp = (values[k] for k in given)
     resolution, grid = _check_args(resolution, grid, block, step, min_spp, max_spp)
-    crit = _resolve_criterion(criterion, ref_stack)
+    crit = _resolve_criterion(criterion, ref_stack, tau)
     out = prepare_output_dir(out)           # exists or can be made, and writable: before any pass
     ckpt_path = out / CHECKPOINT
 
@@ -166,7 +170,8 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
                 "exposure": float(getattr(crit, "exposure", 0.0)),
                 "step": int(step), "min_spp": int(min_spp), "max_spp": int(max_spp), "seed": int(seed),
                 "quick_spp": int(quick_spp), "quick": crit.quick_kind if crit.needs_quick else "none",
-                "criterion": crit.describe(), "variant": variant, "defines": dict(defines or {})}
+                "criterion": crit.describe(), "variant": variant, "defines": dict(defines or {}),
+                "tau": float(tau)}
     sizes = pass_sizes(step, max_spp)
 
     state: dict[str, Any] | None = None
@@ -279,7 +284,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
                            reference.shape, image.shape)
             reference = None
         else:
-            report["final_vs_reference"] = final_vs_reference(image, reference, (gh, gw), ref_stack,
+            report["final_vs_reference"] = final_vs_reference(image, reference, (gh, gw), float(tau),
                                                               float(settings["exposure"]), ~loop.active)
     write_outputs(out, image, report, spp=spp_px, converged=(~loop.active)[owner], reference=reference)
     logger.info("%s: %d passes, saved %.1f%% vs uniform, %.2f s", label, report["passes"],

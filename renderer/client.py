@@ -58,7 +58,8 @@ class RemoteModel:
     input = "features"  # the server computes features from blocks + quick: send the quick blocks
 
     def __init__(self, url: str, model: str = "default", token: str | None = None, binary: bool = True,
-                 timeout: float = 30.0, retries: int = 3, backoff: float = 0.25, batch_size: int = 64) -> None:
+                 timeout: float = 30.0, retries: int = 3, backoff: float = 0.25, batch_size: int = 64,
+                 tau: float | None = None) -> None:
         parsed = urllib.parse.urlparse(url)
         if parsed.scheme not in ("http", "https") or not parsed.netloc:
             raise ValueError(f"server URL must look like http://host:port, got {url!r}")
@@ -69,6 +70,7 @@ class RemoteModel:
                              f"{timeout!r}, {retries!r}, {batch_size!r}")
         self.url = url.rstrip("/")
         self.model = model
+        self.tau = tau          # the noise target sent with every request (None: the server's)
         self.token = token if token is not None else default_token()
         self.binary, self.timeout = bool(binary), float(timeout)
         self.retries, self.backoff, self.batch_size = int(retries), float(backoff), int(batch_size)
@@ -313,6 +315,8 @@ class RemoteModel:
             params["exposure"] = float(exposure)
         if offset is not None:
             params["offset"] = float(offset)
+        if self.tau is not None:
+            params["tau"] = float(self.tau)
         n = len(next(iter(tensors.values())))
         verdicts, scores = [], []
         for i in range(0, n, self.batch_size):

@@ -38,7 +38,10 @@ from typing import Any, Protocol
 import numpy as np
 
 from learning.stoprule import CONVERGED, NOISY, StopRule, flat_blocks
+from noisefeat.pooling import DEFAULT_POOLING
 from noisefeat.runtime import torch_threads
+
+from learning.names import DEFAULT_TAU
 
 from .names import CRITERIA
 
@@ -299,12 +302,16 @@ class ModelCriterion(Criterion):
 
     name = "model"
 
-    def __init__(self, model: ScoresBlocks, exposure: float = 0.0, offset: float | None = None) -> None:
+    def __init__(self, model: ScoresBlocks, exposure: float = 0.0, offset: float | None = None,
+                 tau: float | None = None) -> None:
         super().__init__()
         if not hasattr(model, "score_blocks"):
             raise ValueError(f"model must have score_blocks(blocks, quick), got {type(model).__name__}")
         self.model = model
         self.exposure = float(exposure)
+        self.tau = tau
+        if offset is None and tau is not None and hasattr(model, "offset_at"):
+            offset = model.offset_at(tau)       # the model's calibrated offset at the noise target
         self.offset = None if offset is None else float(offset)
         self.needs_halves = bool(getattr(model, "needs_halves", False))
         self.needs_quick = not self.needs_halves and bool(
@@ -324,7 +331,7 @@ class ModelCriterion(Criterion):
 
     def describe(self) -> dict[str, Any]:
         m = self.model
-        d: dict[str, Any] = {"name": self.name, "offset": self.effective_offset}
+        d: dict[str, Any] = {"name": self.name, "offset": self.effective_offset, "tau": self.tau}
         manifest = getattr(m, "manifest", None)
         if isinstance(manifest, Mapping):
             d["model"] = {"kind": manifest.get("kind"), "name": manifest.get("name"),
@@ -418,10 +425,11 @@ class ModelCriterion(Criterion):
 class FlipCriterion(Criterion):
     """Training-free: FLIP between display(A) and display(B), the two half buffers.
 
-    e = mean over the block of the raw LDR-FLIP map between the display images of the
-    even-pass and odd-pass means (`learning.inputs.halves`); the block is converged when e <= c
-    (the stop rule with score -e), or at once when flat. `c` defaults to the calibrated
-    value shipped in `learning/flip.json` (training scenes only). A block whose odd half is
+    e = the raw LDR-FLIP map between the display images of the even-pass and odd-pass
+    means, pooled as the observer pools (the largest 16x16 tile mean,
+    `learning.inputs.halves`); the block is converged when e <= c (the stop rule with score
+    -e), or at once when flat. `c` defaults to c(tau), the curve calibrated on training
+    scenes only and shipped in `learning/flip.json`. A block whose odd half is
     still empty (one pass) has no estimate yet and stays noisy, so the first flip decision
     comes after two passes unless the block is flat. FLIP runs on the active, non-flat
     blocks only; its time is the decision cost (`decisions_s`).
@@ -430,20 +438,22 @@ class FlipCriterion(Criterion):
     name = "flip"
     needs_halves = True
 
-    def __init__(self, c: float | None = None, exposure: float = 0.0) -> None:
+    def __init__(self, c: float | None = None, exposure: float = 0.0, tau: float = DEFAULT_TAU) -> None:
         super().__init__()
-        from learning.inputs.halves import flip_offset, load_flip_calibration
+        from learning.inputs.halves import flip_c, flip_offset, load_flip_calibration
 
+        self.tau = float(tau)
         if c is None:
             cal = load_flip_calibration()
-            self.c, self.source = float(cal["c"]), str(cal.get("source", "learning/flip.json"))
+            self.c, self.source = flip_c(cal, self.tau), str(cal.get("source", "learning/flip.json"))
         else:
             self.c, self.source = float(c), "argument"
         self.rule = StopRule(flip_offset(self.c))
         self.exposure = float(exposure)
 
     def describe(self) -> dict[str, Any]:
-        return {"name": self.name, "threshold": self.c, "source": self.source}
+        return {"name": self.name, "threshold": self.c, "tau": self.tau, "pooling": DEFAULT_POOLING,
+                "source": self.source}
 
     def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
         from learning.inputs.halves import halves_flip
@@ -464,21 +474,23 @@ class FlipCriterion(Criterion):
 def build_criterion(kind: str, *, model: str | None = None, server: str | None = None,
                     token: str | None = None, thresholds: Sequence[int | None] | None = None,
                     threshold: float | None = None, quantile: float = 1.0,
-                    exposure: float = 0.0, offset: float | None = None) -> Criterion:
+                    exposure: float = 0.0, offset: float | None = None,
+                    tau: float = DEFAULT_TAU) -> Criterion:
     """A criterion from command-line style options.
 
     model: bundle path (None: the bundled model); server: verdict server URL (then the
     model name is `default` unless the URL ends with ``#name``); offset: the model's
-    decision offset (None: its calibrated one); threshold: flip's c (None: the shipped
-    calibration) or variance's noise threshold (None: 0.01); thresholds: needed by the
-    oracle (from a labelled stack).
+    decision offset (None: its calibrated one at `tau`); threshold: flip's c (None: c(tau)
+    of the shipped calibration) or variance's noise threshold (None: 0.01); tau: the noise
+    target (the observer's tau the model's offset and flip's c are calibrated for);
+    thresholds: needed by the oracle (from a labelled stack).
     """
     if kind == "uniform":
         return UniformCriterion()
     if kind == "variance":
         return VarianceCriterion(0.01 if threshold is None else threshold, quantile=quantile, exposure=exposure)
     if kind == "flip":
-        return FlipCriterion(threshold, exposure=exposure)
+        return FlipCriterion(threshold, exposure=exposure, tau=tau)
     if kind == "oracle":
         if thresholds is None:
             raise ValueError("the oracle criterion needs true thresholds: give a labelled dataset "
@@ -489,9 +501,9 @@ def build_criterion(kind: str, *, model: str | None = None, server: str | None =
             from .client import RemoteModel
 
             url, _, name = server.partition("#")
-            return ModelCriterion(RemoteModel(url, model=name or "default", token=token), exposure=exposure,
-                                  offset=offset)
+            return ModelCriterion(RemoteModel(url, model=name or "default", token=token, tau=tau),
+                                  exposure=exposure, offset=offset, tau=tau)
         from learning.models.bundle import load_model
 
-        return ModelCriterion(load_model(model), exposure=exposure, offset=offset)
+        return ModelCriterion(load_model(model), exposure=exposure, offset=offset, tau=tau)
     raise ValueError(f"unknown criterion {kind!r}; choose one of {', '.join(CRITERIA)}")

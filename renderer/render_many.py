@@ -13,6 +13,8 @@ from typing import Any
 from tqdm import tqdm
 
 from .adaptive import adaptive_render, scene_label
+from learning.names import DEFAULT_TAU
+
 from .criteria import Criterion, build_criterion
 from .names import DEFAULT_CRITERION
 from .outputs import prepare_output_dir
@@ -70,7 +72,7 @@ def render_command(scenes: str | Sequence[str], out: str | os.PathLike, *, crite
                    model: str | None = None, server: str | None = None, reference: str | None = None,
                    threshold: float | None = None, quantile: float = 1.0, offset: float | None = None,
                    workers: int | None = None, scheduler: str | None = None, exposure: float = 0.0,
-                   **kwargs: Any) -> dict[str, Any]:
+                   tau: float = DEFAULT_TAU, **kwargs: Any) -> dict[str, Any]:
     """What `noisestop render` runs: one scene -> its report; several -> `render_many`'s summary.
 
     `scenes`: a name, an XML path, or a comma-separated list. The model is loaded (or the
@@ -88,10 +90,11 @@ def render_command(scenes: str | Sequence[str], out: str | os.PathLike, *, crite
         logger.warning("--threshold is ignored with --criterion %s", criterion)
     crit: Criterion | str = criterion if criterion == "oracle" else build_criterion(
         criterion, model=model, server=server, threshold=threshold, quantile=quantile,
-        exposure=exposure, offset=offset)
+        exposure=exposure, offset=offset, tau=tau)
     remote = getattr(crit, "model", None)
     if server and criterion == "model" and hasattr(remote, "ready") and not remote.ready():
         raise ConnectionError(f"{server}: the server answers but model {remote.model!r} is not ready")
     if len(names) == 1:
-        return adaptive_render(names[0], out, crit, reference=reference, **kwargs)
-    return render_many(names, out, crit, workers=workers, scheduler=scheduler, reference=reference, **kwargs)
+        return adaptive_render(names[0], out, crit, reference=reference, tau=tau, **kwargs)
+    return render_many(names, out, crit, workers=workers, scheduler=scheduler, reference=reference, tau=tau,
+                       **kwargs)

@@ -47,6 +47,8 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
         # the speed/accuracy knob the stops were made at: the model's decision offset
         # (None for other criteria, and for a server's own offset), flip's or variance's threshold
         "offset": described.get("offset"), "threshold": described.get("threshold"),
+        # the noise target: the observer's tau the knob above was calibrated for (flip: c = c(tau))
+        "tau": settings["tau"],
         "resolution": [br.width, br.height], "grid": list(br.grid), "block": [br.block_h, br.block_w],
         "step": settings["step"], "min_spp": settings["min_spp"], "max_spp": max_spp,
         "seed": settings["seed"], "exposure": settings["exposure"], "quick": settings["quick"],
@@ -95,19 +97,20 @@ def against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settin
             "spp_ratio_vs_oracle": float(spp.sum()) / float(sum(oracle))}
 
 
-def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int, int], ref: Stack,
+def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int, int], tau: float,
                        exposure: float = 0.0, stopped: np.ndarray | None = None) -> dict[str, Any]:
     """What a person would see flipping between final.png and the reference: the virtual
-    observer's per-block FLIP error of the finished image, the blocks still above its
-    threshold (visible noise left), and among them those the criterion stopped (the others
-    ran out of samples at max spp)."""
-    from learning.data.observer import DEFAULT_TAU, VirtualObserver
+    observer's per-block error of the finished image (DESIGN's pooling: the largest 16x16
+    tile mean), the blocks still above the noise target tau (visible noise left), and among
+    them those the criterion stopped (the others ran out of samples at max spp)."""
+    from learning.data.observer import VirtualObserver
 
-    tau = float((ref.labeler or {}).get("tau", DEFAULT_TAU))
     obs = VirtualObserver(tau=tau, exposure=exposure)
     e = obs.errors(reference, image[None], grid)[0]
     visible = e > tau
-    out = {"tau": tau, "errors": [float(x) for x in e], "visible_noise_blocks": int(visible.sum())}
+    out = {"tau": tau, "pooling": obs.pooling, "errors": [float(x) for x in e],
+           "worst_error": float(e.max()), "mean_error": float(e.mean()),
+           "visible_noise_blocks": int(visible.sum())}
     if stopped is not None:
         out["visible_noise_stopped_blocks"] = int((visible & np.asarray(stopped, bool)).sum())
     return out

@@ -27,7 +27,9 @@ from tqdm import tqdm
 from learning.evaluation.generalisation import scene_groups
 from learning.inputs.halves import check_constant_step, recover_passes
 from learning.evaluation.metrics import evaluate_verdicts
+from learning.data.observer import observed, read_observed
 from learning.data.stack import Stack, list_stacks, read_stack
+from learning.names import DEFAULT_TAU
 
 from .criteria import Criterion
 from .passloop import PassLoop
@@ -65,28 +67,31 @@ def simulate_stack(stack: Stack, criterion: Criterion, min_spp: int | None = Non
     return V
 
 
-def _as_stacks(stacks: Stack | str | os.PathLike | Iterable[Stack | str | os.PathLike]) -> list[Stack]:
+def _as_stacks(stacks: Stack | str | os.PathLike | Iterable[Stack | str | os.PathLike],
+               tau: float = DEFAULT_TAU) -> list[Stack]:
+    """Stacks as given (already labelled as the caller wants), or read from directories
+    and labelled by the observer at `tau` (`learning.data.observer.observed`)."""
     if isinstance(stacks, Stack):
         return [stacks]
     if isinstance(stacks, (str, os.PathLike)):
-        return [read_stack(p) for p in list_stacks(stacks)]
+        return read_observed(str(stacks), tau)
     out = []
     for s in stacks:
-        out.extend(_as_stacks(s) if not isinstance(s, Stack) else [s])
+        out.extend(_as_stacks(s, tau) if not isinstance(s, Stack) else [s])
     return out
 
 
 def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str | os.PathLike],
                        criterion_factory: Callable[[Stack], Criterion], min_spp: int | None = None,
-                       progress: bool = False) -> dict[str, Any]:
+                       progress: bool = False, tau: float = DEFAULT_TAU) -> dict[str, Any]:
     """DESIGN metrics of a criterion simulated on labelled stacks, overall and per scene.
 
     `stacks`: a dataset directory, a stack, or a list of either. `criterion_factory(stack)`
     returns a fresh criterion for each stack (the oracle needs that stack's thresholds).
-    The result is `evaluate_verdicts`' dict plus ``criterion`` (its description) and
+    Stacks read from directories are labelled by the observer at `tau`. The result is `evaluate_verdicts`' dict plus ``criterion`` (its description) and
     ``counters`` (summed criterion counters and timers).
     """
-    todo = _as_stacks(stacks)
+    todo = _as_stacks(stacks, tau)
     if not todo:
         raise ValueError(f"no stacks found in {stacks!r}")
     per_scene: dict[str, tuple] = {}
@@ -113,12 +118,13 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
 
 def criterion_factory(kind: str, *, model: str | None = None, server: str | None = None,
                       threshold: float | None = None, offset: float | None = None,
-                      exposure: float = 0.0) -> Callable[[Stack], Criterion]:
+                      exposure: float = 0.0, tau: float = DEFAULT_TAU) -> Callable[[Stack], Criterion]:
     """A fresh criterion per stack for `evaluate_criterion`, from command-line style options.
 
     The model (or server connection) is set up once and shared; the oracle takes each
     stack's own thresholds. `threshold`: flip's c or variance's threshold (None: their
-    defaults); `offset`: the model's decision offset (None: its calibrated one).
+    defaults); `offset`: the model's decision offset (None: its calibrated one at `tau`,
+    the noise target, which also picks flip's c).
     """
     from .criteria import CRITERIA, ModelCriterion, OracleCriterion, build_criterion
 
@@ -131,20 +137,21 @@ def criterion_factory(kind: str, *, model: str | None = None, server: str | None
             return OracleCriterion(st.thresholds)
         return oracle
     if kind == "model":
-        shared = build_criterion("model", model=model, server=server, offset=offset, exposure=exposure)
+        shared = build_criterion("model", model=model, server=server, offset=offset, exposure=exposure, tau=tau)
         assert isinstance(shared, ModelCriterion)
-        return lambda st: ModelCriterion(shared.model, exposure=shared.exposure, offset=shared.offset)
-    return lambda st: build_criterion(kind, threshold=threshold, exposure=exposure)
+        return lambda st: ModelCriterion(shared.model, exposure=shared.exposure, offset=shared.offset, tau=tau)
+    return lambda st: build_criterion(kind, threshold=threshold, exposure=exposure, tau=tau)
 
 
 def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list[str] | None = None, *,
                            min_spp: int | None = None, threshold: float | None = None,
                            offset: float | None = None, model: str | None = None,
-                           server: str | None = None, progress: bool = True) -> dict[str, Any]:
+                           server: str | None = None, progress: bool = True,
+                           tau: float = DEFAULT_TAU) -> dict[str, Any]:
     """What `noisestop evaluate --criterion C` runs for a rule criterion: simulate C on the
-    labelled stacks of `data` (only `scenes` if given) and return the DESIGN metrics,
-    overall and per scene."""
-    stacks = [read_stack(p) for p in list_stacks(data)]
+    stacks of `data` (only `scenes` if given), labelled by the observer at the noise target
+    `tau`, and return the DESIGN metrics, overall and per scene."""
+    stacks = read_observed(str(data), tau)
     if scenes:
         missing = sorted(set(scenes) - {st.scene for st in stacks})
         if missing:
@@ -156,16 +163,19 @@ def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list
         stacks = [st for st in stacks if st.thresholds is not None]
     if not stacks:
         raise ValueError(f"{data}: no labelled stacks to evaluate on")
-    factory = criterion_factory(criterion, model=model, server=server, threshold=threshold, offset=offset)
-    return evaluate_criterion(stacks, factory, min_spp=min_spp, progress=progress)
+    factory = criterion_factory(criterion, model=model, server=server, threshold=threshold, offset=offset,
+                                tau=tau)
+    out = evaluate_criterion(stacks, factory, min_spp=min_spp, progress=progress, tau=tau)
+    return {**out, "tau": float(tau)}
 
 
-def find_reference(reference: Stack | str | os.PathLike, scene: str) -> Stack:
-    """The labelled stack of `scene` in a dataset directory (or that stack itself)."""
+def find_reference(reference: Stack | str | os.PathLike, scene: str, tau: float = DEFAULT_TAU) -> Stack:
+    """The stack of `scene` in a dataset directory (or that stack itself), labelled by the
+    observer at `tau`."""
     if isinstance(reference, Stack):
-        return reference
+        return observed(reference, tau)
     root = Path(reference)
-    stacks = [read_stack(p) for p in list_stacks(root)]
+    stacks = [observed(read_stack(p), tau) for p in list_stacks(root)]
     match = [s for s in stacks if s.scene == scene]
     if len(stacks) == 1 and not match:
         raise ValueError(f"{root}: the stack there is scene {stacks[0].scene!r}, not {scene!r}")

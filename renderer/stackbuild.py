@@ -30,9 +30,11 @@ import numpy as np
 from tqdm import tqdm
 
 from learning.data.exr import read_exr
-from learning.data.observer import VirtualObserver, relabel_if_stale
+from learning.data.observer import (VirtualObserver, block_errors, relabel_if_stale, stack_observer_errors,
+                                    thresholds_from_errors)
 from learning.data.stack import EXTRA_QUICK, REFERENCE, level_name, read_stack
 from learning.data.stack_write import StackWriter, make_plan
+from noisefeat.pooling import POOLINGS
 
 from .blocks import BlockRenderer
 from .scenes import load_scene
@@ -149,7 +151,7 @@ def build_stack(scene: str, out_root: str | os.PathLike, settings: BuildSettings
             writer.write_extra_quick(kind, br.quick_image(spp=settings.quick_spp, seed=settings.seed, kind=kind))
     observer = VirtualObserver(tau=settings.tau, ppd=settings.ppd)
     if writer.is_complete:
-        _, relabelled = relabel_if_stale(read_stack(out), observer)
+        _, relabelled = relabel_if_stale(read_stack(out), observer.pooling)
         log.info("%s: already built%s", out, ", relabelled by the current observer" if relabelled else "")
         return _summary(out, variant, time.perf_counter() - t_start, resumed=True, already_built=True)
 
@@ -180,8 +182,11 @@ def build_stack(scene: str, out_root: str | os.PathLike, settings: BuildSettings
     bar.close()
 
     levels = (read_exr(out / level_name(s)) for s in settings.spp)   # one at a time
-    thresholds = observer.thresholds(read_exr(out / REFERENCE), levels, settings.spp, settings.grid)
+    errors = block_errors(read_exr(out / REFERENCE), levels, settings.grid, observer.ppd, observer.exposure,
+                          POOLINGS)
+    thresholds = thresholds_from_errors(errors[POOLINGS.index(observer.pooling)], settings.spp, observer.tau)
     stack = writer.finish(thresholds, observer.labeler)
+    stack_observer_errors(stack, observer.ppd, observer.exposure, computed=errors)   # cached for relabelling
     shutil.rmtree(build_dir, ignore_errors=True)
     if settings.contact_sheet:
         from .contact import contact_sheet

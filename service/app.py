@@ -275,14 +275,15 @@ async def _read_body(request: Request, align: int = 1, at: int = 0) -> memoryvie
 def _infer_sync(served: ServedModel, body: list[bytearray | memoryview], header_length: int | None,
                 limits: Limits, metrics: ServiceMetrics) -> tuple[bytes, int | None]:
     """Decode, classify, encode: everything CPU-bound about one request, in a worker thread."""
-    req, tensors, exposure, offset, wanted = _decode_sync(body, header_length, limits)
-    arrays, parameters = served.infer(tensors, exposure, offset)
+    req, tensors, exposure, offset, tau, wanted = _decode_sync(body, header_length, limits)
+    arrays, parameters = served.infer(tensors, exposure, offset, tau)
     return _encode(served, req, wanted, arrays, parameters, metrics)
 
 
 def _decode_sync(body: list[bytearray | memoryview], header_length: int | None, limits: Limits
-                 ) -> tuple[InferenceRequest, dict[str, np.ndarray], float, float | None, dict[str, bool]]:
-    """The request, its tensors, exposure, offset and wanted outputs.
+                 ) -> tuple[InferenceRequest, dict[str, np.ndarray], float, float | None, float | None,
+                            dict[str, bool]]:
+    """The request, its tensors, exposure, offset, noise target tau and wanted outputs.
 
     `body` is a one-item list, emptied once the tensors are decoded: a JSON body's text is
     then freed before the model runs; binary tensors are views of the body (no copy), which
@@ -295,6 +296,7 @@ def _decode_sync(body: list[bytearray | memoryview], header_length: int | None, 
     req = parse_request(head)
     exposure = number_param(req.parameters, "exposure", 0.0, *EXPOSURE_RANGE)
     offset = number_param(req.parameters, "offset", None, -OFFSET_LIMIT, OFFSET_LIMIT)
+    tau = number_param(req.parameters, "tau", None, 0.0, 1.0)    # the model's range is checked by infer
     limits.check_shapes(req.inputs)       # what the request declares, before any tensor is built
     wanted = _requested_outputs(req)
     tensors = decode_tensors(req, tail, limits.max_batch, scan_bools=may_hold_bools(head))
@@ -304,7 +306,7 @@ def _decode_sync(body: list[bytearray | memoryview], header_length: int | None, 
     body.clear()
     for t in req.inputs:       # the parsed JSON values (~10x the body): no longer needed
         t.data = None
-    return req, tensors, exposure, offset, wanted
+    return req, tensors, exposure, offset, tau, wanted
 
 
 def _encode(served: ServedModel, req: InferenceRequest, wanted: dict[str, bool], arrays: dict[str, np.ndarray],

@@ -22,6 +22,7 @@ import numpy as np
 
 from learning.models.bundle import BUNDLED_DIR, MANIFEST, Model, load_model
 from learning.models.bundle_check import read_manifest
+from learning.models.noise_target import tau_range
 from learning.stoprule import check_offset
 from noisefeat.base import MIN_SIZE
 
@@ -82,10 +83,24 @@ class ServedModel:
     load_seconds: float
     version: str = "1"
     offset: float | None = None     # `serve --offset`: overrides the model's calibrated offset
+    tau: float | None = None        # `serve --tau`: the noise target (None: the model's own calibration)
 
     @property
     def effective_offset(self) -> float:
-        return self.model.offset if self.offset is None else float(self.offset)
+        return self.model.offset_at(self.tau) if self.offset is None else float(self.offset)
+
+    def offset_for(self, offset: float | None, tau: float | None) -> float:
+        """The offset a request's verdicts are made at: its own `offset`, else the model's
+        calibrated offset at its `tau`, else the server's (`--offset`, else `--tau`'s);
+        a tau the model was not calibrated for is a 400 naming the range."""
+        if offset is not None:
+            return float(offset)
+        if tau is None:
+            return self.effective_offset
+        try:
+            return self.model.offset_at(tau)
+        except ValueError as exc:
+            raise ApiError(400, str(exc)) from None
 
     @property
     def inputs(self) -> list[TensorMetadata]:
@@ -113,8 +128,10 @@ class ServedModel:
 
     def metadata(self, name: str | None = None) -> ModelMetadata:
         m = self.model.manifest
+        lo, hi = tau_range(m)
         params: dict[str, Any] = {"kind": str(m.get("kind")), "input": self.model.input, "quick": self.model.quick,
-                                  "offset": self.effective_offset, "calibrated_offset": self.model.offset}
+                                  "offset": self.effective_offset, "calibrated_offset": self.model.offset,
+                                  "tau": self.tau, "tau_range": [lo, hi]}
         if self.model.input == "image":    # what its base transfers, and the one block size it reads
             params.update(base=self.model.label, block=list(self.model.block_shape or ()))
         else:
@@ -125,16 +142,19 @@ class ServedModel:
             outputs=[TensorMetadata(name=k, datatype=v, shape=[-1]) for k, v in OUTPUTS.items()],
             parameters=params)
 
-    def infer(self, tensors: dict[str, np.ndarray], exposure: float = 0.0, offset: float | None = None
-              ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    def infer(self, tensors: dict[str, np.ndarray], exposure: float = 0.0, offset: float | None = None,
+              tau: float | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """({verdict int8 [N], score float32 [N]}, response parameters); bad input -> 400.
 
-        Verdicts come from the one stop rule at `offset` (the request's), else the server's
-        `--offset`, else the model's calibrated one; blocks whose display image is flat are
-        converged whatever their score (rows of `features` carry no image: no flat test)."""
+        Verdicts come from the one stop rule at `offset_for(offset, tau)` (the request's
+        offset, else the model's at the request's noise target tau, else the server's);
+        blocks whose display image is flat are converged whatever their score (rows of
+        `features` carry no image: no flat test)."""
         self._check_names(tensors)
-        offset = self.effective_offset if offset is None else float(offset)
+        offset = self.offset_for(offset, tau)
         params: dict[str, Any] = {"offset": offset}
+        if tau is not None or self.tau is not None:
+            params["tau"] = float(tau if tau is not None else self.tau)  # type: ignore[arg-type]
         try:
             if "features" in tensors:
                 verdict, score = self.model.score_inputs(self._features(tensors), offset)
@@ -218,6 +238,7 @@ class ModelRegistry:
     specs: dict[str, str | None]
     models: dict[str, ServedModel] = field(default_factory=dict)
     offset: float | None = None     # `serve --offset`, for every model served
+    tau: float | None = None        # `serve --tau`, for every model served
 
     def __post_init__(self) -> None:
         if self.offset is not None:
@@ -245,7 +266,13 @@ class ModelRegistry:
             t0 = time.perf_counter()
             model = load_model(path)
             served = ServedModel(name, model, time.perf_counter() - t0,
-                                 version=str(model.manifest.get("model_version", "1")), offset=self.offset)
+                                 version=str(model.manifest.get("model_version", "1")), offset=self.offset,
+                                 tau=self.tau)
+            if self.offset is None and self.tau is not None:
+                try:
+                    model.offset_at(self.tau)
+                except ValueError as exc:
+                    raise ValueError(f"model {name} ({path or 'the bundled model'}): {exc}") from None
             try:
                 _warm_up(served)
             except Exception as exc:   # whatever the model raises, serve stops here with one line

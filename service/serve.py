@@ -53,9 +53,11 @@ def build(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", 
           inference_threads: int = 2, offset: float | None = None,
           max_block_side: int | None = None, max_pixels: int | None = None,
           limit_concurrency: int | None = DEFAULT_LIMIT_CONCURRENCY,
-          body_timeout: float | None = DEFAULT_BODY_TIMEOUT, memory_budget: int | None = None):
+          body_timeout: float | None = DEFAULT_BODY_TIMEOUT, memory_budget: int | None = None,
+          tau: float | None = None):
     """The app `run` serves, with models loaded and settings checked (tests use it too).
-    `offset` overrides every model's calibrated decision offset (`serve --offset`)."""
+    `offset` overrides every model's calibrated decision offset (`serve --offset`); `tau`
+    picks each model's offset at that noise target (`serve --tau`)."""
     secret = resolve_token(token, token_file)
     check_bind(host, secret)
     if secret is None:
@@ -69,7 +71,7 @@ def build(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", 
                                           or limit_concurrency < 1):
         raise ValueError(f"limit_concurrency must be a whole number >= 1, got {limit_concurrency!r}")
     _check_seconds("body_timeout", body_timeout)
-    registry = ModelRegistry(dict(models or {}), offset=offset)
+    registry = ModelRegistry(dict(models or {}), offset=offset, tau=tau)
     registry.load()
     return create_app(registry, token=secret, limits=limits, inference_threads=inference_threads,
                       limit_concurrency=limit_concurrency, body_timeout=body_timeout)
@@ -84,13 +86,16 @@ def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", po
         limit_concurrency: int | None = DEFAULT_LIMIT_CONCURRENCY,
         max_connections: int = DEFAULT_MAX_CONNECTIONS, header_timeout: float = DEFAULT_HEADER_TIMEOUT,
         body_timeout: float | None = DEFAULT_BODY_TIMEOUT, keep_alive: int = DEFAULT_KEEP_ALIVE,
-        memory_budget: int | None = None, torch_threads: int = DEFAULT_TORCH_THREADS) -> None:
+        memory_budget: int | None = None, torch_threads: int = DEFAULT_TORCH_THREADS,
+        tau: float | None = None) -> None:
     """Serve `models` ({name: bundle path or None for the bundled model}; empty: the bundled
     model) until SIGTERM/SIGINT. The token defaults to NOISESTOP_TOKEN / NOISESTOP_TOKEN_FILE;
     limits default to NOISESTOP_MAX_BODY_BYTES / NOISESTOP_MAX_BATCH / NOISESTOP_MAX_BLOCK_SIDE /
     NOISESTOP_MAX_PIXELS. Logs go to the root logger (uvicorn's own logging setup is off);
     `log_level` overrides uvicorn's level only. Connection settings: module doc.
-    `torch_threads`: torch's intra-op threads for each of the `inference_threads`."""
+    `torch_threads`: torch's intra-op threads for each of the `inference_threads`. `tau`:
+    the noise target verdicts are made at unless a request sends its own (None: each
+    model's calibrated offset)."""
     if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
         raise ValueError(f"port must be 0..65535, got {port!r}")
     _check_seconds("graceful_timeout", graceful_timeout)
@@ -104,7 +109,7 @@ def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", po
     torch.set_num_threads(torch_threads)     # before any inference thread starts: they inherit it
     protocol = guarded_protocol(header_timeout)
     app = build(models, host, token=token, token_file=token_file, max_body_bytes=max_body_bytes,
-                max_batch=max_batch, inference_threads=inference_threads, offset=offset,
+                max_batch=max_batch, inference_threads=inference_threads, offset=offset, tau=tau,
                 max_block_side=max_block_side, max_pixels=max_pixels, limit_concurrency=limit_concurrency,
                 body_timeout=body_timeout, memory_budget=memory_budget)
     limits = app.state.limits

@@ -11,7 +11,7 @@ import pytest
 from learning import make_synthetic_stack
 from learning.data.exr import read_exr, write_exr
 from learning.data.stack import read_stack
-from learning.inputs.table import CACHE_DIR, _atomic_savez, cached_array
+from learning.data.cache import CACHE_DIR, _atomic_savez, cached_array
 
 
 @pytest.fixture()

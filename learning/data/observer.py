@@ -1,15 +1,18 @@
 """The virtual observer (DESIGN "Virtual observer"): FLIP-based labels for a stack.
 
-1. e[k, b] = mean over block b of the raw FLIP map (LDR, 67 ppd) between
-   display(reference) and display(level k), the map computed on the whole frame.
-   Optionally (`edge_margin` m > 0, off by default) pixels closer than m to the frame's
-   edge are left out, where FLIP pads the frame (its widest filter reaches 10 px at
-   67 ppd). Measured on the training and held-out datasets (README "Virtual observer"),
-   m = 10 made the flip criterion's c calibrated on 64x64 training frames transfer worse
-   to 256x256 held-out frames, so DESIGN's whole-frame mean stays the default.
-2. Level k of block b is converged iff e[j, b] <= tau for every j >= k (tau = 0.02).
-3. T_b = spp of the first converged level, or None.
-(Rule 4, the labels, lives in `Stack.labels`.)
+1. E_k = the raw FLIP map (LDR, 67 ppd) between display(reference) and display(level k),
+   computed on the whole frame.
+2. e[k, b] = E_k pooled over block b: the largest of its 16x16 tile means ("tile16-max",
+   `noisefeat.pooling`), so noise confined to part of a block is not averaged away by the
+   clean rest. The first observer's block mean ("mean") stays selectable for comparison.
+3. Level k of block b is converged iff e[j, b] <= tau for every j >= k (tau = 0.02).
+4. T_b = spp of the first converged level, or None.
+(Rule 5, the labels, lives in `Stack.labels`.)
+
+A stack's labeler record names its pooling; one without "pooling" was labelled by the
+first observer (the mean). Labels of another observer are never read as this one's:
+`observed` relabels in memory (from the per-level errors, cached next to the stack, so a
+new tau costs no FLIP), `relabel_if_stale` rewrites meta.json; neither re-renders.
 
 FLIP (`flip_evaluator`) ends the process with sys.exit on bad arguments and raises a bare
 RuntimeError on others, so inputs are validated here first and both are turned into
@@ -18,6 +21,7 @@ ValueError.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import logging
 import math
@@ -31,17 +35,15 @@ import torch
 from noisefeat.display import display as _display
 from noisefeat.display import srgb_decode as _srgb_decode
 from noisefeat.flip import check_ppd
+from noisefeat.pooling import DEFAULT_POOLING, MEAN, POOLINGS, check_pooling, pool_blocks
 
-from .stack import Stack, block_shape, update_labels
+from ..names import DEFAULT_TAU
+from .cache import cached_array
+from .stack import Stack, block_shape, list_stacks, read_stack, update_labels
 
 log = logging.getLogger(__name__)
 
-DEFAULT_TAU = 0.02
 DEFAULT_PPD = 67.0
-# FLIP's widest filter at 67 ppd: the chromatic CSF reaches ceil(3 sqrt(0.04 / (2 pi^2)) 67)
-# = 10 px, the edge/point detector ceil(3 * 0.5 * 0.082 * 67) = 9 px; 10 is the margin that
-# was measured. 0 (DESIGN's definition) is the default.
-DEFAULT_EDGE_MARGIN = 0
 
 
 # ----------------------------------------------------------------------------- display
@@ -97,37 +99,11 @@ def flip_map(ref_srgb: np.ndarray, test_srgb: np.ndarray, ppd: float = DEFAULT_P
     return emap.reshape(emap.shape[0], emap.shape[1])
 
 
-def _check_margin(edge_margin: int) -> int:
-    if isinstance(edge_margin, bool) or not isinstance(edge_margin, (int, np.integer)) \
-            or edge_margin < 0:
-        raise ValueError(f"edge_margin must be a non-negative integer, got {edge_margin!r}")
-    return int(edge_margin)
-
-
-def block_means(values: np.ndarray, grid: Sequence[int] = (4, 4), edge_margin: int = 0) -> np.ndarray:
-    """[H, W] map -> [gh*gw] per-block means (float64), row-major.
-
-    With `edge_margin` m > 0 a block's mean leaves out pixels closer than m to the frame's
-    edge; a block with no pixel left keeps all of its pixels.
-    """
-    v = np.asarray(values, np.float64)
-    bh, bw = block_shape(v.shape[0], v.shape[1], grid)
-    gh, gw = int(grid[0]), int(grid[1])
-    plain = v.reshape(gh, bh, gw, bw).mean(axis=(1, 3)).reshape(gh * gw)
-    m = _check_margin(edge_margin)
-    if m == 0:
-        return plain
-    inside = np.zeros(v.shape, np.float64)
-    inside[m:v.shape[0] - m, m:v.shape[1] - m] = 1.0
-    count = inside.reshape(gh, bh, gw, bw).sum(axis=(1, 3)).reshape(gh * gw)
-    total = (v * inside).reshape(gh, bh, gw, bw).sum(axis=(1, 3)).reshape(gh * gw)
-    return np.where(count > 0, total / np.maximum(count, 1.0), plain)
-
-
 def block_errors(reference_rgb: np.ndarray, levels_rgb: np.ndarray | Iterable[np.ndarray],
-                 grid: Sequence[int] = (4, 4), ppd: float = DEFAULT_PPD,
-                 exposure: float = 0.0, edge_margin: int = DEFAULT_EDGE_MARGIN) -> np.ndarray:
-    """e [K, n_blocks] (rule 1): per-block mean FLIP between display(reference) and levels.
+                 grid: Sequence[int] = (4, 4), ppd: float = DEFAULT_PPD, exposure: float = 0.0,
+                 poolings: Sequence[str] = (DEFAULT_POOLING,)) -> np.ndarray:
+    """e [P, K, n_blocks] (rules 1-2): FLIP between display(reference) and each level, pooled
+    per block in each of `poolings` (one FLIP map serves them all).
 
     `levels_rgb` is [K, H, W, 3] or any iterable of [H, W, 3] linear images (a generator
     keeps memory to one level).
@@ -136,17 +112,19 @@ def block_errors(reference_rgb: np.ndarray, levels_rgb: np.ndarray | Iterable[np
     if ref.ndim != 3 or ref.shape[2] != 3:
         raise ValueError(f"reference must be linear RGB [H, W, 3], got shape {ref.shape}")
     block_shape(ref.shape[0], ref.shape[1], grid)
-    _check_margin(edge_margin)
+    pools = [check_pooling(p) for p in poolings]
+    g = (int(grid[0]), int(grid[1]))
     ref_d = display(ref, exposure)
     rows = []
     for k, lev in enumerate(levels_rgb):
         lev = np.asarray(lev)
         if lev.shape != ref.shape:
             raise ValueError(f"level {k} has shape {lev.shape}, the reference {ref.shape}")
-        rows.append(block_means(flip_map(ref_d, display(lev, exposure), ppd), grid, edge_margin))
+        emap = flip_map(ref_d, display(lev, exposure), ppd)
+        rows.append([pool_blocks(emap, g, p) for p in pools])
     if not rows:
         raise ValueError("no levels given")
-    return np.stack(rows)
+    return np.asarray(rows, np.float64).transpose(1, 0, 2)
 
 
 def thresholds_from_errors(e: np.ndarray, spp: Sequence[int],
@@ -171,64 +149,135 @@ def thresholds_from_errors(e: np.ndarray, spp: Sequence[int],
 
 @dataclass(frozen=True)
 class VirtualObserver:
-    """The default expert: FLIP per block against the reference, threshold at tau."""
+    """The default expert: FLIP against the reference, pooled per block, threshold at tau."""
 
     tau: float = DEFAULT_TAU
     ppd: float = DEFAULT_PPD
     exposure: float = 0.0
-    edge_margin: int = DEFAULT_EDGE_MARGIN
+    pooling: str = DEFAULT_POOLING
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.tau) and self.tau >= 0):
-            raise ValueError(f"tau must be a non-negative number, got {self.tau!r}")
+        check_tau(self.tau)
         check_ppd(self.ppd)
-        _check_margin(self.edge_margin)
+        check_pooling(self.pooling)
+        if not math.isfinite(self.exposure):
+            raise ValueError(f"exposure must be a finite number, got {self.exposure!r}")
 
     @property
     def labeler(self) -> dict:
         """The meta.json `labeler` entry describing this observer."""
-        lab = {"name": "flip", "tau": self.tau, "ppd": self.ppd, "display": "clip+srgb",
-               "exposure": self.exposure}
-        return {**lab, "edge_margin": self.edge_margin} if self.edge_margin else lab
+        return {"name": "flip", "tau": self.tau, "ppd": self.ppd, "display": "clip+srgb",
+                "exposure": self.exposure, "pooling": self.pooling}
 
     def errors(self, reference: np.ndarray, levels: np.ndarray | Iterable[np.ndarray],
                grid: Sequence[int] = (4, 4)) -> np.ndarray:
-        return block_errors(reference, levels, grid, self.ppd, self.exposure, self.edge_margin)
+        """e [K, n_blocks] of this observer's pooling."""
+        return block_errors(reference, levels, grid, self.ppd, self.exposure, (self.pooling,))[0]
 
     def thresholds(self, reference: np.ndarray, levels: np.ndarray | Iterable[np.ndarray],
                    spp: Sequence[int], grid: Sequence[int] = (4, 4)) -> list[int | None]:
         return thresholds_from_errors(self.errors(reference, levels, grid), spp, self.tau)
 
+    def stack_errors(self, stack: Stack) -> np.ndarray:
+        """e [K, n_blocks] of a stack (cached next to it for every pooling at once)."""
+        return stack_observer_errors(stack, self.ppd, self.exposure)[POOLINGS.index(self.pooling)]
+
     def label_stack(self, stack: Stack) -> list[int | None]:
-        return self.thresholds(stack.reference(), stack.iter_levels(), stack.spp, stack.grid)
+        return thresholds_from_errors(self.stack_errors(stack), stack.spp, self.tau)
+
+
+def check_tau(tau: object) -> float:
+    """tau as a positive finite float, else ValueError (a noise target of 0 is never met)."""
+    try:
+        t = float(tau)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"tau must be a number, got {tau!r}") from None
+    if not (math.isfinite(t) and t > 0):
+        raise ValueError(f"tau must be a positive finite number, got {tau!r}")
+    return t
+
+
+def stack_observer_errors(stack: Stack, ppd: float = DEFAULT_PPD, exposure: float = 0.0,
+                          computed: np.ndarray | None = None) -> np.ndarray:
+    """e float64 [len(POOLINGS), K, n_blocks]: the observer's errors of a stack for every
+    pooling, from one FLIP map per level; cached next to the stack, so relabelling at
+    another tau or pooling costs no FLIP. `computed`: the errors a build just computed
+    (`block_errors` with `POOLINGS`), stored instead of computed again."""
+    shape = (len(POOLINGS), stack.n_levels, stack.n_blocks)
+
+    def compute() -> np.ndarray:
+        if computed is not None:
+            return np.asarray(computed, np.float64)
+        return block_errors(stack.reference(), stack.iter_levels(), stack.grid, ppd, exposure, POOLINGS)
+    return cached_array(stack, f"observer-e{exposure:g}-ppd{ppd:g}", shape, compute)
 
 
 def label_stack(stack: Stack, tau: float = DEFAULT_TAU, ppd: float = DEFAULT_PPD,
-                exposure: float = 0.0) -> list[int | None]:
-    """Thresholds of a stack by the virtual observer (levels read one at a time)."""
-    return VirtualObserver(tau, ppd, exposure).label_stack(stack)
+                exposure: float = 0.0, pooling: str = DEFAULT_POOLING) -> list[int | None]:
+    """Thresholds of a stack by the virtual observer."""
+    return VirtualObserver(tau, ppd, exposure, pooling).label_stack(stack)
+
+
+def labeler_pooling(labeler: Mapping) -> str:
+    """The pooling a labeler record names; none named is the first observer's block mean."""
+    return check_pooling(labeler.get("pooling", MEAN))
+
+
+def is_virtual(labeler: Mapping | None) -> bool:
+    """Whether labels came from the virtual observer (else they are data: human, LISIC, ...)."""
+    return isinstance(labeler, Mapping) and labeler.get("name") == "flip"
 
 
 def labeler_matches(labeler: Mapping | None, observer: VirtualObserver) -> bool:
     """Whether stored labels came from this observer (so relabelling can be skipped)."""
-    return isinstance(labeler, Mapping) and all(
-        labeler.get(k) == v for k, v in observer.labeler.items()) \
-        and int(labeler.get("edge_margin", 0)) == observer.edge_margin
+    if not is_virtual(labeler):
+        return False
+    want = observer.labeler
+    return labeler_pooling(labeler) == observer.pooling and all(  # type: ignore[arg-type]
+        labeler.get(k) == want[k] for k in ("tau", "ppd", "exposure"))  # type: ignore[union-attr]
 
 
-def relabel_if_stale(stack: Stack, observer: VirtualObserver) -> tuple[Stack, bool]:
-    """Relabel a complete stack whose virtual-observer labels came from another observer.
+def observer_for(stack: Stack, tau: float | None = None, pooling: str = DEFAULT_POOLING) -> VirtualObserver:
+    """The observer that labels `stack` at `tau` (None: the stack's own) and `pooling`, at
+    the stack's own ppd and exposure."""
+    lab = stack.labeler if isinstance(stack.labeler, Mapping) else {}
+    return VirtualObserver(tau=float(lab.get("tau", DEFAULT_TAU)) if tau is None else check_tau(tau),
+                           ppd=float(lab.get("ppd", DEFAULT_PPD)),
+                           exposure=float(lab.get("exposure", 0.0)), pooling=pooling)
+
+
+def observed(stack: Stack, tau: float | None = DEFAULT_TAU, pooling: str = DEFAULT_POOLING) -> Stack:
+    """The stack with the labels of the observer at `tau` (None: the stack's own tau) and
+    `pooling`, in memory (meta.json untouched).
+
+    Virtual-observer labels of another tau or pooling (a stack of the first observer
+    included) are recomputed from the cached per-level errors; labels of any other labeler
+    (human, LISIC, synthetic) and unlabelled stacks are returned as they are.
+    """
+    if not is_virtual(stack.labeler) or stack.thresholds is None:
+        return stack
+    obs = observer_for(stack, tau, pooling)
+    if labeler_matches(stack.labeler, obs):
+        return stack
+    return dataclasses.replace(stack, thresholds=obs.label_stack(stack), labeler=obs.labeler)
+
+
+def read_observed(root: str, tau: float | None = DEFAULT_TAU, pooling: str = DEFAULT_POOLING) -> list[Stack]:
+    """Every stack under `root`, labelled by the observer at `tau` and `pooling` (`observed`)."""
+    return [observed(read_stack(p), tau, pooling) for p in list_stacks(root)]
+
+
+def relabel_if_stale(stack: Stack, pooling: str = DEFAULT_POOLING,
+                     tau: float | None = None) -> tuple[Stack, bool]:
+    """Rewrite a complete stack's virtual-observer labels in meta.json when they came from
+    another observer (another pooling, or `tau` when given; None keeps the stack's own).
 
     Labels of any other labeler (human, LISIC, synthetic) are the data itself and are
     never touched. Returns the stack as it now is and whether it was relabelled.
     """
-    lab = stack.labeler
-    if not (isinstance(lab, Mapping) and lab.get("name") == "flip"):
+    if not is_virtual(stack.labeler):
         return stack, False
-    # the stack's own tau, ppd and exposure; the current observer's way of averaging
-    obs = VirtualObserver(tau=float(lab.get("tau", observer.tau)), ppd=float(lab.get("ppd", observer.ppd)),
-                          exposure=float(lab.get("exposure", observer.exposure)),
-                          edge_margin=observer.edge_margin)
-    if labeler_matches(lab, obs):
+    obs = observer_for(stack, tau, pooling)
+    if labeler_matches(stack.labeler, obs):
         return stack, False
     return update_labels(stack, obs.label_stack(stack), obs.labeler), True

@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from noisefeat import split_blocks
+from noisefeat.pooling import MEAN, POOLINGS
 
 from .exr import atomic_write_bytes, read_exr
 
@@ -156,8 +157,12 @@ def validate_meta(meta: Any) -> list[str]:
     for key in ("quick", "renderer"):
         if key in meta and not isinstance(meta[key], str):
             errs.append(f"{key} must be a string, got {meta[key]!r}")
-    if meta.get("labeler") is not None and not isinstance(meta["labeler"], Mapping):
-        errs.append(f"labeler must be an object or null, got {meta['labeler']!r}")
+    lab = meta.get("labeler")
+    if lab is not None and not isinstance(lab, Mapping):
+        errs.append(f"labeler must be an object or null, got {lab!r}")
+    elif isinstance(lab, Mapping) and lab.get("pooling", MEAN) not in POOLINGS:
+        errs.append(f"labeler pooling {lab.get('pooling')!r} is unknown (known: {', '.join(POOLINGS)}); "
+                    "its labels cannot be read as any observer's")
     th = meta.get("thresholds")
     if th is not None:
         if not isinstance(th, list):

@@ -18,6 +18,9 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from noisefeat.pooling import DEFAULT_POOLING
+
+from ..data.observer import DEFAULT_TAU, observed
 from ..data.stack import Stack
 from ..inputs.halves import flip_offset, stack_flip_errors
 from ..inputs.table import SubImageTable, stack_flat
@@ -29,6 +32,13 @@ from .metrics import evaluate_verdicts, metrics_from_counts, pool_counts
 log = logging.getLogger(__name__)
 
 DEFAULT_OFFSETS = tuple(np.round(np.arange(-1.0, 6.01, 0.1), 2))
+#: the noise targets flip's c(tau) and a model's offsets are calibrated at (DESIGN: at least
+#: [0.01, 0.05])
+CURVE_TAUS = (0.01, 0.0125, 0.015, 0.0175, 0.02, 0.025, 0.03, 0.035, 0.04, 0.045, 0.05)
+
+
+def _record(chosen: dict) -> dict:
+    return {k: v for k, v in chosen.items() if k not in ("per_scene", "groups")}
 
 
 #: scenes are scored in at most this many folds: leave-one-scene-out up to that many
@@ -131,26 +141,43 @@ def choose_offset(curve: list[dict], max_early_stop: float = 0.05) -> dict:
 
 def calibrate_offset(fit: Callable[[SubImageTable], Any], table: SubImageTable, scenes: Sequence[str],
                      max_early_stop: float, offsets: Callable[[np.ndarray], Sequence[float]] | None = None,
-                     progress: bool = True) -> tuple[float, dict[str, Any]]:
+                     progress: bool = True, taus: Sequence[float] = CURVE_TAUS) -> tuple[float, dict[str, Any]]:
     """A model's offset from out-of-fold scores of the training `scenes` (`fit` trains on a
     sub-table), and the calibration record a bundle keeps; `offsets(scores)` gives the
-    offsets tried (default `DEFAULT_OFFSETS`)."""
+    offsets tried (default `DEFAULT_OFFSETS`).
+
+    The same out-of-fold scores, judged against the observer's labels at each noise target
+    in `taus`, give the record's `offsets_by_tau` (`learning.models.noise_target`): a
+    stricter target never gets a smaller offset (running maximum from the largest tau
+    down, as for flip's c(tau))."""
     t0 = time.perf_counter()
     scores = out_of_fold_scores(fit, table, list(scenes), progress=progress)
-    curve = sweep(scores, table, DEFAULT_OFFSETS if offsets is None else offsets(scores))
+    tried = DEFAULT_OFFSETS if offsets is None else offsets(scores)
+    curve = sweep(scores, table, tried)
     chosen = choose_offset(curve, max_early_stop)
+    by_tau = []
+    for tau in sorted(taus, reverse=True):
+        pick = choose_offset(sweep(scores, table.relabelled(tau), tried), max_early_stop)
+        safest = max([pick["offset"], *(r["offset"] for r in by_tau)])
+        by_tau.append({"tau": float(tau), "offset": float(safest), "offset_raw": float(pick["offset"]),
+                       "early_stop_rate": pick["early_stop_rate"],
+                       "spp_ratio_vs_oracle": pick["spp_ratio_vs_oracle"]})
     return float(chosen["offset"]), {
         "target_early_stop_rate": max_early_stop, "route": "stop rule",
-        "chosen": {k: v for k, v in chosen.items() if k not in ("per_scene", "groups")},
+        "chosen": _record(chosen),
         "per_scene": {sc: {k: v for k, v in m.items() if k != "counts"} for sc, m in chosen["per_scene"].items()},
-        "curve": [{k: v for k, v in r.items() if k not in ("per_scene", "groups")} for r in curve],
+        "curve": [_record(r) for r in curve],
+        "offsets_by_tau": sorted(by_tau, key=lambda r: r["tau"]),
         "seconds": time.perf_counter() - t0}
 
-FLIP_CANDIDATES = tuple(round(float(c), 4) for c in np.arange(0.005, 0.08001, 0.0005))
+#: c tried: a geometric grid (1.5 % apart: about 4 % in samples, since a block's half-buffer
+#: FLIP falls about as spp^-0.36) wide enough for tile pooling at any tau of the curve
+FLIP_CANDIDATES = tuple(float(f"{c:.5g}") for c in np.geomspace(0.004, 0.4, 311))
 
 
 def flip_sweep(stacks: Sequence[Stack], candidates: Sequence[float] = FLIP_CANDIDATES, *,
-               min_spp: int | None = None, progress: bool = False) -> list[dict[str, Any]]:
+               min_spp: int | None = None, progress: bool = False,
+               pooling: str = DEFAULT_POOLING) -> list[dict[str, Any]]:
     """Metrics of the flip criterion at each c (overall, per scene, per group), through the
     one stop rule (min spp, held stops, flat blocks at once), on labelled `stacks`."""
     if not stacks:
@@ -158,7 +185,7 @@ def flip_sweep(stacks: Sequence[Stack], candidates: Sequence[float] = FLIP_CANDI
     unlabelled = [str(s.path) for s in stacks if s.thresholds is None]
     if unlabelled:
         raise ValueError(f"stacks without thresholds cannot be scored: {', '.join(unlabelled[:3])}")
-    errors = {s.scene: stack_flip_errors(s, progress=progress) for s in stacks}
+    errors = {s.scene: stack_flip_errors(s, progress=progress, pooling=pooling) for s in stacks}
     flats = {s.scene: stack_flat(s) for s in stacks}
     groups = scene_groups(stacks)
     curve = []
@@ -171,14 +198,42 @@ def flip_sweep(stacks: Sequence[Stack], candidates: Sequence[float] = FLIP_CANDI
 
 
 def calibrate_flip(stacks: Sequence[Stack], max_early_stop: float = 0.05, *, min_spp: int | None = None,
-                   candidates: Sequence[float] = FLIP_CANDIDATES, progress: bool = True) -> dict[str, Any]:
-    """c for the `flip` criterion on `stacks` (training scenes, never the held-out ones):
-    the largest c (fewest samples) whose early-stop rate stays within `max_early_stop` on
-    scenes it was not chosen on (`learning.evaluation.calibrate.choose_out_of_fold`)."""
-    curve = flip_sweep(stacks, candidates, min_spp=min_spp, progress=progress)
+                   candidates: Sequence[float] = FLIP_CANDIDATES, progress: bool = True,
+                   pooling: str = DEFAULT_POOLING) -> dict[str, Any]:
+    """c for the `flip` criterion on labelled `stacks` (training scenes, never the held-out
+    ones): the largest c (fewest samples) whose early-stop rate stays within
+    `max_early_stop` on scenes it was not chosen on (`choose_out_of_fold`)."""
+    curve = flip_sweep(stacks, candidates, min_spp=min_spp, progress=progress, pooling=pooling)
     chosen = choose_out_of_fold(curve, max_early_stop, larger_is_safer=False)
-    return {"c": chosen["threshold"], "target_early_stop_rate": max_early_stop,
-            "chosen": {k: v for k, v in chosen.items() if k not in ("per_scene", "groups")},
+    return {"c": chosen["threshold"], "target_early_stop_rate": max_early_stop, "chosen": _record(chosen),
             "per_scene": {s: {k: v for k, v in m.items() if k != "counts"} for s, m in chosen["per_scene"].items()},
-            "curve": [{k: v for k, v in r.items() if k not in ("per_scene", "groups")} for r in curve],
+            "curve": [_record(r) for r in curve],
+            "scenes": sorted(s.scene for s in stacks), "min_spp": min_spp}
+
+
+def calibrate_flip_curve(stacks: Sequence[Stack], max_early_stop: float = 0.05, *,
+                         taus: Sequence[float] = CURVE_TAUS, min_spp: int | None = None,
+                         candidates: Sequence[float] = FLIP_CANDIDATES, progress: bool = True,
+                         pooling: str = DEFAULT_POOLING) -> dict[str, Any]:
+    """The curve c(tau) for the `flip` criterion: at each noise target tau, the stacks are
+    labelled by the observer at that tau (`observed`: relabelled from cached errors, never
+    re-rendered) and c is chosen out of fold for `max_early_stop` (`calibrate_flip`).
+
+    A stricter target never gets a larger c: a c that is safe against the labels of a tau
+    is safe against those of any larger tau (every threshold can only come earlier), so
+    where the chosen c's dip with tau the curve keeps the running maximum, which meets the
+    target at both. `c_raw` records what was chosen before that."""
+    points, raw = [], []
+    for tau in tqdm(sorted(taus), desc="c(tau)", disable=not progress, leave=False):
+        labelled = [observed(s, tau, pooling) for s in stacks]
+        cal = calibrate_flip(labelled, max_early_stop, min_spp=min_spp, candidates=candidates,
+                             progress=False, pooling=pooling)
+        raw.append(cal["c"])
+        points.append({"tau": float(tau), "c": max(raw), "c_raw": cal["c"], "chosen": cal["chosen"],
+                       "internal_target": cal["chosen"].get("internal_target"),
+                       "per_scene": cal["per_scene"] if abs(tau - DEFAULT_TAU) < 1e-12 else None})
+    at_default = [p for p in points if abs(p["tau"] - DEFAULT_TAU) < 1e-12]
+    return {"format": "noisestop-flip-curve", "pooling": pooling, "target_early_stop_rate": max_early_stop,
+            "curve": [{k: v for k, v in p.items() if v is not None} for p in points],
+            "c": at_default[0]["c"] if at_default else None,
             "scenes": sorted(s.scene for s in stacks), "min_spp": min_spp}

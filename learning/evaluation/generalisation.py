@@ -21,6 +21,7 @@ from collections.abc import Iterable, Sequence
 from typing import Any
 
 from ..data.stack import Stack
+from ..names import DEFAULT_TAU
 
 CONVERGING_SHARE = 0.5
 CONVERGING = "converging"
@@ -56,20 +57,20 @@ def check_disjoint(train_scenes: Sequence[str], heldout_scenes: Sequence[str]) -
                          "a held-out scene must take no part in training or calibration")
 
 
-def split_stacks(data: str, heldout: str | None = None) -> tuple[list[Stack], list[Stack]]:
-    """(training stacks, held-out stacks) of the protocol.
+def split_stacks(data: str, heldout: str | None = None, tau: float = DEFAULT_TAU) -> tuple[list[Stack], list[Stack]]:
+    """(training stacks, held-out stacks) of the protocol, labelled by the observer at `tau`.
 
     With `heldout` (a dataset of scenes no one trains on), every scene of `data` is a
     training scene. Without it, the older in-dataset split (every 4th scene by name held
     out) is used, with a warning: such scenes are alike and often never converge.
     """
-    from ..data.stack import list_stacks, read_stack
+    from ..data.observer import read_observed
 
-    stacks = [read_stack(p) for p in list_stacks(data)]
+    stacks = read_observed(data, tau)
     if not stacks:
         raise ValueError(f"{data}: no stacks found")
     if heldout is not None:
-        test = [read_stack(p) for p in list_stacks(heldout)]
+        test = read_observed(heldout, tau)
         if not test:
             raise ValueError(f"{heldout}: no stacks found (make heldout builds the held-out dataset)")
         check_disjoint([s.scene for s in stacks], [s.scene for s in test])
@@ -86,6 +87,6 @@ def split_tables(data: str, heldout: str | None = None, **load: Any) -> tuple[An
     (learning.inputs.table.load_table's options)."""
     from ..inputs.table import load_table
 
-    train, test = split_stacks(data, heldout)
+    train, test = split_stacks(data, heldout, load.get("tau", DEFAULT_TAU))
     return (load_table(data, progress=False, scenes=[s.scene for s in train], **load),
             load_table(heldout or data, progress=False, scenes=[s.scene for s in test], **load))

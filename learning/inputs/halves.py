@@ -4,11 +4,12 @@ A progressive render can keep two half buffers per pixel, as Cycles does: A, the
 the even-numbered passes, and B, the mean of the odd-numbered ones. They are two
 independent estimates of the same image, so display(A) against display(B) differs only
 by noise: no scene content is left in the comparison. The `flip` criterion measures that
-difference the way DESIGN's observer measures the difference to the reference: e = mean
-over the block of the raw LDR-FLIP map (67 pixels per degree) between display(A) and
-display(B), the map computed on the block alone (the live loop only has the active
-blocks). A block is converged when e <= c, with c calibrated on training scenes
-(`calibrate_flip`, shipped in `learning/flip.json`).
+difference the way DESIGN's observer measures the difference to the reference: e = the
+raw LDR-FLIP map (67 pixels per degree) between display(A) and display(B), pooled as the
+observer pools (the largest 16x16 tile mean), the map computed on the block alone (the
+live loop only has the active blocks). A block is converged when e <= c(tau), with the
+curve c(tau) calibrated on training scenes (`calibrate_flip_curve`, shipped in
+`learning/flip.json`).
 
 On a stored stack the passes come back exactly from consecutive cumulative levels
 (`recover_passes`), and a `BlockAccumulator` fed with them holds the very half buffers the
@@ -26,7 +27,8 @@ from typing import Any
 import numpy as np
 
 from noisefeat.display import check_exposure
-from noisefeat.flip import mean_flip_halves
+from noisefeat.flip import flip_halves
+from noisefeat.pooling import DEFAULT_POOLING, pool_maps
 
 from ..data.observer import DEFAULT_PPD, display, flip_map
 from ..data.stack import Stack
@@ -82,8 +84,9 @@ def _check_halves(even: np.ndarray, odd: np.ndarray, exposure: float) -> tuple[n
 
 
 def halves_flip(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
-                ppd: float = DEFAULT_PPD) -> np.ndarray:
-    """e float64 [N]: per block, the mean raw FLIP between display(A) and display(B).
+                ppd: float = DEFAULT_PPD, pooling: str = DEFAULT_POOLING) -> np.ndarray:
+    """e float64 [N]: per block, the raw FLIP map between display(A) and display(B), pooled
+    (`noisefeat.pooling`: the largest 16x16 tile mean, or "mean").
 
     `even`, `odd`: linear RGB blocks [N, h, w, 3] (the two half-buffer means). Non-finite
     values follow the display rule (NaN/-Inf black, +Inf white), so e is always finite.
@@ -92,18 +95,18 @@ def halves_flip(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
     rounding at a small fraction of its cost (BENCHMARKS.md "FLIP between the halves").
     """
     even, odd, exposure = _check_halves(even, odd, exposure)
-    return mean_flip_halves(even, odd, exposure, ppd).numpy()
+    return flip_halves(even, odd, exposure, ppd, pooling)
 
 
 def halves_flip_evaluator(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
-                          ppd: float = DEFAULT_PPD) -> np.ndarray:
+                          ppd: float = DEFAULT_PPD, pooling: str = DEFAULT_POOLING) -> np.ndarray:
     """`halves_flip` by NVIDIA's `flip-evaluator`, one block per call: the reference
     implementation that the torch route is tested and timed against."""
     even, odd, exposure = _check_halves(even, odd, exposure)
-    out = np.empty(len(even))
-    for i, (a, b) in enumerate(zip(even, odd)):
-        out[i] = float(np.mean(flip_map(display(a, exposure), display(b, exposure), ppd), dtype=np.float64))
-    return out
+    if len(even) == 0:
+        return np.zeros(0)
+    return pool_maps(np.stack([flip_map(display(a, exposure), display(b, exposure), ppd)
+                               for a, b in zip(even, odd)]), pooling)
 
 
 def flip_offset(c: float) -> float:
@@ -114,7 +117,7 @@ def flip_offset(c: float) -> float:
 
 
 def stack_flip_errors(stack: Stack, exposure: float = 0.0, ppd: float = DEFAULT_PPD,
-                      progress: bool = False) -> np.ndarray:
+                      progress: bool = False, pooling: str = DEFAULT_POOLING) -> np.ndarray:
     """e float64 [K, n_blocks] of a stack; NaN where B is still empty (one pass only) and
     where the block's image is flat (the stop rule stops it whatever e is, so FLIP, the
     expensive part, is not run there, as in the live loop).
@@ -122,7 +125,8 @@ def stack_flip_errors(stack: Stack, exposure: float = 0.0, ppd: float = DEFAULT_
     Cached next to the stack (`.cache/flip-halves-*.npz`, atomic), since every
     calibration and evaluation reads it.
     """
-    from .table import cached_array, iter_stack_halves, stack_flat
+    from ..data.cache import cached_array
+    from .table import iter_stack_halves, stack_flat
 
     flat = stack_flat(stack, exposure)
     shape = (stack.n_levels, stack.n_blocks)
@@ -132,26 +136,60 @@ def stack_flip_errors(stack: Stack, exposure: float = 0.0, ppd: float = DEFAULT_
         for k, even, odd in iter_stack_halves(stack, progress):
             todo = np.flatnonzero(~flat[k])
             if todo.size:
-                e[k, todo] = halves_flip(even[todo], odd[todo], exposure, ppd)
+                e[k, todo] = halves_flip(even[todo], odd[todo], exposure, ppd, pooling)
         return e
-    return cached_array(stack, f"flip-halves-e{exposure:g}-ppd{ppd:g}", shape, compute)
+    return cached_array(stack, f"flip-halves-{pooling}-e{exposure:g}-ppd{ppd:g}", shape, compute)
 
 
 # ----------------------------------------------------------------------------- the shipped c
 
 
 def load_flip_calibration(path: str | os.PathLike | None = None) -> dict[str, Any]:
-    """The shipped calibration of c (`learning/flip.json`), or the fallback if none ships."""
+    """The calibration curve c(tau) (`learning/flip.json` unless `path`), checked: a curve of
+    increasing tau with non-negative c, for the pooling the criterion uses. Without a
+    shipped file: the fallback c = DEFAULT_C at every tau, with a warning."""
     p = Path(path) if path is not None else FLIP_CALIBRATION
     if not p.is_file():
         if path is not None:
             raise FileNotFoundError(f"{p}: no flip calibration file")
         log.warning("no flip calibration shipped (%s); using c = %g", p, DEFAULT_C)
-        return {"c": DEFAULT_C, "source": "fallback"}
+        return {"c": DEFAULT_C, "source": "fallback", "pooling": DEFAULT_POOLING, "curve": []}
     try:
         cal = json.loads(p.read_text())
-        c = float(cal["c"])
+        curve = cal["curve"] if isinstance(cal, dict) else None
+        if not isinstance(cal, dict) or cal.get("pooling") != DEFAULT_POOLING or not isinstance(curve, list):
+            raise ValueError(f"not a c(tau) curve for pooling {DEFAULT_POOLING!r} (a file calibrated for "
+                             "the block mean, observer version 1?); recalibrate with `noisestop calibrate`")
+        taus = [float(r["tau"]) for r in curve]
+        for r in curve:
+            flip_offset(float(r["c"]))
     except (ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"{p}: unreadable flip calibration ({exc})") from None
-    flip_offset(c)
-    return cal
+    if not taus or any(b <= a for a, b in zip(taus, taus[1:])) or not all(np.isfinite(taus)):
+        raise ValueError(f"{p}: unreadable flip calibration (taus must be finite and increasing, got {taus[:6]})")
+    return {**cal, "source": str(p)}
+
+
+def flip_tau_range(cal: dict[str, Any]) -> tuple[float, float] | None:
+    """The tau range a calibration covers (None: the fallback, any tau)."""
+    curve = cal.get("curve") or []
+    return (float(curve[0]["tau"]), float(curve[-1]["tau"])) if curve else None
+
+
+def flip_c(cal: dict[str, Any], tau: float) -> float:
+    """c(tau) from a calibration curve: interpolated linearly in log c against log tau
+    between calibrated points (c falls with tau roughly as a power law); a tau outside the
+    calibrated range is refused, naming the range."""
+    t = float(tau)
+    rng = flip_tau_range(cal)
+    if rng is None:
+        return float(cal["c"])
+    lo, hi = rng
+    if not (np.isfinite(t) and lo * (1 - 1e-9) <= t <= hi * (1 + 1e-9)):
+        raise ValueError(f"tau {tau!r} is outside the calibrated range [{lo:g}, {hi:g}] of the flip criterion "
+                         f"({cal.get('source', 'flip.json')})")
+    taus = np.log([float(r["tau"]) for r in cal["curve"]])
+    cs = [float(r["c"]) for r in cal["curve"]]
+    if min(cs) <= 0:
+        return float(np.interp(np.log(t), taus, cs))
+    return float(np.exp(np.interp(np.log(t), taus, np.log(cs))))

@@ -8,12 +8,11 @@ evaluate run.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
-import math
 import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -22,13 +21,14 @@ from tqdm import tqdm
 from noisefeat import FeatureBase, default_base, extract_features
 from noisefeat.display import lightness
 
-from ..data.npz import read_npz
+from ..data.cache import cached_array
+from ..data.observer import observed
 from ..data.stack import Stack, list_stacks, read_stack
+from ..names import DEFAULT_TAU
 from ..names import QUICK_MODES
 from .noise_input import HALVES, RAW_COLUMNS, RAW_VERSION, compose, halves_raw, needs, noise_lightness
 
 log = logging.getLogger(__name__)
-CACHE_DIR = ".cache"
 
 
 @dataclass
@@ -72,44 +72,16 @@ class SubImageTable:
     def scenes(self) -> list[str]:
         return sorted(self.stacks)
 
-
-def _atomic_savez(path: Path, **arrays: np.ndarray) -> None:
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
-
-
-def cached_array(stack: Stack, name: str, shape: tuple[int, ...], compute: Callable[[], np.ndarray],
-                 dtype: type | None = None) -> np.ndarray:
-    """An array computed from a stack, kept in `<stack>/.cache/<name>.npz` (written
-    atomically) with the stack's content key (`Stack.content_key`: size and mtime of every
-    level, the reference, the quick images and meta.json). Read back only when the key,
-    shape (and dtype) match and the file is intact; else computed again from the stack,
-    so a changed or damaged stack is recomputed (and a damaged file refused there), never
-    trusted (issue 14: the key used to name only the feature base and the options)."""
-    cache = stack.path / CACHE_DIR / f"{name}.npz"
-    key = stack.content_key()
-    if cache.exists():
-        try:
-            z = read_npz(cache, max_bytes=_cache_limit(shape))
-            arr, stored = z.get("a"), z.get("key")
-            if arr is not None and stored is not None and str(stored) == key and arr.shape == shape \
-                    and (dtype is None or arr.dtype == dtype):
-                return arr
-            log.info("%s: made from other stack contents; recomputing", cache)
-        except ValueError as exc:
-            log.warning("%s: unreadable cache (%s); recomputing", cache, exc)
-    arr = compute()
-    cache.parent.mkdir(exist_ok=True)
-    if stack.content_key() == key:      # the stack did not change while we read it
-        _atomic_savez(cache, a=arr, key=np.array(key))
-    return arr
-
-
-def _cache_limit(shape: tuple[int, ...]) -> int:
-    return 8 * math.prod(shape) + (1 << 16)
-
-
+    def relabelled(self, tau: float) -> "SubImageTable":
+        """The same rows labelled by the observer at `tau` (`observed`: virtual-observer
+        stacks relabelled from cached errors, human labels kept): the inputs do not change
+        with the noise target, only which rows count as converged."""
+        stacks = {name: observed(st, tau) for name, st in self.stacks.items()}
+        y = self.y.copy()
+        for name, st in stacks.items():
+            rows = self.scene == name
+            y[rows] = st.labels()[self.level[rows], self.block[rows]]
+        return dataclasses.replace(self, y=y, stacks=stacks)
 
 
 def feature_input(current: np.ndarray, quick: np.ndarray | None = None) -> np.ndarray:
@@ -241,8 +213,11 @@ def stack_raw_blocks(stack: Stack, exposure: float = 0.0) -> np.ndarray:
 
 def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase | None = None,
                scenes: list[str] | None = None, progress: bool = True,
-               quick: str = "albedo", composition: str = HALVES, image: bool = False) -> SubImageTable:
-    """All labelled stacks under root as one table: model inputs of `quick` (a `halves`
+               quick: str = "albedo", composition: str = HALVES, image: bool = False,
+               tau: float = DEFAULT_TAU) -> SubImageTable:
+    """All labelled stacks under root as one table, labelled by the observer at `tau`
+    (`learning.data.observer.observed`: a stack of another observer is relabelled in
+    memory, human labels are kept as they are): model inputs of `quick` (a `halves`
     table in `composition`); raw L* blocks instead of features if `raw` (with quick
     'halves': the raw noise image; any other quick: the block itself); with `image`, the
     pictures an image classifier reads, X [n, bh, bw, 3] (`learning.inputs.pictures`:
@@ -260,6 +235,7 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
         st = read_stack(p)
         if scenes is not None and st.scene not in scenes:
             continue
+        st = observed(st, tau)
         if st.thresholds is None:
             log.warning("%s: no labels (thresholds); skipped", p)
             continue

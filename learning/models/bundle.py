@@ -29,6 +29,7 @@ from noisefeat.extract import analyse_many
 from ..inputs.noise_input import HALVES, halves_input, halves_input_and_stats, halves_mean, n_inputs, noise_lightness
 from ..inputs.table import QUICK_MODES, feature_input, raw_input
 from ..stoprule import FLAT_TOLERANCE, StopRule, flat_blocks
+from .noise_target import offset_at, tau_range
 from .bundle_check import check_estimator, check_model_file, file_sha256, model_bytes, read_manifest
 from .estimators import RBFSVM
 
@@ -65,6 +66,9 @@ class Model:
     manifest: dict[str, Any]
     path: Path | None = None
 
+    def __post_init__(self) -> None:
+        tau_range(self.manifest)      # a damaged offsets-by-tau curve is refused on load, not on use
+
     @property
     def name(self) -> str:
         return self.manifest.get("name", self.manifest["kind"])
@@ -78,6 +82,12 @@ class Model:
     def offset(self) -> float:
         """The calibrated decision offset (the estimator's fitted `offset_`)."""
         return float(self.estimator.offset_)
+
+    def offset_at(self, tau: float | None) -> float:
+        """The calibrated offset at the noise target `tau` (None: the model's own;
+        `learning.models.noise_target`); a tau the bundle was not calibrated for raises
+        ValueError naming its range."""
+        return offset_at(self.manifest, self.offset, tau)
 
     def rule(self, offset: float | None = None, min_spp: int | None = None) -> StopRule:
         """The stop rule at this model's offset, or at `offset` if given."""

@@ -64,6 +64,12 @@ fraction = float_in(0.0, 1.0, open_low=True)
 rate = float_in(0.0, 1.0)
 seconds = float_in(0.0, 3600.0, open_low=True)
 threshold = float_in(0.0, 1000.0)
+#: the noise target: any positive FLIP value up to 1 parses; the criterion then checks it
+#: against the range its calibration covers (flip's c(tau), a model's offsets by tau)
+tau = float_in(0.0, 1.0, open_low=True)
+TAU_HELP = ("noise target: the largest 16x16-tile mean FLIP against the reference a converged block may "
+            "show (smaller is stricter; default %(default)s); picks flip's c(tau) or the model's offset "
+            "within their calibrated range")
 
 
 def check_frame(height: int, width: int, grid: tuple[int, int], what: str) -> None:

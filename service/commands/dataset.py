@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 
 from noisefeat.bounds import MIN_SIDE
+from noisefeat.pooling import DEFAULT_POOLING, POOLINGS
 from renderer.settings import MAX_SPP
 
 from ..console import UsageError, emit_json, log
@@ -41,6 +42,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--every", type=arg.int_in(1, 1_000_000), default=1, help="keep one image in EVERY")
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_import_lisic)
+
+    p = dsub.add_parser("relabel", help="relabel virtual-observer stacks by the current observer (no rendering)")
+    p.add_argument("dir")
+    p.add_argument("--pooling", choices=POOLINGS, default=DEFAULT_POOLING,
+                   help="how a block's FLIP map is pooled (default %(default)s: the largest 16x16 tile mean; "
+                        "'mean': the first observer's block mean, for comparison)")
+    p.add_argument("--tau", type=arg.tau, default=None,
+                   help="noise target of the new labels (default: each stack's own)")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_dataset_relabel)
 
     p = dsub.add_parser("check", help="validate a dataset and report every problem found")
     p.add_argument("dir")
@@ -100,6 +111,35 @@ def cmd_import_lisic(args: argparse.Namespace) -> int:
     else:
         for d in dirs:
             print(d)
+    return 0
+
+
+def cmd_dataset_relabel(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from learning.data.observer import relabel_if_stale
+    from learning.data.stack import list_stacks, read_stack
+
+    paths = list_stacks(args.dir)
+    if not paths:
+        raise UsageError(f"{args.dir}: no stacks found (no meta.json below it)")
+    rows = []
+    for p in tqdm(paths, desc="relabel", unit="stack", leave=False):
+        before = read_stack(p)
+        after, changed = relabel_if_stale(before, args.pooling, args.tau)
+        rows.append({"scene": after.scene, "relabelled": changed, "labeler": (after.labeler or {}).get("name"),
+                     "before": before.thresholds, "after": after.thresholds})
+    if args.json:
+        emit_json({"dir": str(args.dir), "pooling": args.pooling, "stacks": rows})
+    else:
+        for r in rows:
+            what = "relabelled" if r["relabelled"] else ("kept (its own labels: " + str(r["labeler"]) + ")"
+                                                         if r["labeler"] != "flip" else "already current")
+            moved = sum(a != b for a, b in zip(r["before"] or [], r["after"] or []))
+            print(f"{r['scene']:<16} {what}" + (f": {moved} of {len(r['after'] or [])} thresholds moved"
+                                              if r["relabelled"] else ""))
+        print(f"{args.dir}: {sum(r['relabelled'] for r in rows)} of {len(rows)} stacks relabelled "
+              f"({args.pooling})")
     return 0
 
 

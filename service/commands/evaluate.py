@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 
+from learning.names import DEFAULT_TAU
 from renderer.names import CRITERIA
 
 from ..console import UsageError, emit_json, log
@@ -20,6 +21,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threshold", type=arg.threshold, default=None,
                    help="--criterion flip: c (default: the shipped calibration); --criterion "
                         "variance: the noise threshold (default 0.01)")
+    p.add_argument("--tau", type=arg.tau, default=DEFAULT_TAU, help=arg.TAU_HELP + "; labels come from the "
+                   "observer at this tau")
     p.add_argument("--min-spp", type=arg.spp, default=None,
                    help="no decision below this many spp (default: from the first level)")
     p.add_argument("--scenes", default=None,
@@ -41,11 +44,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.criterion != "model":
         from renderer.simulate import evaluate_criterion_cli
         result = evaluate_criterion_cli(args.data, args.criterion, arg.scene_list(args.scenes),
-                                        min_spp=args.min_spp, threshold=args.threshold)
+                                        min_spp=args.min_spp, threshold=args.threshold, tau=args.tau)
         result["threshold"] = result["criterion"].get("threshold")
     else:
         model = load_model(args.model)
-        table = load_table(args.data, **model.table_options())
+        offset = model.offset_at(args.tau) if args.offset is None else args.offset
+        table = load_table(args.data, tau=args.tau, **model.table_options())
         trained_on = set(model.manifest.get("training", {}).get("train_scenes", []))
         scenes = arg.scene_list(args.scenes) or [s for s in table.scenes() if s not in trained_on]
         if not scenes:
@@ -58,10 +62,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         if missing:
             raise UsageError(f"scenes not in {args.data}: {missing}")
         test = table.subset(table.scene_mask(scenes))
-        result = evaluate_model(model, test, offset=args.offset, min_spp=args.min_spp)
-        result["model"] = model.name
+        result = evaluate_model(model, test, offset=offset, min_spp=args.min_spp)
+        result["model"], result["tau"] = model.name, args.tau
         from learning.evaluation.plots import plot_thresholds
-        result["plots"] = [str(p) for p in plot_thresholds(model, test, args.plots, offset=args.offset,
+        result["plots"] = [str(p) for p in plot_thresholds(model, test, args.plots, offset=offset,
                                                            min_spp=args.min_spp)]
     if args.json:
         emit_json(result)
@@ -74,8 +78,7 @@ def _print_metrics(result: dict) -> None:
     from learning.evaluation.metrics import METRIC_NAMES
     knob = (f"offset {result['offset']:g}" if result.get("offset") is not None else
             f"threshold {result['threshold']:g}" if result.get("threshold") is not None else "")
-    if knob:
-        print(knob)
+    print(", ".join(x for x in (f"tau {result['tau']:g}" if result.get("tau") else "", knob) if x))
     width = max(len(s) for s in ["overall", *result["per_scene"]])
     print(f"{'':<{width}}  " + "  ".join(f"{m:>19}" for m in METRIC_NAMES))
     rows = [("overall", result), *sorted(result["per_scene"].items())]

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 
+from learning.names import DEFAULT_TAU
 from renderer.names import CRITERIA, DEFAULT_CRITERION
 
 from ..console import UsageError, emit_json, log
@@ -26,8 +27,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "model's calibrated offset; larger stops later)")
     p.add_argument("--threshold", type=arg.threshold, default=None,
                    help="--criterion flip: c, the FLIP between the half buffers a block must reach "
-                        "(default: the shipped calibration); --criterion variance: Blender Cycles' "
+                        "(default: c(tau) of the shipped calibration); --criterion variance: Blender Cycles' "
                         "noise threshold (default 0.01)")
+    p.add_argument("--tau", type=arg.tau, default=DEFAULT_TAU, help=arg.TAU_HELP)
     p.add_argument("--quantile", type=arg.fraction, default=1.0,
                    help="--criterion variance: fraction of a block's pixels that must pass (default: all)")
     p.add_argument("--reference", default=None,
@@ -81,7 +83,7 @@ def cmd_render(args: argparse.Namespace) -> int:
             args.scene or DEFAULT_SCENE, args.out, criterion=criterion, model=args.model,
             server=args.server, reference=args.reference, threshold=args.threshold,
             quantile=args.quantile, offset=args.offset, workers=args.workers, scheduler=args.scheduler,
-            exposure=args.exposure,
+            exposure=args.exposure, tau=args.tau,
             resolution=args.resolution, grid=None if args.grid is None else tuple(args.grid), block=args.block,
             checkpoint_every=args.checkpoint_every, step=args.step,
             min_spp=args.min_spp, max_spp=args.max_spp, seed=args.seed, resume=args.resume,

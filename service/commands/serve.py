@@ -54,6 +54,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--offset", type=arg.offset, default=None,
                    help="decision offset for every model served (default: each model's calibrated "
                         f"offset; range +-{OFFSET_LIMIT:g}); a request's own 'offset' parameter overrides it")
+    p.add_argument("--tau", type=arg.tau, default=None,
+                   help=arg.TAU_HELP.replace("default %(default)s", "default: each model's calibrated tau")
+                   + "; a request's own 'tau' parameter overrides it")
     p.add_argument("--graceful-timeout", type=arg.seconds, default=30.0,
                    help="seconds SIGTERM waits for requests in flight")
     p.set_defaults(handler=cmd_serve)
@@ -67,5 +70,5 @@ def cmd_serve(args: argparse.Namespace) -> int:
         max_block_side=args.max_block_side, max_pixels=args.max_pixels,
         limit_concurrency=args.limit_concurrency, max_connections=args.max_connections,
         header_timeout=args.header_timeout, body_timeout=args.body_timeout, keep_alive=args.keep_alive,
-        memory_budget=args.memory_budget, torch_threads=args.torch_threads)
+        memory_budget=args.memory_budget, torch_threads=args.torch_threads, tau=args.tau)
     return 0

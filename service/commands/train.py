@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from learning.names import DEFAULT_INPUT, MODEL_KINDS, QUICK_MODES, TRANSFER_INPUTS, TRANSFER_KINDS
+from learning.names import DEFAULT_INPUT, DEFAULT_TAU, MODEL_KINDS, QUICK_MODES, TRANSFER_INPUTS, TRANSFER_KINDS
 
 from ..console import UsageError, emit_json
 from . import arguments as arg
@@ -131,6 +131,7 @@ def cmd_train(args: argparse.Namespace) -> int:
                                    initial_scene=args.initial_scene, cv=not args.no_cv, seed=args.seed,
                                    max_label_fraction=args.label_budget, table=table,
                                    max_early_stop=max_early_stop, quick=args.quick)
+    summary["tau"] = DEFAULT_TAU            # the observer's tau of the labels it was trained on
     if args.heldout:
         from learning.evaluation.generalisation import check_disjoint
         test = load_table(args.heldout, **opts)
@@ -186,9 +187,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from learning.evaluation.calibrate import calibrate_flip
-    from learning.inputs.halves import FLIP_CALIBRATION
     from learning.data.stack import dataset_fingerprint, list_stacks, read_stack
+    from learning.evaluation.calibrate import calibrate_flip_curve
+    from learning.inputs.halves import FLIP_CALIBRATION
 
     if not 0 <= args.max_early_stop <= 1:
         raise UsageError(f"--max-early-stop must be in [0, 1], got {args.max_early_stop}")
@@ -196,23 +197,26 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if not stacks:
         raise UsageError(f"{args.data}: no stacks found")
     _refuse_heldout([s.scene for s in stacks], "calibrate")
-    cal = calibrate_flip(stacks, args.max_early_stop, min_spp=args.min_spp)
+    cal = calibrate_flip_curve(stacks, args.max_early_stop, min_spp=args.min_spp)
     cal.update(criterion="flip", data=str(args.data), fingerprint=dataset_fingerprint(args.data),
-               observer={"ppd": 67, "display": "clip+srgb"},
+               observer={"ppd": 67, "display": "clip+srgb", "pooling": cal["pooling"]},
                calibrated=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
     out = Path(args.out) if args.out else FLIP_CALIBRATION
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".tmp")
     tmp.write_text(json.dumps(cal, indent=1, default=float) + "\n")
     tmp.replace(out)
-    chosen = cal["chosen"]
+    points = cal["curve"]
     if args.json:
-        emit_json({"c": cal["c"], "out": str(out), **{k: chosen[k] for k in ("early_stop_rate",
-                                                                          "spp_ratio_vs_oracle")}})
+        emit_json({"out": str(out), "pooling": cal["pooling"], "curve": [
+            {k: p["chosen"][k] if k in p["chosen"] else p[k] for k in ("tau", "c", "early_stop_rate",
+                                                                     "spp_ratio_vs_oracle")} for p in points]})
     else:
-        print(f"flip: c = {cal['c']:g} on {len(stacks)} training scenes: early stops "
-              f"{chosen['early_stop_rate']:.3f} (target {args.max_early_stop:g}), samples "
-              f"{chosen['spp_ratio_vs_oracle']:.3f} x oracle; wrote {out}")
+        for p in points:
+            print(f"flip: tau {p['tau']:<7g} c = {p['c']:<8.5g} on {len(stacks)} training scenes: early stops "
+                  f"{p['chosen']['early_stop_rate']:.3f} (target {args.max_early_stop:g}), samples "
+                  f"{p['chosen']['spp_ratio_vs_oracle']:.3f} x oracle")
+        print(f"wrote {out}")
     return 0
 
 

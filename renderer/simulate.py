@@ -151,6 +151,8 @@ def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list
     """What `noisestop evaluate --criterion C` runs for a rule criterion: simulate C on the
     stacks of `data` (only `scenes` if given), labelled by the observer at the noise target
     `tau`, and return the DESIGN metrics, overall and per scene."""
+    factory = criterion_factory(criterion, model=model, server=server, threshold=threshold, offset=offset,
+                                tau=tau)         # a knob out of range fails before any stack is read
     stacks = read_observed(str(data), tau)
     if scenes:
         missing = sorted(set(scenes) - {st.scene for st in stacks})
@@ -163,8 +165,6 @@ def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list
         stacks = [st for st in stacks if st.thresholds is not None]
     if not stacks:
         raise ValueError(f"{data}: no labelled stacks to evaluate on")
-    factory = criterion_factory(criterion, model=model, server=server, threshold=threshold, offset=offset,
-                                tau=tau)
     out = evaluate_criterion(stacks, factory, min_spp=min_spp, progress=progress, tau=tau)
     return {**out, "tau": float(tau)}
 

@@ -148,3 +148,51 @@ def test_calibrate_writes_c_and_refuses_held_out_scenes(tmp_path):
                  "--test-scenes", "")):
         out = run(*cmd)
         assert out.returncode == 2 and "studio_preview" in out.stderr and "held out" in out.stderr, out.stderr
+
+
+def test_tau_outside_the_calibrated_range_or_not_a_number_is_one_line_and_exit_2(tmp_path):
+    for cmd in (("evaluate", "--data", str(FIXTURE), "--criterion", "flip"),
+                ("evaluate", "--data", str(FIXTURE), "--criterion", "model"),
+                ("render", "--scene", "cornell", "--out", str(tmp_path / "r"), "--criterion", "flip"),
+                ("serve", "--port", "0")):
+        out = run(*cmd, "--tau", "0.5")
+        assert out.returncode == 2 and "outside" in out.stderr and "[0.01, 0.05]" in out.stderr, (cmd, out.stderr)
+        assert len(out.stderr.strip().splitlines()) == 1 and "Traceback" not in out.stderr
+        for bad in ("nan", "inf", "-0.01", "0", "strict"):
+            out = run(*cmd, "--tau", bad)
+            assert out.returncode == 2 and "--tau" in out.stderr and "Traceback" not in out.stderr, (cmd, bad)
+
+
+def test_evaluate_labels_at_the_noise_target_and_reports_it():
+    runs = {tau: json.loads(run("evaluate", "--data", str(FIXTURE), "--criterion", "oracle", "--tau", tau,
+                                "--json").stdout) for tau in ("0.01", "0.04")}
+    assert runs["0.01"]["tau"] == 0.01 and runs["0.04"]["tau"] == 0.04
+    # a stricter target: the oracle (the labels themselves) spends at least as many samples
+    assert runs["0.01"]["saved_vs_uniform"] <= runs["0.04"]["saved_vs_uniform"]
+    flip = json.loads(run("evaluate", "--data", str(FIXTURE), "--criterion", "flip", "--tau", "0.04",
+                          "--json").stdout)
+    assert flip["tau"] == 0.04 and flip["criterion"]["tau"] == 0.04
+
+
+def test_dataset_relabel_rewrites_first_observer_labels_and_keeps_human_ones(tmp_path):
+    import shutil
+    data = tmp_path / "d"
+    shutil.copytree(FIXTURE, data, ignore=shutil.ignore_patterns(".cache"))
+    meta = data / "cornell" / "meta.json"
+    m = json.loads(meta.read_text())
+    m["labeler"].pop("pooling")                                   # as the first observer wrote it
+    meta.write_text(json.dumps(m))
+    h = json.loads((data / "sky" / "meta.json").read_text())
+    h["labeler"] = {"name": "human", "source": "LISIC"}
+    (data / "sky" / "meta.json").write_text(json.dumps(h))
+    out = json.loads(run("dataset", "relabel", str(data), "--json").stdout)
+    done = {r["scene"]: r["relabelled"] for r in out["stacks"]}
+    assert done == {"checker": False, "cornell": True, "cornell_dark": False, "sky": False}
+    assert json.loads(meta.read_text())["labeler"]["pooling"] == "tile16-max"
+    out = run("dataset", "relabel", str(data), "--pooling", "mean")
+    assert out.returncode == 0 and "3 of 4 stacks relabelled (mean)" in out.stdout
+    m = json.loads(meta.read_text())
+    m["labeler"]["pooling"] = "p99"
+    meta.write_text(json.dumps(m))
+    out = run("evaluate", "--data", str(data), "--criterion", "oracle")
+    assert out.returncode == 2 and "pooling 'p99' is unknown" in out.stderr and "Traceback" not in out.stderr

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from learning import make_synthetic_stack
-from learning.evaluation.calibrate import calibrate_flip, flip_sweep
-from learning.inputs.halves import flip_offset, halves_flip, load_flip_calibration, stack_flip_errors
+from learning.evaluation.calibrate import calibrate_flip, calibrate_flip_curve, flip_sweep
+from learning.inputs.halves import (flip_c, flip_offset, flip_tau_range, halves_flip, load_flip_calibration,
+                                    stack_flip_errors)
 from learning.stoprule import StopRule
 from renderer.criteria import BlockView, FlipCriterion, build_criterion
 
@@ -69,12 +70,14 @@ def test_flip_criterion_decisions():
                                       view(*one_pass, spp=(8, 0))])
     assert out.tolist() == [1, -1, 1, -1]          # one pass: no noise estimate yet, unless flat
     assert crit.counters["flat_blocks"] == 1 and crit.counters["blocks_featured"] == 2
-    assert crit.describe() == {"name": "flip", "threshold": 0.02, "source": "argument"}
+    assert crit.describe() == {"name": "flip", "threshold": 0.02, "tau": 0.02, "pooling": "tile16-max",
+                               "source": "argument"}
     with pytest.raises(ValueError, match="half buffers"):
         crit.decide([0], [BlockView(mean=quiet[0], spp=8)])
     shipped = build_criterion("flip")
-    assert isinstance(shipped, FlipCriterion) and shipped.c == load_flip_calibration()["c"]
+    assert isinstance(shipped, FlipCriterion) and shipped.c == flip_c(load_flip_calibration(), 0.02)
     assert build_criterion("flip", threshold=0.05).c == 0.05
+    assert build_criterion("flip", tau=0.01).c < shipped.c < build_criterion("flip", tau=0.04).c
 
 
 @pytest.fixture(scope="module")
@@ -104,15 +107,54 @@ def test_stack_errors_are_cached_and_calibration_meets_its_target(stacks):
         calibrate_flip([])
 
 
+def _curve(points, pooling="tile16-max"):
+    return {"format": "noisestop-flip-curve", "pooling": pooling,
+            "curve": [{"tau": t, "c": c} for t, c in points]}
+
+
 def test_a_calibration_file_is_read_and_checked(tmp_path):
     p = tmp_path / "flip.json"
-    p.write_text(json.dumps({"c": 0.03}))
-    assert load_flip_calibration(p)["c"] == 0.03
-    p.write_text(json.dumps({"c": -1}))
+    p.write_text(json.dumps(_curve([(0.01, 0.02), (0.04, 0.08)])))
+    cal = load_flip_calibration(p)
+    assert flip_c(cal, 0.01) == pytest.approx(0.02) and flip_c(cal, 0.04) == pytest.approx(0.08)
+    assert flip_c(cal, 0.02) == pytest.approx(0.04)              # a power law between points
+    assert flip_tau_range(cal) == (0.01, 0.04)
+    for bad in (0.009, 0.05, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=r"outside the calibrated range \[0.01, 0.04\]"):
+            flip_c(cal, bad)
+    p.write_text(json.dumps({"c": 0.03}))                       # a block-mean calibration (observer v1)
+    with pytest.raises(ValueError, match="recalibrate"):
+        load_flip_calibration(p)
+    p.write_text(json.dumps(_curve([(0.01, 0.02)], pooling="mean")))
+    with pytest.raises(ValueError, match="recalibrate"):
+        load_flip_calibration(p)
+    p.write_text(json.dumps(_curve([(0.01, -1)])))
     with pytest.raises(ValueError, match="non-negative"):
+        load_flip_calibration(p)
+    p.write_text(json.dumps(_curve([(0.02, 0.03), (0.01, 0.02)])))
+    with pytest.raises(ValueError, match="increasing"):
         load_flip_calibration(p)
     p.write_text("{")
     with pytest.raises(ValueError, match="unreadable"):
         load_flip_calibration(p)
     with pytest.raises(FileNotFoundError):
         load_flip_calibration(tmp_path / "none.json")
+
+
+def test_the_shipped_curve_covers_the_documented_noise_targets():
+    cal = load_flip_calibration()
+    lo, hi = flip_tau_range(cal)
+    assert lo <= 0.01 and hi >= 0.05
+    cs = [flip_c(cal, t) for t in (0.01, 0.015, 0.02, 0.03, 0.04, 0.05)]
+    assert cs == sorted(cs) and cs[0] > 0                        # a stricter target never a larger c
+    for point in cal["curve"]:                                   # each met its target out of fold
+        assert point["chosen"]["out_of_fold"]["early_stop_rate"] <= cal["target_early_stop_rate"] + 1e-9
+
+
+def test_c_of_tau_calibration_relabels_and_keeps_a_monotone_curve(stacks):
+    cal = calibrate_flip_curve(stacks, 0.1, taus=(0.01, 0.02, 0.04), candidates=(0.005, 0.02, 0.05, 0.2),
+                               progress=False)
+    cs = [p["c"] for p in cal["curve"]]
+    assert [p["tau"] for p in cal["curve"]] == [0.01, 0.02, 0.04] and cs == sorted(cs)
+    assert all(p["c"] >= p["c_raw"] for p in cal["curve"]) and cal["c"] == cs[1]
+    assert cal["pooling"] == "tile16-max"

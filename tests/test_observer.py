@@ -4,10 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from learning.data.observer import (VirtualObserver, block_errors, block_means, display, flip_map,
-                                    label_stack, relabel_if_stale, srgb_decode,
-                                    thresholds_from_errors)
+from learning.data.observer import (VirtualObserver, block_errors, display, flip_map, label_stack,
+                                    observed, pooled_errors, read_observed, relabel_if_stale,
+                                    srgb_decode, stack_observer_errors, thresholds_from_errors)
 from learning.data.stack import read_stack, update_labels
+from noisefeat.pooling import pool_blocks
 from learning.data.synthetic import make_synthetic_stack, synthetic_images
 
 SPP = [4, 8, 16, 32, 64, 128, 256, 512, 1024]
@@ -88,15 +89,31 @@ def test_flip_accepts_non_contiguous_float64():
 
 # ----------------------------------------------------------------------------- errors
 
-def test_block_means_row_major():
-    m = np.kron(np.arange(6, dtype=np.float64).reshape(2, 3), np.ones((4, 5)))
-    np.testing.assert_array_equal(block_means(m, (2, 3)), np.arange(6))
+@pytest.mark.parametrize("pooling", ["tile16-max", "mean"])
+def test_block_pooling_row_major(pooling):
+    m = np.kron(np.arange(6, dtype=np.float64).reshape(2, 3), np.ones((40, 50)))
+    np.testing.assert_array_equal(pool_blocks(m, (2, 3), pooling), np.arange(6))
+
+
+def test_noise_in_one_tile_is_diluted_by_the_mean_but_not_by_tile_pooling():
+    """Grain in one corner of a 64x64 block beside a clean rest: the first observer's mean
+    divides it by the 16 tiles, the tile pooling keeps it."""
+    ref = np.full((64, 64, 3), 0.18, np.float32)
+    lev = ref.copy()
+    lev[:16, :16] *= np.random.default_rng(0).lognormal(0, 0.6, (16, 16, 1)).astype(np.float32)
+    e = pooled_errors(ref, [lev], (1, 1))
+    tile, mean = e[0, 0, 0], e[1, 0, 0]
+    assert tile > 0.05 and 10 < tile / mean <= 16      # the noisy tile (FLIP spreads a little past it)
+    obs = VirtualObserver()
+    assert obs.thresholds(ref, [lev, ref], [8, 16], (1, 1)) == [16]
+    assert VirtualObserver(pooling="mean").thresholds(ref, [lev, ref], [8, 16], (1, 1)) == [8]
 
 
 def test_identical_levels_give_zero_error_and_first_level_thresholds():
     ref = np.random.default_rng(0).random((32, 32, 3)).astype(np.float32) * 3  # HDR
     e = block_errors(ref, [ref, ref, ref])
     assert e.shape == (3, 16) and float(np.abs(e).max()) == 0.0
+    assert pooled_errors(ref, [ref]).shape == (2, 1, 16)
     assert thresholds_from_errors(e, [10, 20, 30]) == [10] * 16
     assert VirtualObserver().thresholds(ref, np.stack([ref, ref]), [5, 9]) == [5] * 16
 
@@ -163,56 +180,75 @@ def test_nan_in_levels_is_handled_by_the_display_rule():
 def test_label_stack_matches_stored_thresholds(tmp_path):
     st = make_synthetic_stack(tmp_path / "s", size=64, spp=[16, 64, 256, 1024])
     assert label_stack(st) == st.thresholds
-    strict = label_stack(st, tau=0.0)
+    strict = label_stack(st, tau=1e-9)
     assert all(t is None for t in strict)
 
 
 def test_virtual_observer_settings():
     obs = VirtualObserver(tau=0.03, ppd=40)
     assert obs.labeler == {"name": "flip", "tau": 0.03, "ppd": 40, "display": "clip+srgb",
-                           "exposure": 0.0}
-    assert VirtualObserver(edge_margin=10).labeler["edge_margin"] == 10
-    with pytest.raises(ValueError, match="tau"):
-        VirtualObserver(tau=-1)
+                           "exposure": 0.0, "pooling": "tile16-max"}
+    assert VirtualObserver(pooling="mean").labeler["pooling"] == "mean"
+    for bad in (-1, 0, float("nan"), float("inf"), "x"):
+        with pytest.raises(ValueError, match="tau"):
+            VirtualObserver(tau=bad)
     with pytest.raises(ValueError, match="ppd"):
         VirtualObserver(ppd=0)
+    with pytest.raises(ValueError, match="unknown pooling 'max'"):
+        VirtualObserver(pooling="max")
 
 
-# ----------------------------------------------------------------------------- edge margin
-
-def test_block_means_edge_margin_leaves_out_the_frame_border_only():
-    v = np.ones((8, 8))
-    v[0, :] = v[-1, :] = v[:, 0] = v[:, -1] = 100.0          # a 1-px frame border
-    np.testing.assert_allclose(block_means(v, (2, 2), edge_margin=1), [1.0] * 4)
-    assert block_means(v, (2, 2))[0] > 1.0                    # margin 0: the plain mean
-    # margin 2 leaves one interior pixel per 4x4 block; margin 4 leaves none -> plain mean
-    np.testing.assert_allclose(block_means(v, (2, 2), edge_margin=4), block_means(v, (2, 2)))
-    with pytest.raises(ValueError, match="edge_margin"):
-        block_means(v, (2, 2), edge_margin=-1)
-    with pytest.raises(ValueError, match="edge_margin"):
-        VirtualObserver(edge_margin=1.5)
+def _mean_labelled(tmp_path, size=128):
+    """A stack of 2x2 blocks of 64x64 labelled as the first observer did: no "pooling" key."""
+    st = make_synthetic_stack(tmp_path / "s", size=size, grid=(2, 2), spp=[16, 64, 256, 1024, 4096])
+    v1 = {k: v for k, v in st.labeler.items() if k != "pooling"}
+    return update_labels(st, label_stack(st, pooling="mean"), v1)
 
 
-def test_edge_margin_makes_a_block_score_alike_alone_and_inside_a_larger_frame():
-    # The same 64x64 content alone and as the centre-left block of a 128x128 frame: with the
-    # margin the one-block frame's error is the inner part of the same FLIP field.
-    rng = np.random.default_rng(3)
-    big_ref = rng.random((128, 128, 3)).astype(np.float32) * 0.5 + 0.25
-    big_test = np.clip(big_ref + rng.normal(0, 0.05, big_ref.shape), 0, 1).astype(np.float32)
-    crop = (slice(32, 96), slice(0, 64))
-    alone = [block_errors(srgb_decode(big_ref[crop]), [srgb_decode(big_test[crop])], (1, 1),
-                          edge_margin=m)[0, 0] for m in (0, 10)]
-    inner = float(flip_map(big_ref, big_test)[crop][10:-10, 10:-10].mean())   # same pixels, framed
-    assert abs(alone[1] - inner) < abs(alone[0] - inner)
-    assert abs(alone[1] - inner) / inner < 0.02
+def test_a_stack_without_pooling_counts_as_mean_labelled_and_is_relabelled_never_misread(tmp_path):
+    st = _mean_labelled(tmp_path)
+    mean_th, tile_th = label_stack(st, pooling="mean"), label_stack(st)
+    assert st.thresholds == mean_th and tile_th != mean_th         # the two observers differ here
+    big = 10 ** 9
+    assert all((big if t is None else t) >= (big if m is None else m) for t, m in zip(tile_th, mean_th))
+    seen = observed(st)                                            # in memory: tile labels
+    assert seen.thresholds == tile_th and seen.labeler["pooling"] == "tile16-max"
+    assert read_stack(st.path).thresholds == mean_th               # meta.json untouched
+    assert observed(st, pooling="mean").thresholds == mean_th      # still selectable
+    assert [s.thresholds for s in read_observed(str(tmp_path))] == [tile_th]
+    assert observed(st, tau=0.05).thresholds == label_stack(st, tau=0.05)
+
+
+def test_relabelling_reads_cached_errors_and_never_renders(tmp_path, monkeypatch):
+    st = _mean_labelled(tmp_path)
+    e = stack_observer_errors(st)                                  # computed once, cached
+    assert e.shape == (2, 5, 4)
+    import learning.data.observer as obs_mod
+    monkeypatch.setattr(obs_mod, "flip_map", lambda *a, **k: (_ for _ in ()).throw(AssertionError("FLIP ran")))
+    for tau in (0.01, 0.02, 0.04):
+        observed(st, tau)
+    np.testing.assert_array_equal(stack_observer_errors(st), e)
+
+
+def test_unknown_pooling_in_a_stack_is_refused_with_one_line(tmp_path):
+    st = _mean_labelled(tmp_path)
+    meta = st.path / "meta.json"
+    import json
+    m = json.loads(meta.read_text())
+    m["labeler"]["pooling"] = "p99"
+    meta.write_text(json.dumps(m))
+    with pytest.raises(ValueError, match="labeler pooling 'p99' is unknown") as err:
+        read_stack(st.path)
+    assert "\n" not in str(err.value)
 
 
 def test_relabel_if_stale_updates_flip_labels_and_keeps_human_ones(tmp_path):
-    st = make_synthetic_stack(tmp_path / "s", size=64, spp=[16, 64, 256, 1024])
-    obs = VirtualObserver()
-    assert relabel_if_stale(st, obs) == (st, False)           # current labeler: untouched
-    update_labels(st, [None] * 16, VirtualObserver(edge_margin=10).labeler)   # another observer's
-    again, did = relabel_if_stale(read_stack(st.path), obs)
-    assert did and again.labeler == obs.labeler and again.thresholds == st.thresholds
-    human = update_labels(again, [16] * 16, {"name": "human", "source": "LISIC"})
-    assert relabel_if_stale(human, obs) == (human, False)
+    st = _mean_labelled(tmp_path)
+    again, did = relabel_if_stale(read_stack(st.path))
+    assert did and again.labeler == VirtualObserver().labeler and again.thresholds == label_stack(st)
+    assert relabel_if_stale(again) == (again, False)               # current labeler: untouched
+    back, did = relabel_if_stale(again, pooling="mean")
+    assert did and back.labeler["pooling"] == "mean"
+    human = update_labels(again, [16] * 4, {"name": "human", "source": "LISIC"})
+    assert relabel_if_stale(human) == (human, False)
+    assert observed(human, tau=0.01) is human                       # human labels are the data

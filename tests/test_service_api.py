@@ -457,3 +457,40 @@ def test_serve_offset_overrides_every_model(bundles):
         np.testing.assert_array_equal(out["verdict"], np.where(out["score"] > 0.75, 1, -1))
     with pytest.raises(ValueError, match="finite"):
         ModelRegistry(dict(bundles), offset=float("nan"))
+
+
+# --- the noise target over HTTP ---------------------------------------------------------------
+
+def test_tau_picks_the_models_offset_for_that_noise_target(tmp_path, bundles):
+    est = load_model(bundles["dsvm_demo"]).estimator
+    curve = [{"tau": 0.01, "offset": 0.5}, {"tau": 0.02, "offset": 0.0}, {"tau": 0.04, "offset": -0.5}]
+    bundle = save_model(est, tmp_path / "curve", kind="dsvm", input="features", name="curve",
+                        training={"tau": 0.02, "calibration": {"offsets_by_tau": curve}})
+    app = create_app(ModelRegistry({"curve": str(bundle), "demo": bundles["dsvm_demo"]}), token=TOKEN)
+    feats = np.zeros((1, 26), np.float32)
+    with TestClient(app) as c:
+        for tau, want in ((0.01, 0.5), (0.04, -0.5), (0.02 * 2 ** 0.5, -0.25)):    # log-linear between points
+            r = infer(c, {"inputs": [tensor("features", feats)], "parameters": {"tau": tau}}, model="curve")
+            assert r.status_code == 200 and r.json()["parameters"]["offset"] == pytest.approx(want)
+            assert r.json()["parameters"]["tau"] == tau
+        r = infer(c, {"inputs": [tensor("features", feats)], "parameters": {"tau": 0.01, "offset": 2.0}},
+                  model="curve")
+        assert r.json()["parameters"]["offset"] == 2.0                   # an explicit offset wins
+        assert c.get("/v2/models/curve", headers=AUTH).json()["parameters"]["tau_range"] == [0.01, 0.04]
+        for bad, where in ((0.2, "curve"), (0.005, "curve"), (0.04, "demo")):
+            r = infer(c, {"inputs": [tensor("features", feats)], "parameters": {"tau": bad}}, model=where)
+            assert r.status_code == 400 and "outside" in r.json()["error"]
+        for bad in ("0.02", True, -0.01, 1e400):
+            body = json.dumps({"inputs": [tensor("features", feats)], "parameters": {"tau": bad}})
+            r = infer(c, body.replace("Infinity", "1e400"), model="curve")
+            assert r.status_code == 400 and "tau" in r.json()["error"]
+        body = json.dumps({"inputs": [tensor("features", feats)]})[:-1] + ', "parameters": {"tau": NaN}}'
+        assert infer(c, body, model="curve").status_code == 400
+
+
+def test_serve_tau_sets_every_models_default_and_refuses_an_uncalibrated_one(bundles):
+    with pytest.raises(ValueError, match="outside"):
+        ModelRegistry({"demo": bundles["dsvm_demo"]}, tau=0.04).load()
+    reg = ModelRegistry({"demo": bundles["dsvm_demo"]}, tau=0.02)
+    reg.load()
+    assert reg.get("demo").effective_offset == load_model(bundles["dsvm_demo"]).offset

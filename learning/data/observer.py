@@ -99,11 +99,10 @@ def flip_map(ref_srgb: np.ndarray, test_srgb: np.ndarray, ppd: float = DEFAULT_P
     return emap.reshape(emap.shape[0], emap.shape[1])
 
 
-def block_errors(reference_rgb: np.ndarray, levels_rgb: np.ndarray | Iterable[np.ndarray],
-                 grid: Sequence[int] = (4, 4), ppd: float = DEFAULT_PPD, exposure: float = 0.0,
-                 poolings: Sequence[str] = (DEFAULT_POOLING,)) -> np.ndarray:
-    """e [P, K, n_blocks] (rules 1-2): FLIP between display(reference) and each level, pooled
-    per block in each of `poolings` (one FLIP map serves them all).
+def pooled_errors(reference_rgb: np.ndarray, levels_rgb: np.ndarray | Iterable[np.ndarray],
+                  grid: Sequence[int] = (4, 4), ppd: float = DEFAULT_PPD, exposure: float = 0.0) -> np.ndarray:
+    """e [len(POOLINGS), K, n_blocks] (rules 1-2): FLIP between display(reference) and each
+    level, pooled per block in every known pooling (one FLIP map serves them all).
 
     `levels_rgb` is [K, H, W, 3] or any iterable of [H, W, 3] linear images (a generator
     keeps memory to one level).
@@ -112,7 +111,6 @@ def block_errors(reference_rgb: np.ndarray, levels_rgb: np.ndarray | Iterable[np
     if ref.ndim != 3 or ref.shape[2] != 3:
         raise ValueError(f"reference must be linear RGB [H, W, 3], got shape {ref.shape}")
     block_shape(ref.shape[0], ref.shape[1], grid)
-    pools = [check_pooling(p) for p in poolings]
     g = (int(grid[0]), int(grid[1]))
     ref_d = display(ref, exposure)
     rows = []
@@ -121,10 +119,18 @@ def block_errors(reference_rgb: np.ndarray, levels_rgb: np.ndarray | Iterable[np
         if lev.shape != ref.shape:
             raise ValueError(f"level {k} has shape {lev.shape}, the reference {ref.shape}")
         emap = flip_map(ref_d, display(lev, exposure), ppd)
-        rows.append([pool_blocks(emap, g, p) for p in pools])
+        rows.append([pool_blocks(emap, g, p) for p in POOLINGS])
     if not rows:
         raise ValueError("no levels given")
     return np.asarray(rows, np.float64).transpose(1, 0, 2)
+
+
+def block_errors(reference_rgb: np.ndarray, levels_rgb: np.ndarray | Iterable[np.ndarray],
+                 grid: Sequence[int] = (4, 4), ppd: float = DEFAULT_PPD, exposure: float = 0.0,
+                 pooling: str = DEFAULT_POOLING) -> np.ndarray:
+    """e [K, n_blocks] (rules 1-2) in one pooling (`pooled_errors`)."""
+    check_pooling(pooling)
+    return pooled_errors(reference_rgb, levels_rgb, grid, ppd, exposure)[POOLINGS.index(pooling)]
 
 
 def thresholds_from_errors(e: np.ndarray, spp: Sequence[int],
@@ -172,7 +178,7 @@ class VirtualObserver:
     def errors(self, reference: np.ndarray, levels: np.ndarray | Iterable[np.ndarray],
                grid: Sequence[int] = (4, 4)) -> np.ndarray:
         """e [K, n_blocks] of this observer's pooling."""
-        return block_errors(reference, levels, grid, self.ppd, self.exposure, (self.pooling,))[0]
+        return block_errors(reference, levels, grid, self.ppd, self.exposure, self.pooling)
 
     def thresholds(self, reference: np.ndarray, levels: np.ndarray | Iterable[np.ndarray],
                    spp: Sequence[int], grid: Sequence[int] = (4, 4)) -> list[int | None]:
@@ -202,13 +208,13 @@ def stack_observer_errors(stack: Stack, ppd: float = DEFAULT_PPD, exposure: floa
     """e float64 [len(POOLINGS), K, n_blocks]: the observer's errors of a stack for every
     pooling, from one FLIP map per level; cached next to the stack, so relabelling at
     another tau or pooling costs no FLIP. `computed`: the errors a build just computed
-    (`block_errors` with `POOLINGS`), stored instead of computed again."""
+    (`pooled_errors`), stored instead of computed again."""
     shape = (len(POOLINGS), stack.n_levels, stack.n_blocks)
 
     def compute() -> np.ndarray:
         if computed is not None:
             return np.asarray(computed, np.float64)
-        return block_errors(stack.reference(), stack.iter_levels(), stack.grid, ppd, exposure, POOLINGS)
+        return pooled_errors(stack.reference(), stack.iter_levels(), stack.grid, ppd, exposure)
     return cached_array(stack, f"observer-e{exposure:g}-ppd{ppd:g}", shape, compute)
 
 

@@ -16,7 +16,8 @@ estimates of one image, so their difference holds noise and no content. From the
 * `p`: log10 of `noisefeat.perceptual.pooled_colour_error(A, B)`, FLIP's colour pipeline
   in separable filters: what the std features miss (chroma noise, and FLIP's concave
   pooling, which weighs a few fireflies less than spread grain), at a fraction of its cost;
-* `f`: log10 of the half-buffer FLIP value e (`learning.inputs.halves.halves_flip`), the
+* `f`: log10 of the half-buffer FLIP value e (`learning.inputs.halves.halves_flip`, pooled as
+  the observer pools: the largest 16x16 tile mean), the
   `flip` criterion's score: FLIP's perceptual model of the noise, computed for all blocks
   at once by `noisefeat.flip` (the same figure as flip-evaluator to float32 rounding).
 

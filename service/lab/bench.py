@@ -17,10 +17,8 @@ from .bench_features import bench_crop, bench_features, md_crop, md_features
 from .bench_flip import bench_flip, md_flip
 from .bench_models import (bench_ablation, bench_dataset, bench_inputs, bench_knobs, bench_models, md_ablation,
                            md_cost_accuracy, md_dataset, md_inputs, md_knobs, md_models, saved_comparisons)
+from .bench_observer import bench_observer, bench_tau, md_observer, md_tau
 from .bench_passes import bench_render, md_render
-
-
-log = logging.getLogger(__name__)
 
 
 log = logging.getLogger(__name__)
@@ -46,7 +44,8 @@ def update_markdown(path: Path, sections: dict[str, str]) -> None:
 DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "inputs": (bench_inputs, md_inputs),
                     "criteria": (bench_criteria, md_criteria),
                     "tradeoff": (bench_tradeoff, md_tradeoff), "ablation": (bench_ablation, md_ablation),
-                    "step": (bench_step, md_step), "knobs": (bench_knobs, md_knobs)}
+                    "step": (bench_step, md_step), "knobs": (bench_knobs, md_knobs),
+                    "observer": (bench_observer, md_observer), "tau": (bench_tau, md_tau)}
 
 
 SECTIONS = ("features", "crop", "flip", "models", "render", "passes", "service", "stability", "reliability",

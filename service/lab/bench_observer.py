@@ -1,0 +1,166 @@
+"""`noisestop bench observer` and `bench tau`: what the observer's pooling and the noise
+target change, on the held-out scenes.
+
+* observer: per held-out scene, blocks converged inside the stack and the oracle's total
+  samples under the first observer (block mean) and DESIGN's (largest 16x16 tile mean),
+  and one picture of the blocks the first accepts and the second does not, each at its
+  first-observer threshold next to the reference, enlarged 3x.
+* tau: the `flip` criterion at c(tau) and the bundled model at its offset for tau, against
+  the observer's labels at that tau, per scene, at tau 0.01, 0.02 and 0.04 (every knob
+  from the training scenes only).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+TAUS = (0.01, 0.02, 0.04)
+KEYS = ("early_stop_rate", "spp_ratio_vs_oracle", "saved_vs_uniform")
+
+
+def _oracle_spp(thresholds: list[int | None], spp: list[int]) -> int:
+    """Samples per pixel the oracle spends on a stack's blocks (never converged: max spp)."""
+    return int(sum(spp[-1] if t is None else t for t in thresholds))
+
+
+def bench_observer(data: str, heldout: str | None = None, out_png: str = "docs/observer-v1-v2.png",
+                   tau: float = 0.02, most: int = 12) -> dict[str, Any]:
+    """Blocks converged and oracle samples under each pooling, per held-out scene; the picture."""
+    from learning.data.observer import observed
+    from learning.data.stack import list_stacks, read_stack
+
+    if heldout is None:
+        raise ValueError("bench observer needs --heldout DIR (the scenes no knob was set on)")
+    stacks = [read_stack(p) for p in list_stacks(heldout)]
+    rows, accepted = [], []
+    for st in stacks:
+        v1, v2 = observed(st, tau, "mean"), observed(st, tau)
+        e2 = _tile_errors(st)
+        rows.append({"scene": st.scene, "blocks": st.n_blocks,
+                     "converged_v1": sum(t is not None for t in v1.thresholds),
+                     "converged_v2": sum(t is not None for t in v2.thresholds),
+                     "oracle_spp_v1": _oracle_spp(v1.thresholds, st.spp),
+                     "oracle_spp_v2": _oracle_spp(v2.thresholds, st.spp)})
+        for b, (t1, t2) in enumerate(zip(v1.thresholds, v2.thresholds)):
+            if t1 is not None and (t2 is None or t2 > t1):
+                k = st.spp.index(t1)
+                accepted.append({"scene": st.scene, "block": b, "v1": t1, "v2": t2,
+                                 "tile_error_at_v1": float(e2[k, b]), "stack": st, "level": k})
+    accepted.sort(key=lambda r: -r["tile_error_at_v1"])
+    plot = _picture(accepted[:most], out_png, tau) if accepted else None
+    total = {k: sum(r[k] for r in rows) for k in rows[0] if k != "scene"} if rows else {}
+    return {"tau": tau, "per_scene": rows, "total": total, "plot": plot,
+            "accepted_by_v1_only": len(accepted),
+            "accepted": [{k: v for k, v in r.items() if k not in ("stack", "level")} for r in accepted]}
+
+
+def _tile_errors(st: Any) -> np.ndarray:
+    from learning.data.observer import VirtualObserver
+    return VirtualObserver().stack_errors(st)
+
+
+def _picture(rows: list[dict[str, Any]], out_png: str, tau: float) -> str:
+    """Each block at its first-observer threshold next to the reference, both enlarged 3x."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from renderer.outputs import to_srgb8
+
+    cols = 4
+    lines = (len(rows) + cols - 1) // cols
+    fig = Figure(figsize=(4.2 * cols, 2.35 * lines + 0.6), dpi=100)
+    FigureCanvasAgg(fig)
+    for i, r in enumerate(rows):
+        st, b = r["stack"], r["block"]
+        crop = st.split(st.level(r["level"]))[b]
+        ref = st.split(st.reference())[b]
+        pair = np.concatenate([to_srgb8(crop), np.full((crop.shape[0], 4, 3), 255, np.uint8), to_srgb8(ref)], axis=1)
+        ax = fig.add_subplot(lines, cols, i + 1)
+        ax.imshow(np.repeat(np.repeat(pair, 3, axis=0), 3, axis=1), interpolation="nearest")
+        v2 = "never" if r["v2"] is None else f"{r['v2']}"
+        ax.set_title(f"{r['scene']} block {b}: {r['v1']} spp | reference\n"
+                     f"tile error {r['tile_error_at_v1']:.3f} (tau {tau:g}); tile threshold {v2}", fontsize=8)
+        ax.set_axis_off()
+    fig.suptitle("Blocks the block-mean observer calls converged and the tile observer does not: "
+                 "at the mean threshold (left) beside the reference (right), 3x", fontsize=10)
+    fig.tight_layout()
+    Path(out_png).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=100)
+    return str(out_png)
+
+
+def md_observer(r: dict[str, Any]) -> str:
+    lines = [f"Held-out scenes, tau {r['tau']:g}; the oracle's samples count a block that never converges "
+             "inside its stack at the stack's last level (`noisestop bench observer --heldout data/heldout`).", "",
+             "| scene | blocks | converged, block mean (v1) | converged, 16x16 tile max (v2) | oracle spp v1 | "
+             "oracle spp v2 | v2 / v1 |", "|---|---|---|---|---|---|---|"]
+    for row in [*r["per_scene"], {"scene": "**all**", **r["total"]}]:
+        lines.append(f"| {row['scene']} | {row['blocks']} | {row['converged_v1']} | {row['converged_v2']} | "
+                     f"{row['oracle_spp_v1']} | {row['oracle_spp_v2']} | "
+                     f"{row['oracle_spp_v2'] / max(1, row['oracle_spp_v1']):.2f}x |")
+    lines += ["", f"{r['accepted_by_v1_only']} blocks are converged for the first observer at a level where the "
+              f"tile observer still sees noise; the {min(12, r['accepted_by_v1_only'])} with the largest tile error "
+              f"at that level: [{r['plot']}]({r['plot']})."]
+    return "\n".join(lines)
+
+
+def bench_tau(data: str, heldout: str | None = None, taus: tuple[float, ...] = TAUS,
+              model: str | None = None) -> dict[str, Any]:
+    """flip at c(tau) and the bundled model at its offset for tau, against labels at tau."""
+    from learning.evaluation.generalisation import scene_groups
+    from learning.inputs.halves import flip_c, load_flip_calibration
+    from learning.models.bundle import load_model
+    from renderer.simulate import evaluate_criterion_cli
+
+    if heldout is None:
+        raise ValueError("bench tau needs --heldout DIR (the scenes no knob was set on)")
+    cal = load_flip_calibration()
+    bundled = load_model(model)
+    out: dict[str, Any] = {"taus": list(taus), "flip": {}, "model": {}}
+    from learning.data.observer import read_observed
+    for tau in taus:
+        groups = scene_groups(read_observed(heldout, tau))
+        for name, kw in (("flip", {}), ("model", {"model": model})):
+            r = evaluate_criterion_cli(heldout, name, progress=False, tau=tau, **kw)
+            knob = flip_c(cal, tau) if name == "flip" else bundled.offset_at(tau)
+            conv = r.get("groups", {}).get("converging", {})
+            out[name][str(tau)] = {"knob": knob, "groups": groups,
+                                   **{k: r[k] for k in KEYS},
+                                   "converging": {k: conv.get(k) for k in KEYS},
+                                   "per_scene": {s: {**{k: m[k] for k in KEYS},
+                                                     "early_blocks": int(m["counts"].get("early", 0))}
+                                                 for s, m in r["per_scene"].items()}}
+    return out
+
+
+def md_tau(r: dict[str, Any]) -> str:
+    lines = ["Every knob from the training scenes only: flip's c(tau) from `learning/flip.json`, the bundled "
+             "model's offset for tau from its training record; labels by the observer at that tau "
+             "(`noisestop evaluate --data data/heldout --criterion flip|model --tau T`).", ""]
+    for name in ("flip", "model"):
+        for tau in r["taus"]:
+            row = r[name][str(tau)]
+            conv = row["converging"]
+            lines.append(f"**{name}, tau {tau:g}** ({'c' if name == 'flip' else 'offset'} {row['knob']:.4g}): "
+                         f"early stops {row['early_stop_rate']:.1%} at {row['spp_ratio_vs_oracle']:.2f}x the "
+                         f"oracle (converging scenes: {_pct(conv.get('early_stop_rate'))} at "
+                         f"{_x(conv.get('spp_ratio_vs_oracle'))})")
+            lines.append("")
+            lines.append("| scene | early blocks | early stops | samples / oracle | saved vs uniform |")
+            lines.append("|---|---|---|---|---|")
+            for s, m in sorted(row["per_scene"].items()):
+                mark = "" if s in row["groups"].get("converging", []) else " (does not converge)"
+                lines.append(f"| {s}{mark} | {m['early_blocks']} | {m['early_stop_rate']:.1%} | "
+                             f"{m['spp_ratio_vs_oracle']:.2f}x | {m['saved_vs_uniform']:.1%} |")
+            lines.append("")
+    return "\n".join(lines)
+
+
+def _pct(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.1%}"
+
+
+def _x(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.2f}x"

@@ -51,10 +51,11 @@ bench: dataset heldout
 
 # The training dataset (README "Datasets"): PROCEDURAL seeded procedural scenes
 # (renderer/procedural.py) plus the 14 built-in training scenes, each a 64x64 frame of one
-# 64x64 block, a level every 32 spp up to 2048 spp and an 8192-spp reference, so that most
-# blocks converge inside their stacks. Resumes if interrupted. Measured time: README.
+# 64x64 block, a level every 32 spp up to 4096 spp and an 8192-spp reference, so that most
+# blocks converge inside their stacks under the tile observer. Resumes if interrupted; on a
+# complete dataset it relabels stacks of an older observer (no rendering). Time: README.
 PROCEDURAL ?= 72
-TRAIN_ARGS ?= --resolution 64 --block 64 --step 32 --levels 64 --reference-spp 8192
+TRAIN_ARGS ?= --resolution 64 --block 64 --step 32 --levels 128 --reference-spp 8192
 dataset: setup
 	$(NOISESTOP) dataset build --out $(DATA) --scenes procedural:$(PROCEDURAL),training $(TRAIN_ARGS)
 	$(NOISESTOP) dataset check $(DATA)

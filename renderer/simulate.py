@@ -27,7 +27,7 @@ from tqdm import tqdm
 from learning.evaluation.generalisation import scene_groups
 from learning.inputs.halves import check_constant_step, recover_passes
 from learning.evaluation.metrics import evaluate_verdicts
-from learning.data.stack import Stack, list_stacks, read_stack
+from learning.data.stack import Stack, list_stacks, read_stack, read_stacks
 
 from .criteria import Criterion
 from .passloop import PassLoop
@@ -69,7 +69,7 @@ def _as_stacks(stacks: Stack | str | os.PathLike | Iterable[Stack | str | os.Pat
     if isinstance(stacks, Stack):
         return [stacks]
     if isinstance(stacks, (str, os.PathLike)):
-        return [read_stack(p) for p in list_stacks(stacks)]
+        return read_stacks(stacks)
     out = []
     for s in stacks:
         out.extend(_as_stacks(s) if not isinstance(s, Stack) else [s])
@@ -156,6 +156,8 @@ def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list
         stacks = [st for st in stacks if st.thresholds is not None]
     if not stacks:
         raise ValueError(f"{data}: no labelled stacks to evaluate on")
+    for st in stacks:
+        st.validate()
     factory = criterion_factory(criterion, model=model, server=server, threshold=threshold, offset=offset)
     return evaluate_criterion(stacks, factory, min_spp=min_spp, progress=progress)
 

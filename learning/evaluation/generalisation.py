@@ -63,13 +63,13 @@ def split_stacks(data: str, heldout: str | None = None) -> tuple[list[Stack], li
     training scene. Without it, the older in-dataset split (every 4th scene by name held
     out) is used, with a warning: such scenes are alike and often never converge.
     """
-    from ..data.stack import list_stacks, read_stack
+    from ..data.stack import read_stacks
 
-    stacks = [read_stack(p) for p in list_stacks(data)]
+    stacks = read_stacks(data)
     if not stacks:
         raise ValueError(f"{data}: no stacks found")
     if heldout is not None:
-        test = [read_stack(p) for p in list_stacks(heldout)]
+        test = read_stacks(heldout)
         if not test:
             raise ValueError(f"{heldout}: no stacks found (make heldout builds the held-out dataset)")
         check_disjoint([s.scene for s in stacks], [s.scene for s in test])

@@ -23,6 +23,7 @@ from noisefeat import FeatureBase, default_base, extract_features
 from noisefeat.display import lightness
 
 from ..data.npz import read_npz
+from ..data.exr import naming
 from ..data.stack import Stack, list_stacks, read_stack
 from ..names import QUICK_MODES
 from .noise_input import HALVES, RAW_COLUMNS, RAW_VERSION, compose, halves_raw, needs, noise_lightness
@@ -75,8 +76,9 @@ class SubImageTable:
 
 def _atomic_savez(path: Path, **arrays: np.ndarray) -> None:
     tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
+    with naming(path):
+        np.savez(tmp, **arrays)
+        os.replace(tmp, path)
 
 
 def cached_array(stack: Stack, name: str, shape: tuple[int, ...], compute: Callable[[], np.ndarray],
@@ -265,6 +267,7 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
             continue
         if st.scene in stacks:
             raise ValueError(f"{p}: scene name {st.scene!r} appears twice in {root}")
+        st.validate()            # every file, the reference included: damage named, never trained on
         stacks[st.scene] = st
         if image:
             x = stack_pictures(st, quick)

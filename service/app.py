@@ -35,8 +35,8 @@ from noisefeat.display import EXPOSURE_RANGE
 from .auth import require_token
 from .console import one_line
 from .connections import InFlightLimitMiddleware
-from .limits import (ENV_MEMORY_BUDGET, BodyLimitMiddleware, Limits, MemoryBudget, UploadPolicy, busy,
-                     decode_cost, release_memory)
+from .limits import (ENV_MEMORY_BUDGET, UPLOAD_BODIES, UPLOAD_CLAIM, BodyLimitMiddleware, Limits, MemoryBudget,
+                     UploadPolicy, busy, decode_cost, release_memory)
 from .metrics import ServiceMetrics
 from .oip import (BINARY_EXTENSION, HEADER_LENGTH, ApiError, ErrorResponse, InferenceRequest,
                   InferenceResponse, LiveResponse, ModelMetadata, ModelReadyResponse, ReadyResponse,
@@ -111,8 +111,9 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
     app.state.limits = limits
     app.state.metrics = metrics
     app.state.memory_budget = MemoryBudget(limits.memory_budget)
+    app.state.upload_budget = MemoryBudget(UPLOAD_BODIES * limits.max_body_bytes)
     app.add_middleware(BodyLimitMiddleware, max_bytes=limits.max_body_bytes, body_timeout=body_timeout,
-                       budget=app.state.memory_budget, upload=upload)
+                       budget=app.state.upload_budget, upload=upload)
     metrics.instrument(app, dependencies=[Depends(require_token)], tags=["metrics"], responses={
         200: {"description": "Prometheus text format",
               "content": {"text/plain": {"schema": {"type": "string"}}}},
@@ -224,14 +225,19 @@ async def _infer(request: Request, served: ServedModel, header_length: str | Non
     # counted against the limit, timed and its bytes claimed from the budget by BodyLimitMiddleware
     body = [await _read_body(request, TENSOR_ALIGNMENT if length is not None else 1, length or 0)]
     budget: MemoryBudget = state.memory_budget
-    cost = await anyio.to_thread.run_sync(decode_cost, body[0], length)   # a byte count, no parsing
-    if cost + len(body[0]) > budget.total:
-        raise ApiError(413, f"decoding this request would take about {cost + len(body[0])} bytes of working "
-                            f"memory, over this server's whole budget of {budget.total} (serve --memory-budget, "
+    # the body (already in memory) and what decoding it will take: a byte count, no parsing
+    cost = len(body[0]) + await anyio.to_thread.run_sync(decode_cost, body[0], length)
+    if cost > budget.total:
+        raise ApiError(413, f"decoding this request would take about {cost} bytes of working memory, over "
+                            f"this server's whole budget of {budget.total} (serve --memory-budget, "
                             f"{ENV_MEMORY_BUDGET}); send binary tensors, fewer values or less nesting",
                        headers={"Connection": "close"})
     if not await budget.acquire(cost):
         raise busy(f"{cost} bytes to decode this request")
+    upload_claim = request.scope.get(UPLOAD_CLAIM)
+    if upload_claim and upload_claim[0]:           # the body now counts in `cost`
+        state.upload_budget.release(upload_claim[0])
+        upload_claim[0] = 0
     try:
         content, json_length = await anyio.to_thread.run_sync(
             _infer_sync, served, body, length, state.limits, state.metrics, limiter=state.limiter)

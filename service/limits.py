@@ -8,10 +8,11 @@ block side and the pixel budget of a request (noisefeat.bounds: a 3.8 MB request
 [1, 8, 40000, 3] once took the server to 23.7 GB) are checked on the declared tensor
 shapes, before any tensor data is converted (`Limits.check_shapes`, oip.decode_tensors).
 
-Memory (`MemoryBudget`) is claimed in two steps, so that no request holds what it does not
-use: while a body arrives, the bytes received so far (in steps of `RESERVE_STEP`); once it
-is complete, what decoding and classifying it will take, estimated from the body itself
-before any parsing (`decode_cost`: binary tensors at `MEMORY_PER_BODY_BYTE` a byte, JSON
+Memory is claimed in two steps, from two `MemoryBudget`s, so that no request holds what it
+does not use: while a body arrives, the bytes received so far (in steps of `RESERVE_STEP`)
+from the upload budget (`UPLOAD_BODIES` bodies of the largest size); once it is complete,
+its bytes plus what decoding and classifying it will take from the memory budget (its
+upload claim is then given back), estimated from the body itself before any parsing (`decode_cost`: binary tensors at `MEMORY_PER_BODY_BYTE` a byte, JSON
 from a count of its brackets, commas and colons, the costs measured for the worst shapes).
 A request whose estimate is over the whole budget gets 413 at once, unparsed. A body must
 also arrive within `UploadPolicy.deadline` seconds, at `UploadPolicy.min_rate` bytes a
@@ -63,6 +64,11 @@ JSON_COST_PER_ITEM = 64
 JSON_COST_PER_BYTE = 1
 #: the memory of a body in flight is claimed in steps of this many bytes as it arrives
 RESERVE_STEP = 1 << 20
+#: bodies being received may hold this many times --max-body-bytes together (a pool of
+#: its own: bodies waiting for the memory budget must not starve the one being decoded)
+UPLOAD_BODIES = 4
+#: where BodyLimitMiddleware puts a request's upload claim for the route to hand it over
+UPLOAD_CLAIM = "noisestop.upload_claim"
 #: by default one request of the largest body at a time, or many smaller ones at once
 DEFAULT_MEMORY_BUDGET = MEMORY_PER_BODY_BYTE * DEFAULT_MAX_BODY + MEMORY_PER_REQUEST
 
@@ -324,6 +330,7 @@ class BodyLimitMiddleware:
                 await _send_error(send, too_large(self.max_bytes))
                 return
         held = [0]
+        scope[UPLOAD_CLAIM] = held      # the infer route gives it back once the body is decoded
         try:
             await self._guarded(scope, receive, send, held)
         finally:

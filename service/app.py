@@ -142,6 +142,13 @@ def _add_error_handlers(app: FastAPI) -> None:
         where = ".".join(str(p) for p in first.get("loc", ()))
         return JSONResponse({"error": f"{where}: {first.get('msg')}"}, 400)
 
+    @app.exception_handler(MemoryError)
+    async def out_of_memory(_: Request, exc: MemoryError) -> JSONResponse:
+        log.error("out of memory while receiving a request; answered 503, serving on")
+        release_memory(0)
+        return JSONResponse({"error": "server out of memory for this request; retry, or send a smaller one"},
+                            503, headers={"Retry-After": "1", "Connection": "close"})
+
     @app.exception_handler(Exception)
     async def server_error(_: Request, exc: Exception) -> JSONResponse:
         log.exception("unexpected error", exc_info=exc)

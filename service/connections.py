@@ -13,8 +13,11 @@ ones included, and then answers 503 to every route, health probes too.
 * `InFlightLimitMiddleware`: at most `limit` requests in flight (`serve
   --limit-concurrency`); over it, 503 with Retry-After and an {"error"} body. Health probes
   and /metrics are never counted nor refused, so a liveness probe does not kill a busy pod.
-* `BodyLimitMiddleware` (service.limits) adds the body-read timeout: a body that stops
-  arriving for `body_timeout` seconds is answered 408.
+* `BodyLimitMiddleware` (service.limits) adds the body's own limits: a body that stalls
+  for `body_timeout` seconds, is not complete within the whole-body deadline, or arrives
+  slower than the minimum rate after the grace period is answered 408.
+* A request h11 cannot parse is answered 400 with the {"error"} JSON body every other
+  error has, naming what was wrong (`send_400_response`; uvicorn's is plain text).
 
 uvicorn's own `limit_concurrency` stays on as the ceiling of open connections
 (`serve --max-connections`), far above what idle clients can hold for long.

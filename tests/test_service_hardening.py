@@ -142,6 +142,17 @@ def test_out_of_memory_is_503_logged_and_the_server_serves_on(client, monkeypatc
     assert client.app.state.memory_budget.used == client.app.state.upload_budget.used == 0   # all given back
 
 
+def test_out_of_memory_while_a_body_arrives_is_503_too(client, monkeypatch, caplog):
+    def exhausted(*a, **k):
+        raise MemoryError()
+    monkeypatch.setattr(app_mod, "_read_body", exhausted)
+    r = _post(client, json.dumps({"inputs": [_features()]}))
+    assert r.status_code == 503 and "out of memory" in r.json()["error"], r.text
+    assert not any("Traceback" in (rec.exc_text or "") for rec in caplog.records)
+    monkeypatch.undo()
+    assert _post(client, json.dumps({"inputs": [_features()]})).status_code == 200
+
+
 # --- the HTTP layer's own 400s -------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")

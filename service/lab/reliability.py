@@ -240,29 +240,43 @@ def bench_hardening() -> dict[str, Any]:
 
 
 def _hardening_shapes() -> dict[str, Any]:
+    """Named (body, headers) makers: the worst JSON shapes per byte, admitted or refused,
+    and the largest binary ones."""
     from . import attack
     from ..limits import DEFAULT_MAX_BODY, DEFAULT_MEMORY_BUDGET, json_cost
-    unit = b"[" * 20 + b"1" + b"]" * 20
+    unit = b"[" * 20 + b"1.5" + b"]" * 20
 
-    def nested(fraction_of_budget: float) -> tuple[bytes, dict[str, str]]:
-        n = int(fraction_of_budget * DEFAULT_MEMORY_BUDGET / json_cost(unit + b","))
-        body = b'{"inputs":[{"name":"features","shape":[%d,1,1,1,1,1,1,1],"datatype":"FP32","data":[' % n \
+    def nested_values(fraction_of_budget: float) -> tuple[bytes, dict[str, str]]:
+        n = int(fraction_of_budget * DEFAULT_MEMORY_BUDGET / (json_cost(unit + b",") + len(unit) + 1))
+        body = b'{"inputs":[{"name":"features","shape":[1,%d],"datatype":"FP32","data":[' % n \
             + b",".join([unit] * n) + b"]}]}"
         return body, {"Content-Type": "application/json"}
 
-    def flat(text: bytes, size: int) -> tuple[bytes, dict[str, str]]:
-        n = size // (len(text) + 1)
-        return (b'{"inputs":[{"name":"features","shape":[%d],"datatype":"FP32","data":[' % n
-                + b",".join([text] * n) + b"]}]}", {"Content-Type": "application/json"})
+    def image(value: bytes, size: int, nested: bool) -> tuple[bytes, dict[str, str]]:
+        per_pixel = 3 * (len(value) + 1) + (2 if nested else 0)
+        w = max(8, size // (2 * 2 * 1024 * per_pixel))
+        if nested:
+            return attack.nested_json_request((2, 1024, w, 3), value)
+        data = b"[" + b",".join([value] * (2 * 1024 * w * 3)) + b"]"
+        inputs = b",".join(b'{"name":"%s","shape":[2,1024,%d,3],"datatype":"FP32","data":%s}' % (nm, w, data)
+                           for nm in (b"blocks", b"quick"))
+        return b'{"inputs":[' + inputs + b"]}", {"Content-Type": "application/json"}
+
+    def spaces(size: int) -> tuple[bytes, dict[str, str]]:
+        data = (b"," + b" " * (size // 26)).join([b"0.5"] * 26)
+        return (b'{"inputs":[{"name":"features","shape":[1,26],"datatype":"FP32","data":[' + data + b"]}]}",
+                {"Content-Type": "application/json"})
 
     wide = int((DEFAULT_MAX_BODY - 4096) // (2 * 12)) // 2048
     return {
-        "JSON: 62 MiB, 20 lists around every value (the issue's)": lambda: attack.nested_json_request_62(),
-        "JSON: 20 lists around every value, estimate at 90% of the budget": lambda: nested(0.9),
-        "JSON: 3-digit integers, flat, 60 MiB": lambda: flat(b"257", 60 << 20),
-        "JSON: 9-digit floats, flat, 60 MiB": lambda: flat(b"0.1234567", 60 << 20),
-        "JSON: whitespace, 60 MiB": lambda: (b'{"inputs":[{"name":"features","shape":[1],"datatype":"FP32","data":[1'
-                                             + b" " * (60 << 20) + b"]}]}", {"Content-Type": "application/json"}),
+        "JSON: 62 MiB, 20 lists around every value (the issue's)": attack.nested_json_request_62,
+        "JSON: 20 lists around every value, estimate 90% of the budget (parsed; 400: not 26 features)":
+            lambda: nested_values(0.9),
+        "JSON image [2, 1024, W, 3] x 2, one-digit numbers nested per pixel, 64 MiB (issue 14's worst)":
+            lambda: image(b"0", 64 << 20, nested=True),
+        "JSON image, 3-digit integers, flat, 48 MiB": lambda: image(b"257", 48 << 20, nested=False),
+        "JSON image, 9-digit floats nested per pixel, 60 MiB": lambda: image(b"0.1234567", 60 << 20, nested=True),
+        "JSON: 26 features and 60 MiB of whitespace": lambda: spaces(60 << 20),
         f"binary: widest block [1, {wide}, 2048, 3] x 2 inputs, ~64 MiB": lambda: attack.binary_request((1, wide, 2048, 3)),
         "binary: many small blocks [1024, 40, 40, 3] x 2": lambda: attack.binary_request((1024, 40, 40, 3)),
     }
@@ -292,7 +306,7 @@ def _shape_peaks(bundle: str) -> list[dict[str, Any]]:
     return rows
 
 
-def _slow_uploaders(bundle: str, counts: tuple[int, ...] = (0, 1, 4, 16), requests: int = 60) -> list[dict[str, Any]]:
+def _slow_uploaders(bundle: str, counts: tuple[int, ...] = (0, 1, 4, 16), requests: int = 200) -> list[dict[str, Any]]:
     from . import attack
     from .loadtest import LocalServer, make_request
     rows = []
@@ -391,7 +405,8 @@ def md_hardening(r: dict[str, Any]) -> str:
     for x in slow:
         ratio = f"{x['p99_ms'] / base:.2f}" if base else "-"
         lines.append(f"| {x['slow_clients']} | {x['ok']}/{x['requests']} answered 200 | {x['p50_ms']:.0f} | "
-                     f"{x['p99_ms']:.0f} | {ratio} | {x['slow_connections']}: {', '.join(x['slow_statuses']) or '-'}, "
+                     f"{x['p99_ms']:.0f} | {ratio} | {x['slow_connections']}: "
+                     f"{', '.join(x['slow_statuses']).replace('None', 'still uploading at the end') or '-'}, "
                      f"{x['slow_held_max_s']:.1f} s |")
     lines += ["", "| serve started with | served? | exit | stderr lines | message |", "|---|---|---|---|---|"]
     for a in r["auth"]:

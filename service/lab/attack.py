@@ -320,7 +320,10 @@ def slow_upload(url: str, token: str | None, stop: threading.Event, declared: in
                 except TimeoutError:
                     continue
                 got += chunk
-                if not chunk or got.startswith(b"HTTP/"):
+                if not chunk:
+                    break
+                if got.startswith(b"HTTP/"):           # answered: read the rest of the answer
+                    got += _closed(s, time.monotonic() + 5)[1]
                     break
         except OSError:
             pass

@@ -188,8 +188,11 @@ def md_reliability(r: dict[str, Any]) -> str:
     for c in su["cases"]:
         by_file.setdefault(c["file"], Counter())[c["outcome"]] += 1
     labels = {"test_error_contract": "command-line error contract (every case of the issue; tests/test_error_contract.py)",
-              "test_fuzz": "hypothesis fuzzing: tensor decoder, JSON parser, manifest and checkpoint readers",
-              "test_kill_resume": "kill -9 at 3 random passes, then --resume (bit-identical image and report)"}
+              "test_fuzz": "hypothesis fuzzing: tensor decoder, JSON parser and its memory estimate, duplicate keys, "
+                           "manifest and checkpoint readers",
+              "test_kill_resume": "kill -9 at 3 random passes, then --resume (bit-identical image and report)",
+              "test_service_hardening": "issue 26 on the service: memory before parsing, slow uploaders, duplicate "
+                                        "keys, protocol 400s, /openapi.json, out of memory, SIGHUP"}
     for f, counts in sorted(by_file.items()):
         extra = ""
         if f == "test_fuzz" and su["examples"]:

@@ -18,9 +18,12 @@ and /metrics exempt), together within `memory_budget` bytes of working memory
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
+import threading
+from collections.abc import Iterator
 from types import FrameType
 
 import uvicorn
@@ -141,25 +144,21 @@ class _DrainingServer(uvicorn.Server):
     """uvicorn's server, which also drains on SIGHUP (a hang-up used to kill the process
     at once, without a word), and says in the log which signal started the drain."""
 
-    def capture_signals(self):  # type: ignore[override]
-        import threading
-        if threading.current_thread() is not threading.main_thread():
-            return super().capture_signals()
-        previous = signal.signal(signal.SIGHUP, self._hang_up)
-        inner = super().capture_signals()
-
-        class _Both:
-            def __enter__(_) -> None:
-                inner.__enter__()
-
-            def __exit__(_, *exc: object) -> None:
+    @contextlib.contextmanager
+    def capture_signals(self) -> Iterator[None]:
+        with super().capture_signals():
+            if threading.current_thread() is not threading.main_thread():
+                yield
+                return
+            previous = signal.signal(signal.SIGHUP, self._hang_up)
+            try:
+                yield
+            finally:
                 signal.signal(signal.SIGHUP, previous)
-                inner.__exit__(*exc)
-        return _Both()
 
     def _hang_up(self, sig: int, frame: FrameType | None) -> None:
         log.warning("SIGHUP: draining requests in flight, then exiting as for SIGTERM (no reload)")
-        self.handle_exit(signal.SIGTERM, frame)
+        super().handle_exit(signal.SIGTERM, frame)   # after the drain, the process ends as by SIGTERM
 
     def handle_exit(self, sig: int, frame: FrameType | None) -> None:
         name = signal.Signals(sig).name

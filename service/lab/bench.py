@@ -118,8 +118,7 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
         from .bench_service import bench_service, md_service
         measure("service", bench_service, md_service)
     if "reliability" in only:
-        from .reliability import bench_reliability, md_reliability
-        from .reliability import bench_hardening, md_hardening
+        from .reliability import bench_reliability, md_hardening, md_reliability
         measure("reliability", bench_reliability, md_reliability)
         if "reliability" in results:                     # its issue-26 part: a section of its own
             markdown["hardening"] = md_hardening(results["reliability"]["hardening"])

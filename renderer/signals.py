@@ -1,27 +1,38 @@
-"""Ctrl-C and SIGTERM during a render: finish the pass, checkpoint, then stop.
+"""Ctrl-C and SIGTERM during a render: finish the pass, checkpoint, then stop; a second
+signal stops at once.
 
 The checkpoint is written on a time interval, not after every pass (issue 16), so an
 interrupt must not simply kill the loop: the passes since the last checkpoint would be
 lost, and an interrupt inside `BlockAccumulator.add_many` would leave a half-added pass.
 `DeferredStop` turns the first SIGINT/SIGTERM into a request the loop reads between
-passes; a second one stops at once (the default behaviour). SIGKILL cannot be caught:
-`--resume` then continues from the last checkpoint, still bit for bit.
+passes. A second one stops the process at once with one line and exit status 130, even
+while a render pass runs in native code (Mitsuba), where Python signal handlers wait for
+the call to return: the signal is seen by a watcher thread through the interpreter's
+wake-up file descriptor (`signal.set_wakeup_fd`), which the C-level handler writes to
+at once. SIGKILL cannot be caught: `--resume` then continues from the last checkpoint,
+still bit for bit; so it does after a second signal.
 """
 from __future__ import annotations
 
 import logging
+import os
 import signal
+import sys
 import threading
+import time
 from types import FrameType, TracebackType
 from typing import Any
 
 logger = logging.getLogger(__name__)
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
+#: exit status of a process stopped by a second signal (128 + SIGINT, as shells report Ctrl-C)
+EXIT_STATUS = 130
 
 
 class DeferredStop:
-    """Context manager: ``requested`` is the first signal's name once one arrived.
+    """Context manager: ``requested`` is the first signal's name once one arrived; a
+    second signal ends the process at once (one line on stderr, exit status 130).
 
     Outside the main thread (Dask workers) signals cannot be handled; it then does
     nothing and the process's own handling applies.
@@ -30,10 +41,15 @@ class DeferredStop:
     def __init__(self) -> None:
         self.requested: str | None = None
         self._previous: dict[int, Any] = {}
+        self._pipe: tuple[int, int] | None = None
+        self._old_wakeup = -1
+        self._watcher: threading.Thread | None = None
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         name = signal.Signals(signum).name
-        if self.requested is not None:            # second signal: stop now
+        if self.requested is not None:            # second signal: the watcher ends the process
+            if self._watcher is not None and self._watcher.is_alive():
+                time.sleep(1.0)                    # it is doing so now
             self._restore()
             raise KeyboardInterrupt(f"{name} again: stopped without finishing the pass")
         self.requested = name
@@ -44,12 +60,59 @@ class DeferredStop:
         if threading.current_thread() is threading.main_thread():
             for sig in SIGNALS:
                 self._previous[sig] = signal.signal(sig, self._handle)
+            self._start_watcher()
         return self
+
+    def _start_watcher(self) -> None:
+        try:
+            r, w = os.pipe()
+            os.set_blocking(w, False)
+            self._old_wakeup = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+        except (OSError, ValueError):              # no wake-up fd: the Python handler alone
+            return
+        self._pipe = (r, w)
+        self._watcher = threading.Thread(target=self._watch, args=(r,), name="second-signal", daemon=True)
+        self._watcher.start()
+
+    def _watch(self, fd: int) -> None:
+        seen = 0
+        while True:
+            try:
+                data = os.read(fd, 64)
+            except OSError:
+                return
+            if not data:                           # the pipe was closed: the block ended
+                return
+            for signum in data:
+                if signum in SIGNALS:
+                    seen += 1
+                    if seen >= 2:
+                        self._stop_now(signal.Signals(signum).name)
+
+    def _stop_now(self, name: str) -> None:
+        try:
+            sys.stderr.flush()
+        except Exception:                          # noqa: BLE001 - stopping regardless
+            pass
+        os.write(2, f"\nnoisestop: interrupted: {name} again: stopped at once, without finishing the "
+                    "pass (--resume continues from the last checkpoint)\n".encode())
+        os._exit(EXIT_STATUS)
 
     def _restore(self) -> None:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
         self._previous.clear()
+        if self._pipe is not None:
+            try:
+                signal.set_wakeup_fd(self._old_wakeup)
+            except ValueError:
+                pass
+            r, w = self._pipe
+            self._pipe = None
+            os.close(w)                            # the watcher reads EOF and ends
+            if self._watcher is not None:
+                self._watcher.join(1.0)
+            os.close(r)
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:

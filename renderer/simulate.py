@@ -28,7 +28,7 @@ from learning.evaluation.generalisation import scene_groups
 from learning.inputs.halves import check_constant_step, recover_passes
 from learning.evaluation.metrics import evaluate_verdicts
 from learning.data.observer import observed, read_observed
-from learning.data.stack import Stack, list_stacks, read_stack
+from learning.data.stack import Stack, list_stacks, read_stack, read_stacks
 from learning.names import DEFAULT_TAU
 
 from .criteria import Criterion
@@ -74,7 +74,7 @@ def _as_stacks(stacks: Stack | str | os.PathLike | Iterable[Stack | str | os.Pat
     if isinstance(stacks, Stack):
         return [stacks]
     if isinstance(stacks, (str, os.PathLike)):
-        return read_observed(str(stacks), tau)
+        return [observed(s, tau) for s in read_stacks(stacks)]
     out = []
     for s in stacks:
         out.extend(_as_stacks(s, tau) if not isinstance(s, Stack) else [s])
@@ -165,6 +165,8 @@ def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list
         stacks = [st for st in stacks if st.thresholds is not None]
     if not stacks:
         raise ValueError(f"{data}: no labelled stacks to evaluate on")
+    for st in stacks:
+        st.validate()
     out = evaluate_criterion(stacks, factory, min_spp=min_spp, progress=progress, tau=tau)
     return {**out, "tau": float(tau)}
 

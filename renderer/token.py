@@ -4,7 +4,10 @@
 An explicit token or token file first, else NOISESTOP_TOKEN or the file NOISESTOP_TOKEN_FILE
 names (a Docker or Kubernetes secret). Both set is a mistake, refused on both sides (before,
 the client let the variable win while the server refused), and an empty token is never
-taken for "no token".
+taken for "no token": a variable that is set but empty (`NOISESTOP_TOKEN=`, or
+`NOISESTOP_TOKEN_FILE=`), a token of spaces and an empty token file are all refused. Only
+variables that are not set at all mean "no token" (which `noisestop serve` then accepts
+only with `--no-auth`, on loopback).
 """
 from __future__ import annotations
 
@@ -20,9 +23,12 @@ def resolve_token(token: str | None = None, token_file: str | os.PathLike | None
                   environ: Mapping[str, str] = os.environ) -> str | None:
     """The token to require: explicit arguments first, then the environment; None if none."""
     if token is None and token_file is None:
-        token, token_file = environ.get(ENV_TOKEN) or None, environ.get(ENV_TOKEN_FILE) or None
+        token, token_file = environ.get(ENV_TOKEN), environ.get(ENV_TOKEN_FILE)
     if token is not None and token_file is not None:
         raise ValueError(f"set either {ENV_TOKEN} or {ENV_TOKEN_FILE}, not both")
+    if token_file is not None and not str(token_file).strip():
+        raise ValueError(f"{ENV_TOKEN_FILE} (or --token-file) is set but empty: name the token file, "
+                         "or unset it")
     if token_file is not None:
         path = Path(token_file)
         try:
@@ -36,5 +42,6 @@ def resolve_token(token: str | None = None, token_file: str | os.PathLike | None
     elif token is not None:
         token = token.strip()
         if not token:
-            raise ValueError(f"{ENV_TOKEN} is set but empty")
+            raise ValueError(f"{ENV_TOKEN} is set but empty (a token of spaces is no token): set it, "
+                             "or unset it")
     return token

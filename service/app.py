@@ -33,8 +33,10 @@ from learning.stoprule import OFFSET_LIMIT
 from noisefeat.display import EXPOSURE_RANGE
 
 from .auth import require_token
+from .console import one_line
 from .connections import InFlightLimitMiddleware
-from .limits import BodyLimitMiddleware, Limits, MemoryBudget, release_memory
+from .limits import (ENV_MEMORY_BUDGET, UPLOAD_BODIES, UPLOAD_CLAIM, BodyLimitMiddleware, Limits, MemoryBudget,
+                     UploadPolicy, busy, decode_cost, release_memory)
 from .metrics import ServiceMetrics
 from .oip import (BINARY_EXTENSION, HEADER_LENGTH, ApiError, ErrorResponse, InferenceRequest,
                   InferenceResponse, LiveResponse, ModelMetadata, ModelReadyResponse, ReadyResponse,
@@ -77,11 +79,14 @@ def _version() -> str:
 
 def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Limits | None = None,
                inference_threads: int = 2, metrics: ServiceMetrics | None = None,
-               limit_concurrency: int | None = None, body_timeout: float | None = None) -> FastAPI:
+               limit_concurrency: int | None = None, body_timeout: float | None = None,
+               upload: UploadPolicy | None = None) -> FastAPI:
     """The ASGI app; models load in its lifespan (now, if `registry` is not loaded yet).
 
     `limit_concurrency`: most requests in flight, health probes and /metrics not counted
-    (None: no limit); `body_timeout`: seconds a request body may stall (None: no limit).
+    (None: no limit); `body_timeout`: seconds a request body may stall (None: no limit);
+    `upload`: the whole upload policy (stall, deadline, minimum rate; `body_timeout` is then
+    ignored).
 
     Requests are classified one by one, 2 at a time (`inference_threads`): a micro-batching
     window across concurrent requests was measured slower (BENCHMARKS.md "Verdict
@@ -106,8 +111,9 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
     app.state.limits = limits
     app.state.metrics = metrics
     app.state.memory_budget = MemoryBudget(limits.memory_budget)
+    app.state.upload_budget = MemoryBudget(UPLOAD_BODIES * limits.max_body_bytes)
     app.add_middleware(BodyLimitMiddleware, max_bytes=limits.max_body_bytes, body_timeout=body_timeout,
-                       budget=app.state.memory_budget)
+                       budget=app.state.upload_budget, upload=upload)
     metrics.instrument(app, dependencies=[Depends(require_token)], tags=["metrics"], responses={
         200: {"description": "Prometheus text format",
               "content": {"text/plain": {"schema": {"type": "string"}}}},
@@ -135,6 +141,13 @@ def _add_error_handlers(app: FastAPI) -> None:
         first = exc.errors()[0] if exc.errors() else {"loc": (), "msg": "invalid request"}
         where = ".".join(str(p) for p in first.get("loc", ()))
         return JSONResponse({"error": f"{where}: {first.get('msg')}"}, 400)
+
+    @app.exception_handler(MemoryError)
+    async def out_of_memory(_: Request, exc: MemoryError) -> JSONResponse:
+        log.error("out of memory while receiving a request; answered 503, serving on")
+        release_memory(0)
+        return JSONResponse({"error": "server out of memory for this request; retry, or send a smaller one"},
+                            503, headers={"Retry-After": "1", "Connection": "close"})
 
     @app.exception_handler(Exception)
     async def server_error(_: Request, exc: Exception) -> JSONResponse:
@@ -216,12 +229,28 @@ async def _infer(request: Request, served: ServedModel, header_length: str | Non
         raise ApiError(415, "compressed request bodies are not accepted (Content-Encoding must be identity)")
     state = request.app.state
     length = None if header_length is None else int(header_length)
-    # counted against the limit by BodyLimitMiddleware
+    # counted against the limit, timed and its bytes claimed from the budget by BodyLimitMiddleware
     body = [await _read_body(request, TENSOR_ALIGNMENT if length is not None else 1, length or 0)]
+    budget: MemoryBudget = state.memory_budget
+    # the body (already in memory) and what decoding it will take: a byte count, no parsing
+    cost = len(body[0]) + await anyio.to_thread.run_sync(decode_cost, body[0], length)
+    if cost > budget.total:
+        raise ApiError(413, f"decoding this request would take about {cost} bytes of working memory, over "
+                            f"this server's whole budget of {budget.total} (serve --memory-budget, "
+                            f"{ENV_MEMORY_BUDGET}); send binary tensors, fewer values or less nesting",
+                       headers={"Connection": "close"})
+    if not await budget.acquire(cost):
+        raise busy(f"{cost} bytes to decode this request")
+    upload_claim = request.scope.get(UPLOAD_CLAIM)
+    if upload_claim and upload_claim[0]:           # the body now counts in `cost`
+        state.upload_budget.release(upload_claim[0])
+        upload_claim[0] = 0
     try:
         content, json_length = await anyio.to_thread.run_sync(
             _infer_sync, served, body, length, state.limits, state.metrics, limiter=state.limiter)
     finally:
+        body.clear()
+        budget.release(cost)
         release_memory()
     if json_length is None:
         return Response(content, media_type="application/json")
@@ -233,9 +262,23 @@ async def _infer(request: Request, served: ServedModel, header_length: str | Non
 TENSOR_ALIGNMENT = 64
 
 
+#: bodies up to this size get their whole buffer (by Content-Length) when they start; larger
+#: ones grow theirs as bytes arrive (doubling), so that a client declaring a large body and
+#: sending little holds little memory and address space
+PREALLOCATE = 8 << 20
+
+
+def _aligned(size: int, align: int, at: int) -> tuple[np.ndarray, int]:
+    """An uninitialised buffer of `size` bytes (plus slack) and the offset `pad` at which a
+    body must start so that its byte `at` lies on an `align`-byte boundary."""
+    store = np.empty(size + align, np.uint8)           # no zero-filling: every byte is written
+    return store, -(store.ctypes.data + at) % align
+
+
 async def _read_body(request: Request, align: int = 1, at: int = 0) -> memoryview | bytearray:
-    """The body in one buffer sized by Content-Length when declared (Starlette's
-    `request.body()` joins a list of chunks: twice the body at its peak).
+    """The body in one buffer (Starlette's `request.body()` joins a list of chunks: twice
+    the body at its peak), sized by Content-Length when declared up to `PREALLOCATE`,
+    grown as bytes arrive beyond it.
 
     With `align` > 1 the body is placed in a slightly larger, uninitialised buffer so that
     its byte `at` (where the binary tensors start, after the JSON header) lies on an
@@ -245,24 +288,28 @@ async def _read_body(request: Request, align: int = 1, at: int = 0) -> memoryvie
     declared = request.headers.get("content-length", "")
     size = int(declared) if declared.isdigit() else 0
     if align > 1 and size:
-        store = np.empty(size + align, np.uint8)       # no zero-filling: every byte is written
-        pad = -(store.ctypes.data + at) % align
-        view, pos = memoryview(store), pad
+        store, pad = _aligned(min(size, PREALLOCATE), align, at)
+        pos = pad
         try:
             async for chunk in request.stream():
-                if pos + len(chunk) > len(view):     # more than declared: BodyLimit/h11 stop this
+                if pos - pad + len(chunk) > size:   # more than declared: BodyLimit/h11 stop this
                     raise ApiError(400, f"body longer than its Content-Length ({size} bytes)")
-                view[pos:pos + len(chunk)] = chunk
+                if pos + len(chunk) > len(store) - align + pad:
+                    grown, new_pad = _aligned(min(size, max(2 * (len(store) - align), pos - pad + len(chunk))),
+                                              align, at)
+                    grown[new_pad:new_pad + pos - pad] = store[pad:pos]
+                    store, pos, pad = grown, new_pad + pos - pad, new_pad
+                store[pos:pos + len(chunk)] = np.frombuffer(chunk, np.uint8)
                 pos += len(chunk)
         except ClientDisconnect:
             raise ApiError(400, f"client disconnected after {pos - pad} body bytes") from None
-        return view[pad:pos]
-    buf = bytearray(size)
+        return memoryview(store)[pad:pos]
+    buf = bytearray(min(size, PREALLOCATE))
     pos = 0
     try:
         async for chunk in request.stream():
             if pos + len(chunk) > len(buf):
-                buf[pos:] = chunk                      # more than declared (or none declared)
+                buf[pos:] = chunk                      # more than allocated (or none declared)
             else:
                 buf[pos:pos + len(chunk)] = chunk
             pos += len(chunk)
@@ -274,10 +321,28 @@ async def _read_body(request: Request, align: int = 1, at: int = 0) -> memoryvie
 
 def _infer_sync(served: ServedModel, body: list[bytearray | memoryview], header_length: int | None,
                 limits: Limits, metrics: ServiceMetrics) -> tuple[bytes, int | None]:
-    """Decode, classify, encode: everything CPU-bound about one request, in a worker thread."""
-    req, tensors, exposure, offset, tau, wanted = _decode_sync(body, header_length, limits)
-    arrays, parameters = served.infer(tensors, exposure, offset, tau)
-    return _encode(served, req, wanted, arrays, parameters, metrics)
+    """Decode, classify, encode: everything CPU-bound about one request, in a worker thread.
+
+    Running out of memory (a MemoryError under an address-space limit, or the JSON parser's
+    native code giving up, which surfaces as a BaseException that is not an Exception) is
+    answered 503 and logged; the request's memory is freed and the server serves on."""
+    try:
+        req, tensors, exposure, offset, tau, wanted = _decode_sync(body, header_length, limits)
+        arrays, parameters = served.infer(tensors, exposure, offset, tau)
+        return _encode(served, req, wanted, arrays, parameters, metrics)
+    except MemoryError:
+        body.clear()
+        log.error("out of memory while answering a request (%s); answered 503, serving on",
+                  "decode or inference")
+        raise ApiError(503, "server out of memory for this request; retry, or send a smaller one",
+                       headers={"Retry-After": "1", "Connection": "close"}) from None
+    except BaseException as exc:      # noqa: B036 - only pyo3's PanicException is handled here
+        if type(exc).__name__ != "PanicException":
+            raise
+        body.clear()
+        log.error("the JSON parser failed in native code (%s); answered 503, serving on", one_line(exc))
+        raise ApiError(503, "server could not parse this request (out of memory?); retry, or send a smaller one",
+                       headers={"Retry-After": "1", "Connection": "close"}) from None
 
 
 def _decode_sync(body: list[bytearray | memoryview], header_length: int | None, limits: Limits

@@ -1,4 +1,5 @@
-"""Bearer-token authentication, and the rule that a server without a token stays on loopback.
+"""Bearer-token authentication, and the rule that a server runs without a token only when
+asked to (`serve --no-auth`), and then on loopback only.
 
 The token comes from NOISESTOP_TOKEN or from the file NOISESTOP_TOKEN_FILE names (a Docker
 or Kubernetes secret; the rule is `renderer.token`, shared with the client). A wrong or missing token gets the same fixed 401 (no hint of which),
@@ -34,11 +35,19 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-def check_bind(host: str, token: str | None) -> None:
-    """Refuse to serve without a token on anything but a loopback address."""
+def check_bind(host: str, token: str | None, no_auth: bool = False) -> None:
+    """Refuse to serve without a token unless `no_auth` says so, and never without one on
+    anything but a loopback address; refuse a token together with `no_auth` (which of the
+    two was meant is not for the server to guess)."""
+    if no_auth and token is not None:
+        raise ValueError(f"--no-auth given but a token is set ({ENV_TOKEN} / {ENV_TOKEN_FILE} / "
+                         "--token-file): drop one of them")
     if token is None and not is_loopback(host):
         raise ValueError(f"refusing to listen on {host!r} without a token: set {ENV_TOKEN} or "
-                         f"{ENV_TOKEN_FILE}, or listen on 127.0.0.1")
+                         f"{ENV_TOKEN_FILE} (--no-auth is for loopback only)")
+    if token is None and not no_auth:
+        raise ValueError(f"no token: set {ENV_TOKEN} (or {ENV_TOKEN_FILE}, --token-file), or pass "
+                         "--no-auth to serve without one on loopback")
 
 
 async def require_token(request: Request,

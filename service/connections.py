@@ -13,8 +13,11 @@ ones included, and then answers 503 to every route, health probes too.
 * `InFlightLimitMiddleware`: at most `limit` requests in flight (`serve
   --limit-concurrency`); over it, 503 with Retry-After and an {"error"} body. Health probes
   and /metrics are never counted nor refused, so a liveness probe does not kill a busy pod.
-* `BodyLimitMiddleware` (service.limits) adds the body-read timeout: a body that stops
-  arriving for `body_timeout` seconds is answered 408.
+* `BodyLimitMiddleware` (service.limits) adds the body's own limits: a body that stalls
+  for `body_timeout` seconds, is not complete within the whole-body deadline, or arrives
+  slower than the minimum rate after the grace period is answered 408.
+* A request h11 cannot parse is answered 400 with the {"error"} JSON body every other
+  error has, naming what was wrong (`send_400_response`; uvicorn's is plain text).
 
 uvicorn's own `limit_concurrency` stays on as the ceiling of open connections
 (`serve --max-connections`), far above what idle clients can hold for long.
@@ -51,6 +54,16 @@ class _HeaderDeadlineProtocol(H11Protocol):
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
+        self._protocol_problem: str | None = None
+        next_event = self.conn.next_event
+
+        def remembering_next_event():       # h11's reason for a 400, for send_400_response
+            try:
+                return next_event()
+            except h11.RemoteProtocolError as exc:
+                self._protocol_problem = " ".join(str(exc).split())[:200]
+                raise
+        self.conn.next_event = remembering_next_event      # type: ignore[method-assign]
         self._header_timer: asyncio.TimerHandle | None = None
         self._partial = False
         self._arm()
@@ -76,6 +89,22 @@ class _HeaderDeadlineProtocol(H11Protocol):
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()
         super().connection_lost(exc)
+
+    def send_400_response(self, msg: str) -> None:
+        """A request h11 cannot parse (bad request line, header, chunk framing): 400 with the
+        {"error": ...} body every other error has (uvicorn sends plain text), naming what
+        h11 found wrong, then the connection is closed."""
+        problem = getattr(self, "_protocol_problem", None)
+        body = json.dumps({"error": f"invalid HTTP request: {problem}" if problem else
+                           "invalid HTTP request"}).encode()
+        try:
+            for event in (h11.Response(status_code=400, reason=b"Bad Request", headers=[
+                    (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+                    (b"connection", b"close")]), h11.Data(data=body), h11.EndOfMessage()):
+                self.transport.write(self.conn.send(event))
+        except h11.LocalProtocolError:      # a response had already begun: just hang up
+            pass
+        self.transport.close()
 
     def _arm(self) -> None:
         self._disarm()

@@ -7,6 +7,17 @@ length, and a client may lie about it). The batch limit (items per request), the
 block side and the pixel budget of a request (noisefeat.bounds: a 3.8 MB request of
 [1, 8, 40000, 3] once took the server to 23.7 GB) are checked on the declared tensor
 shapes, before any tensor data is converted (`Limits.check_shapes`, oip.decode_tensors).
+
+Memory is claimed in two steps, from two `MemoryBudget`s, so that no request holds what it
+does not use: while a body arrives, the bytes received so far (in steps of `RESERVE_STEP`)
+from the upload budget (`UPLOAD_BODIES` bodies of the largest size); once it is complete,
+its bytes plus what decoding and classifying it will take from the memory budget (its
+upload claim is then given back), estimated from the body itself before any parsing (`decode_cost`: binary tensors at `MEMORY_PER_BODY_BYTE` a byte, JSON
+from a count of its brackets, commas and colons, the costs measured for the worst shapes).
+A request whose estimate is over the whole budget gets 413 at once, unparsed. A body must
+also arrive within `UploadPolicy.deadline` seconds, at `UploadPolicy.min_rate` bytes a
+second at least after a grace period, and never stall for `UploadPolicy.stall` seconds:
+a slow uploader is answered 408 instead of holding a request slot and memory.
 """
 from __future__ import annotations
 
@@ -15,6 +26,7 @@ import ctypes.util
 import functools
 import json
 import os
+import time
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -31,13 +43,32 @@ ENV_MAX_BATCH = "NOISESTOP_MAX_BATCH"
 ENV_MAX_BLOCK_SIDE = BOUNDS_ENV["max_block_side"]
 ENV_MAX_PIXELS = BOUNDS_ENV["max_pixels"]
 ENV_MEMORY_BUDGET = "NOISESTOP_MEMORY_BUDGET"
+ENV_BODY_DEADLINE = "NOISESTOP_BODY_DEADLINE"
+ENV_MIN_BODY_RATE = "NOISESTOP_MIN_BODY_RATE"
+ENV_BODY_GRACE = "NOISESTOP_BODY_GRACE"
 DEFAULT_MAX_BODY = 64 * 1024 * 1024   # 16 blocks of 128x128 + quick as JSON take ~30 MB
 DEFAULT_MAX_BATCH = 1024
-#: working memory a request takes per byte of its body, at its peak (measured, BENCHMARKS.md
-#: "Reliability under attack": binary tensors ~10x, JSON ~15x: parsed numbers are Python
-#: objects), plus a fixed part
+#: working memory a request of binary tensors takes per byte of its body, at its peak, the
+#: body included (measured ~10x, BENCHMARKS.md "Reliability under attack"), plus a fixed part
 MEMORY_PER_BODY_BYTE = 16
 MEMORY_PER_REQUEST = 1 << 20
+#: what parsing and decoding JSON costs, in bytes, per opening bracket or brace (a list or
+#: dict object, its slot in its parent, numpy's walk of it), per comma or colon (a number
+#: object and its slot, or a dict entry) and per byte of text (strings). Measured peak
+#: working memory over the body, full decode (issue 26, BENCHMARKS.md "Hardening, second
+#: round"): 20 nested lists around each number 52x (this estimate: 60x), [1] 31x (48x),
+#: {} 28x (64x), {"a":1} 26x (32x), flat 3-digit integers 13x (16x), floats of 9 digits
+#: 4.3x (5.3x), whitespace and long number strings ~0x (1x).
+JSON_COST_PER_CONTAINER = 128
+JSON_COST_PER_ITEM = 64
+JSON_COST_PER_BYTE = 1
+#: the memory of a body in flight is claimed in steps of this many bytes as it arrives
+RESERVE_STEP = 1 << 20
+#: bodies being received may hold this many times --max-body-bytes together (a pool of
+#: its own: bodies waiting for the memory budget must not starve the one being decoded)
+UPLOAD_BODIES = 4
+#: where BodyLimitMiddleware puts a request's upload claim for the route to hand it over
+UPLOAD_CLAIM = "noisestop.upload_claim"
 #: by default one request of the largest body at a time, or many smaller ones at once
 DEFAULT_MEMORY_BUDGET = MEMORY_PER_BODY_BYTE * DEFAULT_MAX_BODY + MEMORY_PER_REQUEST
 
@@ -98,8 +129,79 @@ class Limits:
 
 
 def request_cost(body_bytes: int) -> int:
-    """Working memory a request of `body_bytes` is counted for (`MEMORY_PER_BODY_BYTE`)."""
+    """Working memory a binary request of `body_bytes` is counted for, body included
+    (`MEMORY_PER_BODY_BYTE`): the least budget that admits one request of the largest body."""
     return MEMORY_PER_BODY_BYTE * body_bytes + MEMORY_PER_REQUEST
+
+
+def json_cost(text: bytes | bytearray) -> int:
+    """Working memory parsing and decoding this JSON text may take, from a byte count
+    alone (no parsing; ~10 ms for 30 MB). Brackets, commas and colons inside strings are
+    counted too: the estimate errs on the high side, never the low."""
+    containers = text.count(b"[") + text.count(b"{")
+    items = text.count(b",") + text.count(b":")
+    return JSON_COST_PER_CONTAINER * containers + JSON_COST_PER_ITEM * items + JSON_COST_PER_BYTE * len(text)
+
+
+def decode_cost(body: bytes | bytearray | memoryview, header_length: int | None) -> int:
+    """Working memory a complete request body will take beyond the body itself, estimated
+    before any parsing: its JSON by `json_cost`, its binary tensors at
+    `MEMORY_PER_BODY_BYTE` - 1 a byte (the body is already counted as it arrived)."""
+    if header_length is None:
+        head, tail = bytes(body) if isinstance(body, memoryview) else body, 0
+    else:
+        head = bytes(memoryview(body)[:max(0, min(header_length, len(body)))])
+        tail = len(body) - len(head)
+    return MEMORY_PER_REQUEST + json_cost(head) + (MEMORY_PER_BODY_BYTE - 1) * tail
+
+
+@dataclass(frozen=True)
+class UploadPolicy:
+    """How fast a request body must arrive (seconds; bytes a second). None: no such limit.
+
+    `stall`: longest wait for the next bytes; `deadline`: the whole body, from its
+    headers; `min_rate`: after `grace` seconds, the body must have averaged this rate
+    since then (bytes received >= min_rate x (elapsed - grace))."""
+    stall: float | None = 30.0
+    deadline: float | None = 120.0
+    min_rate: int | None = 64 * 1024
+    grace: float = 10.0
+
+    def __post_init__(self) -> None:
+        for name in ("stall", "deadline"):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                      or not 0 < value <= 86400):
+                raise ValueError(f"{name} must be a number of seconds in (0, 86400], got {value!r}")
+        if isinstance(self.grace, bool) or not isinstance(self.grace, (int, float)) or not 0 <= self.grace <= 86400:
+            raise ValueError(f"grace must be a number of seconds in [0, 86400], got {self.grace!r}")
+        if self.min_rate is not None and (isinstance(self.min_rate, bool) or not isinstance(self.min_rate, int)
+                                          or self.min_rate < 1):
+            raise ValueError(f"min_rate must be a whole number of bytes a second >= 1, got {self.min_rate!r}")
+
+    @classmethod
+    def from_env(cls, stall: float | None = 30.0, deadline: float | None = None, min_rate: int | None = None,
+                 grace: float | None = None, environ: Mapping[str, str] = os.environ) -> "UploadPolicy":
+        """Explicit values win over NOISESTOP_BODY_DEADLINE / NOISESTOP_MIN_BODY_RATE /
+        NOISESTOP_BODY_GRACE, which win over the defaults (120 s, 64 KiB/s, 10 s)."""
+        return cls(stall=stall,
+                   deadline=deadline if deadline is not None else _env_float(environ, ENV_BODY_DEADLINE, 120.0),
+                   min_rate=min_rate if min_rate is not None else env_int(environ, ENV_MIN_BODY_RATE, 64 * 1024,
+                                                                          minimum=1),
+                   grace=grace if grace is not None else _env_float(environ, ENV_BODY_GRACE, 10.0, zero=True))
+
+
+def _env_float(environ: Mapping[str, str], key: str, default: float, zero: bool = False) -> float:
+    raw = environ.get(key)
+    if raw is None or not raw.strip():
+        return default
+    try:
+        value = float(raw)
+    except ValueError:
+        value = float("nan")
+    if not (0 <= value <= 86400) or (value == 0 and not zero):
+        raise ValueError(f"{key} must be a number of seconds in {'[' if zero else '('}0, 86400], got {raw!r}")
+    return value
 
 
 class MemoryBudget:
@@ -190,16 +292,25 @@ def too_large(limit: int) -> ApiError:
                     headers={"Connection": "close"})
 
 
+def busy(what: str) -> ApiError:
+    return ApiError(503, f"server busy: the memory for requests in flight is taken ({what}; serve "
+                         f"--memory-budget, {ENV_MEMORY_BUDGET}); retry",
+                    headers={"Retry-After": "1", "Connection": "close"})
+
+
 class BodyLimitMiddleware:
     """413 for bodies over `max_bytes`, by declared length first, then by bytes received;
-    408 when a body stops arriving for `body_timeout` seconds (a slow upload otherwise
-    holds a request slot for as long as the client likes)."""
+    408 for a body that arrives too slowly (`UploadPolicy`: a stall, the whole-body
+    deadline, the minimum rate after the grace period), so that a slow upload cannot hold
+    a request slot for as long as the client likes. With a `budget`, the bytes received
+    are claimed from it as they arrive (`RESERVE_STEP` at a time) and given back when the
+    request is answered: a slow uploader holds what it has sent, not what it declared."""
 
     def __init__(self, app: Any, max_bytes: int, body_timeout: float | None = None,
-                 budget: MemoryBudget | None = None) -> None:
+                 budget: MemoryBudget | None = None, upload: UploadPolicy | None = None) -> None:
         self.app = app
         self.max_bytes = max_bytes
-        self.body_timeout = body_timeout
+        self.upload = upload or UploadPolicy(stall=body_timeout, deadline=None, min_rate=None)
         self.budget = budget
 
     async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
@@ -218,40 +329,63 @@ class BodyLimitMiddleware:
             if length > self.max_bytes:
                 await _send_error(send, too_large(self.max_bytes))
                 return
-        cost = 0
-        if self.budget is not None and scope.get("method") in ("POST", "PUT", "PATCH"):
-            cost = request_cost(self.max_bytes if declared is None else length)
-            if not await self.budget.acquire(cost):
-                await _send_error(send, ApiError(503, "server busy: the memory for requests in flight is taken "
-                                                      f"(serve --memory-budget, {ENV_MEMORY_BUDGET}); retry",
-                                                 headers={"Retry-After": "1"}))
-                return
+        held = [0]
+        scope[UPLOAD_CLAIM] = held      # the infer route gives it back once the body is decoded
         try:
-            await self._guarded(scope, receive, send)
+            await self._guarded(scope, receive, send, held)
         finally:
-            if cost:
-                self.budget.release(cost)
+            if held[0] and self.budget is not None:
+                self.budget.release(held[0])
 
-    async def _guarded(self, scope: dict, receive: Any, send: Any) -> None:
+    async def _guarded(self, scope: dict, receive: Any, send: Any, held: list[int]) -> None:
         received = 0
         body_done = False
+        policy = self.upload
+        start = time.monotonic()
+
+        def wait_limit() -> tuple[float | None, str]:
+            """Seconds the next bytes may take, and the rule that would be broken."""
+            now = time.monotonic()
+            limits = []
+            if policy.stall is not None:
+                limits.append((policy.stall, f"no request body bytes for {policy.stall:g} s (serve --body-timeout)"))
+            if policy.deadline is not None:
+                limits.append((start + policy.deadline - now,
+                               f"request body not complete after {policy.deadline:g} s (serve --body-deadline, "
+                               f"{ENV_BODY_DEADLINE})"))
+            if policy.min_rate is not None:
+                limits.append((start + policy.grace + (received + 1) / policy.min_rate - now,
+                               f"request body slower than {policy.min_rate} bytes/s after {policy.grace:g} s "
+                               f"(serve --min-body-rate, {ENV_MIN_BODY_RATE})"))
+            if not limits:
+                return None, ""
+            return min(limits, key=lambda x: x[0])
 
         async def counting_receive() -> dict:
             nonlocal received, body_done
-            if body_done or self.body_timeout is None:
+            if body_done:
+                return await receive()
+            seconds, rule = wait_limit()
+            if seconds is None:
                 message = await receive()
             else:
                 try:
-                    with anyio.fail_after(self.body_timeout):
+                    if seconds <= 0:
+                        raise TimeoutError
+                    with anyio.fail_after(seconds):
                         message = await receive()
                 except TimeoutError:
-                    raise ApiError(408, f"no request body bytes for {self.body_timeout:g} s "
-                                        "(serve --body-timeout)", headers={"Connection": "close"}) from None
+                    raise ApiError(408, rule, headers={"Connection": "close"}) from None
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 body_done = not message.get("more_body", False)
                 if received > self.max_bytes:
                     raise too_large(self.max_bytes)  # rendered by the app's ApiError handler
+                if self.budget is not None and held[0] < received:
+                    step = min(max(RESERVE_STEP, received - held[0]), self.budget.total)
+                    if not await self.budget.acquire(step):
+                        raise busy(f"{received} body bytes received")
+                    held[0] += step
             return message
 
         await self.app(scope, counting_receive, send)

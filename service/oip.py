@@ -162,15 +162,61 @@ def split_body(body: bytes | memoryview, header_length: int | None) -> tuple[byt
 
 
 def parse_request(header: bytes) -> InferenceRequest:
-    """Validate the JSON header of an infer request; every problem is a 400."""
+    """Validate the JSON header of an infer request; every problem is a 400, a key twice in
+    one JSON object included (parsers keep the last: `exposure: 1e30, exposure: 0` would
+    be served at 0)."""
     try:  # pydantic-core's parser: ~6x json.loads on number arrays; bounded nesting depth
         obj = pydantic_core.from_json(header, allow_inf_nan=True)
     except ValueError as exc:
         raise ApiError(400, f"invalid JSON: {exc}") from None
+    if _colons(obj) != header.count(b":"):    # fewer entries than colons: maybe a key twice
+        del obj
+        obj = _parse_unique_keys(header)
     try:
         return InferenceRequest.model_validate(obj)
     except ValidationError as exc:
         raise ApiError(400, "invalid inference request: " + _summarise(exc)) from None
+
+
+def _colons(obj: Any) -> int:
+    """The colons the JSON text of `obj` holds if no object has a key twice: one per object
+    entry, plus those inside strings. Tensor `data` lists are not walked (numbers hold no
+    colon; a `data` with objects or strings in it then counts short, and is checked by
+    `_parse_unique_keys`, as is any text whose count differs)."""
+    count = 0
+    stack = [obj]
+    while stack:
+        x = stack.pop()
+        if isinstance(x, dict):
+            count += len(x)
+            for k, v in x.items():
+                count += k.count(":")
+                if not (k == "data" and isinstance(v, list)):
+                    stack.append(v)
+        elif isinstance(x, list):
+            stack.extend(x)
+        elif isinstance(x, str):
+            count += x.count(":")
+    return count
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        seen: set[str] = set()
+        twice = next(k for k, _ in pairs if k in seen or seen.add(k))
+        raise ApiError(400, f"invalid JSON: key {twice[:80]!r} appears twice in one object")
+    return out
+
+
+def _parse_unique_keys(header: bytes) -> Any:
+    """The JSON text parsed by the standard library, refusing a key twice in one object
+    (the slow path, taken only when the colon count says a key may be repeated)."""
+    import json
+    try:
+        return json.loads(header, object_pairs_hook=_no_duplicates)
+    except (ValueError, RecursionError) as exc:
+        raise ApiError(400, f"invalid JSON: {str(exc)[:200]}") from None
 
 
 def may_hold_bools(header: bytes) -> bool:

@@ -41,13 +41,15 @@ _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 def bundle_name(path: str | None) -> str:
     """The name a bundle's manifest gives it (None: the bundled model)."""
     where = BUNDLED_DIR if path is None else Path(path)
-    manifest = where / MANIFEST if where.is_dir() else where
+    if where.is_file() and where.name == MANIFEST:    # as load_model: the manifest names its bundle
+        where = where.parent
+    manifest = where / MANIFEST
     if not manifest.is_file():
         if path is None:
             raise FileNotFoundError(
                 f"no model is bundled with this noisestop ({BUNDLED_DIR} holds no {MANIFEST}): "
                 f"pass --model PATH (a bundle written by `noisestop train`)")
-        raise FileNotFoundError(f"{path}: not a noisestop model bundle (no {MANIFEST})")
+        raise FileNotFoundError(f"{where}: not a noisestop model bundle (no {MANIFEST})")
     meta = read_manifest(manifest)      # schema-checked (learning.models.bundle_check)
     return str(meta.get("name") or meta["kind"])
 

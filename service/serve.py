@@ -1,28 +1,37 @@
 """`noisestop serve`: load the models, check the security settings, run uvicorn.
 
-Everything that can be wrong with the command (no token on a public address, a missing
-model bundle, a bad limit) fails here, before the port is bound, with a one-line message.
-SIGTERM (and Ctrl-C) makes uvicorn stop accepting connections and finish the requests in
-flight before it exits, up to `graceful_timeout` seconds.
+Everything that can be wrong with the command (no token without `--no-auth`, no token on
+a public address, a missing model bundle, a bad limit) fails here, before the port is
+bound, with a one-line message.
+SIGTERM, SIGHUP and Ctrl-C make uvicorn stop accepting connections and finish the requests
+in flight before it exits, up to `graceful_timeout` seconds, each with a log line (SIGHUP
+drains like SIGTERM: it does not reload the model; a second Ctrl-C stops at once).
 
 Connection settings (issue 14; service.connections): request headers must arrive within
 `header_timeout` seconds of a connection opening (or of its previous response), a body may
-stall for `body_timeout` seconds, an idle kept-alive connection is closed after
+stall for `body_timeout` seconds, must be complete within `body_deadline` seconds and
+arrive at `min_body_rate` bytes a second after `body_grace` seconds
+(service.limits.UploadPolicy), an idle kept-alive connection is closed after
 `keep_alive` seconds; at most `limit_concurrency` requests are in flight (health probes
 and /metrics exempt), together within `memory_budget` bytes of working memory
 (service.limits.MemoryBudget), and at most `max_connections` connections are open.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
+import threading
+from collections.abc import Iterator
+from types import FrameType
 
 import uvicorn
 
 from .app import create_app
 from .auth import check_bind, resolve_token
 from .connections import guarded_protocol
-from .limits import Limits
+from .limits import Limits, UploadPolicy
 from .registry import ModelRegistry, parse_model_specs
 
 log = logging.getLogger(__name__)
@@ -54,15 +63,16 @@ def build(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", 
           max_block_side: int | None = None, max_pixels: int | None = None,
           limit_concurrency: int | None = DEFAULT_LIMIT_CONCURRENCY,
           body_timeout: float | None = DEFAULT_BODY_TIMEOUT, memory_budget: int | None = None,
-          tau: float | None = None):
+          no_auth: bool = False, body_deadline: float | None = None, min_body_rate: int | None = None,
+          body_grace: float | None = None, tau: float | None = None):
     """The app `run` serves, with models loaded and settings checked (tests use it too).
     `offset` overrides every model's calibrated decision offset (`serve --offset`); `tau`
-    picks each model's offset at that noise target (`serve --tau`)."""
+    picks each model's offset at that noise target (`serve --tau`).
+    Without a token the server runs only with `no_auth` (`serve --no-auth`), on loopback."""
     secret = resolve_token(token, token_file)
-    check_bind(host, secret)
+    check_bind(host, secret, no_auth)
     if secret is None:
-        log.warning("no token (%s / %s): running UNAUTHENTICATED, on loopback %s only",
-                    "NOISESTOP_TOKEN", "NOISESTOP_TOKEN_FILE", host)
+        log.warning("--no-auth: running UNAUTHENTICATED, on loopback %s only", host)
     limits = Limits.from_env(max_body_bytes=max_body_bytes, max_batch=max_batch,
                              max_block_side=max_block_side, max_pixels=max_pixels, memory_budget=memory_budget)
     if isinstance(inference_threads, bool) or not isinstance(inference_threads, int) or not 1 <= inference_threads <= 256:
@@ -71,10 +81,12 @@ def build(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", 
                                           or limit_concurrency < 1):
         raise ValueError(f"limit_concurrency must be a whole number >= 1, got {limit_concurrency!r}")
     _check_seconds("body_timeout", body_timeout)
+    upload = UploadPolicy.from_env(stall=body_timeout, deadline=body_deadline, min_rate=min_body_rate,
+                                   grace=body_grace)
     registry = ModelRegistry(dict(models or {}), offset=offset, tau=tau)
     registry.load()
     return create_app(registry, token=secret, limits=limits, inference_threads=inference_threads,
-                      limit_concurrency=limit_concurrency, body_timeout=body_timeout)
+                      limit_concurrency=limit_concurrency, body_timeout=body_timeout, upload=upload)
 
 
 def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", port: int = 8000, *,
@@ -87,7 +99,8 @@ def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", po
         max_connections: int = DEFAULT_MAX_CONNECTIONS, header_timeout: float = DEFAULT_HEADER_TIMEOUT,
         body_timeout: float | None = DEFAULT_BODY_TIMEOUT, keep_alive: int = DEFAULT_KEEP_ALIVE,
         memory_budget: int | None = None, torch_threads: int = DEFAULT_TORCH_THREADS,
-        tau: float | None = None) -> None:
+        no_auth: bool = False, body_deadline: float | None = None, min_body_rate: int | None = None,
+        body_grace: float | None = None, tau: float | None = None) -> None:
     """Serve `models` ({name: bundle path or None for the bundled model}; empty: the bundled
     model) until SIGTERM/SIGINT. The token defaults to NOISESTOP_TOKEN / NOISESTOP_TOKEN_FILE;
     limits default to NOISESTOP_MAX_BODY_BYTES / NOISESTOP_MAX_BATCH / NOISESTOP_MAX_BLOCK_SIDE /
@@ -111,13 +124,14 @@ def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", po
     app = build(models, host, token=token, token_file=token_file, max_body_bytes=max_body_bytes,
                 max_batch=max_batch, inference_threads=inference_threads, offset=offset, tau=tau,
                 max_block_side=max_block_side, max_pixels=max_pixels, limit_concurrency=limit_concurrency,
-                body_timeout=body_timeout, memory_budget=memory_budget)
+                body_timeout=body_timeout, memory_budget=memory_budget, no_auth=no_auth,
+                body_deadline=body_deadline, min_body_rate=min_body_rate, body_grace=body_grace)
     limits = app.state.limits
     log.info("listening on http://%s:%d (%s; body limit %d bytes, batch limit %d, block side %d px, "
              "%d pixels a request, %d bytes of memory for requests in flight; %s requests in flight, "
              "%d connections, headers within %g s)",
              f"[{host}]" if ":" in host else host, port,
-             "token required" if app.state.token else "no token, loopback only",
+             "token required" if app.state.token else "--no-auth: no token, loopback only",
              limits.max_body_bytes, limits.max_batch, limits.max_block_side, limits.max_pixels,
              limits.memory_budget,
              limit_concurrency if limit_concurrency is not None else "unlimited", max_connections,
@@ -126,4 +140,33 @@ def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", po
                             timeout_graceful_shutdown=graceful_timeout, http=protocol,
                             timeout_keep_alive=keep_alive, limit_concurrency=max_connections,
                             server_header=False, proxy_headers=False)
-    uvicorn.Server(config).run()
+    _DrainingServer(config).run()
+
+
+class _DrainingServer(uvicorn.Server):
+    """uvicorn's server, which also drains on SIGHUP (a hang-up used to kill the process
+    at once, without a word), and says in the log which signal started the drain."""
+
+    @contextlib.contextmanager
+    def capture_signals(self) -> Iterator[None]:
+        with super().capture_signals():
+            if threading.current_thread() is not threading.main_thread():
+                yield
+                return
+            previous = signal.signal(signal.SIGHUP, self._hang_up)
+            try:
+                yield
+            finally:
+                signal.signal(signal.SIGHUP, previous)
+
+    def _hang_up(self, sig: int, frame: FrameType | None) -> None:
+        log.warning("SIGHUP: draining requests in flight, then exiting as for SIGTERM (no reload)")
+        super().handle_exit(signal.SIGTERM, frame)   # after the drain, the process ends as by SIGTERM
+
+    def handle_exit(self, sig: int, frame: FrameType | None) -> None:
+        name = signal.Signals(sig).name
+        if self.should_exit and sig == signal.SIGINT:
+            log.warning("%s again: stopping at once", name)
+        elif not self.should_exit:
+            log.warning("%s: no new connections; finishing the requests in flight, then exiting", name)
+        super().handle_exit(sig, frame)

@@ -154,7 +154,7 @@ def test_tau_outside_the_calibrated_range_or_not_a_number_is_one_line_and_exit_2
     for cmd in (("evaluate", "--data", str(FIXTURE), "--criterion", "flip"),
                 ("evaluate", "--data", str(FIXTURE), "--criterion", "model"),
                 ("render", "--scene", "cornell", "--out", str(tmp_path / "r"), "--criterion", "flip"),
-                ("serve", "--port", "0")):
+                ("serve", "--port", "0", "--no-auth")):
         out = run(*cmd, "--tau", "0.5")
         assert out.returncode == 2 and "outside" in out.stderr and "[0.01, 0.05]" in out.stderr, (cmd, out.stderr)
         assert len(out.stderr.strip().splitlines()) == 1 and "Traceback" not in out.stderr

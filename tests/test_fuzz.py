@@ -78,6 +78,67 @@ def test_json_request_parser_refuses_garbage(raw):
         assert 400 <= exc.status < 500
 
 
+# --- the memory estimate of a JSON body, and keys given twice (issue 26) ---------------------
+
+ESTIMATE = settings(max_examples=20, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+ROOMY = Limits(max_body_bytes=1 << 30, max_batch=1 << 20, max_block_side=1 << 20, max_pixels=1 << 30)
+
+
+@ESTIMATE
+@given(depth=st.integers(0, 20), kind=st.sampled_from(["small int", "int", "float", "short float", "object"]),
+       count=st.integers(1000, 6000), spaces=st.integers(0, 3))
+def test_json_cost_estimate_covers_what_decoding_takes(depth, kind, count, spaces):
+    """The estimate made from a byte count before parsing is at least the memory parsing,
+    validating and decoding really take (tracemalloc's peak: Python objects and numpy),
+    whatever the shape: nesting, number kinds, objects in place of numbers, whitespace."""
+    import tracemalloc
+
+    from service.limits import json_cost
+    value = {"small int": b"7", "int": b"123457", "float": b"0.123456789", "short float": b"1e5",
+             "object": b'{"a":1}'}[kind]
+    sep = b"," + b" " * spaces
+    unit = b"[" * depth + value + b"]" * depth
+    shape = [count] + [1] * min(depth, 7)
+    body = (b'{"inputs": [{"name": "features", "datatype": "FP32", "shape": %s, "data": [' % json.dumps(shape).encode()
+            + sep.join([unit] * count) + b"]}]}")
+    tracemalloc.start()
+    try:
+        req = parse_request(body)
+        ROOMY.check_shapes(req.inputs)
+        decode_tensors(req, b"", ROOMY.max_batch)
+    except ApiError as exc:
+        assert exc.status == 400
+    finally:
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+    assert json_cost(body) + (64 << 10) >= peak, (kind, depth, count, json_cost(body), peak)
+
+
+json_keys = st.text(alphabet="abce:x", min_size=1, max_size=4)
+
+
+@FUZZ
+@given(obj=st.recursive(st.dictionaries(json_keys, st.integers(), max_size=3),
+                        lambda children: st.dictionaries(json_keys, children, max_size=3), max_leaves=12),
+       twice=st.booleans(), where=st.integers(0, 100))
+def test_a_key_given_twice_is_always_found(obj, twice, where):
+    """Any object, at any depth, with a key repeated: 400 naming the key; without one, the
+    duplicate check never fires (colons in keys and strings included)."""
+    text = json.dumps({"parameters": obj, "inputs": [{"name": "features", "shape": [1, 26], "datatype": "FP32",
+                                                      "data": [0.5] * 26}]})
+    if twice:
+        opens = [i for i, ch in enumerate(text) if ch == "{"]
+        at = opens[where % len(opens)] + 1
+        text = text[:at] + '"k:" : 1, "k:": 2' + ("," if text[at] != "}" else "") + text[at:]
+    try:
+        parse_request(text.encode())
+    except ApiError as exc:
+        assert exc.status == 400
+        assert ("appears twice" in exc.message) == twice, (text, exc.message)
+        return
+    assert not twice, text
+
+
 # --- manifest reader --------------------------------------------------------------------------
 
 json_values = st.recursive(

@@ -39,14 +39,29 @@ def test_token_problems_are_clear_errors(tmp_path):
         resolve_token(token="  ")
 
 
-def test_no_token_means_loopback_only():
+@pytest.mark.parametrize("environ", [{"NOISESTOP_TOKEN": ""}, {"NOISESTOP_TOKEN": " \t\n"},
+                                     {"NOISESTOP_TOKEN_FILE": ""}, {"NOISESTOP_TOKEN_FILE": "  "}])
+def test_a_variable_set_but_empty_is_refused_not_taken_for_no_token(environ):
+    """`NOISESTOP_TOKEN=` used to start a server with authentication off."""
+    with pytest.raises(ValueError, match="set but empty"):
+        resolve_token(environ=environ)
+    with pytest.raises(ValueError, match="set but empty"):
+        resolve_token(token_file="")
+
+
+def test_no_token_needs_no_auth_and_loopback():
     assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
     assert not is_loopback("0.0.0.0") and not is_loopback("example.org") and not is_loopback("10.0.0.1")
-    check_bind("127.0.0.1", None)
+    check_bind("127.0.0.1", None, no_auth=True)
     check_bind("0.0.0.0", "token")
+    with pytest.raises(ValueError, match="--no-auth"):
+        check_bind("127.0.0.1", None)              # no token and no flag: refused, not a warning
+    with pytest.raises(ValueError, match="drop one"):
+        check_bind("127.0.0.1", "token", no_auth=True)
     for host in ("0.0.0.0", "::", "192.168.1.4"):
-        with pytest.raises(ValueError, match="without a token"):
-            check_bind(host, None)
+        for no_auth in (False, True):
+            with pytest.raises(ValueError, match="without a token"):
+                check_bind(host, None, no_auth=no_auth)
 
 
 def test_serve_refuses_public_bind_without_token_before_loading(monkeypatch):
@@ -56,11 +71,13 @@ def test_serve_refuses_public_bind_without_token_before_loading(monkeypatch):
         run({"x": "/does/not/exist"}, host="0.0.0.0", port=0)
 
 
-def test_unauthenticated_loopback_is_logged(monkeypatch, caplog, demo):
+def test_unauthenticated_loopback_is_explicit_and_logged(monkeypatch, caplog, demo):
     monkeypatch.delenv("NOISESTOP_TOKEN", raising=False)
     monkeypatch.delenv("NOISESTOP_TOKEN_FILE", raising=False)
+    with pytest.raises(ValueError, match="--no-auth"):
+        build({"dsvm_x": demo}, "127.0.0.1")
     with caplog.at_level(logging.WARNING, logger="service.serve"):
-        app = build({"dsvm_x": demo}, "127.0.0.1")
+        app = build({"dsvm_x": demo}, "127.0.0.1", no_auth=True)
     assert app.state.token is None
     assert any("UNAUTHENTICATED" in r.message and "loopback" in r.message for r in caplog.records)
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .exr import naming
 from .npz import read_npz
 from .stack import Stack
 
@@ -23,8 +24,9 @@ CACHE_DIR = ".cache"
 
 def _atomic_savez(path: Path, **arrays: np.ndarray) -> None:
     tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
+    with naming(path):
+        np.savez(tmp, **arrays)
+        os.replace(tmp, path)
 
 
 def cached_array(stack: Stack, name: str, shape: tuple[int, ...], compute: Callable[[], np.ndarray],

@@ -254,6 +254,34 @@ class Stack:
             h.update(f"{p.relative_to(self.path)}\0{digest}\0".encode())
         return h.hexdigest()[:32]
 
+    def validate(self) -> None:
+        """Decode every image this stack's data comes from (levels, reference, quick
+        images): a truncated, corrupt, wrongly sized or all-NaN file is a ValueError (or
+        FileNotFoundError) naming it, whether or not the command at hand reads that file
+        (train and evaluate read labels, not the reference, which the labels came from).
+
+        Done once per stack content: the content key (SHA-256 of every file) is then kept
+        in `<stack>/.cache/validated` and in this process, so an unchanged stack is not
+        decoded again, and any change to any file makes it validated anew."""
+        key = self.content_key()
+        marker = self.path / VALIDATED_MARKER
+        if key in _VALIDATED:
+            return
+        try:
+            if marker.read_text(encoding="utf-8").strip() == key:
+                _VALIDATED.add(key)
+                return
+        except (OSError, UnicodeDecodeError):
+            pass
+        for path in self.files():
+            if path.name != META:
+                self._read(path)
+        _VALIDATED.add(key)
+        try:
+            atomic_write_bytes(marker, (key + "\n").encode())
+        except OSError as exc:            # a read-only dataset: validated again next time
+            log.debug("%s: not written (%s)", marker, exc)
+
     def _plan_digest(self) -> str:
         """meta.json without its labels (`labeler`, `thresholds`): nothing cached next to a
         stack is computed from them, so relabelling keeps the caches."""
@@ -326,6 +354,21 @@ class Stack:
 
 
 _DIGESTS: dict[tuple[str, int, int, int], str] = {}
+#: where `Stack.validate` keeps the content key of the files it decoded
+VALIDATED_MARKER = ".cache/validated"
+#: content keys validated in this process
+_VALIDATED: set[str] = set()
+
+
+def read_stacks(root: str | os.PathLike, scenes: Sequence[str] | None = None) -> list[Stack]:
+    """The stacks below `root` (only `scenes`, if given), every file of each validated
+    (`Stack.validate`): what commands that read a dataset open it with."""
+    stacks = [read_stack(p) for p in list_stacks(root)]
+    if scenes is not None:
+        stacks = [st for st in stacks if st.scene in scenes]
+    for st in stacks:
+        st.validate()
+    return stacks
 
 
 def file_digest(path: Path) -> str:

@@ -64,13 +64,14 @@ def split_stacks(data: str, heldout: str | None = None, tau: float = DEFAULT_TAU
     training scene. Without it, the older in-dataset split (every 4th scene by name held
     out) is used, with a warning: such scenes are alike and often never converge.
     """
-    from ..data.observer import read_observed
+    from ..data.observer import observed
+    from ..data.stack import read_stacks
 
-    stacks = read_observed(data, tau)
+    stacks = [observed(s, tau) for s in read_stacks(data)]
     if not stacks:
         raise ValueError(f"{data}: no stacks found")
     if heldout is not None:
-        test = read_observed(heldout, tau)
+        test = [observed(s, tau) for s in read_stacks(heldout)]
         if not test:
             raise ValueError(f"{heldout}: no stacks found (make heldout builds the held-out dataset)")
         check_disjoint([s.scene for s in stacks], [s.scene for s in test])

@@ -235,12 +235,13 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
         st = read_stack(p)
         if scenes is not None and st.scene not in scenes:
             continue
-        st = observed(st, tau)
         if st.thresholds is None:
             log.warning("%s: no labels (thresholds); skipped", p)
             continue
         if st.scene in stacks:
             raise ValueError(f"{p}: scene name {st.scene!r} appears twice in {root}")
+        st.validate()            # every file, the reference included: damage named, never trained on
+        st = observed(st, tau)
         stacks[st.scene] = st
         if image:
             x = stack_pictures(st, quick)

@@ -26,6 +26,7 @@ from noisefeat.base import N_FEATURES
 from noisefeat.display import nonfinite_pixels
 from noisefeat.extract import analyse_many
 
+from ..data.exr import naming
 from ..inputs.noise_input import HALVES, halves_input, halves_input_and_stats, halves_mean, n_inputs, noise_lightness
 from ..inputs.table import QUICK_MODES, feature_input, raw_input
 from ..stoprule import FLAT_TOLERANCE, StopRule, flat_blocks
@@ -276,7 +277,8 @@ def save_model(estimator: RBFSVM, path: str | os.PathLike, *, kind: str, input: 
     path.mkdir(parents=True, exist_ok=True)
     base = base or default_base()
     tmp = path / (MODEL_FILE + ".tmp")
-    sio.dump(estimator, tmp)
+    with naming(path / MODEL_FILE):
+        sio.dump(estimator, tmp)
     digest = file_sha256(tmp)
     os.replace(tmp, path / MODEL_FILE)
     manifest = {
@@ -290,8 +292,9 @@ def save_model(estimator: RBFSVM, path: str | os.PathLike, *, kind: str, input: 
         "model_sha256": digest, **(extra or {}),
     }
     tmp = path / (MANIFEST + ".tmp")
-    tmp.write_text(json.dumps(manifest, indent=2, default=_json_default))
-    os.replace(tmp, path / MANIFEST)
+    with naming(path / MANIFEST):
+        tmp.write_text(json.dumps(manifest, indent=2, default=_json_default))
+        os.replace(tmp, path / MANIFEST)
     return path
 
 

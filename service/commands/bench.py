@@ -14,8 +14,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="measure the figures of BENCHMARKS.md")
     p.add_argument("what", nargs="*", default=["features", "crop"],
                    help="sections: features, crop, flip, models, render, passes, service, stability, reliability, "
-                        "dataset, inputs, criteria, tradeoff, ablation, step, knobs, observer, tau (default: features "
-                        "crop)")
+                        "hardening, dataset, inputs, criteria, tradeoff, ablation, step, knobs, observer, tau "
+                        "(default: features crop)")
     p.add_argument("--data", default=None, help="labelled dataset of training scenes")
     p.add_argument("--heldout", default=None,
                    help="labelled dataset of held-out scenes every figure is measured on (make "

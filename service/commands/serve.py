@@ -20,6 +20,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--token-file", default=None,
                    help="file holding the bearer token (default: $NOISESTOP_TOKEN, "
                         "else the file $NOISESTOP_TOKEN_FILE names)")
+    p.add_argument("--no-auth", action="store_true",
+                   help="serve without a token, on a loopback address only (without a token and "
+                        "without this flag, serve refuses to start)")
     p.add_argument("--max-body-bytes", type=arg.int_in(1, 1 << 40), default=None,
                    help="largest request body (default: $NOISESTOP_MAX_BODY_BYTES or 64 MiB)")
     p.add_argument("--max-batch", type=arg.int_in(1, 1 << 20), default=None,
@@ -49,6 +52,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "its previous response (default 10; slow-header clients are closed)")
     p.add_argument("--body-timeout", type=arg.seconds, default=30.0,
                    help="seconds a request body may stall before a 408 (default 30)")
+    p.add_argument("--body-deadline", type=arg.seconds, default=None,
+                   help="seconds a whole request body may take to arrive, from its headers (default: "
+                        "$NOISESTOP_BODY_DEADLINE or 120); over it: 408")
+    p.add_argument("--min-body-rate", type=arg.int_in(1, 1 << 40), default=None,
+                   help="bytes a second a request body must average after --body-grace (default: "
+                        "$NOISESTOP_MIN_BODY_RATE or 65536); slower: 408")
+    p.add_argument("--body-grace", type=arg.float_in(0.0, 3600.0), default=None,
+                   help="seconds before --min-body-rate applies (default: $NOISESTOP_BODY_GRACE or 10)")
     p.add_argument("--keep-alive", type=arg.int_in(1, 3600), default=5,
                    help="seconds an idle kept-alive connection stays open (default 5)")
     p.add_argument("--offset", type=arg.offset, default=None,
@@ -58,7 +69,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=arg.TAU_HELP.replace("default %(default)s", "default: each model's calibrated tau")
                    + "; a request's own 'tau' parameter overrides it")
     p.add_argument("--graceful-timeout", type=arg.seconds, default=30.0,
-                   help="seconds SIGTERM waits for requests in flight")
+                   help="seconds SIGTERM (or SIGHUP) waits for requests in flight")
     p.set_defaults(handler=cmd_serve)
 
 
@@ -70,5 +81,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         max_block_side=args.max_block_side, max_pixels=args.max_pixels,
         limit_concurrency=args.limit_concurrency, max_connections=args.max_connections,
         header_timeout=args.header_timeout, body_timeout=args.body_timeout, keep_alive=args.keep_alive,
-        memory_budget=args.memory_budget, torch_threads=args.torch_threads, tau=args.tau)
+        memory_budget=args.memory_budget, torch_threads=args.torch_threads, no_auth=args.no_auth,
+        body_deadline=args.body_deadline, min_body_rate=args.min_body_rate, body_grace=args.body_grace,
+        tau=args.tau)
     return 0

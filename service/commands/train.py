@@ -187,13 +187,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from learning.data.stack import dataset_fingerprint, list_stacks, read_stack
+    from learning.data.stack import dataset_fingerprint, read_stacks
     from learning.evaluation.calibrate import calibrate_flip_curve
     from learning.inputs.halves import FLIP_CALIBRATION
 
     if not 0 <= args.max_early_stop <= 1:
         raise UsageError(f"--max-early-stop must be in [0, 1], got {args.max_early_stop}")
-    stacks = [read_stack(p) for p in list_stacks(args.data)]
+    stacks = read_stacks(args.data)
     if not stacks:
         raise UsageError(f"{args.data}: no stacks found")
     _refuse_heldout([s.scene for s in stacks], "calibrate")
@@ -222,11 +222,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def cmd_pretrain(args: argparse.Namespace) -> int:
     from learning.models.pretrain import pretrain_base
-    from learning.data.stack import list_stacks, read_stack
+    from learning.data.stack import read_stacks
     from learning.evaluation.generalisation import default_test_scenes
     from noisefeat.weights import PRETRAINED_FILE, save_kernels
 
-    stacks = [read_stack(p) for p in list_stacks(args.data)]
+    stacks = read_stacks(args.data)
     held = set(arg.scene_list(args.test_scenes) or default_test_scenes([s.scene for s in stacks]))
     train = [s for s in stacks if s.scene not in held]
     base, report = pretrain_base(train, steps=args.steps, lr=args.lr)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import http.client
 import json
 import socket
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -278,3 +279,145 @@ def run_worst_shapes(url: str, token: str | None, max_body: int, concurrent: int
             row.update(memory())
         out.append(row)
     return out
+
+
+# --- issue 26: slow uploaders, protocol errors, duplicate keys ----------------------------------
+
+def _status_of(raw: bytes) -> int | None:
+    return int(raw.split(b" ", 2)[1]) if raw.startswith(b"HTTP/1.1 ") and raw[9:12].isdigit() else None
+
+
+def slow_upload(url: str, token: str | None, stop: threading.Event, declared: int | None = 64 << 20,
+                interval: float = 1.0, limit_s: float = 600.0,
+                out: list[dict[str, Any]] | None = None) -> list[dict[str, Any]]:
+    """One client trickling a body, one byte every `interval` seconds (chunked when
+    `declared` is None, else under that Content-Length), reconnecting whenever the server
+    hangs up, until `stop` is set. Each connection: its answer and how long it was held
+    (appended to `out` as each ends, if given)."""
+    host, port = _address(url)
+    auth = f"Authorization: Bearer {token}\r\n" if token else ""
+    framing = "Transfer-Encoding: chunked\r\n" if declared is None else f"Content-Length: {declared}\r\n"
+    piece = b"1\r\n[\r\n" if declared is None else b"["
+    out = [] if out is None else out
+    t_end = time.monotonic() + limit_s
+    while not stop.is_set() and time.monotonic() < t_end:
+        t0 = time.monotonic()
+        try:
+            s = socket.create_connection((host, port), timeout=10)
+        except OSError as exc:
+            out.append({"status": type(exc).__name__, "held_s": 0.0})
+            stop.wait(interval)
+            continue
+        got = b""
+        try:
+            s.sendall((f"POST /v2/models/default/infer HTTP/1.1\r\nHost: x\r\n{auth}"
+                       f"Content-Type: application/json\r\n{framing}\r\n").encode())
+            while not stop.is_set():
+                s.sendall(piece)
+                s.settimeout(interval)
+                try:
+                    chunk = s.recv(4096)
+                except TimeoutError:
+                    continue
+                got += chunk
+                if not chunk:
+                    break
+                if got.startswith(b"HTTP/"):           # answered: read the rest of the answer
+                    got += _closed(s, time.monotonic() + 5)[1]
+                    break
+        except OSError:
+            pass
+        finally:
+            s.close()
+        out.append({"status": _status_of(got), "held_s": time.monotonic() - t0,
+                    "error": json.loads(got.split(b"\r\n\r\n", 1)[1]).get("error")
+                    if b"\r\n\r\n{" in got else None})
+    return out
+
+
+def normal_latency_under_slow_uploads(url: str, token: str | None, slow: int, *, requests: int = 40,
+                                      warm_up: float = 2.0, interval: float = 1.0, declared: int | None = 64 << 20,
+                                      make: Callable[[], tuple[bytes, dict[str, str]]] | None = None) -> dict[str, Any]:
+    """`slow` slow uploaders (`slow_upload`, half of them chunked) connected, then
+    `requests` normal infer requests one after another: their p50/p99 latency and
+    statuses, and what became of the slow uploads."""
+    from .loadtest import make_request
+    if not 0 <= slow <= 64:
+        raise ValueError(f"slow must be 0..64, got {slow}")
+    body, headers = make() if make is not None else make_request(blocks=4, size=64, binary=True)
+    stop = threading.Event()
+    results: list[list[dict[str, Any]]] = [[] for _ in range(slow)]
+
+    def uploader(i: int) -> None:
+        results[i] = slow_upload(url, token, stop, None if i % 2 else declared, interval)
+
+    threads = [threading.Thread(target=uploader, args=(i,), daemon=True) for i in range(slow)]
+    for t in threads:
+        t.start()
+    try:
+        stop.wait(warm_up if slow else 0)
+        latencies, statuses = [], []
+        for _ in range(requests):
+            t0 = time.perf_counter()
+            status, _ = post(url, body, headers, token, timeout=120)
+            latencies.append(time.perf_counter() - t0)
+            statuses.append(status)
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(interval + 15)
+    ms = np.array(latencies) * 1e3
+    slow_rows = [r for rows in results for r in rows]
+    return {"slow_clients": slow, "requests": requests, "ok": sum(s == 200 for s in statuses),
+            "statuses": sorted({str(s) for s in statuses}), "p50_ms": float(np.percentile(ms, 50)),
+            "p99_ms": float(np.percentile(ms, 99)), "max_ms": float(ms.max()),
+            "slow_connections": len(slow_rows),
+            "slow_statuses": sorted({str(r["status"]) for r in slow_rows}),
+            "slow_held_max_s": max((r["held_s"] for r in slow_rows), default=0.0)}
+
+
+def protocol_error(url: str) -> dict[str, Any]:
+    """A request h11 cannot parse: the status, content type and {"error"} body of the answer."""
+    host, port = _address(url)
+    s = socket.create_connection((host, port), timeout=10)
+    try:
+        s.sendall(b"GET /v2/health/live HTTP/1.1\r\nHost: x\r\nBad Header Line\r\n\r\n")
+        _, got = _closed(s, time.monotonic() + 10)
+    finally:
+        s.close()
+    head, _, body = got.partition(b"\r\n\r\n")
+    ctype = next((line.split(b":", 1)[1].strip().decode() for line in head.split(b"\r\n")
+                  if line.lower().startswith(b"content-type:")), None)
+    try:
+        error = json.loads(body).get("error")
+    except ValueError:
+        error = None
+    return {"status": _status_of(got), "content_type": ctype, "error": error}
+
+
+def duplicate_keys(url: str, token: str | None) -> dict[str, Any]:
+    """`exposure` twice in one parameters object (1e30, then 0): 400, never served at 0."""
+    from .loadtest import make_request
+    body, headers = make_request(blocks=1, size=16)
+    body = body[:-1] + b', "parameters": {"exposure": 1e30, "exposure": 0}}'
+    status, answer = post(url, body, headers, token)
+    return {"status": status, "error": json.loads(answer).get("error") if answer.startswith(b"{") else None}
+
+
+def nested_over_budget(url: str, token: str | None, megabytes: int = 62) -> dict[str, Any]:
+    """The issue's request: ~62 MiB of JSON, every value inside 20 nested lists (56x its
+    size in memory once parsed). Answered how, and how fast."""
+    body, headers = nested_json_request_62(megabytes)
+    t0 = time.perf_counter()
+    status, answer = post(url, body, headers, token)
+    return {"bytes": len(body), "status": status, "seconds": time.perf_counter() - t0,
+            "error": json.loads(answer).get("error") if answer.startswith(b"{") else None}
+
+
+def nested_json_request_62(megabytes: int = 62) -> tuple[bytes, dict[str, str]]:
+    """Body and headers of `nested_over_budget`'s request."""
+    unit = b"[" * 20 + b"1" + b"]" * 20
+    n = (megabytes << 20) // (len(unit) + 1)
+    data = b"[" + b",".join([unit] * n) + b"]"
+    return (b'{"inputs":[{"name":"features","shape":[%d,1,1,1,1,1,1,1],"datatype":"FP32","data":' % n + data + b"}]}",
+            {"Content-Type": "application/json"})

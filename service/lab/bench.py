@@ -49,7 +49,7 @@ DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "inputs": (bench_inp
 
 
 SECTIONS = ("features", "crop", "flip", "models", "render", "passes", "service", "stability", "reliability",
-            *DATASET_SECTIONS)
+            "hardening", *DATASET_SECTIONS)
 
 
 def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), data: str | None = None,
@@ -117,8 +117,15 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
         from .bench_service import bench_service, md_service
         measure("service", bench_service, md_service)
     if "reliability" in only:
-        from .reliability import bench_reliability, md_reliability
+        from .reliability import bench_reliability, md_hardening, md_reliability
         measure("reliability", bench_reliability, md_reliability)
+        if "reliability" in results:                     # its issue-26 part: a section of its own
+            markdown["hardening"] = md_hardening(results["reliability"]["hardening"])
+            if on_section is not None:
+                on_section("hardening", markdown["hardening"])
+    if "hardening" in only and "reliability" not in only:     # reliability includes it
+        from .reliability import bench_hardening, md_hardening
+        measure("hardening", bench_hardening, md_hardening)
     results["markdown"] = markdown
     return results
 

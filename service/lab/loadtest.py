@@ -65,15 +65,20 @@ def free_port() -> int:
 
 
 class LocalServer:
-    """`noisestop serve` in a subprocess on 127.0.0.1 with a fresh token; stopped by SIGTERM."""
+    """`noisestop serve` in a subprocess on 127.0.0.1 with a fresh token (or none, with
+    `no_auth=True`, which the server then needs as `--no-auth`); stopped by SIGTERM."""
 
     def __init__(self, models: dict[str, str | None], *, port: int | None = None,
                  token: str | None = None, startup_timeout: float = 120.0,
                  env: dict[str, str] | None = None, address_space: int | None = None,
-                 **serve_kwargs: Any) -> None:
+                 no_auth: bool = False, **serve_kwargs: Any) -> None:
         self.models = {k: (None if v is None else str(v)) for k, v in models.items()}
         self.port = port or free_port()
-        self.token = token or secrets.token_urlsafe(24)
+        if no_auth and token is not None:
+            raise ValueError("a token and no_auth: choose one")
+        self.token = None if no_auth else (token or secrets.token_urlsafe(24))
+        if no_auth:
+            serve_kwargs["no_auth"] = True
         self.url = f"http://127.0.0.1:{self.port}"
         self.startup_timeout = startup_timeout
         self.env = env or {}
@@ -87,8 +92,11 @@ class LocalServer:
                 "from service.serve import run; a = json.loads(sys.argv[1]); "
                 "run(a['models'], '127.0.0.1', a['port'], **a['kwargs'])")
         arg = json.dumps({"models": self.models, "port": self.port, "kwargs": self.serve_kwargs})
-        env = {**os.environ, **self.env, ENV_TOKEN: self.token}
+        env = {**os.environ, **self.env}
         env.pop("NOISESTOP_TOKEN_FILE", None)
+        env.pop(ENV_TOKEN, None)
+        if self.token is not None:
+            env[ENV_TOKEN] = self.token
         self.process = subprocess.Popen([sys.executable, "-c", code, arg], env=env,
                                         stdout=subprocess.DEVNULL, stderr=self._log,
                                         preexec_fn=self._limit if self.address_space else None)

@@ -17,7 +17,10 @@ from __future__ import annotations
 import logging
 import os
 
-import uvicorn
+from noisefeat.extras import require_extra
+
+require_extra("serve")   # one line naming the extra, not an ImportError from uvicorn
+import uvicorn  # noqa: E402
 
 from .app import create_app
 from .auth import check_bind, resolve_token

@@ -19,7 +19,7 @@ OUT ?= out
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --disable-pip-version-check "$(TORCH_SPEC)" || $(PIP) install -q torch
-	$(PIP) install -q --disable-pip-version-check -e ".[dev]"
+	$(PIP) install -q --disable-pip-version-check -e ".[all,dev]"
 	@rm -f $(VENV)/.installed-* && touch $@
 
 setup: $(STAMP)

@@ -41,6 +41,7 @@ import numpy as np
 
 from learning.data.variant import select_variant
 from .wavefront import WavefrontTracer, guard_band
+from noisefeat.extras import require
 
 logger = logging.getLogger(__name__)
 
@@ -120,7 +121,7 @@ class BlockRenderer:
     def __init__(self, scene: Any, grid: tuple[int, int] | None = None, block: int | None = None,
                  engine: str | None = None) -> None:
         variant = select_variant()
-        import mitsuba as mi
+        mi = require("mitsuba")
 
         self._mi = mi
         self.scene = scene
@@ -168,7 +169,7 @@ class BlockRenderer:
         self._crop_samples = 0
         self._history = variant.split("_")[0] in ("llvm", "cuda")
         if self._history:
-            import drjit as dr
+            dr = require("drjit")
             dr.set_flag(dr.JitFlag.KernelHistory, True)
             dr.kernel_history()                               # start counting from here
         self._params = mi.traverse(self.sensor)
@@ -228,7 +229,7 @@ class BlockRenderer:
 
     def _count_kernels(self) -> None:
         if self._history:
-            import drjit as dr
+            dr = require("drjit")
             self.kernel_compiles += sum(1 for k in dr.kernel_history()
                                         if k.get("type") == dr.KernelType.JIT and not k.get("cache_hit"))
 

@@ -13,6 +13,8 @@ import os
 from collections.abc import Iterator
 from concurrent.futures import Executor
 
+from noisefeat.extras import require
+
 log = logging.getLogger(__name__)
 
 
@@ -23,6 +25,7 @@ def default_workers() -> int:
 @contextlib.contextmanager
 def executor(workers: int | None = None, scheduler: str | None = None) -> Iterator[Executor]:
     """An Executor on a Dask LocalCluster (`workers` processes) or on `scheduler`."""
+    require("distributed")
     from dask.distributed import Client, LocalCluster
 
     if scheduler:

@@ -31,6 +31,7 @@ from .scene_kit import (
                         room_box,
                         value_noise,
                         )
+from noisefeat.extras import require
 
 # ----------------------------------------------------------------------------- procedural images
 
@@ -82,7 +83,7 @@ def studio_environment(width: int = 256, seed: int = 5) -> np.ndarray:
 
 def studio_preview(resolution: int) -> SceneDict:
     """Material preview: three spheres on a plane under a smooth studio environment map."""
-    import mitsuba as mi
+    mi = require("mitsuba")
 
     d = base(resolution, origin=(0.0, 1.1, 4.2), target=(0.0, 0.25, 0.0), fov=35.0)
     d["env"] = {"type": "envmap", "bitmap": mi.Bitmap(studio_environment()), "scale": 1.6}

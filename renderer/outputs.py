@@ -21,6 +21,7 @@ import numpy as np
 
 from learning.data.exr import atomic_write_bytes, write_exr_channels, write_png
 from noisefeat.display import display
+from noisefeat.extras import require
 
 FINAL_EXR = "final.exr"
 FINAL_PNG = "final.png"
@@ -82,6 +83,7 @@ def spp_map_png(spp: np.ndarray, windows: Sequence[Sequence[int]], block_spp: Se
     criterion stopping them outlined in red; each block's spp written on it when the
     blocks are large enough to read.
     """
+    require("matplotlib")
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.colors import LogNorm
     from matplotlib.figure import Figure
@@ -127,9 +129,9 @@ def compare_png(final8: np.ndarray, reference8: np.ndarray, windows: Sequence[Se
     """PNG bytes: final image and reference side by side, each block of the final image
     labelled with its spp and its FLIP error against the reference (red: above the
     observer's threshold, noise a person would see)."""
+    require("matplotlib")
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-
     from matplotlib.patches import Rectangle
 
     h, w = final8.shape[:2]

@@ -27,6 +27,7 @@ import numpy as np
 
 from .scene_kit import (SceneDict, T, base, bitmap_texture, checker_texture, cube, diffuse, panel, rgb,
                         room_box, value_noise)
+from noisefeat.extras import require
 
 PREFIX = "proc-"
 _NAME = re.compile(rf"^{PREFIX}(\d{{1,6}})$")
@@ -168,7 +169,7 @@ def _room_scene(rng: np.random.Generator, seed: int, resolution: int, gain: floa
 
 
 def _open_scene(rng: np.random.Generator, seed: int, resolution: int, gain: float) -> SceneDict:
-    import mitsuba as mi
+    mi = require("mitsuba")
 
     dist = float(rng.uniform(4, 9))
     angle = float(rng.uniform(0, 2 * math.pi))

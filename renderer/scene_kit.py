@@ -9,13 +9,14 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from noisefeat.extras import require
 
 MAX_DEPTH = 8
 
 SceneDict = dict[str, Any]
 
 def T() -> Any:
-    import mitsuba as mi
+    mi = require("mitsuba")
 
     return mi.ScalarTransform4f()
 
@@ -30,7 +31,7 @@ def diffuse(v: float | list[float]) -> dict:
 
 
 def checker_texture(c0: float | list[float], c1: float | list[float], scale: float) -> dict:
-    import mitsuba as mi
+    mi = require("mitsuba")
 
     return {
         "type": "checkerboard",
@@ -93,7 +94,7 @@ def value_noise(size: int, octaves: int, seed: int) -> np.ndarray:
     return ((out - out.min()) / (np.ptp(out) + 1e-12)).astype(np.float32)
 
 def bitmap_texture(image: np.ndarray) -> dict:
-    import mitsuba as mi
+    mi = require("mitsuba")
 
     return {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(image, np.float32)),
             "raw": True}

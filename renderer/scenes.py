@@ -41,6 +41,7 @@ from . import training_scenes as training
 from .procedural import procedural_scene, procedural_seed
 from .scene_kit import SceneDict
 from learning.data.variant import select_variant
+from noisefeat.extras import require
 
 logger = logging.getLogger(__name__)
 
@@ -175,7 +176,7 @@ def resize_film(scene: Any, size: tuple[int, int]) -> None:
     """Set the first sensor's film to `size` (W, H), in place, as Mitsuba's own scene
     parameters do (``film.size``; the sensor recomputes its projection, keeping its
     horizontal field of view). A crop window set by the file is dropped, with a warning."""
-    import mitsuba as mi
+    mi = require("mitsuba")
 
     sensor = scene.sensors()[0]
     film = sensor.film()
@@ -197,7 +198,7 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | st
     `defines` are the file's `<default>` parameters set as `mitsuba -D key=value` sets them.
     """
     select_variant()
-    import mitsuba as mi
+    mi = require("mitsuba")
 
     size = None if resolution is None else parse_resolution(resolution)
     name_or_path = os.fspath(name_or_path)

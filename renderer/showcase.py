@@ -30,6 +30,7 @@ import numpy as np
 from .adaptive import adaptive_render
 from .names import DEFAULT_CRITERION
 from .outputs import prepare_output_dir, to_srgb8
+from noisefeat.extras import require
 
 logger = logging.getLogger(__name__)
 
@@ -66,6 +67,7 @@ def equal_time_png(adaptive: np.ndarray, uniform: np.ndarray, a: dict[str, Any],
     """PNG bytes: adaptive | uniform at equal time (| the reference), and below them the
     block the adaptive render spent most samples on (or, with errors, the adaptive
     render's worst block against the reference) enlarged 3x in each."""
+    require("matplotlib")
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.patches import Rectangle

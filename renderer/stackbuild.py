@@ -40,6 +40,7 @@ from noisefeat.pooling import POOLINGS
 from .blocks import BlockRenderer
 from .scenes import load_scene
 from learning.data.variant import select_variant
+from noisefeat.extras import require
 
 log = logging.getLogger(__name__)
 
@@ -137,7 +138,7 @@ def build_stack(scene: str, out_root: str | os.PathLike, settings: BuildSettings
     """Render and label one stack under out_root/<scene>; resumes an interrupted build."""
     t_start = time.perf_counter()
     variant = select_variant()
-    import mitsuba as mi
+    mi = require("mitsuba")
 
     name = scene_label(scene)
     out = Path(out_root) / name

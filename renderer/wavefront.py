@@ -32,6 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from noisefeat.extras import require
+
 #: lanes per kernel launch: larger pixel sets are traced in chunks (same kernel)
 MAX_LANES = 1 << 24
 
@@ -50,8 +52,8 @@ def _keyed_sampler_class() -> type:
     global _KEYED
     if _KEYED is not None:
         return _KEYED
-    import drjit as dr
-    import mitsuba as mi
+    dr = require("drjit")
+    mi = require("mitsuba")
 
     class KeyedSampler(mi.Sampler):
         """Independent uniform numbers from one PCG32 stream per (pixel, sample, pass).
@@ -98,8 +100,8 @@ class WavefrontTracer:
     """
 
     def __init__(self, scene: Any, sensor: Any, integrator: Any) -> None:
-        import drjit as dr
-        import mitsuba as mi
+        dr = require("drjit")
+        mi = require("mitsuba")
 
         self._mi, self._dr = mi, dr
         self.scene, self.sensor, self.integrator = scene, sensor, integrator

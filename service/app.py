@@ -18,9 +18,12 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Annotated, Any
 
-import anyio
-import anyio.to_thread
-import numpy as np
+from noisefeat.extras import require_extra
+
+require_extra("serve")   # one line naming the extra, not an ImportError from fastapi
+import anyio  # noqa: E402
+import anyio.to_thread  # noqa: E402
+import numpy as np  # noqa: E402
 from fastapi import APIRouter, Depends, FastAPI, Header, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi

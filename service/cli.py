@@ -3,7 +3,8 @@
 Logs and progress go to stderr; with --json, stdout carries one JSON object and nothing
 else. Every failure of a command ends with one line on stderr, `noisestop CMD: error:
 ...`, and exit status 2, never a traceback (set NOISESTOP_DEBUG=1 to see one): bad input
-and unusable files say what is wrong with them; anything else is reported as an
+and unusable files say what is wrong with them, a missing optional package names the extra
+that installs it (`pip install 'noisestop[render]'`); anything else is reported as an
 unexpected error with its type, which is a bug to report (issue 14 made this a contract,
 tests/test_error_contract.py holds every command to it).
 """
@@ -68,9 +69,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         if debug:
             raise
         _close_progress_bars()
+        missing = _missing_extra(exc)
+        if missing is not None:   # an optional package not installed: which extra brings it
+            print(f"noisestop {args.command}: error: {one_line(missing)}", file=sys.stderr)
+            return 2
         print(f"noisestop {args.command}: error: unexpected {type(exc).__name__}: {one_line(exc)} "
               "(a bug; NOISESTOP_DEBUG=1 shows where)", file=sys.stderr)
         return 2
+
+
+def _missing_extra(exc: BaseException) -> ImportError | None:
+    """`exc` as the one-line MissingExtra if it says an optional package is not installed."""
+    if not isinstance(exc, ImportError):
+        return None
+    from noisefeat.extras import missing_extra
+    return missing_extra(exc)
 
 
 def _close_progress_bars() -> None:

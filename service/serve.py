@@ -26,7 +26,10 @@ import threading
 from collections.abc import Iterator
 from types import FrameType
 
-import uvicorn
+from noisefeat.extras import require_extra
+
+require_extra("serve")   # one line naming the extra, not an ImportError from uvicorn
+import uvicorn  # noqa: E402
 
 from .app import create_app
 from .auth import check_bind, resolve_token

@@ -88,9 +88,12 @@ def test_png_roundtrip_and_errors(tmp_path):
 
 
 def test_read_exr_drops_alpha_and_expands_grey(tmp_path):
-    from learning.data.exr import _mi
+    pytest.importorskip("mitsuba")
+    from learning.data.variant import select_variant
 
-    mi = _mi()
+    select_variant()
+    import mitsuba as mi
+
     rgba = _img(4, 5, seed=2)
     rgba = np.concatenate([rgba, np.full((4, 5, 1), 0.5, np.float32)], axis=2)
     mi.Bitmap(rgba, pixel_format=mi.Bitmap.PixelFormat.RGBA).write(str(tmp_path / "a.exr"))

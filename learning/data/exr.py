@@ -1,10 +1,17 @@
 """Image files of the dataset: EXR (linear RGB) and PNG (8-bit sRGB), read and written safely.
 
-Everything goes through Mitsuba's `Bitmap` (already a dependency, handles OpenEXR and PNG).
+EXR goes through the OpenEXR project's own Python bindings (`OpenEXR`), PNG through Pillow:
+neither needs Mitsuba, so the dataset format reads and writes with the core install.
+Files written here use the layout Mitsuba writes (scanlines, PIZ compression, channels
+R, G, B plus any named extras), and files Mitsuba wrote read back bit for bit as
+`mitsuba.Bitmap` read them (tests/test_exr_io.py checks both ways when Mitsuba is there).
+
 Writes are atomic: the file is encoded in memory, written to a temporary name in the
 target directory, fsync'ed and renamed over the final name, so a reader never sees a
-half-written image (DESIGN "Dataset format v1"). Reads turn Mitsuba's RuntimeError for a
-truncated or corrupt file into a ValueError that names the file.
+half-written image (DESIGN "Dataset format v1"). Reads check a single-part scanline EXR's
+header and chunk table against the file's length before decoding, so a truncated file is
+a ValueError naming it (and nothing from the C library on stderr); any other decoding
+failure is a ValueError naming the file too.
 
 Limit worth knowing: OpenEXR has no checksum, so bytes flipped *inside* a complete file
 can decode to wrong pixels without any error; truncation is always detected.
@@ -12,26 +19,39 @@ can decode to wrong pixels without any error; truncation is always detected.
 from __future__ import annotations
 
 import contextlib
+import io
 import logging
+import math
 import os
 import secrets
+import struct
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 log = logging.getLogger(__name__)
 
-def _mi():
-    """Mitsuba with the process's variant set (Bitmap needs one): the one choice of
-    `learning.data.variant`, so reading an EXR first never pins a slower variant."""
-    from .variant import select_variant
+#: rows of pixels per chunk of a scanline EXR, by the header's compression code
+_LINES_PER_CHUNK = {0: 1, 1: 1, 2: 1, 3: 16, 4: 32, 5: 16, 6: 32, 7: 32, 8: 32, 9: 256,
+                    10: 256, 11: 32}
+_PIZ = 4
+_MAGIC = 20000630
+_TILED, _NON_IMAGE, _MULTIPART = 0x200, 0x800, 0x1000
+#: channels Mitsuba puts first, in this order, when it reads a file (the rest keep file order)
+_FIRST = ("R", "G", "B", "A")
 
-    select_variant()
-    import mitsuba as mi
 
-    return mi
+def _openexr():
+    from noisefeat.extras import require
+
+    return require("OpenEXR")
+
+
+def _pil_image():
+    from noisefeat.extras import require
+
+    return require("PIL.Image")
 
 
 @contextlib.contextmanager
@@ -91,82 +111,33 @@ def _check_rgb(arr: np.ndarray, what: str, path: Path) -> None:
         raise ValueError(f"{path}: {what} must have shape [H, W, 3] with H, W > 0, got {arr.shape}")
 
 
-def _encode(bitmap, fmt) -> bytes:
-    mi = _mi()
-    stream = mi.MemoryStream()
-    bitmap.write(stream, fmt)
-    return bytes(stream.raw_buffer())[: stream.size()]
+# ----------------------------------------------------------------------------- EXR
+
+def _encode_exr(channels: dict[str, np.ndarray]) -> bytes:
+    """One single-part scanline EXR, PIZ-compressed as Mitsuba writes it, in memory."""
+    exr = _openexr()
+    header = {"compression": exr.PIZ_COMPRESSION, "type": exr.scanlineimage,
+              "generatedBy": "noisestop"}
+    buf = io.BytesIO()
+    exr.File(header, {name: np.ascontiguousarray(a) for name, a in channels.items()}).write(buf)
+    return buf.getvalue()
 
 
 def write_exr(path: str | os.PathLike, rgb: np.ndarray, half: bool = False) -> None:
     """Write linear RGB [H, W, 3] as an EXR (float32, or half with `half=True`), atomically.
 
     Non-finite values are stored as they are (renderers emit them; `check` reports them).
-    Half floats overflow to Inf above 65504.
+    Half floats round to nearest even and overflow to Inf above 65504.
     """
     path = Path(path)
     _check_rgb(rgb, "EXR image", path)
     if not np.issubdtype(rgb.dtype, np.number):
         raise ValueError(f"{path}: EXR image must be numeric, got dtype {rgb.dtype}")
-    mi = _mi()
-    data = np.ascontiguousarray(rgb, dtype=np.float32)
-    bm = mi.Bitmap(data, pixel_format=mi.Bitmap.PixelFormat.RGB)
+    data = np.asarray(rgb, dtype=np.float32)
     if half:
-        bm = bm.convert(component_format=mi.Struct.Type.Float16)
-    atomic_write_bytes(path, _encode(bm, mi.Bitmap.FileFormat.OpenEXR))
-
-
-def _load(path: Path, fmt, kind: str):
-    mi = _mi()
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such {kind} file")
-    try:
-        return mi.Bitmap(str(path), fmt)
-    except RuntimeError as exc:
-        raise ValueError(f"{path}: unreadable {kind} (truncated or corrupt?): {exc}") from exc
-
-
-def _read_rgb(path: str | os.PathLike, kind: str, srgb: bool) -> np.ndarray:
-    """A Bitmap file as float32 [H, W, 3] (alpha dropped, grey expanded to RGB)."""
-    path = Path(path)
-    mi = _mi()
-    fmt = mi.Bitmap.FileFormat.OpenEXR if kind == "EXR" else mi.Bitmap.FileFormat.PNG
-    bm = _load(path, fmt, kind)
-    if bm.pixel_format() == mi.Bitmap.PixelFormat.MultiChannel:   # e.g. final.exr: RGB + spp + mask
-        channels = _channels(bm, path)
-        if not {"R", "G", "B"} <= set(channels):
-            raise ValueError(f"{path}: no R, G, B channels among {sorted(channels)}")
-        return np.stack([channels[c] for c in "RGB"], axis=-1)
-    try:
-        bm = bm.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=srgb)
-    except RuntimeError as exc:
-        raise ValueError(f"{path}: cannot convert {kind} to RGB: {exc}") from exc
-    out = np.array(bm, dtype=np.float32, copy=True)
-    if out.ndim == 2:
-        out = np.repeat(out[:, :, None], 3, axis=2)
-    return out
-
-
-def read_exr(path: str | os.PathLike) -> np.ndarray:
-    """EXR -> float32 [H, W, 3] linear RGB (alpha dropped, grey expanded to RGB; of a
-    multi-channel file its R, G and B channels)."""
-    return _read_rgb(path, "EXR", srgb=False)
-
-
-def _channels(bm: Any, path: Path) -> dict[str, np.ndarray]:
-    try:
-        names = [field.name for field in bm.struct_()]
-        data = np.array(bm, copy=True).astype(np.float32)
-    except RuntimeError as exc:
-        raise ValueError(f"{path}: unreadable channels: {exc}") from exc
-    data = data.reshape(data.shape[0], data.shape[1], len(names))
-    return {name: data[..., i] for i, name in enumerate(names)}
-
-
-def read_exr_channels(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Every channel of an EXR by name, float32 [H, W] each (final.exr: R, G, B, spp, converged)."""
-    path = Path(path)
-    return _channels(_load(path, _mi().Bitmap.FileFormat.OpenEXR, "EXR"), path)
+        with np.errstate(over="ignore"):
+            data = data.astype(np.float16)
+    atomic_write_bytes(path, _encode_exr({c: data[..., i] for i, c in enumerate("RGB")}))
 
 
 def write_exr_channels(path: str | os.PathLike, channels: dict[str, np.ndarray]) -> None:
@@ -179,11 +150,101 @@ def write_exr_channels(path: str | os.PathLike, channels: dict[str, np.ndarray])
     if len({a.shape for a in arrays}) != 1 or arrays[0].ndim != 2:
         raise ValueError(f"{path}: channels must be [H, W] arrays of one shape, got "
                          f"{[a.shape for a in arrays]}")
-    mi = _mi()
-    bm = mi.Bitmap(np.ascontiguousarray(np.stack(arrays, axis=-1)),
-                   pixel_format=mi.Bitmap.PixelFormat.MultiChannel, channel_names=list(channels))
-    atomic_write_bytes(path, _encode(bm, mi.Bitmap.FileFormat.OpenEXR))
+    if arrays[0].size == 0:
+        raise ValueError(f"{path}: channels must have H, W > 0, got {arrays[0].shape}")
+    atomic_write_bytes(path, _encode_exr(dict(zip(channels, arrays))))
 
+
+def _check_exr_layout(data: bytes, path: Path) -> None:
+    """Raise ValueError if a single-part scanline EXR is cut short: its header, its chunk
+    offset table or a chunk runs past the end of `data`. Other kinds (tiled, deep,
+    multi-part) are left to OpenEXR's own checks."""
+    size = len(data)
+
+    def cut(what: str) -> ValueError:
+        return ValueError(f"{path}: unreadable EXR (truncated or corrupt?): {what} runs past the "
+                          f"end of the file ({size} bytes)")
+
+    if size < 8 or struct.unpack_from("<i", data, 0)[0] != _MAGIC:
+        raise ValueError(f"{path}: not an EXR file (no OpenEXR magic number)")
+    flags = struct.unpack_from("<I", data, 4)[0]
+    pos, compression, window = 8, None, None
+    while True:
+        if pos >= size:
+            raise cut("the header")
+        if data[pos] == 0:          # the header's terminating null
+            pos += 1
+            break
+        name_end = data.find(b"\0", pos)
+        type_end = data.find(b"\0", name_end + 1) if name_end >= 0 else -1
+        if type_end < 0 or type_end + 5 > size:
+            raise cut("the header")
+        name = data[pos:name_end]
+        length = struct.unpack_from("<i", data, type_end + 1)[0]
+        value = type_end + 5
+        if length < 0 or value + length > size:
+            raise cut(f"header attribute {name.decode(errors='replace')!r}")
+        if name == b"compression" and length == 1:
+            compression = data[value]
+        elif name == b"dataWindow" and length == 16:
+            window = struct.unpack_from("<4i", data, value)
+        pos = value + length
+    if flags & (_TILED | _NON_IMAGE | _MULTIPART) or window is None or compression not in _LINES_PER_CHUNK:
+        return
+    rows = window[3] - window[1] + 1
+    if rows < 1 or window[2] < window[0]:
+        raise ValueError(f"{path}: unreadable EXR: empty data window {window}")
+    chunks = math.ceil(rows / _LINES_PER_CHUNK[compression])
+    table_end = pos + 8 * chunks
+    if table_end > size:
+        raise cut("the chunk offset table")
+    for i, offset in enumerate(struct.unpack_from(f"<{chunks}Q", data, pos)):
+        if offset < table_end or offset + 8 > size:
+            raise cut(f"chunk {i} of {chunks}")
+        packed = struct.unpack_from("<i", data, offset + 4)[0]
+        if packed < 0 or offset + 8 + packed > size:
+            raise cut(f"chunk {i} of {chunks}")
+
+
+def _read_exr_file(path: str | os.PathLike) -> tuple[Path, dict[str, np.ndarray]]:
+    """Every channel of an EXR's first part as float32 [H, W], in the order Mitsuba's
+    Bitmap gives them: R, G, B, A first, then the others in file order (alphabetical)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such EXR file")
+    data = path.read_bytes()
+    _check_exr_layout(data, path)
+    exr = _openexr()
+    try:
+        with exr.File(io.BytesIO(data), separate_channels=True) as f:
+            raw = {name: ch.pixels for name, ch in f.channels().items()}
+    except Exception as exc:      # the bindings raise RuntimeError, ValueError, ... by case
+        raise ValueError(f"{path}: unreadable EXR (truncated or corrupt?): {exc}") from exc
+    shapes = {np.shape(a) for a in raw.values()}
+    if not raw or len(shapes) != 1 or len(next(iter(shapes))) != 2:
+        raise ValueError(f"{path}: unreadable EXR channels: expected full-resolution [H, W] "
+                         f"channels, got { {n: np.shape(a) for n, a in raw.items()} }")
+    order = [c for c in _FIRST if c in raw] + [c for c in raw if c not in _FIRST]
+    return path, {name: np.asarray(raw[name]).astype(np.float32) for name in order}
+
+
+def read_exr(path: str | os.PathLike) -> np.ndarray:
+    """EXR -> float32 [H, W, 3] linear RGB (alpha dropped, grey Y expanded to RGB; of a
+    multi-channel file its R, G and B channels)."""
+    path, channels = _read_exr_file(path)
+    if {"R", "G", "B"} <= set(channels):
+        return np.stack([channels[c] for c in "RGB"], axis=-1)
+    if set(channels) in ({"Y"}, {"Y", "A"}):
+        return np.repeat(channels["Y"][:, :, None], 3, axis=2)
+    raise ValueError(f"{path}: no R, G, B channels among {sorted(channels)}")
+
+
+def read_exr_channels(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Every channel of an EXR by name, float32 [H, W] each (final.exr: R, G, B, converged, spp)."""
+    return _read_exr_file(path)[1]
+
+
+# ----------------------------------------------------------------------------- PNG
 
 def write_png(path: str | os.PathLike, srgb8: np.ndarray) -> None:
     """Write an 8-bit sRGB image [H, W, 3] uint8 as PNG, atomically."""
@@ -191,15 +252,35 @@ def write_png(path: str | os.PathLike, srgb8: np.ndarray) -> None:
     _check_rgb(srgb8, "PNG image", path)
     if srgb8.dtype != np.uint8:
         raise ValueError(f"{path}: PNG image must be uint8, got dtype {srgb8.dtype}")
-    mi = _mi()
-    bm = mi.Bitmap(np.ascontiguousarray(srgb8), pixel_format=mi.Bitmap.PixelFormat.RGB)
-    bm.set_srgb_gamma(True)
-    atomic_write_bytes(path, _encode(bm, mi.Bitmap.FileFormat.PNG))
+    image = _pil_image()
+    buf = io.BytesIO()
+    image.fromarray(np.ascontiguousarray(srgb8), "RGB").save(buf, format="PNG")
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def read_png(path: str | os.PathLike) -> np.ndarray:
-    """PNG -> float32 [H, W, 3] in [0, 1], still sRGB-encoded (display values).
+    """PNG -> float32 [H, W, 3] in [0, 1], still sRGB-encoded (display values): an 8-bit
+    value v is v / 255 in float32, a 16-bit grey one v / 65535.
 
-    Grey PNGs are expanded to RGB, alpha is dropped, 16-bit PNGs are scaled to [0, 1].
+    Grey PNGs are expanded to RGB, alpha is dropped, palettes are looked up. 16-bit colour
+    PNGs are refused (Pillow would read them as 8-bit).
     """
-    return np.clip(_read_rgb(path, "PNG", srgb=True), 0.0, 1.0)
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such PNG file")
+    image = _pil_image()
+    try:
+        with image.open(path, formats=["PNG"]) as im:
+            colour16 = im.mode in ("RGB", "RGBA") and any(";16" in str(t[3]) for t in im.tile)
+            if im.mode in ("I;16", "I;16B", "I"):
+                scale, arr = 65535.0, np.asarray(im, dtype=np.float64)
+            else:
+                scale, arr = 255.0, np.asarray(im.convert("RGB") if im.mode != "RGB" else im)
+    except Exception as exc:     # Pillow raises OSError, SyntaxError, ValueError, ... by damage
+        raise ValueError(f"{path}: unreadable PNG (truncated or corrupt?): {exc}") from exc
+    if colour16:
+        raise ValueError(f"{path}: 16-bit colour PNGs are not supported; convert it to 8-bit")
+    out = (arr.astype(np.float32) / np.float32(scale)) if scale == 255.0 else (arr / scale).astype(np.float32)
+    if out.ndim == 2:
+        out = np.repeat(out[:, :, None], 3, axis=2)
+    return np.clip(out, 0.0, 1.0)

@@ -40,6 +40,7 @@ from noisefeat.pooling import DEFAULT_POOLING, MEAN, POOLINGS, check_pooling, po
 from ..names import DEFAULT_TAU
 from .cache import cached_array
 from .stack import Stack, block_shape, list_stacks, read_stack, update_labels
+from noisefeat.extras import require
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +79,7 @@ def _check_ldr(img: np.ndarray, name: str) -> np.ndarray:
 
 def flip_map(ref_srgb: np.ndarray, test_srgb: np.ndarray, ppd: float = DEFAULT_PPD) -> np.ndarray:
     """Raw LDR-FLIP error map [H, W] float32 in [0, 1] of two sRGB images in [0, 1]."""
-    import flip_evaluator
+    flip_evaluator = require("flip_evaluator")
 
     p = check_ppd(ppd)
     ref = _check_ldr(ref_srgb, "reference")

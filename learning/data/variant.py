@@ -23,6 +23,8 @@ import re
 import sys
 import threading
 
+from noisefeat.extras import require
+
 logger = logging.getLogger(__name__)
 
 ENV_VARIANT = "NOISESTOP_VARIANT"
@@ -151,7 +153,7 @@ def _prepare_llvm() -> str | None:
 
 
 def _check_known(name: str) -> None:
-    import mitsuba as mi
+    mi = require("mitsuba")
 
     known = mi.variants()
     if name not in known:
@@ -200,14 +202,14 @@ def select_variant(requested: str | None = None) -> str:
             llvm_why = _prepare_llvm()
             name, reason = "scalar_rgb", f"fallback: no CUDA device, no libLLVM >= {MIN_LLVM_MAJOR}"
             if cuda_driver_present():
-                import drjit as dr
+                dr = require("drjit")
 
                 if dr.has_backend(dr.JitBackend.CUDA):
                     name, reason = "cuda_ad_rgb", "CUDA device available"
             if name == "scalar_rgb" and llvm_why is not None:
                 name, reason = "llvm_ad_rgb", f"no CUDA device; {llvm_why}"
 
-        import mitsuba as mi
+        mi = require("mitsuba")
 
         try:
             mi.set_variant(name)

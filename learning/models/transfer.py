@@ -43,6 +43,7 @@ from torch import nn
 from tqdm import tqdm
 
 from noisefeat.display import display
+from noisefeat.extras import MissingExtra
 
 from ..stoprule import OffsetClassifierMixin
 from .bundle_check import file_sha256
@@ -111,8 +112,10 @@ def import_torchvision() -> ModuleType:
         import torchvision
         return torchvision
     except ModuleNotFoundError as exc:
-        raise ImportError(f"transfer-learning baselines ({', '.join(ARCHS)}) need torchvision: "
-                          f"{hint}") from exc
+        if (exc.name or "").split(".")[0] != "torchvision":
+            raise
+        raise MissingExtra("torchvision", purpose=f"the transfer-learning baselines ({', '.join(ARCHS)})") \
+            from None
     except RuntimeError as exc:
         m = _TV_MISSING.search(str(exc))
         if m is None or m.group(1) not in _TV_SCHEMAS:

@@ -74,6 +74,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
+    from noisefeat.extras import require_extra
+
+    require_extra("serve")
     from service.serve import parse_model_specs, run
     run(parse_model_specs(args.model), args.host, args.port, token_file=args.token_file,
         max_body_bytes=args.max_body_bytes, max_batch=args.max_batch,

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 import torch
 from .timing import interleaved_medians
+from noisefeat.extras import require
 
 log = logging.getLogger(__name__)
 
@@ -19,7 +20,7 @@ def _flip_evaluator_threads(n: int) -> bool:
     import glob
     import os
 
-    import flip_evaluator
+    flip_evaluator = require("flip_evaluator")
     libs = glob.glob(os.path.join(os.path.dirname(flip_evaluator.__file__), os.pardir,
                                   "flip_evaluator.libs", "libgomp*"))
     try:

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from noisefeat.extras import require
 
 TAUS = (0.01, 0.02, 0.04)
 KEYS = ("early_stop_rate", "spp_ratio_vs_oracle", "saved_vs_uniform")
@@ -63,6 +64,7 @@ def _tile_errors(st: Any) -> np.ndarray:
 
 def _picture(rows: list[dict[str, Any]], out_png: str, tau: float) -> str:
     """Each block at its first-observer threshold next to the reference, both enlarged 3x."""
+    require("matplotlib")
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 

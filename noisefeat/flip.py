@@ -43,8 +43,7 @@ import torch
 
 from .display import clipped_linear, srgb_decode
 from .perceptual import DEFAULT_PPD, PC, PT, QC
-from .pooling import DEFAULT_POOLING, MEAN, check_pooling, pool_maps
-from .pooling import TILE as POOL_TILE
+from .pooling import CRITERION_POOLING, MEAN, TILES, check_pooling, pool_maps
 
 #: FLIP's linear sRGB -> XYZ (its exact rational entries) and XYZ -> linear sRGB (D65)
 RGB_TO_XYZ = ((10135552 / 24577794, 8788810 / 24577794, 4435075 / 24577794),
@@ -346,7 +345,7 @@ def ldr_flip(reference: torch.Tensor | np.ndarray, test: torch.Tensor | np.ndarr
 
 
 def flip_halves(even: torch.Tensor | np.ndarray, odd: torch.Tensor | np.ndarray,
-                exposure: float = 0.0, ppd: float = DEFAULT_PPD, pooling: str = DEFAULT_POOLING) -> np.ndarray:
+                exposure: float = 0.0, ppd: float = DEFAULT_PPD, pooling: str = CRITERION_POOLING) -> np.ndarray:
     """float64 [N]: per block, the LDR-FLIP map between display(even) and display(odd),
     linear RGB half buffers [N, h, w, 3], pooled as the observer pools (`noisefeat.pooling`:
     the largest 16x16 tile mean, or the block mean); non-finite values follow the display
@@ -382,7 +381,7 @@ def _pool(maps: torch.Tensor, pooling: str) -> np.ndarray:
     n, h, w = maps.shape
     if pooling == MEAN:
         return (maps.sum(dim=(1, 2), dtype=torch.float64) / (h * w)).numpy()
-    th, tw = min(POOL_TILE, h), min(POOL_TILE, w)
+    th, tw = min(TILES[pooling], h), min(TILES[pooling], w)
     if h % th or w % tw:
         return pool_maps(maps.numpy(), pooling)
     sums = maps.reshape(n, h // th, th, w // tw, tw).sum(dim=(2, 4), dtype=torch.float64)

@@ -8,7 +8,9 @@ the block, so the observer and the `flip` criterion take the largest of the mean
 side is not a multiple of 16 the last row/column of tiles is moved flush with the block's
 edge (overlapping its neighbour); a side under 16 is one tile of that side.
 
-"mean" (the first observer's block mean) stays selectable for comparison.
+"mean" (the first observer's block mean) stays selectable for comparison. "tile8-max"
+(8x8 tiles) is offered to the criteria, not to labels: a criterion may pool more finely
+than the observer it is calibrated against (`noisefeat.pooling.CRITERION_POOLING`).
 
 Tile sums come from one summed-area table per map (float64), so any block size costs
 the same few operations per pixel, far below FLIP's own cost.
@@ -20,15 +22,21 @@ import numpy as np
 TILE = 16
 TILE_MAX = "tile16-max"
 MEAN = "mean"
-#: the poolings a labeler record or a criterion may name; the first is DESIGN's current one
+#: tile side of each tile pooling
+TILES = {TILE_MAX: TILE, "tile8-max": 8}
+#: the poolings a labeler record may name; the first is DESIGN's observer
 POOLINGS = (TILE_MAX, MEAN)
 DEFAULT_POOLING = TILE_MAX
+#: every pooling `pool_maps` computes (the criteria may use the finer one too)
+ALL_POOLINGS = (*POOLINGS, "tile8-max")
+#: how the `flip` criterion (and the halves input's `f`) pools FLIP between the half buffers
+CRITERION_POOLING = "tile8-max"
 
 
 def check_pooling(pooling: object) -> str:
     """A known pooling name, else ValueError naming the known ones."""
-    if not isinstance(pooling, str) or pooling not in POOLINGS:
-        raise ValueError(f"unknown pooling {pooling!r}; known: {', '.join(POOLINGS)}")
+    if not isinstance(pooling, str) or pooling not in ALL_POOLINGS:
+        raise ValueError(f"unknown pooling {pooling!r}; known: {', '.join(ALL_POOLINGS)}")
     return pooling
 
 
@@ -57,12 +65,12 @@ def pool_maps(maps: np.ndarray, pooling: str = DEFAULT_POOLING) -> np.ndarray:
         raise ValueError(f"maps must have pixels, got shape {m.shape}")
     if p == MEAN:
         return m.mean(axis=(1, 2))
-    th, tw = min(TILE, h), min(TILE, w)
+    th, tw = min(TILES[p], h), min(TILES[p], w)
     if h % th == 0 and w % tw == 0:            # the usual case: a plain reshape
         return m.reshape(n, h // th, th, w // tw, tw).mean(axis=(2, 4)).max(axis=(1, 2))
     sat = np.zeros((n, h + 1, w + 1))
     sat[:, 1:, 1:] = m.cumsum(1).cumsum(2)
-    y0, x0 = tile_starts(h), tile_starts(w)
+    y0, x0 = tile_starts(h, TILES[p]), tile_starts(w, TILES[p])
     y1, x1 = y0 + th, x0 + tw
     s = sat[:, y1][:, :, x1] - sat[:, y0][:, :, x1] - sat[:, y1][:, :, x0] + sat[:, y0][:, :, x0]
     # a NaN pixel spreads through the summed-area table, but only within its own map, and

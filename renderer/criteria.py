@@ -38,7 +38,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from learning.stoprule import CONVERGED, NOISY, StopRule, flat_blocks
-from noisefeat.pooling import DEFAULT_POOLING
+from noisefeat.pooling import CRITERION_POOLING
 from noisefeat.runtime import torch_threads
 
 from learning.names import DEFAULT_TAU
@@ -452,7 +452,7 @@ class FlipCriterion(Criterion):
         self.exposure = float(exposure)
 
     def describe(self) -> dict[str, Any]:
-        return {"name": self.name, "threshold": self.c, "tau": self.tau, "pooling": DEFAULT_POOLING,
+        return {"name": self.name, "threshold": self.c, "tau": self.tau, "pooling": CRITERION_POOLING,
                 "source": self.source}
 
     def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:

@@ -135,8 +135,12 @@ def test_calibrate_writes_c_and_refuses_held_out_scenes(tmp_path):
     assert out.returncode == 0, out.stderr
     got = json.loads(out.stdout)
     saved = json.loads((tmp_path / "flip.json").read_text())
-    assert saved["c"] == got["c"] and saved["chosen"]["early_stop_rate"] <= 0.05
+    assert [p["tau"] for p in got["curve"]] == [p["tau"] for p in saved["curve"]]
+    assert saved["curve"][0]["tau"] <= 0.01 and saved["curve"][-1]["tau"] >= 0.05
+    assert [p["c"] for p in got["curve"]] == [p["c"] for p in saved["curve"]]
+    assert all(p["chosen"]["early_stop_rate"] <= 0.05 for p in saved["curve"])
     assert saved["scenes"] == ["checker", "cornell", "cornell_dark", "sky"] and saved["fingerprint"]
+    assert saved["pooling"] == "tile8-max" and saved["observer_pooling"] == "tile16-max"
     # a held-out scene may take no part in calibration (nor in training)
     held = tmp_path / "data" / "studio_preview"
     make_synthetic_stack(held, size=32, spp=(8, 16))

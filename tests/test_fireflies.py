@@ -8,8 +8,13 @@ lie on the grey; they fade as samples accumulate.
 
 Under the first observer (the block mean) the block counts as converged from its first
 level: a few dots hardly move the mean FLIP of 4096 pixels. Under DESIGN's observer (the
-largest 16x16 tile mean) it does not, and the `flip` criterion, pooled the same way and at
-the shipped c(tau), keeps sampling until the dots are gone.
+largest 16x16 tile mean) it does not. The `flip` criterion at the shipped c(tau) keeps
+sampling until the dots are gone because it pools its half-buffer FLIP by 8x8 tiles
+(`noisefeat.pooling.CRITERION_POOLING`); pooled by 16x16 tiles, as the observer, it
+stopped these blocks at 96, 736 and 288 spp against thresholds of 640, 1312 and 1312
+(README "Deciding a stop": a dot saturates FLIP in both the halves' difference and the
+observer's, so the halves' usual 1.5x margin over the observer, which c is calibrated
+on, is missing for fireflies; finer tiles weigh a dot 4x more).
 """
 from __future__ import annotations
 
@@ -20,6 +25,7 @@ from learning.data.observer import VirtualObserver, observed, pooled_errors
 from learning.data.stack_write import write_stack
 from learning.inputs.halves import flip_c, load_flip_calibration
 from renderer.criteria import FlipCriterion
+from noisefeat.pooling import CRITERION_POOLING
 from renderer.simulate import simulate_stack
 
 STEP, LEVELS, SIZE = 32, 64, 64
@@ -57,6 +63,7 @@ def test_the_block_mean_calls_the_dotted_block_converged_the_tiles_do_not(stack)
 
 
 def test_flip_keeps_sampling_until_the_fireflies_are_gone(stack):
+    assert CRITERION_POOLING == "tile8-max"
     crit = FlipCriterion(exposure=0.0, tau=TAU)
     assert crit.c == pytest.approx(flip_c(load_flip_calibration(), TAU))
     V = simulate_stack(stack, crit, min_spp=STEP)

@@ -70,7 +70,7 @@ def test_flip_criterion_decisions():
                                       view(*one_pass, spp=(8, 0))])
     assert out.tolist() == [1, -1, 1, -1]          # one pass: no noise estimate yet, unless flat
     assert crit.counters["flat_blocks"] == 1 and crit.counters["blocks_featured"] == 2
-    assert crit.describe() == {"name": "flip", "threshold": 0.02, "tau": 0.02, "pooling": "tile16-max",
+    assert crit.describe() == {"name": "flip", "threshold": 0.02, "tau": 0.02, "pooling": "tile8-max",
                                "source": "argument"}
     with pytest.raises(ValueError, match="half buffers"):
         crit.decide([0], [BlockView(mean=quiet[0], spp=8)])
@@ -107,7 +107,7 @@ def test_stack_errors_are_cached_and_calibration_meets_its_target(stacks):
         calibrate_flip([])
 
 
-def _curve(points, pooling="tile16-max"):
+def _curve(points, pooling="tile8-max"):
     return {"format": "noisestop-flip-curve", "pooling": pooling,
             "curve": [{"tau": t, "c": c} for t, c in points]}
 
@@ -157,4 +157,4 @@ def test_c_of_tau_calibration_relabels_and_keeps_a_monotone_curve(stacks):
     cs = [p["c"] for p in cal["curve"]]
     assert [p["tau"] for p in cal["curve"]] == [0.01, 0.02, 0.04] and cs == sorted(cs)
     assert all(p["c"] >= p["c_raw"] for p in cal["curve"]) and cal["c"] == cs[1]
-    assert cal["pooling"] == "tile16-max"
+    assert cal["pooling"] == "tile8-max" and cal["observer_pooling"] == "tile16-max"

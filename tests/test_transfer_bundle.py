@@ -300,13 +300,14 @@ def test_simulation_makes_the_evaluate_stops(trained):
 
 
 def test_calibration_offsets_follow_the_scores():
-    """The head's logits may run far past the SVMs' offset grid: the offsets tried span them."""
-    from learning.training.train_transfer import score_offsets
+    """Logits (and an SVM's scores at another noise target) may run far past the fixed
+    offset grid: the offsets tried span them, the grid included."""
+    from learning.evaluation.calibrate import DEFAULT_OFFSETS, score_offsets
     scores = np.array([np.nan, -np.inf, -30.0, 2.0, 45.5, 45.5])
     offs = score_offsets(scores, steps=11)
-    assert offs == tuple(sorted(set(offs))) and 0.0 in offs
-    assert offs[0] == -30.0 and offs[-1] == 45.5 and len(offs) > 3
-    assert score_offsets(np.array([np.nan])) == (0.0,)
+    assert offs == tuple(sorted(set(offs))) and 0.0 in offs and set(DEFAULT_OFFSETS) <= set(offs)
+    assert offs[0] == -30.0 and offs[-1] == 45.5
+    assert score_offsets(np.array([np.nan])) == tuple(sorted({0.0, *DEFAULT_OFFSETS}))
 
 
 @pytest.mark.slow

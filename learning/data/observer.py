@@ -166,7 +166,8 @@ class VirtualObserver:
     def __post_init__(self) -> None:
         check_tau(self.tau)
         check_ppd(self.ppd)
-        check_pooling(self.pooling)
+        if self.pooling not in POOLINGS:
+            raise ValueError(f"unknown pooling {self.pooling!r} for labels; known: {', '.join(POOLINGS)}")
         if not math.isfinite(self.exposure):
             raise ValueError(f"exposure must be a finite number, got {self.exposure!r}")
 

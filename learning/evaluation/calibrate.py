@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from noisefeat.pooling import DEFAULT_POOLING
+from noisefeat.pooling import CRITERION_POOLING, DEFAULT_POOLING
 
 from ..data.observer import DEFAULT_TAU, observed
 from ..data.stack import Stack
@@ -35,6 +35,16 @@ DEFAULT_OFFSETS = tuple(np.round(np.arange(-1.0, 6.01, 0.1), 2))
 #: the noise targets flip's c(tau) and a model's offsets are calibrated at (DESIGN: at least
 #: [0.01, 0.05])
 CURVE_TAUS = (0.01, 0.0125, 0.015, 0.0175, 0.02, 0.025, 0.03, 0.035, 0.04, 0.045, 0.05)
+
+
+def score_offsets(scores: np.ndarray, steps: int = 201) -> tuple[float, ...]:
+    """Offsets to try: `DEFAULT_OFFSETS` and the quantiles of the finite out-of-fold
+    `scores` (and 0, the hyperplane itself). A score's range depends on the model and the
+    run, and a stricter or looser noise target moves the offset it needs beyond any fixed
+    grid; the largest quantile never stops a block, the smallest stops every one."""
+    s = scores[np.isfinite(scores)]
+    q = np.quantile(s, np.linspace(0.0, 1.0, steps)) if len(s) else np.zeros(0)
+    return tuple(np.unique(np.round(np.concatenate([q, DEFAULT_OFFSETS, [0.0]]), 3)).tolist())
 
 
 def _record(chosen: dict) -> dict:
@@ -144,7 +154,7 @@ def calibrate_offset(fit: Callable[[SubImageTable], Any], table: SubImageTable, 
                      progress: bool = True, taus: Sequence[float] = CURVE_TAUS) -> tuple[float, dict[str, Any]]:
     """A model's offset from out-of-fold scores of the training `scenes` (`fit` trains on a
     sub-table), and the calibration record a bundle keeps; `offsets(scores)` gives the
-    offsets tried (default `DEFAULT_OFFSETS`).
+    offsets tried (default `score_offsets`).
 
     The same out-of-fold scores, judged against the observer's labels at each noise target
     in `taus`, give the record's `offsets_by_tau` (`learning.models.noise_target`): a
@@ -152,7 +162,7 @@ def calibrate_offset(fit: Callable[[SubImageTable], Any], table: SubImageTable, 
     down, as for flip's c(tau))."""
     t0 = time.perf_counter()
     scores = out_of_fold_scores(fit, table, list(scenes), progress=progress)
-    tried = DEFAULT_OFFSETS if offsets is None else offsets(scores)
+    tried = (offsets or score_offsets)(scores)
     curve = sweep(scores, table, tried)
     chosen = choose_offset(curve, max_early_stop)
     by_tau = []
@@ -177,7 +187,7 @@ FLIP_CANDIDATES = tuple(float(f"{c:.5g}") for c in np.geomspace(0.004, 0.4, 311)
 
 def flip_sweep(stacks: Sequence[Stack], candidates: Sequence[float] = FLIP_CANDIDATES, *,
                min_spp: int | None = None, progress: bool = False,
-               pooling: str = DEFAULT_POOLING) -> list[dict[str, Any]]:
+               pooling: str = CRITERION_POOLING) -> list[dict[str, Any]]:
     """Metrics of the flip criterion at each c (overall, per scene, per group), through the
     one stop rule (min spp, held stops, flat blocks at once), on labelled `stacks`."""
     if not stacks:
@@ -199,7 +209,7 @@ def flip_sweep(stacks: Sequence[Stack], candidates: Sequence[float] = FLIP_CANDI
 
 def calibrate_flip(stacks: Sequence[Stack], max_early_stop: float = 0.05, *, min_spp: int | None = None,
                    candidates: Sequence[float] = FLIP_CANDIDATES, progress: bool = True,
-                   pooling: str = DEFAULT_POOLING) -> dict[str, Any]:
+                   pooling: str = CRITERION_POOLING) -> dict[str, Any]:
     """c for the `flip` criterion on labelled `stacks` (training scenes, never the held-out
     ones): the largest c (fewest samples) whose early-stop rate stays within
     `max_early_stop` on scenes it was not chosen on (`choose_out_of_fold`)."""
@@ -214,7 +224,7 @@ def calibrate_flip(stacks: Sequence[Stack], max_early_stop: float = 0.05, *, min
 def calibrate_flip_curve(stacks: Sequence[Stack], max_early_stop: float = 0.05, *,
                          taus: Sequence[float] = CURVE_TAUS, min_spp: int | None = None,
                          candidates: Sequence[float] = FLIP_CANDIDATES, progress: bool = True,
-                         pooling: str = DEFAULT_POOLING) -> dict[str, Any]:
+                         pooling: str = CRITERION_POOLING) -> dict[str, Any]:
     """The curve c(tau) for the `flip` criterion: at each noise target tau, the stacks are
     labelled by the observer at that tau (`observed`: relabelled from cached errors, never
     re-rendered) and c is chosen out of fold for `max_early_stop` (`calibrate_flip`).
@@ -225,7 +235,7 @@ def calibrate_flip_curve(stacks: Sequence[Stack], max_early_stop: float = 0.05, 
     target at both. `c_raw` records what was chosen before that."""
     points, raw = [], []
     for tau in tqdm(sorted(taus), desc="c(tau)", disable=not progress, leave=False):
-        labelled = [observed(s, tau, pooling) for s in stacks]
+        labelled = [observed(s, tau) for s in stacks]          # DESIGN's observer at this tau
         cal = calibrate_flip(labelled, max_early_stop, min_spp=min_spp, candidates=candidates,
                              progress=False, pooling=pooling)
         raw.append(cal["c"])
@@ -233,7 +243,8 @@ def calibrate_flip_curve(stacks: Sequence[Stack], max_early_stop: float = 0.05, 
                        "internal_target": cal["chosen"].get("internal_target"),
                        "per_scene": cal["per_scene"] if abs(tau - DEFAULT_TAU) < 1e-12 else None})
     at_default = [p for p in points if abs(p["tau"] - DEFAULT_TAU) < 1e-12]
-    return {"format": "noisestop-flip-curve", "pooling": pooling, "target_early_stop_rate": max_early_stop,
+    return {"format": "noisestop-flip-curve", "pooling": pooling, "observer_pooling": DEFAULT_POOLING,
+            "target_early_stop_rate": max_early_stop,
             "curve": [{k: v for k, v in p.items() if v is not None} for p in points],
             "c": at_default[0]["c"] if at_default else None,
             "scenes": sorted(s.scene for s in stacks), "min_spp": min_spp}

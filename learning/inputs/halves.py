@@ -28,7 +28,7 @@ import numpy as np
 
 from noisefeat.display import check_exposure
 from noisefeat.flip import flip_halves
-from noisefeat.pooling import DEFAULT_POOLING, pool_maps
+from noisefeat.pooling import CRITERION_POOLING, pool_maps
 
 from ..data.observer import DEFAULT_PPD, display, flip_map
 from ..data.stack import Stack
@@ -84,7 +84,7 @@ def _check_halves(even: np.ndarray, odd: np.ndarray, exposure: float) -> tuple[n
 
 
 def halves_flip(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
-                ppd: float = DEFAULT_PPD, pooling: str = DEFAULT_POOLING) -> np.ndarray:
+                ppd: float = DEFAULT_PPD, pooling: str = CRITERION_POOLING) -> np.ndarray:
     """e float64 [N]: per block, the raw FLIP map between display(A) and display(B), pooled
     (`noisefeat.pooling`: the largest 16x16 tile mean, or "mean").
 
@@ -99,7 +99,7 @@ def halves_flip(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
 
 
 def halves_flip_evaluator(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
-                          ppd: float = DEFAULT_PPD, pooling: str = DEFAULT_POOLING) -> np.ndarray:
+                          ppd: float = DEFAULT_PPD, pooling: str = CRITERION_POOLING) -> np.ndarray:
     """`halves_flip` by NVIDIA's `flip-evaluator`, one block per call: the reference
     implementation that the torch route is tested and timed against."""
     even, odd, exposure = _check_halves(even, odd, exposure)
@@ -117,7 +117,7 @@ def flip_offset(c: float) -> float:
 
 
 def stack_flip_errors(stack: Stack, exposure: float = 0.0, ppd: float = DEFAULT_PPD,
-                      progress: bool = False, pooling: str = DEFAULT_POOLING) -> np.ndarray:
+                      progress: bool = False, pooling: str = CRITERION_POOLING) -> np.ndarray:
     """e float64 [K, n_blocks] of a stack; NaN where B is still empty (one pass only) and
     where the block's image is flat (the stop rule stops it whatever e is, so FLIP, the
     expensive part, is not run there, as in the live loop).
@@ -153,12 +153,12 @@ def load_flip_calibration(path: str | os.PathLike | None = None) -> dict[str, An
         if path is not None:
             raise FileNotFoundError(f"{p}: no flip calibration file")
         log.warning("no flip calibration shipped (%s); using c = %g", p, DEFAULT_C)
-        return {"c": DEFAULT_C, "source": "fallback", "pooling": DEFAULT_POOLING, "curve": []}
+        return {"c": DEFAULT_C, "source": "fallback", "pooling": CRITERION_POOLING, "curve": []}
     try:
         cal = json.loads(p.read_text())
         curve = cal["curve"] if isinstance(cal, dict) else None
-        if not isinstance(cal, dict) or cal.get("pooling") != DEFAULT_POOLING or not isinstance(curve, list):
-            raise ValueError(f"not a c(tau) curve for pooling {DEFAULT_POOLING!r} (a file calibrated for "
+        if not isinstance(cal, dict) or cal.get("pooling") != CRITERION_POOLING or not isinstance(curve, list):
+            raise ValueError(f"not a c(tau) curve for pooling {CRITERION_POOLING!r} (a file calibrated for "
                              "the block mean, observer version 1?); recalibrate with `noisestop calibrate`")
         taus = [float(r["tau"]) for r in curve]
         for r in curve:

@@ -13,29 +13,15 @@ import logging
 import time
 from typing import Any
 
-import numpy as np
 from sklearn.base import clone
 
-from ..evaluation.calibrate import calibrate_offset
+from ..evaluation.calibrate import calibrate_offset, score_offsets
 from ..inputs.table import SubImageTable, load_table
 from ..models.transfer import TransferClassifier
 from ..names import TRANSFER_INPUTS, TRANSFER_KINDS
 from .train import split_scenes
 
 log = logging.getLogger(__name__)
-
-#: how many offsets the calibration tries, at quantiles of the out-of-fold scores
-OFFSET_STEPS = 201
-
-
-def score_offsets(scores: np.ndarray, steps: int = OFFSET_STEPS) -> tuple[float, ...]:
-    """Offsets at the quantiles of the finite `scores` (and 0, the head's own boundary): the
-    head's score is a logit whose range depends on the run, wider than the SVMs' fixed grid
-    (learning.evaluation.calibrate.DEFAULT_OFFSETS) covers; the largest never stops a block."""
-    s = scores[np.isfinite(scores)]
-    q = np.quantile(s, np.linspace(0.0, 1.0, steps)) if len(s) else np.zeros(0)
-    return tuple(np.unique(np.round(np.append(q, 0.0), 3)).tolist())
-
 
 def _head_on(clf: TransferClassifier, table: SubImageTable) -> TransferClassifier:
     """A new head fitted on the trainable rows of a table of base features, on `clf`'s base."""

@@ -156,7 +156,7 @@ def load_flip_calibration(path: str | os.PathLike | None = None) -> dict[str, An
         return {"c": DEFAULT_C, "source": "fallback", "pooling": CRITERION_POOLING, "curve": []}
     try:
         cal = json.loads(p.read_text())
-        curve = cal["curve"] if isinstance(cal, dict) else None
+        curve = cal.get("curve") if isinstance(cal, dict) else None
         if not isinstance(cal, dict) or cal.get("pooling") != CRITERION_POOLING or not isinstance(curve, list):
             raise ValueError(f"not a c(tau) curve for pooling {CRITERION_POOLING!r} (a file calibrated for "
                              "the block mean, observer version 1?); recalibrate with `noisestop calibrate`")

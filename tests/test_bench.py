@@ -206,7 +206,9 @@ def test_flip_section_times_both_routes_on_the_same_blocks_and_restores_threads(
         assert x["max_rel_diff"] < 1e-4                      # the same figure from both routes
         assert x["speedup"] == pytest.approx(x["evaluator_ms"] / x["torch_ms"])
     md = md_flip(r)
-    assert "| 2 | 1 of 24x24 |" in md and "load average" in md and md.count("\n| ") == 5
+    timing, pooling = md.split("What the tile pooling adds")
+    assert "| 2 | 1 of 24x24 |" in timing and "load average" in timing and timing.count("\n| ") == 5
+    assert [x["blocks"] for x in r["pooling"]] == [1, 16, 16] and pooling.count("\n| ") == 4
 
 
 def test_flip_section_compares_both_routes_on_labelled_stacks():

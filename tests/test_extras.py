@@ -32,11 +32,13 @@ def test_require_names_the_extra(monkeypatch):
 
 
 def test_a_dependency_of_a_dotted_module_and_plain_import_errors(monkeypatch):
-    monkeypatch.setitem(sys.modules, "dask", None)
+    for name in ("dask", "dask.distributed"):       # earlier tests may have imported both
+        monkeypatch.setitem(sys.modules, name, None)
     with pytest.raises(MissingExtra, match=r"dask is not installed.*noisestop\[data\]"):
         require("dask.distributed")
     with pytest.raises(MissingExtra, match=r"^the plots need matplotlib, which is not installed"):
-        monkeypatch.setitem(sys.modules, "matplotlib", None)
+        for name in ("matplotlib", "matplotlib.figure"):
+            monkeypatch.setitem(sys.modules, name, None)
         require("matplotlib.figure", purpose="the plots")
     with pytest.raises(ModuleNotFoundError) as info:
         require("no_such_package_anywhere")

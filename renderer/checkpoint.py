@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from learning.data.accumulator import BlockAccumulator
-from learning.data.exr import atomic_write_bytes
+from noisefeat.atomic import atomic_write
 from learning.data.npz import check_digest, read_npz, savez_bytes
 
 CHECKPOINT = "checkpoint.npz"
@@ -58,7 +58,7 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     }
     for k, v in state["acc"].items():
         arrays[f"acc_{k}"] = v
-    atomic_write_bytes(path, savez_bytes(arrays, with_digest=True))
+    atomic_write(path, savez_bytes(arrays, with_digest=True))
 
 
 def expected_bytes(frame: tuple[int, int], n_blocks: int, passes: int, block: tuple[int, int] | None = None) -> int:

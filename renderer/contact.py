@@ -14,6 +14,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from noisefeat.atomic import atomic_write  # noqa: E402
+
 from learning.data.stack import Stack  # noqa: E402
 from noisefeat.display import display  # noqa: E402
 
@@ -52,8 +54,7 @@ def contact_sheet(stack: Stack, path: str | os.PathLike, n_levels: int = 4) -> P
         _draw_grid(ax, stack, th_text if is_reference else None)
     fig.suptitle(f"{stack.scene}: block thresholds (spp) drawn on the reference", fontsize=9)
     fig.tight_layout()
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp)
-    plt.close(fig)
-    os.replace(tmp, path)
-    return path
+    try:
+        return atomic_write(path, lambda tmp: fig.savefig(tmp))
+    finally:
+        plt.close(fig)

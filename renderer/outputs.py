@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from learning.data.exr import atomic_write_bytes, write_exr_channels, write_png
+from learning.data.exr import write_exr_channels, write_png
+from noisefeat.atomic import atomic_write
 from noisefeat.display import display
 from noisefeat.extras import require
 
@@ -70,7 +71,7 @@ def _json_default(o: Any) -> Any:
 
 def write_report(path: str | os.PathLike, report: dict[str, Any]) -> Path:
     path = Path(path)
-    atomic_write_bytes(path, (json.dumps(report, indent=2, default=_json_default) + "\n").encode("utf-8"))
+    atomic_write(path, (json.dumps(report, indent=2, default=_json_default) + "\n").encode("utf-8"))
     return path
 
 
@@ -175,12 +176,12 @@ def write_outputs(out: str | os.PathLike, image: np.ndarray, report: dict[str, A
                                          "spp": np.asarray(spp, np.float32),
                                          "converged": np.asarray(converged, np.float32)})
     write_png(out / FINAL_PNG, srgb8)
-    atomic_write_bytes(out / SPP_MAP, spp_map_png(spp, windows, block_spp, [b["converged"] for b in blocks],
+    atomic_write(out / SPP_MAP, spp_map_png(spp, windows, block_spp, [b["converged"] for b in blocks],
                                                   report["min_spp"], report["max_spp"]))
     names = [FINAL_EXR, FINAL_PNG, SPP_MAP, REPORT]
     check = report.get("final_vs_reference")
     if reference is not None and check is not None:
-        atomic_write_bytes(out / COMPARE, compare_png(srgb8, to_srgb8(reference, report.get("exposure", 0.0)),
+        atomic_write(out / COMPARE, compare_png(srgb8, to_srgb8(reference, report.get("exposure", 0.0)),
                                                       windows, block_spp, check["errors"], check["tau"]))
         names.append(COMPARE)
     write_report(out / REPORT, report)

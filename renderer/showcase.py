@@ -127,7 +127,8 @@ def summary_line(a: dict[str, Any], u: dict[str, Any], errors: dict[str, np.ndar
 
 def showcase(scene: str = SCENE, out: str | Path = "out", **settings: Any) -> dict[str, Any]:
     """Adaptive, then uniform for the same time; write equal_time.png; return both reports."""
-    from learning.data.exr import atomic_write_bytes, read_exr
+    from learning.data.exr import read_exr
+    from noisefeat.atomic import atomic_write
 
     root = prepare_output_dir(out)
     opts = {**SETTINGS, **settings}
@@ -143,7 +144,7 @@ def showcase(scene: str = SCENE, out: str | Path = "out", **settings: Any) -> di
         {d: block_errors_vs(img, reference, a, float(a["tau"])) for d, img in linear.items()}
     show = [to_srgb8(linear[d], a.get("exposure", 0.0)) for d in ("adaptive", "uniform")]
     ref8 = None if reference is None else to_srgb8(reference, a.get("exposure", 0.0))
-    atomic_write_bytes(root / EQUAL_TIME, equal_time_png(show[0], show[1], a, u, ref8, errors))
+    atomic_write(root / EQUAL_TIME, equal_time_png(show[0], show[1], a, u, ref8, errors))
     return {"adaptive": a, "uniform": u, "errors": errors, "summary": summary_line(a, u, errors),
             "image": str(root / EQUAL_TIME)}
 

@@ -32,7 +32,7 @@ from tqdm import tqdm
 from learning.data.exr import read_exr
 from learning.data.observer import (VirtualObserver, pooled_errors, relabel_if_stale, stack_observer_errors,
                                     thresholds_from_errors)
-from learning.data.exr import naming
+from noisefeat.atomic import atomic_write
 from learning.data.stack import EXTRA_QUICK, REFERENCE, level_name, read_stack
 from learning.data.stack_write import StackWriter, make_plan
 from noisefeat.pooling import POOLINGS
@@ -112,10 +112,7 @@ def render_mean(br: BlockRenderer, spp: int, seed: int, first_pass: int, max_lan
 
 
 def _save_checkpoint(path: Path, level: int, total: np.ndarray) -> None:
-    tmp = path.with_name(path.name + ".tmp.npz")
-    with naming(path):
-        np.savez(tmp, level=np.int64(level), sum=total)
-        os.replace(tmp, path)
+    atomic_write(path, lambda tmp: np.savez(tmp, level=np.int64(level), sum=total))
 
 
 def _load_checkpoint(path: Path, shape: tuple[int, ...]) -> tuple[int, np.ndarray] | None:

@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from .exr import naming
+from noisefeat.atomic import atomic_write
+
 from .npz import read_npz
 from .stack import Stack
 
@@ -23,10 +23,7 @@ CACHE_DIR = ".cache"
 
 
 def _atomic_savez(path: Path, **arrays: np.ndarray) -> None:
-    tmp = path.with_name(path.name + ".tmp.npz")
-    with naming(path):
-        np.savez(tmp, **arrays)
-        os.replace(tmp, path)
+    atomic_write(path, lambda tmp: np.savez(tmp, **arrays))
 
 
 def cached_array(stack: Stack, name: str, shape: tuple[int, ...], compute: Callable[[], np.ndarray],

@@ -18,6 +18,8 @@ from typing import Any
 
 import numpy as np
 
+from noisefeat.atomic import is_temporary
+
 from .exr import read_exr
 from .stack import (EXTRA_QUICK, LEVELS_DIR, META, PARTIAL, QUICK, QUICK_NONE, REFERENCE, level_name,
                     validate_meta)
@@ -86,7 +88,7 @@ def _stray_entries(d: Path) -> list[Problem]:
     for p in sorted(d.iterdir()):
         if p.name in KNOWN_ENTRIES:
             continue
-        if p.name.startswith(".") and p.name.endswith(".tmp"):
+        if is_temporary(p.name):
             out.append(Problem(p, "leftover of an interrupted write; safe to remove", WARNING))
         else:
             out.append(Problem(p, "stray file in a stack directory (not part of the stack format); "

@@ -18,17 +18,16 @@ can decode to wrong pixels without any error; truncation is always detected.
 """
 from __future__ import annotations
 
-import contextlib
 import io
 import logging
 import math
 import os
-import secrets
 import struct
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+
+from noisefeat.atomic import atomic_write
 
 log = logging.getLogger(__name__)
 
@@ -52,56 +51,6 @@ def _pil_image():
     from noisefeat.extras import require
 
     return require("PIL.Image")
-
-
-@contextlib.contextmanager
-def naming(path: str | os.PathLike) -> Iterator[None]:
-    """An OSError raised while writing `path` names it: a full disk's write() and fsync()
-    raise "No space left on device" without any file name."""
-    try:
-        yield
-    except OSError as exc:
-        if exc.filename is not None:
-            raise
-        raise type(exc)(exc.errno, exc.strerror or str(exc), str(path)) from None
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write `data` to `path` so that the file is either absent/old or complete and new."""
-    path = Path(path)
-    with naming(path):
-        _atomic_write_bytes(path, data)
-
-
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
-    # O_EXCL: never clobber another writer's temp file; mode 0o666 lets the umask decide
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    _fsync_dir(path.parent)
-
-
-def _fsync_dir(directory: Path) -> None:
-    """Make the rename durable too (best effort: not every filesystem allows it)."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def _check_rgb(arr: np.ndarray, what: str, path: Path) -> None:
@@ -137,7 +86,7 @@ def write_exr(path: str | os.PathLike, rgb: np.ndarray, half: bool = False) -> N
     if half:
         with np.errstate(over="ignore"):
             data = data.astype(np.float16)
-    atomic_write_bytes(path, _encode_exr({c: data[..., i] for i, c in enumerate("RGB")}))
+    atomic_write(path, _encode_exr({c: data[..., i] for i, c in enumerate("RGB")}))
 
 
 def write_exr_channels(path: str | os.PathLike, channels: dict[str, np.ndarray]) -> None:
@@ -152,7 +101,7 @@ def write_exr_channels(path: str | os.PathLike, channels: dict[str, np.ndarray])
                          f"{[a.shape for a in arrays]}")
     if arrays[0].size == 0:
         raise ValueError(f"{path}: channels must have H, W > 0, got {arrays[0].shape}")
-    atomic_write_bytes(path, _encode_exr(dict(zip(channels, arrays))))
+    atomic_write(path, _encode_exr(dict(zip(channels, arrays))))
 
 
 def _check_exr_layout(data: bytes, path: Path) -> None:
@@ -255,7 +204,7 @@ def write_png(path: str | os.PathLike, srgb8: np.ndarray) -> None:
     image = _pil_image()
     buf = io.BytesIO()
     image.fromarray(np.ascontiguousarray(srgb8), "RGB").save(buf, format="PNG")
-    atomic_write_bytes(path, buf.getvalue())
+    atomic_write(path, buf.getvalue())
 
 
 def read_png(path: str | os.PathLike) -> np.ndarray:

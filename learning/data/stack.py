@@ -44,9 +44,10 @@ from typing import Any
 import numpy as np
 
 from noisefeat import split_blocks
+from noisefeat.atomic import atomic_write
 from noisefeat.pooling import MEAN, POOLINGS
 
-from .exr import atomic_write_bytes, read_exr
+from .exr import read_exr
 
 log = logging.getLogger(__name__)
 
@@ -278,7 +279,7 @@ class Stack:
                 self._read(path)
         _VALIDATED.add(key)
         try:
-            atomic_write_bytes(marker, (key + "\n").encode())
+            atomic_write(marker, (key + "\n").encode())
         except OSError as exc:            # a read-only dataset: validated again next time
             log.debug("%s: not written (%s)", marker, exc)
 
@@ -405,7 +406,7 @@ def dump_json(path: Path, obj: Mapping) -> None:
     """One top-level key per line (diff- and grep-friendly), known keys first."""
     keys = [k for k in KNOWN_KEYS if k in obj] + [k for k in obj if k not in KNOWN_KEYS]
     body = ",\n".join(f" {json.dumps(k)}: {json.dumps(obj[k])}" for k in keys)
-    atomic_write_bytes(path, ("{\n" + body + "\n}\n").encode("utf-8"))
+    atomic_write(path, ("{\n" + body + "\n}\n").encode("utf-8"))
 
 
 def _stack_dir(path: str | os.PathLike) -> Path:

@@ -26,7 +26,7 @@ from noisefeat.base import N_FEATURES
 from noisefeat.display import nonfinite_pixels
 from noisefeat.extract import analyse_many
 
-from ..data.exr import naming
+from noisefeat.atomic import atomic_path, atomic_write
 from ..inputs.noise_input import HALVES, halves_input, halves_input_and_stats, halves_mean, n_inputs, noise_lightness
 from ..inputs.table import QUICK_MODES, feature_input, raw_input
 from ..stoprule import FLAT_TOLERANCE, StopRule, flat_blocks
@@ -276,11 +276,9 @@ def save_model(estimator: RBFSVM, path: str | os.PathLike, *, kind: str, input: 
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     base = base or default_base()
-    tmp = path / (MODEL_FILE + ".tmp")
-    with naming(path / MODEL_FILE):
+    with atomic_path(path / MODEL_FILE) as tmp:
         sio.dump(estimator, tmp)
-    digest = file_sha256(tmp)
-    os.replace(tmp, path / MODEL_FILE)
+        digest = file_sha256(tmp)
     manifest = {
         "format": FORMAT, "version": VERSION, "kind": kind, "name": name or kind, "input": input,
         "feature_base": {"hash": base.hash, "weights": base.weights_name, "wavelet": base.wavelet}
@@ -291,10 +289,7 @@ def save_model(estimator: RBFSVM, path: str | os.PathLike, *, kind: str, input: 
         "training": training or {}, "metrics": metrics or {}, "versions": _versions(),
         "model_sha256": digest, **(extra or {}),
     }
-    tmp = path / (MANIFEST + ".tmp")
-    with naming(path / MANIFEST):
-        tmp.write_text(json.dumps(manifest, indent=2, default=_json_default))
-        os.replace(tmp, path / MANIFEST)
+    atomic_write(path / MANIFEST, json.dumps(manifest, indent=2, default=_json_default))
     return path
 
 

@@ -43,6 +43,7 @@ from torch import nn
 from tqdm import tqdm
 
 from noisefeat.display import display
+from noisefeat.atomic import atomic_write
 from noisefeat.extras import MissingExtra
 
 from ..stoprule import OffsetClassifierMixin
@@ -531,17 +532,13 @@ class TransferClassifier(OffsetClassifierMixin, ClassifierMixin, BaseEstimator):
             keep = None if not self.freeze_base else {k for k, _ in self.base_.named_buffers()}
             tensors.update({f"base.{k}": v.contiguous() for k, v in self.base_.state_dict().items()
                             if keep is None or k in keep})
-        tmp = path / (TENSOR_FILE + ".tmp")
-        save_file(tensors, str(tmp))
-        os.replace(tmp, path / TENSOR_FILE)
+        atomic_write(path / TENSOR_FILE, lambda tmp: save_file(tensors, str(tmp)))
         state = {"params": self.get_params(), "base_pretrained": self.base_pretrained_,
                  "base_weights": self.base_weights_, "base_sha256": self.base_sha256_,
                  "base_source": self.base_source_, "base_fingerprint": self.base_fingerprint_,
                  "block_shape": list(getattr(self, "block_shape_", ()) or []) or None,
                  "offset": float(self.offset_)}
-        tmp = path / (STATE_FILE + ".tmp")
-        tmp.write_text(json.dumps(state, indent=2))
-        os.replace(tmp, path / STATE_FILE)
+        atomic_write(path / STATE_FILE, json.dumps(state, indent=2))
         return path
 
     @classmethod

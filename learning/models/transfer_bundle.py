@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from noisefeat.atomic import atomic_write
+
 from ..inputs.noise_input import halves_mean
 from ..inputs.pictures import image_input, noise_picture
 from ..names import OFFSET_LIMIT, TRANSFER_INPUTS, TRANSFER_KINDS
@@ -122,9 +124,7 @@ def save_transfer_model(clf: TransferClassifier, path: str | os.PathLike, *, qui
         "versions": {**_versions(), "torchvision": import_torchvision().__version__},
         "model_sha256": file_sha256(path / TENSOR_FILE), "state_sha256": file_sha256(path / STATE_FILE),
     }
-    tmp = path / (MANIFEST + ".tmp")
-    tmp.write_text(json.dumps(manifest, indent=2, default=_json_default))
-    os.replace(tmp, path / MANIFEST)
+    atomic_write(path / MANIFEST, json.dumps(manifest, indent=2, default=_json_default))
     return path
 
 

@@ -12,6 +12,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+from noisefeat.atomic import atomic_write
+
 from .bench_decisions import bench_criteria, bench_step, bench_tradeoff, md_criteria, md_step, md_tradeoff
 from .bench_features import bench_crop, bench_features, md_crop, md_features
 from .bench_flip import bench_flip, md_flip
@@ -35,9 +38,7 @@ def update_markdown(path: Path, sections: dict[str, str]) -> None:
             text = text[:i] + block + text[j:]
         else:
             text += f"\n{block}\n"
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    atomic_write(path, text)
 
 
 # sections that need only the datasets: name -> (measure(data, heldout), markdown(result))

@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 from pathlib import Path
+
+from noisefeat.atomic import atomic_write
 from typing import Any
 import torch
 from .timing import median_s
@@ -27,11 +29,7 @@ def bench_models(data: str, out_dir: Path, arches: tuple[str, ...] | None = None
                             kinds=SVM_KINDS if kinds is None else kinds, quick=quick, heldout=heldout)
     result.pop("fitted")
     result.update(quick=quick, data=str(data), fingerprint=_fingerprints(data, heldout))
-    path = Path(out_dir) / f"models-{quick}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(result, default=float))
-    tmp.replace(path)
+    atomic_write(Path(out_dir) / f"models-{quick}.json", json.dumps(result, default=float))
     return result
 
 

@@ -5,7 +5,9 @@ is the documented deterministic initialisation: normalised binomial kernels (3x3
 [1, 2, 1], 5x5 from [1, 4, 6, 4, 1]), so each layer is a slightly stronger low-pass than
 the one before and the noise maps input - O_l grow with l; it is the default, because it
 measured better on held-out scenes than `pretrained.safetensors` (the conv layers trained
-as a denoiser by `noisestop pretrain`, selectable by name or NOISESTOP_FEATURE_WEIGHTS).
+as a denoiser by `noisestop pretrain`, selectable by name or NOISESTOP_FEATURE_WEIGHTS). `noisestop pretrain` writes the user's
+own `pretrained.safetensors` to the user data directory, where the name 'pretrained' finds it
+first (`noisefeat.userdata`); only `--update-package` rewrites the shipped file.
 """
 from __future__ import annotations
 
@@ -16,10 +18,15 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
+from .atomic import atomic_write
+from .userdata import find as find_user_file
+
 KERNEL_SIZES: tuple[int, ...] = (3, 5) * 6
 WEIGHTS_DIR = Path(__file__).with_name("weights")
 SMOOTHING_FILE = WEIGHTS_DIR / "smoothing.safetensors"
 PRETRAINED_FILE = WEIGHTS_DIR / "pretrained.safetensors"
+#: where `noisestop pretrain` writes by default, relative to the user data directory
+PRETRAINED_USER_FILE = "weights/pretrained.safetensors"
 
 
 def _binomial(k: int) -> np.ndarray:
@@ -40,17 +47,22 @@ def save_kernels(path: Path, kernels: list[torch.Tensor], metadata: dict[str, st
     path = Path(path)
     tensors = {f"conv.{i}.weight": k.detach().reshape(1, 1, *k.shape[-2:]).contiguous().float()
                for i, k in enumerate(kernels)}
-    tmp = path.with_name(path.name + ".tmp")
-    save_file(tensors, str(tmp), metadata=metadata)
-    tmp.replace(path)
+    atomic_write(path, lambda tmp: save_file(tensors, str(tmp), metadata=metadata))
 
 
-NAMED = {"smoothing": SMOOTHING_FILE, "pretrained": PRETRAINED_FILE}
+def named_file(name: str) -> Path | None:
+    """The file of a named weight set: 'smoothing' (shipped only), 'pretrained' (the user's
+    own pre-training in the user data directory if there is one, else the shipped file)."""
+    if name == "smoothing":
+        return SMOOTHING_FILE
+    if name == "pretrained":
+        return find_user_file(PRETRAINED_USER_FILE, PRETRAINED_FILE)
+    return None
 
 
 def load_kernels(path: Path | str | None = None) -> tuple[list[torch.Tensor], str]:
     """Kernels from a safetensors file, or by name: 'smoothing' (None), 'pretrained'."""
-    path = SMOOTHING_FILE if path is None else NAMED.get(str(path), Path(path))
+    path = SMOOTHING_FILE if path is None else named_file(str(path)) or Path(path)
     if not path.exists():
         raise FileNotFoundError(f"feature-base weights not found: {path}")
     try:

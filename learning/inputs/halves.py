@@ -9,7 +9,8 @@ raw LDR-FLIP map (67 pixels per degree) between display(A) and display(B), poole
 observer pools (the largest 16x16 tile mean), the map computed on the block alone (the
 live loop only has the active blocks). A block is converged when e <= c(tau), with the
 curve c(tau) calibrated on training scenes (`calibrate_flip_curve`, shipped in
-`learning/flip.json`).
+`learning/flip.json`; a user's `noisestop calibrate` writes `flip.json` in the user data
+directory, which readers prefer: `noisefeat.userdata`).
 
 On a stored stack the passes come back exactly from consecutive cumulative levels
 (`recover_passes`), and a `BlockAccumulator` fed with them holds the very half buffers the
@@ -29,13 +30,16 @@ import numpy as np
 from noisefeat.display import check_exposure
 from noisefeat.flip import flip_halves
 from noisefeat.pooling import CRITERION_POOLING, pool_maps
+from noisefeat.userdata import find as find_user_file
 
 from ..data.observer import DEFAULT_PPD, display, flip_map
 from ..data.stack import Stack
 
 log = logging.getLogger(__name__)
 
+#: the shipped calibration; a user's own, of the same name, lives in the user data directory
 FLIP_CALIBRATION = Path(__file__).parents[1] / "flip.json"
+FLIP_USER_FILE = "flip.json"
 DEFAULT_C = 0.02   # used only when no calibration file ships (flip.json says what is shipped)
 
 
@@ -145,10 +149,13 @@ def stack_flip_errors(stack: Stack, exposure: float = 0.0, ppd: float = DEFAULT_
 
 
 def load_flip_calibration(path: str | os.PathLike | None = None) -> dict[str, Any]:
-    """The calibration curve c(tau) (`learning/flip.json` unless `path`), checked: a curve of
-    increasing tau with non-negative c, for the pooling the criterion uses. Without a
-    shipped file: the fallback c = DEFAULT_C at every tau, with a warning."""
-    p = Path(path) if path is not None else FLIP_CALIBRATION
+    """The calibration curve c(tau), checked: a curve of increasing tau with non-negative c,
+    for the pooling the criterion uses.
+
+    Which file: `path` if given, else `flip.json` in the user data directory if the user
+    calibrated, else the shipped `learning/flip.json` (`noisefeat.userdata`). Without any:
+    the fallback c = DEFAULT_C at every tau, with a warning."""
+    p = Path(path) if path is not None else find_user_file(FLIP_USER_FILE, FLIP_CALIBRATION)
     if not p.is_file():
         if path is not None:
             raise FileNotFoundError(f"{p}: no flip calibration file")

@@ -1,10 +1,18 @@
 """`noisestop train`, `calibrate` and `pretrain`: fitting a model, flip's c, the feature base's
-conv layers, on training scenes only."""
+conv layers, on training scenes only.
+
+None of them writes into the installed package unless given `--update-package` (the
+maintainer's flag; `make model` uses it): `train` writes the bundle directory `--out`,
+`calibrate` and `pretrain` write `--out` or, without it, the user data directory, where the
+readers find the files before the shipped ones (`noisefeat.userdata`)."""
 from __future__ import annotations
 
 import argparse
 import os
+from pathlib import Path
 
+from noisefeat.atomic import atomic_write
+from noisefeat.userdata import UPDATE_PACKAGE, user_file
 from learning.names import DEFAULT_INPUT, DEFAULT_TAU, MODEL_KINDS, QUICK_MODES, TRANSFER_INPUTS, TRANSFER_KINDS
 
 from ..console import UsageError, emit_json
@@ -20,7 +28,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--weights", default=None, metavar="FILE",
                    help="transfer baselines: a local ImageNet state_dict for the base (never downloaded; "
                         "default: the torch hub cache, else an untrained base, labelled so)")
-    p.add_argument("--out", required=True, help="model bundle directory to write")
+    out = p.add_mutually_exclusive_group(required=True)
+    out.add_argument("--out", help="model bundle directory to write")
+    out.add_argument(UPDATE_PACKAGE, action="store_true",
+                     help="maintainers: write the bundle that ships with the package (learning/bundled)")
     p.add_argument("--test-scenes", default=None,
                    help="comma-separated scenes of --data held out of training ('' for none; default: "
                         "every 4th by name, none with --heldout)")
@@ -58,15 +69,23 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="largest early-stop rate accepted on the training scenes (default 0.05)")
     p.add_argument("--min-spp", type=arg.spp, default=None,
                    help="no decision below this many spp (default: from the first level)")
-    p.add_argument("--out", default=None,
-                   help="calibration file to write (default: the package's learning/flip.json)")
+    out = p.add_mutually_exclusive_group()
+    out.add_argument("--out", default=None,
+                     help="calibration file to write (default: flip.json in the user data directory, "
+                          "which the flip criterion then reads instead of the shipped one)")
+    out.add_argument(UPDATE_PACKAGE, action="store_true",
+                     help="maintainers: rewrite the shipped learning/flip.json")
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_calibrate)
 
     p = sub.add_parser("pretrain", help="pre-train the feature base's conv layers as a denoiser")
     p.add_argument("--data", required=True, help="dataset directory (training scenes only are used)")
-    p.add_argument("--out", default=None,
-                   help="safetensors file to write (default: the package's pretrained.safetensors)")
+    out = p.add_mutually_exclusive_group()
+    out.add_argument("--out", default=None,
+                     help="safetensors file to write (default: weights/pretrained.safetensors in the user "
+                          "data directory, which the weight name 'pretrained' then finds first)")
+    out.add_argument(UPDATE_PACKAGE, action="store_true",
+                     help="maintainers: rewrite the shipped noisefeat/weights/pretrained.safetensors")
     p.add_argument("--test-scenes", default=None, help="scenes to keep out (default: every 4th by name)")
     p.add_argument("--steps", type=arg.int_in(1, 1_000_000), default=400)
     p.add_argument("--lr", type=arg.float_in(0.0, 10.0, open_low=True), default=0.003)
@@ -90,7 +109,7 @@ def _composition(args: argparse.Namespace, raw: bool) -> dict[str, str]:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from learning.models.bundle import Model, save_model
+    from learning.models.bundle import BUNDLED_DIR, Model, save_model
     from learning.evaluation.evaluate import evaluate_model
     from learning.inputs.table import load_table
     from learning.training.train import train_model
@@ -106,6 +125,8 @@ def cmd_train(args: argparse.Namespace) -> int:
                          f"({', '.join(TRANSFER_KINDS)})")
     if args.weights is not None and not os.path.isfile(args.weights):
         raise UsageError(f"--weights {args.weights}: no such file (ImageNet weights are never downloaded)")
+    if args.update_package:
+        args.out = str(BUNDLED_DIR)
     raw = args.model.startswith("svm")
     opts = {"image": True, "quick": args.quick} if transfer else \
         {"raw": raw, "quick": args.quick, **_composition(args, raw)}
@@ -185,11 +206,10 @@ def _refuse_heldout(scenes: list[str], what: str) -> None:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     import datetime
     import json
-    from pathlib import Path
 
     from learning.data.stack import dataset_fingerprint, read_stacks
     from learning.evaluation.calibrate import calibrate_flip_curve
-    from learning.inputs.halves import FLIP_CALIBRATION
+    from learning.inputs.halves import FLIP_CALIBRATION, FLIP_USER_FILE
 
     if not 0 <= args.max_early_stop <= 1:
         raise UsageError(f"--max-early-stop must be in [0, 1], got {args.max_early_stop}")
@@ -201,11 +221,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     cal.update(criterion="flip", data=str(args.data), fingerprint=dataset_fingerprint(args.data),
                observer={"ppd": 67, "display": "clip+srgb", "pooling": cal["pooling"]},
                calibrated=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
-    out = Path(args.out) if args.out else FLIP_CALIBRATION
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(json.dumps(cal, indent=1, default=float) + "\n")
-    tmp.replace(out)
+    out = Path(args.out) if args.out else FLIP_CALIBRATION if args.update_package else user_file(FLIP_USER_FILE)
+    atomic_write(out, json.dumps(cal, indent=1, default=float) + "\n")
     points = cal["curve"]
     if args.json:
         emit_json({"out": str(out), "pooling": cal["pooling"], "curve": [
@@ -224,13 +241,13 @@ def cmd_pretrain(args: argparse.Namespace) -> int:
     from learning.models.pretrain import pretrain_base
     from learning.data.stack import read_stacks
     from learning.evaluation.generalisation import default_test_scenes
-    from noisefeat.weights import PRETRAINED_FILE, save_kernels
+    from noisefeat.weights import PRETRAINED_FILE, PRETRAINED_USER_FILE, save_kernels
 
     stacks = read_stacks(args.data)
     held = set(arg.scene_list(args.test_scenes) or default_test_scenes([s.scene for s in stacks]))
     train = [s for s in stacks if s.scene not in held]
     base, report = pretrain_base(train, steps=args.steps, lr=args.lr)
-    out = args.out or PRETRAINED_FILE
+    out = Path(args.out) if args.out else PRETRAINED_FILE if args.update_package else user_file(PRETRAINED_USER_FILE)
     save_kernels(out, base.kernels(), {"init": "denoiser pre-training", "scenes": ",".join(report["scenes"]),
                                        "steps": str(args.steps), "lr": str(args.lr)})
     report["out"], report["hash"] = str(out), base.hash

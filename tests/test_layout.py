@@ -1,7 +1,8 @@
-"""Issue 17: the house rules, checked on the source: dependencies point one way
-(noisefeat <- learning <- renderer <- service, DESIGN.md, and inside learning its
-sub-packages in the order of their jobs), and no two modules import each other at load
-time, directly or around a circle."""
+"""The house rules, checked on the source: dependencies point one way (noisefeat <-
+learning <- renderer <- service, DESIGN.md, and inside learning its sub-packages in the
+order of their jobs), and no modules import each other around a circle, neither at load
+time nor through imports inside functions (a function-level import only hides a circle
+until the function runs)."""
 from __future__ import annotations
 
 import ast
@@ -25,13 +26,15 @@ def _modules() -> dict[str, Path]:
     return out
 
 
-def _load_time_imports(name: str, path: Path, known: set[str]) -> set[str]:
-    """Modules of the project imported at module level (not inside functions)."""
+def _load_time_imports(name: str, path: Path, known: set[str], anywhere: bool = False) -> set[str]:
+    """Modules of the project imported at module level (not inside functions), or with
+    `anywhere` by any import statement of the file: inside functions, methods, `if` and
+    `try` blocks too (relative imports resolved against the module's package)."""
     tree = ast.parse(path.read_text())
     package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
     found: set[str] = set()
-    for node in tree.body:
-        if isinstance(node, ast.If):               # `if TYPE_CHECKING:` blocks are not load time
+    for node in (ast.walk(tree) if anywhere else tree.body):
+        if isinstance(node, ast.If) and not anywhere:   # `if TYPE_CHECKING:` blocks are not load time
             continue
         if isinstance(node, ast.Import):
             targets = [a.name for a in node.names]
@@ -53,10 +56,10 @@ def _load_time_imports(name: str, path: Path, known: set[str]) -> set[str]:
     return found
 
 
-def _graph() -> dict[str, set[str]]:
+def _graph(anywhere: bool = False) -> dict[str, set[str]]:
     mods = _modules()
     known = set(mods)
-    return {name: _load_time_imports(name, path, known) for name, path in mods.items()}
+    return {name: _load_time_imports(name, path, known, anywhere) for name, path in mods.items()}
 
 
 def test_dependencies_point_one_way() -> None:
@@ -91,6 +94,15 @@ def test_no_import_circle() -> None:
     assert find_cycles(_graph()) == []
 
 
+def test_no_import_circle_through_function_level_imports() -> None:
+    """Every import statement anywhere in a module counts: a circle closed by an import
+    inside a function is still a circle (optional imports such as Mitsuba's are edges too,
+    and PEP 562 lazy names of a package's __init__ are not import statements)."""
+    graph = _graph(anywhere=True)
+    assert sum(map(len, graph.values())) > sum(map(len, _graph().values()))   # it sees more than load time
+    assert find_cycles(graph) == []
+
+
 def test_the_checker_sees_a_circle(tmp_path) -> None:
     """Control: a made-up pair of modules importing each other is found."""
     known = {"a.x", "a.y", "a.z"}
@@ -100,6 +112,25 @@ def test_the_checker_sees_a_circle(tmp_path) -> None:
     graph = {n: _load_time_imports(n, tmp_path / f"{n[2:]}.py", known) for n in known}
     assert graph == {"a.x": {"a.y"}, "a.y": {"a.z"}, "a.z": {"a.x"}}
     assert find_cycles(graph) == [["a.x", "a.y", "a.z", "a.x"]]
+
+
+def test_the_checker_sees_a_function_level_circle(tmp_path) -> None:
+    """Control: a synthetic package whose modules import each other only inside functions
+    (and one relative import in a method) has a circle the function-level graph finds and
+    the load-time graph does not."""
+    pkg = tmp_path / "p"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "sub" / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("import os\n\ndef f():\n    from .sub.b import g\n    return g()\n")
+    (pkg / "sub" / "b.py").write_text("class B:\n    def m(self):\n        from ..a import f\n        return f\n"
+                                      "def g():\n    return 1\n")
+    mods = {"p": pkg / "__init__.py", "p.sub": pkg / "sub" / "__init__.py", "p.a": pkg / "a.py",
+            "p.sub.b": pkg / "sub" / "b.py"}
+    graph = {n: _load_time_imports(n, path, set(mods), anywhere=True) for n, path in mods.items()}
+    assert graph["p.a"] == {"p.sub.b"} and graph["p.sub.b"] == {"p.a"}
+    assert find_cycles(graph) == [["p.a", "p.sub.b", "p.a"]]
+    assert find_cycles({n: _load_time_imports(n, path, set(mods)) for n, path in mods.items()}) == []
 
 
 def _imports_anywhere(path: Path, package: str) -> set[str]:

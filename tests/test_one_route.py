@@ -19,7 +19,8 @@ from learning.data.accumulator import BlockAccumulator
 from learning.inputs.halves import flip_offset, recover_passes, stack_flip_errors
 from learning.evaluation.metrics import stop_thresholds
 from learning.stoprule import StopRule, decide_active
-from learning.inputs.table import load_table, stack_flat
+from learning.inputs.halves import stack_flat
+from learning.inputs.table import load_table
 from learning.training.train import train_model
 from renderer.client import RemoteModel
 from renderer.criteria import FlipCriterion, ModelCriterion

@@ -1,4 +1,4 @@
-"""Issue 16's service changes, by what they must do (no timings here; BENCHMARKS.md has those):
+"""The service's performance paths, by what they must do (no timings here; BENCHMARKS.md has those):
 binary tensors used in place, one fused feature call per request, a lean server process,
 large bodies through the guarded h11 protocol, and the heap trimmed only when much is free."""
 from __future__ import annotations
@@ -71,7 +71,7 @@ def test_binary_tensors_are_views_of_the_body_whatever_the_header_length(bundle,
 def test_one_fused_call_per_request_for_blocks_and_quick(bundle, monkeypatch):
     """A feature model's request: blocks and quick images go through noisefeat in one
     call (one spectral pass for both), and the verdicts equal the per-image computation."""
-    import learning.models.bundle as bundle_module
+    import learning.models.model as bundle_module
     calls = []
     many = bundle_module.analyse_many
 

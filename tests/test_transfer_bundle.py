@@ -1,4 +1,4 @@
-"""Issue 17: the transfer baselines trained, bundled, loaded, evaluated, rendered and served
+"""The transfer baselines trained, bundled, loaded, evaluated, rendered and served
 end to end, through the one stop rule; damaged bundles refused with one line."""
 from __future__ import annotations
 
@@ -16,7 +16,8 @@ from fastapi.testclient import TestClient
 from extremes import CASES, extreme_halves
 from learning.evaluation.evaluate import stops_by_scene
 from learning.evaluation.metrics import stop_thresholds
-from learning.inputs.pictures import noise_picture, rgb_blocks
+from learning.inputs.pictures import noise_picture
+from learning.inputs.table import rgb_blocks
 from learning.inputs.table import load_table
 from learning.models import transfer as T
 from learning.models.bundle import load_model

@@ -23,7 +23,8 @@ from noisefeat.pooling import CRITERION_POOLING, DEFAULT_POOLING
 from ..data.observer import DEFAULT_TAU, observed
 from ..data.stack import Stack
 from ..inputs.halves import flip_offset, stack_flip_errors
-from ..inputs.table import SubImageTable, stack_flat
+from ..inputs.halves import stack_flat
+from ..inputs.table import SubImageTable
 from ..stoprule import StopRule
 from .evaluate import evaluate_scores
 from .generalisation import scene_groups

@@ -26,14 +26,18 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from noisefeat.display import check_exposure
 from noisefeat.flip import flip_halves
 from noisefeat.pooling import CRITERION_POOLING, pool_maps
 from noisefeat.userdata import find as find_user_file
 
+from ..data.accumulator import BlockAccumulator
+from ..data.cache import cached_array
 from ..data.observer import DEFAULT_PPD, display, flip_map
 from ..data.stack import Stack
+from ..stoprule import FLAT_TOLERANCE, flat_blocks
 
 log = logging.getLogger(__name__)
 
@@ -120,6 +124,29 @@ def flip_offset(c: float) -> float:
     return float(np.nextafter(-float(c), -np.inf))
 
 
+def iter_stack_halves(stack: Stack, progress: bool = False) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """(k, even [n_blocks, bh, bw, 3], odd [...]) for every level k >= 1: the half buffers a
+    `BlockAccumulator` fed with the stack's recovered passes holds (the live loop's
+    buffers, bit for bit). Level 0 has none: B is still empty there."""
+    check_constant_step(stack)
+    acc = BlockAccumulator(stack.grid, stack.block)
+    ids = list(range(stack.n_blocks))
+    for k, _, n, pass_img in tqdm(recover_passes(stack), total=stack.n_levels, disable=not progress,
+                                  desc=f"{stack.scene} halves", leave=False):
+        acc.add_many(ids, stack.split(pass_img), n)
+        if k:
+            halves = [acc.half_buffer(b) for b in ids]
+            yield k, np.stack([h[0] for h in halves]), np.stack([h[1] for h in halves])
+
+
+def stack_flat(stack: Stack, exposure: float = 0.0) -> np.ndarray:
+    """bool [K, n_blocks]: which sub-images the stop rule calls flat (learning.stoprule),
+    cached next to the stack like the features."""
+    return cached_array(stack, f"flat-e{exposure:g}-t{FLAT_TOLERANCE:.9g}", (stack.n_levels, stack.n_blocks),
+                        lambda: np.stack([flat_blocks(stack.blocks(k), exposure) for k in range(stack.n_levels)]),
+                        dtype=bool)
+
+
 def stack_flip_errors(stack: Stack, exposure: float = 0.0, ppd: float = DEFAULT_PPD,
                       progress: bool = False, pooling: str = CRITERION_POOLING) -> np.ndarray:
     """e float64 [K, n_blocks] of a stack; NaN where B is still empty (one pass only) and
@@ -129,9 +156,6 @@ def stack_flip_errors(stack: Stack, exposure: float = 0.0, ppd: float = DEFAULT_
     Cached next to the stack (`.cache/flip-halves-*.npz`, atomic), since every
     calibration and evaluation reads it.
     """
-    from ..data.cache import cached_array
-    from .table import iter_stack_halves, stack_flat
-
     flat = stack_flat(stack, exposure)
     shape = (stack.n_levels, stack.n_blocks)
 

@@ -75,7 +75,7 @@ def n_inputs(composition: str = HALVES) -> int:
 
 def _check_halves(even: np.ndarray, odd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     a, b = check_halves(even, odd)
-    # the block bounds of every other model input (issue 14), whichever parts are computed
+    # the block bounds of every other model input (noisefeat.bounds), whichever parts are computed
     SizeBounds.from_env().check_block(a.shape[1], a.shape[2], "half-buffer blocks")
     return a, b
 

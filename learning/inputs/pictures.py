@@ -14,8 +14,7 @@ import torch
 from noisefeat.display import display, srgb_decode
 
 from ..data.stack import Stack
-from .halves import check_halves
-from .table import SubImageTable, iter_stack_halves
+from .halves import check_halves, iter_stack_halves
 
 #: linear value whose display is mid grey: the noise picture of a block with no noise
 #: estimate yet (the first level, B still empty) and of a block without noise
@@ -54,15 +53,4 @@ def stack_pictures(stack: Stack, quick: str) -> np.ndarray:
     out = np.full((stack.n_levels, stack.n_blocks, *stack.block, 3), GREY, np.float32)
     for k, even, odd in iter_stack_halves(stack):
         out[k] = noise_picture(even, odd)
-    return out
-
-
-def rgb_blocks(table: SubImageTable, halves: bool = False) -> np.ndarray:
-    """Linear RGB sub-images [n, h, w, 3] of every row of `table`, in row order: the block,
-    or with `halves` its noise picture (`stack_pictures`)."""
-    st0 = next(iter(table.stacks.values()))
-    out = np.empty((len(table), *st0.block, 3), np.float32)
-    for scene, st in table.stacks.items():
-        rows = np.flatnonzero(table.scene == scene)
-        out[rows] = stack_pictures(st, "halves" if halves else "none")[table.level[rows], table.block[rows]]
     return out

@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,7 +26,9 @@ from ..data.observer import observed
 from ..data.stack import Stack, list_stacks, read_stack
 from ..names import DEFAULT_TAU
 from ..names import QUICK_MODES
+from .halves import iter_stack_halves, stack_flat, stack_flip_errors
 from .noise_input import HALVES, RAW_COLUMNS, RAW_VERSION, compose, halves_raw, needs, noise_lightness
+from .pictures import stack_pictures
 
 log = logging.getLogger(__name__)
 
@@ -130,24 +132,6 @@ def stack_features(stack: Stack, base: FeatureBase | None = None, exposure: floa
                         (stack.n_levels, stack.n_blocks, 26), compute)
 
 
-def iter_stack_halves(stack: Stack, progress: bool = False) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
-    """(k, even [n_blocks, bh, bw, 3], odd [...]) for every level k >= 1: the half buffers a
-    `BlockAccumulator` fed with the stack's recovered passes holds (the live loop's
-    buffers, bit for bit). Level 0 has none: B is still empty there."""
-    from ..data.accumulator import BlockAccumulator
-    from .halves import check_constant_step, recover_passes
-
-    check_constant_step(stack)
-    acc = BlockAccumulator(stack.grid, stack.block)
-    ids = list(range(stack.n_blocks))
-    for k, _, n, pass_img in tqdm(recover_passes(stack), total=stack.n_levels, disable=not progress,
-                                  desc=f"{stack.scene} halves", leave=False):
-        acc.add_many(ids, stack.split(pass_img), n)
-        if k:
-            halves = [acc.half_buffer(b) for b in ids]
-            yield k, np.stack([h[0] for h in halves]), np.stack([h[1] for h in halves])
-
-
 def _per_level_halves(stack: Stack, name: str, width: int, fn: Callable[[np.ndarray, np.ndarray], np.ndarray],
                       progress: bool = False) -> np.ndarray:
     """[K, n_blocks, width] fn(even, odd) of every (level, block) (`iter_stack_halves`);
@@ -179,8 +163,6 @@ def stack_halves_input(stack: Stack, base: FeatureBase | None = None, exposure: 
                        progress: bool = False, composition: str = HALVES) -> np.ndarray:
     """[K, n_blocks, D] `halves` model inputs of a stack (`noise_input.compose` of the cached
     half-buffer features and FLIP values; first level: not decidable, see `stack_decidable`)."""
-    from .halves import stack_flip_errors
-
     feats, flip = needs(composition)
     k, b = stack.n_levels, stack.n_blocks
     raw = stack_halves_raw(stack, base, exposure, progress).reshape(k * b, -1) if feats else None
@@ -194,16 +176,6 @@ def stack_decidable(stack: Stack, quick: str) -> np.ndarray:
     if quick == "halves":
         ok[0] = False
     return ok
-
-
-def stack_flat(stack: Stack, exposure: float = 0.0) -> np.ndarray:
-    """bool [K, n_blocks]: which sub-images the stop rule calls flat (learning.stoprule),
-    cached next to the stack like the features."""
-    from ..stoprule import FLAT_TOLERANCE, flat_blocks
-
-    return cached_array(stack, f"flat-e{exposure:g}-t{FLAT_TOLERANCE:.9g}", (stack.n_levels, stack.n_blocks),
-                        lambda: np.stack([flat_blocks(stack.blocks(k), exposure) for k in range(stack.n_levels)]),
-                        dtype=bool)
 
 
 def stack_raw_blocks(stack: Stack, exposure: float = 0.0) -> np.ndarray:
@@ -223,7 +195,6 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
     pictures an image classifier reads, X [n, bh, bw, 3] (`learning.inputs.pictures`:
     quick 'none' the block, 'halves' its noise picture)."""
     if image:
-        from .pictures import stack_pictures
         if raw:
             raise ValueError("a table holds raw L* rows or pictures, not both")
     paths = list_stacks(root)
@@ -269,3 +240,14 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
     return SubImageTable(np.concatenate(xs), np.concatenate(ys).astype(np.int8), np.concatenate(sc),
                          np.concatenate(lv), np.concatenate(bl), np.concatenate(sp),
                          np.concatenate(gr), np.concatenate(fl), stacks, np.concatenate(ok))
+
+
+def rgb_blocks(table: SubImageTable, halves: bool = False) -> np.ndarray:
+    """Linear RGB sub-images [n, h, w, 3] of every row of `table`, in row order: the block,
+    or with `halves` its noise picture (`stack_pictures`)."""
+    st0 = next(iter(table.stacks.values()))
+    out = np.empty((len(table), *st0.block, 3), np.float32)
+    for scene, st in table.stacks.items():
+        rows = np.flatnonzero(table.scene == scene)
+        out[rows] = stack_pictures(st, "halves" if halves else "none")[table.level[rows], table.block[rows]]
+    return out

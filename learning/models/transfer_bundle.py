@@ -23,8 +23,8 @@ from ..inputs.noise_input import halves_mean
 from ..inputs.pictures import image_input, noise_picture
 from ..names import OFFSET_LIMIT, TRANSFER_INPUTS, TRANSFER_KINDS
 from ..stoprule import flat_blocks
-from .bundle import FORMAT, MANIFEST, VERSION, Model, _json_default, _nonfinite, _versions
 from .bundle_check import MAX_MODEL_BYTES, file_sha256
+from .model import FORMAT, MANIFEST, VERSION, Model, json_default, nonfinite_counts, versions
 from .transfer import ARCHS, STATE_FILE, TENSOR_FILE, TransferClassifier, import_torchvision
 
 #: `input` of an image classifier's manifest
@@ -98,7 +98,7 @@ class TransferModel(Model):
         x = self.inputs_from_halves(even, odd, exposure)
         flat = flat_blocks(halves_mean(np.asarray(even), np.asarray(odd)), exposure) if len(x) \
             else np.zeros(0, bool)
-        return (*self.score_inputs(x, offset, flat), _nonfinite(even) + _nonfinite(odd))
+        return (*self.score_inputs(x, offset, flat), nonfinite_counts(even) + nonfinite_counts(odd))
 
 
 def save_transfer_model(clf: TransferClassifier, path: str | os.PathLike, *, quick: str,
@@ -121,10 +121,10 @@ def save_transfer_model(clf: TransferClassifier, path: str | os.PathLike, *, qui
         "base": {"label": clf.report_label(), "source": clf.base_source_, "pretrained": bool(clf.base_pretrained_),
                  "weights": clf.base_weights_, "weights_sha256": clf.base_sha256_},
         "training": training or {}, "metrics": metrics or {},
-        "versions": {**_versions(), "torchvision": import_torchvision().__version__},
+        "versions": {**versions(), "torchvision": import_torchvision().__version__},
         "model_sha256": file_sha256(path / TENSOR_FILE), "state_sha256": file_sha256(path / STATE_FILE),
     }
-    atomic_write(path / MANIFEST, json.dumps(manifest, indent=2, default=_json_default))
+    atomic_write(path / MANIFEST, json.dumps(manifest, indent=2, default=json_default))
     return path
 
 

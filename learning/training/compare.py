@@ -18,7 +18,7 @@ from ..evaluation.calibrate import DEFAULT_OFFSETS, sweep
 from ..evaluation.evaluate import evaluate_model, evaluate_scores, time_101_sub_images
 from ..evaluation.generalisation import scene_groups, split_tables
 from ..evaluation.plots import plot_learning_curves
-from ..inputs.pictures import rgb_blocks
+from ..inputs.table import rgb_blocks
 from ..inputs.table import SubImageTable
 from ..models.bundle import Model
 from ..stoprule import StopRule

@@ -142,7 +142,7 @@ def bench_tradeoff(data: str, heldout: str | None = None, out_dir: str | Path = 
     from learning.inputs.halves import flip_offset, load_flip_calibration, stack_flip_errors
     from learning.evaluation.metrics import true_thresholds
     from learning.stoprule import StopRule
-    from learning.inputs.table import stack_flat
+    from learning.inputs.halves import stack_flat
     from renderer.criteria import VarianceCriterion
     from renderer.simulate import evaluate_criterion
 
@@ -239,7 +239,7 @@ def bench_step(data: str, heldout: str | None = None, multiples: tuple[int, ...]
     from learning.inputs.halves import flip_offset, load_flip_calibration, stack_flip_errors
     from learning.evaluation.metrics import evaluate_verdicts
     from learning.stoprule import StopRule
-    from learning.inputs.table import stack_flat
+    from learning.inputs.halves import stack_flat
     from renderer.adaptive import adaptive_render
     from renderer.criteria import FlipCriterion, ModelCriterion, UniformCriterion
 

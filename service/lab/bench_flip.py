@@ -52,7 +52,7 @@ def flip_agreement(root: str) -> dict[str, Any]:
     from learning.inputs.noise_input import compose
     from learning.data.stack import list_stacks, read_stack
     from learning.stoprule import flat_blocks
-    from learning.inputs.table import iter_stack_halves
+    from learning.inputs.halves import iter_stack_halves
 
     old, new = [], []
     for path in list_stacks(root):

@@ -6,7 +6,8 @@ the binary tensor extension by default (REFERENCES.md): the body is the JSON hea
 then each input's raw little-endian row-major bytes in input order; the header length
 goes in ``Inference-Header-Content-Length`` and each input announces its byte count in
 ``parameters.binary_data_size``; outputs are asked for with ``parameters.binary_data:
-true``. Responses are parsed whether the server answered in binary or in JSON.
+true``. Responses are parsed whether the server answered in binary or in JSON. The bytes
+go through the codec the server uses too (`renderer.oip_codec`).
 
 Errors are explicit: a 4xx answer raises ValueError and a 5xx answer ConnectionError,
 both quoting the server's ``{"error": ...}`` message; an unreachable server raises
@@ -22,7 +23,6 @@ from __future__ import annotations
 import http.client
 import json
 import logging
-import math
 import socket
 import time
 import urllib.error
@@ -32,13 +32,11 @@ from typing import Any
 
 import numpy as np
 
+from .oip_codec import DATATYPES, HEADER_LENGTH, WireError, join_body, read_tensor, split_body, tensor_bytes
 from .token import resolve_token
 
 logger = logging.getLogger(__name__)
 
-HEADER_LENGTH = "Inference-Header-Content-Length"
-_DTYPES = {"FP32": "<f4", "FP64": "<f8", "FP16": "<f2", "INT8": "i1", "INT16": "<i2", "INT32": "<i4",
-           "INT64": "<i8", "UINT8": "u1", "UINT16": "<u2", "UINT32": "<u4", "UINT64": "<u8", "BOOL": "?"}
 
 
 def default_token() -> str | None:
@@ -225,10 +223,10 @@ class RemoteModel:
         url = self._path("v2", "models", self.model, "infer")
         tensors, tail = [], []
         for name, arr in inputs.items():
-            a = np.ascontiguousarray(arr, dtype="<f4")
+            a = np.ascontiguousarray(arr, dtype=DATATYPES["FP32"])
             t: dict[str, Any] = {"name": name, "shape": list(a.shape), "datatype": "FP32"}
             if self.binary:
-                raw = a.tobytes()
+                raw = tensor_bytes(a, "FP32")
                 t["parameters"] = {"binary_data_size": len(raw)}
                 tail.append(raw)
             else:
@@ -238,11 +236,11 @@ class RemoteModel:
                                                               for o in outputs]}
         if parameters:
             req["parameters"] = parameters
-        header = json.dumps(req, separators=(",", ":")).encode()
+        body, header_length = join_body(json.dumps(req, separators=(",", ":")).encode(), tail)
         hdrs = {"Content-Type": "application/octet-stream" if self.binary else "application/json"}
-        if self.binary:
-            hdrs[HEADER_LENGTH] = str(len(header))
-        status, rhdrs, body = self._request("POST", url, header + b"".join(tail), hdrs)
+        if header_length is not None:
+            hdrs[HEADER_LENGTH] = str(header_length)
+        status, rhdrs, body = self._request("POST", url, body, hdrs)
         self._check("POST", url, status, body)
         return self._parse_outputs(url, rhdrs, body, outputs)
 
@@ -250,37 +248,33 @@ class RemoteModel:
     def _parse_outputs(url: str, headers: dict[str, str], body: bytes, wanted: tuple[str, ...]) -> dict[str, np.ndarray]:
         hlen = headers.get(HEADER_LENGTH.lower())
         try:
-            n = int(hlen) if hlen is not None else len(body)
-        except ValueError:
-            raise ValueError(f"POST {url}: bad {HEADER_LENGTH} {hlen!r}") from None
-        if not 0 < n <= len(body):
-            raise ValueError(f"POST {url}: {HEADER_LENGTH} {n} but the answer holds {len(body)} bytes")
+            header, tail = split_body(body, int(hlen) if hlen is not None else None)
+        except ValueError as exc:      # not a number, or not within the answer
+            raise ValueError(f"POST {url}: bad {HEADER_LENGTH} {hlen!r} ({exc})") from None
         try:
-            resp = json.loads(body[:n])
+            resp = json.loads(header)
         except (ValueError, UnicodeDecodeError):
             raise ValueError(f"POST {url}: answer header is not JSON: {body[:80]!r}") from None
         outs = resp.get("outputs") if isinstance(resp, dict) else None
         if not isinstance(outs, list):
             raise ValueError(f"POST {url}: answer has no 'outputs' list")
-        tail, offset, result = body[n:], 0, {}
+        offset, result = 0, {}
         for o in outs:
             name, dt, shape = o.get("name"), o.get("datatype"), o.get("shape")
-            if dt not in _DTYPES or not isinstance(shape, list):
+            if dt not in DATATYPES or not isinstance(shape, list):
                 raise ValueError(f"POST {url}: output {name!r} has datatype {dt!r} / shape {shape!r}")
-            count = math.prod(int(s) for s in shape)
             size = (o.get("parameters") or {}).get("binary_data_size")
             if size is not None:
-                dtype = np.dtype(_DTYPES[dt])
-                if size != count * dtype.itemsize or offset + size > len(tail):
-                    raise ValueError(f"POST {url}: output {name!r}: binary_data_size {size} does not fit "
-                                     f"shape {shape} of {dt} or the {len(tail) - offset} bytes left")
-                arr = np.frombuffer(tail, dtype=dtype, count=count, offset=offset).reshape(shape)
+                try:
+                    arr = read_tensor(tail, dt, shape, size, offset, f"output {name!r}")
+                except WireError as exc:
+                    raise ValueError(f"POST {url}: {exc}") from None
                 offset += size
             else:
                 data = o.get("data")
                 if data is None:
                     raise ValueError(f"POST {url}: output {name!r} has neither data nor binary_data_size")
-                arr = np.asarray(data, dtype=_DTYPES[dt]).reshape(shape)
+                arr = np.asarray(data, dtype=DATATYPES[dt]).reshape(shape)
             result[name] = arr
         missing = [w for w in wanted if w not in result]
         if missing:

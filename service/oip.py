@@ -6,7 +6,8 @@ not validated element by element by pydantic: a 16-block request holds ~1.5 M nu
 `decode_tensors` turns it into numpy arrays and checks shape, datatype and length there.
 Binary tensor extension (REFERENCES.md): the body is a JSON header of
 `Inference-Header-Content-Length` bytes followed by raw little-endian row-major tensors in
-input order, each announced by `parameters.binary_data_size`.
+input order, each announced by `parameters.binary_data_size`; the bytes go through the codec
+the client uses too (`renderer.oip_codec`).
 """
 from __future__ import annotations
 
@@ -17,16 +18,11 @@ import numpy as np
 import pydantic_core
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainValidator, ValidationError
 
-HEADER_LENGTH = "Inference-Header-Content-Length"
-BINARY_EXTENSION = "binary_tensor_data"
+from renderer import oip_codec
+from renderer.oip_codec import BINARY_EXTENSION, DATATYPES, HEADER_LENGTH, WireError, join_body, read_tensor, tensor_bytes
 
-# Datatypes a request may name; BYTES (strings) has no use in a verdict API.
-DATATYPES: dict[str, np.dtype] = {
-    "BOOL": np.dtype("?"), "UINT8": np.dtype("u1"), "UINT16": np.dtype("<u2"),
-    "UINT32": np.dtype("<u4"), "UINT64": np.dtype("<u8"), "INT8": np.dtype("i1"),
-    "INT16": np.dtype("<i2"), "INT32": np.dtype("<i4"), "INT64": np.dtype("<i8"),
-    "FP16": np.dtype("<f2"), "FP32": np.dtype("<f4"), "FP64": np.dtype("<f8"),
-}
+__all__ = ["BINARY_EXTENSION", "DATATYPES", "HEADER_LENGTH", "ApiError", "decode_tensors", "encode_response",
+           "parse_request", "split_body"]
 Datatype = Annotated[str, Field(description="OIP tensor datatype, e.g. FP32, INT8",
                                 json_schema_extra={"enum": sorted(DATATYPES)})]
 
@@ -154,11 +150,10 @@ class InferenceResponse(_Message):
 
 def split_body(body: bytes | memoryview, header_length: int | None) -> tuple[bytes | memoryview, bytes | memoryview]:
     """(JSON header, binary tail) of a request body (slices of a memoryview: no copy)."""
-    if header_length is None:
-        return body, body[len(body):]
-    if not 0 < header_length <= len(body):
-        raise ApiError(400, f"{HEADER_LENGTH} is {header_length} but the body holds {len(body)} bytes")
-    return body[:header_length], body[header_length:]
+    try:
+        return oip_codec.split_body(body, header_length)
+    except WireError as exc:
+        raise ApiError(400, str(exc)) from None
 
 
 def parse_request(header: bytes) -> InferenceRequest:
@@ -248,7 +243,7 @@ def number_param(params: Parameters | None, key: str, default: float | None, low
     """A request parameter that must be a number in [low, high] (JSON true is not a number).
 
     Compared before any conversion to float: a 400-digit integer is out of range, not an
-    OverflowError (issue 14), and NaN or Inf is never in range."""
+    OverflowError, and NaN or Inf is never in range."""
     value = (params or {}).get(key)
     if value is None:               # absent or null: the default
         return default
@@ -287,23 +282,18 @@ def decode_tensors(req: InferenceRequest, binary: bytes | memoryview, max_batch:
         if size is not None:
             if t.data is not None:
                 raise ApiError(400, f"input {t.name!r} has both JSON data and binary_data_size")
-            if size != count * dtype.itemsize:
-                raise ApiError(400, f"input {t.name!r}: binary_data_size {size} does not match "
-                                    f"shape {t.shape} of {t.datatype} ({count * dtype.itemsize} bytes)")
-            if offset + size > len(binary):
-                raise ApiError(400, f"input {t.name!r}: binary data truncated (needs {size} bytes "
-                                    f"at offset {offset}, {len(binary) - offset} left)")
-            flat = np.frombuffer(binary, dtype=dtype, count=count, offset=offset)
-            if not flat.flags.aligned or not flat.flags.writeable:
-                flat = flat.copy()     # torch needs aligned, writable memory; else used in place
+            try:
+                arrays[t.name] = read_tensor(binary, t.datatype, t.shape, size, offset, f"input {t.name!r}")
+            except WireError as exc:
+                raise ApiError(400, str(exc)) from None
             offset += size
-        elif t.data is None:
+            continue
+        if t.data is None:
             raise ApiError(400, f"input {t.name!r} has neither data nor binary_data_size")
-        else:
-            flat = _json_values(t.name, t.data, dtype, scan_bools)
-            if flat.size != count:
-                raise ApiError(400, f"input {t.name!r}: {flat.size} values for shape {t.shape} "
-                                    f"({count} expected)")
+        flat = _json_values(t.name, t.data, dtype, scan_bools)
+        if flat.size != count:
+            raise ApiError(400, f"input {t.name!r}: {flat.size} values for shape {t.shape} "
+                                f"({count} expected)")
         arrays[t.name] = flat.reshape(t.shape)
     if offset != len(binary):
         raise ApiError(400, f"{len(binary) - offset} bytes of binary data belong to no input")
@@ -322,7 +312,7 @@ def _json_values(name: str, data: list[Any], dtype: np.dtype, scan_bools: bool =
         elif values.dtype.kind not in "iuf":
             got = "true/false" if values.dtype.kind == "b" else f"{values.dtype.kind!r}"
             raise ApiError(400, f"input {name!r}: data must be numbers for {dtype.name}, got {got} values")
-        elif scan_bools and _holds_bool(data):   # numpy would read true as 1 (issue 14)
+        elif scan_bools and _holds_bool(data):   # numpy would read true as 1
             raise ApiError(400, f"input {name!r}: data must be numbers for {dtype.name}, got true/false "
                                 "among them")
     if values.size and dtype.kind in "iu" and values.dtype.kind == "f":
@@ -350,12 +340,9 @@ def encode_response(resp: InferenceResponse, tensors: dict[str, np.ndarray],
     for out in resp.outputs:
         arr = tensors[out.name]
         if out.name in binary:
-            raw = np.ascontiguousarray(arr, dtype=arr.dtype.newbyteorder("<")).tobytes()
+            raw = tensor_bytes(arr)
             out.parameters = {**(out.parameters or {}), "binary_data_size": len(raw)}
             tail.append(raw)
         else:
             out.data = arr.reshape(-1).tolist()
-    header = resp.model_dump_json(exclude_none=True).encode()
-    if not tail:
-        return header, None
-    return header + b"".join(tail), len(header)
+    return join_body(resp.model_dump_json(exclude_none=True).encode(), tail)

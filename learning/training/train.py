@@ -48,11 +48,6 @@ def split_scenes(table: SubImageTable, test_scenes: list[str] | None) -> tuple[l
 INITIAL_MIN_ROWS = 500
 
 
-def balanced_scene(table: SubImageTable, scenes: list[str]) -> str:
-    """The training scene whose labels are closest to half converged."""
-    return initial_scenes(table, scenes, min_rows=1)[0]
-
-
 def initial_scenes(table: SubImageTable, scenes: list[str], min_rows: int = INITIAL_MIN_ROWS) -> list[str]:
     """The initial labelled set of the active kinds: the scenes whose labels are closest to
     half converged, as many as it takes to reach `min_rows` sub-images (one scene of a

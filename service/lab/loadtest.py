@@ -297,17 +297,3 @@ def bench(model: str | None = None, *, clients: int = 2, requests_per_client: in
                                      blocks=blocks, size=size, max_seconds=max_seconds)
                        for enc in ("json", "binary")}
     return {"model": source, "cpus": os.cpu_count(), **results}
-
-
-def format_bench(r: dict[str, Any]) -> str:
-    lines = [f"service load test (model: {r['model']}, {r['cpus']} CPUs, loopback):"]
-    for enc in ("json", "binary"):
-        x = r[enc]
-        p50 = "-" if x["p50_ms"] is None else f"{x['p50_ms']:.0f}"
-        p99 = "-" if x["p99_ms"] is None else f"{x['p99_ms']:.0f}"
-        lines.append(f"  {enc:<6} {x['clients']} clients, {x['requests']} requests of "
-                     f"{x['blocks_per_request']} blocks {x['block_size']}x{x['block_size']} "
-                     f"({x['request_bytes'] / 1e6:.1f} MB): "
-                     f"{x['requests_per_s']:.2f} req/s, {x['blocks_per_s']:.1f} blocks/s, "
-                     f"p50 {p50} ms, p99 {p99} ms, errors {x['errors']}")
-    return "\n".join(lines)

@@ -1,5 +1,5 @@
 """Timing tools of the lab: medians over repeats after a warm-up, the machine's load meanwhile,
-and the matmul reference that the feature figures are compared with.
+and the multiply-add count of the feature base by its definition.
 """
 from __future__ import annotations
 
@@ -9,9 +9,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import torch
-
-from noisefeat.runtime import median_s
+from noisefeat.runtime import median_s  # noqa: F401  (the lab's benches import it from here)
 
 log = logging.getLogger(__name__)
 
@@ -24,15 +22,6 @@ def direct_macs(n: int, h: int, w: int, wavelet_taps: int = 2) -> int:
     """
     per_pixel = sum(k * k for k in (3, 5) * 6) + 2 * wavelet_taps
     return n * h * w * per_pixel
-
-
-def matmul_rate(macs: int, repeats: int) -> float:
-    """Dense float32 matmul multiply-adds per second for a cube of about `macs`."""
-    side = max(64, round(macs ** (1 / 3)))
-    a, b = torch.rand(side, side), torch.rand(side, side)
-    with torch.inference_mode():
-        t = median_s(lambda: a @ b, repeats)
-    return side ** 3 / t
 
 
 class MachineLoad:

@@ -70,7 +70,34 @@ def column_weights(w: int, wr: int) -> torch.Tensor:
 
 
 class FeatureBase(nn.Module):
-    """The noise-feature base of the paper (12 conv layers + 1 wavelet layer)."""
+    """The noise-feature base of the paper: 12 conv layers + 1 wavelet layer -> 26 features.
+
+    Twelve single-channel convolutions in sequence (kernels 3x3, 5x5, 3x3, ...; circular
+    padding), then a one-stage 2D wavelet decomposition with its high-frequency bands
+    removed. For each of the 13 layer outputs O_l the noise map is ``input - O_l``; its
+    mean and standard deviation are the features (`FEATURE_NAMES`). The forward pass is
+    computed in the frequency domain (exact, any block size); `layer_outputs` is the
+    spatial definition.
+
+    Parameters
+    ----------
+    weights : str or pathlib.Path, optional
+        The conv kernels: a safetensors file, or a name, 'smoothing' (default, the shipped
+        deterministic initialisation) or 'pretrained' (the user's own pre-training in the
+        user data directory if any, else the shipped file; `noisefeat.weights`).
+    wavelet : str, default 'haar'
+        The PyWavelets name of the thirteenth layer's wavelet.
+    operator_cache_bytes : int, optional
+        Bytes of per-block-size frequency operators kept (default: `noisefeat.cache`'s
+        budget); a server seeing many block sizes stays within it.
+
+    Attributes
+    ----------
+    weights_name : str
+        File name of the kernels loaded.
+    hash : str
+        Identity of the weights and wavelet; model bundles record it and refuse another.
+    """
 
     def __init__(self, weights: str | Path | None = None, wavelet: str = "haar",
                  operator_cache_bytes: int | None = None) -> None:
@@ -178,7 +205,25 @@ class FeatureBase(nn.Module):
         return ops
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """[N, 1, H, W] L-channel blocks (any float dtype, H, W >= 8) -> [N, 26] float32."""
+        """The 26 features of each L-channel block.
+
+        Parameters
+        ----------
+        x : torch.Tensor
+            [N, 1, H, W] L* blocks (0..100 for display-referred input), any real dtype,
+            H and W at least 8. Non-finite values are read as 0.
+
+        Returns
+        -------
+        torch.Tensor
+            float32 [N, 26], finite (each block is normalised by its largest magnitude
+            first, so that huge and tiny inputs stay in float32 range).
+
+        Raises
+        ------
+        ValueError
+            If `x` is not [N, 1, H, W], a block is under 8x8, or the dtype is not real.
+        """
         x = self._sanitize(x)
         n, _, h, w = x.shape
         if n == 0:

@@ -17,7 +17,27 @@ def _check_grid(shape: tuple[int, ...], grid: tuple[int, int]) -> tuple[int, int
 
 
 def split_blocks(image: np.ndarray, grid: tuple[int, int] = (4, 4)) -> np.ndarray:
-    """[H, W, C] (or [H, W]) -> [gh*gw, bh, bw, C] (or [gh*gw, bh, bw]), blocks row-major."""
+    """Cut an image into a grid of equal, non-overlapping blocks (the paper's sub-images).
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        [H, W, C] or [H, W]; H and W must be multiples of the grid's rows and columns.
+    grid : tuple of int, default (4, 4)
+        (rows, columns) of the grid; the paper's is 4x4.
+
+    Returns
+    -------
+    numpy.ndarray
+        [rows * columns, H / rows, W / columns, C] (or without C), contiguous; block 0 is the
+        top-left one and blocks are numbered row-major, as in meta.json's `thresholds`.
+
+    Raises
+    ------
+    ValueError
+        If the image is not 2- or 3-dimensional, or the grid does not divide its size (the
+        message suggests the nearest size that does).
+    """
     img = np.asarray(image)
     if img.ndim not in (2, 3):
         raise ValueError(f"expected an image [H, W] or [H, W, C], got shape {img.shape}")

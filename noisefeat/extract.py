@@ -43,12 +43,36 @@ def _as_blocks(blocks: np.ndarray | torch.Tensor) -> torch.Tensor:
 def extract_features(blocks: np.ndarray | torch.Tensor, *, exposure: float = 0.0,
                      base: FeatureBase | None = None,
                      return_nonfinite: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
-    """Linear RGB [N, H, W, 3] -> float32 [N, 26] (see FeatureBase for the order).
+    """The 26 noise features of each block: display transform, L*, then the feature base.
 
-    The model input is extract_features(quick) - extract_features(current).
-    Non-finite pixels follow the display rule (NaN/-Inf read as black, +Inf as white); they
-    are counted per block, logged, and returned when `return_nonfinite` is set.
-    Computed by the fused path (noisefeat.fused): one chunked pass from RGB to features.
+    The paper's model input is ``extract_features(quick) - extract_features(current)``.
+    Computed by the fused path (`noisefeat.fused`): one chunked pass from RGB to features,
+    equal to ``FeatureBase()(lightness(blocks))`` within float32 rounding.
+
+    Parameters
+    ----------
+    blocks : numpy.ndarray or torch.Tensor
+        Linear (scene-referred) RGB blocks [N, H, W, 3], H and W at least 8; any size.
+    exposure : float, default 0.0
+        Display exposure in stops: the blocks are multiplied by 2**exposure before the
+        display transform (DESIGN "Display transform").
+    base : FeatureBase, optional
+        The feature base to use; default: the package's (`default_base()`).
+    return_nonfinite : bool, default False
+        Also return the count of non-finite pixels per block.
+
+    Returns
+    -------
+    numpy.ndarray or tuple of numpy.ndarray
+        float32 [N, 26] features in `FEATURE_NAMES` order (mean and std of the 13 noise
+        maps); with `return_nonfinite`, (features, int64 [N] non-finite pixel counts).
+        Non-finite pixels follow the display rule (NaN and -Inf read as black, +Inf as
+        white), so features are always finite.
+
+    Raises
+    ------
+    ValueError
+        On a wrong shape, a block under 8x8, or an exposure out of range.
     """
     feats, stats = analyse_blocks(blocks, exposure=exposure, base=base)
     return (feats, stats.nonfinite) if return_nonfinite else feats

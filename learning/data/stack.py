@@ -415,7 +415,30 @@ def _stack_dir(path: str | os.PathLike) -> Path:
 
 
 def read_stack(path: str | os.PathLike) -> Stack:
-    """Open a complete stack (its directory or its meta.json); validates meta.json."""
+    """Open a complete stack of the dataset format (DESIGN "Dataset format v1").
+
+    Only meta.json is read and validated here; level, reference and quick images are read
+    when asked for (`Stack.level`, `Stack.reference`, ...), and `Stack.validate` checks
+    every file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The stack's directory, or its meta.json.
+
+    Returns
+    -------
+    Stack
+        The stack: scene, size, grid, block, spp levels, labels (`thresholds`, `labeler`)
+        and extra meta.json keys.
+
+    Raises
+    ------
+    FileNotFoundError
+        If there is no meta.json (the message says whether a build was interrupted).
+    ValueError
+        If meta.json is not valid JSON or breaks the format.
+    """
     d = _stack_dir(path)
     meta_path = d / META
     if not meta_path.is_file():

@@ -202,10 +202,50 @@ def write_stack(path: str | os.PathLike, *, scene: str,
                 grid: Sequence[int] = (4, 4), labeler: Mapping | None = None,
                 thresholds: Sequence[int | None] | None = None, half: bool = False,
                 **extras: Any) -> Stack:
-    """Write a whole stack at once. `levels`: {spp: image} or a sequence aligned with `spp`.
+    """Write a whole stack at once in the dataset format (every file atomically, meta.json last).
 
-    `quick=None` writes a stack without quick image (meta "quick": "none").
-    Extra keyword arguments become extra meta.json keys.
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The stack's directory (created).
+    scene : str
+        Scene name, meta.json's `scene`.
+    levels : mapping or sequence of numpy.ndarray
+        Cumulative-mean linear RGB images [H, W, 3]: {spp: image}, or a sequence aligned
+        with `spp`.
+    spp : sequence of int, optional
+        Strictly increasing samples per pixel of the levels (required with a sequence).
+    reference : numpy.ndarray
+        The high-spp reference image [H, W, 3].
+    quick : numpy.ndarray or None
+        The quick noise-free image [H, W, 3]; None writes a stack without one (meta.json
+        "quick": "none").
+    reference_spp : int
+        Samples per pixel of the reference.
+    quick_description : str, optional
+        meta.json's `quick` (what the quick image is).
+    renderer : str, default 'unknown'
+        meta.json's `renderer`.
+    grid : sequence of int, default (4, 4)
+        (rows, columns) of blocks; must divide the image size.
+    labeler : mapping, optional
+        meta.json's `labeler` (who labelled `thresholds`).
+    thresholds : sequence of int or None, optional
+        Per-block thresholds in spp (None: never converged), row-major.
+    half : bool, default False
+        Store levels as half floats (smaller; passes then cannot be recovered exactly).
+    **extras
+        Extra meta.json keys.
+
+    Returns
+    -------
+    Stack
+        The written stack, as `read_stack` opens it.
+
+    Raises
+    ------
+    ValueError
+        On inconsistent sizes, spp or labels.
     """
     if isinstance(levels, Mapping):
         if spp is None:

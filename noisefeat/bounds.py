@@ -1,7 +1,7 @@
 """Size bounds on the images the method is asked about, checked before anything is allocated.
 
-Why: one request of 3.8 MB declaring a [1, 8, 40000, 3] tensor took a server to 23.7 GB
-(issue 14). The feature base's cost is now linear in the pixels of a block, but a block,
+Why: one request of 3.8 MB declaring a [1, 8, 40000, 3] tensor can otherwise take a server
+to 23.7 GB (measured). The feature base's cost is linear in the pixels of a block, but a block,
 a request and a rendered frame still need a ceiling that is named in the error a caller
 gets. The defaults are generous for the method (the paper's blocks are 128 and 200
 pixels, renders default to the model's training block) and each can be changed through

@@ -2,8 +2,8 @@
 
 Why bytes and not entries: the feature base keeps, per block size, operators whose size
 grows with the block's pixel count (about 80 bytes a pixel), so a cache bounded by an
-entry count still lets a handful of large sizes take gigabytes (issue 14 measured 100 MB
-kept per distinct size near 1024x1024, never released). Bounded by bytes, a server that
+entry count still lets a handful of large sizes take gigabytes (measured: 100 MB kept
+per distinct size near 1024x1024, never released). Bounded by bytes, a server that
 sees many sizes keeps the most recent ones within a fixed budget; an entry larger than
 the whole budget is handed back but not kept.
 

@@ -6,9 +6,9 @@ bright sample gives). Callers that need to report them count them with `nonfinit
 
 The exposure is a number of stops in `EXPOSURE_RANGE` ([-64, 64]: 2**64 is far beyond any
 useful display scaling and far inside float range). Outside it, `check_exposure` raises
-ValueError: `2.0 ** 2000` overflowed into a server error and a traceback (issue 14).
+ValueError, since `2.0 ** 2000` would overflow into a server error and a traceback.
 
-`lightness_into` is the one implementation of display transform + L* (issue 16): it runs on
+`lightness_into` is the one implementation of display transform + L*: it runs on
 every block of every pass, so it works in place on one work buffer, skips the clip when
 nothing needs clipping, and takes the cube root as exp(log(.)/3) (torch's pow is 2-5x
 slower here), with CIELab's linear toe only when some luminance is below its knee.

@@ -3,7 +3,7 @@
 Why: the `flip` criterion and the bundled model's `halves` input (composition `f`) score a
 block by the LDR-FLIP map between display(A) and display(B), its two half buffers, pooled.
 `flip-evaluator` computes one image pair per call with direct 21-tap loops: ~4.8 ms per
-64x64 block, ~250 ms per service request of 16 blocks of 128x128 (issue 16). The same
+64x64 block, ~250 ms per service request of 16 blocks of 128x128 (measured). The same
 computation as a few large matrix products over every block of a batch costs a small
 fraction of that.
 

@@ -1,7 +1,7 @@
 """The fused feature path: linear RGB blocks -> display transform -> L* -> 26 features.
 
 Why: run as separate whole-batch steps, the display transform and L* cost as much as the
-twelve layers (issue 16: 27-30 ms for 101 blocks of 128x128, 6.6x a matmul of the same
+twelve layers (measured: 27-30 ms for 101 blocks of 128x128, 6.6x a matmul of the same
 multiply-adds): every step wrote a fresh full-size tensor (clip, nan_to_num, luminance,
 cube root, where, range normalisation, centring) and the non-finite count walked the
 blocks twice more. Here the blocks go through one short sequence of in-place operations
@@ -19,7 +19,7 @@ of large batches):
    inputs of any magnitude) is not needed.
 
 The result equals the unfused route (display.lightness, then FeatureBase) within float32
-rounding (tests/test_fused.py, against a frozen copy of the code before issue 16), and a
+rounding (tests/test_fused.py, against a frozen copy of the unfused pipeline), and a
 block's features do not depend on the other blocks of the call (up to float32 rounding of
 the batched matmuls).
 """

@@ -57,8 +57,8 @@ def _taps(wavelet: str, n: int) -> tuple[tuple[tuple[int, float], ...], tuple[tu
     synthesis (approximation only) is y[n'] = sum_m s[m] u[(n' - m) mod n] with u the
     zero-upsampled coefficients (u[2k] = cA[k]).
 
-    Cost linear in n (issue 14: reading the taps off an n x n identity took 1.5 GB for
-    n = 8000 and killed the server at n = 40000): above a reference size of four filter
+    Cost linear in n (reading the taps off an n x n identity would take 1.5 GB for
+    n = 8000 and kill a server at n = 40000): above a reference size of four filter
     lengths the taps, as signed offsets, no longer depend on n, so they are read once at
     that size and wrapped modulo n (tests compare both routes over many sizes and wavelets).
     """

@@ -1,8 +1,8 @@
 """The adaptive render's checkpoint (out/checkpoint.npz): written atomically, validated before use.
 
-What `--resume` trusts must be exactly what an interrupted run left (issue 14: a truncated
-or byte-flipped file ended in BadZipFile, CRC or KeyError tracebacks, and a checkpoint
-claiming pass 1,000,000 was accepted). So a checkpoint is read with `learning.data.npz`
+What `--resume` trusts must be exactly what an interrupted run left (read naively, a
+truncated or byte-flipped file ends in BadZipFile, CRC or KeyError tracebacks, and a
+checkpoint claiming pass 1,000,000 is accepted). So a checkpoint is read with `learning.data.npz`
 (member sizes against headers, no pickle), carries a SHA-256 digest of its arrays, was
 made with the same settings, and holds a state that the loop could have produced:
 

@@ -34,8 +34,8 @@ COMPARE = "compare.png"
 def prepare_output_dir(path: str | os.PathLike) -> Path:
     """`path` as an existing, writable directory, or a one-line error before any work.
 
-    Why (issue 14): `--out` naming a file ended in a FileExistsError traceback, and a
-    read-only folder failed only after the first pass had been rendered. Writability is
+    Why: otherwise `--out` naming a file ends in a FileExistsError traceback, and a
+    read-only folder fails only after the first pass has been rendered. Writability is
     probed by creating and removing a file, which is what counts (permission bits do not
     bind root, a read-only mount binds everyone)."""
     p = Path(path)

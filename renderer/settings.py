@@ -30,7 +30,7 @@ if TYPE_CHECKING:
 #: trained and calibrated on (data/train: 64x64 blocks), whatever the frame's size
 DEFAULT_BLOCK = 64
 DEFAULTS: dict[str, Any] = {"block": DEFAULT_BLOCK, "step": 16, "min_spp": 16, "max_spp": 1024}
-#: documented ranges (issue 14): spp settings are whole numbers in [1, MAX_SPP], and a render
+#: documented ranges: spp settings are whole numbers in [1, MAX_SPP], and a render
 #: makes at most MAX_PASSES passes (each appends a row to the checkpointed history)
 MAX_SPP = 1 << 20
 MAX_PASSES = 10_000

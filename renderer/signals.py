@@ -1,7 +1,7 @@
 """Ctrl-C and SIGTERM during a render: finish the pass, checkpoint, then stop; a second
 signal stops at once.
 
-The checkpoint is written on a time interval, not after every pass (issue 16), so an
+The checkpoint is written on a time interval, not after every pass (cheaper), so an
 interrupt must not simply kill the loop: the passes since the last checkpoint would be
 lost, and an interrupt inside `BlockAccumulator.add_many` would leave a half-added pass.
 `DeferredStop` turns the first SIGINT/SIGTERM into a request the loop reads between

@@ -93,7 +93,7 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
 
     Requests are classified one by one, 2 at a time (`inference_threads`): a micro-batching
     window across concurrent requests was measured slower (BENCHMARKS.md "Verdict
-    service", issue 16) and is not kept."""
+    service") and is not kept."""
     limits = limits or Limits()
     metrics = metrics or ServiceMetrics()
 

@@ -55,7 +55,7 @@ MEMORY_PER_REQUEST = 1 << 20
 #: what parsing and decoding JSON costs, in bytes, per opening bracket or brace (a list or
 #: dict object, its slot in its parent, numpy's walk of it), per comma or colon (a number
 #: object and its slot, or a dict entry) and per byte of text (strings). Measured peak
-#: working memory over the body, full decode (issue 26, BENCHMARKS.md "Hardening, second
+#: working memory over the body, full decode (BENCHMARKS.md "Hardening, second
 #: round"): 20 nested lists around each number 52x (this estimate: 60x), [1] 31x (48x),
 #: {} 28x (64x), {"a":1} 26x (32x), flat 3-digit integers 13x (16x), floats of 9 digits
 #: 4.3x (5.3x), whitespace and long number strings ~0x (1x).
@@ -274,10 +274,10 @@ def release_memory(above: int = RELEASE_ABOVE) -> bool:
     bytes of it are free (glibc keeps them, so the resident size would stay at its
     high-water mark and the next large request would start from there). True if trimmed.
 
-    Why not after every request (as issue 14 first did): trimming the few tens of MB an
+    Why not after every request: trimming the few tens of MB an
     ordinary request frees makes the next one fault them all back in; for 16 blocks of
-    128x128 that was 7.6 ms of CPU a request (issue 16, measured). Large requests, the
-    ones issue 14 was about, still leave a trimmed heap. Without mallinfo2: always trims."""
+    128x128 that was 7.6 ms of CPU a request (measured). Large requests, the ones that
+    matter for memory, still leave a trimmed heap. Without mallinfo2: always trims."""
     trim, info = _libc()
     if trim is None:
         return False

@@ -7,7 +7,7 @@ SIGTERM, SIGHUP and Ctrl-C make uvicorn stop accepting connections and finish th
 in flight before it exits, up to `graceful_timeout` seconds, each with a log line (SIGHUP
 drains like SIGTERM: it does not reload the model; a second Ctrl-C stops at once).
 
-Connection settings (issue 14; service.connections): request headers must arrive within
+Connection settings (service.connections): request headers must arrive within
 `header_timeout` seconds of a connection opening (or of its previous response), a body may
 stall for `body_timeout` seconds, must be complete within `body_deadline` seconds and
 arrive at `min_body_rate` bytes a second after `body_grace` seconds
@@ -49,7 +49,7 @@ DEFAULT_BODY_TIMEOUT = 30.0
 DEFAULT_KEEP_ALIVE = 5
 #: torch threads per inference thread. Requests already run 2 at a time; intra-op threads on
 #: top of that measured no faster at 1 client and slower at 8 (p99 233/230/195 ms against
-#: 289/274/289 ms in three alternating runs, issue 16), and wait on one another whenever
+#: 289/274/289 ms in three alternating runs), and wait on one another whenever
 #: the machine is busy
 DEFAULT_TORCH_THREADS = 1
 

@@ -1,12 +1,12 @@
-"""The feature pipeline as it was before the fused extraction (issue 16), frozen as an oracle.
+"""The feature pipeline as it was before the fused extraction, frozen as an oracle.
 
-Why a frozen copy: issue 16 rewrote `extract_features` (one chunked pass: display
+Why a frozen copy: the fused path rewrote `extract_features` (one chunked pass: display
 transform, L*, spectrum, features) and the spectral code of `FeatureBase`; "equal to the
 old implementation within float32 rounding" can only be tested against the old code
 itself. This is the code of commit 3d81504 (noisefeat/display.py `lightness`,
 noisefeat/base.py `forward` and its wavelet layer, noisefeat/wavelet.py `alias_average`),
 with the operators rebuilt here from the base's kernels (`FeatureBase._responses`) and the
-wavelet module's `spectral_operators` / `lowpass_projection`, which issue 16 left unchanged.
+wavelet module's `spectral_operators` / `lowpass_projection`, which the fused path left unchanged.
 Slow (no caching); for tests only.
 """
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Issue 14, resource bounds: operators linear in the block size, bounded caches, size ceilings."""
+"""Resource bounds: operators linear in the block size, bounded caches, size ceilings."""
 from __future__ import annotations
 
 import tracemalloc

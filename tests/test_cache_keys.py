@@ -1,4 +1,4 @@
-"""Issue 14: arrays cached next to a stack are valid for the stack's content only."""
+"""Arrays cached next to a stack are valid for the stack's content only."""
 from __future__ import annotations
 
 import dataclasses

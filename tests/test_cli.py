@@ -97,7 +97,7 @@ def test_bench_help_names_every_section():
     assert all(name in text for name in SECTIONS), text
 
 
-# --- issue 12: one decision route, the flip criterion, held-out scenes --------------------------
+# --- one decision route, the flip criterion, held-out scenes ----------------------------------
 FIXTURE = __import__("pathlib").Path(__file__).parent / "fixtures" / "dataset"
 
 

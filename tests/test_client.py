@@ -179,7 +179,7 @@ def test_server_errors_carry_the_server_message(server):
 
 
 def test_busy_server_503_with_retry_after_is_retried(server):
-    """A server at its in-flight or memory limit (issue 14) answers 503 + Retry-After."""
+    """A server at its in-flight or memory limit answers 503 + Retry-After."""
     m = RemoteModel(server, token=TOKEN, retries=2, backoff=0.0)
     blocks, quick = blocks_and_quick(2)
     FakeOIP.fail_with, FakeOIP.fail_once = (503, {"error": "server busy"}, b"", {"Retry-After": "0"}), True

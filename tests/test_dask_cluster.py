@@ -1,4 +1,4 @@
-"""Issue 15: many scenes on an existing Dask cluster, as a farm runs it: a real
+"""Many scenes on an existing Dask cluster, as a farm runs it: a real
 `dask scheduler` and `dask worker` processes started and stopped by the test (not a
 LocalCluster), `noisestop render --scheduler tcp://...` submitting to them."""
 from __future__ import annotations

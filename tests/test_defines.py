@@ -1,4 +1,4 @@
-"""Issue 15 (first part): `render -D key=value` sets an XML scene's <default> parameters,
+"""`render -D key=value` sets an XML scene's <default> parameters,
 as `mitsuba -D` does, so a published scene whose default integrator is a plugin Mitsuba
 does not have still renders."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Issue 14, one error contract: every command failure is one line on stderr and exit 2.
+"""One error contract: every command failure is one line on stderr and exit 2.
 
 Each case below is one the attack found ending in a traceback or a silently wrong result.
 The commands run in process through `service.cli.main` (the same code path as the console

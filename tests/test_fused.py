@@ -1,6 +1,6 @@
-"""The fused feature path (issue 16) against the code it replaced, on realistic and extreme input.
+"""The fused feature path against the code it replaced, on realistic and extreme input.
 
-`reference_features` is a frozen copy of the pipeline before issue 16 (lightness, then
+`reference_features` is a frozen copy of the unfused pipeline (lightness, then
 FeatureBase.forward). "Equal within float32 rounding" is asserted as: features within
 2e-4 + 2e-4 x |old| (L* is on a 0..100 scale, where one float32 ulp is 7.6e-6; on a
 1024x1024 block the old route's single float32 sum over 0.5 M spectrum terms is itself

@@ -1,4 +1,4 @@
-"""Issue 14, bounded fuzzing: the readers of untrusted bytes either answer or refuse cleanly.
+"""Bounded fuzzing: the readers of untrusted bytes either answer or refuse cleanly.
 
 Hypothesis drives the binary tensor decoder (request header + tail), the manifest reader
 and the checkpoint reader with malformed, mutated and forged input. The only outcomes
@@ -78,7 +78,7 @@ def test_json_request_parser_refuses_garbage(raw):
         assert 400 <= exc.status < 500
 
 
-# --- the memory estimate of a JSON body, and keys given twice (issue 26) ---------------------
+# --- the memory estimate of a JSON body, and keys given twice ---------------------------------
 
 ESTIMATE = settings(max_examples=20, deadline=None, database=None, suppress_health_check=list(HealthCheck))
 ROOMY = Limits(max_body_bytes=1 << 30, max_batch=1 << 20, max_block_side=1 << 20, max_pixels=1 << 30)

@@ -1,4 +1,4 @@
-"""Issue 14: `noisestop render` killed with SIGKILL at random passes, then `--resume`d, gives
+"""`noisestop render` killed with SIGKILL at random passes, then `--resume`d, gives
 the uninterrupted run's image and report, bit for bit (timings aside)."""
 from __future__ import annotations
 

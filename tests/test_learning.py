@@ -210,7 +210,7 @@ def test_bundle_refuses_foreign_types_and_other_feature_bases(tmp_path):
 
 
 def test_a_bundle_written_before_the_move_to_sub_packages_still_loads(tmp_path, monkeypatch):
-    """Issue 17 moved the estimators to learning.models; a bundle saved earlier names
+    """The estimators live in learning.models; a bundle saved before that names
     learning.estimators in its skops schema and must load with the same decisions."""
     X, y = toy(200)
     save_model(DSVM().fit(X, y), tmp_path / "m", kind="dsvm", input="features")

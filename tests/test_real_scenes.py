@@ -1,4 +1,4 @@
-"""Issue 15: Mitsuba XML scenes as users have them: any film size and aspect, Mitsuba's
+"""Mitsuba XML scenes as users have them: any film size and aspect, Mitsuba's
 default Gaussian filter, blocks by size with edge windows, -D for a plugin integrator, the
 outputs (per-pixel spp and converged channels, spp heat map), interval checkpoints and a
 clean Ctrl-C."""

@@ -1,4 +1,4 @@
-"""Issue 14 on real sockets: idle floods, slow clients, the in-flight limit, the memory
+"""The server's guards on real sockets: idle floods, slow clients, the in-flight limit, the memory
 ceiling, schemathesis stateful runs. The scenarios are service.lab.attack's, the same ones
 `noisestop bench reliability` reports; here they assert."""
 from __future__ import annotations
@@ -38,7 +38,7 @@ def _infer(server) -> int | str:
 
 def test_health_answers_under_64_idle_connections_which_are_then_closed(server):
     r = attack.idle_flood(server.url, n=64, probes=10, wait=HEADER_TIMEOUT + 15, infer=lambda: _infer(server))
-    assert r["health_ok"] == r["probes"] == 10, r            # never a 503 (issue 14: 503 for 40 s)
+    assert r["health_ok"] == r["probes"] == 10, r            # never a 503 (an idle flood must not deny service)
     assert r["infer_status"] == 200, r
     assert r["closed_by_server"] == 64, r                      # the header timeout hung up on every one
     assert set(r["answers_before_close"]) <= {"none", "408"}, r

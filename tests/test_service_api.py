@@ -408,7 +408,7 @@ def test_quick_none_model_needs_no_quick_input(tmp_path):
     assert out["verdict"].tolist() == verdict.tolist()
 
 
-# --- the one stop rule over HTTP: offset and flat blocks (issue 12) ---------------------------
+# --- the one stop rule over HTTP: offset and flat blocks --------------------------------------
 
 def test_verdicts_follow_the_stop_rule_offset_and_flat_blocks(client):
     current, quick = blocks_pair(n=4)

@@ -1,4 +1,4 @@
-"""Issue 14 over HTTP: request bounds named in the 413, parameters in their ranges (400), no 5xx."""
+"""Request bounds over HTTP: named in the 413, parameters in their ranges (400), no 5xx."""
 from __future__ import annotations
 
 import json

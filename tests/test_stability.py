@@ -1,4 +1,4 @@
-"""Issue 7's stability matrix: no entry point crashes or returns NaN/Inf on extreme input."""
+"""The stability matrix: no entry point crashes or returns NaN/Inf on extreme input."""
 from __future__ import annotations
 
 import pytest

@@ -3,7 +3,7 @@
 Used by tests, by `dataset build` after a build, and by users before a long training run.
 Errors make a stack unusable or its labels wrong, or put files in it that the format does
 not have: an image with no finite pixel (damage, not the odd NaN a renderer emits), a
-stray file in a stack or its levels (issue 14: these used to pass as "0 errors").
+stray file in a stack or its levels (none of these may pass as "0 errors").
 Warnings are oddities worth a look (some non-finite pixels in a level, human thresholds
 between levels, unlisted level files, leftovers of an interrupted write).
 """

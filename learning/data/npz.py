@@ -1,7 +1,7 @@
 """Reading .npz files that may be damaged or forged: checkpoints and stack caches.
 
-Why (issue 14): a truncated or byte-flipped checkpoint.npz on `--resume` ended in
-BadZipFile, a CRC error or a KeyError traceback. numpy's reader trusts each member's
+Why: with numpy's reader alone, a truncated or byte-flipped checkpoint.npz on `--resume`
+ends in BadZipFile, a CRC error or a KeyError traceback. numpy's reader trusts each member's
 header: a header that claims a larger shape than the member holds makes it allocate the
 claimed size first. Here every member's header is read and its claimed size compared
 with the bytes the member really holds before any array is built, object arrays are

@@ -1,6 +1,6 @@
 """How every criterion is judged: on scenes it has never seen, per scene, in two groups.
 
-The protocol (issue 12), which every figure of BENCHMARKS.md follows:
+The protocol which every figure of BENCHMARKS.md follows:
 
 * Training and calibration see the training scenes only (the default dataset); the
   held-out scenes (`renderer.heldout`, `make heldout`) are a separate dataset that no

@@ -1,8 +1,8 @@
 """What a model bundle must hold before anything uses it: its manifest's schema, the
 estimator's fitted arrays, and the model file's hash.
 
-Why (issue 14): crafted bundles loaded and then failed at the first verdict, or never did
-and answered wrong. A manifest nested 100,000 deep raised RecursionError; `"input":
+Why: without these checks, crafted bundles load and then fail at the first verdict, or
+never do and answer wrong. A manifest nested 100,000 deep raised RecursionError; `"input":
 "Features"` (capitalised) skipped the feature-base check; a replaced fitted attribute
 raised AttributeError mid-request; a NaN offset loaded and the model never converged.
 libsvm reads the support vectors through the counts it is given, so inconsistent arrays
@@ -139,7 +139,7 @@ def check_model_file(path: Path, manifest: dict[str, Any]) -> None:
         raise ValueError(f"{path}: unpacks to {total} bytes, more than a model may take ({MAX_MODEL_BYTES})")
 
 
-#: where our estimators lived before `learning` was cut into sub-packages (issue 17); a
+#: where our estimators lived before `learning` had sub-packages; a
 #: bundle written then names the old module in its skops schema, and skops finds a class
 #: by its module's name
 MOVED_MODULES = {"learning.estimators": "learning.models.estimators"}

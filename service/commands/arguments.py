@@ -1,4 +1,4 @@
-"""Argument types and checks shared by the sub-commands: every documented range (issue 14)
+"""Argument types and checks shared by the sub-commands: every documented range
 as an argparse type, so a bad value is a one-line usage error before any work.
 
 The choices and ranges come from their one home, in modules that import nothing heavy; frame

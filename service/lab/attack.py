@@ -1,4 +1,4 @@
-"""Attack scenarios against a running verdict server (issue 14), bounded and on loopback only.
+"""Attack scenarios against a running verdict server, bounded and on loopback only.
 
 Each function drives one kind of abuse the attack found or the hardening must survive, and
 returns what happened as plain numbers, so that tests assert on them and `noisestop bench
@@ -281,7 +281,7 @@ def run_worst_shapes(url: str, token: str | None, max_body: int, concurrent: int
     return out
 
 
-# --- issue 26: slow uploaders, protocol errors, duplicate keys ----------------------------------
+# --- slow uploaders, protocol errors, duplicate keys -------------------------------------------
 
 def _status_of(raw: bytes) -> int | None:
     return int(raw.split(b" ", 2)[1]) if raw.startswith(b"HTTP/1.1 ") and raw[9:12].isdigit() else None

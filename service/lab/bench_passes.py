@@ -1,4 +1,4 @@
-"""`noisestop bench passes`: does wall time follow the samples (issue 16)?
+"""`noisestop bench passes`: does wall time follow the samples?
 
 Three measurements, all warm, on this machine:
 

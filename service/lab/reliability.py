@@ -1,4 +1,4 @@
-"""`noisestop bench reliability`: the reliability table of BENCHMARKS.md (issue 14).
+"""`noisestop bench reliability`: the reliability table of BENCHMARKS.md.
 
 Three sources, each counted as it ran, nothing typed by hand:
 
@@ -11,7 +11,7 @@ Three sources, each counted as it ran, nothing typed by hand:
    test_kill_resume.py, test_service_hardening.py): cases and outcomes from its JUnit
    report, hypothesis examples from its statistics. They need the source tree (tests/
    next to the package);
-4. issue 26's scenarios (`bench_hardening`, also the section `hardening` on its own):
+4. the hardening scenarios (`bench_hardening`, also the section `hardening` on its own):
    peak RSS of the worst JSON and binary shapes with and without the address-space cap,
    normal latency beside slow uploaders, every way of starting `serve` without a token,
    SIGHUP with a request in flight, a protocol error, a key twice.
@@ -213,7 +213,7 @@ def md_reliability(r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-# ----------------------------------------------------------------------------- issue 26
+# ----------------------------------------------------------------------------- hardening
 
 #: the variables and flags `serve` is started with, to find any path that serves without a
 #: token that nobody asked for (the issue: `NOISESTOP_TOKEN=` did)
@@ -230,7 +230,7 @@ AUTH_CASES: tuple[tuple[str, dict[str, str], tuple[str, ...]], ...] = (
 
 
 def bench_hardening() -> dict[str, Any]:
-    """Issue 26's figures: peak RSS of the worst JSON and binary shapes with and without
+    """The hardening figures: peak RSS of the worst JSON and binary shapes with and without
     the 3 GiB address-space cap (a fresh server per shape, so that each peak is its own),
     the p99 of normal requests beside 0, 1, 4 and 16 slow uploaders, the auth paths of
     `serve`, SIGHUP, protocol errors and duplicate keys."""

@@ -94,7 +94,7 @@ def test_one_fused_call_per_request_for_blocks_and_quick(bundle, monkeypatch):
 def test_server_process_imports_no_mitsuba_or_matplotlib(bundle):
     """What `noisestop serve` loads: the command line, the app, a feature model and the
     bundled (half-buffer, FLIP) model, one request to each; none of it imports Mitsuba,
-    Dr.Jit or matplotlib, nor any room of the renderer but its names, settings and token rule."""
+    Dr.Jit or matplotlib, nor any room of the renderer but its names, settings, token rule and OIP codec."""
     code = f"""
 import json, sys
 import service.cli, service.commands
@@ -117,8 +117,9 @@ print(json.dumps(sorted(sys.modules)))
     # through sklearn's array-API shim; tests/test_install_parts.py serves without it)
     optional = {"mitsuba", "drjit", "matplotlib", "flip_evaluator", "torchvision"}
     assert not loaded & optional, loaded & optional
-    # of the renderer, only the pure-Python rooms the command line and the token rule live in
-    light = {"renderer", "renderer.names", "renderer.settings", "renderer.token"}
+    # of the renderer, only the pure-Python rooms the command line, the token rule and the
+    # OIP codec the client shares with the server live in
+    light = {"renderer", "renderer.names", "renderer.settings", "renderer.token", "renderer.oip_codec"}
     assert {m for m in modules if m.split(".")[0] == "renderer"} <= light
 
 

@@ -25,8 +25,8 @@ Borders are clamped (the nearest edge pixel is repeated), as FLIP's loops clamp 
 Each 1D pass is a banded matrix product: the axis is cut into tiles of about 16 pixels,
 each tile's window (tile plus the filter radius on both sides, indices clamped) is
 gathered once, and one GEMM applies every filter that axis needs. Arithmetic is float32 as
-in FLIP; only the order of the sums differs, so maps agree to float32 rounding (tests/
-test_flip.py compares the two on realistic and extreme blocks).
+in FLIP; only the order of the sums differs, so maps agree to float32 rounding
+(tests/noisefeat/test_flip.py compares the two on realistic and extreme blocks).
 
 `ldr_flip(reference, test)` takes sRGB images in [0, 1] like `flip_evaluator.evaluate`;
 `flip_halves(even, odd)` takes linear half buffers, follows the display rule

@@ -19,7 +19,7 @@ of large batches):
    inputs of any magnitude) is not needed.
 
 The result equals the unfused route (display.lightness, then FeatureBase) within float32
-rounding (tests/test_fused.py, against a frozen copy of the unfused pipeline), and a
+rounding (tests/noisefeat/test_fused.py, against a frozen copy of the unfused pipeline), and a
 block's features do not depend on the other blocks of the call (up to float32 rounding of
 the batched matmuls).
 """

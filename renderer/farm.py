@@ -54,7 +54,7 @@ def configure_worker_threads() -> None:
 
     Dr.Jit's pool is deliberately left alone: `drjit.set_thread_count(1)` makes Mitsuba's
     `Bitmap.write` of an EXR wait forever on OpenEXR's thread-pool semaphore (seen with
-    mitsuba 3.9.1; tests/test_dataset_build.py guards it), so the renderer keeps its own
+    mitsuba 3.9.1; tests/renderer/test_dataset_build.py guards it), so the renderer keeps its own
     pool and the OS shares the cores.
     """
     threads = os.environ.get("NOISESTOP_THREADS")

@@ -6,7 +6,7 @@ else. Every failure of a command ends with one line on stderr, `noisestop CMD: e
 and unusable files say what is wrong with them, a missing optional package names the extra
 that installs it (`pip install 'noisestop[render]'`); anything else is reported as an
 unexpected error with its type, which is a bug to report (a contract:
-tests/test_error_contract.py holds every command to it).
+tests/cli/test_error_contract.py holds every command to it).
 """
 from __future__ import annotations
 

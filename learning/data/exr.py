@@ -4,7 +4,7 @@ EXR goes through the OpenEXR project's own Python bindings (`OpenEXR`), PNG thro
 neither needs Mitsuba, so the dataset format reads and writes with the core install.
 Files written here use the layout Mitsuba writes (scanlines, PIZ compression, channels
 R, G, B plus any named extras), and files Mitsuba wrote read back bit for bit as
-`mitsuba.Bitmap` read them (tests/test_exr_io.py checks both ways when Mitsuba is there).
+`mitsuba.Bitmap` read them (tests/learning/test_exr_io.py checks both ways when Mitsuba is there).
 
 Writes are atomic: the file is encoded in memory, written to a temporary name in the
 target directory, fsync'ed and renamed over the final name, so a reader never sees a

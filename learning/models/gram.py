@@ -9,7 +9,7 @@ computed once (one float64 BLAS product) and every fit and score slices the Gram
 `GramRBF` is the same RBF SVC, addressed by row index: its `X` is a column of indices
 into the rows of the Gram matrix, so the active learner and the stateless query strategy
 run on it unchanged. The kernel values differ from libsvm's own only by float rounding;
-tests/test_gram.py checks that the queries and the decision values match.
+tests/learning/test_gram.py checks that the queries and the decision values match.
 """
 from __future__ import annotations
 

@@ -7,7 +7,7 @@ Three sources, each counted as it ran, nothing typed by hand:
    slow headers, a stalled body, the in-flight limit, the worst request shapes (status
    and the server's peak RSS after each);
 2. a schemathesis stateful run against the app in process (calls, statuses, 5xx);
-3. the attack test files run by pytest (tests/test_error_contract.py, test_fuzz.py,
+3. the attack test files run by pytest (`SUITES`: test_error_contract.py, test_fuzz.py,
    test_kill_resume.py, test_service_hardening.py): cases and outcomes from its JUnit
    report, hypothesis examples from its statistics. They need the source tree (tests/
    next to the package);
@@ -34,8 +34,8 @@ from typing import Any
 log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parents[2]
-SUITES = ("tests/test_error_contract.py", "tests/test_fuzz.py", "tests/test_kill_resume.py",
-          "tests/test_service_hardening.py")
+SUITES = ("tests/cli/test_error_contract.py", "tests/service/test_fuzz.py", "tests/renderer/test_kill_resume.py",
+          "tests/service/test_service_hardening.py")
 ADDRESS_SPACE = 3 << 30
 CEILING = 2 << 30
 
@@ -187,7 +187,7 @@ def md_reliability(r: dict[str, Any]) -> str:
     by_file: dict[str, Counter] = {}
     for c in su["cases"]:
         by_file.setdefault(c["file"], Counter())[c["outcome"]] += 1
-    labels = {"test_error_contract": "command-line error contract (every case of the issue; tests/test_error_contract.py)",
+    labels = {"test_error_contract": "command-line error contract (every case of the issue; tests/cli/test_error_contract.py)",
               "test_fuzz": "hypothesis fuzzing: tensor decoder, JSON parser and its memory estimate, duplicate keys, "
                            "manifest and checkpoint readers",
               "test_kill_resume": "kill -9 at 3 random passes, then --resume (bit-identical image and report)",

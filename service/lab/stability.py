@@ -2,7 +2,7 @@
 
 Each cell is what the entry point did: "finite" (returned finite, documented results) or
 "rejected: <message>" (a clear ValueError / 4xx). Anything else (an unexpected exception,
-a NaN or Inf in the output) is a defect, which tests/test_stability.py asserts never
+a NaN or Inf in the output) is a defect, which tests/service/test_stability.py asserts never
 happens; `noisestop bench stability` writes the matrix into BENCHMARKS.md.
 """
 from __future__ import annotations

@@ -1,0 +1,1 @@
+"""Tests of the command line, and end-to-end runs across packages."""

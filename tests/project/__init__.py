@@ -1,0 +1,1 @@
+"""Project-wide rules checked on the source: import layout, documentation."""

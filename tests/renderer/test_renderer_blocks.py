@@ -1,0 +1,307 @@
+"""Block rendering (wavefront and crop engines, windows of any frame) and the exact block accumulator."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from learning.data.accumulator import BlockAccumulator
+from renderer.blocks import BlockRenderer, derive_seed
+from renderer.scenes import load_scene
+
+
+@pytest.fixture(scope="module")
+def cornell32() -> BlockRenderer:
+    return BlockRenderer(load_scene("cornell", 32), grid=(4, 4))
+
+
+def test_derive_seed_is_deterministic_and_distinct() -> None:
+    seeds = {derive_seed(7, b, p) for b in range(-1, 16) for p in range(20)}
+    assert len(seeds) == 17 * 20
+    assert all(0 <= s < 2**32 for s in seeds)
+    assert derive_seed(7, 3, 2) == derive_seed(7, 3, 2)
+    assert derive_seed(7, 3, 2) != derive_seed(8, 3, 2)
+
+
+def test_grid_must_divide_resolution() -> None:
+    scene = load_scene("sky", 30)
+    with pytest.raises(ValueError, match="30x30.*4x4"):
+        BlockRenderer(scene, grid=(4, 4))
+    r = BlockRenderer(scene, grid=(3, 5))
+    assert r.block_shape == (10, 6) and r.n_blocks == 15
+
+
+def test_geometry_is_row_major(cornell32: BlockRenderer) -> None:
+    assert cornell32.block_shape == (8, 8)
+    assert cornell32.block_origin(0) == (0, 0)
+    assert cornell32.block_origin(1) == (8, 0)
+    assert cornell32.block_origin(4) == (0, 8)
+    assert cornell32.block_slices(15) == (slice(24, 32), slice(24, 32))
+
+
+@pytest.mark.slow
+def test_crop_shape_reproducibility_and_bad_ids(cornell32: BlockRenderer) -> None:
+    a = cornell32.render_blocks([0, 7], spp=4, seed=3)
+    assert a.shape == (2, 8, 8, 3) and a.dtype == np.float32
+    assert np.isfinite(a).all() and (a >= 0).all()
+    np.testing.assert_array_equal(a, cornell32.render_blocks([0, 7], spp=4, seed=3))
+    b = cornell32.render_blocks([0, 7], spp=4, seed=3, pass_index=1)
+    assert not np.array_equal(a, b)
+    # the scene is left with its full film afterwards
+    assert cornell32.render_full(spp=1, seed=0).shape == (32, 32, 3)
+    for bad in ([16], [-1], [1, 1]):
+        with pytest.raises(ValueError):
+            cornell32.render_blocks(bad, spp=1, seed=0)
+    with pytest.raises(ValueError, match="spp"):
+        cornell32.render_blocks([0], spp=0, seed=0)
+
+
+@pytest.mark.slow
+def test_quick_image_is_albedo_of_full_frame(cornell32: BlockRenderer) -> None:
+    q = cornell32.quick_image()
+    assert q.shape == (32, 32, 3)
+    assert np.isfinite(q).all()
+    assert 0.0 <= q.min() and q.max() <= 1.0  # an albedo, not radiance (the light is ~18)
+    assert q.mean() > 0.2
+
+
+@pytest.mark.slow
+def test_direct_quick_image_is_shaded_radiance(cornell32: BlockRenderer) -> None:
+    albedo, direct = cornell32.quick_image(), cornell32.quick_image(kind="direct")
+    assert direct.shape == (32, 32, 3) and np.isfinite(direct).all() and direct.min() >= 0
+    assert direct.max() > 1.0          # radiance: the light itself is far above 1
+    assert not np.allclose(direct, albedo, atol=0.05)
+    with pytest.raises(ValueError, match="kind"):
+        cornell32.quick_image(kind="normals")
+
+
+def _noise_var(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per-pixel variance of mean((a+b)/2) estimated from two equal independent halves."""
+    return (a.astype(np.float64) - b) ** 2 / 4.0
+
+
+def _scene(name: str, size: int, rfilter: str = "box", width: int | None = None):
+    """A built-in scene with the film's reconstruction filter replaced (published scenes
+    mostly use Mitsuba's default, the Gaussian of radius 2 px)."""
+    import mitsuba as mi
+
+    from renderer.scenes import scene_dict
+
+    d = scene_dict(name, size)
+    d["sensor"]["film"]["rfilter"] = {"type": rfilter}
+    if width is not None:
+        d["sensor"]["film"]["width"] = width
+    return mi.load_dict(d)
+
+
+def _mixed_ratio(r: BlockRenderer, a: np.ndarray, b: np.ndarray, fa: np.ndarray, fb: np.ndarray,
+                 ids: list[int], shift: int = 0) -> float:
+    """Mean squared difference of two renders of the blocks over what their noise explains
+    (about 1 for the same estimator; `shift` moves the second one by pixels, a control)."""
+    ratios = []
+    for i, blk in enumerate(ids):
+        ys, xs = r.block_slices(blk)
+        xs = slice(xs.start - shift, xs.stop - shift)
+        crop, full = (a[i].astype(np.float64) + b[i]) / 2, (fa[ys, xs].astype(np.float64) + fb[ys, xs]) / 2
+        expected = _noise_var(a[i], b[i]).mean() + _noise_var(fa[ys, xs], fb[ys, xs]).mean()
+        ratios.append(((crop - full) ** 2).mean() / expected)
+    return float(np.mean(ratios))
+
+
+def test_blocks_are_the_full_frame_bit_for_bit_with_a_box_filter() -> None:
+    r = BlockRenderer(_scene("checker", 32), grid=(4, 4))
+    assert r.engine == "wavefront" and r.guard == 0
+    full = r.render_full(8, seed=11, pass_index=3)
+    ids = [5, 6, 9, 3]
+    blocks = r.render_blocks(ids, 8, seed=11, pass_index=3)
+    for i, b in enumerate(ids):
+        np.testing.assert_array_equal(blocks[i], full[r.block_slices(b)])
+    # one block alone, too: its samples do not depend on what else is traced
+    np.testing.assert_array_equal(r.render_blocks([6], 8, seed=11, pass_index=3)[0], blocks[1])
+    other = r.render_blocks(ids, 8, seed=11, pass_index=4)
+    assert not np.array_equal(other, blocks)      # a new pass draws new samples
+
+
+def test_blocks_equal_the_full_frame_with_a_gaussian_filter() -> None:
+    """The guard band: a block traced alone gets every sample its filter footprint reaches."""
+    r = BlockRenderer(_scene("checker", 32, "gaussian"), grid=(4, 4))
+    assert r.guard == 2
+    full = r.render_full(8, seed=2)
+    ids = [5, 10, 15]
+    blocks = r.render_blocks(ids, 8, seed=2)
+    for i, b in enumerate(ids):
+        np.testing.assert_allclose(blocks[i], full[r.block_slices(b)], rtol=1e-5, atol=1e-6)
+    # control: without the guard band the block's edge pixels miss their neighbours' samples
+    r._tracer.guard = 0
+    bare = r.render_blocks([5], 8, seed=2)[0]
+    inner = (slice(2, -2), slice(2, -2))
+    assert np.abs(bare - full[r.block_slices(5)]).max() > 1e-3
+    np.testing.assert_allclose(bare[inner], full[r.block_slices(5)][inner], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_wavefront_is_mitsubas_estimator() -> None:
+    """The wavefront tracer against mi.render of the same film: differences are noise."""
+    import mitsuba as mi
+
+    for rfilter in ("box", "gaussian"):
+        scene = _scene("checker", 32, rfilter)
+        r = BlockRenderer(scene, grid=(4, 4))
+        ids = list(range(16))
+        a = r.render_blocks(ids, 256, seed=1, pass_index=0)
+        b = r.render_blocks(ids, 256, seed=1, pass_index=1)
+        fa, fb = (np.asarray(mi.render(scene, spp=256, seed=s), np.float32)[..., :3] for s in (7, 8))
+        assert 0.5 < _mixed_ratio(r, a, b, fa, fb, ids) < 2.0, rfilter
+        assert _mixed_ratio(r, a, b, fa, fb, [5, 6, 9, 10], shift=1) > 3.0   # the test can fail
+
+
+@pytest.mark.slow
+def test_crop_engine_with_guard_band_matches_full_frame_up_to_noise() -> None:
+    """Scalar variants render crop windows: same estimator in distribution, guard band included."""
+    r = BlockRenderer(_scene("checker", 32, "gaussian"), grid=(4, 4), engine="crop")
+    assert r.engine == "crop" and r.guard == 2
+    ids = [5, 6, 9, 10, 3]
+    a, b = (r.render_blocks(ids, 256, seed=11, pass_index=p) for p in (0, 1))
+    fa, fb = (r.render_full(256, seed=11, pass_index=p) for p in (0, 1))
+    assert 0.5 < _mixed_ratio(r, a, b, fa, fb, ids) < 2.0
+    assert _mixed_ratio(r, a, b, fa, fb, [5, 6, 9, 10], shift=1) > 3.0
+    assert r.mitsuba_calls == 2 * len(ids) + 2
+
+
+COMPILES = """
+import json, sys
+sys.path.insert(0, {tests!r})
+from test_renderer_blocks import _scene
+from renderer.blocks import BlockRenderer
+out = {{}}
+for rfilter in ("box", "gaussian"):
+    r = BlockRenderer(_scene("cornell", 32, rfilter), grid=(4, 4))
+    counts = []
+    for p, ids in enumerate((list(range(16)), [0, 1, 2], [7], [3, 12, 15], list(range(0, 16, 2)))):
+        r.render_blocks(ids, 4 + p, seed=0, pass_index=p)   # other blocks, other spp, other pass
+        counts.append(r.kernel_compiles)
+    out[rfilter] = [counts, r.mitsuba_calls, r.kernel_launches]
+print(json.dumps(out))
+"""
+
+
+def test_one_kernel_compile_per_render_whatever_the_active_set(tmp_path) -> None:
+    """In a process with a cold Dr.Jit cache (its own HOME): the first pass compiles the
+    kernel, no later pass compiles anything, whatever blocks and spp it traces."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    tests = str(Path(__file__).parent)
+    root = str(Path(__file__).resolve().parents[2])
+    env = {**os.environ, "HOME": str(tmp_path), "PYTHONPATH": os.pathsep.join([root, tests])}
+    done = subprocess.run([sys.executable, "-c", COMPILES.format(tests=tests)], capture_output=True, text=True,
+                          env=env, timeout=300)
+    assert done.returncode == 0, done.stderr
+    for rfilter, (counts, calls, launches) in json.loads(done.stdout.splitlines()[-1]).items():
+        assert counts == [1] * 5, (rfilter, counts)
+        assert calls == launches == 5
+
+
+def test_block_windows_cover_any_frame_with_full_size_edge_windows() -> None:
+    r = BlockRenderer(_scene("sky", 70, width=100), block=32)
+    assert (r.width, r.height) == (100, 70) and r.grid == (3, 4) and r.overlapping
+    assert [r.block_origin(c)[0] for c in range(4)] == [0, 32, 64, 68]
+    assert [r.block_origin(4 * k)[1] for k in range(3)] == [0, 32, 38]
+    assert r.window(11) == (68, 38, 32, 32)
+    assert not BlockRenderer(_scene("sky", 64), block=32).overlapping
+    with pytest.raises(ValueError, match="larger than the 100x70 frame"):
+        BlockRenderer(_scene("sky", 70, width=100), block=71)
+    with pytest.raises(ValueError, match="either"):
+        BlockRenderer(_scene("sky", 64), grid=(2, 2), block=32)
+
+
+def test_compose_takes_each_pixel_from_the_window_with_most_samples() -> None:
+    from renderer.blocks import compose
+
+    windows = [(0, 0, 4, 4), (2, 0, 4, 4)]                  # 6x4 frame, columns 2-3 shared
+    means = [np.full((4, 4, 3), 1.0), np.full((4, 4, 3), 2.0)]
+    image, spp, owner = compose(means, windows, [64, 16], (4, 6))
+    assert (image[:, :4] == 1.0).all() and (image[:, 4:] == 2.0).all()
+    assert (spp[:, :4] == 64).all() and (spp[:, 4:] == 16).all() and (owner[:, 2:4] == 0).all()
+    image, spp, owner = compose(means, windows, [16, 64], (4, 6))
+    assert (image[:, 2:] == 2.0).all() and (image[:, :2] == 1.0).all()
+    with pytest.raises(ValueError, match="cover"):
+        compose(means, windows, [1, 1], (4, 7))
+
+
+def test_accumulator_means_are_exact() -> None:
+    rng = np.random.default_rng(0)
+    acc = BlockAccumulator(grid=(2, 2), block=(3, 4))
+    passes = [(rng.random((3, 4, 3)).astype(np.float32), spp) for spp in (5, 7, 5, 1, 9)]
+    for img, spp in passes:
+        assert acc.add(2, img, spp) == 0
+    total = sum(img.astype(np.float64) * spp for img, spp in passes)
+    n = sum(spp for _, spp in passes)
+    np.testing.assert_allclose(acc.mean(2), total / n, rtol=1e-13)
+    assert acc.spp(2) == n and acc.passes(2) == 5 and acc.spp(0) == 0
+    np.testing.assert_array_equal(acc.mean(0), 0.0)
+    a, b = acc.half_buffer(2)
+    even, odd = passes[0::2], passes[1::2]
+    np.testing.assert_allclose(a, sum(i.astype(np.float64) * s for i, s in even) / sum(s for _, s in even),
+                               rtol=1e-13)
+    np.testing.assert_allclose(b, sum(i.astype(np.float64) * s for i, s in odd) / sum(s for _, s in odd),
+                               rtol=1e-13)
+    assert acc.half_spp(2) == (19, 8)
+    full = acc.image()
+    assert full.shape == (6, 8, 3)
+    np.testing.assert_array_equal(full[3:6, 0:4], acc.mean(2))
+
+
+def test_accumulator_drops_nonfinite_pixels_only() -> None:
+    acc = BlockAccumulator(grid=(1, 1), block=(2, 2))
+    acc.add(0, np.full((2, 2, 3), 1.0), 4)
+    bad = np.full((2, 2, 3), 3.0)
+    bad[0, 0, 1] = np.nan
+    bad[1, 1, 2] = np.inf
+    assert acc.add(0, bad, 4) == 2
+    m = acc.mean(0)
+    np.testing.assert_allclose(m[0, 0], 1.0)  # the NaN pass is ignored for that pixel
+    np.testing.assert_allclose(m[0, 1], 2.0)  # finite pixels average both passes
+    assert acc.nonfinite(0) == 2
+    assert acc.spp(0) == 8  # samples spent still count
+    assert np.isfinite(acc.image()).all()
+
+
+def test_accumulator_state_round_trip(tmp_path) -> None:
+    rng = np.random.default_rng(1)
+    acc = BlockAccumulator(grid=(2, 3), block=(2, 2))
+    ids = [0, 4, 5]
+    acc.add_many(ids, rng.random((3, 2, 2, 3)), 8)
+    acc.add_many(ids[:2], rng.random((2, 2, 2, 3)), 8)
+    np.savez(tmp_path / "acc.npz", **acc.state())
+    with np.load(tmp_path / "acc.npz") as z:
+        back = BlockAccumulator.from_state(dict(z))
+    for b in range(6):
+        np.testing.assert_array_equal(back.mean(b), acc.mean(b))
+        assert back.spp(b) == acc.spp(b) and back.passes(b) == acc.passes(b)
+        for x, y in zip(back.half_buffer(b), acc.half_buffer(b)):
+            np.testing.assert_array_equal(x, y)
+    # resuming continues the even/odd alternation
+    img = rng.random((2, 2, 3))
+    acc.add(0, img, 8)
+    back.add(0, img, 8)
+    np.testing.assert_array_equal(back.half_buffer(0)[0], acc.half_buffer(0)[0])
+    state = acc.state()
+    state["weight"] = state["weight"][:, :3]
+    with pytest.raises(ValueError, match="weight"):
+        BlockAccumulator.from_state(state)
+    with pytest.raises(ValueError, match="lacks"):
+        BlockAccumulator.from_state({"grid": np.array([1, 1])})
+
+
+def test_accumulator_rejects_bad_input() -> None:
+    acc = BlockAccumulator(grid=(2, 2), block=(4, 4))
+    with pytest.raises(ValueError, match="shape"):
+        acc.add(0, np.zeros((4, 5, 3)), 1)
+    with pytest.raises(ValueError, match="out of range"):
+        acc.add(4, np.zeros((4, 4, 3)), 1)
+    with pytest.raises(ValueError, match="spp"):
+        acc.add(0, np.zeros((4, 4, 3)), 0)

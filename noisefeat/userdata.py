@@ -10,9 +10,10 @@ Precedence, for each file (flip's calibration `flip.json`, the pre-trained conv 
 2. the user data directory,
 3. the file shipped with the package.
 
-The user data directory is `$NOISESTOP_DATA_DIR` if set, else `platformdirs.user_data_dir
-("noisestop")` when platformdirs is installed, else `$XDG_DATA_HOME/noisestop`, else
-`~/.local/share/noisestop`. Only the maintainer flag `--update-package` of `calibrate`,
+The user data directory is `$NOISESTOP_DATA_DIR` if set, else `$XDG_DATA_HOME/noisestop`,
+else `~/.local/share/noisestop` (the XDG rule on every platform: platformdirs is not a
+dependency, and using it only when some other package happened to install it would move
+the directory under the user's feet). Only the maintainer flag `--update-package` of `calibrate`,
 `pretrain` and `train` writes the shipped files (the Makefile's `model` target uses it).
 """
 from __future__ import annotations
@@ -30,13 +31,9 @@ def user_data_dir() -> Path:
     explicit = os.environ.get(ENV)
     if explicit:
         return Path(explicit).expanduser()
-    try:
-        import platformdirs
-    except ImportError:
-        xdg = os.environ.get("XDG_DATA_HOME")
-        base = Path(xdg).expanduser() if xdg else Path.home() / ".local" / "share"
-        return base / "noisestop"
-    return Path(platformdirs.user_data_dir("noisestop", appauthor=False))
+    xdg = os.environ.get("XDG_DATA_HOME")
+    base = Path(xdg).expanduser() if xdg else Path.home() / ".local" / "share"
+    return base / "noisestop"
 
 
 def user_file(name: str) -> Path:

@@ -194,9 +194,8 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
     'halves': the raw noise image; any other quick: the block itself); with `image`, the
     pictures an image classifier reads, X [n, bh, bw, 3] (`learning.inputs.pictures`:
     quick 'none' the block, 'halves' its noise picture)."""
-    if image:
-        if raw:
-            raise ValueError("a table holds raw L* rows or pictures, not both")
+    if image and raw:
+        raise ValueError("a table holds raw L* rows or pictures, not both")
     paths = list_stacks(root)
     if not paths:
         raise ValueError(f"{root}: no stacks found (no meta.json below it)")

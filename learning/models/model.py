@@ -38,7 +38,6 @@ def versions() -> dict[str, str]:
     """Library versions a bundle records (what it was trained and written with)."""
     import skops
     import sklearn
-    import torch
     return {"python": platform.python_version(), "numpy": np.__version__,
             "scikit-learn": sklearn.__version__, "torch": torch.__version__,
             "skops": skops.__version__}

@@ -28,10 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--weights", default=None, metavar="FILE",
                    help="transfer baselines: a local ImageNet state_dict for the base (never downloaded; "
                         "default: the torch hub cache, else an untrained base, labelled so)")
-    out = p.add_mutually_exclusive_group(required=True)
-    out.add_argument("--out", help="model bundle directory to write")
-    out.add_argument(UPDATE_PACKAGE, action="store_true",
-                     help="maintainers: write the bundle that ships with the package (learning/bundled)")
+    _destination(p, "model bundle directory to write", "bundle learning/bundled", required=True)
     p.add_argument("--test-scenes", default=None,
                    help="comma-separated scenes of --data held out of training ('' for none; default: "
                         "every 4th by name, none with --heldout)")
@@ -69,28 +66,29 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="largest early-stop rate accepted on the training scenes (default 0.05)")
     p.add_argument("--min-spp", type=arg.spp, default=None,
                    help="no decision below this many spp (default: from the first level)")
-    out = p.add_mutually_exclusive_group()
-    out.add_argument("--out", default=None,
-                     help="calibration file to write (default: flip.json in the user data directory, "
-                          "which the flip criterion then reads instead of the shipped one)")
-    out.add_argument(UPDATE_PACKAGE, action="store_true",
-                     help="maintainers: rewrite the shipped learning/flip.json")
+    _destination(p, "calibration file to write (default: flip.json in the user data directory, which the "
+                    "flip criterion then reads instead of the shipped one)", "learning/flip.json")
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_calibrate)
 
     p = sub.add_parser("pretrain", help="pre-train the feature base's conv layers as a denoiser")
     p.add_argument("--data", required=True, help="dataset directory (training scenes only are used)")
-    out = p.add_mutually_exclusive_group()
-    out.add_argument("--out", default=None,
-                     help="safetensors file to write (default: weights/pretrained.safetensors in the user "
-                          "data directory, which the weight name 'pretrained' then finds first)")
-    out.add_argument(UPDATE_PACKAGE, action="store_true",
-                     help="maintainers: rewrite the shipped noisefeat/weights/pretrained.safetensors")
+    _destination(p, "safetensors file to write (default: weights/pretrained.safetensors in the user data "
+                    "directory, which the weight name 'pretrained' then finds first)",
+                 "noisefeat/weights/pretrained.safetensors")
     p.add_argument("--test-scenes", default=None, help="scenes to keep out (default: every 4th by name)")
     p.add_argument("--steps", type=arg.int_in(1, 1_000_000), default=400)
     p.add_argument("--lr", type=arg.float_in(0.0, 10.0, open_low=True), default=0.003)
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_pretrain)
+
+
+def _destination(p: argparse.ArgumentParser, out_help: str, shipped: str, required: bool = False) -> None:
+    """--out PATH, or the maintainer's --update-package (rewrite the file that ships with the
+    package): never both, and without either nothing in the package is written."""
+    out = p.add_mutually_exclusive_group(required=required)
+    out.add_argument("--out", default=None, help=out_help)
+    out.add_argument(UPDATE_PACKAGE, action="store_true", help=f"maintainers: rewrite the shipped {shipped}")
 
 
 def _composition(args: argparse.Namespace, raw: bool) -> dict[str, str]:

@@ -68,7 +68,7 @@ def test_calibrate_pretrain_train_leave_the_package_unchanged(tmp_path: Path) ->
     cli([*COMMANDS["train"], "--out", str(tmp_path / "model")], env, tmp_path)
     assert tree_hash(ROOT) == before
     mine = data_dir(env)
-    assert mine.is_relative_to(tmp_path / "home")          # XDG_DATA_HOME or platformdirs, under HOME
+    assert mine == tmp_path / "home" / "xdg" / "noisestop"      # $XDG_DATA_HOME/noisestop
     assert (mine / "flip.json").is_file() and (mine / "weights" / "pretrained.safetensors").is_file()
     assert (tmp_path / "model" / "manifest.json").is_file()
     # the readers find the user's files before the shipped ones
@@ -110,7 +110,9 @@ def test_precedence_explicit_then_user_then_shipped(tmp_path: Path, monkeypatch:
     monkeypatch.delenv(userdata.ENV)
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "xdg"))
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
-    assert userdata.user_data_dir().is_relative_to(tmp_path)
+    assert userdata.user_data_dir() == tmp_path / "xdg" / "noisestop"
+    monkeypatch.delenv("XDG_DATA_HOME")
+    assert userdata.user_data_dir() == tmp_path / "home" / ".local" / "share" / "noisestop"
 
 
 def test_train_needs_out_or_the_maintainer_flag(tmp_path: Path) -> None:

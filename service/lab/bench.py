@@ -49,8 +49,8 @@ DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "inputs": (bench_inp
                     "observer": (bench_observer, md_observer), "tau": (bench_tau, md_tau)}
 
 
-SECTIONS = ("features", "crop", "flip", "models", "render", "passes", "service", "stability", "reliability",
-            "hardening", *DATASET_SECTIONS)
+SECTIONS = ("features", "crop", "flip", "models", "render", "passes", "service", "capacity", "stability",
+            "reliability", "hardening", *DATASET_SECTIONS)
 
 
 def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), data: str | None = None,
@@ -117,6 +117,9 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
     if "service" in only:
         from .bench_service import bench_service, md_service
         measure("service", bench_service, md_service)
+    if "capacity" in only:
+        from .bench_capacity import bench_capacity, md_capacity
+        measure("capacity", bench_capacity, md_capacity)
     if "reliability" in only:
         from .reliability import bench_reliability, md_hardening, md_reliability
         measure("reliability", bench_reliability, md_reliability)

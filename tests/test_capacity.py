@@ -1,0 +1,104 @@
+"""Open-loop load and the capacity section: arrivals on schedule, waiting counted in latency."""
+from __future__ import annotations
+
+import json
+import threading
+import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import numpy as np
+import pytest
+
+from service.lab.bench_capacity import md_capacity
+from service.lab.openloop import arrival_times, run_open_loop
+
+SERVICE_S = 0.05
+BLOCKS = 4
+
+
+class _SlowVerdicts(BaseHTTPRequestHandler):
+    """A stand-in server that takes SERVICE_S per verdict, one at a time."""
+
+    lock = threading.Lock()
+
+    def log_message(self, *args: object) -> None:
+        pass
+
+    def do_GET(self) -> None:
+        self._send(json.dumps({"inputs": [{"name": "blocks"}, {"name": "quick"}]}).encode())
+
+    def do_POST(self) -> None:
+        self.rfile.read(int(self.headers["Content-Length"]))
+        with self.lock:
+            time.sleep(SERVICE_S)
+        self._send(json.dumps({"outputs": [{"name": "verdict", "shape": [BLOCKS]}]}).encode())
+
+    def _send(self, body: bytes) -> None:
+        self.send_response(200)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+
+@pytest.fixture
+def slow_server():
+    server = ThreadingHTTPServer(("127.0.0.1", 0), _SlowVerdicts)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield f"http://127.0.0.1:{server.server_address[1]}"
+    server.shutdown()
+    server.server_close()
+
+
+def test_arrivals_are_a_seeded_poisson_process_of_the_rate():
+    t = arrival_times(50.0, 4000, seed=3)
+    assert np.all(np.diff(t) > 0) and t[0] > 0
+    assert np.array_equal(t, arrival_times(50.0, 4000, seed=3))
+    assert abs(np.diff(t).mean() - 1 / 50.0) < 0.1 / 50.0
+    gaps = np.diff(t)
+    assert abs(gaps.std() / gaps.mean() - 1.0) < 0.1          # exponential: coefficient of variation 1
+
+
+@pytest.mark.parametrize("rate, n", [(0.0, 10), (-1.0, 10), (float("nan"), 10), (float("inf"), 10), (5.0, 0)])
+def test_arrivals_refuse_bad_rates_and_counts(rate, n):
+    with pytest.raises(ValueError, match="rate must be"):
+        arrival_times(rate, n)
+
+
+def test_open_loop_refuses_remote_servers():
+    with pytest.raises(ValueError, match="loopback"):
+        run_open_loop("http://example.com:80", rate=1.0, requests=1)
+
+
+def test_open_loop_counts_the_wait_for_a_busy_server_in_latency(slow_server):
+    """Ten requests arrive within ~10 ms at one connection of a 50 ms server: the k-th answer
+    comes about k x 50 ms after its arrival, which a closed loop would have hidden."""
+    r = run_open_loop(slow_server, rate=1000.0, requests=10, blocks=BLOCKS, size=8, connections=1)
+    assert r["requests"] == 10 and r["errors"] == 0
+    assert r["p50_ms"] >= 4 * SERVICE_S * 1e3
+    assert r["p99_ms"] >= 8 * SERVICE_S * 1e3
+    assert r["max_lag_ms"] >= 7 * SERVICE_S * 1e3
+
+
+def test_open_loop_below_capacity_answers_about_as_fast_as_the_server(slow_server):
+    r = run_open_loop(slow_server, rate=5.0, requests=8, blocks=BLOCKS, size=8, connections=2, seed=1)
+    assert r["requests"] == 8 and r["errors"] == 0
+    assert SERVICE_S * 1e3 <= r["p50_ms"] < 6 * SERVICE_S * 1e3
+
+
+def test_capacity_markdown_has_a_row_per_decider_and_load_share():
+    result = {"cpus": 2, "blocks": 16, "served_size": 64, "repeats": 3,
+              "per_core": [{"what": w, "size": s, "blocks": 16, "ms_per_request": 16.0,
+                            "blocks_per_s_per_core": 1000.0, "other_load": 0.01}
+                           for w in ("bundled model", "flip criterion") for s in (64, 128)],
+              "served": {"capacity_rps": 40.0, "capacity_rounds": [39.0, 40.0, 41.0], "saturated_p50_ms": 190.0,
+                         "saturated_p99_ms": 260.0,
+                         "open_loop": [{"share": sh, "offered_rate": 40 * sh, "achieved_rate": 40 * sh, "p50_ms": 30.0,
+                                        "p99_ms": 90.0, "p99_rounds": [80.0, 90.0, 95.0], "requests": 900,
+                                        "errors": 0, "other_load": None} for sh in (0.5, 0.8)]}}
+    md = md_capacity(result)
+    assert md.count("| bundled model |") == 2 and md.count("| flip criterion |") == 2
+    assert "640 blocks/s (320 per core)" in md
+    assert "| 50 % | 20.0 | 20.0 | 900 | 30 | 90 (80, 90, 95) | 0 | - |" in md
+    assert "| 80 % | 32.0 |" in md

@@ -68,7 +68,7 @@ def _integrator_class() -> type:
                                  f"{len(nested)} nested ones")
             #: the integrator the samples come from (Mitsuba's path tracer if none is nested)
             self.nested = nested[0] if nested else mi.load_dict({"type": "path"})
-            self.settings = {k: _read(props, k, kind) for k, kind in _PROPERTIES.items() if props.has_property(k)}
+            self.settings = {k: _read(props, k, kind) for k, kind in _PROPERTIES.items() if k in props}
             from .api import make_criterion
 
             self.criterion = make_criterion(**self._criterion_options())

@@ -136,7 +136,7 @@ def _scene_object_label(scene: Any) -> str:
     """A loaded scene's name in reports: its id when the file or dict gave one, else 'scene'."""
     try:
         sid = str(scene.id())
-    except Exception:  # noqa: BLE001 - an id is cosmetic
+    except Exception:  # an id is cosmetic: never fail a render over it
         sid = ""
     return sid if sid and not sid.startswith("_unnamed") else "scene"
 
@@ -208,8 +208,6 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     noise target, recorded in the report; the reference's labels and the final-vs-reference
     check use the observer at it (a criterion given by name is built for it too).
     """
-    if not (math.isfinite(checkpoint_every) and checkpoint_every >= 0):
-        raise ValueError(f"checkpoint interval must be 0 or more seconds, got {checkpoint_every!r}")
     result = run_adaptive(scene, criterion, resolution=resolution, grid=grid, block=block, step=step,
                           min_spp=min_spp, max_spp=max_spp, seed=seed, progress=progress, reference=reference,
                           quick_spp=quick_spp, defines=defines, time_limit=time_limit, tau=tau,
@@ -228,16 +226,15 @@ def run_adaptive(scene: Any, criterion: Criterion | str, *,
                  progress: bool = True, reference: Stack | str | os.PathLike | np.ndarray | None = None,
                  quick_spp: int = 16, defines: Mapping[str, str] | None = None,
                  time_limit: float | None = None, tau: float = DEFAULT_TAU,
-                 checkpoints: Checkpoints | None = None, sensor: Any = None, integrator: Any = None,
-                 label: str | None = None) -> RenderResult:
+                 checkpoints: Checkpoints | None = None, sensor: Any = None,
+                 integrator: Any = None) -> RenderResult:
     """The adaptive loop, in memory (see the module docstring and `adaptive_render`).
 
     `scene`: a built-in name, an XML path or a loaded ``mi.Scene`` (then `resolution` and
     `defines` are refused: the scene is already built). `sensor` / `integrator`: render
     from this sensor with this integrator instead of the scene's first sensor and own
-    integrator (the Mitsuba plugin passes its nested one). `label`: the scene's name in
-    the report. `checkpoints`: None renders without any file; given, the loop checkpoints
-    into its folder and can resume from it.
+    integrator (the Mitsuba plugin passes its nested one). `checkpoints`: None renders
+    without any file; given, the loop checkpoints into its folder and can resume from it.
     """
     if time_limit is not None and not (math.isfinite(time_limit) and time_limit > 0):
         raise ValueError(f"time limit must be a positive number of seconds, got {time_limit!r}")
@@ -247,8 +244,7 @@ def run_adaptive(scene: Any, criterion: Criterion | str, *,
     from learning.data.variant import current_variant, select_variant
 
     t_start = time.perf_counter()
-    loaded, own_label = _check_scene_arg(scene, resolution, defines)
-    label = label or own_label
+    loaded, label = _check_scene_arg(scene, resolution, defines)
     ref_stack, ref_image = load_reference(reference, label, tau) if reference is not None else (None, None)
     given = {"resolution": resolution, "grid": grid, "block": block, "step": step, "min_spp": min_spp,
              "max_spp": max_spp}

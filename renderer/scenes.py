@@ -227,8 +227,13 @@ def _xml_sensor_props(path: str, defines: Mapping[str, str] | None) -> Any:
     parser = getattr(mi, "parser", None)
     if parser is None or not hasattr(mi, "parse_fov"):
         return None
-    state = parser.parse_file(parser.ParserConfig(mi.variant()), path, **dict(defines or {}))
-    sensors = [n for n in state.nodes if str(n.type).endswith(".Sensor")]
+    try:
+        state = parser.parse_file(parser.ParserConfig(mi.variant()), path, **dict(defines or {}))
+    except RuntimeError as exc:       # mi.load_file read it, so this is unexpected: keep the field
+        logger.warning("%s: cannot read the sensor's field of view (%s): its horizontal field is kept",
+                       path, " ".join(str(exc).split()))
+        return None
+    sensors = [n for n in state.nodes if n.type == mi.ObjectType.Sensor]
     return sensors[0].props if sensors else None
 
 

@@ -258,16 +258,15 @@ def run_adaptive(scene: Any, criterion: Criterion | str, *,
 
     variant = select_variant()
     scene_obj = scene if loaded else load_scene(scene, resolution, defines=defines)
-    if sensor is None:
-        sensor = scene_obj.sensors()[0] if scene_obj.sensors() else None
-    if sensor is None:
+    if loaded and sensor is None and not scene_obj.sensors():
         raise ValueError(f"{label}: the scene has no sensor (camera) to render from; add one")
     if block is not None and sources["block"] == DEFAULT:     # a frame smaller than the default block
-        crop = sensor.film().crop_size()
+        crop = (sensor if sensor is not None else scene_obj.sensors()[0]).film().crop_size()
         if block > min(int(crop[0]), int(crop[1])):
             block = min(int(crop[0]), int(crop[1]))
             sources["block"] = f"{DEFAULT} (the frame's short side)"
-    br = BlockRenderer(scene_obj, grid=grid, block=block, sensor=sensor, integrator=integrator)
+    given_objects = {k: v for k, v in (("sensor", sensor), ("integrator", integrator)) if v is not None}
+    br = BlockRenderer(scene_obj, grid=grid, block=block, **given_objects)
     SizeBounds.from_env().check_frame(br.height, br.width, br.grid, block=br.block_shape)  # an XML film's own size
     gh, gw = br.grid
     n = br.n_blocks

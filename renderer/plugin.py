@@ -34,6 +34,8 @@ from typing import Any
 
 import numpy as np
 
+from .settings import MAX_SPP
+
 PLUGIN = "noisestop"
 #: the channels mi.render returns, after R, G, B
 AOVS = ("spp", "converged")
@@ -69,6 +71,10 @@ def _integrator_class() -> type:
             #: the integrator the samples come from (Mitsuba's path tracer if none is nested)
             self.nested = nested[0] if nested else mi.load_dict({"type": "path"})
             self.settings = {k: _read(props, k, kind) for k, kind in _PROPERTIES.items() if k in props}
+            for key in ("block", "min_spp", "max_spp", "step"):   # combinations are checked per render
+                if key in self.settings and not 1 <= self.settings[key] <= MAX_SPP:
+                    raise ValueError(f"noisestop integrator: {key} must be a positive integer, at most "
+                                     f"{MAX_SPP}, got {self.settings[key]}")
             from .api import make_criterion
 
             self.criterion = make_criterion(**self._criterion_options())

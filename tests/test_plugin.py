@@ -121,6 +121,7 @@ def test_defaults_and_bad_properties(mi):
     bad = [({"bogus": 1}, "bogus"), ({"criterion": "nope"}, "unknown criterion 'nope'"),
            ({"tau": -1.0}, "tau must be a positive finite number"), ({"block": 1.5}, "block must be an integer"),
            ({"criterion": "oracle"}, "cannot use the oracle criterion"),
+           ({"min_spp": 0}, "min_spp must be a positive integer"),
            ({"a": PATH, "b": PATH}, "wraps one integrator, got 2")]
     for props, message in bad:
         with pytest.raises(RuntimeError, match=message):

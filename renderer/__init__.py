@@ -1,7 +1,9 @@
 """renderer: Mitsuba scene library, block rendering, stack building, the adaptive loop, farm.
 
 Names are loaded on first use (PEP 562), so `renderer.names` and the command-line parser
-do not import Mitsuba.
+do not import Mitsuba. The Python entry to the main job is `render` (a scene in, a
+`RenderResult` out); `register` adds the ``noisestop`` Mitsuba integrator (importing
+`renderer` does not: that would import Mitsuba and choose its variant).
 """
 from __future__ import annotations
 
@@ -9,7 +11,8 @@ import importlib
 from typing import Any
 
 _HOMES = {"BlockRenderer": "blocks", "DEFAULT_SCENE": "scenes", "list_scenes": "scenes",
-          "load_scene": "scenes", "adaptive_render": "adaptive"}
+          "load_scene": "scenes", "adaptive_render": "adaptive", "render": "api",
+          "RenderResult": "result", "register": "plugin"}
 __all__ = list(_HOMES)
 
 

@@ -17,6 +17,11 @@ It stops when no block is active or max_spp is reached. Because samples depend o
 (seed, pixel, pass) and the checkpoint holds all state, ``resume=True`` after a crash
 gives the very image and report (timings aside) of an uninterrupted run.
 
+`run_adaptive` is the loop itself, in memory: it takes a scene name, an XML path or an
+already-loaded ``mi.Scene`` and returns a `RenderResult`. Checkpoints (step 4) are taken
+only when it is given a `Checkpoints` (the command line's resumable render,
+`adaptive_render`); `renderer.render` and the ``noisestop`` Mitsuba plugin run without.
+
 The quick image (the kind the model was trained with, `quick_spp` samples) is rendered once, and only if the
 criterion needs it; it is stored in the checkpoint so a resume does not re-render it.
 """
@@ -26,7 +31,9 @@ import logging
 import math
 import os
 import time
+from contextlib import nullcontext
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -41,9 +48,10 @@ from noisefeat.runtime import torch_threads
 from .blocks import BlockRenderer, compose
 from .checkpoint import CHECKPOINT, load_checkpoint, save_checkpoint
 from .criteria import TIMER_NAMES, Criterion, build_criterion
-from .outputs import prepare_output_dir, write_outputs
+from .outputs import prepare_output_dir
 from .passloop import PassLoop
 from .report import final_vs_reference, pass_sizes, render_report
+from .result import RenderResult
 from .settings import DEFAULT, NOT_USED, check_spp_settings, resolve_settings
 from .settings import describe as describe_settings
 from .signals import DeferredStop
@@ -100,6 +108,78 @@ def _check_args(resolution: Any, grid: Sequence[int] | None, block: int | None, 
     return resolution, grid
 
 
+@dataclass(frozen=True)
+class Checkpoints:
+    """Where and how often the loop checkpoints: the command line's resumable render.
+
+    `out`: the output folder (checked writable before the scene is loaded; the checkpoint
+    is out/checkpoint.npz); `resume`: continue from it if it exists; `every`: seconds
+    between checkpoints (0: after every pass). With checkpoints the first SIGINT/SIGTERM
+    finishes the pass and checkpoints before stopping (`renderer.signals`).
+    """
+
+    out: str | os.PathLike[str]
+    resume: bool = False
+    every: float = 30.0
+
+
+def is_scene_object(scene: Any) -> bool:
+    """Whether `scene` is an already-loaded ``mi.Scene`` (without importing Mitsuba for a name)."""
+    if isinstance(scene, (str, os.PathLike)):
+        return False
+    from noisefeat.extras import require
+
+    return isinstance(scene, require("mitsuba").Scene)
+
+
+def _scene_object_label(scene: Any) -> str:
+    """A loaded scene's name in reports: its id when the file or dict gave one, else 'scene'."""
+    try:
+        sid = str(scene.id())
+    except Exception:  # an id is cosmetic: never fail a render over it
+        sid = ""
+    return sid if sid and not sid.startswith("_unnamed") else "scene"
+
+
+def _check_scene_arg(scene: Any, resolution: Any, defines: Mapping[str, str] | None) -> tuple[bool, str]:
+    """(whether `scene` is a loaded mi.Scene, its label); one-line ValueError for what
+    cannot be asked of a loaded scene or for a scene of another type."""
+    if isinstance(scene, (str, os.PathLike)):
+        return False, scene_label(scene)
+    if not is_scene_object(scene):
+        raise ValueError(f"scene must be an mi.Scene, an XML file path or a built-in scene name, "
+                         f"got {type(scene).__name__}")
+    if resolution is not None:
+        raise ValueError("resolution cannot be changed on an already-loaded mi.Scene: set the film's "
+                         "width and height in the scene, or pass the XML file's path")
+    if defines:
+        raise ValueError("defines (-D) set parameters while an XML file loads: pass the file's path, "
+                         "not an already-loaded mi.Scene")
+    return True, _scene_object_label(scene)
+
+
+def load_reference(reference: Stack | str | os.PathLike[str] | np.ndarray, label: str,
+                   tau: float) -> tuple[Stack | None, np.ndarray | None]:
+    """(labelled stack, None) for a stack or dataset directory; (None, image) for a
+    reference image: an EXR file or a float [H, W, 3] array. An image gives the
+    final-vs-reference check only: it has no per-level errors, so no oracle thresholds."""
+    from .simulate import find_reference
+
+    if isinstance(reference, np.ndarray):
+        img = np.asarray(reference, np.float32)
+        if img.ndim != 3 or img.shape[2] != 3:
+            raise ValueError(f"a reference image must be float [H, W, 3] linear RGB, got shape {img.shape}")
+        return None, img
+    if isinstance(reference, (str, os.PathLike)) and (os.fspath(reference).lower().endswith(".exr")
+                                                      or Path(reference).is_file()):
+        from learning.data.exr import read_exr
+
+        if not Path(reference).is_file():
+            raise FileNotFoundError(f"{os.fspath(reference)}: reference image not found")
+        return None, read_exr(reference)
+    return find_reference(reference, label, tau), None
+
+
 def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion: Criterion | str, *,
                     resolution: int | tuple[int, int] | str | None = None, grid: Sequence[int] | None = None,
                     block: int | None = None, step: int | None = None,
@@ -110,12 +190,15 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
                     tau: float = DEFAULT_TAU) -> dict[str, Any]:
     """Render `scene` adaptively into `out`; return the report (also out/report.json).
 
-    wall_s in the report runs from the call to the end of the last pass (writing the
-    output files is not in it); resumed runs add up the time of every attempt.
+    The command line's render: `run_adaptive` with checkpoints in `out`, then
+    `RenderResult.save(out)`. wall_s in the report runs from the call to the end of the
+    last pass (writing the output files is not in it); resumed runs add up the time of
+    every attempt.
 
     `criterion`: a `Criterion`, or its name ('oracle' takes the thresholds of `reference`).
     `reference`: a labelled Stack, or a dataset/stack directory holding this scene: adds
-    early_stop_rate, spp_ratio_vs_oracle and per-block true thresholds to the report.
+    early_stop_rate, spp_ratio_vs_oracle and per-block true thresholds to the report; or
+    a reference image (an EXR file): adds final_vs_reference only.
     Settings left None come from the reference, the scene or the defaults
     (`renderer.settings`); the report's `settings_source` says which. `defines`: an XML
     scene's parameters, as `mitsuba -D key=value` (recorded in the report). `time_limit`:
@@ -125,34 +208,65 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     noise target, recorded in the report; the reference's labels and the final-vs-reference
     check use the observer at it (a criterion given by name is built for it too).
     """
+    result = run_adaptive(scene, criterion, resolution=resolution, grid=grid, block=block, step=step,
+                          min_spp=min_spp, max_spp=max_spp, seed=seed, progress=progress, reference=reference,
+                          quick_spp=quick_spp, defines=defines, time_limit=time_limit, tau=tau,
+                          checkpoints=Checkpoints(out, resume, checkpoint_every))
+    result.save(out)
+    report = result.report
+    logger.info("%s: %d passes, saved %.1f%% vs uniform, %.2f s", report["scene"], report["passes"],
+                100 * report["saved_vs_uniform"], report["wall_s"])
+    return report
+
+
+def run_adaptive(scene: Any, criterion: Criterion | str, *,
+                 resolution: int | tuple[int, int] | str | None = None, grid: Sequence[int] | None = None,
+                 block: int | None = None, step: int | None = None,
+                 min_spp: int | None = None, max_spp: int | None = None, seed: int = 0,
+                 progress: bool = True, reference: Stack | str | os.PathLike | np.ndarray | None = None,
+                 quick_spp: int = 16, defines: Mapping[str, str] | None = None,
+                 time_limit: float | None = None, tau: float = DEFAULT_TAU,
+                 checkpoints: Checkpoints | None = None, sensor: Any = None,
+                 integrator: Any = None) -> RenderResult:
+    """The adaptive loop, in memory (see the module docstring and `adaptive_render`).
+
+    `scene`: a built-in name, an XML path or a loaded ``mi.Scene`` (then `resolution` and
+    `defines` are refused: the scene is already built). `sensor` / `integrator`: render
+    from this sensor with this integrator instead of the scene's first sensor and own
+    integrator (the Mitsuba plugin passes its nested one). `checkpoints`: None renders
+    without any file; given, the loop checkpoints into its folder and can resume from it.
+    """
     if time_limit is not None and not (math.isfinite(time_limit) and time_limit > 0):
         raise ValueError(f"time limit must be a positive number of seconds, got {time_limit!r}")
-    if not (math.isfinite(checkpoint_every) and checkpoint_every >= 0):
-        raise ValueError(f"checkpoint interval must be 0 or more seconds, got {checkpoint_every!r}")
+    if checkpoints is not None and not (math.isfinite(checkpoints.every) and checkpoints.every >= 0):
+        raise ValueError(f"checkpoint interval must be 0 or more seconds, got {checkpoints.every!r}")
     from .scenes import load_scene
-    from .simulate import find_reference
     from learning.data.variant import current_variant, select_variant
 
     t_start = time.perf_counter()
-    label = scene_label(scene)
-    ref_stack = find_reference(reference, label, tau) if reference is not None else None
+    loaded, label = _check_scene_arg(scene, resolution, defines)
+    ref_stack, ref_image = load_reference(reference, label, tau) if reference is not None else (None, None)
     given = {"resolution": resolution, "grid": grid, "block": block, "step": step, "min_spp": min_spp,
              "max_spp": max_spp}
     values, sources = resolve_settings(given, ref_stack)
     resolution, grid, block, step, min_spp, max_spp = (values[k] for k in given)
     resolution, grid = _check_args(resolution, grid, block, step, min_spp, max_spp)
     crit = _resolve_criterion(criterion, ref_stack, tau)
-    out = prepare_output_dir(out)           # exists or can be made, and writable: before any pass
-    ckpt_path = out / CHECKPOINT
+    ckpt_path = None
+    if checkpoints is not None:
+        ckpt_path = prepare_output_dir(checkpoints.out) / CHECKPOINT  # writable: before any pass
 
     variant = select_variant()
-    scene_obj = load_scene(scene, resolution, defines=defines)
+    scene_obj = scene if loaded else load_scene(scene, resolution, defines=defines)
+    if loaded and sensor is None and not scene_obj.sensors():
+        raise ValueError(f"{label}: the scene has no sensor (camera) to render from; add one")
     if block is not None and sources["block"] == DEFAULT:     # a frame smaller than the default block
-        crop = scene_obj.sensors()[0].film().crop_size()
+        crop = (sensor if sensor is not None else scene_obj.sensors()[0]).film().crop_size()
         if block > min(int(crop[0]), int(crop[1])):
             block = min(int(crop[0]), int(crop[1]))
             sources["block"] = f"{DEFAULT} (the frame's short side)"
-    br = BlockRenderer(scene_obj, grid=grid, block=block)
+    given_objects = {k: v for k, v in (("sensor", sensor), ("integrator", integrator)) if v is not None}
+    br = BlockRenderer(scene_obj, grid=grid, block=block, **given_objects)
     SizeBounds.from_env().check_frame(br.height, br.width, br.grid, block=br.block_shape)  # an XML film's own size
     gh, gw = br.grid
     n = br.n_blocks
@@ -165,8 +279,11 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
         if (ref_stack.width, ref_stack.height) != (br.width, br.height):
             logger.warning("reference %s is %dx%d, the render %dx%d: thresholds compared anyway",
                            ref_stack.path, ref_stack.width, ref_stack.height, br.width, br.height)
-    settings = {"scene": os.fspath(scene), "resolution": [br.width, br.height], "grid": [gh, gw],
-                "block": [br.block_h, br.block_w],
+    if ref_image is not None and ref_image.shape[:2] != (br.height, br.width):
+        raise ValueError(f"the reference image is {ref_image.shape[1]}x{ref_image.shape[0]}, the render "
+                         f"{br.width}x{br.height}: give a reference of the render's size")
+    settings = {"scene": os.fspath(scene) if not loaded else label, "resolution": [br.width, br.height],
+                "grid": [gh, gw], "block": [br.block_h, br.block_w],
                 "exposure": float(getattr(crit, "exposure", 0.0)),
                 "step": int(step), "min_spp": int(min_spp), "max_spp": int(max_spp), "seed": int(seed),
                 "quick_spp": int(quick_spp), "quick": crit.quick_kind if crit.needs_quick else "none",
@@ -175,15 +292,15 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     sizes = pass_sizes(step, max_spp)
 
     state: dict[str, Any] | None = None
-    if resume and ckpt_path.exists():
+    if checkpoints is not None and checkpoints.resume and ckpt_path.exists():
         state = load_checkpoint(ckpt_path, settings, sizes=sizes, grid=(gh, gw), block=br.block_shape,
                                 frame=(br.height, br.width))
         logger.info("%s: resuming after pass %d (%d active blocks)", ckpt_path, state["pass_index"],
                     int(state["active"].sum()))
     else:
-        if resume:
+        if checkpoints is not None and checkpoints.resume:
             logger.info("%s: no checkpoint, starting from the beginning", ckpt_path)
-        elif ckpt_path.exists():
+        elif ckpt_path is not None and ckpt_path.exists():
             logger.warning("%s: existing checkpoint ignored and replaced (use resume to continue it)", ckpt_path)
         state = {"pass_index": 0, "done": False, "counters": {}, "timers": {}, "quick": None}
     loop_timers = {"render_s": 0.0, "wall_s": 0.0, "setup_s": 0.0,
@@ -215,6 +332,8 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
         return {k: done_before[k] + now[k] for k in RENDER_COUNTERS}
 
     def checkpoint() -> None:
+        if ckpt_path is None:            # in memory: nothing to resume from
+            return
         written["checkpoints"] += 1
         save_checkpoint(ckpt_path, snapshot())
 
@@ -225,13 +344,14 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
                 "timers": {**crit.timers, "render_s": loop_timers["render_s"], "setup_s": loop_timers["setup_s"],
                            "wall_s": wall}}
 
+    every = checkpoints.every if checkpoints is not None else math.inf
     p = state["pass_index"]
     time_limit_reached = False
     last_saved = time.perf_counter()
     bar = tqdm(total=len(sizes), initial=p, desc=f"{label} passes", unit="pass",
                disable=not progress, leave=False)
-    stop = DeferredStop()
-    with stop:
+    stop = DeferredStop() if checkpoints is not None else None
+    with stop if stop is not None else nullcontext():
         while not state["done"]:
             ids = loop.active_ids
             if not ids or p >= len(sizes):
@@ -251,22 +371,24 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
             bar.update(1)
             now = time.perf_counter()
             time_limit_reached = time_limit is not None and not state["done"] and now - t_start >= time_limit
-            if state["done"] or time_limit_reached or stop.requested or now - last_saved >= checkpoint_every:
+            requested = stop is not None and stop.requested
+            if state["done"] or time_limit_reached or requested or now - last_saved >= every:
                 checkpoint()
                 last_saved = time.perf_counter()
-            if stop.requested and not state["done"]:
+            if requested and not state["done"]:
                 bar.close()
                 raise KeyboardInterrupt(f"{stop.requested} after pass {p}: checkpoint written to {ckpt_path}, "
                                         "--resume continues")
             if time_limit_reached:
-                logger.info("%s: time limit of %gs reached after pass %d (%d blocks still active); "
-                            "--resume continues", label, time_limit, p, len(loop.active_ids))
+                logger.info("%s: time limit of %gs reached after pass %d (%d blocks still active)%s",
+                            label, time_limit, p, len(loop.active_ids),
+                            "; --resume continues" if ckpt_path is not None else "")
                 break
     bar.close()
 
     final = snapshot()
-    report = render_report(label, br, settings, crit, {**state, **loop.state()}, acc, final["timers"], variant or current_variant(),
-                     ref_stack)
+    report = render_report(label, br, settings, crit, {**state, **loop.state()}, acc, final["timers"],
+                           variant or current_variant(), ref_stack)
     report["settings_source"] = {k: sources[k] for k in given if sources[k] != NOT_USED}
     if defines:
         report["defines"] = dict(defines)
@@ -276,17 +398,19 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     image, spp_px, owner = compose([acc.mean(b) for b in range(n)], [br.window(b) for b in range(n)],
                                    [acc.spp(b) for b in range(n)], (br.height, br.width))
     image = image.astype(np.float32)
-    reference = None
+    ref_img = ref_image
     if ref_stack is not None:
-        reference = ref_stack.reference()
-        if reference.shape != image.shape:
+        ref_img = ref_stack.reference()
+        if ref_img.shape != image.shape:
             logger.warning("reference image %s differs from the render %s: no final-vs-reference check",
-                           reference.shape, image.shape)
-            reference = None
-        else:
-            report["final_vs_reference"] = final_vs_reference(image, reference, (gh, gw), float(tau),
-                                                              float(settings["exposure"]), ~loop.active)
-    write_outputs(out, image, report, spp=spp_px, converged=(~loop.active)[owner], reference=reference)
-    logger.info("%s: %d passes, saved %.1f%% vs uniform, %.2f s", label, report["passes"],
-                100 * report["saved_vs_uniform"], report["wall_s"])
-    return report
+                           ref_img.shape, image.shape)
+            ref_img = None
+    if ref_img is not None:
+        report["final_vs_reference"] = final_vs_reference(
+            image, ref_img, (gh, gw), float(tau), float(settings["exposure"]), ~loop.active,
+            windows=[br.window(b) for b in range(n)] if br.overlapping else None)
+        if ref_stack is None:
+            report["reference"] = {"image": os.fspath(reference) if isinstance(reference, (str, os.PathLike))
+                                   else "array", "width": br.width, "height": br.height}
+    return RenderResult(image=image, spp=spp_px, converged=(~loop.active)[owner], report=report,
+                        reference=ref_img)

@@ -115,17 +115,19 @@ class BlockRenderer:
     Blocks are numbered row-major, block 0 top-left: a `grid` (rows, columns) that must
     divide the frame, or windows of `block` pixels (see the module docstring). If the
     film has a crop window (possible in XML files), that window is the frame. `engine`
-    'wavefront' or 'crop' overrides the choice by variant (tests).
+    'wavefront' or 'crop' overrides the choice by variant (tests). `sensor` and
+    `integrator` default to the scene's first sensor and its own integrator; a scene whose
+    integrator is the ``noisestop`` plugin is traced with the plugin's nested integrator.
     """
 
     def __init__(self, scene: Any, grid: tuple[int, int] | None = None, block: int | None = None,
-                 engine: str | None = None) -> None:
+                 engine: str | None = None, sensor: Any = None, integrator: Any = None) -> None:
         variant = select_variant()
         mi = require("mitsuba")
 
         self._mi = mi
         self.scene = scene
-        self.sensor = scene.sensors()[0]
+        self.sensor = scene.sensors()[0] if sensor is None else sensor
         film = self.sensor.film()
         self._frame_offset = (int(film.crop_offset()[0]), int(film.crop_offset()[1]))
         self.width, self.height = int(film.crop_size()[0]), int(film.crop_size()[1])
@@ -152,7 +154,8 @@ class BlockRenderer:
             self._ys = [r * self.block_h for r in range(gh)]
         self.grid = (len(self._ys), len(self._xs))
         # an XML scene may declare no integrator (mi.render then refuses): Mitsuba's path tracer
-        self._integrator = scene.integrator()
+        self._integrator = scene.integrator() if integrator is None else integrator
+        self._integrator = getattr(self._integrator, "nested", self._integrator)   # the noisestop plugin
         if self._integrator is None:
             logger.info("scene declares no integrator; using Mitsuba's 'path'")
             self._integrator = mi.load_dict({"type": "path"})

@@ -94,6 +94,9 @@ def render_command(scenes: str | Sequence[str], out: str | os.PathLike, *, crite
     remote = getattr(crit, "model", None)
     if server and criterion == "model" and hasattr(remote, "ready") and not remote.ready():
         raise ConnectionError(f"{server}: the server answers but model {remote.model!r} is not ready")
+    if len(names) > 1 and reference is not None and str(reference).lower().endswith(".exr"):
+        raise ValueError("a reference image is one scene's: render one scene with it (or give a dataset "
+                         "directory holding every scene)")
     if len(names) == 1:
         return adaptive_render(names[0], out, crit, reference=reference, tau=tau, **kwargs)
     return render_many(names, out, crit, workers=workers, scheduler=scheduler, reference=reference, tau=tau,

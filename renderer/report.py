@@ -3,6 +3,7 @@ and, against a labelled reference stack, DESIGN's early-stop metrics and what a 
 would see flipping between final.png and the reference."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -98,15 +99,25 @@ def against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settin
 
 
 def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int, int], tau: float,
-                       exposure: float = 0.0, stopped: np.ndarray | None = None) -> dict[str, Any]:
+                       exposure: float = 0.0, stopped: np.ndarray | None = None,
+                       windows: Sequence[Sequence[int]] | None = None) -> dict[str, Any]:
     """What a person would see flipping between final.png and the reference: the virtual
     observer's per-block error of the finished image (DESIGN's pooling: the largest 16x16
     tile mean), the blocks still above the noise target tau (visible noise left), and among
-    them those the criterion stopped (the others ran out of samples at max spp)."""
-    from learning.data.observer import VirtualObserver
+    them those the criterion stopped (the others ran out of samples at max spp).
+
+    `windows` (x, y, w, h) per block: pool each window of the FLIP map instead of cutting
+    the frame into `grid` (block windows that overlap at the frame's edge do not tile it).
+    """
+    from learning.data.observer import VirtualObserver, display, flip_map
+    from noisefeat.pooling import pool_maps
 
     obs = VirtualObserver(tau=tau, exposure=exposure)
-    e = obs.errors(reference, image[None], grid)[0]
+    if windows is None:
+        e = obs.errors(reference, image[None], grid)[0]
+    else:
+        emap = flip_map(display(reference, exposure), display(image, exposure), obs.ppd)
+        e = np.array([pool_maps(emap[None, y:y + h, x:x + w], obs.pooling)[0] for x, y, w, h in windows])
     visible = e > tau
     out = {"tau": tau, "pooling": obs.pooling, "errors": [float(x) for x in e],
            "worst_error": float(e.max()), "mean_error": float(e.mean()),

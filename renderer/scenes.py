@@ -172,10 +172,11 @@ def film_size_for(resolution: Resolution, width: int, height: int) -> tuple[int,
         (resolution, resolution)
 
 
-def resize_film(scene: Any, size: tuple[int, int]) -> None:
+def resize_film(scene: Any, size: tuple[int, int], x_fov: float | None = None) -> None:
     """Set the first sensor's film to `size` (W, H), in place, as Mitsuba's own scene
-    parameters do (``film.size``; the sensor recomputes its projection, keeping its
-    horizontal field of view). A crop window set by the file is dropped, with a warning."""
+    parameters do (``film.size``; the sensor recomputes its projection). `x_fov`: the
+    horizontal field of view (degrees) to frame the new size with (`framing_fov`); None
+    keeps the sensor's. A crop window set by the file is dropped, with a warning."""
     mi = require("mitsuba")
 
     sensor = scene.sensors()[0]
@@ -186,7 +187,66 @@ def resize_film(scene: Any, size: tuple[int, int]) -> None:
     params["film.size"] = mi.ScalarVector2u(*size)
     params["film.crop_size"] = mi.ScalarVector2u(*size)
     params["film.crop_offset"] = mi.ScalarPoint2u(0, 0)
+    if x_fov is not None and "x_fov" in params:
+        params["x_fov"] = float(x_fov)
     params.update()
+
+
+def framing_fov(sensor_props: Any, scene: Any, size: tuple[int, int]) -> float | None:
+    """The horizontal field of view Mitsuba gives the first sensor for a film of `size`.
+
+    A perspective sensor's ``fov`` is measured along its ``fov_axis`` (x, y, diagonal,
+    smaller, larger; a ``focal_length`` along the diagonal) *for the film it has*, so
+    changing the film's aspect changes the horizontal field unless the axis is x.
+    `sensor_props` are the sensor's properties as the scene description gives them;
+    Mitsuba's own ``parse_fov`` turns them into the horizontal field for the new aspect.
+    None when the sensor has no field of view (orthographic, ...) or when the properties
+    are not the loaded sensor's (checked on its own film size): its field is then kept.
+    """
+    mi = require("mitsuba")
+
+    params = mi.traverse(scene.sensors()[0])
+    if sensor_props is None or "x_fov" not in params:
+        return None
+    own = scene.sensors()[0].film().size()
+    try:
+        loaded = float(np.asarray(params["x_fov"]).ravel()[0])
+        if abs(mi.parse_fov(sensor_props, float(own[0]) / float(own[1])) - loaded) > 1e-3 * max(1.0, loaded):
+            logger.warning("cannot tell the first sensor's field-of-view axis: its horizontal field is kept")
+            return None
+        return float(mi.parse_fov(sensor_props, size[0] / size[1]))
+    except (RuntimeError, ValueError) as exc:        # Mitsuba throws for out-of-range fields
+        raise ValueError(f"a {size[0]}x{size[1]} film: {' '.join(str(exc).split())}") from None
+
+
+def _xml_sensor_props(path: str, defines: Mapping[str, str] | None) -> Any:
+    """The first sensor's properties in an XML file, `<default>`s and -D applied (None if
+    Mitsuba's parser API is missing or the file declares no sensor of its own)."""
+    mi = require("mitsuba")
+
+    parser = getattr(mi, "parser", None)
+    if parser is None or not hasattr(mi, "parse_fov"):
+        return None
+    try:
+        state = parser.parse_file(parser.ParserConfig(mi.variant()), path, **dict(defines or {}))
+    except RuntimeError as exc:       # mi.load_file read it, so this is unexpected: keep the field
+        logger.warning("%s: cannot read the sensor's field of view (%s): its horizontal field is kept",
+                       path, " ".join(str(exc).split()))
+        return None
+    sensors = [n for n in state.nodes if n.type == mi.ObjectType.Sensor]
+    return sensors[0].props if sensors else None
+
+
+def _dict_sensor_props(d: SceneDict) -> Any:
+    """A built-in scene dict's sensor field-of-view properties, as Mitsuba reads them."""
+    mi = require("mitsuba")
+
+    props = mi.Properties("perspective")
+    sensor = d.get("sensor", {})
+    for key in ("fov", "fov_axis", "focal_length"):
+        if key in sensor:
+            props[key] = float(sensor[key]) if key == "fov" else str(sensor[key])
+    return props
 
 
 def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | str | None = None,
@@ -194,7 +254,8 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | st
     """Load a built-in scene by name, or any Mitsuba 3 XML file, as an ``mi.Scene``.
 
     `resolution` None keeps the film's own size (built-ins: 256x256); N scales the long
-    side to N keeping the aspect ratio; (W, H) or 'WxH' sets both (`resize_film`).
+    side to N keeping the aspect ratio; (W, H) or 'WxH' sets both (`resize_film`), framed
+    as Mitsuba frames a film of that size under the sensor's ``fov_axis`` (`framing_fov`).
     `defines` are the file's `<default>` parameters set as `mitsuba -D key=value` sets them.
     """
     select_variant()
@@ -206,9 +267,10 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | st
         if defines:
             raise ValueError(f"-D sets parameters of an XML scene; {name_or_path!r} is built in")
         side = 256 if size is None else max(size) if isinstance(size, tuple) else size
-        scene = mi.load_dict(scene_dict(name_or_path, side))
+        d = scene_dict(name_or_path, side)
+        scene = mi.load_dict(d)
         if isinstance(size, tuple) and size != (side, side):
-            resize_film(scene, size)
+            resize_film(scene, size, framing_fov(_dict_sensor_props(d), scene, size))
         return scene
     looks_like_file = name_or_path.lower().endswith(".xml") or os.sep in name_or_path
     if not looks_like_file and not os.path.exists(name_or_path):
@@ -227,7 +289,7 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | st
     if size is not None:
         want = film_size_for(size, *own)
         if want != own:
-            resize_film(scene, want)
+            resize_film(scene, want, framing_fov(_xml_sensor_props(path, defines), scene, want))
         logger.info("loaded %s (film %dx%d, rendered at %dx%d)", path, own[0], own[1], *want)
     else:
         logger.info("loaded %s (%dx%d)", path, *own)

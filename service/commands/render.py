@@ -1,4 +1,8 @@
-"""`noisestop render`: the adaptive progressive render of one scene or many."""
+"""`noisestop render`: the adaptive progressive render of one scene or many.
+
+A thin layer on the in-memory loop (`renderer.adaptive.run_adaptive`, which
+`renderer.render` also runs): the command adds the output folder, checkpoints and
+`--resume`, and several scenes on a pool."""
 from __future__ import annotations
 
 import argparse
@@ -33,7 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quantile", type=arg.fraction, default=1.0,
                    help="--criterion variance: fraction of a block's pixels that must pass (default: all)")
     p.add_argument("--reference", default=None,
-                   help="labelled dataset or stack of the scene: oracle thresholds, early-stop metrics")
+                   help="labelled dataset or stack of the scene (oracle thresholds, early-stop metrics, "
+                        "final_vs_reference), or a reference image FILE.exr of the render's size "
+                        "(final_vs_reference only)")
     p.add_argument("--exposure", type=arg.exposure, default=0.0,
                    help="display exposure (stops, -64..64) the criteria judge the image at (default 0)")
     p.add_argument("--time-limit", type=arg.float_in(0.0, 1e9, open_low=True), default=None, metavar="S",

@@ -1,0 +1,131 @@
+"""`renderer.render`: the adaptive render as a Python call, a scene in and arrays out.
+
+Mitsuba users expect ``mi.render(scene)`` semantics: a scene object in, an image out, no
+files. `render` runs the very loop of `noisestop render` (`renderer.adaptive.run_adaptive`:
+same seeds, same stops, same report) in memory and returns a `RenderResult`; its
+`save` writes the command line's files. Checkpoints and resuming stay command-line
+features (`noisestop render --resume`, `adaptive_render(resume=True)`): an in-memory
+render has no folder to resume from, and a Python caller who wants to bound a render
+gives `time_limit`.
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from learning.names import DEFAULT_TAU
+
+from .names import DEFAULT_CRITERION
+from .result import RenderResult
+
+if TYPE_CHECKING:
+    from learning.data.stack import Stack
+
+    from .criteria import Criterion
+
+
+def make_criterion(criterion: Criterion | str, *, tau: float, model: str | os.PathLike[str] | None = None,
+                   threshold: float | None = None, offset: float | None = None,
+                   exposure: float = 0.0) -> Criterion | str:
+    """A criterion object from a name and its options ('oracle' stays a name: its
+    thresholds come from the reference stack), or `criterion` itself if already built."""
+    from learning.data.observer import check_tau
+
+    from .criteria import Criterion, build_criterion
+    from .names import CRITERIA
+
+    check_tau(tau)
+    if isinstance(criterion, Criterion):
+        return criterion
+    if not isinstance(criterion, str) or criterion not in CRITERIA:
+        raise ValueError(f"unknown criterion {criterion!r}; choose one of {', '.join(CRITERIA)}")
+    if criterion == "oracle":
+        return criterion
+    return build_criterion(criterion, model=None if model is None else os.fspath(model), threshold=threshold,
+                           offset=offset, exposure=float(exposure), tau=float(tau))
+
+
+def render(scene: Any, *, criterion: Criterion | str = DEFAULT_CRITERION, tau: float = DEFAULT_TAU,
+           block: int | None = None, min_spp: int | None = None, max_spp: int | None = None,
+           step: int | None = None, time_limit: float | None = None, seed: int = 0, progress: bool = True,
+           grid: Sequence[int] | None = None, resolution: int | tuple[int, int] | str | None = None,
+           defines: Mapping[str, str] | None = None,
+           reference: Stack | str | os.PathLike[str] | np.ndarray | None = None,
+           model: str | os.PathLike[str] | None = None, threshold: float | None = None,
+           offset: float | None = None, exposure: float = 0.0, quick_spp: int = 16) -> RenderResult:
+    """Render `scene` adaptively: sample each block until it looks converged, in memory.
+
+    Also registers the ``noisestop`` Mitsuba integrator for the current variant (as
+    `renderer.register` does). Bad arguments raise ValueError with a one-line message.
+
+    Parameters
+    ----------
+    scene : mitsuba.Scene or str or os.PathLike
+        An ``mi.Scene`` (``mi.load_file``, ``mi.load_dict``, ``mi.load_string``), a Mitsuba
+        XML file's path or a built-in scene name (``noisestop scenes``). A scene whose
+        integrator is the ``noisestop`` plugin is traced with the plugin's nested one.
+    criterion : str or Criterion
+        When a block has converged: ``flip`` (training-free, default), ``model`` (the
+        learned model), ``variance`` (Cycles' rule), ``uniform`` (never: max_spp
+        everywhere) or ``oracle`` (needs a labelled reference stack); or a Criterion object.
+    tau : float
+        The noise target: the virtual observer's FLIP threshold the criterion is
+        calibrated for (smaller: cleaner and more samples).
+    block : int or None
+        Block side in pixels; None: 64 (the size the criteria were calibrated on), or the
+        frame's short side if that is smaller. Edge windows are moved flush with the edge.
+    min_spp : int or None
+        Samples per pixel before the first decision; None: 16.
+    max_spp : int or None
+        Most samples per pixel of any block; None: 1024.
+    step : int or None
+        Samples per pixel added to every active block per pass; None: 16.
+    time_limit : float or None
+        Seconds: the pass under way when they run out is finished and the render returns
+        (``report["time_limit"]["reached"]`` says so); None: no limit.
+    seed : int
+        Base seed: the samples of (pixel, pass) depend only on it, so the same call gives
+        the same image bit for bit.
+    progress : bool
+        Show a progress bar on stderr.
+    grid : sequence of two ints or None
+        Blocks as a (rows, columns) grid dividing the frame, instead of `block`.
+    resolution : int or (int, int) or str or None
+        Film size for a name or XML path: N scales the long side to N keeping the aspect,
+        (W, H) or "WxH" sets both, framed as Mitsuba frames that film size. Refused for an
+        already-loaded ``mi.Scene`` (set its film instead).
+    defines : mapping or None
+        An XML file's ``<default>`` parameters, as ``mitsuba -D key=value``. XML path only.
+    reference : Stack or str or os.PathLike or numpy.ndarray or None
+        A labelled dataset or stack directory of this scene (oracle thresholds, early-stop
+        metrics, final_vs_reference), or a reference image, an EXR file or a float
+        [H, W, 3] array of the render's size (final_vs_reference only).
+    model : str or os.PathLike or None
+        ``criterion="model"``: a model bundle directory; None: the bundled model.
+    threshold : float or None
+        ``flip``: c, the FLIP between half buffers a block must reach (None: c(tau));
+        ``variance``: the noise threshold (None: 0.01).
+    offset : float or None
+        ``model``: the decision offset (None: the model's calibrated offset at tau).
+    exposure : float
+        Display exposure in stops the criteria judge the image at.
+    quick_spp : int
+        Samples of the quick image a model criterion reads (rendered once).
+
+    Returns
+    -------
+    RenderResult
+        ``image`` float32 [H, W, 3], ``spp`` int [H, W], ``converged`` bool [H, W] and
+        ``report`` (the report.json dict); ``save(dir)`` writes the files.
+    """
+    from .adaptive import run_adaptive
+    from .plugin import register
+
+    register()
+    crit = make_criterion(criterion, tau=tau, model=model, threshold=threshold, offset=offset, exposure=exposure)
+    return run_adaptive(scene, crit, resolution=resolution, grid=grid, block=block, step=step, min_spp=min_spp,
+                        max_spp=max_spp, seed=seed, progress=progress, reference=reference,
+                        quick_spp=quick_spp, defines=defines, time_limit=time_limit, tau=tau)

@@ -1,0 +1,175 @@
+"""The ``noisestop`` Mitsuba integrator: the adaptive loop inside ``mi.render``.
+
+It wraps another integrator, as Mitsuba's own ``aov`` and ``moment`` integrators do::
+
+    <integrator type="noisestop">
+        <float name="tau" value="0.02"/>
+        <integer name="max_spp" value="1024"/>
+        <integrator type="path"/>
+    </integrator>
+
+``mi.render(scene)`` then runs `renderer.adaptive.run_adaptive` with the nested
+integrator and returns a [H, W, 5] tensor: R, G, B, then the two AOV channels the
+integrator's ``aov_names()`` lists, ``spp`` (samples per pixel) and ``converged`` (1 where
+the criterion stopped the block), the way Mitsuba's ``aov`` integrator appends its
+channels. The last render's `RenderResult` (report included) is kept as
+``integrator.result``.
+
+Properties (all optional): ``criterion`` (string: flip, model, variance, uniform),
+``tau``, ``block``, ``min_spp``, ``max_spp``, ``step``, ``seed``, ``threshold``,
+``offset``, ``exposure``, ``model`` (a bundle path), ``progress`` (boolean); unset ones
+take `renderer.render`'s defaults. ``mi.render``'s own arguments add to them: a nonzero
+``spp`` is the render's max_spp, and ``seed`` is added to the property's seed, so
+``mi.render(scene, seed=k)`` for k = 0, 1, ... gives independent renders, and
+``mi.render(scene)`` equals ``renderer.render(scene, ...)`` with the same settings.
+
+Registering needs a Mitsuba variant, so ``import renderer`` does not do it (it would
+import Mitsuba). `register` (idempotent, per variant) does; importing this module and
+calling `renderer.render` also do. Python plugins are registered for the variant that is
+set: after ``mi.set_variant`` to another one, call `register` again.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .settings import MAX_SPP
+
+PLUGIN = "noisestop"
+#: the channels mi.render returns, after R, G, B
+AOVS = ("spp", "converged")
+#: property -> (kind, what it is given as in XML)
+_PROPERTIES = {"criterion": str, "tau": float, "block": int, "min_spp": int, "max_spp": int, "step": int,
+               "seed": int, "threshold": float, "offset": float, "exposure": float, "model": str,
+               "progress": bool}
+
+_registered: set[str] = set()
+_classes: dict[str, type] = {}
+
+
+def _integrator_class() -> type:
+    """The plugin class for the variant that is set (Mitsuba's base classes are per variant)."""
+    from learning.data.variant import select_variant
+    from noisefeat.extras import require
+
+    variant = select_variant()
+    if variant in _classes:
+        return _classes[variant]
+    mi = require("mitsuba")
+
+    class NoisestopIntegrator(mi.SamplingIntegrator):
+        """Adaptive sampling around a nested integrator (see `renderer.plugin`)."""
+
+        def __init__(self, props: Any) -> None:
+            super().__init__(props)
+            nested = [props[k] for k in props.keys()
+                      if props.type(k) == mi.Properties.Type.Object and isinstance(props[k], mi.Integrator)]
+            if len(nested) > 1:
+                raise ValueError("the noisestop integrator wraps one integrator, got "
+                                 f"{len(nested)} nested ones")
+            #: the integrator the samples come from (Mitsuba's path tracer if none is nested)
+            self.nested = nested[0] if nested else mi.load_dict({"type": "path"})
+            self.settings = {k: _read(props, k, kind) for k, kind in _PROPERTIES.items() if k in props}
+            for key in ("block", "min_spp", "max_spp", "step"):   # combinations are checked per render
+                if key in self.settings and not 1 <= self.settings[key] <= MAX_SPP:
+                    raise ValueError(f"noisestop integrator: {key} must be a positive integer, at most "
+                                     f"{MAX_SPP}, got {self.settings[key]}")
+            from .api import make_criterion
+
+            self.criterion = make_criterion(**self._criterion_options())
+            if self.criterion == "oracle":
+                raise ValueError("the noisestop integrator cannot use the oracle criterion (it needs a "
+                                 "labelled reference stack): use renderer.render")
+            #: the last render's RenderResult (image, spp, converged, report)
+            self.result = None
+
+        def _criterion_options(self) -> dict[str, Any]:
+            from learning.names import DEFAULT_TAU
+
+            from .names import DEFAULT_CRITERION
+
+            s = self.settings
+            return {"criterion": s.get("criterion", DEFAULT_CRITERION), "tau": s.get("tau", DEFAULT_TAU),
+                    "model": s.get("model"), "threshold": s.get("threshold"), "offset": s.get("offset"),
+                    "exposure": s.get("exposure", 0.0)}
+
+        def aov_names(self) -> list[str]:
+            return list(AOVS)
+
+        def render(self, scene: Any, sensor: Any = 0, seed: Any = 0, spp: int = 0, develop: bool = True,
+                   evaluate: bool = True) -> Any:
+            """The adaptive render of `scene` from `sensor` as [H, W, 5] (R, G, B, spp, converged)."""
+            from .adaptive import run_adaptive
+
+            if not develop:
+                raise ValueError("the noisestop integrator returns its developed image: call it with "
+                                 "develop=True (as mi.render does)")
+            if isinstance(sensor, (int, np.integer)):
+                sensor = scene.sensors()[int(sensor)]
+            s = self.settings
+            max_spp = int(spp) if int(spp) > 0 else s.get("max_spp")
+            result = run_adaptive(scene, self.criterion, block=s.get("block"), step=s.get("step"),
+                                  min_spp=s.get("min_spp"), max_spp=max_spp,
+                                  seed=s.get("seed", 0) + _as_int(seed), progress=s.get("progress", False),
+                                  tau=self._criterion_options()["tau"], sensor=sensor, integrator=self.nested)
+            self.result = result
+            data = np.concatenate([result.image, result.spp[..., None].astype(np.float32),
+                                   result.converged[..., None].astype(np.float32)], axis=-1)
+            return mi.TensorXf(np.ascontiguousarray(data))
+
+        def traverse(self, callback: Any) -> None:
+            callback.put("nested", self.nested, mi.ParamFlags.NonDifferentiable)
+
+        def to_string(self) -> str:
+            inner = "\n".join("  " + line for line in str(self.nested).splitlines())
+            return f"NoisestopIntegrator[\n  settings = {self.settings},\n  nested =\n{inner}\n]"
+
+    _classes[variant] = NoisestopIntegrator
+    return NoisestopIntegrator
+
+
+def _read(props: Any, key: str, kind: type) -> Any:
+    """One property as its kind, or ValueError naming it."""
+    value = props[key]
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f"noisestop integrator: {key} must be a boolean, got {value!r}")
+        return value
+    if kind is int and (isinstance(value, bool) or not isinstance(value, (int, np.integer))):
+        raise ValueError(f"noisestop integrator: {key} must be an integer, got {value!r}")
+    if kind is float and (isinstance(value, bool) or not isinstance(value, (int, float))):
+        raise ValueError(f"noisestop integrator: {key} must be a number, got {value!r}")
+    if kind is str and not isinstance(value, str):
+        raise ValueError(f"noisestop integrator: {key} must be a string, got {value!r}")
+    return kind(value)
+
+
+def _as_int(seed: Any) -> int:
+    """mi.render's seed (an int, or a one-element Dr.Jit array on JIT variants) as an int."""
+    try:
+        return int(seed)
+    except TypeError:
+        return int(np.asarray(seed).ravel()[0])
+
+
+def register() -> str:
+    """Register the ``noisestop`` integrator with Mitsuba for the current variant (choosing
+    one first, as `learning.data.variant.select_variant` does, if none is set). Idempotent.
+
+    Returns
+    -------
+    str
+        The Mitsuba variant it is registered for.
+    """
+    from noisefeat.extras import require
+
+    cls = _integrator_class()
+    variant = require("mitsuba").variant()
+    if variant not in _registered:
+        require("mitsuba").register_integrator(PLUGIN, lambda props: cls(props))
+        _registered.add(variant)
+    return variant
+
+
+register()

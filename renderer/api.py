@@ -27,27 +27,6 @@ if TYPE_CHECKING:
     from .criteria import Criterion
 
 
-def make_criterion(criterion: Criterion | str, *, tau: float, model: str | os.PathLike[str] | None = None,
-                   threshold: float | None = None, offset: float | None = None,
-                   exposure: float = 0.0) -> Criterion | str:
-    """A criterion object from a name and its options ('oracle' stays a name: its
-    thresholds come from the reference stack), or `criterion` itself if already built."""
-    from learning.data.observer import check_tau
-
-    from .criteria import Criterion, build_criterion
-    from .names import CRITERIA
-
-    check_tau(tau)
-    if isinstance(criterion, Criterion):
-        return criterion
-    if not isinstance(criterion, str) or criterion not in CRITERIA:
-        raise ValueError(f"unknown criterion {criterion!r}; choose one of {', '.join(CRITERIA)}")
-    if criterion == "oracle":
-        return criterion
-    return build_criterion(criterion, model=None if model is None else os.fspath(model), threshold=threshold,
-                           offset=offset, exposure=float(exposure), tau=float(tau))
-
-
 def render(scene: Any, *, criterion: Criterion | str = DEFAULT_CRITERION, tau: float = DEFAULT_TAU,
            block: int | None = None, min_spp: int | None = None, max_spp: int | None = None,
            step: int | None = None, time_limit: float | None = None, seed: int = 0, progress: bool = True,
@@ -122,6 +101,7 @@ def render(scene: Any, *, criterion: Criterion | str = DEFAULT_CRITERION, tau: f
         ``report`` (the report.json dict); ``save(dir)`` writes the files.
     """
     from .adaptive import run_adaptive
+    from .criteria import make_criterion
     from .plugin import register
 
     register()

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import os
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
@@ -507,3 +508,21 @@ def build_criterion(kind: str, *, model: str | None = None, server: str | None =
 
         return ModelCriterion(load_model(model), exposure=exposure, offset=offset, tau=tau)
     raise ValueError(f"unknown criterion {kind!r}; choose one of {', '.join(CRITERIA)}")
+
+
+def make_criterion(criterion: Criterion | str, *, tau: float, model: str | os.PathLike[str] | None = None,
+                   threshold: float | None = None, offset: float | None = None,
+                   exposure: float = 0.0) -> Criterion | str:
+    """A criterion object from a name and its options ('oracle' stays a name: its
+    thresholds come from the reference stack), or `criterion` itself if already built."""
+    from learning.data.observer import check_tau
+
+    check_tau(tau)
+    if isinstance(criterion, Criterion):
+        return criterion
+    if not isinstance(criterion, str) or criterion not in CRITERIA:
+        raise ValueError(f"unknown criterion {criterion!r}; choose one of {', '.join(CRITERIA)}")
+    if criterion == "oracle":
+        return criterion
+    return build_criterion(criterion, model=None if model is None else os.fspath(model), threshold=threshold,
+                           offset=offset, exposure=float(exposure), tau=float(tau))

@@ -75,7 +75,7 @@ def _integrator_class() -> type:
                 if key in self.settings and not 1 <= self.settings[key] <= MAX_SPP:
                     raise ValueError(f"noisestop integrator: {key} must be a positive integer, at most "
                                      f"{MAX_SPP}, got {self.settings[key]}")
-            from .api import make_criterion
+            from .criteria import make_criterion
 
             self.criterion = make_criterion(**self._criterion_options())
             if self.criterion == "oracle":

@@ -11,11 +11,11 @@ import os
 import re
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.support import ROOT
+
 PRELUDE = """
 import mitsuba as mi
 _cornell_box = mi.cornell_box

@@ -1,0 +1,113 @@
+"""Several passes per launch, and the budget render (spend passes where the noise is)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from learning.data.exr import read_exr
+from renderer.adaptive import adaptive_render
+from renderer.blocks import BlockRenderer
+from renderer.budget import Budget, check_budget
+from renderer.criteria import OracleCriterion, UniformCriterion, VarianceCriterion
+from renderer.passloop import PassLoop
+from test_error_contract import assert_one_line_error, run
+from test_renderer_blocks import _scene
+
+pytestmark = pytest.mark.slow
+
+TINY = {"resolution": 32, "grid": (4, 4), "step": 4, "min_spp": 4, "max_spp": 24, "progress": False}
+THRESHOLDS = [4, 8, 24, 12, None, 4, 16, 8, 20, 4, 8, 12, 24, 16, 8, None]
+
+
+@pytest.mark.parametrize("rfilter", ["box", "gaussian"])
+def test_passes_in_one_launch_are_the_passes_traced_apart(rfilter) -> None:
+    r = BlockRenderer(_scene("cornell", 32, rfilter), grid=(4, 4))
+    jobs = [(5, 0), (5, 1), (5, 2), (6, 3), (9, 1)]        # steps of one block, other blocks at other passes
+    together = r.render_passes(jobs, 4, seed=7)
+    launches = r.kernel_launches
+    for (b, p), img in zip(jobs, together):
+        np.testing.assert_array_equal(img, r.render_blocks([b], 4, seed=7, pass_index=p)[0])
+    assert launches == (1 if rfilter == "box" else 4)             # wide filter: one launch per pass index
+    assert r.kernel_lanes == r.samples_traced and r.kernel_lanes > 0
+    sizes = r.render_passes([(5, 0), (6, 1)], [4, 2], seed=7)   # a short last pass: its own launch
+    np.testing.assert_array_equal(sizes[1], r.render_blocks([6], 2, seed=7, pass_index=1)[0])
+    with pytest.raises(ValueError, match="duplicate"):
+        r.render_passes([(5, 0), (5, 0)], 4, seed=7)
+
+
+def test_add_passes_in_step_is_add_pass() -> None:
+    rng = np.random.default_rng(0)
+    loops = [PassLoop(VarianceCriterion(0.5), (2, 2), (4, 4), 8) for _ in range(2)]
+    for k in range(4):
+        ids = loops[0].active_ids
+        noise = np.array([0.0, 0.002, 0.5, 0.5])[ids, None, None, None]   # a flat, a quiet and two noisy blocks
+        images = 0.5 + noise * rng.standard_normal((len(ids), 4, 4, 3))
+        row0 = loops[0].add_pass(ids, images, 4)
+        row1 = loops[1].add_passes(ids, images, [4] * len(ids))
+        np.testing.assert_array_equal(row0, row1)
+    assert loops[0].active.tolist() == [False, False, True, True]
+    for key in ("active", "stop_spp", "history", "history_spp", "rendered"):
+        np.testing.assert_array_equal(loops[0].state()[key], loops[1].state()[key])
+    assert loops[0].events == loops[1].events
+    np.testing.assert_array_equal(loops[0].acc.state()["sum"], loops[1].acc.state()["sum"])
+
+
+def _same(a, b, ra, rb) -> None:
+    np.testing.assert_array_equal(read_exr(a / "final.exr"), read_exr(b / "final.exr"))
+    assert ra["blocks"] == rb["blocks"] and ra["passes"] == rb["passes"]
+
+
+def test_a_roomy_budget_renders_what_the_unbudgeted_loop_renders(tmp_path) -> None:
+    plain = adaptive_render("cornell", tmp_path / "plain", VarianceCriterion(0.3), **TINY)
+    assert "budget" not in plain
+    spp = adaptive_render("cornell", tmp_path / "spp", VarianceCriterion(0.3), spp_budget=24, **TINY)
+    secs = adaptive_render("cornell", tmp_path / "secs", VarianceCriterion(0.3), time_limit=1e6, **TINY)
+    for name, rep in (("spp", spp), ("secs", secs)):
+        _same(tmp_path / "plain", tmp_path / name, plain, rep)
+        assert rep["budget"]["ended"] is False and rep["budget"]["above_target"] == []
+        assert rep["budget"]["prioritised_rounds"] == 0
+
+
+def test_a_tight_budget_goes_to_the_blocks_farthest_from_target(tmp_path) -> None:
+    plain = adaptive_render("cornell", tmp_path / "plain", OracleCriterion(THRESHOLDS), **TINY)
+    rep = adaptive_render("cornell", tmp_path / "b", OracleCriterion(THRESHOLDS), spp_budget=12, **TINY)
+    spp = np.array([b["spp"] for b in rep["blocks"]])
+    assert spp.mean() <= 12 and spp.mean() > 12 - 4                 # spent, within one pass
+    assert rep["budget"]["ended"] and rep["budget"]["prioritised_rounds"] > 0
+    # the oracle's ratio is T_b / spp: censored and late blocks got the samples
+    assert spp[4] == spp.max() and spp[15] == spp.max() and spp[4] > 12
+    left = rep["budget"]["above_target"]
+    assert {x["id"] for x in left} == {b["id"] for b in rep["blocks"] if not b["converged"]}
+    ratios = [np.inf if x["ratio"] is None else x["ratio"] for x in left]
+    assert ratios == sorted(ratios, reverse=True)
+    # a block that stops, stops where it stops without a budget; its history is its own
+    for b, p in zip(rep["blocks"], plain["blocks"]):
+        if b["converged"]:
+            assert b["stop_spp"] == p["stop_spp"]
+            assert b["history"] == p["history"][:len(b["history"])]
+    saved = json.loads((tmp_path / "b" / "report.json").read_text())
+    assert saved["budget"]["above_target"] == left
+    assert (tmp_path / "b" / "spp_map.png").stat().st_size > 0
+
+
+def test_a_budget_is_spent_to_the_last_pass_it_pays_for(tmp_path) -> None:
+    rep = adaptive_render("cornell", tmp_path / "u", UniformCriterion(), spp_budget=10, **TINY)
+    spp = [b["spp"] for b in rep["blocks"]]
+    assert set(spp) == {8, 12} and np.mean(spp) == 10                 # half the blocks get the last pass
+    assert rep["budget"]["ended"] and len(rep["budget"]["above_target"]) == 16
+
+
+@pytest.mark.parametrize("bad", [-1, 0, float("nan"), float("inf"), "12", True])
+def test_bad_budgets_are_refused(bad) -> None:
+    with pytest.raises(ValueError, match="spp budget"):
+        check_budget(bad)
+    with pytest.raises(ValueError, match="spp budget"):
+        Budget(spp_budget=bad)
+
+
+@pytest.mark.parametrize("value", ["-5", "0", "nan", "abc", "inf"])
+def test_bad_spp_budget_is_a_one_line_usage_error(value, tmp_path, capsys) -> None:
+    rc, err = run(capsys, "render", "--scene", "cornell", "--out", str(tmp_path / "o"), "--spp-budget", value)
+    assert_one_line_error(rc, err, "--spp-budget")

@@ -8,9 +8,16 @@ time limit), so with ``--spp-budget N`` (samples per pixel averaged over the blo
 * `Criterion.ratios` holds, per block, its last score relative to the criterion's
   threshold (flip: the half-buffer FLIP over c(tau); > 1 is above the target). Blocks
   with no estimate yet (before their first decision) come first, all together.
-* A round renders the blocks whose ratio is at least `band` times the largest: the worst
-  block alone at first, then, as it comes down, every block within the band (water
-  filling toward equal distance from the target, in rounds large enough to trace well).
+* Priority = ratio / sqrt(spp). Noise falls as 1/sqrt(spp), so a block's ratio is about
+  a_b / sqrt(spp_b) with a_b its noise per sample; levelling the priority gives each block
+  samples in proportion to a_b. Against uniform sampling with the same samples that
+  lowers both the worst block's error (the noisiest block gets more than its share) and
+  the mean error (Cauchy-Schwarz: sum sqrt(a_b) <= sqrt(B sum a_b)); levelling the ratio
+  itself (``per_sample=False``: samples in proportion to a_b^2, every block to the same
+  error) helps the worst block most but measured worse on the mean.
+* A round renders the blocks whose priority is at least `band` times the largest: the
+  worst alone at first, then, as it comes down, every block within the band (water
+  filling, in rounds large enough to trace well).
 * While the budget left covers every active block to max spp, rounds render all of them:
   a roomy budget renders exactly what the unbudgeted loop renders, pass for pass.
 
@@ -58,6 +65,7 @@ class Budget:
     spp_budget: float | None = None
     time_limit: float | None = None
     band: float = BAND
+    per_sample: bool = True
     ended: bool = False
     prioritised_rounds: int = 0
     _cost: list[float] = field(default_factory=lambda: [0.0, 0.0])   # render seconds, block-spp rendered
@@ -97,6 +105,8 @@ class Budget:
             return ids                                     # enough for everything: as unbudgeted
         ratio = np.array([loop.criterion.ratios.get(b, math.nan) for b in ids], np.float64)
         ratio = np.where(np.isnan(ratio), np.inf, ratio)   # no estimate yet: first
+        if self.per_sample:
+            ratio = ratio / np.sqrt(np.maximum(spp[ids], 1))
         top = ratio.max()
         chosen = [b for b, r in zip(ids, ratio) if r >= self.band * top] if np.isfinite(top) else \
             [b for b, r in zip(ids, ratio) if not np.isfinite(r)]
@@ -154,3 +164,40 @@ class Budget:
         return {"spp_budget": self.spp_budget, "time_limit": self.time_limit, "band": self.band,
                 "ended": ended, "prioritised_rounds": self.prioritised_rounds,
                 "above_target": above if ended else []}
+
+
+def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int | None = None,
+                    band: float = BAND) -> dict[str, Any]:
+    """The budget render on a stored stack: block b's j-th pass is the stack's pass j
+    (`learning.inputs.halves.recover_passes`), as the live render's keyed samples make it,
+    so the loop (`Budget.select`, `PassLoop.add_passes`) sees what it would see live.
+
+    Returns each block's final spp, whether it stopped, the budget's report part and the
+    rounds run. The final image of block b is the stack's level at its spp.
+    """
+    from learning.inputs.halves import check_constant_step, recover_passes
+
+    if criterion.needs_halves:
+        check_constant_step(stack)
+    passes, sizes = [], []
+    for _, _, pass_spp, pass_img in recover_passes(stack):
+        passes.append(stack.split(pass_img))
+        sizes.append(int(pass_spp))
+    quick = stack.split(stack.quick()) if criterion.needs_quick else None
+    if quick is not None:
+        criterion.prepare(list(range(stack.n_blocks)), quick)
+    loop = PassLoop(criterion, tuple(stack.grid), tuple(stack.block), min_spp, quick)
+    budget = Budget(spp_budget, band=band)
+    rounds = 0
+    while True:
+        ids = budget.select(loop, sizes)
+        if not ids:
+            break
+        jobs = [(b, loop.acc.passes(b)) for b in ids]
+        loop.add_passes(ids, np.stack([passes[p][b] for b, p in jobs]), [sizes[p] for _, p in jobs])
+        rounds += 1
+        if not loop.active.any() or budget.finished(loop, sizes):
+            break
+    n = stack.n_blocks
+    return {"spp": [loop.acc.spp(b) for b in range(n)], "converged": (~loop.active).tolist(),
+            "budget": budget.describe(loop), "rounds": rounds}

@@ -28,7 +28,11 @@ def test_passes_in_one_launch_are_the_passes_traced_apart(rfilter) -> None:
     together = r.render_passes(jobs, 4, seed=7)
     launches = r.kernel_launches
     for (b, p), img in zip(jobs, together):
-        np.testing.assert_array_equal(img, r.render_blocks([b], 4, seed=7, pass_index=p)[0])
+        apart = r.render_blocks([b], 4, seed=7, pass_index=p)[0]
+        if rfilter == "box":
+            np.testing.assert_array_equal(img, apart)
+        else:                           # the same samples; splats summed in another order
+            np.testing.assert_allclose(img, apart, rtol=1e-5, atol=1e-7)
     assert launches == (1 if rfilter == "box" else 4)             # wide filter: one launch per pass index
     assert r.kernel_lanes == r.samples_traced and r.kernel_lanes > 0
     sizes = r.render_passes([(5, 0), (6, 1)], [4, 2], seed=7)   # a short last pass: its own launch

@@ -228,6 +228,12 @@ def format_report(report: dict[str, Any], out: str | os.PathLike | None = None) 
                      f"the observer's FLIP threshold {f['tau']:g} (visible noise"
                      + (f"; {stopped} of them stopped by the criterion, the others ran to max spp" if stopped
                         is not None else "") + "; see compare.png)")
+    budget = report.get("budget")
+    if budget and budget.get("ended"):
+        left = budget.get("above_target", [])
+        lines.append(f"budget ended with {len(left)} block(s) above target (outlined in spp_map.png): "
+                     + ", ".join(f"{x['id']}" + (f" ({x['ratio']:.2f}x)" if x["ratio"] is not None else "")
+                                 for x in left[:8]) + (" ..." if len(left) > 8 else ""))
     if out is not None:
         lines.append(f"outputs in {out}")
     return "\n".join(lines)

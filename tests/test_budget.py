@@ -115,3 +115,17 @@ def test_bad_budgets_are_refused(bad) -> None:
 def test_bad_spp_budget_is_a_one_line_usage_error(value, tmp_path, capsys) -> None:
     rc, err = run(capsys, "render", "--scene", "cornell", "--out", str(tmp_path / "o"), "--spp-budget", value)
     assert_one_line_error(rc, err, "--spp-budget")
+
+
+def test_render_command_takes_a_budget(tmp_path, capsys) -> None:
+    from service import cli
+
+    out = tmp_path / "o"
+    rc = cli.main(["render", "--scene", "cornell", "--resolution", "32", "--grid", "4", "4", "--step", "4",
+                   "--min-spp", "4", "--max-spp", "24", "--criterion", "variance", "--threshold", "0.05",
+                   "--spp-budget", "8", "--out", str(out)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    report = json.loads((out / "report.json").read_text())
+    assert report["budget"]["spp_budget"] == 8.0 and report["mean_spp"] <= 8
+    assert "budget ended with" in text and report["budget"]["ended"]

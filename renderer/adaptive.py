@@ -214,7 +214,8 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
 
     def render_counts() -> dict[str, int]:
         """What the render cost in Mitsuba calls and kernels, over every attempt."""
-        now = {"mitsuba_calls": br.mitsuba_calls, "kernel_launches": br.kernel_launches, "kernel_lanes": br.kernel_lanes,
+        now = {"mitsuba_calls": br.mitsuba_calls, "kernel_launches": br.kernel_launches,
+               "kernel_lanes": br.kernel_lanes,
                "kernel_compiles": br.kernel_compiles, "checkpoints": written["checkpoints"],
                "samples_traced": br.samples_traced}
         return {k: done_before[k] + now[k] for k in RENDER_COUNTERS}
@@ -258,7 +259,8 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
             spp = max(acc.spp(b) for b in ids)
             p += 1
             state["pass_index"] = p
-            state["done"] = not loop.active.any() or p >= len(sizes) if budget is None else budget.finished(loop, sizes)
+            state["done"] = (not loop.active.any() or p >= len(sizes)) if budget is None else \
+                budget.finished(loop, sizes)
             bar.set_postfix(spp=spp, active=len(loop.active_ids), refresh=False)
             bar.update(1)
             now = time.perf_counter()

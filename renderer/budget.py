@@ -103,6 +103,10 @@ class Budget:
         left = self._left(spp, elapsed)
         if left >= sum(max_spp - spp[b] for b in ids):
             return ids                                     # enough for everything: as unbudgeted
+        unknown = [b for b in ids if b not in loop.criterion.ratios and
+                   (loop.min_spp is None or spp[b] >= loop.min_spp)]
+        if unknown:                 # judged before a resume: ask again (same state, same answer)
+            loop.judge(unknown)
         ratio = np.array([loop.criterion.ratios.get(b, math.nan) for b in ids], np.float64)
         ratio = np.where(np.isnan(ratio), np.inf, ratio)   # no estimate yet: first
         if self.per_sample:

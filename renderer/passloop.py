@@ -95,6 +95,11 @@ class PassLoop:
         self.rendered = np.append(self.rendered, len(ids))
         return row
 
+    def judge(self, ids: Sequence[int]) -> np.ndarray:
+        """The criterion's verdicts on blocks as they stand, changing nothing here: refreshes
+        `criterion.ratios` (a resumed budget render has none from before)."""
+        return self._ask([int(b) for b in ids])
+
     def _ask(self, ids: list[int]) -> np.ndarray:
         acc, halves = self.acc, self.criterion.needs_halves   # two extra divisions per block: only when used
         return self.criterion.decide(ids, [BlockView(

@@ -129,3 +129,31 @@ def test_render_command_takes_a_budget(tmp_path, capsys) -> None:
     report = json.loads((out / "report.json").read_text())
     assert report["budget"]["spp_budget"] == 8.0 and report["mean_spp"] <= 8
     assert "budget ended with" in text and report["budget"]["ended"]
+
+
+def test_a_budget_render_resumes_to_the_same_image(tmp_path) -> None:
+    opts = {**TINY, "checkpoint_every": 0.0, "spp_budget": 12}
+    whole = adaptive_render("cornell", tmp_path / "a", VarianceCriterion(0.05), **opts)
+    assert whole["budget"]["prioritised_rounds"] > 0
+    again = adaptive_render("cornell", tmp_path / "a", VarianceCriterion(0.05), resume=True, **opts)
+    fresh = adaptive_render("cornell", tmp_path / "b", VarianceCriterion(0.05), **opts)
+    _same(tmp_path / "a", tmp_path / "b", again, fresh)
+    assert again["budget"]["above_target"] == fresh["budget"]["above_target"]
+
+
+def test_the_budget_simulated_on_a_stack(tmp_path) -> None:
+    from learning import make_synthetic_stack
+    from renderer.budget import simulate_budget
+    from renderer.simulate import simulate_stack
+
+    spp = [32 * (k + 1) for k in range(12)]
+    st = make_synthetic_stack(tmp_path / "s", size=64, spp=spp, seed=1, label=False)
+    plain = simulate_stack(st, VarianceCriterion(0.2), min_spp=32)
+    roomy = simulate_budget(st, VarianceCriterion(0.2), spp_budget=spp[-1], min_spp=32)
+    stops = [spp[int(np.argmax(plain[:, b] > 0))] if (plain[:, b] > 0).any() else spp[-1] for b in range(16)]
+    assert roomy["spp"] == stops and not roomy["budget"]["ended"]
+    late = [64, 96, 128, 384, None, 64, 256, 96, 320, 64, 96, 128, 384, 256, 96, None]
+    tight = simulate_budget(st, OracleCriterion(late), spp_budget=160, min_spp=32)
+    assert 160 - 32 < np.mean(tight["spp"]) <= 160 and tight["budget"]["ended"]
+    assert tight["spp"][4] == tight["spp"][15] == max(tight["spp"]) > 160     # the censored blocks got most
+    assert all(s == t for s, t, c in zip(tight["spp"], late, tight["converged"]) if c)

@@ -60,8 +60,8 @@ def md_budget(r: dict[str, Any]) -> str:
              "uniform / budget | mean: uniform / budget | blocks above tau: uniform / budget | goal |",
              "|---|---|---|---|---|---|---|---|---|"]
     for x in r["rows"]:
-        goal = ("met" if x["worst_ok"] and x["mean_ok"] else
-                "missed (" + ", ".join(k for k, ok in (("worst", x["worst_ok"]), ("mean", x["mean_ok"])) if not ok) + ")")
+        missed = [k for k, ok in (("worst", x["worst_ok"]), ("mean", x["mean_ok"])) if not ok]
+        goal = "met" if not missed else f"missed ({', '.join(missed)})"
         lines.append(f"| {x['scene']} | {'yes' if x['converging'] else 'no'} | {x['budget_spp']:.0f} | {x['stopped']} "
                      f"| {x['above_target']} | {x['uniform_worst']:.4f} / {x['budget_worst']:.4f} "
                      f"| {x['uniform_mean']:.4f} / {x['budget_mean']:.4f} "

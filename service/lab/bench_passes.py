@@ -76,27 +76,31 @@ def sample_cost(repeats: int = 3, steps: tuple[int, ...] = STEPS_PER_LAUNCH) -> 
     br = BlockRenderer(load_scene(scene, res), grid=grid)
     n = br.n_blocks
     br.render_blocks(list(range(n)), spp, seed=0)                       # compile
-    full: list[float] = []
-    alone = {k: np.zeros((repeats, n)) for k in steps}
+    clocks = {"wall": time.perf_counter, "cpu": time.process_time}   # cpu: every thread of this process
+    full = {c: [] for c in clocks}
+    alone = {(c, k): np.zeros((repeats, n)) for c in clocks for k in steps}
     p = 1
     for r in range(repeats):
-        t0 = time.perf_counter()
+        t0 = {c: f() for c, f in clocks.items()}
         br.render_blocks(list(range(n)), spp, seed=1, pass_index=p)
-        full.append(time.perf_counter() - t0)
+        for c, f in clocks.items():
+            full[c].append(f() - t0[c])
         p += 1
         for b in range(n):
             for k in steps:
-                t0 = time.perf_counter()
+                t0 = {c: f() for c, f in clocks.items()}
                 br.render_passes([(b, p + j) for j in range(k)], spp, seed=1)
-                alone[k][r, b] = (time.perf_counter() - t0) / k
+                for c, f in clocks.items():
+                    alone[c, k][r, b] = (f() - t0[c]) / k
                 p += k
-    full_s = float(np.median(full))
+    full_s = {c: float(np.median(v)) for c, v in full.items()}
     rows = [{"steps_per_launch": k, "lanes": br.block_h * br.block_w * spp * k,
-             "one_block_s": float(np.median(alone[k], axis=0).mean()),
-             "ratio": float(np.median(alone[k], axis=0).sum() / full_s)} for k in steps]
-    per_block = np.median(alone[steps[0]], axis=0)
+             "one_block_s": float(np.median(alone["wall", k], axis=0).mean()),
+             "ratio": float(np.median(alone["wall", k], axis=0).sum() / full_s["wall"]),
+             "cpu_ratio": float(np.median(alone["cpu", k], axis=0).sum() / full_s["cpu"])} for k in steps]
+    per_block = np.median(alone["cpu", steps[0]], axis=0)
     return {"scene": scene, "resolution": res, "grid": list(grid), "spp": spp, "repeats": repeats,
-            "all_blocks_s": full_s, "rows": rows,
+            "all_blocks_s": full_s["wall"], "all_blocks_cpu_s": full_s["cpu"], "rows": rows,
             "block_cost_spread": float(per_block.max() / per_block.min())}
 
 
@@ -149,6 +153,8 @@ def oracle_speedup(repeats: int = 3, runs: tuple = ORACLE_RUNS) -> list[dict[str
     blocks. The cost-weighted ratio weighs each block's samples by its own cost per
     sample (measured alone), the speed-up an ideal loop would reach.
     """
+    import time
+
     from renderer.adaptive import adaptive_render
     from renderer.criteria import OracleCriterion, UniformCriterion
 
@@ -164,18 +170,28 @@ def oracle_speedup(repeats: int = 3, runs: tuple = ORACLE_RUNS) -> list[dict[str
             for i in range(repeats):
                 for name in ("oracle", "uniform") if i % 2 == 0 else ("uniform", "oracle"):
                     crit = OracleCriterion(thresholds) if name == "oracle" else UniformCriterion()
-                    runs_[name].append(adaptive_render(scene, Path(tmp) / f"{name}{i}", crit, **opts))
+                    cpu = time.process_time()
+                    rep = adaptive_render(scene, Path(tmp) / f"{name}{i}", crit, **opts)
+                    runs_[name].append({**rep, "cpu_s": time.process_time() - cpu})
         o, u = (sorted(runs_[k], key=lambda r: r["wall_s"])[len(runs_[k]) // 2] for k in ("oracle", "uniform"))
+        # each repeat's pair ran back to back: the median of the pairs' ratios shrugs off a
+        # load change between repeats; CPU time (every thread of the process) off load at all
+        pairs = {c: float(np.median([u_[c] / o_[c] for o_, u_ in zip(runs_["oracle"], runs_["uniform"])]))
+                 for c in ("wall_s", "cpu_s")}
         sample_ratio = u["render_calls"]["samples_traced"] / o["render_calls"]["samples_traced"]
         cost = block_costs(scene, res, grid=(4, 4), spp=step, repeats=3)
         spent = np.array([b["spp"] for b in o["blocks"]], float)
         cost_ratio = float(cost.sum() * max_spp / (cost * spent).sum())
-        speedup = u["wall_s"] / o["wall_s"]
+        speedup = pairs["wall_s"]
         out.append({"scene": scene, "resolution": res, "step": step, "max_spp": max_spp, "repeats": repeats,
                     "oracle_wall_s": [r["wall_s"] for r in runs_["oracle"]],
                     "uniform_wall_s": [r["wall_s"] for r in runs_["uniform"]],
+                    "oracle_cpu_s": [r["cpu_s"] for r in runs_["oracle"]],
+                    "uniform_cpu_s": [r["cpu_s"] for r in runs_["uniform"]], "cpu_speedup": pairs["cpu_s"],
                     "speedup": speedup, "sample_ratio": sample_ratio, "cost_weighted_ratio": cost_ratio,
                     "speedup_over_ratio": speedup / sample_ratio, "speedup_over_cost_ratio": speedup / cost_ratio,
+                    "cpu_speedup_over_ratio": pairs["cpu_s"] / sample_ratio,
+                    "cpu_speedup_over_cost_ratio": pairs["cpu_s"] / cost_ratio,
                     "block_cost_spread": float(cost.max() / cost.min()),
                     "render_calls": o["render_calls"]})
     return out
@@ -328,24 +344,29 @@ def md_oracle(r: dict[str, Any]) -> str:
              f"{c['repeats']}). One block alone, each block in turn, k passes of it per launch (interleaved, "
              "median per block, mean over the blocks); goal: time per pixel-sample with 1 of 16 blocks "
              "active <= 1.15x that with all 16:", "",
-             "| passes per launch | lanes per launch | one block, per pass | per pixel-sample vs all 16 active |",
-             "|---|---|---|---|"]
+             "| passes per launch | lanes per launch | one block, per pass (wall) | per pixel-sample vs all 16 "
+             "active: wall | CPU time |", "|---|---|---|---|---|"]
     for row in c["rows"]:
         lines.append(f"| {row['steps_per_launch']} | {row['lanes']:,} | {row['one_block_s'] * 1e3:.0f} ms "
-                     f"| {row['ratio']:.2f}x |")
+                     f"| {row['ratio']:.2f}x | {row.get('cpu_ratio', float('nan')):.2f}x |")
     lines += ["", f"Blocks differ in cost: the dearest costs {c['block_cost_spread']:.1f}x the cheapest per sample.",
               "", "Oracle stops against uniform sampling to the same max spp (step 32, 4x4 blocks, the "
-              "thresholds of `ORACLE_THRESHOLDS`; interleaved runs, medians); goal: speed-up >= 0.9x the "
-              "sample ratio on the Cornell box; env_spheres against the cost-weighted ratio:", "",
-              "| scene | oracle wall (s) | uniform wall (s) | speed-up | sample ratio | speed-up / sample ratio "
-              "| cost-weighted ratio | speed-up / cost-weighted ratio | block cost spread | launches "
-              "| lanes per launch |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+              "thresholds of `ORACLE_THRESHOLDS`; runs interleaved, speed-up = median over the repeats of "
+              "uniform / oracle run back to back; CPU time counts every thread of the process, so load "
+              "moves it little); goal: speed-up >= 0.9x the sample ratio on the Cornell box; env_spheres "
+              "against the cost-weighted ratio:", "",
+              "| scene | oracle wall (s) | uniform wall (s) | speed-up: wall | CPU time | sample ratio "
+              "| speed-up / sample ratio: wall | CPU | cost-weighted ratio | speed-up / cost-weighted ratio: wall "
+              "| CPU | block cost spread | launches | lanes per launch |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for x in r["oracle"]:
         rc = x["render_calls"]
         lines.append(f"| {x['scene']} {x['resolution']}x{x['resolution']}, max {x['max_spp']} "
                      f"| {', '.join(f'{w:.1f}' for w in x['oracle_wall_s'])} "
                      f"| {', '.join(f'{w:.1f}' for w in x['uniform_wall_s'])} | {x['speedup']:.2f}x "
-                     f"| {x['sample_ratio']:.2f}x | {x['speedup_over_ratio']:.2f} | {x['cost_weighted_ratio']:.2f}x "
-                     f"| {x['speedup_over_cost_ratio']:.2f} | {x['block_cost_spread']:.1f}x "
+                     f"| {x['cpu_speedup']:.2f}x | {x['sample_ratio']:.2f}x | {x['speedup_over_ratio']:.2f} "
+                     f"| {x['cpu_speedup_over_ratio']:.2f} | {x['cost_weighted_ratio']:.2f}x "
+                     f"| {x['speedup_over_cost_ratio']:.2f} | {x['cpu_speedup_over_cost_ratio']:.2f} "
+                     f"| {x['block_cost_spread']:.1f}x "
                      f"| {rc['kernel_launches']} | {rc['kernel_lanes'] / max(rc['kernel_launches'], 1):,.0f} |")
     return "\n".join(lines)

@@ -40,7 +40,7 @@ from noisefeat.runtime import torch_threads
 
 from .passloop import PassLoop
 
-#: a round renders the active blocks whose ratio is at least this share of the largest
+#: a round renders the active blocks whose priority is at least this share of the largest
 BAND = 0.8
 
 

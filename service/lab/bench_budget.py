@@ -57,13 +57,15 @@ def md_budget(r: dict[str, Any]) -> str:
              f"{r['tau']:g}), simulated on the held-out stacks (equal samples, not measured time); error = the "
              "observer's FLIP against the 8192-spp reference (largest 16x16 tile mean per block):", "",
              "| scene | converges | budget: mean spp | blocks stopped | above target at the end | worst block: "
-             "uniform / budget | mean: uniform / budget | blocks above tau: uniform / budget | goal |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "uniform / budget | budget / uniform | mean: uniform / budget | budget / uniform "
+             "| blocks above tau: uniform / budget | goal |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for x in r["rows"]:
         missed = [k for k, ok in (("worst", x["worst_ok"]), ("mean", x["mean_ok"])) if not ok]
         goal = "met" if not missed else f"missed ({', '.join(missed)})"
         lines.append(f"| {x['scene']} | {'yes' if x['converging'] else 'no'} | {x['budget_spp']:.0f} | {x['stopped']} "
                      f"| {x['above_target']} | {x['uniform_worst']:.4f} / {x['budget_worst']:.4f} "
-                     f"| {x['uniform_mean']:.4f} / {x['budget_mean']:.4f} "
+                     f"| {x['budget_worst'] / x['uniform_worst']:.3f} "
+                     f"| {x['uniform_mean']:.5f} / {x['budget_mean']:.5f} | {x['budget_mean'] / x['uniform_mean']:.3f} "
                      f"| {x['uniform_visible']} / {x['budget_visible']} | {goal} |")
     return "\n".join(lines)

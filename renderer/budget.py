@@ -76,7 +76,7 @@ class Budget:
             raise ValueError(f"band must be in (0, 1], got {self.band!r}")
 
     def record(self, seconds: float, block_spp: int) -> None:
-        """Render time of a round and the block-samples it traced (the time budget's rate)."""
+        """Seconds of a round and the block-samples it traced (the time budget's rate)."""
         self._cost[0] += float(seconds)
         self._cost[1] += float(block_spp)
 
@@ -146,16 +146,15 @@ class Budget:
     def run_round(self, loop: PassLoop, br: Any, ids: Sequence[int], sizes: Sequence[int], seed: int,
                   timers: dict[str, float]) -> None:
         """Render one pass of each block `ids` at its own pass index and feed the loop
-        (render time into ``timers["render_s"]`` and this budget's rate)."""
+        (render time into ``timers["render_s"]``; the round's time into this budget's rate)."""
         jobs = [(int(b), loop.acc.passes(int(b))) for b in ids]
         pass_spp = [int(sizes[p]) for _, p in jobs]
         t0 = time.perf_counter()
         images = br.render_passes(jobs, pass_spp, seed)
-        seconds = time.perf_counter() - t0
-        timers["render_s"] += seconds
-        self.record(seconds, sum(pass_spp))
+        timers["render_s"] += time.perf_counter() - t0
         with torch_threads(1):
             loop.add_passes([b for b, _ in jobs], images, pass_spp)
+        self.record(time.perf_counter() - t0, sum(pass_spp))      # decisions too: they spend the time
 
     def describe(self, loop: PassLoop, time_limit_reached: bool = False) -> dict[str, Any]:
         """report.json "budget": the limits, whether they ended the render, and the blocks

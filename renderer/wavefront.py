@@ -24,6 +24,11 @@ blocks is bit for bit the same estimator as those blocks cut out of a full-frame
 
 Pixels on the frame's edge get no samples from outside it, as in a full-frame render
 without ``sample_border``.
+
+Keys are per lane, so one launch can also trace several passes (`trace_jobs`: a pixel set
+and a key per job): the blocks of a budget round at different pass counts, or k steps of
+few active blocks as one k times larger wavefront, each job's values exactly those of
+its pass traced alone.
 """
 from __future__ import annotations
 

@@ -157,3 +157,17 @@ def test_the_budget_simulated_on_a_stack(tmp_path) -> None:
     assert 160 - 32 < np.mean(tight["spp"]) <= 160 and tight["budget"]["ended"]
     assert tight["spp"][4] == tight["spp"][15] == max(tight["spp"]) > 160     # the censored blocks got most
     assert all(s == t for s, t, c in zip(tight["spp"], late, tight["converged"]) if c)
+
+
+def test_a_time_budget_prioritises_once_the_time_left_will_not_cover_every_block() -> None:
+    loop = PassLoop(OracleCriterion([8, 64, None, 16]), (2, 2), (4, 4), 4)
+    sizes = [4] * 16                                                        # max 64 spp
+    loop.add_passes([0, 1, 2, 3], np.full((4, 4, 4, 3), 0.5), [4] * 4)     # ratios T/spp: 2, 16, inf, 4
+    budget = Budget(time_limit=100.0)
+    assert budget.select(loop, sizes, elapsed=90.0) == [0, 1, 2, 3]         # no rate known yet
+    budget.record(1.0, 16)                                                  # 1/16 s per block-spp
+    assert budget.select(loop, sizes, elapsed=50.0) == [0, 1, 2, 3]         # 800 block-spp left >= 240 needed
+    assert budget.select(loop, sizes, elapsed=90.0) == [2]                  # 160 left: the censored block first
+    assert budget.prioritised_rounds == 1 and not budget.ended
+    loop.criterion.ratios[2] = 1.5                                          # now finite: the band decides
+    assert budget.select(loop, sizes, elapsed=90.0) == [1]                  # 16/2 = 8 > 0.8 x others

@@ -46,6 +46,7 @@ from noisefeat.bounds import SizeBounds
 from noisefeat.runtime import torch_threads
 
 from .blocks import BlockRenderer, compose
+from .budget import Budget
 from .checkpoint import CHECKPOINT, load_checkpoint, save_checkpoint
 from .criteria import TIMER_NAMES, Criterion, build_criterion
 from .outputs import prepare_output_dir
@@ -58,7 +59,8 @@ from .signals import DeferredStop
 
 #: what a render cost in Mitsuba, over every attempt (report.json "render_calls"); like the
 #: timings these depend on the process (a resumed run compiles its kernel again)
-RENDER_COUNTERS = ("mitsuba_calls", "kernel_launches", "kernel_compiles", "checkpoints", "samples_traced")
+RENDER_COUNTERS = ("mitsuba_calls", "kernel_launches", "kernel_lanes", "kernel_compiles", "checkpoints",
+                   "samples_traced")
 
 logger = logging.getLogger(__name__)
 
@@ -187,7 +189,7 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
                     progress: bool = True, reference: Stack | str | os.PathLike | None = None,
                     quick_spp: int = 16, defines: Mapping[str, str] | None = None,
                     time_limit: float | None = None, checkpoint_every: float = 30.0,
-                    tau: float = DEFAULT_TAU) -> dict[str, Any]:
+                    tau: float = DEFAULT_TAU, spp_budget: float | None = None) -> dict[str, Any]:
     """Render `scene` adaptively into `out`; return the report (also out/report.json).
 
     The command line's render: `run_adaptive` with checkpoints in `out`, then
@@ -207,11 +209,13 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     `checkpoint_every`: seconds between checkpoints (0: after every pass). `tau`: the
     noise target, recorded in the report; the reference's labels and the final-vs-reference
     check use the observer at it (a criterion given by name is built for it too).
+    `spp_budget` (samples per pixel, averaged over the blocks) and `time_limit` make it a
+    budget render (`renderer.budget`): passes go to the blocks farthest from their target.
     """
     result = run_adaptive(scene, criterion, resolution=resolution, grid=grid, block=block, step=step,
                           min_spp=min_spp, max_spp=max_spp, seed=seed, progress=progress, reference=reference,
                           quick_spp=quick_spp, defines=defines, time_limit=time_limit, tau=tau,
-                          checkpoints=Checkpoints(out, resume, checkpoint_every))
+                          checkpoints=Checkpoints(out, resume, checkpoint_every), spp_budget=spp_budget)
     result.save(out)
     report = result.report
     logger.info("%s: %d passes, saved %.1f%% vs uniform, %.2f s", report["scene"], report["passes"],
@@ -227,7 +231,7 @@ def run_adaptive(scene: Any, criterion: Criterion | str, *,
                  quick_spp: int = 16, defines: Mapping[str, str] | None = None,
                  time_limit: float | None = None, tau: float = DEFAULT_TAU,
                  checkpoints: Checkpoints | None = None, sensor: Any = None,
-                 integrator: Any = None) -> RenderResult:
+                 integrator: Any = None, spp_budget: float | None = None) -> RenderResult:
     """The adaptive loop, in memory (see the module docstring and `adaptive_render`).
 
     `scene`: a built-in name, an XML path or a loaded ``mi.Scene`` (then `resolution` and
@@ -235,11 +239,14 @@ def run_adaptive(scene: Any, criterion: Criterion | str, *,
     from this sensor with this integrator instead of the scene's first sensor and own
     integrator (the Mitsuba plugin passes its nested one). `checkpoints`: None renders
     without any file; given, the loop checkpoints into its folder and can resume from it.
+    `spp_budget` (samples per pixel, averaged over the blocks) and `time_limit` make it a
+    budget render (`renderer.budget`): passes go to the blocks farthest from their target.
     """
     if time_limit is not None and not (math.isfinite(time_limit) and time_limit > 0):
         raise ValueError(f"time limit must be a positive number of seconds, got {time_limit!r}")
     if checkpoints is not None and not (math.isfinite(checkpoints.every) and checkpoints.every >= 0):
         raise ValueError(f"checkpoint interval must be 0 or more seconds, got {checkpoints.every!r}")
+    budget = Budget(spp_budget, time_limit) if spp_budget is not None or time_limit is not None else None
     from .scenes import load_scene
     from learning.data.variant import current_variant, select_variant
 
@@ -288,7 +295,7 @@ def run_adaptive(scene: Any, criterion: Criterion | str, *,
                 "step": int(step), "min_spp": int(min_spp), "max_spp": int(max_spp), "seed": int(seed),
                 "quick_spp": int(quick_spp), "quick": crit.quick_kind if crit.needs_quick else "none",
                 "criterion": crit.describe(), "variant": variant, "defines": dict(defines or {}),
-                "tau": float(tau)}
+                "tau": float(tau), **({} if spp_budget is None else {"spp_budget": float(spp_budget)})}
     sizes = pass_sizes(step, max_spp)
 
     state: dict[str, Any] | None = None
@@ -327,12 +334,15 @@ def run_adaptive(scene: Any, criterion: Criterion | str, *,
     def render_counts() -> dict[str, int]:
         """What the render cost in Mitsuba calls and kernels, over every attempt."""
         now = {"mitsuba_calls": br.mitsuba_calls, "kernel_launches": br.kernel_launches,
+               "kernel_lanes": br.kernel_lanes,
                "kernel_compiles": br.kernel_compiles, "checkpoints": written["checkpoints"],
                "samples_traced": br.samples_traced}
         return {k: done_before[k] + now[k] for k in RENDER_COUNTERS}
 
     def checkpoint() -> None:
         if ckpt_path is None:            # in memory: nothing to resume from
+            return
+        if budget is not None and budget.prioritised_rounds:   # blocks out of step: not resumable
             return
         written["checkpoints"] += 1
         save_checkpoint(ckpt_path, snapshot())
@@ -354,19 +364,25 @@ def run_adaptive(scene: Any, criterion: Criterion | str, *,
     with stop if stop is not None else nullcontext():
         while not state["done"]:
             ids = loop.active_ids
-            if not ids or p >= len(sizes):
+            if budget is not None:
+                ids = budget.select(loop, sizes, time.perf_counter() - t_start)
+            if not ids or (budget is None and p >= len(sizes)):
                 state["done"] = True
                 checkpoint()
                 break
             t0 = time.perf_counter()
-            images = br.render_blocks(ids, sizes[p], seed, pass_index=p)
-            loop_timers["render_s"] += time.perf_counter() - t0
-            with torch_threads(1):
-                loop.add_pass(ids, images, sizes[p])
-            spp = acc.spp(ids[0])
+            if budget is None:
+                images = br.render_blocks(ids, sizes[p], seed, pass_index=p)
+                loop_timers["render_s"] += time.perf_counter() - t0
+                with torch_threads(1):
+                    loop.add_pass(ids, images, sizes[p])
+            else:
+                budget.run_round(loop, br, ids, sizes, seed, loop_timers)
+            spp = max(acc.spp(b) for b in ids)
             p += 1
             state["pass_index"] = p
-            state["done"] = not loop.active.any() or p >= len(sizes)
+            state["done"] = (not loop.active.any() or p >= len(sizes)) if budget is None else \
+                budget.finished(loop, sizes)
             bar.set_postfix(spp=spp, active=len(loop.active_ids), refresh=False)
             bar.update(1)
             now = time.perf_counter()
@@ -394,6 +410,8 @@ def run_adaptive(scene: Any, criterion: Criterion | str, *,
         report["defines"] = dict(defines)
     if time_limit is not None:
         report["time_limit"] = {"seconds": float(time_limit), "reached": time_limit_reached}
+    if budget is not None:
+        report["budget"] = budget.describe(loop, time_limit_reached)
     report["render_calls"] = render_counts()
     image, spp_px, owner = compose([acc.mean(b) for b in range(n)], [br.window(b) for b in range(n)],
                                    [acc.spp(b) for b in range(n)], (br.height, br.width))

@@ -34,7 +34,8 @@ def render(scene: Any, *, criterion: Criterion | str = DEFAULT_CRITERION, tau: f
            defines: Mapping[str, str] | None = None,
            reference: Stack | str | os.PathLike[str] | np.ndarray | None = None,
            model: str | os.PathLike[str] | None = None, threshold: float | None = None,
-           offset: float | None = None, exposure: float = 0.0, quick_spp: int = 16) -> RenderResult:
+           offset: float | None = None, exposure: float = 0.0, quick_spp: int = 16,
+           spp_budget: float | None = None) -> RenderResult:
     """Render `scene` adaptively: sample each block until it looks converged, in memory.
 
     Also registers the ``noisestop`` Mitsuba integrator for the current variant (as
@@ -64,7 +65,8 @@ def render(scene: Any, *, criterion: Criterion | str = DEFAULT_CRITERION, tau: f
         Samples per pixel added to every active block per pass; None: 16.
     time_limit : float or None
         Seconds: the pass under way when they run out is finished and the render returns
-        (``report["time_limit"]["reached"]`` says so); None: no limit.
+        (``report["time_limit"]["reached"]`` says so); once the time left cannot cover every
+        active block, passes go to the blocks farthest from their target; None: no limit.
     seed : int
         Base seed: the samples of (pixel, pass) depend only on it, so the same call gives
         the same image bit for bit.
@@ -93,6 +95,10 @@ def render(scene: Any, *, criterion: Criterion | str = DEFAULT_CRITERION, tau: f
         Display exposure in stops the criteria judge the image at.
     quick_spp : int
         Samples of the quick image a model criterion reads (rendered once).
+    spp_budget : float or None
+        Samples per pixel averaged over the frame that the render may spend: passes go to
+        the blocks farthest from their target, and ``report["budget"]["above_target"]``
+        lists the blocks still above it when the budget ends; None: no budget.
 
     Returns
     -------
@@ -108,4 +114,5 @@ def render(scene: Any, *, criterion: Criterion | str = DEFAULT_CRITERION, tau: f
     crit = make_criterion(criterion, tau=tau, model=model, threshold=threshold, offset=offset, exposure=exposure)
     return run_adaptive(scene, crit, resolution=resolution, grid=grid, block=block, step=step, min_spp=min_spp,
                         max_spp=max_spp, seed=seed, progress=progress, reference=reference,
-                        quick_spp=quick_spp, defines=defines, time_limit=time_limit, tau=tau)
+                        quick_spp=quick_spp, defines=defines, time_limit=time_limit, tau=tau,
+                        spp_budget=spp_budget)

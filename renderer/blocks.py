@@ -259,6 +259,12 @@ class BlockRenderer:
         return self._tracer.launches if self._tracer is not None else self.mitsuba_calls
 
     @property
+    def kernel_lanes(self) -> int:
+        """Lanes of every block-pass launch (wavefront: one per sample traced; crop: the
+        samples of its Mitsuba calls)."""
+        return self._tracer.lanes if self._tracer is not None else self._crop_samples
+
+    @property
     def samples_traced(self) -> int:
         """Samples of the block passes, guard bands and shared window pixels included."""
         return self._tracer.samples if self._tracer is not None else self._crop_samples
@@ -297,6 +303,44 @@ class BlockRenderer:
                 out[i] = img[gy:gy + self.block_h, gx:gx + self.block_w]
         finally:
             self._set_crop(0, 0, self.width, self.height)  # leave the scene as we found it
+        return out
+
+    def render_passes(self, jobs: Sequence[tuple[int, int]], spp: int | Sequence[int], seed: int) -> np.ndarray:
+        """One pass per (block, pass index) job, all in as few launches as the engine allows:
+        float32 [len(jobs), bh, bw, 3].
+
+        Job (b, p) is exactly ``render_blocks([b], spp, seed, pass_index=p)``: blocks at
+        different pass counts (a budget render spends passes unevenly), or several steps
+        of the same block, share one wavefront. `spp`: one size for all, or per job (jobs
+        of the same size share a launch).
+        """
+        jobs = [(int(b), int(p)) for b, p in jobs]
+        for b, _ in jobs:
+            self._check_id(b)
+        if len(set(jobs)) != len(jobs):
+            raise ValueError(f"duplicate (block, pass) jobs in {jobs}")
+        sizes = [int(spp)] * len(jobs) if isinstance(spp, (int, np.integer)) else [int(s) for s in spp]
+        if len(sizes) != len(jobs):
+            raise ValueError(f"{len(jobs)} jobs but {len(sizes)} pass sizes")
+        out = np.empty((len(jobs), self.block_h, self.block_w, 3), dtype=np.float32)
+        if self._tracer is None:
+            for i, ((b, p), s) in enumerate(zip(jobs, sizes)):
+                out[i] = self.render_blocks([b], s, seed, pass_index=p)[0]
+            return out
+        for size in sorted(set(sizes)):
+            mine = [i for i, s in enumerate(sizes) if s == size]
+            passes = sorted({jobs[i][1] for i in mine})
+            masks = {p: np.zeros((self.height, self.width), bool) for p in passes}
+            for i in mine:
+                b, p = jobs[i]
+                masks[p][self.block_slices(b)] = True
+            frames = self._tracer.trace_jobs([(masks[p], derive_seed(seed, FULL_FRAME, p)) for p in passes], size)
+            self.mitsuba_calls += 1
+            self._count_kernels()
+            by_pass = dict(zip(passes, frames))
+            for i in mine:
+                b, p = jobs[i]
+                out[i] = by_pass[p][self.block_slices(b)]
         return out
 
     def render_full(self, spp: int, seed: int, pass_index: int = 0) -> np.ndarray:

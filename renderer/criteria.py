@@ -99,6 +99,9 @@ class Criterion(ABC):
     def __init__(self) -> None:
         self.counters: dict[str, int] = {k: 0 for k in COUNTER_NAMES}
         self.timers: dict[str, float] = {k: 0.0 for k in TIMER_NAMES}
+        # block id -> how far its last verdict was from the target, as a ratio (> 1: above
+        # it, noisy; NaN: no estimate): what a budget render spends its passes by
+        self.ratios: dict[int, float] = {}
 
     def describe(self) -> dict[str, Any]:
         """Name and parameters, for reports."""
@@ -155,6 +158,10 @@ class Criterion(ABC):
     def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
         """Verdicts for validated, non-empty input."""
 
+    def _keep_ratios(self, ids: list[int], ratio: np.ndarray) -> None:
+        for b, r in zip(ids, np.asarray(ratio, np.float64)):
+            self.ratios[b] = float(r)
+
     def _flat(self, views: list[BlockView], exposure: float) -> np.ndarray:
         """bool [n]: blocks with no visible variation at all (the stop rule's flat test)."""
         means = [v.mean for v in views]
@@ -200,6 +207,8 @@ class OracleCriterion(Criterion):
                 raise ValueError(f"block id {b} out of range: the oracle knows {len(self.thresholds)} blocks")
             t = self.thresholds[b]
             out[i] = CONVERGED if t is not None and v.spp >= t else NOISY
+        self._keep_ratios(ids, np.array([np.inf if self.thresholds[b] is None else self.thresholds[b] / max(v.spp, 1)
+                                         for b, v in zip(ids, views)]))
         return out
 
 
@@ -270,9 +279,10 @@ class VarianceCriterion(Criterion):
     def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
         flat = self._flat(views, self.exposure) if self.flat_shortcut else np.zeros(len(views), bool)
         out = np.full(len(ids), NOISY, np.int8)
+        ratio = np.full(len(ids), np.nan)
         for i, v in enumerate(views):
             if flat[i]:
-                out[i] = CONVERGED
+                out[i], ratio[i] = CONVERGED, 0.0
                 continue
             assert v.halves is not None and v.half_spp is not None
             if min(v.half_spp) <= 0:
@@ -280,6 +290,8 @@ class VarianceCriterion(Criterion):
             err = self.pixel_error(v.mean, v.halves[0])
             passed = float((err < self.scale * self.threshold).mean())
             out[i] = CONVERGED if passed >= self.quantile else NOISY
+            ratio[i] = float(np.quantile(err, self.quantile)) / (self.scale * self.threshold)
+        self._keep_ratios(ids, ratio)
         return out
 
 
@@ -419,7 +431,11 @@ class ModelCriterion(Criterion):
                     raise RuntimeError(f"model returned {verdict.shape} verdicts for {len(ask)} blocks")
                 remote_verdict[ask] = np.where(verdict > 0, CONVERGED, NOISY)
         if self.rule is None:                  # a server's verdicts, by the same rule there
+            self._keep_ratios(ids, np.where(flat, 0.0, np.nan))
             return np.where(flat, CONVERGED, remote_verdict)
+        # a score is a signed distance, not a ratio: exp(offset - score) is 1 at the offset
+        with np.errstate(over="ignore"):
+            self._keep_ratios(ids, np.where(flat, 0.0, np.exp(np.clip(self.rule.offset - score, -50, 50))))
         return self.rule.verdict(score, flat)
 
 
@@ -467,6 +483,8 @@ class FlipCriterion(Criterion):
             b = np.stack([views[i].halves[1] for i in ask])    # type: ignore[index]
             score[ask] = -halves_flip(a, b, self.exposure)
             self.counters["blocks_featured"] += len(ask)
+        # the half-buffer FLIP relative to c (the criterion's threshold c(tau)); flat: 0
+        self._keep_ratios(ids, np.where(flat, 0.0, -score / self.c if self.c > 0 else np.inf))
         return self.rule.verdict(score, flat)
 
 

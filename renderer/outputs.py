@@ -76,13 +76,15 @@ def write_report(path: str | os.PathLike, report: dict[str, Any]) -> Path:
 
 
 def spp_map_png(spp: np.ndarray, windows: Sequence[Sequence[int]], block_spp: Sequence[int],
-                converged: Sequence[bool], min_spp: int, max_spp: int) -> bytes:
+                converged: Sequence[bool], min_spp: int, max_spp: int,
+                above_target: Sequence[int] = ()) -> bytes:
     """PNG bytes: a heat map of the samples per pixel, with a colour bar and a legend.
 
     Log2 colour scale from `min_spp` to `max_spp` (Cycles' debug sample count, LuxCore's
     convergence pass); block windows outlined, blocks that ran to max spp without the
-    criterion stopping them outlined in red; each block's spp written on it when the
-    blocks are large enough to read.
+    criterion stopping them outlined in red, blocks a budget left above the noise target
+    (`above_target`, block ids) outlined in orange; each block's spp written on it when
+    the blocks are large enough to read.
     """
     require("matplotlib")
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -106,19 +108,26 @@ def spp_map_png(spp: np.ndarray, windows: Sequence[Sequence[int]], block_spp: Se
     bar.set_ticks(ticks, labels=[str(int(t)) for t in ticks])
     bar.set_label("samples per pixel")
     label_size = max(5.0, min(11.0, 0.25 * 72.0 * inches * (windows[0][2] / w))) if windows else 8.0
-    for (x, y, bw, bh), s, ok in zip(windows, block_spp, converged):
+    left = {int(b) for b in above_target}
+    for b, ((x, y, bw, bh), s, ok) in enumerate(zip(windows, block_spp, converged)):
         ran_out = not ok and s >= max_spp
-        ax.add_patch(Rectangle((x - 0.5, y - 0.5), bw, bh, fill=False, lw=1.6 if ran_out else 0.5,
-                               ec="red" if ran_out else "white", alpha=0.9 if ran_out else 0.35))
+        short = b in left and not ran_out
+        colour = "red" if ran_out else "orange" if short else "white"
+        ax.add_patch(Rectangle((x - 0.5, y - 0.5), bw, bh, fill=False, lw=1.6 if ran_out or short else 0.5,
+                               ec=colour, alpha=0.9 if ran_out or short else 0.35))
         if len(windows) <= 64:
             ax.text(x + bw / 2 - 0.5, y + bh / 2 - 0.5, f"{int(s)}", ha="center", va="center",
                     fontsize=label_size, color="white",
                     bbox={"facecolor": "black", "alpha": 0.45, "pad": 1.0, "lw": 0})
     stopped = int(sum(bool(c) for c in converged))
-    ax.legend(handles=[Line2D([], [], color="grey", lw=0.8, label=f"stopped by the criterion ({stopped})"),
-                       Line2D([], [], color="red", lw=1.6, label=f"ran to max spp {max_spp} "
-                              f"({sum(1 for s, c in zip(block_spp, converged) if not c and s >= max_spp)})")],
-              loc="upper center", bbox_to_anchor=(0.5, -0.01), ncol=2, fontsize=8, frameon=False,
+    handles = [Line2D([], [], color="grey", lw=0.8, label=f"stopped by the criterion ({stopped})"),
+               Line2D([], [], color="red", lw=1.6, label=f"ran to max spp {max_spp} "
+                      f"({sum(1 for s, c in zip(block_spp, converged) if not c and s >= max_spp)})")]
+    short = sum(1 for b in left if b < len(block_spp) and block_spp[b] < max_spp)
+    if short:
+        handles.append(Line2D([], [], color="orange", lw=1.6, label=f"above target when the budget ended ({short})"))
+    ax.legend(handles=handles,
+              loc="upper center", bbox_to_anchor=(0.5, -0.01), ncol=len(handles), fontsize=8, frameon=False,
               facecolor="none", labelcolor="black")
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
@@ -176,8 +185,9 @@ def write_outputs(out: str | os.PathLike, image: np.ndarray, report: dict[str, A
                                          "spp": np.asarray(spp, np.float32),
                                          "converged": np.asarray(converged, np.float32)})
     write_png(out / FINAL_PNG, srgb8)
+    above = [b["id"] for b in (report.get("budget") or {}).get("above_target", [])]
     atomic_write(out / SPP_MAP, spp_map_png(spp, windows, block_spp, [b["converged"] for b in blocks],
-                                                  report["min_spp"], report["max_spp"]))
+                                            report["min_spp"], report["max_spp"], above))
     names = [FINAL_EXR, FINAL_PNG, SPP_MAP, REPORT]
     check = report.get("final_vs_reference")
     if reference is not None and check is not None:
@@ -219,6 +229,12 @@ def format_report(report: dict[str, Any], out: str | os.PathLike | None = None) 
                      f"the observer's FLIP threshold {f['tau']:g} (visible noise"
                      + (f"; {stopped} of them stopped by the criterion, the others ran to max spp" if stopped
                         is not None else "") + "; see compare.png)")
+    budget = report.get("budget")
+    if budget and budget.get("ended"):
+        left = budget.get("above_target", [])
+        lines.append(f"budget ended with {len(left)} block(s) above target (outlined in spp_map.png): "
+                     + ", ".join(f"{x['id']}" + (f" ({x['ratio']:.2f}x)" if x["ratio"] is not None else "")
+                                 for x in left[:8]) + (" ..." if len(left) > 8 else ""))
     if out is not None:
         lines.append(f"outputs in {out}")
     return "\n".join(lines)

@@ -31,12 +31,14 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
     history = state["history"]
     hist_spp = state["history_spp"]
     blocks = []
+    events = state.get("events")        # each block's own (spp, verdict): budget rounds desync them
     for b in range(n):
         asked = np.flatnonzero(history[:, b] != 0)
+        own = [[int(s), int(v)] for s, v in events.get(b, [])] if events is not None else \
+            [[int(hist_spp[i]), int(history[i, b])] for i in asked]
         blocks.append({"id": b, "window": list(br.window(b)), "spp": int(spp[b]), "converged": bool(converged[b]),
                        "stop_spp": int(state["stop_spp"][b]) if converged[b] else None,
-                       "nonfinite": acc.nonfinite(b),
-                       "history": [[int(hist_spp[i]), int(history[i, b])] for i in asked]})
+                       "nonfinite": acc.nonfinite(b), "history": own})
     pixels = br.block_h * br.block_w          # samples_spent counts shared window pixels once per window
     wall = float(timers.get("wall_s", 0.0))
     setup_s, render_s, features_s, decisions_s = (float(timers.get(k, 0.0))

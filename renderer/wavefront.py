@@ -24,10 +24,16 @@ blocks is bit for bit the same estimator as those blocks cut out of a full-frame
 
 Pixels on the frame's edge get no samples from outside it, as in a full-frame render
 without ``sample_border``.
+
+Keys are per lane, so one launch can also trace several passes (`trace_jobs`: a pixel set
+and a key per job): the blocks of a budget round at different pass counts, or k steps of
+few active blocks as one k times larger wavefront, each job's values exactly those of
+its pass traced alone.
 """
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -114,6 +120,7 @@ class WavefrontTracer:
         self.guard = 0 if self.box else guard_band(self.rfilter.radius())
         self._sampler = _keyed_sampler_class()()
         self.launches = 0
+        self.lanes = 0            # lanes launched (one per sample), over every launch
         self.samples = 0          # samples traced, guard band included
 
     def traced_pixels(self, mask: np.ndarray) -> np.ndarray:
@@ -134,36 +141,70 @@ class WavefrontTracer:
         `key` (32 bits) selects the pass's random numbers: the same (pixel, spp, key)
         always gives the same value, whatever else is in `mask`.
         """
-        mask = np.asarray(mask, bool)
-        if mask.shape != (self.height, self.width):
-            raise ValueError(f"pixel mask {mask.shape} does not match the frame {(self.height, self.width)}")
+        return self.trace_jobs([(mask, key)], spp)[0]
+
+    def trace_jobs(self, jobs: Sequence[tuple[np.ndarray, int]], spp: int) -> list[np.ndarray]:
+        """Several passes in one launch: float32 [H, W, 3] per (pixel mask, key) job.
+
+        Each job is exactly what `trace(mask, spp, key)` returns (random numbers are keyed
+        per (pixel, sample, key), and every job's pixels are summed on their own), so
+        passes of different blocks at different pass indices, or several steps of the same
+        blocks, share one launch: a larger wavefront when few pixels are active. With a
+        box filter all jobs go in one launch; a wider filter splats each job into its own
+        frame, one launch per job.
+        """
         if not isinstance(spp, (int, np.integer)) or spp < 1:
             raise ValueError(f"spp must be a positive integer, got {spp!r}")
-        out = np.zeros((self.height, self.width, 3), np.float32)
+        masks, keys = [], []
+        for mask, key in jobs:
+            mask = np.asarray(mask, bool)
+            if mask.shape != (self.height, self.width):
+                raise ValueError(f"pixel mask {mask.shape} does not match the frame {(self.height, self.width)}")
+            masks.append(mask)
+            keys.append(int(key) & 0xFFFFFFFF)
+        outs = [np.zeros((self.height, self.width, 3), np.float32) for _ in masks]
+        if not self.box:
+            for out, mask, key in zip(outs, masks, keys):
+                self._trace_splat(out, mask, int(spp), key)
+            return outs
+        pixels = [np.flatnonzero(m.ravel()).astype(np.uint32) for m in masks]
+        lane_keys = [np.full(p.size, k, np.uint32) for p, k in zip(pixels, keys)]
+        job_of = np.repeat(np.arange(len(masks)), [p.size for p in pixels])
+        all_pixels = np.concatenate(pixels) if pixels else np.zeros(0, np.uint32)
+        all_keys = np.concatenate(lane_keys) if lane_keys else np.zeros(0, np.uint32)
+        if all_pixels.size == 0:
+            return outs
+        self.samples += int(all_pixels.size) * int(spp)
+        per_launch = max(1, MAX_LANES // int(spp))
+        values = np.empty((all_pixels.size, 3), np.float32)
+        for i in range(0, all_pixels.size, per_launch):
+            values[i:i + per_launch] = self._launch_box(all_pixels[i:i + per_launch], int(spp),
+                                                        all_keys[i:i + per_launch])
+        for j, out in enumerate(outs):
+            out.reshape(-1, 3)[pixels[j]] = values[job_of == j]
+        return outs
+
+    def _trace_splat(self, out: np.ndarray, mask: np.ndarray, spp: int, key: int) -> None:
+        """One job with a wide filter: splat the grown pixel set, read back `mask`."""
         traced = self.traced_pixels(mask)
         pixels = np.flatnonzero(traced.ravel()).astype(np.uint32)
         if pixels.size == 0:
-            return out
+            return
         self.samples += int(pixels.size) * int(spp)
         per_launch = max(1, MAX_LANES // int(spp))
-        flat = out.reshape(-1, 3)
-        if self.box:
-            for i in range(0, pixels.size, per_launch):
-                chunk = pixels[i:i + per_launch]
-                flat[chunk] = self._launch_box(chunk, int(spp), int(key))
-            return out
         acc = np.zeros((self.height * self.width, 4), np.float64)
         for i in range(0, pixels.size, per_launch):
-            acc += self._launch_splat(pixels[i:i + per_launch], int(spp), int(key))
+            chunk = pixels[i:i + per_launch]
+            acc += self._launch_splat(chunk, spp, np.full(chunk.size, key, np.uint32))
         want = np.flatnonzero(mask.ravel())
         w = acc[want, 3:]
-        flat[want] = np.divide(acc[want, :3], w, out=np.zeros((want.size, 3)), where=w > 0)
-        return out
+        out.reshape(-1, 3)[want] = np.divide(acc[want, :3], w, out=np.zeros((want.size, 3)), where=w > 0)
 
     # -- one launch ---------------------------------------------------------------
 
-    def _samples(self, pixels: np.ndarray, spp: int, key: int) -> tuple[Any, Any]:
-        """(film position, radiance) of every sample of `pixels`: lanes pixel-major."""
+    def _samples(self, pixels: np.ndarray, spp: int, keys: np.ndarray) -> tuple[Any, Any]:
+        """(film position, radiance) of every sample of `pixels`, each pixel with its pass
+        key (`keys`, uint32 like `pixels`): lanes pixel-major."""
         mi, dr = self._mi, self._dr
         n = int(pixels.size) * spp
         lane = dr.arange(mi.UInt32, n)
@@ -171,7 +212,8 @@ class WavefrontTracer:
         which = lane // spp_o
         j = lane - which * spp_o
         pix = dr.gather(mi.UInt32, mi.UInt32(pixels), which)
-        s0, s1 = mi.sample_tea_32(pix, dr.opaque(mi.UInt32, key))
+        key = dr.gather(mi.UInt32, mi.UInt32(keys), which)
+        s0, s1 = mi.sample_tea_32(pix, key)
         t0, t1 = mi.sample_tea_32(j, s0)
         sampler = self._sampler
         sampler.set_streams(mi.UInt64(s1) | (mi.UInt64(t0) << 32), mi.UInt64(t1))
@@ -191,12 +233,13 @@ class WavefrontTracer:
         radiance, _, _ = self.integrator.sample(self.scene, sampler, ray, sensor.get_medium(), True)
         return pos, mi.Color3f(weight * radiance)
 
-    def _launch_box(self, pixels: np.ndarray, spp: int, key: int) -> np.ndarray:
+    def _launch_box(self, pixels: np.ndarray, spp: int, keys: np.ndarray) -> np.ndarray:
         """Box filter: the mean of each pixel's own samples, float32 [n, 3]."""
         mi, dr = self._mi, self._dr
-        _, rgb = self._samples(pixels, spp, key)
+        _, rgb = self._samples(pixels, spp, keys)
         dr.eval(rgb)
         self.launches += 1
+        self.lanes += int(pixels.size) * spp
         # lanes are pixel-major: each pixel's spp samples are consecutive (numpy sums them
         # faster than dr.block_sum on the llvm backend)
         # (channel by channel: converting the Color3f at once would compile a copy kernel
@@ -204,14 +247,15 @@ class WavefrontTracer:
         values = np.stack([np.asarray(rgb[c], np.float32) for c in range(3)]).reshape(3, pixels.size, spp)
         return values.sum(axis=2, dtype=np.float64).T.astype(np.float32) / np.float32(spp)
 
-    def _launch_splat(self, pixels: np.ndarray, spp: int, key: int) -> np.ndarray:
+    def _launch_splat(self, pixels: np.ndarray, spp: int, keys: np.ndarray) -> np.ndarray:
         """Any filter: weighted sums and weights [H * W, 4] splatted over the frame."""
         mi, dr = self._mi, self._dr
-        pos, rgb = self._samples(pixels, spp, key)
+        pos, rgb = self._samples(pixels, spp, keys)
         block = mi.ImageBlock(mi.ScalarVector2u(self.width, self.height), mi.ScalarPoint2i(0, 0), 4,
                               self.rfilter, border=False)
         block.put(pos, [rgb[0], rgb[1], rgb[2], mi.Float(1.0)])
         tensor = block.tensor()
         dr.eval(tensor)
         self.launches += 1
+        self.lanes += int(pixels.size) * spp
         return np.asarray(tensor, np.float64).reshape(-1, 4)

@@ -13,8 +13,9 @@ from . import arguments as arg
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="measure the figures of BENCHMARKS.md")
     p.add_argument("what", nargs="*", default=["features", "crop"],
-                   help="sections: features, crop, flip, models, render, passes, service, capacity, stability, reliability, "
-                        "hardening, dataset, inputs, criteria, tradeoff, ablation, step, knobs, observer, tau "
+                   help="sections: features, crop, flip, models, render, passes, oracle, service, capacity, "
+                        "stability, reliability, hardening, dataset, inputs, criteria, tradeoff, ablation, step, "
+                        "knobs, observer, tau, budget "
                         "(default: features crop)")
     p.add_argument("--data", default=None, help="labelled dataset of training scenes")
     p.add_argument("--heldout", default=None,

@@ -44,7 +44,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="display exposure (stops, -64..64) the criteria judge the image at (default 0)")
     p.add_argument("--time-limit", type=arg.float_in(0.0, 1e9, open_low=True), default=None, metavar="S",
                    help="stop after the pass under way at S seconds, writing the outputs and the "
-                        "checkpoint (--resume continues)")
+                        "checkpoint (--resume continues); when the time will not cover every block, "
+                        "passes go to the blocks farthest from the noise target first")
+    p.add_argument("--spp-budget", type=arg.float_in(0.0, arg.MAX_SPP, open_low=True), default=None, metavar="N",
+                   help="samples per pixel to spend, averaged over the blocks: each pass goes to the "
+                        "blocks farthest from the noise target; report.json lists (and spp_map.png "
+                        "outlines) the blocks still above it when the budget ends. --time-limit "
+                        "spends its seconds the same way")
     p.add_argument("-D", dest="defines", type=arg.define, action="append", default=None, metavar="KEY=VALUE",
                    help="set a <default> parameter of an XML scene, as mitsuba -D does (repeatable), "
                         "e.g. -D integrator=path")
@@ -93,7 +99,8 @@ def cmd_render(args: argparse.Namespace) -> int:
             resolution=args.resolution, grid=None if args.grid is None else tuple(args.grid), block=args.block,
             checkpoint_every=args.checkpoint_every, step=args.step,
             min_spp=args.min_spp, max_spp=args.max_spp, seed=args.seed, resume=args.resume,
-            defines=dict(args.defines) if args.defines else None, time_limit=args.time_limit)
+            defines=dict(args.defines) if args.defines else None, time_limit=args.time_limit,
+            spp_budget=args.spp_budget)
     except ConnectionError as exc:      # verdict server unreachable or failing
         raise UsageError(str(exc)) from exc
     single = "blocks" in result         # one scene: its report; several: a summary

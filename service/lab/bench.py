@@ -20,6 +20,7 @@ from .bench_features import bench_crop, bench_features, md_crop, md_features
 from .bench_flip import bench_flip, md_flip
 from .bench_models import (bench_ablation, bench_dataset, bench_inputs, bench_knobs, bench_models, md_ablation,
                            md_cost_accuracy, md_dataset, md_inputs, md_knobs, md_models, saved_comparisons)
+from .bench_budget import bench_budget, md_budget
 from .bench_observer import bench_observer, bench_tau, md_observer, md_tau
 from .bench_passes import bench_render, md_render
 
@@ -46,10 +47,11 @@ DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "inputs": (bench_inp
                     "criteria": (bench_criteria, md_criteria),
                     "tradeoff": (bench_tradeoff, md_tradeoff), "ablation": (bench_ablation, md_ablation),
                     "step": (bench_step, md_step), "knobs": (bench_knobs, md_knobs),
-                    "observer": (bench_observer, md_observer), "tau": (bench_tau, md_tau)}
+                    "observer": (bench_observer, md_observer), "tau": (bench_tau, md_tau),
+                    "budget": (bench_budget, md_budget)}
 
 
-SECTIONS = ("features", "crop", "flip", "models", "render", "passes", "service", "capacity", "stability",
+SECTIONS = ("features", "crop", "flip", "models", "render", "passes", "oracle", "service", "capacity", "stability",
             "reliability", "hardening", *DATASET_SECTIONS)
 
 
@@ -108,6 +110,9 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
     if "passes" in only:
         from .bench_passes import bench_passes, md_passes
         measure("passes", bench_passes, md_passes)
+    if "oracle" in only:
+        from .bench_passes import bench_oracle, md_oracle
+        measure("oracle", lambda: bench_oracle(max(1, min(repeats, 3))), md_oracle)
     for name, (run, md) in DATASET_SECTIONS.items():
         if name in only:
             measure(name, lambda run=run, name=name: run(data, heldout, out_dir=out_dir) if name == "tradeoff"

@@ -55,6 +55,55 @@ def pass_cost(repeats: int = 3) -> dict[str, Any]:
     return out
 
 
+COST_SCENE = ("cornell", 256, (4, 4), 32)                # scene, resolution, grid, spp per pass
+STEPS_PER_LAUNCH = (1, 4)
+
+
+def sample_cost(repeats: int = 3, steps: tuple[int, ...] = STEPS_PER_LAUNCH) -> dict[str, Any]:
+    """Seconds per pixel-sample of a pass with one block of 16 active against all 16.
+
+    Each block is traced alone in turn (so the figure is not one block's own cost: the
+    mean over the blocks, as a render whose last active block could be any of them), and
+    with k passes of it in one launch (`BlockRenderer.render_passes`: a k times larger
+    wavefront). Repeats interleave every variant; medians per block.
+    """
+    import time
+
+    from renderer.blocks import BlockRenderer
+    from renderer.scenes import load_scene
+
+    scene, res, grid, spp = COST_SCENE
+    br = BlockRenderer(load_scene(scene, res), grid=grid)
+    n = br.n_blocks
+    br.render_blocks(list(range(n)), spp, seed=0)                       # compile
+    clocks = {"wall": time.perf_counter, "cpu": time.process_time}   # cpu: every thread of this process
+    full = {c: [] for c in clocks}
+    alone = {(c, k): np.zeros((repeats, n)) for c in clocks for k in steps}
+    p = 1
+    for r in range(repeats):
+        t0 = {c: f() for c, f in clocks.items()}
+        br.render_blocks(list(range(n)), spp, seed=1, pass_index=p)
+        for c, f in clocks.items():
+            full[c].append(f() - t0[c])
+        p += 1
+        for b in range(n):
+            for k in steps:
+                t0 = {c: f() for c, f in clocks.items()}
+                br.render_passes([(b, p + j) for j in range(k)], spp, seed=1)
+                for c, f in clocks.items():
+                    alone[c, k][r, b] = (f() - t0[c]) / k
+                p += k
+    full_s = {c: float(np.median(v)) for c, v in full.items()}
+    rows = [{"steps_per_launch": k, "lanes": br.block_h * br.block_w * spp * k,
+             "one_block_s": float(np.median(alone["wall", k], axis=0).mean()),
+             "ratio": float(np.median(alone["wall", k], axis=0).sum() / full_s["wall"]),
+             "cpu_ratio": float(np.median(alone["cpu", k], axis=0).sum() / full_s["cpu"])} for k in steps]
+    per_block = np.median(alone["cpu", steps[0]], axis=0)
+    return {"scene": scene, "resolution": res, "grid": list(grid), "spp": spp, "repeats": repeats,
+            "all_blocks_s": full_s["wall"], "all_blocks_cpu_s": full_s["cpu"], "rows": rows,
+            "block_cost_spread": float(per_block.max() / per_block.min())}
+
+
 def decision_cost(repeats: int = 5, counts: tuple[int, ...] = (1, 4, 16, 64, 256)) -> dict[str, Any]:
     """Seconds of one flip decision call against the number of 64x64 blocks it judges."""
     from renderer.criteria import BlockView, FlipCriterion
@@ -76,17 +125,76 @@ def decision_cost(repeats: int = 5, counts: tuple[int, ...] = (1, 4, 16, 64, 256
     return {"criterion": "flip", "block": 64, "rows": rows}
 
 
-def block_costs(scene: str, resolution: Any, block: int, spp: int = 8) -> np.ndarray:
+def block_costs(scene: str, resolution: Any, block: int | None = None, spp: int = 8,
+                grid: tuple[int, int] | None = None, repeats: int = 1) -> np.ndarray:
     """Seconds per sample of each block traced alone (warm): samples are not equally dear
     (a sky pixel's ray escapes at once, a glass pixel's bounces), so the samples a render
     saves and the time it saves differ by where it saved them."""
     from renderer.blocks import BlockRenderer
     from renderer.scenes import load_scene
 
-    br = BlockRenderer(load_scene(scene, resolution), block=block)
+    br = BlockRenderer(load_scene(scene, resolution), block=block, grid=grid)
     br.render_blocks([0], spp, seed=0)
-    return np.array([median_s(lambda b=b: br.render_blocks([b], spp, seed=1, pass_index=b), 1, warm=False) / spp
-                     for b in range(br.n_blocks)])
+    return np.array([median_s(lambda b=b: br.render_blocks([b], spp, seed=1, pass_index=b), repeats, warm=False)
+                     / spp for b in range(br.n_blocks)])
+
+
+#: oracle stops of the speed-up goal: thresholds spread over 192..2048 spp and two blocks
+#: that never converge (censored), dealt to the 16 blocks in a fixed shuffled order
+ORACLE_THRESHOLDS = (192, 256, 320, 384, 448, 512, 640, 768, 896, 1024, 1280, 1536, 1792, 2048, None, None)
+ORACLE_RUNS = (("cornell", 256, 32, 2048), ("env_spheres", 256, 32, 2048))   # scene, res, step, max spp
+
+
+def oracle_speedup(repeats: int = 3, runs: tuple = ORACLE_RUNS) -> list[dict[str, Any]]:
+    """The oracle criterion against uniform to the same max spp, interleaved, medians.
+
+    With the oracle the stops cost nothing to decide, so the wall-time speed-up against
+    the sample ratio measures the loop itself: per-pass overhead and the wavefront of few
+    blocks. The cost-weighted ratio weighs each block's samples by its own cost per
+    sample (measured alone), the speed-up an ideal loop would reach.
+    """
+    import time
+
+    from renderer.adaptive import adaptive_render
+    from renderer.criteria import OracleCriterion, UniformCriterion
+
+    order = np.random.default_rng(28).permutation(len(ORACLE_THRESHOLDS))
+    thresholds = [ORACLE_THRESHOLDS[i] for i in order]
+    out = []
+    for scene, res, step, max_spp in runs:
+        opts = {"resolution": res, "grid": (4, 4), "step": step, "min_spp": step, "max_spp": max_spp,
+                "progress": False, "checkpoint_every": 1e9}
+        runs_: dict[str, list[dict[str, Any]]] = {"oracle": [], "uniform": []}
+        with tempfile.TemporaryDirectory() as tmp:
+            adaptive_render(scene, Path(tmp) / "warm", UniformCriterion(), **{**opts, "max_spp": step})
+            for i in range(repeats):
+                for name in ("oracle", "uniform") if i % 2 == 0 else ("uniform", "oracle"):
+                    crit = OracleCriterion(thresholds) if name == "oracle" else UniformCriterion()
+                    cpu = time.process_time()
+                    rep = adaptive_render(scene, Path(tmp) / f"{name}{i}", crit, **opts)
+                    runs_[name].append({**rep, "cpu_s": time.process_time() - cpu})
+        o, u = (sorted(runs_[k], key=lambda r: r["wall_s"])[len(runs_[k]) // 2] for k in ("oracle", "uniform"))
+        # each repeat's pair ran back to back: the median of the pairs' ratios shrugs off a
+        # load change between repeats; CPU time (every thread of the process) off load at all
+        pairs = {c: float(np.median([u_[c] / o_[c] for o_, u_ in zip(runs_["oracle"], runs_["uniform"])]))
+                 for c in ("wall_s", "cpu_s")}
+        sample_ratio = u["render_calls"]["samples_traced"] / o["render_calls"]["samples_traced"]
+        cost = block_costs(scene, res, grid=(4, 4), spp=step, repeats=3)
+        spent = np.array([b["spp"] for b in o["blocks"]], float)
+        cost_ratio = float(cost.sum() * max_spp / (cost * spent).sum())
+        speedup = pairs["wall_s"]
+        out.append({"scene": scene, "resolution": res, "step": step, "max_spp": max_spp, "repeats": repeats,
+                    "oracle_wall_s": [r["wall_s"] for r in runs_["oracle"]],
+                    "uniform_wall_s": [r["wall_s"] for r in runs_["uniform"]],
+                    "oracle_cpu_s": [r["cpu_s"] for r in runs_["oracle"]],
+                    "uniform_cpu_s": [r["cpu_s"] for r in runs_["uniform"]], "cpu_speedup": pairs["cpu_s"],
+                    "speedup": speedup, "sample_ratio": sample_ratio, "cost_weighted_ratio": cost_ratio,
+                    "speedup_over_ratio": speedup / sample_ratio, "speedup_over_cost_ratio": speedup / cost_ratio,
+                    "cpu_speedup_over_ratio": pairs["cpu_s"] / sample_ratio,
+                    "cpu_speedup_over_cost_ratio": pairs["cpu_s"] / cost_ratio,
+                    "block_cost_spread": float(cost.max() / cost.min()),
+                    "render_calls": o["render_calls"]})
+    return out
 
 
 def render_scaling(repeats: int = 1) -> list[dict[str, Any]]:
@@ -211,4 +319,54 @@ def md_render(r: dict[str, Any]) -> str:
         lines.append(f"| {name} criterion | {m['wall_s']:.1f} | {walls(m)} | {m['saved_vs_uniform']:.3f} "
                      f"| {m['speedup_vs_uniform']:.2f}x | {100 * m['decision_share']:.2f} % |")
     lines.append(f"| uniform to max spp | {u['wall_s']:.1f} | {walls(u)} | 0 | 1 | - |")
+    return "\n".join(lines)
+
+
+def bench_oracle(repeats: int = 3) -> dict[str, Any]:
+    """Per-sample cost of a pass with one block active, and the oracle's speed-up over
+    uniform (`sample_cost`, `oracle_speedup`), with the load average before and after."""
+    import os
+
+    load = [os.getloadavg()]
+    cost = sample_cost(repeats)
+    load.append(os.getloadavg())
+    oracle = oracle_speedup(repeats)
+    load.append(os.getloadavg())
+    return {"sample_cost": cost, "oracle": oracle, "load": [list(x) for x in load]}
+
+
+def md_oracle(r: dict[str, Any]) -> str:
+    c = r["sample_cost"]
+    load = ", ".join(f"{x[0]:.1f}" for x in r["load"])
+    lines = [f"Load average (1 min) at the start, between and at the end: {load} (2 cores).", "",
+             f"A pass of {c['spp']} spp on {c['scene']} at {c['resolution']}x{c['resolution']} ({c['grid'][0]}x"
+             f"{c['grid'][1]} blocks): all blocks in one launch took {c['all_blocks_s']:.2f} s (median of "
+             f"{c['repeats']}). One block alone, each block in turn, k passes of it per launch (interleaved, "
+             "median per block, mean over the blocks); goal: time per pixel-sample with 1 of 16 blocks "
+             "active <= 1.15x that with all 16:", "",
+             "| passes per launch | lanes per launch | one block, per pass (wall) | per pixel-sample vs all 16 "
+             "active: wall | CPU time |", "|---|---|---|---|---|"]
+    for row in c["rows"]:
+        lines.append(f"| {row['steps_per_launch']} | {row['lanes']:,} | {row['one_block_s'] * 1e3:.0f} ms "
+                     f"| {row['ratio']:.2f}x | {row.get('cpu_ratio', float('nan')):.2f}x |")
+    lines += ["", f"Blocks differ in cost: the dearest costs {c['block_cost_spread']:.1f}x the cheapest per sample.",
+              "", "Oracle stops against uniform sampling to the same max spp (step 32, 4x4 blocks, the "
+              "thresholds of `ORACLE_THRESHOLDS`; runs interleaved, speed-up = median over the repeats of "
+              "uniform / oracle run back to back; CPU time counts every thread of the process, so load "
+              "moves it little); goal: speed-up >= 0.9x the sample ratio on the Cornell box; env_spheres "
+              "against the cost-weighted ratio:", "",
+              "| scene | oracle wall (s) | uniform wall (s) | speed-up: wall | CPU time | sample ratio "
+              "| speed-up / sample ratio: wall | CPU | cost-weighted ratio | speed-up / cost-weighted ratio: wall "
+              "| CPU | block cost spread | launches | lanes per launch |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for x in r["oracle"]:
+        rc = x["render_calls"]
+        lines.append(f"| {x['scene']} {x['resolution']}x{x['resolution']}, max {x['max_spp']} "
+                     f"| {', '.join(f'{w:.1f}' for w in x['oracle_wall_s'])} "
+                     f"| {', '.join(f'{w:.1f}' for w in x['uniform_wall_s'])} | {x['speedup']:.2f}x "
+                     f"| {x['cpu_speedup']:.2f}x | {x['sample_ratio']:.2f}x | {x['speedup_over_ratio']:.2f} "
+                     f"| {x['cpu_speedup_over_ratio']:.2f} | {x['cost_weighted_ratio']:.2f}x "
+                     f"| {x['speedup_over_cost_ratio']:.2f} | {x['cpu_speedup_over_cost_ratio']:.2f} "
+                     f"| {x['block_cost_spread']:.1f}x "
+                     f"| {rc['kernel_launches']} | {rc['kernel_lanes'] / max(rc['kernel_launches'], 1):,.0f} |")
     return "\n".join(lines)

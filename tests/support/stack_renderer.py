@@ -21,7 +21,7 @@ class StackRenderer:
         self.block_shape = tuple(stack.block)
         self.n_blocks = stack.n_blocks
         self.calls = []
-        self.kernel_compiles = self.samples_traced = 0
+        self.kernel_compiles = self.samples_traced = self.kernel_lanes = 0
 
     @property
     def mitsuba_calls(self):
@@ -42,6 +42,13 @@ class StackRenderer:
         self.calls.append(list(ids))
         self.samples_traced += len(ids) * self.block_h * self.block_w * spp
         return np.stack([self.passes[pass_index][b] for b in ids])
+
+    def render_passes(self, jobs, spp, seed):
+        sizes = [spp] * len(jobs) if isinstance(spp, int) else list(spp)
+        assert all(s == self.step for s in sizes)
+        self.calls.append([b for b, _ in jobs])
+        self.samples_traced += len(jobs) * self.block_h * self.block_w * self.step
+        return np.stack([self.passes[p][b] for b, p in jobs])
 
     def quick_image(self, spp=16, seed=0, kind="albedo"):
         return self.stack.quick(kind)

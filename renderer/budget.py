@@ -1,0 +1,206 @@
+"""A budget render: spend a limited number of samples (or seconds) where the noise is.
+
+Without a budget every pass renders every active block. Users with a deadline want the
+best image by that time instead (Cycles, Arnold and LuxCore pair a noise target with a
+time limit), so with ``--spp-budget N`` (samples per pixel averaged over the blocks) or
+``--time-limit S`` each round renders the active blocks farthest from their target:
+
+* `Criterion.ratios` holds, per block, its last score relative to the criterion's
+  threshold (flip: the half-buffer FLIP over c(tau); > 1 is above the target). Blocks
+  with no estimate yet (before their first decision) come first, all together.
+* Priority = ratio / sqrt(spp). Noise falls as 1/sqrt(spp), so a block's ratio is about
+  a_b / sqrt(spp_b) with a_b its noise per sample; levelling the priority gives each block
+  samples in proportion to a_b. Against uniform sampling with the same samples that
+  lowers both the worst block's error (the noisiest block gets more than its share) and
+  the mean error (Cauchy-Schwarz: sum sqrt(a_b) <= sqrt(B sum a_b)); levelling the ratio
+  itself (``per_sample=False``: samples in proportion to a_b^2, every block to the same
+  error) helps the worst block most but measured worse on the mean.
+* A round renders the blocks whose priority is at least `band` times the largest: the
+  worst alone at first, then, as it comes down, every block within the band (water
+  filling, in rounds large enough to trace well).
+* While the budget left covers every active block to max spp, rounds render all of them:
+  a roomy budget renders exactly what the unbudgeted loop renders, pass for pass.
+
+A block's j-th pass always draws the samples of pass j (`BlockRenderer.render_passes`),
+so a block ends with the very image the unbudgeted loop gives it at the same spp; blocks
+that reach the target stop as always. When the budget ends, the blocks still above the
+target are listed with their ratios (`above_target`).
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from noisefeat.runtime import torch_threads
+
+from .passloop import PassLoop
+
+#: a round renders the active blocks whose priority is at least this share of the largest
+BAND = 0.8
+
+
+def check_budget(spp_budget: Any) -> float | None:
+    """`spp_budget` as a float (None: no budget); ValueError unless a positive finite number."""
+    if spp_budget is None:
+        return None
+    if isinstance(spp_budget, bool) or not isinstance(spp_budget, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(float(spp_budget)) or spp_budget <= 0:
+        raise ValueError(f"spp budget must be a positive number of samples per pixel, got {spp_budget!r}")
+    return float(spp_budget)
+
+
+@dataclass
+class Budget:
+    """What a budget render may still spend, and which blocks a round renders.
+
+    `spp_budget`: samples per pixel averaged over the blocks (None: no sample budget);
+    `time_limit`: seconds (None: none). `band`: see the module docstring.
+    """
+
+    spp_budget: float | None = None
+    time_limit: float | None = None
+    band: float = BAND
+    per_sample: bool = True
+    ended: bool = False
+    prioritised_rounds: int = 0
+    _cost: list[float] = field(default_factory=lambda: [0.0, 0.0])   # render seconds, block-spp rendered
+
+    def __post_init__(self) -> None:
+        self.spp_budget = check_budget(self.spp_budget)
+        if not 0.0 < self.band <= 1.0:
+            raise ValueError(f"band must be in (0, 1], got {self.band!r}")
+
+    def record(self, seconds: float, block_spp: int) -> None:
+        """Seconds of a round and the block-samples it traced (the time budget's rate)."""
+        self._cost[0] += float(seconds)
+        self._cost[1] += float(block_spp)
+
+    def _left(self, spp: np.ndarray, elapsed: float) -> float:
+        """Block-spp the budget still allows (inf: no bound known yet)."""
+        left = math.inf
+        if self.spp_budget is not None:
+            left = self.spp_budget * len(spp) - float(spp.sum())
+        if self.time_limit is not None and self._cost[1] > 0:
+            rate = self._cost[0] / self._cost[1]
+            left = min(left, max(0.0, self.time_limit - elapsed) / rate if rate > 0 else math.inf)
+        return left
+
+    def select(self, loop: PassLoop, sizes: Sequence[int], elapsed: float = 0.0) -> list[int]:
+        """The blocks of the next round, in block order ([]: the budget or the blocks ran out)."""
+        acc = loop.acc
+        n = acc.n_blocks
+        spp = np.array([acc.spp(b) for b in range(n)], np.int64)
+        ids = [b for b in loop.active_ids if acc.passes(b) < len(sizes)]
+        if not ids:
+            return []
+        step = {b: int(sizes[acc.passes(b)]) for b in ids}
+        max_spp = int(sum(sizes))
+        left = self._left(spp, elapsed)
+        if left >= sum(max_spp - spp[b] for b in ids):
+            return ids                                     # enough for everything: as unbudgeted
+        unknown = [b for b in ids if b not in loop.criterion.ratios and
+                   (loop.min_spp is None or spp[b] >= loop.min_spp)]
+        if unknown:                 # judged before a resume: ask again (same state, same answer)
+            loop.judge(unknown)
+        ratio = np.array([loop.criterion.ratios.get(b, math.nan) for b in ids], np.float64)
+        ratio = np.where(np.isnan(ratio), np.inf, ratio)   # no estimate yet: first
+        if self.per_sample:
+            ratio = ratio / np.sqrt(np.maximum(spp[ids], 1))
+        top = ratio.max()
+        chosen = [b for b, r in zip(ids, ratio) if r >= self.band * top] if np.isfinite(top) else \
+            [b for b, r in zip(ids, ratio) if not np.isfinite(r)]
+        if self.spp_budget is not None:                    # what fits, worst first
+            order = sorted(chosen, key=lambda b: -ratio[ids.index(b)])
+            room = self.spp_budget * n - float(spp.sum())
+            fit = []
+            for b in order:
+                if step[b] <= room:
+                    fit.append(b)
+                    room -= step[b]
+            chosen = sorted(fit)
+        if not chosen:
+            self.ended = True
+        elif len(chosen) < len(ids):
+            self.prioritised_rounds += 1                   # blocks now out of step
+        return chosen
+
+    def finished(self, loop: PassLoop, sizes: Sequence[int]) -> bool:
+        """Whether the render is over: no active block has a pass left, or the sample
+        budget cannot pay for another pass of any of them (the budget ended)."""
+        acc = loop.acc
+        steps = [int(sizes[acc.passes(b)]) for b in loop.active_ids if acc.passes(b) < len(sizes)]
+        if not steps:
+            return True
+        if self.spp_budget is None:
+            return False
+        spp = sum(acc.spp(b) for b in range(acc.n_blocks))
+        if min(steps) > self.spp_budget * acc.n_blocks - spp:
+            self.ended = True
+        return self.ended
+
+    def run_round(self, loop: PassLoop, br: Any, ids: Sequence[int], sizes: Sequence[int], seed: int,
+                  timers: dict[str, float]) -> None:
+        """Render one pass of each block `ids` at its own pass index and feed the loop
+        (render time into ``timers["render_s"]``; the round's time into this budget's rate)."""
+        jobs = [(int(b), loop.acc.passes(int(b))) for b in ids]
+        pass_spp = [int(sizes[p]) for _, p in jobs]
+        t0 = time.perf_counter()
+        images = br.render_passes(jobs, pass_spp, seed)
+        timers["render_s"] += time.perf_counter() - t0
+        with torch_threads(1):
+            loop.add_passes([b for b, _ in jobs], images, pass_spp)
+        self.record(time.perf_counter() - t0, sum(pass_spp))      # decisions too: they spend the time
+
+    def describe(self, loop: PassLoop, time_limit_reached: bool = False) -> dict[str, Any]:
+        """report.json "budget": the limits, whether they ended the render, and the blocks
+        still above their target (worst first) with their last ratio to it."""
+        ended = bool(self.ended or time_limit_reached)
+        ratios = loop.criterion.ratios
+        above = [{"id": b, "ratio": None if math.isnan(ratios.get(b, math.nan)) else ratios[b],
+                  "spp": loop.acc.spp(b)} for b in loop.active_ids]
+        above.sort(key=lambda x: -(math.inf if x["ratio"] is None else x["ratio"]))
+        return {"spp_budget": self.spp_budget, "time_limit": self.time_limit, "band": self.band,
+                "ended": ended, "prioritised_rounds": self.prioritised_rounds,
+                "above_target": above if ended else []}
+
+
+def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int | None = None,
+                    band: float = BAND) -> dict[str, Any]:
+    """The budget render on a stored stack: block b's j-th pass is the stack's pass j
+    (`learning.inputs.halves.recover_passes`), as the live render's keyed samples make it,
+    so the loop (`Budget.select`, `PassLoop.add_passes`) sees what it would see live.
+
+    Returns each block's final spp, whether it stopped, the budget's report part and the
+    rounds run. The final image of block b is the stack's level at its spp.
+    """
+    from learning.inputs.halves import check_constant_step, recover_passes
+
+    if criterion.needs_halves:
+        check_constant_step(stack)
+    passes, sizes = [], []
+    for _, _, pass_spp, pass_img in recover_passes(stack):
+        passes.append(stack.split(pass_img))
+        sizes.append(int(pass_spp))
+    quick = stack.split(stack.quick()) if criterion.needs_quick else None
+    if quick is not None:
+        criterion.prepare(list(range(stack.n_blocks)), quick)
+    loop = PassLoop(criterion, tuple(stack.grid), tuple(stack.block), min_spp, quick)
+    budget = Budget(spp_budget, band=band)
+    rounds = 0
+    while True:
+        ids = budget.select(loop, sizes)
+        if not ids:
+            break
+        jobs = [(b, loop.acc.passes(b)) for b in ids]
+        loop.add_passes(ids, np.stack([passes[p][b] for b, p in jobs]), [sizes[p] for _, p in jobs])
+        rounds += 1
+        if not loop.active.any() or budget.finished(loop, sizes):
+            break
+    n = stack.n_blocks
+    return {"spp": [loop.acc.spp(b) for b in range(n)], "converged": (~loop.active).tolist(),
+            "budget": budget.describe(loop), "rounds": rounds}

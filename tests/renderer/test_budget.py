@@ -1,0 +1,173 @@
+"""Several passes per launch, and the budget render (spend passes where the noise is)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from learning.data.exr import read_exr
+from renderer.adaptive import adaptive_render
+from renderer.blocks import BlockRenderer
+from renderer.budget import Budget, check_budget
+from renderer.criteria import OracleCriterion, UniformCriterion, VarianceCriterion
+from renderer.passloop import PassLoop
+from tests.support.errors import assert_one_line_error, run
+from tests.renderer.test_renderer_blocks import _scene
+
+pytestmark = pytest.mark.slow
+
+TINY = {"resolution": 32, "grid": (4, 4), "step": 4, "min_spp": 4, "max_spp": 24, "progress": False}
+THRESHOLDS = [4, 8, 24, 12, None, 4, 16, 8, 20, 4, 8, 12, 24, 16, 8, None]
+
+
+@pytest.mark.parametrize("rfilter", ["box", "gaussian"])
+def test_passes_in_one_launch_are_the_passes_traced_apart(rfilter) -> None:
+    r = BlockRenderer(_scene("cornell", 32, rfilter), grid=(4, 4))
+    jobs = [(5, 0), (5, 1), (5, 2), (6, 3), (9, 1)]        # steps of one block, other blocks at other passes
+    together = r.render_passes(jobs, 4, seed=7)
+    launches = r.kernel_launches
+    for (b, p), img in zip(jobs, together):
+        apart = r.render_blocks([b], 4, seed=7, pass_index=p)[0]
+        if rfilter == "box":
+            np.testing.assert_array_equal(img, apart)
+        else:                           # the same samples; splats summed in another order
+            np.testing.assert_allclose(img, apart, rtol=1e-5, atol=1e-7)
+    assert launches == (1 if rfilter == "box" else 4)             # wide filter: one launch per pass index
+    assert r.kernel_lanes == r.samples_traced and r.kernel_lanes > 0
+    sizes = r.render_passes([(5, 0), (6, 1)], [4, 2], seed=7)   # a short last pass: its own launch
+    np.testing.assert_array_equal(sizes[1], r.render_blocks([6], 2, seed=7, pass_index=1)[0])
+    with pytest.raises(ValueError, match="duplicate"):
+        r.render_passes([(5, 0), (5, 0)], 4, seed=7)
+
+
+def test_add_passes_in_step_is_add_pass() -> None:
+    rng = np.random.default_rng(0)
+    loops = [PassLoop(VarianceCriterion(0.5), (2, 2), (4, 4), 8) for _ in range(2)]
+    for k in range(4):
+        ids = loops[0].active_ids
+        noise = np.array([0.0, 0.002, 0.5, 0.5])[ids, None, None, None]   # a flat, a quiet and two noisy blocks
+        images = 0.5 + noise * rng.standard_normal((len(ids), 4, 4, 3))
+        row0 = loops[0].add_pass(ids, images, 4)
+        row1 = loops[1].add_passes(ids, images, [4] * len(ids))
+        np.testing.assert_array_equal(row0, row1)
+    assert loops[0].active.tolist() == [False, False, True, True]
+    for key in ("active", "stop_spp", "history", "history_spp", "rendered"):
+        np.testing.assert_array_equal(loops[0].state()[key], loops[1].state()[key])
+    assert loops[0].events == loops[1].events
+    np.testing.assert_array_equal(loops[0].acc.state()["sum"], loops[1].acc.state()["sum"])
+
+
+def _same(a, b, ra, rb) -> None:
+    np.testing.assert_array_equal(read_exr(a / "final.exr"), read_exr(b / "final.exr"))
+    assert ra["blocks"] == rb["blocks"] and ra["passes"] == rb["passes"]
+
+
+def test_a_roomy_budget_renders_what_the_unbudgeted_loop_renders(tmp_path) -> None:
+    plain = adaptive_render("cornell", tmp_path / "plain", VarianceCriterion(0.3), **TINY)
+    assert "budget" not in plain
+    spp = adaptive_render("cornell", tmp_path / "spp", VarianceCriterion(0.3), spp_budget=24, **TINY)
+    secs = adaptive_render("cornell", tmp_path / "secs", VarianceCriterion(0.3), time_limit=1e6, **TINY)
+    for name, rep in (("spp", spp), ("secs", secs)):
+        _same(tmp_path / "plain", tmp_path / name, plain, rep)
+        assert rep["budget"]["ended"] is False and rep["budget"]["above_target"] == []
+        assert rep["budget"]["prioritised_rounds"] == 0
+
+
+def test_a_tight_budget_goes_to_the_blocks_farthest_from_target(tmp_path) -> None:
+    plain = adaptive_render("cornell", tmp_path / "plain", OracleCriterion(THRESHOLDS), **TINY)
+    rep = adaptive_render("cornell", tmp_path / "b", OracleCriterion(THRESHOLDS), spp_budget=12, **TINY)
+    spp = np.array([b["spp"] for b in rep["blocks"]])
+    assert spp.mean() <= 12 and spp.mean() > 12 - 4                 # spent, within one pass
+    assert rep["budget"]["ended"] and rep["budget"]["prioritised_rounds"] > 0
+    # the oracle's ratio is T_b / spp: censored and late blocks got the samples
+    assert spp[4] == spp.max() and spp[15] == spp.max() and spp[4] > 12
+    left = rep["budget"]["above_target"]
+    assert {x["id"] for x in left} == {b["id"] for b in rep["blocks"] if not b["converged"]}
+    ratios = [np.inf if x["ratio"] is None else x["ratio"] for x in left]
+    assert ratios == sorted(ratios, reverse=True)
+    # a block that stops, stops where it stops without a budget; its history is its own
+    for b, p in zip(rep["blocks"], plain["blocks"]):
+        if b["converged"]:
+            assert b["stop_spp"] == p["stop_spp"]
+            assert b["history"] == p["history"][:len(b["history"])]
+    saved = json.loads((tmp_path / "b" / "report.json").read_text())
+    assert saved["budget"]["above_target"] == left
+    assert (tmp_path / "b" / "spp_map.png").stat().st_size > 0
+
+
+def test_a_budget_is_spent_to_the_last_pass_it_pays_for(tmp_path) -> None:
+    rep = adaptive_render("cornell", tmp_path / "u", UniformCriterion(), spp_budget=10, **TINY)
+    spp = [b["spp"] for b in rep["blocks"]]
+    assert set(spp) == {8, 12} and np.mean(spp) == 10                 # half the blocks get the last pass
+    assert rep["budget"]["ended"] and len(rep["budget"]["above_target"]) == 16
+
+
+@pytest.mark.parametrize("bad", [-1, 0, float("nan"), float("inf"), "12", True])
+def test_bad_budgets_are_refused(bad) -> None:
+    with pytest.raises(ValueError, match="spp budget"):
+        check_budget(bad)
+    with pytest.raises(ValueError, match="spp budget"):
+        Budget(spp_budget=bad)
+
+
+@pytest.mark.parametrize("value", ["-5", "0", "nan", "abc", "inf"])
+def test_bad_spp_budget_is_a_one_line_usage_error(value, tmp_path, capsys) -> None:
+    rc, err = run(capsys, "render", "--scene", "cornell", "--out", str(tmp_path / "o"), "--spp-budget", value)
+    assert_one_line_error(rc, err, "--spp-budget")
+
+
+def test_render_command_takes_a_budget(tmp_path, capsys) -> None:
+    from service import cli
+
+    out = tmp_path / "o"
+    rc = cli.main(["render", "--scene", "cornell", "--resolution", "32", "--grid", "4", "4", "--step", "4",
+                   "--min-spp", "4", "--max-spp", "24", "--criterion", "variance", "--threshold", "0.05",
+                   "--spp-budget", "8", "--out", str(out)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    report = json.loads((out / "report.json").read_text())
+    assert report["budget"]["spp_budget"] == 8.0 and report["mean_spp"] <= 8
+    assert "budget ended with" in text and report["budget"]["ended"]
+
+
+def test_a_budget_render_resumes_to_the_same_image(tmp_path) -> None:
+    opts = {**TINY, "checkpoint_every": 0.0, "spp_budget": 12}
+    whole = adaptive_render("cornell", tmp_path / "a", VarianceCriterion(0.05), **opts)
+    assert whole["budget"]["prioritised_rounds"] > 0
+    again = adaptive_render("cornell", tmp_path / "a", VarianceCriterion(0.05), resume=True, **opts)
+    fresh = adaptive_render("cornell", tmp_path / "b", VarianceCriterion(0.05), **opts)
+    _same(tmp_path / "a", tmp_path / "b", again, fresh)
+    assert again["budget"]["above_target"] == fresh["budget"]["above_target"]
+
+
+def test_the_budget_simulated_on_a_stack(tmp_path) -> None:
+    from learning import make_synthetic_stack
+    from renderer.budget import simulate_budget
+    from renderer.simulate import simulate_stack
+
+    spp = [32 * (k + 1) for k in range(12)]
+    st = make_synthetic_stack(tmp_path / "s", size=64, spp=spp, seed=1, label=False)
+    plain = simulate_stack(st, VarianceCriterion(0.2), min_spp=32)
+    roomy = simulate_budget(st, VarianceCriterion(0.2), spp_budget=spp[-1], min_spp=32)
+    stops = [spp[int(np.argmax(plain[:, b] > 0))] if (plain[:, b] > 0).any() else spp[-1] for b in range(16)]
+    assert roomy["spp"] == stops and not roomy["budget"]["ended"]
+    late = [64, 96, 128, 384, None, 64, 256, 96, 320, 64, 96, 128, 384, 256, 96, None]
+    tight = simulate_budget(st, OracleCriterion(late), spp_budget=160, min_spp=32)
+    assert 160 - 32 < np.mean(tight["spp"]) <= 160 and tight["budget"]["ended"]
+    assert tight["spp"][4] == tight["spp"][15] == max(tight["spp"]) > 160     # the censored blocks got most
+    assert all(s == t for s, t, c in zip(tight["spp"], late, tight["converged"]) if c)
+
+
+def test_a_time_budget_prioritises_once_the_time_left_will_not_cover_every_block() -> None:
+    loop = PassLoop(OracleCriterion([8, 64, None, 16]), (2, 2), (4, 4), 4)
+    sizes = [4] * 16                                                        # max 64 spp
+    loop.add_passes([0, 1, 2, 3], np.full((4, 4, 4, 3), 0.5), [4] * 4)     # ratios T/spp: 2, 16, inf, 4
+    budget = Budget(time_limit=100.0)
+    assert budget.select(loop, sizes, elapsed=90.0) == [0, 1, 2, 3]         # no rate known yet
+    budget.record(1.0, 16)                                                  # 1/16 s per block-spp
+    assert budget.select(loop, sizes, elapsed=50.0) == [0, 1, 2, 3]         # 800 block-spp left >= 240 needed
+    assert budget.select(loop, sizes, elapsed=90.0) == [2]                  # 160 left: the censored block first
+    assert budget.prioritised_rounds == 1 and not budget.ended
+    loop.criterion.ratios[2] = 1.5                                          # now finite: the band decides
+    assert budget.select(loop, sizes, elapsed=90.0) == [1]                  # 16/2 = 8 > 0.8 x others

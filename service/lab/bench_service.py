@@ -193,8 +193,9 @@ def md_service(r: dict[str, Any]) -> str:
     def f(v: float | None, digits: int = 0) -> str:
         return "-" if v is None else f"{v:.{digits}f}"
     lines = [f"{r['blocks']} blocks of {r['size']}x{r['size']} per request, loopback, {r['cpus']} CPUs shared by "
-             f"client and server; medians of {r.get('repeats', 1)} rounds (a fresh server each). Goal (issue 16): "
-             "p99 <= 25 ms at 8 binary clients, no errors at 32.", ""]
+             f"client and server; medians of {r.get('repeats', 1)} rounds (a fresh server each). Closed loop: "
+             "each client waits for its answer; no errors at 32 clients is the goal here, capacity and "
+             "latency at a given traffic are in the capacity table above.", ""]
     for label, m in r["models"].items():
         st = m["stages"]
         lines += [f"**{label}**: server ready in {m['ready_s']:.1f} s; {st['support_vectors']} support vectors.", "",

@@ -229,16 +229,7 @@ def run_load(url: str, *, model: str = "default", clients: int = 4, requests_per
                         skipped[0] += requests_per_client - i
                     return
                 t0 = time.perf_counter()
-                try:
-                    conn.request("POST", path, body=body, headers=headers)
-                    resp = conn.getresponse()
-                    data = resp.read()
-                    problem = None if resp.status == 200 else f"HTTP {resp.status}: {data[:200]!r}"
-                    if problem is None:
-                        problem = _check_response(data, resp.getheader(HEADER_LENGTH), blocks)
-                except (OSError, http.client.HTTPException) as exc:
-                    problem = f"{type(exc).__name__}: {exc}"
-                    conn.close()
+                problem = post_infer(conn, path, body, headers, blocks)
                 elapsed = time.perf_counter() - t0
                 with lock:
                     (errors.append(problem) if problem else latencies.append(elapsed))
@@ -268,6 +259,23 @@ def run_load(url: str, *, model: str = "default", clients: int = 4, requests_per
             "wall_s": wall, "requests_per_s": len(latencies) / wall,
             "blocks_per_s": len(latencies) * blocks / wall, **stats,
             "first_error": errors[0] if errors else None}
+
+
+def post_infer(conn: http.client.HTTPConnection, path: str, body: bytes, headers: dict[str, str],
+               blocks: int) -> str | None:
+    """Send one infer request on `conn` and read the answer: None if it is a verdict for
+    each of `blocks` blocks, else what went wrong (the connection is closed on a transport
+    error, so the next request reconnects)."""
+    try:
+        conn.request("POST", path, body=body, headers=headers)
+        resp = conn.getresponse()
+        data = resp.read()
+        if resp.status != 200:
+            return f"HTTP {resp.status}: {data[:200]!r}"
+        return _check_response(data, resp.getheader(HEADER_LENGTH), blocks)
+    except (OSError, http.client.HTTPException) as exc:
+        conn.close()
+        return f"{type(exc).__name__}: {exc}"
 
 
 def _check_response(data: bytes, header_length: str | None, blocks: int) -> str | None:

@@ -18,8 +18,7 @@ from urllib.parse import urlsplit
 import numpy as np
 
 from ..auth import is_loopback
-from ..oip import HEADER_LENGTH
-from .loadtest import _check_response, make_request, served_inputs
+from .loadtest import make_request, post_infer, served_inputs
 
 MAX_RATE = 1000.0
 MAX_REQUESTS = 5000
@@ -84,16 +83,7 @@ def run_open_loop(url: str, *, rate: float, requests: int, model: str = "default
                 if wait > 0:
                     time.sleep(wait)
                 start = time.perf_counter()
-                try:
-                    conn.request("POST", path, body=body, headers=headers)
-                    resp = conn.getresponse()
-                    data = resp.read()
-                    problem = None if resp.status == 200 else f"HTTP {resp.status}: {data[:200]!r}"
-                    if problem is None:
-                        problem = _check_response(data, resp.getheader(HEADER_LENGTH), blocks)
-                except (OSError, http.client.HTTPException) as exc:
-                    problem = f"{type(exc).__name__}: {exc}"
-                    conn.close()
+                problem = post_infer(conn, path, body, headers, blocks)
                 done = time.perf_counter()
                 with lock:
                     lags.append(start - (t0[0] + due))

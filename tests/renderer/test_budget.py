@@ -36,7 +36,11 @@ def test_passes_in_one_launch_are_the_passes_traced_apart(rfilter) -> None:
     assert launches == (1 if rfilter == "box" else 4)             # wide filter: one launch per pass index
     assert r.kernel_lanes == r.samples_traced and r.kernel_lanes > 0
     sizes = r.render_passes([(5, 0), (6, 1)], [4, 2], seed=7)   # a short last pass: its own launch
-    np.testing.assert_array_equal(sizes[1], r.render_blocks([6], 2, seed=7, pass_index=1)[0])
+    short = r.render_blocks([6], 2, seed=7, pass_index=1)[0]
+    if rfilter == "box":
+        np.testing.assert_array_equal(sizes[1], short)
+    else:                               # splats summed in an order that varies run to run
+        np.testing.assert_allclose(sizes[1], short, rtol=1e-5, atol=1e-7)
     with pytest.raises(ValueError, match="duplicate"):
         r.render_passes([(5, 0), (5, 0)], 4, seed=7)
 

@@ -3,14 +3,14 @@ from __future__ import annotations
 
 import json
 import socket
-import threading
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler
 
 import numpy as np
 import pytest
 
 from renderer.client import HEADER_LENGTH, RemoteModel
 from renderer.criteria import BlockView, ModelCriterion
+from tests.support.live_server import handler_server
 
 TOKEN = "s3cret"
 
@@ -105,13 +105,8 @@ def server():
     FakeOIP.seen = []
     FakeOIP.fail_with = None
     FakeOIP.fail_once = False
-    srv = ThreadingHTTPServer(("127.0.0.1", 0), FakeOIP)
-    thread = threading.Thread(target=srv.serve_forever, daemon=True)
-    thread.start()
-    yield f"http://127.0.0.1:{srv.server_address[1]}"
-    srv.shutdown()
-    srv.server_close()
-    thread.join(5)
+    with handler_server(FakeOIP) as url:
+        yield url
 
 
 def blocks_and_quick(n=5, seed=0):

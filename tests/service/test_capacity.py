@@ -4,13 +4,14 @@ from __future__ import annotations
 import json
 import threading
 import time
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler
 
 import numpy as np
 import pytest
 
 from service.lab.bench_capacity import md_capacity
 from service.lab.openloop import arrival_times, run_open_loop
+from tests.support.live_server import handler_server
 
 SERVICE_S = 0.05
 BLOCKS = 4
@@ -43,12 +44,8 @@ class _SlowVerdicts(BaseHTTPRequestHandler):
 
 @pytest.fixture
 def slow_server():
-    server = ThreadingHTTPServer(("127.0.0.1", 0), _SlowVerdicts)
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    yield f"http://127.0.0.1:{server.server_address[1]}"
-    server.shutdown()
-    server.server_close()
+    with handler_server(_SlowVerdicts) as url:
+        yield url
 
 
 def test_arrivals_are_a_seeded_poisson_process_of_the_rate():

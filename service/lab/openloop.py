@@ -73,26 +73,24 @@ def run_open_loop(url: str, *, rate: float, requests: int, model: str = "default
     lags: list[float] = []
     errors: list[str] = []
     lock = threading.Lock()
-    t0 = [0.0]
-
     def worker() -> None:
         conn = http.client.HTTPConnection(host, port, timeout=timeout)
         try:
             while (due := todo.get()) is not None:
-                wait = t0[0] + due - time.perf_counter()
+                wait = start_at + due - time.perf_counter()
                 if wait > 0:
                     time.sleep(wait)
                 start = time.perf_counter()
                 problem = post_infer(conn, path, body, headers, blocks)
                 done = time.perf_counter()
                 with lock:
-                    lags.append(start - (t0[0] + due))
-                    (errors.append(problem) if problem else latencies.append(done - (t0[0] + due)))
+                    lags.append(start - (start_at + due))
+                    (errors.append(problem) if problem else latencies.append(done - (start_at + due)))
         finally:
             conn.close()
 
+    start_at = time.perf_counter() + 0.05          # every arrival time counts from here
     threads = [threading.Thread(target=worker, daemon=True) for _ in range(connections)]
-    t0[0] = time.perf_counter() + 0.05
     for due in arrivals:
         todo.put(float(due))
     for _ in threads:
@@ -101,7 +99,7 @@ def run_open_loop(url: str, *, rate: float, requests: int, model: str = "default
         t.start()
     for t in threads:
         t.join(float(arrivals[-1]) + timeout * requests / connections + 10)
-    wall = time.perf_counter() - t0[0]
+    wall = time.perf_counter() - start_at
     lat_ms = np.array(latencies) * 1e3
     stats = {"p50_ms": float(np.percentile(lat_ms, 50)), "p99_ms": float(np.percentile(lat_ms, 99)),
              "mean_ms": float(lat_ms.mean())} if len(lat_ms) else {"p50_ms": None, "p99_ms": None, "mean_ms": None}

@@ -104,7 +104,7 @@ def _encoded_range(lo: torch.Tensor, hi: torch.Tensor) -> np.ndarray:
     rounds differently in vector lanes and in the scalar tail, which would make a block's
     range (by 1 ulp) depend on how many blocks share the call."""
     lo, hi = lo.double().clamp(0.0, 1.0), hi.double().clamp(0.0, 1.0)
-    return (srgb_encode(hi) - srgb_encode(lo)).amax(dim=1).numpy()
+    return (srgb_encode(hi) - srgb_encode(lo)).amax(dim=1).cpu().numpy()
 
 
 def block_extremes(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,4 +1,4 @@
-"""LDR-FLIP for many blocks at once: NVIDIA FLIP's computation, batched in torch on the CPU.
+"""LDR-FLIP for many blocks at once: NVIDIA FLIP's computation, batched in torch on any device.
 
 Why: the `flip` criterion and the bundled model's `halves` input (composition `f`) score a
 block by the LDR-FLIP map between display(A) and display(B), its two half buffers, pooled.
@@ -43,7 +43,7 @@ import torch
 
 from .display import clipped_linear, srgb_decode
 from .perceptual import DEFAULT_PPD, PC, PT, QC
-from .pooling import CRITERION_POOLING, MEAN, TILES, check_pooling, pool_maps
+from .pooling import CRITERION_POOLING, MEAN, TILES, check_pooling, tile_starts
 
 #: FLIP's linear sRGB -> XYZ (its exact rational entries) and XYZ -> linear sRGB (D65)
 RGB_TO_XYZ = ((10135552 / 24577794, 8788810 / 24577794, 4435075 / 24577794),
@@ -170,12 +170,18 @@ def _band(ppd: float, names: tuple[str, ...], t: int, transpose: bool = False) -
     return torch.from_numpy(np.ascontiguousarray(m.T if transpose else m).astype(np.float32))
 
 
+@lru_cache(maxsize=256)
+def _band_on(ppd: float, names: tuple[str, ...], t: int, transpose: bool, device: torch.device) -> torch.Tensor:
+    """`_band` on `device`, copied there once (the GPU loop calls FLIP every pass)."""
+    return _band(ppd, names, t, transpose).to(device)
+
+
 @lru_cache(maxsize=64)
-def _row_windows(n: int, r: int) -> tuple[torch.Tensor, int, int]:
+def _row_windows(n: int, r: int, device: torch.device = torch.device("cpu")) -> tuple[torch.Tensor, int, int]:
     """Clamped indices of every tile's window along an axis of n pixels: (idx, t, count)."""
     t, count = _tiling(n)
     idx = (np.arange(count)[:, None] * t + np.arange(-r, t + r)[None]).clip(0, n - 1)
-    return torch.from_numpy(idx.reshape(-1).astype(np.int64)), t, count
+    return torch.from_numpy(idx.reshape(-1).astype(np.int64)).to(device), t, count
 
 
 def _along_w(x: torch.Tensor, ppd: float, groups: list[tuple[str, ...]]) -> list[torch.Tensor]:
@@ -191,7 +197,7 @@ def _along_w(x: torch.Tensor, ppd: float, groups: list[tuple[str, ...]]) -> list
     for names in groups:
         q = _radius(ppd, names)
         sub = win if q == r else win[:, r - q:win.shape[1] - (r - q)]
-        out.append((sub @ _band(ppd, names, t)).view(b, h, count, len(names), t))
+        out.append((sub @ _band_on(ppd, names, t, False, x.device)).view(b, h, count, len(names), t))
     return out
 
 
@@ -200,9 +206,9 @@ def _along_h(x: torch.Tensor, ppd: float, names: tuple[str, ...], out: torch.Ten
     """[B, H, *rest] -> [B, nT, k, T, *rest]: each filter along H, borders clamped; written
     into (or, with `add`, added to) `out`, a contiguous tensor of that many elements."""
     b, h, rest = x.shape[0], x.shape[1], x.shape[2:]
-    idx, t, count = _row_windows(h, _radius(ppd, names))
+    idx, t, count = _row_windows(h, _radius(ppd, names), x.device)
     win = x.index_select(1, idx).view(b * count, len(idx) // count, -1)
-    band = _band(ppd, names, t, transpose=True).expand(b * count, len(names) * t, len(idx) // count)
+    band = _band_on(ppd, names, t, True, x.device).expand(b * count, len(names) * t, len(idx) // count)
     if out is None:
         res = torch.bmm(band, win)
     elif add:
@@ -224,8 +230,8 @@ def _lab_f(t: torch.Tensor) -> torch.Tensor:
     return t.sub_(m).mul_(_LAB_SLOPE).add_(m.log_().mul_(1.0 / 3.0).exp_())
 
 
-@lru_cache(maxsize=1)
-def _affine() -> tuple[torch.Tensor, ...]:
+@lru_cache(maxsize=8)
+def _affine(device: torch.device = torch.device("cpu")) -> tuple[torch.Tensor, ...]:
     """float32 (to_opp, opp_bias, from_opp, rgb_bias, to_xyz): linear RGB -> Y, Cx, Cz;
     filtered Y, Cx, Cz -> linear RGB; linear RGB -> XYZ / white ([3, 3] and [3, 1])."""
     to_xyz = np.diag(INV_ILLUMINANT) @ np.asarray(RGB_TO_XYZ)
@@ -235,7 +241,7 @@ def _affine() -> tuple[torch.Tensor, ...]:
     from_opp = np.asarray(XYZ_TO_RGB) @ np.diag(ILLUMINANT) @ back
     rgb_bias = np.asarray(XYZ_TO_RGB) @ np.diag(ILLUMINANT) @ np.full(3, 16 / 116)
     mats = (opp @ to_xyz, np.array([-16.0, 0.0, 0.0]), from_opp, rgb_bias, to_xyz)
-    return tuple(torch.tensor(m.reshape(3, -1), dtype=torch.float32) for m in mats)
+    return tuple(torch.tensor(m.reshape(3, -1), dtype=torch.float32, device=device) for m in mats)
 
 
 @lru_cache(maxsize=1)
@@ -254,7 +260,7 @@ def _flip_maps_linear(lin: torch.Tensor, ppd: float) -> torch.Tensor:
     FLIP maps."""
     _, n2, h, w = lin.shape
     n = n2 // 2
-    to_opp, opp_bias, from_opp, rgb_bias, to_xyz = _affine()
+    to_opp, opp_bias, from_opp, rgb_bias, to_xyz = _affine(lin.device)
     y, cx, cz = torch.addmm(opp_bias, to_opp, lin.view(3, -1)).view(3, n2, h, w)
 
     # along W, one GEMM per group of filters; along H, one per group of outputs sharing a
@@ -268,7 +274,7 @@ def _flip_maps_linear(lin: torch.Tensor, ppd: float) -> torch.Tensor:
     # the filtered Y, Cx, Cz planes, each [2N, nTh, Th, nTw, Tw]
     th, nth = _tiling(h)
     tw, ntw = _tiling(w)
-    opp = torch.empty(3, n2, nth, th, ntw, tw)
+    opp = torch.empty(3, n2, nth, th, ntw, tw, device=lin.device)
     _along_h(ycsf[:, :, :, 0], ppd, ("Y",), out=opp[0])
     _along_h(cxw[:, :, :, 0], ppd, ("Cx",), out=opp[1])
     _along_h(z1[:, :, :, 0], ppd, ("Cz1",), out=opp[2])
@@ -354,35 +360,52 @@ def flip_halves(even: torch.Tensor | np.ndarray, odd: torch.Tensor | np.ndarray,
     The display images are never encoded: FLIP decodes its sRGB input back to linear
     first, so the clipped linear values are what it computes on (to float32 rounding).
     A block whose two display images are identical gets exactly 0, as from FLIP."""
+    return flip_halves_tensor(even, odd, exposure, ppd, pooling).cpu().numpy()
+
+
+def flip_halves_tensor(even: torch.Tensor | np.ndarray, odd: torch.Tensor | np.ndarray,
+                       exposure: float = 0.0, ppd: float = DEFAULT_PPD,
+                       pooling: str = CRITERION_POOLING) -> torch.Tensor:
+    """`flip_halves` where the half buffers live: float64 [N] on their device.
+
+    Why: the live loop keeps its accumulators on the renderer's device (a GPU with
+    ``cuda_ad_rgb``), so FLIP runs there and only the N scores ever reach the host."""
     a, b = _check_pair(even, odd, "half buffers")
     p = check_ppd(ppd)
     check_pooling(pooling)
     n, h, w = a.shape[:3]
-    out = np.zeros(n)
-    if h * w == 0:
+    out = torch.zeros(n, dtype=torch.float64, device=a.device)
+    if h * w == 0 or n == 0:
         return out
     with torch.inference_mode():
         for i, j in _chunks(n, h, w):
             lin = _planes(a[i:j], b[i:j], exposure)
             m = j - i
-            differ = [k for k in range(m) if not torch.equal(lin[:, k], lin[:, m + k])]
-            if not differ:
+            differ = (lin[:, :m] != lin[:, m:]).reshape(3, m, -1).any(dim=2).any(dim=0)
+            keep = torch.nonzero(differ).flatten()          # identical display images score 0
+            if keep.numel() == 0:
                 continue
-            if len(differ) < m:
-                lin = lin.index_select(1, torch.tensor(differ + [m + k for k in differ]))
-            out[[i + k for k in differ]] = _pool(_flip_maps_linear(lin, p), pooling)
+            if keep.numel() < m:
+                lin = lin.index_select(1, torch.cat([keep, keep + m]))
+            out[i + keep] = _pool(_flip_maps_linear(lin, p), pooling)
     return out
 
 
-def _pool(maps: torch.Tensor, pooling: str) -> np.ndarray:
-    """`noisefeat.pooling.pool_maps` of float32 maps, summed in float64 in torch where the
-    tiles cut the block evenly (no copy to numpy: the pooling then costs about what the
-    block mean does); other block sizes take the summed-area route."""
+def _pool(maps: torch.Tensor, pooling: str) -> torch.Tensor:
+    """`noisefeat.pooling.pool_maps` of float32 maps [N, h, w], in float64 on the maps'
+    device: a reshape where the tiles cut the block evenly, else a summed-area table with
+    the last tile row and column flush with the edge (`noisefeat.pooling.tile_starts`)."""
     n, h, w = maps.shape
     if pooling == MEAN:
-        return (maps.sum(dim=(1, 2), dtype=torch.float64) / (h * w)).numpy()
+        return maps.sum(dim=(1, 2), dtype=torch.float64) / (h * w)
     th, tw = min(TILES[pooling], h), min(TILES[pooling], w)
-    if h % th or w % tw:
-        return pool_maps(maps.numpy(), pooling)
-    sums = maps.reshape(n, h // th, th, w // tw, tw).sum(dim=(2, 4), dtype=torch.float64)
-    return (sums.amax(dim=(1, 2)) / (th * tw)).numpy()
+    if h % th == 0 and w % tw == 0:
+        sums = maps.reshape(n, h // th, th, w // tw, tw).sum(dim=(2, 4), dtype=torch.float64)
+        return sums.amax(dim=(1, 2)) / (th * tw)
+    sat = torch.zeros((n, h + 1, w + 1), dtype=torch.float64, device=maps.device)
+    sat[:, 1:, 1:] = maps.double().cumsum(1).cumsum(2)
+    y0 = torch.as_tensor(tile_starts(h, TILES[pooling]), device=maps.device)
+    x0 = torch.as_tensor(tile_starts(w, TILES[pooling]), device=maps.device)
+    y1, x1 = y0 + th, x0 + tw
+    s = sat[:, y1][:, :, x1] - sat[:, y0][:, :, x1] - sat[:, y1][:, :, x0] + sat[:, y0][:, :, x0]
+    return (s / (th * tw)).reshape(n, -1).amax(dim=1)

@@ -38,9 +38,10 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import torch
 
 from learning.data.variant import select_variant
-from .wavefront import WavefrontTracer, guard_band
+from .wavefront import WavefrontTracer, guard_band, torch_device
 from noisefeat.extras import require
 
 logger = logging.getLogger(__name__)
@@ -166,18 +167,44 @@ class BlockRenderer:
         if engine not in ("wavefront", "crop"):
             raise ValueError(f"engine must be 'wavefront' or 'crop', got {engine!r}")
         self.engine = engine
-        self._tracer = WavefrontTracer(scene, self.sensor, self._integrator) if engine == "wavefront" else None
+        # where passes live: the variant's device for the wavefront engine; the crop engine's
+        # mi.render calls return host images (scalar variants)
+        self.device = torch_device(variant) if engine == "wavefront" else torch.device("cpu")
+        self._tracer = WavefrontTracer(scene, self.sensor, self._integrator, self.device) \
+            if engine == "wavefront" else None
+        # flat pixel indices of every window [n, bh * bw]: a pass gathers its blocks at once
+        ys = torch.tensor(self._ys)[:, None, None, None] + torch.arange(self.block_h)[None, None, :, None]
+        xs = torch.tensor(self._xs)[None, :, None, None] + torch.arange(self.block_w)[None, None, None, :]
+        self._win_idx = (ys * self.width + xs).reshape(self.n_blocks, -1).to(self.device)
         self.mitsuba_calls = 0
         self.kernel_compiles = 0
         self._crop_samples = 0
         self._history = variant.split("_")[0] in ("llvm", "cuda")
+        self._history_before: bool | None = None
         if self._history:
             dr = require("drjit")
+            self._history_before = bool(dr.flag(dr.JitFlag.KernelHistory))
             dr.set_flag(dr.JitFlag.KernelHistory, True)
             dr.kernel_history()                               # start counting from here
         self._params = mi.traverse(self.sensor)
         self._crop: tuple[int, int, int, int] | None = None
         self._set_crop(0, 0, self.width, self.height)
+
+    def close(self) -> None:
+        """Put the process-wide kernel-history flag back as it was before this renderer
+        (it is on only to count compilations; left on, Dr.Jit keeps a record of every
+        launch for whoever renders next in the process)."""
+        if self._history and self._history_before is not None:
+            dr = require("drjit")
+            self._count_kernels()
+            dr.set_flag(dr.JitFlag.KernelHistory, self._history_before)
+            self._history_before = None
+
+    def __enter__(self) -> BlockRenderer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     # -- geometry ---------------------------------------------------------------
 
@@ -211,6 +238,11 @@ class BlockRenderer:
         """(rows, columns) slices that cut the block out of a [H, W, ...] frame."""
         x0, y0 = self.block_origin(block_id)
         return slice(y0, y0 + self.block_h), slice(x0, x0 + self.block_w)
+
+    def cut_blocks(self, frame: np.ndarray) -> np.ndarray:
+        """Every block's window of a host frame [H, W, C]: [n, bh, bw, C] (one gather)."""
+        flat = np.asarray(frame).reshape(self.height * self.width, -1)
+        return flat[self._win_idx.cpu().numpy()].reshape(self.n_blocks, self.block_h, self.block_w, -1)
 
     def _check_id(self, block_id: int) -> None:
         if not isinstance(block_id, (int, np.integer)) or not 0 <= int(block_id) < self.n_blocks:
@@ -246,13 +278,6 @@ class BlockRenderer:
         self._count_kernels()
         return _to_rgb(img, where)
 
-    def _trace(self, mask: np.ndarray, spp: int, seed: int, pass_index: int) -> np.ndarray:
-        assert self._tracer is not None
-        image = self._tracer.trace(mask, spp, derive_seed(seed, FULL_FRAME, pass_index))
-        self.mitsuba_calls += 1
-        self._count_kernels()
-        return image
-
     @property
     def kernel_launches(self) -> int:
         """Kernel launches of the block passes (wavefront) or Mitsuba render calls (crop)."""
@@ -269,84 +294,93 @@ class BlockRenderer:
         """Samples of the block passes, guard bands and shared window pixels included."""
         return self._tracer.samples if self._tracer is not None else self._crop_samples
 
-    def render_blocks(self, block_ids: Sequence[int], spp: int, seed: int, pass_index: int = 0) -> np.ndarray:
-        """`spp` new samples for each listed block: float32 [len(ids), bh, bw, 3].
+    def render_blocks(self, block_ids: Sequence[int], spp: int, seed: int, pass_index: int = 0) -> torch.Tensor:
+        """`spp` new samples for each listed block: float32 [len(ids), bh, bw, 3] on `device`.
 
         Pass (seed, pass_index) always draws the same samples for a pixel: call again
         with a new `pass_index` (or `seed`) for an independent pass of the same blocks.
         """
         ids = [int(b) for b in block_ids]
-        for b in ids:
-            self._check_id(b)
-        if len(set(ids)) != len(ids):
-            raise ValueError(f"duplicate block ids in {ids}: one call renders each block once")
-        out = np.empty((len(ids), self.block_h, self.block_w, 3), dtype=np.float32)
-        if not ids:
-            return out
-        if self._tracer is not None:
-            mask = np.zeros((self.height, self.width), bool)
-            for b in ids:
-                mask[self.block_slices(b)] = True
-            frame = self._trace(mask, spp, seed, pass_index)
-            for i, b in enumerate(ids):
-                out[i] = frame[self.block_slices(b)]
-            return out
-        g = self.guard
-        try:
-            for i, b in enumerate(ids):
-                x0, y0 = self.block_origin(b)
-                gx, gy = min(g, x0), min(g, y0)          # the guard band, clipped to the frame
-                x1, y1 = min(self.width, x0 + self.block_w + g), min(self.height, y0 + self.block_h + g)
-                self._set_crop(x0 - gx, y0 - gy, x1 - x0 + gx, y1 - y0 + gy)
-                img = self._render(spp, derive_seed(seed, b, pass_index), where=f"block {b}")
-                self._crop_samples += int(spp) * img.shape[0] * img.shape[1]
-                out[i] = img[gy:gy + self.block_h, gx:gx + self.block_w]
-        finally:
-            self._set_crop(0, 0, self.width, self.height)  # leave the scene as we found it
-        return out
+        return self.render_passes([(b, int(pass_index)) for b in ids], spp, seed)
 
-    def render_passes(self, jobs: Sequence[tuple[int, int]], spp: int | Sequence[int], seed: int) -> np.ndarray:
+    def _check_jobs(self, jobs: Sequence[tuple[int, int]], spp: int | Sequence[int]) -> tuple[np.ndarray, np.ndarray,
+                                                                                               np.ndarray]:
+        """(blocks, pass indices, sizes) as int64 arrays; one-line errors for bad jobs."""
+        arr = np.asarray([(int(b), int(p)) for b, p in jobs], np.int64).reshape(-1, 2)
+        blocks, passes = arr[:, 0], arr[:, 1]
+        if blocks.size and (blocks.min() < 0 or blocks.max() >= self.n_blocks):
+            raise ValueError(f"block id {int(blocks[(blocks < 0) | (blocks >= self.n_blocks)][0])!r} out of range "
+                             f"0..{self.n_blocks - 1}")
+        if len({(int(b), int(p)) for b, p in arr}) != len(arr):
+            raise ValueError(f"duplicate block ids or (block, pass) jobs in {arr.tolist()[:8]}: one call renders "
+                             "each once")
+        sizes = np.broadcast_to(np.asarray(spp), blocks.shape).astype(np.int64) \
+            if isinstance(spp, (int, np.integer)) else np.asarray([int(s) for s in spp], np.int64)
+        if sizes.shape != blocks.shape:
+            raise ValueError(f"{len(blocks)} jobs but {sizes.size} pass sizes")
+        if isinstance(spp, bool) or (sizes.size and sizes.min() < 1):
+            raise ValueError(f"spp must be a positive integer, got {spp!r}")
+        return blocks, passes, sizes
+
+    def render_passes(self, jobs: Sequence[tuple[int, int]], spp: int | Sequence[int], seed: int) -> torch.Tensor:
         """One pass per (block, pass index) job, all in as few launches as the engine allows:
-        float32 [len(jobs), bh, bw, 3].
+        float32 [len(jobs), bh, bw, 3] on `device`.
 
         Job (b, p) is exactly ``render_blocks([b], spp, seed, pass_index=p)``: blocks at
         different pass counts (a budget render spends passes unevenly), or several steps
         of the same block, share one wavefront. `spp`: one size for all, or per job (jobs
-        of the same size share a launch).
+        of the same size share a launch). The wavefront engine gathers every block of a
+        pass from the traced frame on the device in one indexing step.
         """
-        jobs = [(int(b), int(p)) for b, p in jobs]
-        for b, _ in jobs:
-            self._check_id(b)
-        if len(set(jobs)) != len(jobs):
-            raise ValueError(f"duplicate (block, pass) jobs in {jobs}")
-        sizes = [int(spp)] * len(jobs) if isinstance(spp, (int, np.integer)) else [int(s) for s in spp]
-        if len(sizes) != len(jobs):
-            raise ValueError(f"{len(jobs)} jobs but {len(sizes)} pass sizes")
-        out = np.empty((len(jobs), self.block_h, self.block_w, 3), dtype=np.float32)
-        if self._tracer is None:
-            for i, ((b, p), s) in enumerate(zip(jobs, sizes)):
-                out[i] = self.render_blocks([b], s, seed, pass_index=p)[0]
+        blocks, passes, sizes = self._check_jobs(jobs, spp)
+        out = torch.empty((len(blocks), self.block_h, self.block_w, 3), dtype=torch.float32, device=self.device)
+        if not len(blocks):
             return out
-        for size in sorted(set(sizes)):
-            mine = [i for i, s in enumerate(sizes) if s == size]
-            passes = sorted({jobs[i][1] for i in mine})
-            masks = {p: np.zeros((self.height, self.width), bool) for p in passes}
-            for i in mine:
-                b, p = jobs[i]
-                masks[p][self.block_slices(b)] = True
-            frames = self._tracer.trace_jobs([(masks[p], derive_seed(seed, FULL_FRAME, p)) for p in passes], size)
+        if self._tracer is None:                  # scalar variants: one mi.render per block
+            try:
+                for i, (b, p, s) in enumerate(zip(blocks.tolist(), passes.tolist(), sizes.tolist())):
+                    out[i] = torch.from_numpy(self._render_crop(b, s, seed, p))
+            finally:
+                self._set_crop(0, 0, self.width, self.height)  # leave the scene as we found it
+            return out
+        for size in np.unique(sizes).tolist():
+            same = sizes == size
+            keys = np.unique(passes[same])
+            masks = []
+            for p in keys.tolist():          # the distinct pass indices of the round: one in a plain pass
+                rows = np.flatnonzero(same & (passes == p))
+                mask = torch.zeros(self.height * self.width, dtype=torch.bool, device=self.device)
+                mask[self._win_idx[torch.from_numpy(blocks[rows]).to(self.device)].flatten()] = True
+                masks.append((mask.view(self.height, self.width), derive_seed(seed, FULL_FRAME, p), rows))
+            frames = self._tracer.trace_jobs([(m, k) for m, k, _ in masks], int(size))
             self.mitsuba_calls += 1
             self._count_kernels()
-            by_pass = dict(zip(passes, frames))
-            for i in mine:
-                b, p = jobs[i]
-                out[i] = by_pass[p][self.block_slices(b)]
+            for frame, (_, _, rows) in zip(frames, masks):
+                idx = self._win_idx[torch.from_numpy(blocks[rows]).to(self.device)]
+                out[torch.from_numpy(rows).to(self.device)] = frame.view(-1, 3)[idx].view(
+                    len(rows), self.block_h, self.block_w, 3)
         return out
 
+    def _render_crop(self, b: int, spp: int, seed: int, pass_index: int) -> np.ndarray:
+        """The crop engine: block `b` as one mi.render of its window grown by the guard band
+        (the caller puts the crop back)."""
+        g = self.guard
+        x0, y0 = self.block_origin(b)
+        gx, gy = min(g, x0), min(g, y0)          # the guard band, clipped to the frame
+        x1, y1 = min(self.width, x0 + self.block_w + g), min(self.height, y0 + self.block_h + g)
+        self._set_crop(x0 - gx, y0 - gy, x1 - x0 + gx, y1 - y0 + gy)
+        img = self._render(spp, derive_seed(seed, b, pass_index), where=f"block {b}")
+        self._crop_samples += int(spp) * img.shape[0] * img.shape[1]
+        return img[gy:gy + self.block_h, gx:gx + self.block_w]
+
     def render_full(self, spp: int, seed: int, pass_index: int = 0) -> np.ndarray:
-        """`spp` samples for the whole frame: float32 [H, W, 3]."""
+        """`spp` samples for the whole frame: float32 [H, W, 3] (host)."""
         if self._tracer is not None:
-            return self._trace(np.ones((self.height, self.width), bool), spp, seed, pass_index)
+            image = self._tracer.trace(torch.ones((self.height, self.width), dtype=torch.bool), spp,
+                                       derive_seed(seed, FULL_FRAME, pass_index))
+            self.mitsuba_calls += 1
+            self._count_kernels()
+            return image.cpu().numpy()
         self._set_crop(0, 0, self.width, self.height)
         return self._render(spp, derive_seed(seed, FULL_FRAME, pass_index), where="full frame")
 

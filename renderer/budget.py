@@ -94,75 +94,84 @@ class Budget:
         """The blocks of the next round, in block order ([]: the budget or the blocks ran out)."""
         acc = loop.acc
         n = acc.n_blocks
-        spp = np.array([acc.spp(b) for b in range(n)], np.int64)
-        ids = [b for b in loop.active_ids if acc.passes(b) < len(sizes)]
-        if not ids:
+        spp, passes = acc.spp_all(), acc.passes_all()
+        ids = np.flatnonzero(loop.active & (passes < len(sizes)))
+        if not ids.size:
             return []
-        step = {b: int(sizes[acc.passes(b)]) for b in ids}
-        max_spp = int(sum(sizes))
+        sizes_a = np.asarray(sizes, np.int64)
+        step = sizes_a[passes[ids]]
+        max_spp = int(sizes_a.sum())
         left = self._left(spp, elapsed)
-        if left >= sum(max_spp - spp[b] for b in ids):
-            return ids                                     # enough for everything: as unbudgeted
-        unknown = [b for b in ids if b not in loop.criterion.ratios and
-                   (loop.min_spp is None or spp[b] >= loop.min_spp)]
-        if unknown:                 # judged before a resume: ask again (same state, same answer)
-            loop.judge(unknown)
-        ratio = np.array([loop.criterion.ratios.get(b, math.nan) for b in ids], np.float64)
+        if left >= float((max_spp - spp[ids]).sum()):
+            return ids.tolist()                            # enough for everything: as unbudgeted
+        ratios = loop.criterion.ratios
+        known = np.array([int(b) in ratios for b in ids.tolist()], bool)
+        unknown = ids[~known & ((spp[ids] >= loop.min_spp) if loop.min_spp is not None else True)]
+        if unknown.size:            # judged before a resume: ask again (same state, same answer)
+            loop.judge(unknown.tolist())
+        ratio = np.array([ratios.get(int(b), math.nan) for b in ids.tolist()], np.float64)
         ratio = np.where(np.isnan(ratio), np.inf, ratio)   # no estimate yet: first
         if self.per_sample:
             ratio = ratio / np.sqrt(np.maximum(spp[ids], 1))
         top = ratio.max()
-        chosen = [b for b, r in zip(ids, ratio) if r >= self.band * top] if np.isfinite(top) else \
-            [b for b, r in zip(ids, ratio) if not np.isfinite(r)]
+        chosen = ratio >= self.band * top if np.isfinite(top) else ~np.isfinite(ratio)
         if self.spp_budget is not None:                    # what fits, worst first
-            order = sorted(chosen, key=lambda b: -ratio[ids.index(b)])
+            order = np.flatnonzero(chosen)[np.argsort(-ratio[chosen], kind="stable")]
             room = self.spp_budget * n - float(spp.sum())
-            fit = []
-            for b in order:
-                if step[b] <= room:
-                    fit.append(b)
-                    room -= step[b]
-            chosen = sorted(fit)
-        if not chosen:
+            fit = []                 # greedy: a block that does not fit leaves its room to the next
+            for i, need in zip(order.tolist(), step[order].tolist()):
+                if need <= room:
+                    fit.append(i)
+                    room -= need
+            order = np.asarray(fit, np.int64)
+            chosen = np.zeros(len(ids), bool)
+            chosen[order] = True
+        picked = ids[chosen]
+        if not picked.size:
             self.ended = True
-        elif len(chosen) < len(ids):
+        elif picked.size < ids.size:
             self.prioritised_rounds += 1                   # blocks now out of step
-        return chosen
+        return picked.tolist()
 
     def finished(self, loop: PassLoop, sizes: Sequence[int]) -> bool:
         """Whether the render is over: no active block has a pass left, or the sample
         budget cannot pay for another pass of any of them (the budget ended)."""
         acc = loop.acc
-        steps = [int(sizes[acc.passes(b)]) for b in loop.active_ids if acc.passes(b) < len(sizes)]
-        if not steps:
+        passes = acc.passes_all()
+        left = loop.active & (passes < len(sizes))
+        if not left.any():
             return True
         if self.spp_budget is None:
             return False
-        spp = sum(acc.spp(b) for b in range(acc.n_blocks))
-        if min(steps) > self.spp_budget * acc.n_blocks - spp:
+        steps = np.asarray(sizes, np.int64)[passes[left]]
+        if int(steps.min()) > self.spp_budget * acc.n_blocks - float(acc.spp_all().sum()):
             self.ended = True
         return self.ended
 
     def run_round(self, loop: PassLoop, br: Any, ids: Sequence[int], sizes: Sequence[int], seed: int,
-                  timers: dict[str, float]) -> None:
+                  timers: dict[str, float]) -> int:
         """Render one pass of each block `ids` at its own pass index and feed the loop
-        (render time into ``timers["render_s"]``; the round's time into this budget's rate)."""
-        jobs = [(int(b), loop.acc.passes(int(b))) for b in ids]
-        pass_spp = [int(sizes[p]) for _, p in jobs]
+        (render time into ``timers["render_s"]``; the round's time into this budget's rate).
+        Returns 1: a round is one step of the loop."""
+        idx = np.asarray(ids, np.int64)
+        own = loop.acc.passes_all()[idx]
+        pass_spp = np.asarray(sizes, np.int64)[own]
         t0 = time.perf_counter()
-        images = br.render_passes(jobs, pass_spp, seed)
+        images = br.render_passes(list(zip(idx.tolist(), own.tolist())), pass_spp.tolist(), seed)
         timers["render_s"] += time.perf_counter() - t0
         with torch_threads(1):
-            loop.add_passes([b for b, _ in jobs], images, pass_spp)
-        self.record(time.perf_counter() - t0, sum(pass_spp))      # decisions too: they spend the time
+            loop.step(idx, [(images, pass_spp)])
+        self.record(time.perf_counter() - t0, int(pass_spp.sum()))      # decisions too: they spend the time
+        return 1
 
     def describe(self, loop: PassLoop, time_limit_reached: bool = False) -> dict[str, Any]:
         """report.json "budget": the limits, whether they ended the render, and the blocks
         still above their target (worst first) with their last ratio to it."""
         ended = bool(self.ended or time_limit_reached)
         ratios = loop.criterion.ratios
+        spp = loop.acc.spp_all()
         above = [{"id": b, "ratio": None if math.isnan(ratios.get(b, math.nan)) else ratios[b],
-                  "spp": loop.acc.spp(b)} for b in loop.active_ids]
+                  "spp": int(spp[b])} for b in loop.active_ids]
         above.sort(key=lambda x: -(math.inf if x["ratio"] is None else x["ratio"]))
         return {"spp_budget": self.spp_budget, "time_limit": self.time_limit, "band": self.band,
                 "ended": ended, "prioritised_rounds": self.prioritised_rounds,
@@ -173,7 +182,7 @@ def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int 
                     band: float = BAND) -> dict[str, Any]:
     """The budget render on a stored stack: block b's j-th pass is the stack's pass j
     (`learning.inputs.halves.recover_passes`), as the live render's keyed samples make it,
-    so the loop (`Budget.select`, `PassLoop.add_passes`) sees what it would see live.
+    so the loop (`Budget.select`, `PassLoop.step`) sees what it would see live.
 
     Returns each block's final spp, whether it stopped, the budget's report part and the
     rounds run. The final image of block b is the stack's level at its spp.
@@ -196,11 +205,12 @@ def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int 
         ids = budget.select(loop, sizes)
         if not ids:
             break
-        jobs = [(b, loop.acc.passes(b)) for b in ids]
-        loop.add_passes(ids, np.stack([passes[p][b] for b, p in jobs]), [sizes[p] for _, p in jobs])
+        own = loop.acc.passes_all()[ids]
+        loop.step(ids, [(np.stack([passes[p][b] for b, p in zip(ids, own.tolist())]),
+                         np.asarray(sizes, np.int64)[own])])
         rounds += 1
         if not loop.active.any() or budget.finished(loop, sizes):
             break
     n = stack.n_blocks
-    return {"spp": [loop.acc.spp(b) for b in range(n)], "converged": (~loop.active).tolist(),
+    return {"spp": loop.acc.spp_all().tolist(), "converged": (~loop.active).tolist(),
             "budget": budget.describe(loop), "rounds": rounds}

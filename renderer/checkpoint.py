@@ -173,7 +173,7 @@ def _state(data: dict[str, np.ndarray], sizes: list[int], grid: tuple[int, int],
         if arr.dtype.kind == "i" and ((arr < 0).any() or (most is not None and (arr > most).any())):
             raise ValueError(f"accumulator {key!r} out of range")
     acc = BlockAccumulator.from_state(acc_state)
-    spp = np.array([acc.spp(b) for b in range(n)], np.int64)
+    spp = acc.spp_all()
     full = int(cum[-1]) if p else 0
     if not np.array_equal(spp[active], np.full(int(active.sum()), full)) or \
             not np.array_equal(spp[~active], stop_spp[~active]):

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
+import torch
 
 from learning.stoprule import CONVERGED, NOISY, StopRule, flat_blocks
 from noisefeat.pooling import CRITERION_POOLING
@@ -76,6 +77,80 @@ class BlockView:
     nonfinite: int = 0
 
 
+class BlockBatch:
+    """What a criterion may look at for all the blocks it is asked about, at once.
+
+    Why batched: the live loop keeps its accumulators on the renderer's device, and a
+    criterion that reads whole tensors (flip: FLIP on the device) sends only its verdicts
+    to the host. `mean` and `halves` are float64 tensors [k, bh, bw, 3] on that device,
+    computed on first use (a criterion that does not read them costs nothing); `spp`
+    int64 [k], `half_spp` int64 [k, 2] and `nonfinite` int64 [k] are host arrays; `quick`
+    is [k, bh, bw, 3] or None.
+    """
+
+    def __init__(self, spp: np.ndarray, *, mean: Any = None, halves: Any = None,
+                 half_spp: np.ndarray | None = None, nonfinite: Any = None, quick: np.ndarray | None = None,
+                 source: Any = None) -> None:
+        self.spp = np.asarray(spp, np.int64).reshape(-1)
+        self.half_spp = None if half_spp is None else np.asarray(half_spp, np.int64).reshape(-1, 2)
+        self.quick = quick
+        self._mean, self._halves, self._nonfinite, self._source = mean, halves, nonfinite, source
+
+    @classmethod
+    def from_accumulator(cls, acc: Any, ids: Sequence[int], quick: np.ndarray | None = None) -> BlockBatch:
+        """The blocks `ids` of a `BlockAccumulator`, read lazily from its device tensors."""
+        ids_a = np.asarray(ids, np.int64)
+        return cls(acc.spp_all()[ids_a], half_spp=acc.half_spp_all()[ids_a],
+                   quick=None if quick is None else quick[ids_a], source=(acc, ids_a))
+
+    @classmethod
+    def from_views(cls, views: Sequence[BlockView]) -> BlockBatch:
+        """One batch from per-block views (callers outside the live loop, tests)."""
+        shapes = {np.shape(v.mean) for v in views}
+        if len(shapes) != 1:
+            raise ValueError(f"the blocks of one decision must share a shape, got {sorted(shapes)}")
+        halves = None
+        if all(v.halves is not None for v in views):
+            halves = tuple(torch.from_numpy(np.stack([np.asarray(v.halves[j], np.float64) for v in views]))  # type: ignore[index]
+                           for j in (0, 1))
+        half_spp = np.array([v.half_spp for v in views], np.int64) if all(v.half_spp is not None for v in views) \
+            else None
+        quick = np.stack([np.asarray(v.quick) for v in views]) if all(v.quick is not None for v in views) else None
+        mean = torch.from_numpy(np.stack([np.asarray(v.mean, np.float64) for v in views]))
+        return cls(np.array([v.spp for v in views], np.int64), mean=mean, halves=halves, half_spp=half_spp,
+                   nonfinite=np.array([v.nonfinite if np.isfinite(v.mean).all() else max(v.nonfinite, 1)
+                                       for v in views], np.int64), quick=quick)
+
+    def __len__(self) -> int:
+        return len(self.spp)
+
+    @property
+    def mean(self) -> torch.Tensor:
+        if self._mean is None:
+            acc, ids = self._source
+            self._mean = acc.means(ids)
+        return self._mean
+
+    @property
+    def halves(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        if self._halves is None and self._source is not None:
+            acc, ids = self._source
+            self._halves = acc.halves(ids)
+        return self._halves
+
+    @property
+    def nonfinite(self) -> np.ndarray:
+        if self._nonfinite is None:
+            acc, ids = self._source
+            self._nonfinite = acc.nonfinite_all()[ids]
+        return np.asarray(self._nonfinite, np.int64)
+
+    def block_shape(self) -> tuple[int, ...]:
+        if self._source is not None:
+            return (*self._source[0].block, self._source[0].channels)
+        return tuple(self.mean.shape[1:])
+
+
 class ScoresBlocks(Protocol):
     """Anything that turns linear RGB blocks into verdicts (local Model or RemoteModel)."""
 
@@ -108,8 +183,12 @@ class Criterion(ABC):
         return {"name": self.name}
 
     def reset_counters(self) -> None:
+        """Start a render afresh: counters, timers and the per-block ratios of the last
+        one (a criterion object reused for a second render must not prioritise its blocks
+        by the first render's verdicts)."""
         self.counters = {k: 0 for k in COUNTER_NAMES}
         self.timers = {k: 0.0 for k in TIMER_NAMES}
+        self.ratios = {}
 
     def restore_counters(self, counters: Mapping[str, int], timers: Mapping[str, float] | None = None) -> None:
         """Continue counting from a checkpoint."""
@@ -117,25 +196,37 @@ class Criterion(ABC):
         if timers:
             self.timers.update({k: float(v) for k, v in timers.items()})
 
-    def decide(self, ids: Sequence[int], views: Sequence[BlockView]) -> np.ndarray:
-        """Verdicts int8 [len(ids)]: +1 converged, -1 noisy, for the listed blocks."""
+    def decide(self, ids: Sequence[int], batch: BlockBatch | Sequence[BlockView]) -> np.ndarray:
+        """Verdicts int8 [len(ids)]: +1 converged, -1 noisy, for the listed blocks: a
+        `BlockBatch` (the live loop's), or one `BlockView` per block."""
         ids = [int(b) for b in ids]
-        if len(ids) != len(views):
-            raise ValueError(f"{len(ids)} block ids but {len(views)} views")
+        if not isinstance(batch, BlockBatch):
+            views = list(batch)
+            if len(ids) != len(views):
+                raise ValueError(f"{len(ids)} block ids but {len(views)} views")
+            if not ids:
+                return np.zeros(0, np.int8)
+            for b, v in zip(ids, views):
+                if not isinstance(v, BlockView):
+                    raise ValueError(f"block {b}: expected a BlockView, got {type(v).__name__}")
+                if np.ndim(v.mean) != 3 or np.shape(v.mean)[-1] != 3:
+                    raise ValueError(f"block {b}: mean must be [bh, bw, 3], got shape {np.shape(v.mean)}")
+                if self.needs_quick and v.quick is None:
+                    raise ValueError(f"{self.name} criterion needs the quick image, block {b} has none")
+                if self.needs_halves and (v.halves is None or v.half_spp is None):
+                    raise ValueError(f"{self.name} criterion needs half buffers, block {b} has none")
+            batch = BlockBatch.from_views(views)
+        if len(ids) != len(batch):
+            raise ValueError(f"{len(ids)} block ids but a batch of {len(batch)} blocks")
         if not ids:
             return np.zeros(0, np.int8)
-        for b, v in zip(ids, views):
-            if not isinstance(v, BlockView):
-                raise ValueError(f"block {b}: expected a BlockView, got {type(v).__name__}")
-            if v.mean.ndim != 3 or v.mean.shape[-1] != 3:
-                raise ValueError(f"block {b}: mean must be [bh, bw, 3], got shape {v.mean.shape}")
-            if self.needs_quick and v.quick is None:
-                raise ValueError(f"{self.name} criterion needs the quick image, block {b} has none")
-            if self.needs_halves and (v.halves is None or v.half_spp is None):
-                raise ValueError(f"{self.name} criterion needs half buffers, block {b} has none")
+        if self.needs_quick and batch.quick is None:
+            raise ValueError(f"{self.name} criterion needs the quick image, the batch has none")
+        if self.needs_halves and batch.half_spp is None:
+            raise ValueError(f"{self.name} criterion needs half buffers, the batch has none")
         t0 = time.perf_counter()
         features_before = self.timers["features_s"]
-        out = np.asarray(self._decide(ids, list(views)))
+        out = np.asarray(self._decide(ids, batch))
         if out.shape != (len(ids),):
             raise RuntimeError(f"{self.name} criterion returned shape {out.shape} for {len(ids)} blocks")
         if not np.isin(out, (-1, 1)).all():
@@ -147,26 +238,24 @@ class Criterion(ABC):
         self.counters["decide_calls"] += 1
         self.counters["blocks_asked"] += len(ids)
         self.counters["converged"] += int((out > 0).sum())
-        self.counters["nonfinite_blocks"] += sum(1 for v in views if v.nonfinite > 0 or
-                                                 not np.isfinite(v.mean).all())
+        self.counters["nonfinite_blocks"] += int((batch.nonfinite > 0).sum())
         return out
 
     def prepare(self, ids: Sequence[int], quick: np.ndarray) -> None:
         """Called once with every block's quick image before the first decision (optional work)."""
 
     @abstractmethod
-    def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
+    def _decide(self, ids: list[int], batch: BlockBatch) -> np.ndarray:
         """Verdicts for validated, non-empty input."""
 
     def _keep_ratios(self, ids: list[int], ratio: np.ndarray) -> None:
         for b, r in zip(ids, np.asarray(ratio, np.float64)):
             self.ratios[b] = float(r)
 
-    def _flat(self, views: list[BlockView], exposure: float) -> np.ndarray:
-        """bool [n]: blocks with no visible variation at all (the stop rule's flat test)."""
-        means = [v.mean for v in views]
-        flat = flat_blocks(np.stack(means), exposure) if len({m.shape for m in means}) == 1 else \
-            np.concatenate([flat_blocks(m[None], exposure) for m in means])
+    def _flat(self, batch: BlockBatch, exposure: float) -> np.ndarray:
+        """bool [n]: blocks with no visible variation at all (the stop rule's flat test),
+        computed where the means live."""
+        flat = flat_blocks(batch.mean, exposure)
         self.counters["flat_blocks"] += int(flat.sum())
         return flat
 
@@ -176,7 +265,7 @@ class UniformCriterion(Criterion):
 
     name = "uniform"
 
-    def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
+    def _decide(self, ids: list[int], batch: BlockBatch) -> np.ndarray:
         return np.full(len(ids), NOISY, np.int8)
 
 
@@ -200,16 +289,14 @@ class OracleCriterion(Criterion):
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "thresholds": self.thresholds}
 
-    def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
-        out = np.empty(len(ids), np.int8)
-        for i, (b, v) in enumerate(zip(ids, views)):
-            if not 0 <= b < len(self.thresholds):
-                raise ValueError(f"block id {b} out of range: the oracle knows {len(self.thresholds)} blocks")
-            t = self.thresholds[b]
-            out[i] = CONVERGED if t is not None and v.spp >= t else NOISY
-        self._keep_ratios(ids, np.array([np.inf if self.thresholds[b] is None else self.thresholds[b] / max(v.spp, 1)
-                                         for b, v in zip(ids, views)]))
-        return out
+    def _decide(self, ids: list[int], batch: BlockBatch) -> np.ndarray:
+        idx = np.asarray(ids, np.int64)
+        bad = idx[(idx < 0) | (idx >= len(self.thresholds))]
+        if bad.size:
+            raise ValueError(f"block id {int(bad[0])} out of range: the oracle knows {len(self.thresholds)} blocks")
+        th = np.array([np.inf if t is None else t for t in self.thresholds], np.float64)[idx]
+        self._keep_ratios(ids, th / np.maximum(batch.spp, 1))
+        return np.where(batch.spp >= th, CONVERGED, NOISY).astype(np.int8)
 
 
 class VarianceCriterion(Criterion):
@@ -262,35 +349,38 @@ class VarianceCriterion(Criterion):
                 "scale": self.scale, "flat_shortcut": self.flat_shortcut}
 
     @staticmethod
-    def _finite(x: np.ndarray) -> np.ndarray:
+    def _finite(x: Any) -> torch.Tensor:
         """The display rule's mapping of non-finite values, in linear float64: NaN and -Inf
         -> 0, +Inf -> 1 (so no error is ever NaN)."""
-        return np.nan_to_num(np.asarray(x, dtype=np.float64), nan=0.0, posinf=1.0, neginf=0.0)
+        return torch.nan_to_num(torch.as_tensor(x).to(torch.float64), nan=0.0, posinf=1.0, neginf=0.0)
 
-    def pixel_error(self, mean: np.ndarray, half_a: np.ndarray) -> np.ndarray:
-        """Cycles' per-pixel error [bh, bw] (finite, >= 0)."""
+    def pixel_error(self, mean: Any, half_a: Any) -> torch.Tensor:
+        """Cycles' per-pixel error [..., bh, bw] (finite, >= 0), where the inputs live."""
         i = self._finite(mean)
         a = self._finite(half_a)
-        diff = np.abs(i - a).sum(axis=-1)
-        intensity = np.maximum(i.sum(axis=-1), 0.0)
-        norm = np.where(intensity < 1.0, np.sqrt(intensity), intensity)
+        diff = (i - a).abs().sum(dim=-1)
+        intensity = i.sum(dim=-1).clamp_min(0.0)
+        norm = torch.where(intensity < 1.0, intensity.sqrt(), intensity)
         return diff / (1e-4 + norm)
 
-    def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
-        flat = self._flat(views, self.exposure) if self.flat_shortcut else np.zeros(len(views), bool)
+    def _decide(self, ids: list[int], batch: BlockBatch) -> np.ndarray:
+        flat = self._flat(batch, self.exposure) if self.flat_shortcut else np.zeros(len(ids), bool)
         out = np.full(len(ids), NOISY, np.int8)
         ratio = np.full(len(ids), np.nan)
-        for i, v in enumerate(views):
-            if flat[i]:
-                out[i], ratio[i] = CONVERGED, 0.0
-                continue
-            assert v.halves is not None and v.half_spp is not None
-            if min(v.half_spp) <= 0:
-                continue  # one pass only: no noise estimate yet
-            err = self.pixel_error(v.mean, v.halves[0])
-            passed = float((err < self.scale * self.threshold).mean())
-            out[i] = CONVERGED if passed >= self.quantile else NOISY
-            ratio[i] = float(np.quantile(err, self.quantile)) / (self.scale * self.threshold)
+        assert batch.half_spp is not None
+        # one pass only: no noise estimate yet (A equals the mean)
+        ask = np.flatnonzero(~flat & (batch.half_spp.min(axis=1) > 0))
+        if ask.size:
+            sel = torch.from_numpy(ask).to(batch.mean.device)
+            err = self.pixel_error(batch.mean[sel], batch.halves[0][sel]).flatten(1)   # type: ignore[index]
+            limit = self.scale * self.threshold
+            passed = (err < limit).to(torch.float64).mean(dim=1)
+            q = torch.quantile(err, self.quantile, dim=1) if err.shape[1] <= 1 << 24 else \
+                torch.from_numpy(np.quantile(err.cpu().numpy(), self.quantile, axis=1))
+            out[ask] = np.where(passed.cpu().numpy() >= self.quantile, CONVERGED, NOISY)
+            ratio[ask] = q.cpu().numpy() / limit
+        out[flat] = CONVERGED
+        ratio[flat] = 0.0
         self._keep_ratios(ids, ratio)
         return out
 
@@ -383,17 +473,20 @@ class ModelCriterion(Criterion):
             self._quick_features([int(b) for b in ids], np.asarray(quick, np.float32))
             self.timers["features_s"] += time.perf_counter() - t0
 
-    def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
-        flat = self._flat(views, self.exposure)
+    def _decide(self, ids: list[int], batch: BlockBatch) -> np.ndarray:
+        flat = self._flat(batch, self.exposure)
         if self.needs_halves:       # no estimate of the noise before both halves hold a pass
-            ask = [i for i, v in enumerate(views) if not flat[i] and min(v.half_spp or (0, 0)) > 0]
+            ask = np.flatnonzero(~flat & (batch.half_spp.min(axis=1) > 0)).tolist()  # type: ignore[union-attr]
         else:
             ask = np.flatnonzero(~flat).tolist()
         score = np.full(len(ids), np.nan)
         remote_verdict = np.full(len(ids), NOISY, np.int8)
+        # the model runs on the host: only the asked blocks are gathered there
+        sel = torch.tensor(ask, dtype=torch.int64)
         if ask and self.needs_halves:
-            even = np.stack([np.asarray(views[i].halves[0], np.float32) for i in ask])  # type: ignore[index]
-            odd = np.stack([np.asarray(views[i].halves[1], np.float32) for i in ask])   # type: ignore[index]
+            halves = batch.halves
+            assert halves is not None
+            even, odd = (h[sel.to(h.device)].to(torch.float32).cpu().numpy() for h in halves)
             self.counters["blocks_featured"] += len(ask)
             if self._local:
                 with torch_threads(1):
@@ -407,8 +500,9 @@ class ModelCriterion(Criterion):
                                                      offset=self.offset)
                 remote_verdict[ask] = np.where(np.asarray(verdict) > 0, CONVERGED, NOISY)
         elif ask:
-            blocks = np.stack([np.asarray(views[i].mean, np.float32) for i in ask])
-            quick = np.stack([np.asarray(views[i].quick, np.float32) for i in ask]) if self.needs_quick else None
+            mean = batch.mean
+            blocks = mean[sel.to(mean.device)].to(torch.float32).cpu().numpy()
+            quick = np.asarray(batch.quick, np.float32)[ask] if self.needs_quick else None
             self.counters["blocks_featured"] += len(ask)
             if self._local_features:
                 from learning.inputs.table import feature_input
@@ -472,22 +566,21 @@ class FlipCriterion(Criterion):
         return {"name": self.name, "threshold": self.c, "tau": self.tau, "pooling": CRITERION_POOLING,
                 "source": self.source}
 
-    def _decide(self, ids: list[int], views: list[BlockView]) -> np.ndarray:
-        from learning.inputs.halves import halves_flip
+    def _decide(self, ids: list[int], batch: BlockBatch) -> np.ndarray:
+        from noisefeat.flip import flip_halves_tensor
 
-        flat = self._flat(views, self.exposure)
-        ask = [i for i, v in enumerate(views) if not flat[i] and min(v.half_spp or (0, 0)) > 0]
+        flat = self._flat(batch, self.exposure)
+        ask = np.flatnonzero(~flat & (batch.half_spp.min(axis=1) > 0))   # type: ignore[union-attr]
         score = np.full(len(ids), np.nan)
-        if ask:
-            a = np.stack([views[i].halves[0] for i in ask])    # type: ignore[index]
-            b = np.stack([views[i].halves[1] for i in ask])    # type: ignore[index]
-            score[ask] = -halves_flip(a, b, self.exposure)
-            self.counters["blocks_featured"] += len(ask)
+        if ask.size:
+            a, b = batch.halves     # type: ignore[misc]
+            sel = torch.from_numpy(ask).to(a.device)
+            # FLIP where the half buffers live (the GPU with cuda_ad_rgb): scores come back
+            score[ask] = -flip_halves_tensor(a[sel], b[sel], self.exposure, pooling=CRITERION_POOLING).cpu().numpy()
+            self.counters["blocks_featured"] += int(ask.size)
         # the half-buffer FLIP relative to c (the criterion's threshold c(tau)); flat: 0
         self._keep_ratios(ids, np.where(flat, 0.0, -score / self.c if self.c > 0 else np.inf))
         return self.rule.verdict(score, flat)
-
-
 
 
 def build_criterion(kind: str, *, model: str | None = None, server: str | None = None,

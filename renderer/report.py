@@ -26,7 +26,8 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
             ref: Stack | None) -> dict[str, Any]:
     n = br.n_blocks
     max_spp = settings["max_spp"]
-    spp = np.array([acc.spp(b) for b in range(n)], np.int64)
+    spp = acc.spp_all()
+    nonfinite = acc.nonfinite_all()
     converged = ~state["active"]
     history = state["history"]
     hist_spp = state["history_spp"]
@@ -38,7 +39,7 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
             [[int(hist_spp[i]), int(history[i, b])] for i in asked]
         blocks.append({"id": b, "window": list(br.window(b)), "spp": int(spp[b]), "converged": bool(converged[b]),
                        "stop_spp": int(state["stop_spp"][b]) if converged[b] else None,
-                       "nonfinite": acc.nonfinite(b), "history": own})
+                       "nonfinite": int(nonfinite[b]), "history": own})
     pixels = br.block_h * br.block_w          # samples_spent counts shared window pixels once per window
     wall = float(timers.get("wall_s", 0.0))
     setup_s, render_s, features_s, decisions_s = (float(timers.get(k, 0.0))

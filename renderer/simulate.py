@@ -61,7 +61,7 @@ def simulate_stack(stack: Stack, criterion: Criterion, min_spp: int | None = Non
         if not ids:
             V[k:] = 1
             break
-        loop.add_pass(ids, stack.split(pass_img)[ids], pass_spp)   # stopped blocks get no more samples
+        loop.step(ids, [(stack.split(pass_img)[ids], pass_spp)])   # stopped blocks get no more samples
         V[k, ~loop.active] = 1
     bar.close()
     return V

@@ -20,7 +20,7 @@ blocks is bit for bit the same estimator as those blocks cut out of a full-frame
 * wider filters (the Gaussian of most published scenes): samples are splatted with the
   film's filter into a frame-sized ``mi.ImageBlock``, and the traced set is the requested
   pixels grown by a guard band of ``floor(radius + 1/2)`` pixels, every pixel whose samples
-  can reach a requested one (`guard_band`). Only the requested pixels are read back.
+  can reach a requested one (`guard_band`). Only the requested pixels are kept.
 
 Pixels on the frame's edge get no samples from outside it, as in a full-frame render
 without ``sample_border``.
@@ -37,6 +37,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import torch
 
 from noisefeat.extras import require
 
@@ -98,19 +99,32 @@ def _keyed_sampler_class() -> type:
 _KEYED: type | None = None
 
 
+def _uint32_keys(key: int, n: int, device: torch.device) -> torch.Tensor:
+    """`n` copies of a 32-bit pass key as a uint32 tensor (Dr.Jit reads it as UInt32)."""
+    return torch.full((n,), int(key), dtype=torch.int64, device=device).to(torch.uint32)
+
+
+def torch_device(variant: str) -> torch.device:
+    """Where a render's per-pass arrays live: the GPU for a ``cuda_*`` variant, else the CPU."""
+    return torch.device("cuda") if variant.startswith("cuda") else torch.device("cpu")
+
+
 class WavefrontTracer:
     """Trace `spp` samples for any set of a frame's pixels; one compiled kernel per render.
 
     `frame` is the film's crop window (the whole film unless an XML file sets a crop):
     pixel indices are row-major within it. Needs a vectorised (JIT) Mitsuba variant.
+    Pixel sets come in and frames go out as torch tensors on `device`, shared with Dr.Jit
+    through DLPack: on a GPU no pass ever crosses to the host.
     """
 
-    def __init__(self, scene: Any, sensor: Any, integrator: Any) -> None:
+    def __init__(self, scene: Any, sensor: Any, integrator: Any, device: torch.device | None = None) -> None:
         dr = require("drjit")
         mi = require("mitsuba")
 
         self._mi, self._dr = mi, dr
         self.scene, self.sensor, self.integrator = scene, sensor, integrator
+        self.device = torch.device("cpu") if device is None else device
         film = sensor.film()
         self.width, self.height = int(film.crop_size()[0]), int(film.crop_size()[1])
         self._offset = (int(film.crop_offset()[0]), int(film.crop_offset()[1]))
@@ -123,19 +137,22 @@ class WavefrontTracer:
         self.lanes = 0            # lanes launched (one per sample), over every launch
         self.samples = 0          # samples traced, guard band included
 
-    def traced_pixels(self, mask: np.ndarray) -> np.ndarray:
-        """The requested pixel mask [H, W] grown by the guard band (clipped to the frame)."""
-        mask = np.asarray(mask, bool)
-        g = self.guard
-        if g == 0 or not mask.any():
-            return mask
-        # separable dilation by a (2g+1) square: first along x, then along y
-        cum = np.cumsum(np.pad(mask, ((0, 0), (g + 1, g)), constant_values=False), axis=1, dtype=np.int32)
-        row_grown = (cum[:, 2 * g + 1:] - cum[:, :-2 * g - 1]) > 0
-        cum = np.cumsum(np.pad(row_grown, ((g + 1, g), (0, 0)), constant_values=False), axis=0, dtype=np.int32)
-        return (cum[2 * g + 1:] - cum[:-2 * g - 1]) > 0
+    def _mask(self, mask: Any) -> torch.Tensor:
+        m = torch.as_tensor(np.asarray(mask, bool) if not isinstance(mask, torch.Tensor) else mask)
+        if tuple(m.shape) != (self.height, self.width):
+            raise ValueError(f"pixel mask {tuple(m.shape)} does not match the frame {(self.height, self.width)}")
+        return m.to(device=self.device, dtype=torch.bool)
 
-    def trace(self, mask: np.ndarray, spp: int, key: int) -> np.ndarray:
+    def traced_pixels(self, mask: Any) -> torch.Tensor:
+        """The requested pixel mask [H, W] grown by the guard band (clipped to the frame)."""
+        m = self._mask(mask)
+        g = self.guard
+        if g == 0:
+            return m
+        grown = torch.nn.functional.max_pool2d(m[None, None].to(torch.float32), 2 * g + 1, stride=1, padding=g)
+        return grown[0, 0] > 0
+
+    def trace(self, mask: Any, spp: int, key: int) -> torch.Tensor:
         """Pixel estimates float32 [H, W, 3] for the pixels of `mask` (others are 0).
 
         `key` (32 bits) selects the pass's random numbers: the same (pixel, spp, key)
@@ -143,76 +160,64 @@ class WavefrontTracer:
         """
         return self.trace_jobs([(mask, key)], spp)[0]
 
-    def trace_jobs(self, jobs: Sequence[tuple[np.ndarray, int]], spp: int) -> list[np.ndarray]:
+    def trace_jobs(self, jobs: Sequence[tuple[Any, int]], spp: int) -> list[torch.Tensor]:
         """Several passes in one launch: float32 [H, W, 3] per (pixel mask, key) job.
 
         Each job is exactly what `trace(mask, spp, key)` returns (random numbers are keyed
         per (pixel, sample, key), and every job's pixels are summed on their own), so
         passes of different blocks at different pass indices, or several steps of the same
         blocks, share one launch: a larger wavefront when few pixels are active. With a
-        box filter all jobs go in one launch; a wider filter splats each job into its own
-        frame, one launch per job.
+        box filter each pixel's samples are summed on their own; a wider filter splats
+        each job into its own frame (one ImageBlock per job, one kernel for all).
         """
-        if not isinstance(spp, (int, np.integer)) or spp < 1:
+        if isinstance(spp, bool) or not isinstance(spp, (int, np.integer)) or spp < 1:
             raise ValueError(f"spp must be a positive integer, got {spp!r}")
-        masks, keys = [], []
-        for mask, key in jobs:
-            mask = np.asarray(mask, bool)
-            if mask.shape != (self.height, self.width):
-                raise ValueError(f"pixel mask {mask.shape} does not match the frame {(self.height, self.width)}")
-            masks.append(mask)
-            keys.append(int(key) & 0xFFFFFFFF)
-        outs = [np.zeros((self.height, self.width, 3), np.float32) for _ in masks]
-        if not self.box:
-            for out, mask, key in zip(outs, masks, keys):
-                self._trace_splat(out, mask, int(spp), key)
-            return outs
-        pixels = [np.flatnonzero(m.ravel()).astype(np.uint32) for m in masks]
-        lane_keys = [np.full(p.size, k, np.uint32) for p, k in zip(pixels, keys)]
-        job_of = np.repeat(np.arange(len(masks)), [p.size for p in pixels])
-        all_pixels = np.concatenate(pixels) if pixels else np.zeros(0, np.uint32)
-        all_keys = np.concatenate(lane_keys) if lane_keys else np.zeros(0, np.uint32)
-        if all_pixels.size == 0:
-            return outs
-        self.samples += int(all_pixels.size) * int(spp)
+        masks = [self._mask(m) for m, _ in jobs]
+        keys = [int(k) & 0xFFFFFFFF for _, k in jobs]
+        hw = self.height * self.width
+        outs = [torch.zeros((hw, 3), dtype=torch.float32, device=self.device) for _ in masks]
+        grown = masks if self.box else [self.traced_pixels(m) for m in masks]
+        pixels = [torch.nonzero(m.flatten()).flatten() for m in grown]
+        counts = [int(p.numel()) for p in pixels]
+        total = sum(counts)
+        if total == 0:
+            return [o.view(self.height, self.width, 3) for o in outs]
+        all_pixels = torch.cat(pixels).to(torch.int32)
+        job_of = torch.repeat_interleave(torch.arange(len(masks)), torch.tensor(counts)).to(self.device)
+        all_keys = torch.tensor(keys, dtype=torch.int64, device=self.device)[job_of].to(torch.uint32)
+        self.samples += total * int(spp)
         per_launch = max(1, MAX_LANES // int(spp))
-        values = np.empty((all_pixels.size, 3), np.float32)
-        for i in range(0, all_pixels.size, per_launch):
-            values[i:i + per_launch] = self._launch_box(all_pixels[i:i + per_launch], int(spp),
-                                                        all_keys[i:i + per_launch])
-        for j, out in enumerate(outs):
-            out.reshape(-1, 3)[pixels[j]] = values[job_of == j]
-        return outs
-
-    def _trace_splat(self, out: np.ndarray, mask: np.ndarray, spp: int, key: int) -> None:
-        """One job with a wide filter: splat the grown pixel set, read back `mask`."""
-        traced = self.traced_pixels(mask)
-        pixels = np.flatnonzero(traced.ravel()).astype(np.uint32)
-        if pixels.size == 0:
-            return
-        self.samples += int(pixels.size) * int(spp)
-        per_launch = max(1, MAX_LANES // int(spp))
-        acc = np.zeros((self.height * self.width, 4), np.float64)
-        for i in range(0, pixels.size, per_launch):
-            chunk = pixels[i:i + per_launch]
-            acc += self._launch_splat(chunk, spp, np.full(chunk.size, key, np.uint32))
-        want = np.flatnonzero(mask.ravel())
-        w = acc[want, 3:]
-        out.reshape(-1, 3)[want] = np.divide(acc[want, :3], w, out=np.zeros((want.size, 3)), where=w > 0)
+        if self.box:
+            values = torch.cat([self._launch_box(all_pixels[i:i + per_launch], int(spp), all_keys[i:i + per_launch])
+                                for i in range(0, total, per_launch)])
+            for out, pix, part in zip(outs, pixels, torch.split(values, counts)):
+                out[pix] = part
+            return [o.view(self.height, self.width, 3) for o in outs]
+        # a wide filter: every job splats into its own frame, all jobs in one launch
+        acc = torch.zeros((len(masks), self.height * self.width, 4), dtype=torch.float64, device=self.device)
+        for i in range(0, total, per_launch):
+            acc += self._launch_splat(all_pixels[i:i + per_launch], int(spp), all_keys[i:i + per_launch],
+                                      job_of[i:i + per_launch].to(torch.int32), len(masks))
+        for out, mask, frame in zip(outs, masks, acc):
+            want = mask.flatten()
+            w = frame[:, 3:]
+            value = torch.where(w > 0, frame[:, :3] / torch.where(w > 0, w, 1.0), 0.0)
+            out[want] = value[want].to(torch.float32)
+        return [o.view(self.height, self.width, 3) for o in outs]
 
     # -- one launch ---------------------------------------------------------------
 
-    def _samples(self, pixels: np.ndarray, spp: int, keys: np.ndarray) -> tuple[Any, Any]:
+    def _samples(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor) -> tuple[Any, Any]:
         """(film position, radiance) of every sample of `pixels`, each pixel with its pass
         key (`keys`, uint32 like `pixels`): lanes pixel-major."""
         mi, dr = self._mi, self._dr
-        n = int(pixels.size) * spp
+        n = int(pixels.numel()) * spp
         lane = dr.arange(mi.UInt32, n)
         spp_o = dr.opaque(mi.UInt32, spp)
         which = lane // spp_o
         j = lane - which * spp_o
-        pix = dr.gather(mi.UInt32, mi.UInt32(pixels), which)
-        key = dr.gather(mi.UInt32, mi.UInt32(keys), which)
+        pix = dr.gather(mi.UInt32, mi.UInt32(pixels.contiguous()), which)
+        key = dr.gather(mi.UInt32, mi.UInt32(keys.contiguous()), which)
         s0, s1 = mi.sample_tea_32(pix, key)
         t0, t1 = mi.sample_tea_32(j, s0)
         sampler = self._sampler
@@ -233,29 +238,45 @@ class WavefrontTracer:
         radiance, _, _ = self.integrator.sample(self.scene, sampler, ray, sensor.get_medium(), True)
         return pos, mi.Color3f(weight * radiance)
 
-    def _launch_box(self, pixels: np.ndarray, spp: int, keys: np.ndarray) -> np.ndarray:
-        """Box filter: the mean of each pixel's own samples, float32 [n, 3]."""
-        mi, dr = self._mi, self._dr
-        _, rgb = self._samples(pixels, spp, keys)
-        dr.eval(rgb)
-        self.launches += 1
-        self.lanes += int(pixels.size) * spp
-        # lanes are pixel-major: each pixel's spp samples are consecutive (numpy sums them
-        # faster than dr.block_sum on the llvm backend)
-        # (channel by channel: converting the Color3f at once would compile a copy kernel
-        # for every wavefront size)
-        values = np.stack([np.asarray(rgb[c], np.float32) for c in range(3)]).reshape(3, pixels.size, spp)
-        return values.sum(axis=2, dtype=np.float64).T.astype(np.float32) / np.float32(spp)
+    def _sync(self) -> None:
+        """Dr.Jit and torch queue GPU work on their own streams: hand arrays across only
+        once the other side's work is done (one wait per launch; nothing on the CPU)."""
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+            self._dr.sync_thread()
 
-    def _launch_splat(self, pixels: np.ndarray, spp: int, keys: np.ndarray) -> np.ndarray:
-        """Any filter: weighted sums and weights [H * W, 4] splatted over the frame."""
-        mi, dr = self._mi, self._dr
-        pos, rgb = self._samples(pixels, spp, keys)
-        block = mi.ImageBlock(mi.ScalarVector2u(self.width, self.height), mi.ScalarPoint2i(0, 0), 4,
-                              self.rfilter, border=False)
-        block.put(pos, [rgb[0], rgb[1], rgb[2], mi.Float(1.0)])
-        tensor = block.tensor()
-        dr.eval(tensor)
+    def _launch_box(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor) -> torch.Tensor:
+        """Box filter: the mean of each pixel's own samples, float32 [n, 3] on the device."""
+        self._sync()
+        _, rgb = self._samples(pixels, spp, keys)
+        self._dr.eval(rgb)
+        self._sync()
         self.launches += 1
-        self.lanes += int(pixels.size) * spp
-        return np.asarray(tensor, np.float64).reshape(-1, 4)
+        self.lanes += int(pixels.numel()) * spp
+        # lanes are pixel-major: each pixel's spp samples are consecutive; summed in
+        # float64 by torch where the lanes live (channel by channel through DLPack: a
+        # Color3f converted at once would compile a copy kernel per wavefront size)
+        n = int(pixels.numel())
+        values = torch.stack([rgb[c].torch() for c in range(3)], dim=1).view(n, spp, 3)
+        return values.sum(dim=1, dtype=torch.float64).to(torch.float32) / np.float32(spp)
+
+    def _launch_splat(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor, jobs: torch.Tensor,
+                      n_jobs: int) -> torch.Tensor:
+        """Any filter: weighted sums and weights [n_jobs, H * W, 4], each lane splatted into
+        its job's frame (one ImageBlock per job, all filled by the one kernel)."""
+        mi, dr = self._mi, self._dr
+        self._sync()
+        pos, rgb = self._samples(pixels, spp, keys)
+        lane_job = dr.gather(mi.UInt32, mi.UInt32(jobs.contiguous()), dr.arange(mi.UInt32, int(pixels.numel()) * spp)
+                             // dr.opaque(mi.UInt32, spp))
+        blocks = []
+        for j in range(n_jobs):          # the jobs of one launch: a few passes
+            block = mi.ImageBlock(mi.ScalarVector2u(self.width, self.height), mi.ScalarPoint2i(0, 0), 4,
+                                  self.rfilter, border=False)
+            block.put(pos, [rgb[0], rgb[1], rgb[2], mi.Float(1.0)], active=(lane_job == j) if n_jobs > 1 else True)
+            blocks.append(block.tensor())
+        dr.eval(*blocks)
+        self._sync()
+        self.launches += 1
+        self.lanes += int(pixels.numel()) * spp
+        return torch.stack([t.torch().reshape(-1, 4) for t in blocks]).to(torch.float64)

@@ -3,13 +3,20 @@
 Shared by the live loop (`renderer.adaptive`, fed rendered passes) and everything that
 replays a stored stack (`learning.inputs.halves`, `renderer.simulate`, fed passes recovered
 from its levels): one arithmetic, so a criterion sees bit-identical buffers either way.
+
+The sums live in torch tensors on the renderer's device (`device`: the GPU with Mitsuba's
+``cuda_ad_rgb``, else the CPU), so a live pass is added and judged where it was traced:
+one batched update per pass, no copy of an image to the host. The per-block counters
+(samples, passes) are small host arrays: the loop and the budget read them every pass.
 """
 from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
+import torch
 
 logger = logging.getLogger(__name__)
 
@@ -17,11 +24,11 @@ logger = logging.getLogger(__name__)
 class BlockAccumulator:
     """Exact cumulative per-block means, sample counts and even/odd half buffers.
 
-    Each ``add`` is one *pass*: a block image that is the mean of `spp` new samples.
-    Sums are kept in float64 as ``image * spp`` so ``mean = sum / spp`` whatever the
-    pass sizes. Passes alternate between two half buffers per block: pass 0, 2, 4...
-    go to A and 1, 3, 5... to B (the Cycles-style criterion compares the mean of all
-    samples with the mean of one half; with equal pass sizes ``mean = (A + B) / 2``).
+    Each pass of a block is an image that is the mean of `spp` new samples. Sums are
+    kept in float64 as ``image * spp`` so ``mean = sum / spp`` whatever the pass sizes.
+    Passes alternate between two half buffers per block: pass 0, 2, 4... go to A and
+    1, 3, 5... to B (the Cycles-style criterion compares the mean of all samples with the
+    mean of one half; with equal pass sizes ``mean = (A + B) / 2``).
 
     Non-finite values (Mitsuba can emit NaN/Inf): a pixel whose value in a pass is not
     finite in any channel is dropped *for that pixel and pass only*: it adds nothing to
@@ -33,18 +40,20 @@ class BlockAccumulator:
 
     STATE_VERSION = 1
 
-    def __init__(self, grid: tuple[int, int], block: tuple[int, int], channels: int = 3) -> None:
+    def __init__(self, grid: tuple[int, int], block: tuple[int, int], channels: int = 3,
+                 device: torch.device | str | None = None) -> None:
         gh, gw = (int(g) for g in grid)
         bh, bw = (int(b) for b in block)
         if min(gh, gw, bh, bw, int(channels)) < 1:
             raise ValueError(f"grid {grid!r}, block {block!r} and channels {channels!r} must be positive")
         self.grid, self.block, self.channels = (gh, gw), (bh, bw), int(channels)
+        self.device = torch.device("cpu" if device is None else device)
         n = gh * gw
-        self._sum = np.zeros((2, n, bh, bw, self.channels), dtype=np.float64)
-        self._weight = np.zeros((2, n, bh, bw), dtype=np.int64)
+        self._sum = torch.zeros((2, n, bh, bw, self.channels), dtype=torch.float64, device=self.device)
+        self._weight = torch.zeros((2, n, bh, bw), dtype=torch.int64, device=self.device)
+        self._nonfinite_t = torch.zeros(n, dtype=torch.int64, device=self.device)
         self._spp = np.zeros((n, 2), dtype=np.int64)
         self._passes = np.zeros(n, dtype=np.int64)
-        self._nonfinite = np.zeros(n, dtype=np.int64)
 
     @property
     def n_blocks(self) -> int:
@@ -55,72 +64,123 @@ class BlockAccumulator:
             raise ValueError(f"block id {block_id!r} out of range 0..{self.n_blocks - 1}")
         return int(block_id)
 
-    def add(self, block_id: int, image: np.ndarray, spp: int) -> int:
-        """Add one pass (`image` = mean of `spp` samples); return its dropped pixel count."""
+    def _check_ids(self, block_ids: Sequence[int] | np.ndarray) -> np.ndarray:
+        ids = np.asarray(block_ids, dtype=np.int64).reshape(-1)
+        if ids.size and (ids.min() < 0 or ids.max() >= self.n_blocks):
+            raise ValueError(f"block ids out of range 0..{self.n_blocks - 1}: {ids[(ids < 0) | (ids >= self.n_blocks)][:5].tolist()}")
+        if len(np.unique(ids)) != ids.size:
+            raise ValueError("duplicate block ids: one pass adds each block once")
+        return ids
+
+    def add(self, block_id: int, image: Any, spp: int) -> int:
+        """Add one pass of one block (`image` = mean of `spp` samples); return its dropped
+        pixel count."""
         b = self._check_id(block_id)
-        if not isinstance(spp, (int, np.integer)) or spp < 1:
+        img = image if isinstance(image, torch.Tensor) else torch.from_numpy(np.asarray(image))
+        if tuple(img.shape) != (*self.block, self.channels):
+            raise ValueError(f"block {b}: image shape {tuple(img.shape)} does not match "
+                             f"{(*self.block, self.channels)}")
+        return int(self.add_batch([b], img[None], spp).sum())
+
+    def add_many(self, block_ids: Sequence[int], images: Any, spp: int) -> int:
+        """`add` for a batch as returned by `BlockRenderer.render_blocks`; returns the
+        dropped (pixel, pass) count."""
+        return int(self.add_batch(block_ids, images, spp).sum())
+
+    def add_batch(self, block_ids: Sequence[int] | np.ndarray, images: Any,
+                  spp: int | Sequence[int]) -> torch.Tensor:
+        """One pass of each listed block, in one batched update: `images` [k, bh, bw, C]
+        (a tensor on any device or an array), `spp` one size for all or one per block.
+        Returns the dropped pixel count of each block, int64 [k] on the device (reading it
+        is a host sync: the live loop does not)."""
+        ids = self._check_ids(block_ids)
+        sizes = np.broadcast_to(np.asarray(spp), ids.shape)
+        if sizes.size and (not np.issubdtype(sizes.dtype, np.integer) or sizes.min() < 1):
             raise ValueError(f"spp must be a positive integer, got {spp!r}")
-        img = np.asarray(image, dtype=np.float64)
-        want = (*self.block, self.channels)
-        if img.shape != want:
-            raise ValueError(f"block {b}: image shape {img.shape} does not match {want}")
-        ok = np.isfinite(img).all(axis=-1)
-        half = int(self._passes[b] % 2)
-        self._sum[half, b] += np.where(ok[..., None], img, 0.0) * spp
-        self._weight[half, b] += ok * int(spp)
-        self._spp[b, half] += int(spp)
-        self._passes[b] += 1
-        dropped = int(ok.size - ok.sum())
-        self._nonfinite[b] += dropped
-        if dropped:
-            logger.debug("block %d: dropped %d non-finite pixel(s) of a %d-spp pass", b, dropped, spp)
+        img = images if isinstance(images, torch.Tensor) else torch.from_numpy(np.asarray(images))
+        want = (len(ids), *self.block, self.channels)
+        if tuple(img.shape) != want:
+            raise ValueError(f"block images of shape {tuple(img.shape)} do not match {want}")
+        if not ids.size:
+            return torch.zeros(0, dtype=torch.int64, device=self.device)
+        img = img.to(device=self.device, dtype=torch.float64)
+        half_np = self._passes[ids] % 2
+        ids_t = torch.from_numpy(ids).to(self.device)
+        half = torch.from_numpy(half_np).to(self.device)
+        n_t = torch.from_numpy(sizes.astype(np.int64)).to(self.device)
+        ok = torch.isfinite(img).all(dim=-1)
+        self._sum.index_put_((half, ids_t), torch.where(ok[..., None], img, 0.0) * n_t[:, None, None, None],
+                             accumulate=True)
+        self._weight.index_put_((half, ids_t), ok * n_t[:, None, None], accumulate=True)
+        dropped = (~ok).sum(dim=(1, 2))
+        self._nonfinite_t.index_add_(0, ids_t, dropped)
+        np.add.at(self._spp, (ids, half_np), sizes)
+        self._passes[ids] += 1
         return dropped
 
-    def add_many(self, block_ids: Sequence[int], images: np.ndarray, spp: int) -> int:
-        """`add` for a batch as returned by `BlockRenderer.render_blocks`."""
-        if len(block_ids) != len(images):
-            raise ValueError(f"{len(block_ids)} block ids but {len(images)} images")
-        return sum(self.add(b, img, spp) for b, img in zip(block_ids, images))
-
     @staticmethod
-    def _divide(total: np.ndarray, weight: np.ndarray) -> np.ndarray:
-        w = weight[..., None].astype(np.float64)
-        return np.divide(total, w, out=np.zeros_like(total), where=w > 0)
+    def _divide(total: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+        w = weight[..., None].to(torch.float64)
+        return torch.where(w > 0, total / torch.where(w > 0, w, 1.0), 0.0)
+
+    def means(self, block_ids: Sequence[int] | np.ndarray) -> torch.Tensor:
+        """Cumulative means of all finite samples, float64 [k, bh, bw, C] on the device."""
+        ids = torch.from_numpy(self._check_ids(block_ids)).to(self.device)
+        return self._divide(self._sum[:, ids].sum(dim=0), self._weight[:, ids].sum(dim=0))
+
+    def halves(self, block_ids: Sequence[int] | np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """(A, B) [k, bh, bw, C] each on the device: means of the even and the odd passes."""
+        ids = torch.from_numpy(self._check_ids(block_ids)).to(self.device)
+        return (self._divide(self._sum[0, ids], self._weight[0, ids]),
+                self._divide(self._sum[1, ids], self._weight[1, ids]))
 
     def mean(self, block_id: int) -> np.ndarray:
         """Cumulative mean of all finite samples of the block, float64 [bh, bw, C]."""
-        b = self._check_id(block_id)
-        return self._divide(self._sum[:, b].sum(axis=0), self._weight[:, b].sum(axis=0))
+        return self.means([self._check_id(block_id)])[0].cpu().numpy()
 
     def half_buffer(self, block_id: int) -> tuple[np.ndarray, np.ndarray]:
         """(A, B): cumulative means of the even-numbered and the odd-numbered passes."""
-        b = self._check_id(block_id)
-        return self._divide(self._sum[0, b], self._weight[0, b]), self._divide(self._sum[1, b], self._weight[1, b])
+        a, b = self.halves([self._check_id(block_id)])
+        return a[0].cpu().numpy(), b[0].cpu().numpy()
 
     def spp(self, block_id: int) -> int:
         """Samples per pixel spent on the block (dropped non-finite passes included)."""
         return int(self._spp[self._check_id(block_id)].sum())
+
+    def spp_all(self) -> np.ndarray:
+        """Samples per pixel spent on every block, int64 [n_blocks] (host)."""
+        return self._spp.sum(axis=1)
 
     def half_spp(self, block_id: int) -> tuple[int, int]:
         """Samples per pixel spent in half buffers A and B."""
         a, b_ = self._spp[self._check_id(block_id)]
         return int(a), int(b_)
 
+    def half_spp_all(self) -> np.ndarray:
+        """int64 [n_blocks, 2]: samples in half buffers A and B of every block (host)."""
+        return self._spp.copy()
+
     def passes(self, block_id: int) -> int:
         return int(self._passes[self._check_id(block_id)])
 
+    def passes_all(self) -> np.ndarray:
+        """int64 [n_blocks]: passes added to every block (host)."""
+        return self._passes.copy()
+
     def nonfinite(self, block_id: int) -> int:
         """How many (pixel, pass) values of the block were non-finite and dropped."""
-        return int(self._nonfinite[self._check_id(block_id)])
+        return int(self._nonfinite_t[self._check_id(block_id)])
+
+    def nonfinite_all(self) -> np.ndarray:
+        """int64 [n_blocks]: dropped (pixel, pass) values of every block (one device read)."""
+        return self._nonfinite_t.cpu().numpy()
 
     def image(self) -> np.ndarray:
         """All cumulative block means assembled into the frame, float64 [H, W, C]."""
         (gh, gw), (bh, bw) = self.grid, self.block
-        out = np.zeros((gh * bh, gw * bw, self.channels), dtype=np.float64)
-        for b in range(self.n_blocks):
-            r, c = divmod(b, gw)
-            out[r * bh:(r + 1) * bh, c * bw:(c + 1) * bw] = self.mean(b)
-        return out
+        m = self.means(np.arange(self.n_blocks)).cpu().numpy()
+        return m.reshape(gh, gw, bh, bw, self.channels).transpose(0, 2, 1, 3, 4).reshape(gh * bh, gw * bw,
+                                                                                         self.channels)
 
     # -- checkpointing -------------------------------------------------------
 
@@ -130,15 +190,15 @@ class BlockAccumulator:
             "version": np.array(self.STATE_VERSION, dtype=np.int64),
             "grid": np.array(self.grid, dtype=np.int64),
             "block": np.array(self.block, dtype=np.int64),
-            "sum": self._sum.copy(),
-            "weight": self._weight.copy(),
+            "sum": self._sum.cpu().numpy().copy(),
+            "weight": self._weight.cpu().numpy().copy(),
             "spp": self._spp.copy(),
             "passes": self._passes.copy(),
-            "nonfinite": self._nonfinite.copy(),
+            "nonfinite": self.nonfinite_all().copy(),
         }
 
     @classmethod
-    def from_state(cls, state: dict[str, np.ndarray]) -> BlockAccumulator:
+    def from_state(cls, state: dict[str, np.ndarray], device: torch.device | str | None = None) -> BlockAccumulator:
         """Rebuild an accumulator from `state()`; ValueError if anything does not fit."""
         need = ("version", "grid", "block", "sum", "weight", "spp", "passes", "nonfinite")
         missing = [k for k in need if k not in state]
@@ -152,11 +212,15 @@ class BlockAccumulator:
         if len(grid) != 2 or len(block) != 2:
             raise ValueError(f"accumulator state: bad grid {grid} or block {block}")
         channels = int(np.asarray(state["sum"]).shape[-1]) if np.asarray(state["sum"]).ndim == 5 else 0
-        acc = cls(grid, block, max(channels, 1))  # type: ignore[arg-type]
+        acc = cls(grid, block, max(channels, 1), device=device)  # type: ignore[arg-type]
         for key, arr in (("sum", acc._sum), ("weight", acc._weight), ("spp", acc._spp),
-                         ("passes", acc._passes), ("nonfinite", acc._nonfinite)):
+                         ("passes", acc._passes), ("nonfinite", acc._nonfinite_t)):
             got = np.asarray(state[key])
-            if got.shape != arr.shape:
-                raise ValueError(f"accumulator state: {key!r} has shape {got.shape}, expected {arr.shape}")
-            arr[...] = got
+            if got.shape != tuple(arr.shape):
+                raise ValueError(f"accumulator state: {key!r} has shape {got.shape}, expected {tuple(arr.shape)}")
+            if isinstance(arr, torch.Tensor):
+                arr.copy_(torch.from_numpy(got.astype(np.float64 if key == "sum" else np.int64)))
+            else:
+                arr[...] = got
         return acc
+

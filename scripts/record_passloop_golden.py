@@ -1,0 +1,59 @@
+"""Record what the live loop gives on tiny fixture renders (stops per block and the image),
+so tests/renderer/test_device_loop.py can hold a rewritten loop to the same result.
+
+    python scripts/record_passloop_golden.py tests/fixtures/passloop_golden.npz
+
+Run once, on the loop being replaced; the file is committed (about 0.4 MB)."""
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+import renderer
+
+#: (name, scene, keyword arguments of renderer.render)
+CASES = (
+    ("cornell_flip", "cornell", {"criterion": "flip", "threshold": 0.2, "resolution": 64, "block": 16, "step": 4, "min_spp": 8,
+                                 "max_spp": 96}),
+    ("cornell_variance", "cornell", {"criterion": "variance", "threshold": 0.15, "resolution": 64, "block": 16, "step": 4,
+                                     "min_spp": 8, "max_spp": 96}),
+    ("small_light_flip", "small_light", {"criterion": "flip", "threshold": 0.2, "resolution": 64, "block": 16, "step": 4,
+                                         "min_spp": 8, "max_spp": 96}),
+    ("overlap_flip", "cornell", {"criterion": "flip", "threshold": 0.2, "resolution": 72, "block": 32, "step": 4, "min_spp": 8,
+                                 "max_spp": 64}),
+    ("studio_flip", "studio_preview", {"criterion": "flip", "threshold": 0.2, "resolution": 64, "block": 16, "step": 4,
+                                       "min_spp": 8, "max_spp": 64}),
+    ("cbox_gaussian", "mitsuba:cornell_box", {"criterion": "flip", "threshold": 0.2, "block": 16, "step": 4,
+                                              "min_spp": 8, "max_spp": 64}),
+    ("cornell_budget", "cornell", {"criterion": "flip", "threshold": 0.05, "resolution": 64, "block": 16, "step": 4, "min_spp": 8,
+                                   "max_spp": 96, "spp_budget": 24}),
+)
+
+
+def load(scene: str):
+    """A case's scene: a built-in name, or "mitsuba:cornell_box" (Mitsuba's own Cornell box
+    dict at 64x64, whose film has a Gaussian filter: the splatting path)."""
+    if not scene.startswith("mitsuba:"):
+        return scene
+    import mitsuba as mi
+
+    renderer.register()
+    d = mi.cornell_box()
+    d["sensor"]["film"]["width"] = d["sensor"]["film"]["height"] = 64
+    return mi.load_dict(d)
+
+
+def main(out: str) -> None:
+    arrays = {}
+    for name, scene, kw in CASES:
+        r = renderer.render(load(scene), progress=False, **kw)
+        arrays[f"{name}/image"] = r.image
+        arrays[f"{name}/block_spp"] = np.array([b["spp"] for b in r.report["blocks"]], np.int64)
+        arrays[f"{name}/converged"] = np.array([b["converged"] for b in r.report["blocks"]], bool)
+        print(name, r.report["variant"], arrays[f"{name}/block_spp"].tolist())
+    np.savez_compressed(out, **arrays)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1])

@@ -65,6 +65,8 @@ TILE = 16
 #: pixel), and keeps the intermediate tensors small enough to be recycled by the allocator
 #: (at 2^17 and more, fresh pages cost a fifth of the time: ~5000 page faults per call)
 CHUNK_PIXELS = 1 << 16
+#: on a GPU: a 1024x1024 frame's blocks in one chunk (FLIP's intermediates: ~0.5 KB a pixel)
+GPU_CHUNK_PIXELS = 1 << 21
 
 _f32 = np.float32
 
@@ -328,8 +330,10 @@ def _check_pair(a: torch.Tensor | np.ndarray, b: torch.Tensor | np.ndarray,
     return ta, tb
 
 
-def _chunks(n: int, h: int, w: int) -> list[tuple[int, int]]:
-    step = max(1, CHUNK_PIXELS // max(1, h * w))
+def _chunks(n: int, h: int, w: int, device: torch.device = torch.device("cpu")) -> list[tuple[int, int]]:
+    """Blocks per call: cache-sized on the CPU; on a GPU as many as fit a large launch (a
+    chunk is ~100 small kernels, so fewer chunks is what makes FLIP cheap there)."""
+    step = max(1, (CHUNK_PIXELS if device.type == "cpu" else GPU_CHUNK_PIXELS) // max(1, h * w))
     return [(i, min(n, i + step)) for i in range(0, n, step)]
 
 
@@ -378,7 +382,7 @@ def flip_halves_tensor(even: torch.Tensor | np.ndarray, odd: torch.Tensor | np.n
     if h * w == 0 or n == 0:
         return out
     with torch.inference_mode():
-        for i, j in _chunks(n, h, w):
+        for i, j in _chunks(n, h, w, a.device):
             lin = _planes(a[i:j], b[i:j], exposure)
             m = j - i
             differ = (lin[:, :m] != lin[:, m:]).reshape(3, m, -1).any(dim=2).any(dim=0)

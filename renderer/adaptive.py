@@ -229,7 +229,8 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
                     progress: bool = True, reference: Stack | str | os.PathLike | None = None,
                     quick_spp: int = 16, defines: Mapping[str, str] | None = None,
                     time_limit: float | None = None, checkpoint_every: float = 30.0,
-                    tau: float = DEFAULT_TAU, spp_budget: float | None = None) -> dict[str, Any]:
+                    tau: float = DEFAULT_TAU, spp_budget: float | None = None,
+                    grow: bool = True) -> dict[str, Any]:
     """Render `scene` adaptively into `out`; return the report (also out/report.json).
 
     The command line's render: `run_adaptive` with checkpoints in `out`, then
@@ -255,7 +256,8 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     result = run_adaptive(scene, criterion, resolution=resolution, grid=grid, block=block, step=step,
                           min_spp=min_spp, max_spp=max_spp, seed=seed, progress=progress, reference=reference,
                           quick_spp=quick_spp, defines=defines, time_limit=time_limit, tau=tau,
-                          checkpoints=Checkpoints(out, resume, checkpoint_every), spp_budget=spp_budget)
+                          checkpoints=Checkpoints(out, resume, checkpoint_every), spp_budget=spp_budget,
+                          grow=grow)
     result.save(out)
     report = result.report
     logger.info("%s: %d passes, saved %.1f%% vs uniform, %.2f s", report["scene"], report["passes"],

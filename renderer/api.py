@@ -27,9 +27,10 @@ if TYPE_CHECKING:
     from .criteria import Criterion
 
 
-def render(scene: Any, *, criterion: Criterion | str = DEFAULT_CRITERION, tau: float = DEFAULT_TAU,
+def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float | None = None,
            block: int | None = None, min_spp: int | None = None, max_spp: int | None = None,
-           step: int | None = None, time_limit: float | None = None, seed: int = 0, progress: bool = True,
+           step: int | None = None, time_limit: float | None = None, seed: int | None = None,
+           progress: bool = True,
            grid: Sequence[int] | None = None, resolution: int | tuple[int, int] | str | None = None,
            defines: Mapping[str, str] | None = None,
            reference: Stack | str | os.PathLike[str] | np.ndarray | None = None,
@@ -47,13 +48,15 @@ def render(scene: Any, *, criterion: Criterion | str = DEFAULT_CRITERION, tau: f
         An ``mi.Scene`` (``mi.load_file``, ``mi.load_dict``, ``mi.load_string``), a Mitsuba
         XML file's path or a built-in scene name (``noisestop scenes``). A scene whose
         integrator is the ``noisestop`` plugin is traced with the plugin's nested one.
-    criterion : str or Criterion
-        When a block has converged: ``flip`` (training-free, default), ``model`` (the
+    criterion : str or Criterion or None
+        When a block has converged: ``flip`` (training-free, the default), ``model`` (the
         learned model), ``variance`` (Cycles' rule), ``uniform`` (never: max_spp
         everywhere) or ``oracle`` (needs a labelled reference stack); or a Criterion object.
-    tau : float
+        None: the scene's ``noisestop`` integrator's, if it has one, else ``flip``.
+    tau : float or None
         The noise target: the virtual observer's FLIP threshold the criterion is
-        calibrated for (smaller: cleaner and more samples).
+        calibrated for (smaller: cleaner and more samples); None: the scene's
+        ``noisestop`` integrator's, else 0.02.
     block : int or None
         Block side in pixels; None: 64 (the size the criteria were calibrated on), or the
         frame's short side if that is smaller. Edge windows are moved flush with the edge.
@@ -67,9 +70,9 @@ def render(scene: Any, *, criterion: Criterion | str = DEFAULT_CRITERION, tau: f
         Seconds: the pass under way when they run out is finished and the render returns
         (``report["time_limit"]["reached"]`` says so); once the time left cannot cover every
         active block, passes go to the blocks farthest from their target; None: no limit.
-    seed : int
+    seed : int or None
         Base seed: the samples of (pixel, pass) depend only on it, so the same call gives
-        the same image bit for bit.
+        the same image bit for bit; None: the scene's ``noisestop`` integrator's, else 0.
     progress : bool
         Show a progress bar on stderr.
     grid : sequence of two ints or None
@@ -105,12 +108,31 @@ def render(scene: Any, *, criterion: Criterion | str = DEFAULT_CRITERION, tau: f
     RenderResult
         ``image`` float32 [H, W, 3], ``spp`` int [H, W], ``converged`` bool [H, W] and
         ``report`` (the report.json dict); ``save(dir)`` writes the files.
+
+    Notes
+    -----
+    An ``mi.Scene`` whose integrator is the ``noisestop`` plugin is rendered with the
+    plugin's properties for every argument left None here (criterion, tau, block,
+    min_spp, max_spp, step, seed, threshold, offset, exposure, model); arguments given
+    here win.
     """
     from .adaptive import run_adaptive
     from .criteria import make_criterion
-    from .plugin import register
+    from .plugin import register, scene_plugin_settings
 
     register()
+    own = scene_plugin_settings(scene)        # the scene's own noisestop integrator, if any
+    given = {"criterion": criterion, "tau": tau, "block": block, "min_spp": min_spp, "max_spp": max_spp,
+             "step": step, "seed": seed, "threshold": threshold, "offset": offset, "model": model}
+    for key, value in given.items():
+        if value is None and key in own:
+            given[key] = own[key]
+    if exposure == 0.0 and "exposure" in own:
+        exposure = own["exposure"]
+    criterion, tau, block, min_spp, max_spp, step, seed, threshold, offset, model = given.values()
+    criterion = DEFAULT_CRITERION if criterion is None else criterion
+    tau = DEFAULT_TAU if tau is None else tau
+    seed = 0 if seed is None else seed
     crit = make_criterion(criterion, tau=tau, model=model, threshold=threshold, offset=offset, exposure=exposure)
     return run_adaptive(scene, crit, resolution=resolution, grid=grid, block=block, step=step, min_spp=min_spp,
                         max_spp=max_spp, seed=seed, progress=progress, reference=reference,

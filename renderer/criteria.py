@@ -190,6 +190,12 @@ class Criterion(ABC):
         self.timers = {k: 0.0 for k in TIMER_NAMES}
         self.ratios = {}
 
+    def start_render(self) -> None:
+        """Forget what a previous render left: the per-block ratios a budget render spends
+        by (a criterion object reused for a second render must not prioritise its blocks
+        by the first one's verdicts). Counters are the caller's to keep or reset."""
+        self.ratios = {}
+
     def restore_counters(self, counters: Mapping[str, int], timers: Mapping[str, float] | None = None) -> None:
         """Continue counting from a checkpoint."""
         self.counters.update({k: int(v) for k, v in counters.items()})

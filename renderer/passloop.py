@@ -36,6 +36,7 @@ class PassLoop:
     def __init__(self, criterion: Criterion, grid: tuple[int, int], block: tuple[int, int],
                  min_spp: int | None, quick: np.ndarray | None = None, device: Any = None) -> None:
         self.criterion, self.min_spp, self.quick, self.device = criterion, min_spp, quick, device
+        criterion.start_render()               # a new render: nothing carried over from the last
         self.acc = BlockAccumulator(grid, block, device=device)
         n = self.acc.n_blocks
         self.active = np.ones(n, bool)

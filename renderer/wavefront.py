@@ -43,6 +43,9 @@ from noisefeat.extras import require
 
 #: lanes per kernel launch: larger pixel sets are traced in chunks (same kernel)
 MAX_LANES = 1 << 24
+#: jobs one wide-filter launch splats (one ImageBlock each; the count is baked into the
+#: kernel, so launches are padded to one of these widths: a few kernels per render at most)
+SPLAT_WIDTHS = (1, 2, 4, 8)
 
 
 def guard_band(radius: float) -> int:
@@ -99,9 +102,10 @@ def _keyed_sampler_class() -> type:
 _KEYED: type | None = None
 
 
-def _uint32_keys(key: int, n: int, device: torch.device) -> torch.Tensor:
-    """`n` copies of a 32-bit pass key as a uint32 tensor (Dr.Jit reads it as UInt32)."""
-    return torch.full((n,), int(key), dtype=torch.int64, device=device).to(torch.uint32)
+def as_int32_bits(values: torch.Tensor) -> torch.Tensor:
+    """32-bit keys (int64 in [0, 2^32)) as int32 tensors of the same bits: Dr.Jit's UInt32
+    takes them bit for bit, and int32 crosses DLPack on every torch device."""
+    return torch.where(values >= 2**31, values - 2**32, values).to(torch.int32)
 
 
 def torch_device(variant: str) -> torch.device:
@@ -184,7 +188,7 @@ class WavefrontTracer:
             return [o.view(self.height, self.width, 3) for o in outs]
         all_pixels = torch.cat(pixels).to(torch.int32)
         job_of = torch.repeat_interleave(torch.arange(len(masks)), torch.tensor(counts)).to(self.device)
-        all_keys = torch.tensor(keys, dtype=torch.int64, device=self.device)[job_of].to(torch.uint32)
+        all_keys = as_int32_bits(torch.tensor(keys, dtype=torch.int64, device=self.device)[job_of])
         self.samples += total * int(spp)
         per_launch = max(1, MAX_LANES // int(spp))
         if self.box:
@@ -193,11 +197,18 @@ class WavefrontTracer:
             for out, pix, part in zip(outs, pixels, torch.split(values, counts)):
                 out[pix] = part
             return [o.view(self.height, self.width, 3) for o in outs]
-        # a wide filter: every job splats into its own frame, all jobs in one launch
+        # a wide filter: every job splats into its own frame, up to 8 jobs per launch
         acc = torch.zeros((len(masks), self.height * self.width, 4), dtype=torch.float64, device=self.device)
-        for i in range(0, total, per_launch):
-            acc += self._launch_splat(all_pixels[i:i + per_launch], int(spp), all_keys[i:i + per_launch],
-                                      job_of[i:i + per_launch].to(torch.int32), len(masks))
+        ends = np.cumsum([0, *counts])
+        widest = SPLAT_WIDTHS[-1]
+        for g0 in range(0, len(masks), widest):     # groups of jobs (one in a plain pass)
+            g1 = min(len(masks), g0 + widest)
+            width = next(w for w in SPLAT_WIDTHS if w >= g1 - g0)
+            lo, hi = int(ends[g0]), int(ends[g1])
+            for i in range(lo, hi, per_launch):
+                j = min(hi, i + per_launch)
+                acc[g0:g1] += self._launch_splat(all_pixels[i:j], int(spp), all_keys[i:j],
+                                                 (job_of[i:j] - g0).to(torch.int32), width)[:g1 - g0]
         for out, mask, frame in zip(outs, masks, acc):
             want = mask.flatten()
             w = frame[:, 3:]
@@ -209,7 +220,7 @@ class WavefrontTracer:
 
     def _samples(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor) -> tuple[Any, Any]:
         """(film position, radiance) of every sample of `pixels`, each pixel with its pass
-        key (`keys`, uint32 like `pixels`): lanes pixel-major."""
+        key (`keys`, int32 tensors read as UInt32): lanes pixel-major."""
         mi, dr = self._mi, self._dr
         n = int(pixels.numel()) * spp
         lane = dr.arange(mi.UInt32, n)

@@ -51,7 +51,8 @@ DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "inputs": (bench_inp
                     "budget": (bench_budget, md_budget)}
 
 
-SECTIONS = ("features", "crop", "flip", "models", "render", "passes", "oracle", "service", "capacity", "stability",
+SECTIONS = ("features", "crop", "flip", "models", "render", "passes", "native", "oracle", "service", "capacity",
+            "stability",
             "reliability", "hardening", *DATASET_SECTIONS)
 
 
@@ -110,6 +111,10 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
     if "passes" in only:
         from .bench_passes import bench_passes, md_passes
         measure("passes", bench_passes, md_passes)
+    if "native" in only:
+        from .bench_native import bench_native, md_native
+        # the figures are the device's: a GPU run fills a section of its own
+        measure("native_gpu" if variant.startswith("cuda") else "native", bench_native, md_native)
     if "oracle" in only:
         from .bench_passes import bench_oracle, md_oracle
         measure("oracle", lambda: bench_oracle(max(1, min(repeats, 3))), md_oracle)

@@ -76,11 +76,11 @@ def test_resume_gives_the_uninterrupted_result(tmp_path, monkeypatch, model, kin
     with np.load(tmp_path / "b" / CHECKPOINT, allow_pickle=False) as z:
         assert int(z["pass_index"]) == 2 and not bool(z["done"])
     passes = []
-    real = BlockRenderer.render_blocks
-    monkeypatch.setattr(BlockRenderer, "render_blocks",
-                        lambda self, ids, spp, seed, pass_index=0: passes.append(pass_index) or
-                        real(self, ids, spp, seed, pass_index))
-    resumed = adaptive_render("cornell", tmp_path / "b", make(), resume=True, **TINY)
+    real = BlockRenderer.render_passes
+    monkeypatch.setattr(BlockRenderer, "render_passes",
+                        lambda self, jobs, spp, seed: passes.extend(sorted({p for _, p in jobs})) or
+                        real(self, jobs, spp, seed))
+    resumed = adaptive_render("cornell", tmp_path / "b", make(), resume=True, **TINY, grow=False)
     assert passes == list(range(2, ref["passes"]))   # continued, did not start over
     assert without_timing(resumed) == without_timing(ref)
     np.testing.assert_array_equal(read_exr(tmp_path / "b" / "final.exr"), read_exr(tmp_path / "a" / "final.exr"))
@@ -88,7 +88,7 @@ def test_resume_gives_the_uninterrupted_result(tmp_path, monkeypatch, model, kin
     assert on_disk["counters"] == ref["counters"] and on_disk["blocks"] == ref["blocks"]
     # a finished run resumed again renders nothing more
     passes.clear()
-    again = adaptive_render("cornell", tmp_path / "b", make(), resume=True, **TINY)
+    again = adaptive_render("cornell", tmp_path / "b", make(), resume=True, **TINY, grow=False)
     assert without_timing(again) == without_timing(ref) and passes == []
     # resuming with other settings is refused, not mixed
     with pytest.raises(ValueError, match="other settings.*step"):
@@ -116,14 +116,15 @@ def test_only_active_blocks_are_rendered_and_asked(tmp_path, model, monkeypatch)
 
     monkeypatch.setattr(BlockRenderer, "quick_image", counting_quick)
     rendered = []
-    real_blocks = BlockRenderer.render_blocks
+    real_passes = BlockRenderer.render_passes
 
-    def counting_blocks(self, ids, spp, seed, pass_index=0):
-        rendered.append((list(ids), pass_index))
-        return real_blocks(self, ids, spp, seed, pass_index)
+    def counting_passes(self, jobs, spp, seed):
+        (pass_index,) = {p for _, p in jobs}             # one pass per launch without grow
+        rendered.append(([b for b, _ in jobs], pass_index))
+        return real_passes(self, jobs, spp, seed)
 
-    monkeypatch.setattr(BlockRenderer, "render_blocks", counting_blocks)
-    r = adaptive_render("cornell", tmp_path / "m", ModelCriterion(model), **{**TINY, "min_spp": 8})
+    monkeypatch.setattr(BlockRenderer, "render_passes", counting_passes)
+    r = adaptive_render("cornell", tmp_path / "m", ModelCriterion(model), **{**TINY, "min_spp": 8}, grow=False)
     assert len(calls) == 1                                        # quick image: once, model needs it
     per_pass = r["counters"]["blocks_rendered_per_pass"]
     assert per_pass == [len(ids) for ids, _ in rendered]

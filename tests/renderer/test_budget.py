@@ -33,7 +33,7 @@ def test_passes_in_one_launch_are_the_passes_traced_apart(rfilter) -> None:
             np.testing.assert_array_equal(img, apart)
         else:                           # the same samples; splats summed in another order
             np.testing.assert_allclose(img, apart, rtol=1e-5, atol=1e-7)
-    assert launches == (1 if rfilter == "box" else 4)             # wide filter: one launch per pass index
+    assert launches == 1                         # every pass index in one launch, whatever the filter
     assert r.kernel_lanes == r.samples_traced and r.kernel_lanes > 0
     sizes = r.render_passes([(5, 0), (6, 1)], [4, 2], seed=7)   # a short last pass: its own launch
     short = r.render_blocks([6], 2, seed=7, pass_index=1)[0]
@@ -45,21 +45,44 @@ def test_passes_in_one_launch_are_the_passes_traced_apart(rfilter) -> None:
         r.render_passes([(5, 0), (5, 0)], 4, seed=7)
 
 
-def test_add_passes_in_step_is_add_pass() -> None:
+def test_a_budget_round_is_the_plain_pass_when_every_block_is_at_the_same_pass() -> None:
+    """One step, two callers: a plain pass (one size for all) and a budget round (a size per
+    block) over the same blocks give the same verdicts, state and sums."""
     rng = np.random.default_rng(0)
     loops = [PassLoop(VarianceCriterion(0.5), (2, 2), (4, 4), 8) for _ in range(2)]
     for k in range(4):
         ids = loops[0].active_ids
         noise = np.array([0.0, 0.002, 0.5, 0.5])[ids, None, None, None]   # a flat, a quiet and two noisy blocks
         images = 0.5 + noise * rng.standard_normal((len(ids), 4, 4, 3))
-        row0 = loops[0].add_pass(ids, images, 4)
-        row1 = loops[1].add_passes(ids, images, [4] * len(ids))
+        row0 = loops[0].step(ids, [(images, 4)])
+        row1 = loops[1].step(ids, [(images, np.full(len(ids), 4))])
         np.testing.assert_array_equal(row0, row1)
     assert loops[0].active.tolist() == [False, False, True, True]
     for key in ("active", "stop_spp", "history", "history_spp", "rendered"):
         np.testing.assert_array_equal(loops[0].state()[key], loops[1].state()[key])
     assert loops[0].events == loops[1].events
     np.testing.assert_array_equal(loops[0].acc.state()["sum"], loops[1].acc.state()["sum"])
+
+
+def test_several_passes_in_one_step_are_history_rows_judged_once() -> None:
+    """A grown step: each pass is a history row (the checkpoint's invariant), the verdicts
+    go in the last one, and the sums are those of the passes added one by one."""
+    rng = np.random.default_rng(1)
+    images = [0.5 + 0.1 * rng.standard_normal((4, 4, 4, 3)) for _ in range(3)]
+    one = PassLoop(UniformCriterion(), (2, 2), (4, 4), None)
+    for img in images:
+        one.step([0, 1, 2, 3], [(img, 4)])
+    grown = PassLoop(UniformCriterion(), (2, 2), (4, 4), None)
+    row = grown.step([0, 1, 2, 3], [(img, 4) for img in images])
+    assert row.tolist() == [-1] * 4
+    assert grown.history.tolist() == [[0] * 4, [0] * 4, [-1] * 4]
+    assert grown.history_spp.tolist() == [4, 8, 12] == one.history_spp.tolist()
+    assert grown.criterion.counters["decide_calls"] == 1 and one.criterion.counters["decide_calls"] == 3
+    np.testing.assert_array_equal(grown.acc.state()["sum"], one.acc.state()["sum"])
+    with pytest.raises(ValueError, match="stopped"):
+        stopped = PassLoop(OracleCriterion([4, None, None, None]), (2, 2), (4, 4), None)
+        stopped.step([0, 1, 2, 3], [(images[0], 4)])
+        stopped.step([0, 1], [(images[1][:2], 4)])
 
 
 def _same(a, b, ra, rb) -> None:
@@ -166,7 +189,7 @@ def test_the_budget_simulated_on_a_stack(tmp_path) -> None:
 def test_a_time_budget_prioritises_once_the_time_left_will_not_cover_every_block() -> None:
     loop = PassLoop(OracleCriterion([8, 64, None, 16]), (2, 2), (4, 4), 4)
     sizes = [4] * 16                                                        # max 64 spp
-    loop.add_passes([0, 1, 2, 3], np.full((4, 4, 4, 3), 0.5), [4] * 4)     # ratios T/spp: 2, 16, inf, 4
+    loop.step([0, 1, 2, 3], [(np.full((4, 4, 4, 3), 0.5), [4] * 4)])       # ratios T/spp: 2, 16, inf, 4
     budget = Budget(time_limit=100.0)
     assert budget.select(loop, sizes, elapsed=90.0) == [0, 1, 2, 3]         # no rate known yet
     budget.record(1.0, 16)                                                  # 1/16 s per block-spp

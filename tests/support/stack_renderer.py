@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from learning.inputs.halves import recover_passes
 from noisefeat import split_blocks
@@ -22,6 +23,13 @@ class StackRenderer:
         self.n_blocks = stack.n_blocks
         self.calls = []
         self.kernel_compiles = self.samples_traced = self.kernel_lanes = 0
+        self.device = torch.device("cpu")
+
+    def close(self):
+        """Nothing to restore (BlockRenderer puts Dr.Jit's kernel-history flag back)."""
+
+    def cut_blocks(self, frame):
+        return split_blocks(frame, self.grid)
 
     @property
     def mitsuba_calls(self):
@@ -46,7 +54,8 @@ class StackRenderer:
     def render_passes(self, jobs, spp, seed):
         sizes = [spp] * len(jobs) if isinstance(spp, int) else list(spp)
         assert all(s == self.step for s in sizes)
-        self.calls.append([b for b, _ in jobs])
+        for p in sorted({p for _, p in jobs}):          # one entry per pass traced
+            self.calls.append([b for b, q in jobs if q == p])
         self.samples_traced += len(jobs) * self.block_h * self.block_w * self.step
         return np.stack([self.passes[p][b] for b, p in jobs])
 
@@ -54,8 +63,9 @@ class StackRenderer:
         return self.stack.quick(kind)
 
 
-def live(monkeypatch, tmp_path, stack, crit, min_spp, name="live"):
-    """adaptive_render over `stack`'s passes; returns (report, the renderer used)."""
+def live(monkeypatch, tmp_path, stack, crit, min_spp, name="live", grow=False):
+    """adaptive_render over `stack`'s passes; returns (report, the renderer used). One pass
+    per launch unless `grow` (then passes traced past a block's stop are in `calls` too)."""
     made = []
 
     def fake_renderer(scene, grid=None, block=None):
@@ -66,5 +76,5 @@ def live(monkeypatch, tmp_path, stack, crit, min_spp, name="live"):
     monkeypatch.setattr("renderer.scenes.load_scene", lambda scene, resolution, defines=None: scene)
     report = adaptive.adaptive_render(stack.scene, tmp_path / name, crit, resolution=stack.width,
                                       grid=tuple(stack.grid), step=int(stack.spp[0]), min_spp=min_spp,
-                                      max_spp=int(stack.spp[-1]), progress=False)
+                                      max_spp=int(stack.spp[-1]), progress=False, grow=grow)
     return report, made[0]

@@ -1,0 +1,295 @@
+"""`noisestop bench native`: our loops against `mi.render`, the renderer users already have.
+
+Users compare us with ``mi.render(scene, spp=N)``, not with our own uniform loop. For each
+case (Mitsuba's ``cornell_box()`` and the held-out ``spot_stage``), on the device of the
+variant in use (the CPU with ``llvm_ad_rgb``, the GPU with ``cuda_ad_rgb``), one run gives:
+
+* wall time to the same spp: ``mi.render`` in one call, our uniform loop, the adaptive loop
+  (flip at tau) with grown passes and with a fixed step, and the share of the adaptive wall
+  time that is not rendering (decisions + overhead);
+* at equal wall time: ``mi.render`` with the samples it can trace in the adaptive render's
+  wall time, against the adaptive image: worst and mean block error (DESIGN's observer:
+  the largest 16x16-tile FLIP of each 64x64 block) against a reference, and the blocks
+  above tau;
+* time to target: the first wall time at which every block is at or below tau (``mi.render``:
+  a sweep of spp, doubling; adaptive: its own stop, with max spp raised to the sweep's top).
+
+Everything is warm (one small render of each kind first). Run it from a source checkout:
+``noisestop bench native`` or, on a machine without the command, ``python -m
+service.lab.bench_native --json out.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+BLOCK, STEP, MIN_SPP = 64, 16, 16
+#: mi.render calls trace at most this many samples per pixel at once (larger counts are
+#: split into calls of this size with their own seeds and averaged)
+CHUNK_SPP = 1024
+
+
+@dataclass(frozen=True)
+class Case:
+    """One comparison: `scene` 'cornell_box' (Mitsuba's) or a built-in name, its film size,
+    the max spp both sides render to, the reference's spp (0: the shipped reference) and
+    the top of the time-to-target sweep."""
+
+    scene: str
+    size: int
+    max_spp: int
+    ref_spp: int
+    sweep_max: int
+
+
+#: sized for 2 CPU cores (about 15 minutes in all) and for one H100/H200 (about 3 minutes)
+CASES = {
+    "cpu": (Case("cornell_box", 512, 128, 1024, 512), Case("spot_stage", 256, 256, 0, 1024)),
+    "cuda": (Case("cornell_box", 1024, 1024, 8192, 4096), Case("spot_stage", 1024, 1024, 8192, 4096)),
+}
+
+
+def load_case_scene(case: Case) -> Any:
+    """The case's scene at its size (Mitsuba's cornell_box dict, or a built-in scene)."""
+    import mitsuba as mi
+
+    if case.scene == "cornell_box":
+        d = mi.cornell_box()
+        d["sensor"]["film"]["width"] = d["sensor"]["film"]["height"] = case.size
+        return mi.load_dict(d)
+    from renderer.scenes import load_scene
+
+    return load_scene(case.scene, case.size)
+
+
+def mi_render(scene: Any, spp: int, seed: int) -> tuple[np.ndarray, float]:
+    """(image [H, W, 3] float32, wall seconds) of ``mi.render`` to `spp`, in calls of at most
+    CHUNK_SPP (averaged), the image read back to the host as users do."""
+    import mitsuba as mi
+
+    t0 = time.perf_counter()
+    parts, left, k = [], int(spp), 0
+    while left > 0:
+        n = min(CHUNK_SPP, left)
+        parts.append((np.asarray(mi.render(scene, spp=n, seed=seed * 7919 + k), np.float32)[..., :3], n))
+        left -= n
+        k += 1
+    image = sum(img.astype(np.float64) * n for img, n in parts) / float(spp)
+    return image.astype(np.float32), time.perf_counter() - t0
+
+
+def block_errors(image: np.ndarray, reference: np.ndarray, tau: float) -> dict[str, Any]:
+    """DESIGN's observer per 64x64 block of `image` against `reference`: worst, mean, above tau."""
+    from renderer.report import final_vs_reference
+
+    h, w = image.shape[:2]
+    grid = (h // BLOCK, w // BLOCK)
+    r = final_vs_reference(image, reference, grid, tau)
+    return {"worst": r["worst_error"], "mean": r["mean_error"], "above_tau": r["visible_noise_blocks"],
+            "blocks": len(r["errors"])}
+
+
+def ours(scene: Any, criterion: str, max_spp: int, tau: float, grow: bool = True) -> dict[str, Any]:
+    """One render by our loop: wall, render time, mean spp, image."""
+    from renderer.adaptive import run_adaptive
+    from renderer.criteria import make_criterion
+
+    crit = make_criterion(criterion, tau=tau)
+    t0 = time.perf_counter()            # the whole call, as a user times it (report and image included)
+    r = run_adaptive(scene, crit, block=BLOCK, step=STEP, min_spp=MIN_SPP, max_spp=max_spp, progress=False,
+                     tau=tau, grow=grow)
+    wall = time.perf_counter() - t0
+    t = r.report["timing"]
+    return {"wall_s": wall, "render_s": float(t.get("render_s", 0.0)),
+            "decisions_s": float(t.get("decisions_s", 0.0)) + float(t.get("features_s", 0.0)),
+            "overhead_s": float(t.get("overhead_s", 0.0)) + float(t.get("setup_s", 0.0)),
+            "mean_spp": float(np.mean([b["spp"] for b in r.report["blocks"]])),
+            "launches": int(r.report["render_calls"]["kernel_launches"]), "image": r.image}
+
+
+def reference_image(case: Case, scene: Any) -> tuple[np.ndarray, str]:
+    """The case's reference: the shipped one (ref_spp 0) or mi.render at ref_spp (seed apart)."""
+    if case.ref_spp == 0:
+        from renderer.showcase import shipped_reference
+
+        ref = shipped_reference(case.scene)
+        if ref is None:
+            raise ValueError(f"{case.scene}: no shipped reference; give the case a ref_spp")
+        return ref.astype(np.float32), "shipped (8192 spp)"
+    ref, secs = mi_render(scene, case.ref_spp, seed=1000)
+    return ref, f"mi.render {case.ref_spp} spp ({secs:.0f} s)"
+
+
+def measure_case(case: Case, tau: float) -> dict[str, Any]:
+    """Every figure of one case (see the module docstring)."""
+    scene = load_case_scene(case)
+    # warm: compile mi.render's kernel, our tracer's and FLIP's, at a small spp
+    mi_render(scene, 16, seed=99)
+    ours(scene, "uniform", 32, tau)
+    ours(scene, "flip", 32, tau)
+    ref, ref_source = reference_image(case, scene)
+    out: dict[str, Any] = {"case": asdict(case), "tau": tau, "reference": ref_source}
+
+    img, t_mi = mi_render(scene, case.max_spp, seed=1)
+    out["mi_render"] = {"wall_s": t_mi, **block_errors(img, ref, tau)}
+    uni = ours(scene, "uniform", case.max_spp, tau)
+    out["uniform"] = {k: v for k, v in uni.items() if k != "image"} | block_errors(uni["image"], ref, tau)
+    ada = ours(scene, "flip", case.max_spp, tau, grow=True)
+    out["adaptive"] = {k: v for k, v in ada.items() if k != "image"} | block_errors(ada["image"], ref, tau)
+    fixed = ours(scene, "flip", case.max_spp, tau, grow=False)
+    out["adaptive_fixed_step"] = {k: v for k, v in fixed.items() if k != "image"} | \
+        block_errors(fixed["image"], ref, tau)
+    # grown passes change no sample: the images agree to float rounding (splat order)
+    out["grown_vs_fixed_max_diff"] = float(np.abs(ada["image"] - fixed["image"]).max())
+
+    # equal wall time: the samples mi.render traces in the adaptive render's time
+    per_spp = t_mi / case.max_spp
+    spp_eq = max(1, int(ada["wall_s"] / per_spp))
+    eq, t_eq = mi_render(scene, spp_eq, seed=2)
+    out["mi_render_equal_time"] = {"spp": spp_eq, "wall_s": t_eq, **block_errors(eq, ref, tau)}
+
+    # time to target: mi.render progressively (calls adding samples, the estimates averaged),
+    # read at every doubling of spp; then the adaptive render's own stop
+    sweep, target = [], None
+    total, wall, spp, acc = 0, 0.0, 64, None
+    while spp <= case.sweep_max:
+        img, t = mi_render(scene, spp - total, seed=3 + spp)
+        acc = img.astype(np.float64) * (spp - total) + (0.0 if acc is None else acc)
+        total, wall = spp, wall + t
+        e = block_errors((acc / total).astype(np.float32), ref, tau)
+        sweep.append({"spp": spp, "wall_s": wall, "worst": e["worst"], "above_tau": e["above_tau"]})
+        if e["above_tau"] == 0:
+            target = {"spp": spp, "wall_s": wall}
+            break
+        spp *= 2
+    out["mi_render_sweep"] = sweep
+    out["mi_render_time_to_target"] = target
+    if out["adaptive"]["above_tau"] == 0:
+        out["adaptive_time_to_target"] = {"max_spp": case.max_spp, "wall_s": ada["wall_s"],
+                                          "mean_spp": ada["mean_spp"]}
+    else:
+        far = ours(scene, "flip", case.sweep_max, tau)
+        e = block_errors(far["image"], ref, tau)
+        out["adaptive_time_to_target"] = {"max_spp": case.sweep_max, "wall_s": far["wall_s"],
+                                          "mean_spp": far["mean_spp"], "worst": e["worst"],
+                                          "above_tau": e["above_tau"], "reached": e["above_tau"] == 0}
+    return out
+
+
+def bench_native(tau: float | None = None, cases: tuple[Case, ...] | None = None,
+                 on_case: Any = None) -> dict[str, Any]:
+    """Every case of the variant's device (`CASES`), with the device named; `on_case(result)`
+    after each case (so a run cut short keeps what it measured)."""
+    from learning.data.variant import select_variant
+    from learning.names import DEFAULT_TAU
+
+    from renderer.plugin import register
+
+    variant = select_variant()
+    register()
+    kind = "cuda" if variant.startswith("cuda") else "cpu"
+    out = {"variant": variant, "device": device_name(kind), "tau": tau or DEFAULT_TAU, "cases": []}
+    for c in cases or CASES[kind]:
+        log.info("bench native: %s %dx%d on %s", c.scene, c.size, c.size, out["device"])
+        out["cases"].append(measure_case(c, tau or DEFAULT_TAU))
+        if on_case is not None:
+            on_case(out)
+    return out
+
+
+def device_name(kind: str) -> str:
+    """The GPU's name, or the CPU's model and core count (what BENCHMARKS labels figures by)."""
+    if kind == "cuda":
+        import torch
+
+        return torch.cuda.get_device_name(0)
+    import os
+
+    model = "CPU"
+    try:
+        for line in open("/proc/cpuinfo", encoding="utf-8"):
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{model}, {os.cpu_count()} cores"
+
+
+def _f(x: float | None, fmt: str = "{:.1f} s") -> str:
+    return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else fmt.format(x)
+
+
+def md_native(r: dict[str, Any]) -> str:
+    """BENCHMARKS.md section: one table per case, labelled with the device."""
+    lines = [f"Device: **{r['device']}**, variant `{r['variant']}`, tau {r['tau']:g}, {BLOCK}-px blocks, step "
+             f"{STEP}, flip criterion. Errors: DESIGN's observer (largest 16x16-tile FLIP per block) against the "
+             "reference. Wall times are warm."]
+    for c in r["cases"]:
+        case, m = c["case"], c["mi_render"]
+        ada, fixed, uni, eq = c["adaptive"], c["adaptive_fixed_step"], c["uniform"], c["mi_render_equal_time"]
+        n = m["blocks"]
+        lines += ["", f"**{case['scene']} {case['size']}x{case['size']}**, max {case['max_spp']} spp, reference: "
+                  f"{c['reference']}.", "",
+                  "| run | wall | vs mi.render | mean spp | launches | not rendering | worst block | mean block "
+                  "| blocks above tau |", "|---|---|---|---|---|---|---|---|---|",
+                  f"| `mi.render`, {case['max_spp']} spp | {m['wall_s']:.2f} s | 1.00x | {case['max_spp']} | | "
+                  f"| {m['worst']:.4f} | {m['mean']:.4f} | {m['above_tau']} of {n} |"]
+        for name, x in (("our uniform loop", uni), ("adaptive (flip), grown passes", ada),
+                        ("adaptive (flip), fixed step", fixed)):
+            other = max(0.0, x["wall_s"] - x["render_s"])
+            lines.append(f"| {name} | {x['wall_s']:.2f} s | {x['wall_s'] / m['wall_s']:.2f}x | {x['mean_spp']:.0f} "
+                         f"| {x['launches']} | {other:.2f} s ({100 * other / max(x['wall_s'], 1e-9):.1f} %) "
+                         f"| {x['worst']:.4f} | {x['mean']:.4f} | {x['above_tau']} |")
+        lines.append(f"| `mi.render` at the adaptive wall time | {eq['wall_s']:.2f} s | | {eq['spp']} | | "
+                     f"| {eq['worst']:.4f} | {eq['mean']:.4f} | {eq['above_tau']} |")
+        t_mi, t_ad = c["mi_render_time_to_target"], c["adaptive_time_to_target"]
+        mi_txt = f"{t_mi['wall_s']:.1f} s ({t_mi['spp']} spp)" if t_mi else \
+            f"not reached by {case['sweep_max']} spp"
+        ad_ok = t_ad.get("reached", True)
+        ad_txt = (f"{t_ad['wall_s']:.1f} s (max {t_ad['max_spp']}, mean {t_ad['mean_spp']:.0f} spp)" if ad_ok else
+                  f"not reached by max {t_ad['max_spp']} spp ({t_ad['wall_s']:.1f} s, worst {t_ad['worst']:.4f}, "
+                  f"{t_ad['above_tau']} above)")
+        sweep = ", ".join(f"{s['spp']}: {s['wall_s']:.1f} s / {s['above_tau']} above" for s in c["mi_render_sweep"])
+        lines += ["", f"Time to target (every block at or below tau): `mi.render` {mi_txt}; adaptive {ad_txt}. "
+                  f"Sweep (progressive): {sweep}. Largest pixel difference between the grown and the "
+                  f"fixed-step image: {c['grown_vs_fixed_max_diff']:.2g}."]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--json", default=None, help="write the results here")
+    p.add_argument("--tau", type=float, default=None)
+    p.add_argument("--update", default=None, metavar="FILE",
+                   help="rewrite FILE's section native (CPU) or native_gpu (GPU) with the results")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    def save(r: dict[str, Any]) -> None:
+        if args.json:
+            with open(args.json, "w", encoding="utf-8") as f:
+                json.dump(r, f, indent=1)
+        if args.update:
+            from pathlib import Path
+
+            from .bench import update_markdown
+
+            update_markdown(Path(args.update), {"native_gpu" if r["variant"].startswith("cuda") else "native":
+                                                md_native(r)})
+        print(md_native(r), flush=True)
+
+    bench_native(args.tau, on_case=save)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -38,30 +38,23 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from learning.data.stack import Stack
 from learning.names import DEFAULT_TAU
 from noisefeat.bounds import SizeBounds
-from noisefeat.runtime import torch_threads
 
-from .blocks import BlockRenderer, compose
+from .blocks import BlockRenderer
 from .budget import Budget
-from .checkpoint import CHECKPOINT, load_checkpoint, save_checkpoint
-from .criteria import TIMER_NAMES, Criterion, build_criterion
+from .checkpoint import CHECKPOINT
+from .criteria import Criterion, build_criterion
 from .outputs import prepare_output_dir
-from .passloop import PassLoop
-from .report import final_vs_reference, pass_sizes, render_report
+from .report import pass_sizes
 from .result import RenderResult
-from .settings import DEFAULT, NOT_USED, check_spp_settings, resolve_settings
+from .session import RenderSession
+from .settings import DEFAULT, check_spp_settings, resolve_settings
 from .settings import describe as describe_settings
 from .signals import DeferredStop
-
-#: what a render cost in Mitsuba, over every attempt (report.json "render_calls"); like the
-#: timings these depend on the process (a resumed run compiles its kernel again)
-RENDER_COUNTERS = ("mitsuba_calls", "kernel_launches", "kernel_lanes", "kernel_compiles", "checkpoints",
-                   "samples_traced")
 
 logger = logging.getLogger(__name__)
 
@@ -76,43 +69,36 @@ def scene_label(scene: str | os.PathLike) -> str:
 # ----------------------------------------------------------------------------- the loop
 
 
-def grown_passes(n_blocks: int, n_active: int, passes_left: int, grow: bool = True) -> int:
-    """How many passes of the active blocks one launch traces (the rule that keeps the
-    device busy): as blocks stop, the remaining ones get more passes per launch, so each
-    launch holds about as many samples as the first (all blocks, one pass). The count is
-    floor(n_blocks / n_active), made even (a pass goes to each half buffer in turn, so an
-    even count keeps them balanced), capped by the passes left; 1 without `grow`.
-
-    The passes keep their own pass indices (so their own random numbers) and are judged one
-    after the other, so a grown launch changes neither the stops nor the image: a block
-    still gets a decision every `step` samples, and the passes traced past its stop are
-    dropped (`pass_step`)."""
-    if not grow or n_active <= 0:
-        return 1
-    k = n_blocks // n_active
-    if k >= 2:
-        k -= k % 2
-    return max(1, min(k, passes_left))
-
-
-def pass_step(loop: PassLoop, br: BlockRenderer, ids: Sequence[int], jobs: Sequence[tuple[int, int]],
-              sizes: Sequence[int], seed: int, timers: dict[str, float]) -> int:
-    """One launch of `jobs` ((block, pass index) pairs, pass-major: k passes of `ids`, pass j
-    of size ``sizes[j]``), then the loop's step after each pass for the blocks still
-    active. Returns the passes stepped (fewer than k when every block stopped early)."""
-    ids_a = np.asarray(ids, np.int64)
-    m, k = len(ids_a), len(sizes)
-    t0 = time.perf_counter()
-    images = br.render_passes(jobs, [int(sizes[j]) for j in range(k) for _ in range(m)], seed)
-    timers["render_s"] += time.perf_counter() - t0
-    with torch_threads(1):
-        for j in range(k):                     # the passes of one launch, in order
-            keep = np.flatnonzero(loop.active[ids_a])
-            if not keep.size:
-                return j
-            rows = torch.from_numpy(j * m + keep).to(images.device)
-            loop.step(ids_a[keep], [(images[rows], int(sizes[j]))])
-    return k
+def _run_steps(session: RenderSession, progress: bool, time_limit: float | None,
+               checkpoints: Checkpoints | None) -> bool:
+    """Step the session until it is done, checkpointing on time, at the end, at the time
+    limit and on a signal (the first SIGINT/SIGTERM finishes the step, checkpoints and
+    raises KeyboardInterrupt). Returns whether the time limit ended the render."""
+    every = checkpoints.every if checkpoints is not None else math.inf
+    last_saved = time.perf_counter()
+    bar = tqdm(total=len(session.sizes), initial=session.pass_index, desc=f"{session.label} passes", unit="pass",
+               disable=not progress, leave=False)
+    stop = DeferredStop() if checkpoints is not None else None
+    with stop if stop is not None else nullcontext(), bar:
+        while not session.done:
+            stepped = session.step()
+            bar.set_postfix(active=int(session.loop.active.sum()), refresh=False)
+            bar.update(stepped)
+            now = time.perf_counter()
+            reached = time_limit is not None and not session.done and now - session.t_start >= time_limit
+            requested = stop is not None and stop.requested
+            if session.done or reached or requested or now - last_saved >= every:
+                session.checkpoint()
+                last_saved = time.perf_counter()
+            if requested and not session.done:
+                raise KeyboardInterrupt(f"{stop.requested} after pass {session.pass_index}: checkpoint written to "
+                                        f"{session.ckpt_path}, --resume continues")
+            if reached:
+                logger.info("%s: time limit of %gs reached after pass %d (%d blocks still active)%s",
+                            session.label, time_limit, session.pass_index, int(session.loop.active.sum()),
+                            "; --resume continues" if session.ckpt_path is not None else "")
+                return True
+    return False
 
 
 def _resolve_criterion(criterion: Criterion | str, reference: Stack | None, tau: float) -> Criterion:
@@ -321,7 +307,6 @@ def run_adaptive(scene: Any, criterion: Criterion | str, *,
     try:
         SizeBounds.from_env().check_frame(br.height, br.width, br.grid, block=br.block_shape)  # an XML film's own size
         gh, gw = br.grid
-        n = br.n_blocks
         values["resolution"] = [br.width, br.height]
         logger.info("%s: %s, exposure %g", label, describe_settings(values, sources), getattr(crit, "exposure", 0.0))
         if ref_stack is not None:
@@ -342,135 +327,12 @@ def run_adaptive(scene: Any, criterion: Criterion | str, *,
                     "criterion": crit.describe(), "variant": variant, "defines": dict(defines or {}),
                     "tau": float(tau), **({} if spp_budget is None else {"spp_budget": float(spp_budget)})}
         sizes = pass_sizes(step, max_spp)
-
-        state: dict[str, Any] | None = None
-        if checkpoints is not None and checkpoints.resume and ckpt_path.exists():
-            state = load_checkpoint(ckpt_path, settings, sizes=sizes, grid=(gh, gw), block=br.block_shape,
-                                    frame=(br.height, br.width))
-            logger.info("%s: resuming after pass %d (%d active blocks)", ckpt_path, state["pass_index"],
-                        int(state["active"].sum()))
-        else:
-            if checkpoints is not None and checkpoints.resume:
-                logger.info("%s: no checkpoint, starting from the beginning", ckpt_path)
-            elif ckpt_path is not None and ckpt_path.exists():
-                logger.warning("%s: existing checkpoint ignored and replaced (use resume to continue it)", ckpt_path)
-            state = {"pass_index": 0, "done": False, "counters": {}, "timers": {}, "quick": None}
-        loop_timers = {"render_s": 0.0, "wall_s": 0.0, "setup_s": 0.0,
-                       **{k: float(v) for k, v in state["timers"].items() if k in ("render_s", "wall_s", "setup_s")}}
-        loop_timers["setup_s"] += time.perf_counter() - t_start  # imports, scene load, checkpoint read
-        crit.reset_counters()
-        quick_blocks = None
-        if crit.needs_quick:
-            if state["quick"] is None:
-                t0 = time.perf_counter()
-                state["quick"] = br.quick_image(spp=quick_spp, seed=seed, kind=crit.quick_kind)
-                loop_timers["render_s"] += time.perf_counter() - t0
-            quick_blocks = br.cut_blocks(state["quick"])
-            crit.prepare(list(range(n)), quick_blocks)
-        loop = PassLoop(crit, (gh, gw), br.block_shape, min_spp, quick_blocks, device=br.device)
-        if "acc" in state:                       # resumed
-            loop.restore(state)
-        acc = loop.acc
-        done_before = {k: int(state["counters"].pop(k, 0)) for k in RENDER_COUNTERS}   # earlier attempts
-        if state["counters"]:  # resumed: continue the counts (this overrides what prepare counted)
-            crit.restore_counters(state["counters"], {k: v for k, v in state["timers"].items() if k in TIMER_NAMES})
-        written = {"checkpoints": 0}
-
-        def render_counts() -> dict[str, int]:
-            """What the render cost in Mitsuba calls and kernels, over every attempt."""
-            now = {"mitsuba_calls": br.mitsuba_calls, "kernel_launches": br.kernel_launches,
-                   "kernel_lanes": br.kernel_lanes,
-                   "kernel_compiles": br.kernel_compiles, "checkpoints": written["checkpoints"],
-                   "samples_traced": br.samples_traced}
-            return {k: done_before[k] + now[k] for k in RENDER_COUNTERS}
-
-        def checkpoint() -> None:
-            if ckpt_path is None:            # in memory: nothing to resume from
-                return
-            if budget is not None and budget.prioritised_rounds:   # blocks out of step: not resumable
-                return
-            written["checkpoints"] += 1
-            save_checkpoint(ckpt_path, snapshot())
-
-        def snapshot() -> dict[str, Any]:
-            wall = loop_timers["wall_s"] + (time.perf_counter() - t_start)
-            return {**state, **loop.state(), "settings": settings,
-                    "counters": {**dict(crit.counters), **render_counts()},
-                    "timers": {**crit.timers, "render_s": loop_timers["render_s"], "setup_s": loop_timers["setup_s"],
-                               "wall_s": wall}}
-
-        every = checkpoints.every if checkpoints is not None else math.inf
-        p = state["pass_index"]
-        time_limit_reached = False
-        last_saved = time.perf_counter()
-        bar = tqdm(total=len(sizes), initial=p, desc=f"{label} passes", unit="pass",
-                   disable=not progress, leave=False)
-        stop = DeferredStop() if checkpoints is not None else None
-        with stop if stop is not None else nullcontext():
-            while not state["done"]:
-                ids = loop.active_ids if budget is None else budget.select(loop, sizes, time.perf_counter() - t_start)
-                if not ids or (budget is None and p >= len(sizes)):
-                    state["done"] = True
-                    checkpoint()
-                    break
-                if budget is None:
-                    k = grown_passes(n, len(ids), len(sizes) - p, grow)
-                    done_passes = pass_step(loop, br, ids, [(b, p + j) for j in range(k) for b in ids],
-                                            sizes[p:p + k], seed, loop_timers)
-                else:
-                    done_passes = budget.run_round(loop, br, ids, sizes, seed, loop_timers)
-                p += done_passes
-                state["pass_index"] = p
-                state["done"] = (not loop.active.any() or p >= len(sizes)) if budget is None else \
-                    budget.finished(loop, sizes)
-                bar.set_postfix(spp=int(loop.acc.spp_all()[ids].max()), active=int(loop.active.sum()), refresh=False)
-                bar.update(done_passes)
-                now = time.perf_counter()
-                time_limit_reached = time_limit is not None and not state["done"] and now - t_start >= time_limit
-                requested = stop is not None and stop.requested
-                if state["done"] or time_limit_reached or requested or now - last_saved >= every:
-                    checkpoint()
-                    last_saved = time.perf_counter()
-                if requested and not state["done"]:
-                    bar.close()
-                    raise KeyboardInterrupt(f"{stop.requested} after pass {p}: checkpoint written to {ckpt_path}, "
-                                            "--resume continues")
-                if time_limit_reached:
-                    logger.info("%s: time limit of %gs reached after pass %d (%d blocks still active)%s",
-                                label, time_limit, p, int(loop.active.sum()),
-                                "; --resume continues" if ckpt_path is not None else "")
-                    break
-        bar.close()
-
-        final = snapshot()
-        report = render_report(label, br, settings, crit, {**state, **loop.state()}, acc, final["timers"],
-                               variant or current_variant(), ref_stack)
-        report["settings_source"] = {k: sources[k] for k in given if sources[k] != NOT_USED}
-        if defines:
-            report["defines"] = dict(defines)
-        if time_limit is not None:
-            report["time_limit"] = {"seconds": float(time_limit), "reached": time_limit_reached}
-        if budget is not None:
-            report["budget"] = budget.describe(loop, time_limit_reached)
-        report["render_calls"] = render_counts()
-        image, spp_px, owner = compose(acc.means(np.arange(n)).cpu().numpy(), [br.window(b) for b in range(n)],
-                                       acc.spp_all(), (br.height, br.width))
-        image = image.astype(np.float32)
-        ref_img = ref_image
-        if ref_stack is not None:
-            ref_img = ref_stack.reference()
-            if ref_img.shape != image.shape:
-                logger.warning("reference image %s differs from the render %s: no final-vs-reference check",
-                               ref_img.shape, image.shape)
-                ref_img = None
-        if ref_img is not None:
-            report["final_vs_reference"] = final_vs_reference(
-                image, ref_img, (gh, gw), float(tau), float(settings["exposure"]), ~loop.active,
-                windows=[br.window(b) for b in range(n)] if br.overlapping else None)
-            if ref_stack is None:
-                report["reference"] = {"image": os.fspath(reference) if isinstance(reference, (str, os.PathLike))
-                                       else "array", "width": br.width, "height": br.height}
-        return RenderResult(image=image, spp=spp_px, converged=(~loop.active)[owner], report=report,
-                            reference=ref_img)
+        session = RenderSession(br, crit, settings, sizes, label=label, seed=seed, min_spp=min_spp,
+                                quick_spp=quick_spp, budget=budget, ckpt_path=ckpt_path,
+                                resume=checkpoints is not None and checkpoints.resume, grow=grow, t_start=t_start)
+        time_limit_reached = _run_steps(session, progress, time_limit, checkpoints)
+        return session.result(variant=variant or current_variant(), sources=sources, given=list(given), tau=tau,
+                              defines=defines, time_limit=time_limit, time_limit_reached=time_limit_reached,
+                              ref_stack=ref_stack, ref_image=ref_image, reference=reference)
     finally:
         br.close()

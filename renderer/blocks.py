@@ -300,29 +300,34 @@ class BlockRenderer:
         Pass (seed, pass_index) always draws the same samples for a pixel: call again
         with a new `pass_index` (or `seed`) for an independent pass of the same blocks.
         """
-        ids = [int(b) for b in block_ids]
-        return self.render_passes([(b, int(pass_index)) for b in ids], spp, seed)
+        ids = np.asarray(block_ids).reshape(-1)        # its dtype checked with the jobs'
+        return self.render_passes(np.stack([ids, np.full_like(ids, int(pass_index))], axis=1), spp, seed)
 
-    def _check_jobs(self, jobs: Sequence[tuple[int, int]], spp: int | Sequence[int]) -> tuple[np.ndarray, np.ndarray,
+    def _check_jobs(self, jobs: Sequence[tuple[int, int]] | np.ndarray, spp: int | Sequence[int]) -> tuple[np.ndarray, np.ndarray,
                                                                                                np.ndarray]:
         """(blocks, pass indices, sizes) as int64 arrays; one-line errors for bad jobs."""
-        arr = np.asarray([(int(b), int(p)) for b, p in jobs], np.int64).reshape(-1, 2)
+        arr = np.asarray(jobs)
+        if arr.size and (arr.dtype == bool or not np.issubdtype(arr.dtype, np.integer)):
+            raise ValueError(f"block ids and pass indices must be whole numbers, got {jobs!r:.80}")
+        arr = arr.astype(np.int64).reshape(-1, 2)
         blocks, passes = arr[:, 0], arr[:, 1]
         if blocks.size and (blocks.min() < 0 or blocks.max() >= self.n_blocks):
             raise ValueError(f"block id {int(blocks[(blocks < 0) | (blocks >= self.n_blocks)][0])!r} out of range "
                              f"0..{self.n_blocks - 1}")
-        if len({(int(b), int(p)) for b, p in arr}) != len(arr):
+        if len(np.unique(arr, axis=0)) != len(arr):
             raise ValueError(f"duplicate block ids or (block, pass) jobs in {arr.tolist()[:8]}: one call renders "
                              "each once")
-        sizes = np.broadcast_to(np.asarray(spp), blocks.shape).astype(np.int64) \
-            if isinstance(spp, (int, np.integer)) else np.asarray([int(s) for s in spp], np.int64)
+        given = np.asarray(spp)
+        if isinstance(spp, bool) or given.dtype == bool or not np.issubdtype(given.dtype, np.integer):
+            raise ValueError(f"spp must be a positive integer, got {spp!r:.80}")
+        sizes = np.broadcast_to(given, blocks.shape).astype(np.int64) if given.ndim == 0 else given.astype(np.int64)
         if sizes.shape != blocks.shape:
             raise ValueError(f"{len(blocks)} jobs but {sizes.size} pass sizes")
-        if isinstance(spp, bool) or (sizes.size and sizes.min() < 1):
-            raise ValueError(f"spp must be a positive integer, got {spp!r}")
+        if sizes.size and sizes.min() < 1:
+            raise ValueError(f"spp must be a positive integer, got {spp!r:.80}")
         return blocks, passes, sizes
 
-    def render_passes(self, jobs: Sequence[tuple[int, int]], spp: int | Sequence[int], seed: int) -> torch.Tensor:
+    def render_passes(self, jobs: Sequence[tuple[int, int]] | np.ndarray, spp: int | Sequence[int], seed: int) -> torch.Tensor:
         """One pass per (block, pass index) job, all in as few launches as the engine allows:
         float32 [len(jobs), bh, bw, 3] on `device`.
 

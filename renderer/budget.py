@@ -21,7 +21,8 @@ time limit), so with ``--spp-budget N`` (samples per pixel averaged over the blo
 * While the budget left covers every active block to max spp, rounds render all of them:
   a roomy budget renders exactly what the unbudgeted loop renders, pass for pass.
 
-A block's j-th pass always draws the samples of pass j (`BlockRenderer.render_passes`),
+A block's j-th pass always draws the samples of pass j (`BlockRenderer.render_passes`; the
+round itself is `renderer.session.RenderSession.step`),
 so a block ends with the very image the unbudgeted loop gives it at the same spp; blocks
 that reach the target stop as always. When the budget ends, the blocks still above the
 target are listed with their ratios (`above_target`).
@@ -29,14 +30,11 @@ target are listed with their ratios (`above_target`).
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-
-from noisefeat.runtime import torch_threads
 
 from .passloop import PassLoop
 
@@ -104,12 +102,11 @@ class Budget:
         left = self._left(spp, elapsed)
         if left >= float((max_spp - spp[ids]).sum()):
             return ids.tolist()                            # enough for everything: as unbudgeted
-        ratios = loop.criterion.ratios
-        known = np.array([int(b) in ratios for b in ids.tolist()], bool)
+        known, _ = loop.criterion.ratios.take(ids)
         unknown = ids[~known & ((spp[ids] >= loop.min_spp) if loop.min_spp is not None else True)]
         if unknown.size:            # judged before a resume: ask again (same state, same answer)
             loop.judge(unknown.tolist())
-        ratio = np.array([ratios.get(int(b), math.nan) for b in ids.tolist()], np.float64)
+        _, ratio = loop.criterion.ratios.take(ids)
         ratio = np.where(np.isnan(ratio), np.inf, ratio)   # no estimate yet: first
         if self.per_sample:
             ratio = ratio / np.sqrt(np.maximum(spp[ids], 1))
@@ -148,30 +145,15 @@ class Budget:
             self.ended = True
         return self.ended
 
-    def run_round(self, loop: PassLoop, br: Any, ids: Sequence[int], sizes: Sequence[int], seed: int,
-                  timers: dict[str, float]) -> int:
-        """Render one pass of each block `ids` at its own pass index and feed the loop
-        (render time into ``timers["render_s"]``; the round's time into this budget's rate).
-        Returns 1: a round is one step of the loop."""
-        idx = np.asarray(ids, np.int64)
-        own = loop.acc.passes_all()[idx]
-        pass_spp = np.asarray(sizes, np.int64)[own]
-        t0 = time.perf_counter()
-        images = br.render_passes(list(zip(idx.tolist(), own.tolist())), pass_spp.tolist(), seed)
-        timers["render_s"] += time.perf_counter() - t0
-        with torch_threads(1):
-            loop.step(idx, [(images, pass_spp)])
-        self.record(time.perf_counter() - t0, int(pass_spp.sum()))      # decisions too: they spend the time
-        return 1
-
     def describe(self, loop: PassLoop, time_limit_reached: bool = False) -> dict[str, Any]:
         """report.json "budget": the limits, whether they ended the render, and the blocks
         still above their target (worst first) with their last ratio to it."""
         ended = bool(self.ended or time_limit_reached)
-        ratios = loop.criterion.ratios
         spp = loop.acc.spp_all()
-        above = [{"id": b, "ratio": None if math.isnan(ratios.get(b, math.nan)) else ratios[b],
-                  "spp": int(spp[b])} for b in loop.active_ids]
+        ids = np.flatnonzero(loop.active)
+        _, ratio = loop.criterion.ratios.take(ids)
+        above = [{"id": int(b), "ratio": None if math.isnan(r) else float(r), "spp": int(spp[b])}
+                 for b, r in zip(ids.tolist(), ratio.tolist())]
         above.sort(key=lambda x: -(math.inf if x["ratio"] is None else x["ratio"]))
         return {"spp_budget": self.spp_budget, "time_limit": self.time_limit, "band": self.band,
                 "ended": ended, "prioritised_rounds": self.prioritised_rounds,
@@ -211,6 +193,5 @@ def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int 
         rounds += 1
         if not loop.active.any() or budget.finished(loop, sizes):
             break
-    n = stack.n_blocks
     return {"spp": loop.acc.spp_all().tolist(), "converged": (~loop.active).tolist(),
             "budget": budget.describe(loop), "rounds": rounds}

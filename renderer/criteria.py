@@ -151,6 +151,55 @@ class BlockBatch:
         return tuple(self.mean.shape[1:])
 
 
+class BlockRatios:
+    """Per block, how far its last verdict was from the target, as a ratio (> 1: above it,
+    noisy; NaN: no estimate): what a budget render spends its passes by.
+
+    Arrays indexed by block id (grown on demand), read and written a batch at a time
+    (`take`, `put`) so a round costs no Python loop over blocks; the dict-like methods
+    serve reports and tests. A block is in it once it has been asked, even with NaN."""
+
+    def __init__(self) -> None:
+        self.asked = np.zeros(0, bool)
+        self.value = np.zeros(0, np.float64)
+
+    def _grow(self, n: int) -> None:
+        if n > len(self.asked):
+            self.asked = np.concatenate([self.asked, np.zeros(n - len(self.asked), bool)])
+            self.value = np.concatenate([self.value, np.full(n - len(self.value), np.nan)])
+
+    def put(self, ids: Any, ratio: Any) -> None:
+        idx = np.asarray(ids, np.int64).reshape(-1)
+        if idx.size:
+            self._grow(int(idx.max()) + 1)
+            self.asked[idx] = True
+            self.value[idx] = np.asarray(ratio, np.float64).reshape(-1)
+
+    def take(self, ids: Any) -> tuple[np.ndarray, np.ndarray]:
+        """(asked bool [k], ratio float64 [k], NaN where unknown) of blocks `ids`."""
+        idx = np.asarray(ids, np.int64).reshape(-1)
+        if idx.size:
+            self._grow(int(idx.max()) + 1)
+        return self.asked[idx].copy(), np.where(self.asked[idx], self.value[idx], np.nan)
+
+    def __contains__(self, b: object) -> bool:
+        return isinstance(b, (int, np.integer)) and 0 <= int(b) < len(self.asked) and bool(self.asked[int(b)])
+
+    def __getitem__(self, b: int) -> float:
+        if b not in self:
+            raise KeyError(b)
+        return float(self.value[int(b)])
+
+    def __setitem__(self, b: int, ratio: float) -> None:
+        self.put([b], [ratio])
+
+    def get(self, b: int, default: float | None = None) -> float | None:
+        return self[b] if b in self else default
+
+    def __len__(self) -> int:
+        return int(self.asked.sum())
+
+
 class ScoresBlocks(Protocol):
     """Anything that turns linear RGB blocks into verdicts (local Model or RemoteModel)."""
 
@@ -174,9 +223,7 @@ class Criterion(ABC):
     def __init__(self) -> None:
         self.counters: dict[str, int] = {k: 0 for k in COUNTER_NAMES}
         self.timers: dict[str, float] = {k: 0.0 for k in TIMER_NAMES}
-        # block id -> how far its last verdict was from the target, as a ratio (> 1: above
-        # it, noisy; NaN: no estimate): what a budget render spends its passes by
-        self.ratios: dict[int, float] = {}
+        self.ratios = BlockRatios()
 
     def describe(self) -> dict[str, Any]:
         """Name and parameters, for reports."""
@@ -188,13 +235,13 @@ class Criterion(ABC):
         by the first render's verdicts)."""
         self.counters = {k: 0 for k in COUNTER_NAMES}
         self.timers = {k: 0.0 for k in TIMER_NAMES}
-        self.ratios = {}
+        self.ratios = BlockRatios()
 
     def start_render(self) -> None:
         """Forget what a previous render left: the per-block ratios a budget render spends
         by (a criterion object reused for a second render must not prioritise its blocks
         by the first one's verdicts). Counters are the caller's to keep or reset."""
-        self.ratios = {}
+        self.ratios = BlockRatios()
 
     def restore_counters(self, counters: Mapping[str, int], timers: Mapping[str, float] | None = None) -> None:
         """Continue counting from a checkpoint."""
@@ -205,7 +252,7 @@ class Criterion(ABC):
     def decide(self, ids: Sequence[int], batch: BlockBatch | Sequence[BlockView]) -> np.ndarray:
         """Verdicts int8 [len(ids)]: +1 converged, -1 noisy, for the listed blocks: a
         `BlockBatch` (the live loop's), or one `BlockView` per block."""
-        ids = [int(b) for b in ids]
+        ids = np.asarray(ids, np.int64).reshape(-1).tolist()
         if not isinstance(batch, BlockBatch):
             views = list(batch)
             if len(ids) != len(views):
@@ -255,8 +302,7 @@ class Criterion(ABC):
         """Verdicts for validated, non-empty input."""
 
     def _keep_ratios(self, ids: list[int], ratio: np.ndarray) -> None:
-        for b, r in zip(ids, np.asarray(ratio, np.float64)):
-            self.ratios[b] = float(r)
+        self.ratios.put(ids, ratio)
 
     def _flat(self, batch: BlockBatch, exposure: float) -> np.ndarray:
         """bool [n]: blocks with no visible variation at all (the stop rule's flat test),

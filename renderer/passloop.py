@@ -59,7 +59,7 @@ class PassLoop:
         pass); the verdicts go in the step's last row. Returns that row, int8 [n]: +1
         converged now, -1 noisy, 0 not asked.
         """
-        idx = np.asarray([int(b) for b in ids], np.int64)
+        idx = np.asarray(ids, np.int64).reshape(-1)
         if not idx.size:
             raise ValueError("a step renders at least one block")
         if not passes:
@@ -92,7 +92,7 @@ class PassLoop:
     def judge(self, ids: Sequence[int]) -> np.ndarray:
         """The criterion's verdicts on blocks as they stand, changing nothing here: refreshes
         `criterion.ratios` (a resumed budget render has none from before)."""
-        idx = np.asarray([int(b) for b in ids], np.int64)
+        idx = np.asarray(ids, np.int64).reshape(-1)
         return self.criterion.decide(idx.tolist(), self._batch(idx))
 
     def _batch(self, idx: np.ndarray) -> BlockBatch:

@@ -62,7 +62,6 @@ def _keyed_sampler_class() -> type:
     global _KEYED
     if _KEYED is not None:
         return _KEYED
-    dr = require("drjit")
     mi = require("mitsuba")
 
     class KeyedSampler(mi.Sampler):

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from renderer.adaptive import grown_passes, run_adaptive
+from renderer.adaptive import run_adaptive
+from renderer.session import grown_passes
 from renderer.criteria import BlockBatch, FlipCriterion, OracleCriterion, make_criterion
 
 ROOT = Path(__file__).resolve().parents[2]

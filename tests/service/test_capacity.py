@@ -9,8 +9,8 @@ from http.server import BaseHTTPRequestHandler
 import numpy as np
 import pytest
 
-from service.lab.bench_capacity import md_capacity
-from service.lab.openloop import arrival_times, run_open_loop
+from benchmarks.bench_capacity import md_capacity
+from benchmarks.openloop import arrival_times, run_open_loop
 from tests.support.live_server import handler_server
 
 SERVICE_S = 0.05

@@ -26,18 +26,26 @@ def free_port() -> int:
 
 class LocalServer:
     """`noisestop serve` in a subprocess on 127.0.0.1 with a fresh token (or none, with
-    `no_auth=True`, which the server then needs as `--no-auth`); stopped by SIGTERM."""
+    `no_auth=True`, which the server then needs as `--no-auth`); stopped by SIGTERM.
+
+    By default the subprocess calls `service.serve.run` with `serve_kwargs`; with `argv`
+    (the command's options, e.g. ["--max-batch", "2"]) it runs the command line itself,
+    `noisestop serve --model M --host 127.0.0.1 --port P ...`, for one model (None: the
+    bundled one)."""
 
     def __init__(self, models: dict[str, str | None], *, port: int | None = None,
                  token: str | None = None, startup_timeout: float = 120.0,
                  env: dict[str, str] | None = None, address_space: int | None = None,
-                 no_auth: bool = False, **serve_kwargs: Any) -> None:
+                 no_auth: bool = False, argv: list[str] | None = None, **serve_kwargs: Any) -> None:
+        if argv is not None and (len(models) != 1 or serve_kwargs):
+            raise ValueError("the command line serves one model, its options in argv")
+        self.argv = argv
         self.models = {k: (None if v is None else str(v)) for k, v in models.items()}
         self.port = port or free_port()
         if no_auth and token is not None:
             raise ValueError("a token and no_auth: choose one")
         self.token = None if no_auth else (token or secrets.token_urlsafe(24))
-        if no_auth:
+        if no_auth and argv is None:
             serve_kwargs["no_auth"] = True
         self.url = f"http://127.0.0.1:{self.port}"
         self.startup_timeout = startup_timeout
@@ -57,7 +65,13 @@ class LocalServer:
         env.pop(ENV_TOKEN, None)
         if self.token is not None:
             env[ENV_TOKEN] = self.token
-        self.process = subprocess.Popen([sys.executable, "-c", code, arg], env=env,
+        command = [sys.executable, "-c", code, arg]
+        if self.argv is not None:
+            (model,) = self.models.values()
+            command = [sys.executable, "-m", "service.cli", "serve", *(["--model", model] if model else []),
+                       "--host", "127.0.0.1", "--port", str(self.port), *self.argv,
+                       *(["--no-auth"] if self.token is None else [])]
+        self.process = subprocess.Popen(command, env=env,
                                         stdout=subprocess.DEVNULL, stderr=self._log,
                                         preexec_fn=self._limit if self.address_space else None)
         deadline = time.monotonic() + self.startup_timeout

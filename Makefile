@@ -43,7 +43,8 @@ test-fast: setup
 # default dataset first, then runs every section; the timing sections first, alone on the
 # machine. The model comparison (paper's albedo quick image, then feature models with
 # none) is saved in out/bench, where the trade-off chart finds every model's offset curve.
-# Time: BENCHMARKS.md "make bench".
+# Time: BENCHMARKS.md "make bench". The sections live in benchmarks/ (this checkout only: not
+# installed, not in the image); `noisestop bench` loads them from here.
 bench: dataset heldout
 	$(NOISESTOP) bench features crop flip render passes service stability reliability --update BENCHMARKS.md
 	$(NOISESTOP) bench dataset inputs models criteria tradeoff ablation step knobs --data $(DATA) \

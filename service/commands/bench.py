@@ -1,8 +1,19 @@
-"""`noisestop bench`: the door to the benchmark lab (service/lab), which measures the figures of
-BENCHMARKS.md."""
+"""`noisestop bench`: the door to the benchmarks (benchmarks/ of a source checkout), which
+measure the figures of BENCHMARKS.md.
+
+The benchmarks (load generators, attack drivers, charts) are not part of the installed
+package or the serving image, so the service never imports them: this command finds the
+checkout the packages were installed from (an editable install, or `python -m service.cli`
+in the checkout) and loads them from there by name; from a plain install it says, in one
+line, that it needs a checkout.
+"""
 from __future__ import annotations
 
 import argparse
+import importlib
+import sys
+from pathlib import Path
+from types import ModuleType
 
 from learning.names import QUICK_MODES
 
@@ -35,10 +46,30 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=cmd_bench)
 
 
-def cmd_bench(args: argparse.Namespace) -> int:
-    from pathlib import Path
+#: the benchmarks' folder in a source checkout, beside the packages
+BENCHMARKS = "benchmarks"
 
-    from ..lab import bench
+
+def checkout_root() -> Path | None:
+    """The source checkout these packages live in (the folder holding `service/` and
+    `benchmarks/`), or None for a plain install (site-packages has no benchmarks)."""
+    root = Path(__file__).resolve().parents[2]
+    return root if (root / BENCHMARKS / "bench.py").is_file() and (root / "pyproject.toml").is_file() else None
+
+
+def load_benchmarks() -> ModuleType:
+    """`benchmarks.bench` of the checkout, or UsageError (one line, exit 2) without one."""
+    root = checkout_root()
+    if root is None:
+        raise UsageError("the benchmarks run from a source checkout (benchmarks/ beside the packages, "
+                         "then `make bench`); this install has none")
+    if str(root) not in sys.path:
+        sys.path.insert(0, str(root))
+    return importlib.import_module(f"{BENCHMARKS}.bench")
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    bench = load_benchmarks()
     unknown = sorted(set(args.what) - set(bench.SECTIONS))
     if unknown:
         raise UsageError(f"unknown bench sections {unknown}; known: {', '.join(bench.SECTIONS)}")

@@ -91,7 +91,7 @@ def test_bench_quick_list_is_parsed_and_bad_modes_are_refused():
 
 
 def test_bench_help_names_every_section():
-    from service.lab.bench import SECTIONS
+    from benchmarks.bench import SECTIONS
     out = run("bench", "--help")
     assert out.returncode == 0
     text = " ".join(out.stdout.split())

@@ -8,7 +8,8 @@ import sys
 
 import pytest
 
-from service.lab.loadtest import LocalServer, make_demo_bundle
+from tests.support.demo import make_demo_bundle
+from tests.support.local_server import LocalServer
 
 RENDER = ["--scene", "cornell", "--resolution", "64", "--grid", "4", "4", "--step", "4", "--min-spp", "4",
           "--max-spp", "32", "--json"]

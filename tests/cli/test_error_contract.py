@@ -23,7 +23,7 @@ from learning.models.bundle import load_model
 from learning.data.exr import write_exr
 from learning.data.npz import read_npz, savez_bytes
 from service import cli
-from service.lab.loadtest import make_demo_bundle
+from tests.support.demo import make_demo_bundle
 from tests.support import FIXTURE_DATASET as FIXTURE
 from tests.support.errors import assert_one_line_error, run
 

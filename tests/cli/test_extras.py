@@ -89,11 +89,15 @@ def _requirement_name(req: str) -> str:
     return re.split(r"[\s\[<>=!~;]", req, maxsplit=1)[0].lower().replace("_", "-")
 
 
-def _third_party_imports() -> dict[str, set[str]]:
+#: the source checkout's own top-level folders (not third-party, not installed)
+CHECKOUT = ("benchmarks", "tests")
+
+
+def _third_party_imports(packages: tuple[str, ...] = PACKAGES) -> dict[str, set[str]]:
     """Top-level import name -> the project's files importing it (anywhere in the file)."""
     stdlib = set(sys.stdlib_module_names)
     found: dict[str, set[str]] = {}
-    for pkg in PACKAGES:
+    for pkg in packages:
         for path in (ROOT / pkg).rglob("*.py"):
             for node in ast.walk(ast.parse(path.read_text())):
                 names = []
@@ -106,7 +110,7 @@ def _third_party_imports() -> dict[str, set[str]]:
                     names = [node.args[0].value]
                 for name in names:
                     top = name.split(".")[0]
-                    if top not in stdlib and top not in PACKAGES and top != "__future__":
+                    if top not in stdlib and top not in PACKAGES + CHECKOUT and top != "__future__":
                         found.setdefault(top, set()).add(str(path.relative_to(ROOT)))
     return found
 
@@ -118,7 +122,8 @@ DISTRIBUTION = {"sklearn": "scikit-learn", "pywt": "pywavelets", "PIL": "pillow"
 #: imported, but brought by a listed package (of the same extra)
 TRANSITIVE = {"pydantic_core": "pydantic", "starlette": "fastapi", "anyio": "fastapi",
               "prometheus_client": "prometheus-fastapi-instrumentator", "distributed": "dask"}
-#: developer tools, imported only by `noisestop bench` sections (service/lab) that need [dev]
+#: developer tools, imported only by benchmark sections (benchmarks/, outside the installed packages) that
+#: need [dev]
 DEV_ONLY = {"schemathesis", "hypothesis"}
 
 
@@ -130,9 +135,7 @@ def test_every_import_is_in_the_core_or_its_extra():
     assert extras["all"] == {"noisestop"} and "render,serve,data,transfer" in str(
         project["optional-dependencies"]["all"])
     for name, files in _third_party_imports().items():
-        if name in DEV_ONLY:
-            assert all(f.startswith("service/lab/") for f in files), (name, files)
-            continue
+        assert name not in DEV_ONLY, (name, "a developer tool imported by an installed package", files)
         dist = TRANSITIVE.get(name) or DISTRIBUTION.get(name, name).lower()
         extra = EXTRA_OF.get(name)
         if extra:
@@ -142,3 +145,9 @@ def test_every_import_is_in_the_core_or_its_extra():
             assert dist in core, (name, "imported but not a core dependency", files)
     for extra, modules in PACKAGES_OF.items():
         assert all(EXTRA_OF[m] == extra for m in modules)
+    bench = _third_party_imports(("benchmarks",))
+    assert DEV_ONLY <= set(bench)                  # the scan sees the developer tools where they are
+    every_extra = set().union(*extras.values())
+    for name, files in bench.items():
+        dist = TRANSITIVE.get(name) or DISTRIBUTION.get(name, name).lower()
+        assert name in DEV_ONLY or dist in core | every_extra, (name, "imported by the benchmarks", files)

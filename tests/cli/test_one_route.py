@@ -24,7 +24,7 @@ from learning.training.train import train_model
 from renderer.client import RemoteModel
 from renderer.criteria import FlipCriterion, ModelCriterion
 from renderer.simulate import evaluate_criterion, simulate_stack
-from service.lab.loadtest import LocalServer
+from tests.support.local_server import LocalServer
 from tests.support.stack_renderer import live
 from tests.support import FIXTURE_DATASET as FIXTURE
 

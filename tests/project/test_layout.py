@@ -1,8 +1,8 @@
 """The house rules, checked on the source: dependencies point one way (noisefeat <-
-learning <- renderer <- service, DESIGN.md, and inside learning its sub-packages in the
-order of their jobs), and no modules import each other around a circle, neither at load
-time nor through imports inside functions (a function-level import only hides a circle
-until the function runs)."""
+learning <- renderer <- service <- benchmarks, DESIGN.md, and inside learning its
+sub-packages in the order of their jobs), in every import statement of a module, inside
+functions too (a function-level import only hides an upward edge or a circle until the
+function runs), and no modules import each other around a circle."""
 from __future__ import annotations
 
 import ast
@@ -10,15 +10,17 @@ from pathlib import Path
 from tests.support import ROOT
 
 PACKAGES = ("noisefeat", "learning", "renderer", "service")
+#: the benchmarks sit above the packages: they may import any of them, none imports them
+BENCHMARKS = "benchmarks"
 #: learning's rooms, each importing only from those before it (learning/__init__.py)
 LEARNING = {"names": 0, "stoprule": 0, "data": 1, "inputs": 2, "models": 3, "evaluation": 4, "training": 5}
 
 
-def _modules() -> dict[str, Path]:
+def _modules(root: Path = ROOT, packages: tuple[str, ...] = PACKAGES) -> dict[str, Path]:
     out = {}
-    for pkg in PACKAGES:
-        for path in (ROOT / pkg).rglob("*.py"):
-            rel = path.relative_to(ROOT).with_suffix("")
+    for pkg in packages:
+        for path in (root / pkg).rglob("*.py"):
+            rel = path.relative_to(root).with_suffix("")
             parts = list(rel.parts)
             if parts[-1] == "__init__":
                 parts = parts[:-1]
@@ -56,17 +58,46 @@ def _load_time_imports(name: str, path: Path, known: set[str], anywhere: bool = 
     return found
 
 
-def _graph(anywhere: bool = False) -> dict[str, set[str]]:
-    mods = _modules()
+def _graph(anywhere: bool = False, root: Path = ROOT,
+           packages: tuple[str, ...] = PACKAGES) -> dict[str, set[str]]:
+    mods = _modules(root, packages)
     known = set(mods)
     return {name: _load_time_imports(name, path, known, anywhere) for name, path in mods.items()}
 
 
+def upward_imports(root: Path = ROOT, packages: tuple[str, ...] = PACKAGES + (BENCHMARKS,)) -> list[tuple[str, str]]:
+    """(importer, imported) for every import statement anywhere in a module (load time,
+    functions, methods, `if` and `try` blocks) that names a package later in `packages`."""
+    rank = {pkg: i for i, pkg in enumerate(packages)}
+    return sorted((a, b) for a, deps in _graph(anywhere=True, root=root, packages=packages).items() for b in deps
+                  if rank[b.split(".")[0]] > rank[a.split(".")[0]])
+
+
 def test_dependencies_point_one_way() -> None:
-    rank = {pkg: i for i, pkg in enumerate(PACKAGES)}
-    upward = [(a, b) for a, deps in _graph().items() for b in deps
-              if rank[b.split(".")[0]] > rank[a.split(".")[0]]]
-    assert upward == []
+    assert len(_modules(packages=(BENCHMARKS,))) >= 18          # the benchmarks are in the graph
+    assert upward_imports() == []
+
+
+def test_the_checker_sees_an_upward_import_inside_a_function(tmp_path) -> None:
+    """Control: a renderer module that imports the service only inside a method body (and
+    a service module that imports the benchmarks inside a function) is found; the same
+    imports at load time are found too, and a downward one is not."""
+    for pkg in (*PACKAGES, BENCHMARKS):
+        (tmp_path / pkg).mkdir()
+        (tmp_path / pkg / "__init__.py").write_text("")
+    (tmp_path / "service" / "app.py").write_text("def create():\n    return 1\n")
+    (tmp_path / BENCHMARKS / "bench.py").write_text("from service.app import create\n")
+    (tmp_path / "renderer" / "client.py").write_text(
+        "import numpy as np\n\nclass C:\n    def m(self):\n        if True:\n"
+        "            from service import app\n        return app\n")
+    (tmp_path / "service" / "door.py").write_text("def f():\n    try:\n        import benchmarks.bench\n"
+                                                 "    except ImportError:\n        pass\n")
+    (tmp_path / "noisefeat" / "base.py").write_text("from learning import x\n")
+    assert upward_imports(tmp_path) == [("noisefeat.base", "learning"), ("renderer.client", "service"),
+                                        ("renderer.client", "service.app"), ("service.door", "benchmarks.bench")]
+    # the old load-time reading missed both function-level ones
+    load_time = _graph(root=tmp_path, packages=(*PACKAGES, BENCHMARKS))
+    assert load_time["renderer.client"] == set() and load_time["service.door"] == set()
 
 
 def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
@@ -178,16 +209,48 @@ def test_the_checker_sees_an_upward_import(tmp_path) -> None:
     assert _learning_upward(tmp_path) == [("data.x", "learning.training.train")]
 
 
-def test_the_service_never_imports_the_lab() -> None:
-    """service/lab is the benchmark lab; of the service's rooms only the `bench` command
-    opens its door."""
-    rooms = [p for p in (ROOT / "service").rglob("*.py")
-             if "lab" not in p.relative_to(ROOT).parts and p.relative_to(ROOT).parts[-2:] != ("commands", "bench.py")]
-    assert len(rooms) >= 16
+def benchmark_imports(root: Path = ROOT) -> list[tuple[str, str]]:
+    """(file, module) for every import statement under root/service, anywhere in a file, that
+    names the benchmarks, and for every string constant naming them as a module that is not
+    the `bench` command's one constant (`importlib.import_module` would hide behind one)."""
+    found = []
+    for path in sorted((root / "service").rglob("*.py")):
+        rel = path.relative_to(root)
+        package = ".".join(rel.parent.parts)
+        for mod in _imports_anywhere(path, package):
+            if mod.split(".")[0] == BENCHMARKS:
+                found.append((str(rel), mod))
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and \
+                    node.value.split(".")[0] == BENCHMARKS and (rel.parts[-2:], node.value) != DOOR:
+                found.append((str(rel), repr(node.value)))
+    return found
 
-    def package(p: Path) -> str:
-        return ".".join(p.relative_to(ROOT).parent.parts)
-    found = [(p.stem, m) for p in rooms for m in _imports_anywhere(p, package(p)) if m.startswith("service.lab")]
-    assert found == []
+
+#: the one mention of the benchmarks in the service: `noisestop bench` loads them from a checkout
+DOOR = (("commands", "bench.py"), BENCHMARKS)
+
+
+def test_the_service_never_imports_the_benchmarks() -> None:
+    """benchmarks/ is outside the installed packages: nothing under service/ imports it, at
+    load time or in a function; `noisestop bench` names the folder once and loads it only
+    from a source checkout (tests/cli/test_bench_door.py)."""
+    assert not (ROOT / "service" / "lab").exists()
+    assert len(list((ROOT / "service").rglob("*.py"))) >= 17
+    assert benchmark_imports() == []
     door = ROOT / "service" / "commands" / "bench.py"
-    assert any(m.startswith("service.lab") for m in _imports_anywhere(door, package(door)))
+    constants = [n.value for n in ast.walk(ast.parse(door.read_text()))
+                 if isinstance(n, ast.Constant) and isinstance(n.value, str)]
+    assert constants.count(BENCHMARKS) == 1
+
+
+def test_the_checker_sees_the_service_import_the_benchmarks(tmp_path) -> None:
+    """Control: a service module importing the benchmarks inside a function, relatively
+    from the top, or naming them in a string for importlib is found; the door is not."""
+    (tmp_path / "service" / "commands").mkdir(parents=True)
+    (tmp_path / "service" / "app.py").write_text("def f():\n    from benchmarks.loadtest import run_load\n")
+    (tmp_path / "service" / "oip.py").write_text("import importlib\nm = importlib.import_module('benchmarks.attack')\n")
+    (tmp_path / "service" / "commands" / "bench.py").write_text("BENCHMARKS = 'benchmarks'\n")
+    (tmp_path / "service" / "registry.py").write_text("import json\n")
+    assert benchmark_imports(tmp_path) == [("service/app.py", "benchmarks.loadtest"),
+                                           ("service/oip.py", "'benchmarks.attack'")]

@@ -144,28 +144,82 @@ def test_bad_spp_budget_is_a_one_line_usage_error(value, tmp_path, capsys) -> No
     assert_one_line_error(rc, err, "--spp-budget")
 
 
+RENDER = ["render", "--scene", "cornell", "--resolution", "32", "--grid", "4", "4", "--step", "4", "--min-spp", "4",
+          "--max-spp", "24", "--criterion", "variance", "--threshold", "0.05"]
+
+
 def test_render_command_takes_a_budget(tmp_path, capsys) -> None:
+    """--spp-budget reaches the loop: the command's files are adaptive_render's with the same
+    budget, spent to within one pass; control: without it the same render spends more."""
+    from learning.data.exr import read_exr_channels
     from service import cli
 
     out = tmp_path / "o"
-    rc = cli.main(["render", "--scene", "cornell", "--resolution", "32", "--grid", "4", "4", "--step", "4",
-                   "--min-spp", "4", "--max-spp", "24", "--criterion", "variance", "--threshold", "0.05",
-                   "--spp-budget", "8", "--out", str(out)])
+    rc = cli.main([*RENDER, "--spp-budget", "8", "--out", str(out)])
     assert rc == 0
     text = capsys.readouterr().out
     report = json.loads((out / "report.json").read_text())
-    assert report["budget"]["spp_budget"] == 8.0 and report["mean_spp"] <= 8
+    assert report["budget"]["spp_budget"] == 8.0 and 8 - 4 < report["mean_spp"] <= 8
     assert "budget ended with" in text and report["budget"]["ended"]
+    assert read_exr_channels(out / "final.exr")["spp"].mean() == pytest.approx(report["mean_spp"])
+    api = adaptive_render("cornell", tmp_path / "api", VarianceCriterion(0.05), spp_budget=8, **TINY)
+    _same(out, tmp_path / "api", report, api)
+    assert report["budget"]["above_target"] == api["budget"]["above_target"]
+    assert cli.main([*RENDER, "--out", str(tmp_path / "free")]) == 0
+    free = json.loads((tmp_path / "free" / "report.json").read_text())
+    assert "budget" not in free and free["mean_spp"] > 8
 
 
-def test_a_budget_render_resumes_to_the_same_image(tmp_path) -> None:
+def rendered_jobs(monkeypatch, run) -> tuple[dict, list[tuple[int, int]]]:
+    """What `run()` returns, and the (block, pass index) jobs it rendered, in order."""
+    jobs: list[tuple[int, int]] = []
+    real = BlockRenderer.render_passes
+
+    def counting(self, js, spp, seed):
+        jobs.extend((int(b), int(p)) for b, p in js)
+        return real(self, js, spp, seed)
+    with monkeypatch.context() as m:
+        m.setattr(BlockRenderer, "render_passes", counting)
+        return run(), jobs
+
+
+def assert_resumed(jobs: list[tuple[int, int]], whole: list[tuple[int, int]], passes_saved) -> None:
+    """A resume renders no pass its checkpoint holds (block b's first `passes_saved[b]`),
+    and with those it renders exactly the uninterrupted run's passes."""
+    saved = {(b, p) for b, n in enumerate(passes_saved) for p in range(int(n))}
+    assert saved, "the checkpoint holds no pass"
+    again = [j for j in jobs if j in saved]
+    assert again == [], f"passes rendered again: {again[:5]}"
+    assert sorted(saved | set(jobs)) == sorted(whole) and len(jobs) == len(set(jobs))
+
+
+def test_a_budget_render_resumes_to_the_same_image(tmp_path, monkeypatch) -> None:
+    """Resumed from its checkpoint (written before the budget began prioritising), the
+    render gives the fresh run's image and report and renders only the passes the
+    checkpoint lacks; control: a 'resume' that restarts gives the same image, and fails the
+    pass count."""
+    import shutil
+
+    from learning.data.npz import read_npz
+
     opts = {**TINY, "checkpoint_every": 0.0, "spp_budget": 12}
-    whole = adaptive_render("cornell", tmp_path / "a", VarianceCriterion(0.05), **opts)
+    whole, whole_jobs = rendered_jobs(monkeypatch, lambda: adaptive_render(
+        "cornell", tmp_path / "a", VarianceCriterion(0.05), **opts))
     assert whole["budget"]["prioritised_rounds"] > 0
-    again = adaptive_render("cornell", tmp_path / "a", VarianceCriterion(0.05), resume=True, **opts)
+    passes_saved = read_npz(tmp_path / "a" / "checkpoint.npz")["acc_passes"]
+    assert 0 < passes_saved.sum() < len(whole_jobs)
+    shutil.copytree(tmp_path / "a", tmp_path / "c")
+    again, jobs = rendered_jobs(monkeypatch, lambda: adaptive_render(
+        "cornell", tmp_path / "a", VarianceCriterion(0.05), resume=True, **opts))
     fresh = adaptive_render("cornell", tmp_path / "b", VarianceCriterion(0.05), **opts)
     _same(tmp_path / "a", tmp_path / "b", again, fresh)
     assert again["budget"]["above_target"] == fresh["budget"]["above_target"]
+    assert_resumed(jobs, whole_jobs, passes_saved)
+    restarted, restart_jobs = rendered_jobs(monkeypatch, lambda: adaptive_render(
+        "cornell", tmp_path / "c", VarianceCriterion(0.05), resume=False, **opts))
+    _same(tmp_path / "c", tmp_path / "b", restarted, fresh)           # the image cannot tell
+    with pytest.raises(AssertionError, match="passes rendered again"):
+        assert_resumed(restart_jobs, whole_jobs, passes_saved)
 
 
 def test_the_budget_simulated_on_a_stack(tmp_path) -> None:

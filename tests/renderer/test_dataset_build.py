@@ -68,7 +68,7 @@ def test_dask_local_cluster_of_two_workers(tmp_path):
     assert read_stack(tmp_path / "sky").thresholds == [4] * 16
     # every run is on record; the bench reports the latest run that rendered anything
     from renderer.dataset import read_build_log
-    from service.lab.bench_models import bench_dataset, md_dataset
+    from benchmarks.bench_models import bench_dataset, md_dataset
     again = build_dataset(["cornell", "sky"], tmp_path, TINY, workers=1, progress=False)
     assert all(r["already_built"] for r in again["scenes"])
     runs = read_build_log(tmp_path)
@@ -82,7 +82,7 @@ def test_dask_local_cluster_of_two_workers(tmp_path):
 
 def test_dataset_without_a_build_log_is_a_clear_error(tmp_path):
     from renderer.dataset import BUILD_LOG
-    from service.lab.bench_models import bench_dataset
+    from benchmarks.bench_models import bench_dataset
     with pytest.raises(ValueError, match="no build run on record"):
         bench_dataset(str(tmp_path))
     (tmp_path / BUILD_LOG).write_text('{"scenes": [{"already_built": true}]}\n{"cut sh')

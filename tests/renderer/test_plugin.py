@@ -114,10 +114,20 @@ def test_a_gaussian_filter_equals_up_to_float_rounding(mi):
 
 
 def test_defaults_and_bad_properties(mi):
-    scene = mi.load_dict(scene_dict(mi, {"type": "noisestop", "max_spp": 16, "min_spp": 8, "step": 8,
-                                         "block": 32}))
-    assert "PathIntegrator" in str(scene.integrator())            # no nested one: Mitsuba's path
-    assert np.asarray(mi.render(scene)).shape == (32, 48, 5)
+    """Unset properties take renderer.render's defaults (flip at tau 0.02, seed 0, exposure
+    0): the plugin's channels equal renderer.render's with only the four given settings."""
+    given = {"max_spp": 16, "min_spp": 8, "step": 8, "block": 32}
+    scene = mi.load_dict(scene_dict(mi, {"type": "noisestop", **given}))
+    integrator = scene.integrator()
+    assert "PathIntegrator" in str(integrator.nested)            # no nested one: Mitsuba's path
+    assert integrator.settings == given
+    img = np.asarray(mi.render(scene))
+    want = renderer.render(mi.load_dict(scene_dict(mi, PATH)), progress=False, **given)
+    check_channels(img, want)
+    assert np.array_equal(img[..., :3], want.image)
+    assert integrator.result.report["criterion"] == want.report["criterion"]
+    assert want.report["criterion"]["name"] == "flip" and want.report["criterion"]["tau"] == 0.02
+    assert set(np.unique(want.spp)) <= {8, 16}
     bad = [({"bogus": 1}, "bogus"), ({"criterion": "nope"}, "unknown criterion 'nope'"),
            ({"tau": -1.0}, "tau must be a positive finite number"), ({"block": 1.5}, "block must be an integer"),
            ({"criterion": "oracle"}, "cannot use the oracle criterion"),
@@ -128,5 +138,138 @@ def test_defaults_and_bad_properties(mi):
             mi.load_dict(scene_dict(mi, {"type": "noisestop", **props}))
 
 
-def test_register_is_idempotent(mi):
-    assert renderer.register() == renderer.register() == mi.variant()
+#: every property at a value other than its default (model and offset: with the model criterion)
+CHANGED = {"criterion": "variance", "tau": 0.05, "block": 16, "min_spp": 16, "max_spp": 40, "step": 4, "seed": 7,
+           "threshold": 0.1, "exposure": 0.5, "progress": True}
+MODEL = {"criterion": "model", "offset": 0.25, "progress": True}      # tau: the demo model knows 0.02 only
+#: run_adaptive's arguments that both routes pass
+LOOP_ARGS = ("block", "step", "min_spp", "max_spp", "seed", "progress", "tau")
+
+
+def _as_property(value):
+    return "nested" if isinstance(value, dict) else value
+
+
+def what_the_loop_gets(mi, monkeypatch, route) -> dict:
+    """The criterion (its report entry and exposure) and loop arguments `route()` hands to
+    run_adaptive, which is stubbed out: nothing renders."""
+    import renderer.adaptive
+
+    seen = {}
+
+    def stub(scene, crit, **kw):
+        seen.update(criterion=crit.describe(), exposure=getattr(crit, "exposure", None),
+                    **{k: kw.get(k) for k in LOOP_ARGS})
+        raise _Stop
+    with monkeypatch.context() as m:
+        m.setattr(renderer.adaptive, "run_adaptive", stub)
+        with pytest.raises(_Stop):
+            route()
+    return seen
+
+
+class _Stop(Exception):
+    """Raised by the stub loop once it has seen its arguments."""
+
+
+def plugin_route(mi, props: dict):
+    """The plugin's render as mi.render calls it (called directly: mi.render would wrap the
+    stub's exception in Dr.Jit's)."""
+    def route():
+        scene = mi.load_dict(scene_dict(mi, {"type": "noisestop", **props}))
+        return scene.integrator().render(scene, scene.sensors()[0], 0, 0)
+    return route
+
+
+def api_route(mi, props: dict):
+    return lambda: renderer.render(mi.load_dict(scene_dict(mi, PATH)), **props)
+
+
+def ignoring(mi, monkeypatch, key: str) -> None:
+    """Make the plugin read `key` (Mitsuba refuses an unread property) and then ignore it:
+    the class is built from the properties without it."""
+    from renderer import plugin
+
+    cls = plugin._integrator_class()
+    init = cls.__init__
+
+    def forgetful(self, props):
+        kept = mi.Properties(props.plugin_name())
+        for k in props.keys():
+            value = props[k]
+            if k != key:
+                kept[k] = value
+        init(self, kept)
+    monkeypatch.setattr(cls, "__init__", forgetful)
+
+
+@pytest.fixture(scope="module")
+def demo_model(tmp_path_factory) -> str:
+    from tests.support.demo import make_demo_bundle
+
+    return str(make_demo_bundle(tmp_path_factory.mktemp("demo") / "bundle"))
+
+
+def test_every_property_reaches_the_render(mi, monkeypatch, demo_model):
+    """Each property, set away from its default, reaches the loop as renderer.render's
+    keyword of the same name does; and, control, a plugin that ignores any one of them
+    hands the loop something else."""
+    for props in (CHANGED, {**MODEL, "model": demo_model}):
+        want = what_the_loop_gets(mi, monkeypatch, api_route(mi, props))
+        assert what_the_loop_gets(mi, monkeypatch, plugin_route(mi, props)) == want
+        defaults = what_the_loop_gets(mi, monkeypatch, api_route(mi, {"criterion": props["criterion"]}))
+        for key in props:
+            if key == "criterion":
+                continue
+            with monkeypatch.context() as m:
+                ignoring(mi, m, key)
+                got = what_the_loop_gets(mi, monkeypatch, plugin_route(mi, props))
+            assert got != want, f"a plugin ignoring {key} passes"
+            rest = {"progress": False, **{k: v for k, v in props.items() if k != key}}   # the plugin's one default
+            assert got == what_the_loop_gets(mi, monkeypatch, api_route(mi, rest)), key   # of its own
+        assert defaults != want
+    with monkeypatch.context() as m:                  # the criterion too: flip instead of variance
+        ignoring(mi, m, "criterion")
+        assert what_the_loop_gets(mi, monkeypatch, plugin_route(mi, CHANGED))["criterion"]["name"] == "flip"
+
+
+def test_changed_properties_render_as_renderer_render(mi):
+    """The same non-default settings, rendered: the plugin's channels are renderer.render's."""
+    props = {k: v for k, v in CHANGED.items() if k != "progress"}
+    scene = mi.load_dict(scene_dict(mi, {"type": "noisestop", **props}))
+    img = np.asarray(mi.render(scene))
+    want = direct(mi, **{k: v for k, v in props.items() if k not in SETTINGS or v != SETTINGS[k]})
+    check_channels(img, want)
+    assert np.array_equal(img[..., :3], want.image)
+    assert 0 < want.report["blocks_converged"] < len(want.report["blocks"])
+    assert want.report["criterion"]["name"] == "variance" and want.report["criterion"]["threshold"] == 0.1
+
+
+def registrations(mi, monkeypatch, register, times: int = 3) -> tuple[list[str], list[object]]:
+    """Mitsuba registrations made while `register` is called `times` times, and the
+    variants it returned (the registrations still reach Mitsuba)."""
+    calls: list[str] = []
+    real = mi.register_integrator
+    with monkeypatch.context() as m:
+        m.setattr(mi, "register_integrator", lambda name, factory: (calls.append(name), real(name, factory))[1])
+        returned = [register() for _ in range(times)]
+    return calls, returned
+
+
+def test_register_is_idempotent(mi, monkeypatch):
+    """Registered once per variant (by the fixture): more calls register nothing and keep
+    the one class; control: a register that re-registers on every call is caught."""
+    from renderer import plugin
+
+    cls = type(mi.load_dict(scene_dict(mi, {"type": "noisestop"})).integrator())
+    assert cls is plugin._integrator_class()
+    calls, returned = registrations(mi, monkeypatch, renderer.register)
+    assert calls == [] and returned == [mi.variant()] * 3
+    assert type(mi.load_dict(scene_dict(mi, {"type": "noisestop"})).integrator()) is cls
+
+    def reregistering() -> str:
+        plugin._registered.clear()
+        return renderer.register()
+    monkeypatch.setattr(plugin, "_registered", set(plugin._registered))
+    calls, returned = registrations(mi, monkeypatch, reregistering)
+    assert calls == ["noisestop"] * 3 and returned == [mi.variant()] * 3     # same strings: the old test passed

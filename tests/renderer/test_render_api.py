@@ -27,9 +27,25 @@ def flip_result():
     return renderer.render("cornell", **TINY)
 
 
+def assert_adaptive(res, max_spp: int) -> None:
+    """The arrays are the report's blocks (each block's window carries its spp and its
+    converged flag), and the render was adaptive: some block stopped before max_spp, where
+    a uniform render would have sampled every block to it."""
+    for b in res.report["blocks"]:
+        x, y, w, h = b["window"]
+        assert (res.spp[y:y + h, x:x + w] == b["spp"]).all(), b["id"]
+        assert (res.converged[y:y + h, x:x + w] == b["converged"]).all(), b["id"]
+        if b["converged"]:
+            assert b["spp"] == b["stop_spp"] <= max_spp
+    spp = [b["spp"] for b in res.report["blocks"]]
+    assert min(spp) < max_spp and len(set(spp)) > 1, spp
+    saved = 1 - sum(spp) / (len(spp) * max_spp)
+    assert saved > 0 and res.report["saved_vs_uniform"] == pytest.approx(saved)
+
+
 def test_render_returns_arrays_and_writes_nothing(flip_result, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    r = renderer.render("cornell", **{**TINY, "criterion": "variance"})
+    r = renderer.render("cornell", **{**TINY, "criterion": "variance", "threshold": 0.3})
     assert list(tmp_path.iterdir()) == []                       # in memory: no file anywhere
     for res in (r, flip_result):
         assert res.image.shape == (64, 64, 3) and res.image.dtype == np.float32
@@ -39,6 +55,17 @@ def test_render_returns_arrays_and_writes_nothing(flip_result, tmp_path, monkeyp
         assert set(np.unique(res.spp)) <= {8, 16, 24, 32}
     assert flip_result.report["criterion"]["name"] == "flip" and r.report["criterion"]["name"] == "variance"
     assert "RenderResult(64x64" in repr(r)
+    assert_adaptive(r, TINY["max_spp"])
+    assert r.converged.any() and not r.converged.all()
+
+
+def test_the_adaptive_check_refuses_a_uniform_render():
+    """Control: the same call sampling uniformly has the right shapes and spp values, and
+    fails assert_adaptive."""
+    uniform = renderer.render("cornell", **{**TINY, "criterion": "uniform"})
+    assert uniform.spp.shape == (64, 64) and set(np.unique(uniform.spp)) <= {8, 16, 24, 32}
+    with pytest.raises(AssertionError):
+        assert_adaptive(uniform, TINY["max_spp"])
 
 
 def test_save_writes_the_command_line_files(flip_result, tmp_path):

@@ -11,9 +11,9 @@ from learning.models.bundle import save_model
 from learning.inputs.table import load_table
 from learning.training.train import train_model
 from learning.training.knobs import measure_knobs
-from service.lab.bench import update_markdown
-from service.lab.bench_decisions import bench_tradeoff, md_tradeoff
-from service.lab.bench_models import bench_models
+from benchmarks.bench import update_markdown
+from benchmarks.bench_decisions import bench_tradeoff, md_tradeoff
+from benchmarks.bench_models import bench_models
 from tests.support import FIXTURE_DATASET as FIXTURE
 
 
@@ -86,7 +86,7 @@ def test_tradeoff_draws_every_criterion_and_the_saved_comparison(tmp_path, split
 
 @pytest.mark.slow
 def test_criteria_section_simulates_every_criterion_on_held_out_scenes(tmp_path, split):
-    from service.lab.bench_decisions import bench_criteria, md_criteria
+    from benchmarks.bench_decisions import bench_criteria, md_criteria
     train, heldout = split
     r = bench_criteria(train, heldout, model=str(fixture_model(tmp_path, train, [])), thresholds=(0.01, 0.2))
     assert r["test_scenes"] == ["cornell"] and set(r["rows"]) == {"model", "flip", "variance", "oracle", "uniform"}
@@ -99,7 +99,7 @@ def test_criteria_section_simulates_every_criterion_on_held_out_scenes(tmp_path,
 
 @pytest.mark.slow
 def test_ablation_rows_cover_every_switch(tmp_path, split):
-    from service.lab.bench_models import bench_ablation, md_ablation
+    from benchmarks.bench_models import bench_ablation, md_ablation
     r = bench_ablation(*split, out_png=str(tmp_path / "a.png"))
     combos = {(x["weights"], x["quick"], x["wavelet"]) for x in r["rows"]}
     assert len(combos) == 12 and {q for _, q, _ in combos} == {"albedo", "direct", "none"}
@@ -114,7 +114,7 @@ def test_step_sizes_thin_the_decisions(tmp_path, split):
     from learning.models.bundle import load_model
     from learning.evaluation.evaluate import evaluate_model
     from learning.evaluation.generalisation import split_tables
-    from service.lab.bench_decisions import bench_step, md_step
+    from benchmarks.bench_decisions import bench_step, md_step
     model = fixture_model(tmp_path, split[0], [], quick="halves")     # the shipped kind of input
     r = bench_step(*split, multiples=(1, 2), scene="cornell", model=str(model),
                    resolution=32, max_spp=192, out_png=str(tmp_path / "s.png"))
@@ -146,7 +146,7 @@ def test_cost_accuracy_plot_needs_rows_with_both_axes(tmp_path):
 
 def test_run_all_hands_each_section_over_as_it_finishes(tmp_path):
     from renderer.dataset import append_build_log
-    from service.lab.bench import run_all
+    from benchmarks.bench import run_all
     with pytest.raises(ValueError, match="criteria, models needs --data"):
         run_all(only=("models", "criteria"))
     run = {"wall_s": 754.2, "sub_images": 32, "finished": "2026-11-23T12:00:00+00:00", "cpus": 2,
@@ -165,7 +165,7 @@ def test_run_all_hands_each_section_over_as_it_finishes(tmp_path):
 
 @pytest.mark.slow
 def test_render_bench_alternates_runs_and_reports_medians(tmp_path):
-    from service.lab.bench_passes import bench_render, md_render
+    from benchmarks.bench_passes import bench_render, md_render
     r = bench_render(scene="cornell", resolution=32, max_spp=64, step=16,
                      model=str(fixture_model(tmp_path)), repeats=3)
     for name in ("model", "flip", "uniform"):
@@ -181,7 +181,7 @@ def test_render_bench_alternates_runs_and_reports_medians(tmp_path):
 @pytest.mark.slow
 def test_knobs_train_each_setting_and_mark_the_default(split):
     from learning.training.train import CV_MAX_SAMPLES
-    from service.lab.bench_models import md_knobs
+    from benchmarks.bench_models import md_knobs
     r = measure_knobs(*split, cv_caps=(100, CV_MAX_SAMPLES, 0), batches=(16, 64))
     cv = [x for x in r["rows"] if x["kind"] == "dsvm"]
     assert [x["value"] for x in cv] == [100, CV_MAX_SAMPLES, "all"] and [x["default"] for x in cv] == [0, 1, 0]
@@ -196,7 +196,7 @@ def test_knobs_train_each_setting_and_mark_the_default(split):
 def test_flip_section_times_both_routes_on_the_same_blocks_and_restores_threads():
     import torch
 
-    from service.lab.bench_flip import bench_flip, md_flip
+    from benchmarks.bench_flip import bench_flip, md_flip
     before = torch.get_num_threads()
     r = bench_flip(repeats=1, shapes=((2, 16), (1, 24)), threads=(1, 2))
     assert torch.get_num_threads() == before
@@ -212,7 +212,7 @@ def test_flip_section_times_both_routes_on_the_same_blocks_and_restores_threads(
 
 
 def test_flip_section_compares_both_routes_on_labelled_stacks():
-    from service.lab.bench_flip import bench_flip, md_flip
+    from benchmarks.bench_flip import bench_flip, md_flip
     r = bench_flip(repeats=1, shapes=((1, 16),), threads=(1,), datasets=(str(FIXTURE),))
     (d,) = r["datasets"]
     assert d["values"] > 50 and d["max_abs_diff"] < 1e-5 and d["median_rel_diff"] < 1e-5

@@ -9,8 +9,8 @@ from http.server import BaseHTTPRequestHandler
 import numpy as np
 import pytest
 
-from service.lab.bench_capacity import md_capacity
-from service.lab.openloop import arrival_times, run_open_loop
+from benchmarks.bench_capacity import md_capacity
+from benchmarks.openloop import arrival_times, run_open_loop
 from tests.support.live_server import handler_server
 
 SERVICE_S = 0.05
@@ -99,3 +99,27 @@ def test_capacity_markdown_has_a_row_per_decider_and_load_share():
     assert "640 blocks/s (320 per core)" in md
     assert "| 50 % | 20.0 | 20.0 | 900 | 30 | 90 (80, 90, 95) | 0 | - |" in md
     assert "| 80 % | 32.0 |" in md
+
+
+@pytest.fixture(scope="module")
+def real_server():
+    """The command itself, `noisestop serve` with the bundled model on 127.0.0.1, at most two
+    blocks a request (--max-batch 2); stopped when the module's tests end."""
+    from tests.support.local_server import LocalServer
+
+    with LocalServer({"default": None}, argv=["--max-batch", "2"]) as server:
+        yield server
+
+
+@pytest.mark.timeout(300)
+def test_open_loop_against_a_real_noisestop_serve(real_server):
+    """Bounded open-loop traffic (24 requests of 2 blocks, 8 a second, loopback) gets a
+    verdict of the right shape for every request; control: requests over the server's
+    --max-batch are counted as errors, none as answers."""
+    common = {"token": real_server.token, "size": 32, "connections": 2, "timeout": 60.0}
+    r = run_open_loop(real_server.url, rate=8.0, requests=24, blocks=2, seed=5, **common)
+    assert r["requests"] == 24 and r["errors"] == 0 and r["first_error"] is None
+    assert 0 < r["p50_ms"] <= r["p99_ms"] and r["achieved_rate"] > 0
+    assert r["blocks_per_s"] == pytest.approx(2 * r["achieved_rate"])
+    refused = run_open_loop(real_server.url, rate=8.0, requests=4, blocks=4, seed=6, **common)
+    assert refused["requests"] == 0 and refused["errors"] == 4 and "HTTP 413" in refused["first_error"]

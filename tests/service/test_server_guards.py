@@ -1,5 +1,5 @@
 """The server's guards on real sockets: idle floods, slow clients, the in-flight limit, the memory
-ceiling, schemathesis stateful runs. The scenarios are service.lab.attack's, the same ones
+ceiling, schemathesis stateful runs. The scenarios are benchmarks.attack's, the same ones
 `noisestop bench reliability` reports; here they assert."""
 from __future__ import annotations
 
@@ -11,9 +11,10 @@ from schemathesis.specs.openapi.checks import (content_type_conformance, negativ
                                                response_headers_conformance, response_schema_conformance,
                                                status_code_conformance)
 
-from service.lab import attack
+from benchmarks import attack
 from service.app import create_app
-from service.lab.loadtest import LocalServer, make_demo_bundle, make_request
+from tests.support.demo import make_demo_bundle, make_request
+from tests.support.local_server import LocalServer
 from service.registry import ModelRegistry
 
 HEADER_TIMEOUT = 1.0

@@ -13,7 +13,7 @@ from learning.models.estimators import SVM
 from noisefeat import extract_features
 from service.app import create_app
 from service.limits import Limits
-from service.lab.loadtest import make_demo_bundle
+from tests.support.demo import make_demo_bundle
 from service.registry import ModelRegistry
 
 TOKEN = "test-token-0123456789"

@@ -9,7 +9,7 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.limits import Limits
-from service.lab.loadtest import make_demo_bundle
+from tests.support.demo import make_demo_bundle
 from service.registry import ModelRegistry
 
 TOKEN = "bounds-token-0123456789"

@@ -8,7 +8,7 @@ import pytest
 from service import registry as registry_mod
 from service.auth import check_bind, is_loopback, resolve_token
 from service.limits import DEFAULT_MAX_BATCH, DEFAULT_MAX_BODY, Limits
-from service.lab.loadtest import make_demo_bundle
+from tests.support.demo import make_demo_bundle
 from service.registry import ModelRegistry, parse_model_specs
 from service.serve import build, run
 

@@ -1,7 +1,7 @@
 """Hardening, second round, on the service: memory bounded from the body before parsing,
 slow uploaders cut off without denying service, duplicate JSON keys, JSON bodies for the
 HTTP layer's 400s, /openapi.json, out-of-memory answers, SIGHUP. The scenarios on real
-sockets are service.lab.attack's, the ones `noisestop bench reliability` reports."""
+sockets are benchmarks.attack's, the ones `noisestop bench reliability` reports."""
 from __future__ import annotations
 
 import json
@@ -17,8 +17,9 @@ from fastapi.testclient import TestClient
 from service import app as app_mod
 from service.app import create_app
 from service.connections import guarded_protocol
-from service.lab import attack
-from service.lab.loadtest import LocalServer, make_demo_bundle, make_request
+from benchmarks import attack
+from tests.support.demo import make_demo_bundle, make_request
+from tests.support.local_server import LocalServer
 from service.limits import Limits, UploadPolicy, decode_cost, json_cost, request_cost
 from service.registry import ModelRegistry
 from tests.support.live_server import threaded_server

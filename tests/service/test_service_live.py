@@ -20,7 +20,9 @@ from schemathesis.specs.openapi.checks import (content_type_conformance, negativ
                                                response_headers_conformance,
                                                response_schema_conformance, status_code_conformance)
 
-from service.lab.loadtest import LocalServer, make_demo_bundle, make_request, run_load
+from benchmarks.loadtest import run_load
+from tests.support.demo import make_demo_bundle, make_request
+from tests.support.local_server import LocalServer
 from tests.support.live_server import threaded_server
 from service.serve import build
 

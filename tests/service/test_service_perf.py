@@ -16,7 +16,8 @@ from learning.models.bundle import load_model
 from noisefeat.extract import analyse_blocks
 from service import limits
 from service.connections import H11_PIECE, guarded_protocol
-from service.lab.loadtest import make_demo_bundle, make_request, run_load
+from benchmarks.loadtest import run_load
+from tests.support.demo import make_demo_bundle, make_request
 from service.oip import HEADER_LENGTH
 from tests.support.live_server import threaded_server
 from service.serve import build
@@ -99,7 +100,7 @@ def test_server_process_imports_no_mitsuba_or_matplotlib(bundle):
 import json, sys
 import service.cli, service.commands
 from fastapi.testclient import TestClient
-from service.lab.loadtest import make_request
+from tests.support.demo import make_request
 from service.serve import build
 for spec, inputs in (({{"m": {bundle!r}}}, "blocks"), ({{"m": None}}, "halves")):
     with TestClient(build(spec, token="t" * 24)) as c:
@@ -155,7 +156,7 @@ def test_service_bench_merges_rounds_and_writes_every_figure(bundle):
     """The bench's bookkeeping (no timing asserted): rounds merge cell by cell into medians
     with every round's p99 kept, errors summed; the markdown carries each figure; the
     stage breakdown of one request names each stage."""
-    from service.lab.bench_service import _merge, md_service, stage_times
+    from benchmarks.bench_service import _merge, md_service, stage_times
 
     def run(p99, errors):
         return {"clients": 8, "encoding": "binary", "requests": 10, "errors": errors, "requests_per_s": 40.0,

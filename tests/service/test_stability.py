@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from service.lab.stability import extreme_inputs, matrix, other_cells
+from benchmarks.stability import extreme_inputs, matrix, other_cells
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ from typing import Any
 
 import uvicorn
 
-from service.lab.loadtest import free_port
+from tests.support.local_server import free_port
 
 
 @contextlib.contextmanager

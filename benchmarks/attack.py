@@ -27,8 +27,8 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-from ..auth import is_loopback
-from ..oip import HEADER_LENGTH
+from service.auth import is_loopback
+from service.oip import HEADER_LENGTH
 
 MAX_CONNECTIONS = 512
 
@@ -341,7 +341,7 @@ def normal_latency_under_slow_uploads(url: str, token: str | None, slow: int, *,
     """`slow` slow uploaders (`slow_upload`, half of them chunked) connected, then
     `requests` normal infer requests one after another: their p50/p99 latency and
     statuses, and what became of the slow uploads."""
-    from .loadtest import make_request
+    from tests.support.demo import make_request
     if not 0 <= slow <= 64:
         raise ValueError(f"slow must be 0..64, got {slow}")
     body, headers = make() if make is not None else make_request(blocks=4, size=64, binary=True)
@@ -397,7 +397,7 @@ def protocol_error(url: str) -> dict[str, Any]:
 
 def duplicate_keys(url: str, token: str | None) -> dict[str, Any]:
     """`exposure` twice in one parameters object (1e30, then 0): 400, never served at 0."""
-    from .loadtest import make_request
+    from tests.support.demo import make_request
     body, headers = make_request(blocks=1, size=16)
     body = body[:-1] + b', "parameters": {"exposure": 1e30, "exposure": 0}}'
     status, answer = post(url, body, headers, token)

@@ -17,8 +17,9 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-from ..auth import is_loopback
-from .loadtest import make_request, post_infer, served_inputs
+from service.auth import is_loopback
+from tests.support.demo import make_request
+from .loadtest import post_infer, served_inputs
 
 MAX_RATE = 1000.0
 MAX_REQUESTS = 5000

@@ -10,7 +10,7 @@ here on the GPU, by hand, once per change of the loop:
 * FLIP between half buffers on the device against ``flip-evaluator`` on the fixture
   dataset's stacks (goal: within 1e-3).
 
-    python -m service.lab.device_checks
+    python -m benchmarks.device_checks
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def golden() -> list[str]:

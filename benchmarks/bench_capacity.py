@@ -7,7 +7,7 @@ farm gets at a share of that.
   locally); blocks of 64x64 (the default block) and 128x128.
 * **Served**: `noisestop serve` with the bundled model on loopback. Its capacity is the
   throughput of a saturating closed loop (8 clients, binary); then open-loop Poisson traffic
-  (service/lab/openloop.py) at 50 % and 80 % of that capacity gives p50/p99 latency from
+  (benchmarks/openloop.py) at 50 % and 80 % of that capacity gives p50/p99 latency from
   arrival to answer. Client and server share this machine's cores, so the served capacity
   is what the machine sustains with its own load generator on it.
 
@@ -44,7 +44,7 @@ def per_core(sizes: tuple[int, ...] = SIZES, repeats: int = 9) -> list[dict[str,
     """Milliseconds per request of BLOCKS blocks and blocks per second on one core, for the
     bundled model and the flip criterion at each block size."""
     from renderer.criteria import BlockView, FlipCriterion
-    from ..registry import ModelRegistry
+    from service.registry import ModelRegistry
 
     registry = ModelRegistry({"m": None})
     registry.load()
@@ -70,7 +70,8 @@ def per_core(sizes: tuple[int, ...] = SIZES, repeats: int = 9) -> list[dict[str,
 def served_round(size: int = SERVED_SIZE, shares: tuple[float, ...] = SHARES, seconds: float = 20.0,
                  seed: int = 0) -> dict[str, Any]:
     """One fresh server: its saturated throughput, then open-loop traffic at each share of it."""
-    from .loadtest import LocalServer, run_load
+    from tests.support.local_server import LocalServer
+    from .loadtest import run_load
     from .openloop import run_open_loop
 
     with LocalServer({"bench": None}) as server:

@@ -8,7 +8,7 @@ costs, meaningless verdicts). For each:
 * stages of one request of 16 blocks of 128x128, in process, warm, medians: decoding the
   binary body, features (the fused pass; for `f`, only the flat test and non-finite counts),
   FLIP, the SVM, encoding the answer;
-* a bounded load test on loopback (service/lab/loadtest.py) with binary tensors at 1, 8 and 32
+* a bounded load test on loopback (benchmarks/loadtest.py) with binary tensors at 1, 8 and 32
   clients and JSON at 1, with the server process's CPU per request split between its event
   loop (HTTP: reading 6.3 MB bodies) and its inference threads (Linux /proc);
 * how long the server took to answer /ready, and how busy the machine was meanwhile.
@@ -51,12 +51,12 @@ def _stage_times(model: str | None, repeats: int) -> dict[str, Any]:
     from learning.inputs.halves import halves_flip
     from noisefeat import fused
     from noisefeat.extract import analyse_many
-    from ..app import _infer_sync
-    from ..limits import Limits
-    from .loadtest import make_request
-    from ..metrics import ServiceMetrics
-    from ..oip import InferenceResponse, ResponseOutput, decode_tensors, encode_response, parse_request, split_body
-    from ..registry import OUTPUTS, ModelRegistry
+    from service.app import _infer_sync
+    from service.limits import Limits
+    from tests.support.demo import make_request
+    from service.metrics import ServiceMetrics
+    from service.oip import InferenceResponse, ResponseOutput, decode_tensors, encode_response, parse_request, split_body
+    from service.registry import OUTPUTS, ModelRegistry
 
     registry = ModelRegistry({"m": model})
     registry.load()
@@ -122,7 +122,8 @@ def _thread_cpu(pid: int) -> dict[str, tuple[str, float]] | None:
 
 def load_runs(model: str | None, clients: tuple[int, ...] = CLIENTS) -> dict[str, Any]:
     """Binary load at each client count and JSON at 1 client, against one server."""
-    from .loadtest import LocalServer, run_load
+    from tests.support.local_server import LocalServer
+    from .loadtest import run_load
 
     t0 = time.perf_counter()
     with LocalServer({"bench": model}) as server:
@@ -150,8 +151,8 @@ def load_runs(model: str | None, clients: tuple[int, ...] = CLIENTS) -> dict[str
 def bench_service(clients: tuple[int, ...] = CLIENTS, repeats: int = 3) -> dict[str, Any]:
     """Both models, `repeats` rounds each (the models alternate, a fresh server per round);
     every cell of the tables is the median over the rounds."""
-    from .loadtest import make_demo_bundle
-    from ..registry import bundle_name
+    from tests.support.demo import make_demo_bundle
+    from service.registry import bundle_name
 
     out: dict[str, Any] = {"cpus": os.cpu_count(), "blocks": BLOCKS, "size": SIZE, "repeats": repeats,
                            "models": {}}

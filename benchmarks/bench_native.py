@@ -16,7 +16,7 @@ variant in use (the CPU with ``llvm_ad_rgb``, the GPU with ``cuda_ad_rgb``), one
 
 Everything is warm (one small render of each kind first). Run it from a source checkout:
 ``noisestop bench native`` or, on a machine without the command, ``python -m
-service.lab.bench_native --json out.json``.
+benchmarks.bench_native --json out.json``.
 """
 from __future__ import annotations
 

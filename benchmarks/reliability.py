@@ -2,7 +2,7 @@
 
 Three sources, each counted as it ran, nothing typed by hand:
 
-1. the attack scenarios of `service.lab.attack` against `noisestop serve` in a subprocess with
+1. the attack scenarios of `benchmarks.attack` against `noisestop serve` in a subprocess with
    the default settings under RLIMIT_AS = 3 GiB: 64 idle connections (health latency),
    slow headers, a stalled body, the in-flight limit, the worst request shapes (status
    and the server's peak RSS after each);
@@ -47,8 +47,9 @@ def bench_reliability() -> dict[str, Any]:
 
 def _server_scenarios() -> dict[str, Any]:
     from . import attack
-    from ..limits import DEFAULT_MAX_BODY
-    from .loadtest import LocalServer, make_demo_bundle, make_request
+    from service.limits import DEFAULT_MAX_BODY
+    from tests.support.local_server import LocalServer
+    from tests.support.demo import make_demo_bundle, make_request
 
     with tempfile.TemporaryDirectory() as tmp:
         bundle = make_demo_bundle(Path(tmp) / "demo", name="demo")
@@ -74,9 +75,9 @@ def _stateful(max_examples: int = 60) -> dict[str, Any]:
                                                    response_headers_conformance, response_schema_conformance,
                                                    status_code_conformance)
 
-    from ..app import create_app
-    from .loadtest import make_demo_bundle
-    from ..registry import ModelRegistry
+    from service.app import create_app
+    from tests.support.demo import make_demo_bundle
+    from service.registry import ModelRegistry
 
     checks = [not_a_server_error, status_code_conformance, content_type_conformance,
               response_headers_conformance, response_schema_conformance, negative_data_rejection]
@@ -234,7 +235,7 @@ def bench_hardening() -> dict[str, Any]:
     the 3 GiB address-space cap (a fresh server per shape, so that each peak is its own),
     the p99 of normal requests beside 0, 1, 4 and 16 slow uploaders, the auth paths of
     `serve`, SIGHUP, protocol errors and duplicate keys."""
-    from .loadtest import make_demo_bundle
+    from tests.support.demo import make_demo_bundle
 
     with tempfile.TemporaryDirectory() as tmp:
         bundle = str(make_demo_bundle(Path(tmp) / "demo", name="demo"))
@@ -246,7 +247,7 @@ def _hardening_shapes() -> dict[str, Any]:
     """Named (body, headers) makers: the worst JSON shapes per byte, admitted or refused,
     and the largest binary ones."""
     from . import attack
-    from ..limits import DEFAULT_MAX_BODY, DEFAULT_MEMORY_BUDGET, json_cost
+    from service.limits import DEFAULT_MAX_BODY, DEFAULT_MEMORY_BUDGET, json_cost
     unit = b"[" * 20 + b"1.5" + b"]" * 20
 
     def nested_values(fraction_of_budget: float) -> tuple[bytes, dict[str, str]]:
@@ -287,7 +288,7 @@ def _hardening_shapes() -> dict[str, Any]:
 
 def _shape_peaks(bundle: str) -> list[dict[str, Any]]:
     from . import attack
-    from .loadtest import LocalServer
+    from tests.support.local_server import LocalServer
     rows = []
     for name, make in _hardening_shapes().items():
         for cap in (ADDRESS_SPACE, None):
@@ -313,7 +314,8 @@ def _slow_uploaders(bundle: str, counts: tuple[int, ...] = (0, 1, 4, 16), reques
     """600 normal requests (~12 s here) per row: longer than the 10 s grace, so the slow
     uploaders are cut off (408) and reconnect while they are measured."""
     from . import attack
-    from .loadtest import LocalServer, make_request
+    from tests.support.local_server import LocalServer
+    from tests.support.demo import make_request
     rows = []
     with LocalServer({"demo": bundle}) as s:
         attack.post(s.url, *make_request(blocks=16, size=128, binary=True), s.token)      # warm
@@ -326,7 +328,7 @@ def _slow_uploaders(bundle: str, counts: tuple[int, ...] = (0, 1, 4, 16), reques
 
 
 def _auth_paths(bundle: str) -> list[dict[str, Any]]:
-    from .loadtest import free_port
+    from tests.support.local_server import free_port
     rows = []
     for name, env, argv in AUTH_CASES:
         port = free_port()
@@ -366,7 +368,8 @@ def _sighup(bundle: str) -> dict[str, Any]:
     import signal
     import socket
     from . import attack
-    from .loadtest import LocalServer, make_request
+    from tests.support.local_server import LocalServer
+    from tests.support.demo import make_request
     with LocalServer({"demo": bundle}) as s:
         body, headers = make_request(blocks=2, size=32, binary=True)
         sock = socket.create_connection(("127.0.0.1", s.port), timeout=30)
@@ -390,7 +393,7 @@ def _sighup(bundle: str) -> dict[str, Any]:
 
 def _protocol(bundle: str) -> dict[str, Any]:
     from . import attack
-    from .loadtest import LocalServer
+    from tests.support.local_server import LocalServer
     with LocalServer({"demo": bundle}) as s:
         return {"protocol_error": attack.protocol_error(s.url), "duplicate_keys": attack.duplicate_keys(s.url, s.token),
                 "openapi_without_token": attack._get("127.0.0.1", s.port, "/openapi.json")[0],

@@ -3,7 +3,7 @@
 CI has no GPU, so what the CPU tests hold (tests/renderer/test_device_loop.py) is checked
 here on the GPU, by hand, once per change of the loop:
 
-* the fixture renders (tests/fixtures/passloop_golden.npz, recorded with the host loop on
+* the fixture renders (tests/fixtures/passloop_golden.npz, `tests.support.passloop_golden`, recorded with the host loop on
   ``llvm_ad_rgb``) against the device loop, grown passes and fixed step: stops per block
   and the largest pixel difference (on another device the path tracer's float arithmetic
   differs, so differences are reported, not asserted);
@@ -23,10 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def golden() -> list[str]:
-    import sys
-
-    sys.path.insert(0, str(ROOT / "scripts"))
-    import record_passloop_golden as g
+    from tests.support import passloop_golden as g
 
     from renderer.adaptive import run_adaptive
     from renderer.criteria import make_criterion

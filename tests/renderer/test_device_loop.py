@@ -3,7 +3,6 @@ grown passes that change nothing but the launches, FLIP where the half buffers l
 state leaking from one render into the next."""
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -11,13 +10,12 @@ import pytest
 import torch
 
 from renderer.adaptive import run_adaptive
-from renderer.session import grown_passes
 from renderer.criteria import BlockBatch, FlipCriterion, OracleCriterion, make_criterion
+from renderer.session import grown_passes
+from tests.support import passloop_golden as golden
 
 ROOT = Path(__file__).resolve().parents[2]
 GOLDEN = ROOT / "tests" / "fixtures" / "passloop_golden.npz"
-sys.path.insert(0, str(ROOT / "scripts"))
-import record_passloop_golden as golden  # noqa: E402
 
 pytestmark = pytest.mark.slow
 

@@ -1,9 +1,12 @@
-"""Record what the live loop gives on tiny fixture renders (stops per block and the image),
-so tests/renderer/test_device_loop.py can hold a rewritten loop to the same result.
+"""The golden renders of the pass loop: tiny fixture renders whose stops per block and image
+were recorded with the host loop (numpy accumulators, one pass per launch) on llvm_ad_rgb,
+so tests/renderer/test_device_loop.py (and benchmarks/device_checks.py on a GPU) can hold
+the device loop to the same result.
 
-    python scripts/record_passloop_golden.py tests/fixtures/passloop_golden.npz
+    python -m tests.support.passloop_golden tests/fixtures/passloop_golden.npz
 
-Run once, on the loop being replaced; the file is committed (about 0.4 MB)."""
+was run once, on the loop being replaced (the commit before the device loop); the file is
+committed (about 0.3 MB). Running it now records the current loop instead."""
 from __future__ import annotations
 
 import sys

@@ -191,8 +191,17 @@ def parse_in_worker(head: bytes, rules: ParseRules) -> tuple[Any, ...]:
                 {"Retry-After": "1", "Connection": "close"})
 
 
+#: the workers' scheduling niceness: a parse yields the CPU to inference threads, so one
+#: client's costly bodies slow its own answers more than everyone else's
+WORKER_NICE = 10
+
+
 def _main() -> None:
     from .limits import release_memory
+    try:
+        os.nice(WORKER_NICE)
+    except OSError:
+        pass
     rules = ParseRules(**{k: tuple(v) if isinstance(v, list) else v for k, v in json.loads(sys.argv[1]).items()})
     inp, out = sys.stdin.buffer, sys.stdout.buffer
     while True:

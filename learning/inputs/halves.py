@@ -198,8 +198,8 @@ def load_flip_calibration(path: str | os.PathLike | None = None) -> dict[str, An
             raise ValueError(f"taus must be positive, got {[t for t in taus if not t > 0][:3]}")
         for r in curve:
             flip_offset(float(r["c"]))
-    except InputFileError:
-        raise
+    except InputFileError as exc:            # one line naming the file, as the others
+        raise InputFileError(f"{p}: unreadable flip calibration ({str(exc).split(': ', 1)[-1]})") from None
     except (ValueError, KeyError, TypeError, OverflowError) as exc:
         raise ValueError(f"{p}: unreadable flip calibration ({exc})") from None
     if not taus or any(b <= a for a, b in zip(taus, taus[1:])) or not all(np.isfinite(taus)):

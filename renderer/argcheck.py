@@ -33,7 +33,7 @@ def check_seconds(name: str, value: Any) -> None:
         return
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
             or not 0 < value <= MAX_TIME_LIMIT or (isinstance(value, float) and not math.isfinite(value)):
-        raise ValueError(f"{name.replace('_', ' ')} ({name}) must be a positive number of seconds, at most {MAX_TIME_LIMIT:g}, "
+        raise ValueError(f"{name} must be a positive number of seconds, at most {MAX_TIME_LIMIT:g}, "
                          f"got {_shown(value)}")
 
 

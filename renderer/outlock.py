@@ -29,9 +29,10 @@ class OutputLocked(ValueError):
 @contextlib.contextmanager
 def locked_output(out: str | os.PathLike) -> Iterator[Path]:
     """Hold the lock of folder `out` (created if missing) while the block runs."""
+    from .outputs import prepare_output_dir
     out = Path(out)
     created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
+    prepare_output_dir(out)           # a file, an unwritable folder: its one-line errors first
     path = out / LOCK_NAME
     fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOFOLLOW", 0), 0o644)
     try:

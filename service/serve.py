@@ -37,6 +37,7 @@ from .connections import guarded_protocol
 from .limits import Limits, UploadPolicy
 from .parsepool import DEFAULT_PARSE_SECONDS, ENV_PARSE_SECONDS
 from .registry import ModelRegistry, parse_model_specs
+from .startup import guard_start_up
 
 log = logging.getLogger(__name__)
 
@@ -129,6 +130,7 @@ def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", po
     `torch_threads`: torch's intra-op threads for each of the `inference_threads`. `tau`:
     the noise target verdicts are made at unless a request sends its own (None: each
     model's calibrated offset)."""
+    guard_start_up()          # SIGHUP until uvicorn's handlers take over (service.startup)
     if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
         raise ValueError(f"port must be 0..65535, got {port!r}")
     _check_seconds("graceful_timeout", graceful_timeout)

@@ -13,7 +13,6 @@ import anyio
 import pytest
 from fastapi.testclient import TestClient
 
-from service import parsepool
 from service.app import create_app
 from service.jsonguard import max_depth
 from service.lab.loadtest import make_demo_bundle, make_request

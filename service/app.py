@@ -125,6 +125,8 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
     app.state.upload_budget = MemoryBudget(UPLOAD_BODIES * limits.max_body_bytes)
     app.add_middleware(BodyLimitMiddleware, max_bytes=limits.max_body_bytes, body_timeout=body_timeout,
                        budget=app.state.upload_budget, upload=upload)
+    # probes answered before routing, the token, body limits (still counted by /metrics, outside it)
+    app.add_middleware(HealthFastPath, ready=lambda: registry.ready)
     metrics.instrument(app, dependencies=[Depends(require_token)], tags=["metrics"], responses={
         200: {"description": "Prometheus text format",
               "content": {"text/plain": {"schema": {"type": "string"}}}},
@@ -134,7 +136,6 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
     app.include_router(_api_routes(registry))
     if limit_concurrency is not None:   # added last: the outermost, before any body is read
         app.add_middleware(InFlightLimitMiddleware, limit=limit_concurrency)
-    app.add_middleware(HealthFastPath, ready=lambda: registry.ready)   # outermost: probes never wait
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
 

@@ -421,3 +421,167 @@ def nested_json_request_62(megabytes: int = 62) -> tuple[bytes, dict[str, str]]:
     data = b"[" + b",".join([unit] * n) + b"]"
     return (b'{"inputs":[{"name":"features","shape":[%d,1,1,1,1,1,1,1],"datatype":"FP32","data":' % n + data + b"}]}",
             {"Content-Type": "application/json"})
+
+
+# --- issue 34: burst-then-stall uploaders, the costliest valid JSON in a loop -------------------
+
+def _stall_after_burst(host: str, port: int, token: str | None, payload: bytes, declared: int,
+                       release: threading.Event, out: dict[str, Any]) -> None:
+    """Headers, `payload` as fast as the server takes it, then silence until `release`."""
+    auth = f"Authorization: Bearer {token}\r\n" if token else ""
+    t0 = time.monotonic()
+    try:
+        s = socket.create_connection((host, port), timeout=60)
+    except OSError as exc:
+        out.update(status=type(exc).__name__, held_s=0.0)
+        return
+    got = b""
+    try:
+        s.sendall((f"POST /v2/models/default/infer HTTP/1.1\r\nHost: x\r\n{auth}Content-Type: application/json\r\n"
+                   f"Content-Length: {declared}\r\n\r\n").encode())
+        view = memoryview(payload)
+        for i in range(0, len(view), 1 << 20):
+            if release.is_set():
+                break
+            s.sendall(view[i:i + (1 << 20)])
+        s.settimeout(0.5)
+        while not release.is_set():
+            try:
+                chunk = s.recv(4096)
+            except TimeoutError:
+                continue
+            if not chunk:
+                break
+            got += chunk
+    except OSError as exc:             # the server hung up on it (ended while it stalled)
+        got = got or type(exc).__name__.encode()
+    finally:
+        s.close()
+    out.update(status=_status_of(got) or got.decode(errors="replace")[:40] or None, held_s=time.monotonic() - t0)
+
+
+def burst_then_stall(url: str, token: str | None, stallers: int = 16, megabytes: int = 63,
+                     hold_s: float = 20.0, after_s: float = 10.0,
+                     make: Callable[[], tuple[bytes, dict[str, str]]] | None = None) -> dict[str, Any]:
+    """`stallers` clients each declare a body of `megabytes` + 1 MiB, send `megabytes` fast,
+    then stall; normal requests run one after another the whole time. After `hold_s` the
+    stallers hang up; normal requests go on for `after_s`. Statuses of the normal requests
+    while the stallers held on, and how long after they hung up the first 200 came."""
+    from .loadtest import make_request
+    host, port = _address(url)
+    if not 0 <= stallers <= 64 or not 0 < megabytes <= 256 or not 0 < hold_s <= 120 or not 0 < after_s <= 60:
+        raise ValueError("stallers 0..64, megabytes 1..256, hold_s 1..120, after_s 1..60")
+    body, headers = make() if make is not None else make_request(blocks=16, size=128, binary=True)
+    payload = b"[" * (megabytes << 20)
+    release = threading.Event()
+    outs: list[dict[str, Any]] = [{} for _ in range(stallers)]
+    threads = [threading.Thread(target=_stall_after_burst, daemon=True,
+                                args=(host, port, token, payload, (megabytes + 1) << 20, release, outs[i]))
+               for i in range(stallers)]
+    for t in threads:
+        t.start()
+    during: list[tuple[float, int | str, float]] = []
+    after: list[tuple[float, int | str, float]] = []
+    t_start = time.monotonic()
+    released_at = None
+    while True:
+        now = time.monotonic()
+        if released_at is None and now - t_start >= hold_s:
+            release.set()
+            released_at = now
+        if released_at is not None and now - released_at >= after_s:
+            break
+        t0 = time.perf_counter()
+        status, _ = post(url, body, headers, token, timeout=120)
+        (during if released_at is None else after).append((now - t_start, status, time.perf_counter() - t0))
+    release.set()
+    for t in threads:
+        t.join(30)
+    ok_after = [t for t, s, _ in after if s == 200]
+    during_ms = np.array([x[2] for x in during if x[1] == 200] or [np.nan]) * 1e3
+    return {"stallers": stallers, "megabytes": megabytes, "hold_s": hold_s,
+            "during": len(during), "during_ok": sum(s == 200 for _, s, _ in during),
+            "during_statuses": sorted({str(s) for _, s, _ in during}),
+            "during_p50_ms": float(np.nanpercentile(during_ms, 50)), "during_p99_ms": float(np.nanpercentile(during_ms, 99)),
+            "after": len(after), "after_ok": sum(s == 200 for _, s, _ in after),
+            "first_200_after_s": (ok_after[0] - (released_at - t_start)) if ok_after else None,
+            "staller_statuses": sorted({str(o.get("status")) for o in outs})}
+
+
+def costliest_valid_json(budget_fraction: float = 0.9, budget: int | None = None) -> tuple[bytes, dict[str, str]]:
+    """The JSON body that costs the most CPU to parse per byte among those a default server
+    admits: a rank-8 `features` tensor whose every value sits in 7 nested lists (the most
+    nesting its shape allows), sized to `budget_fraction` of the memory budget's estimate."""
+    from ..limits import DEFAULT_MEMORY_BUDGET, json_cost
+    unit = b"[" * 7 + b"1" + b"]" * 7
+    per = json_cost(unit + b",") + len(unit) + 1
+    n = int(budget_fraction * (budget or DEFAULT_MEMORY_BUDGET) / per)
+    data = b"[" + b",".join([unit] * n) + b"]"
+    return (b'{"inputs":[{"name":"features","shape":[%d,1,1,1,1,1,1,1],"datatype":"FP32","data":' % n
+            + data + b"}]}", {"Content-Type": "application/json"})
+
+
+def costly_json_loop(url: str, token: str | None, seconds: float = 20.0, requests: int = 200,
+                     make: Callable[[], tuple[bytes, dict[str, str]]] | None = None) -> dict[str, Any]:
+    """Normal requests (and health probes every 50 ms) timed alone, then while one client
+    posts `costliest_valid_json` in a loop for up to `seconds`: p50/p99 of each, the
+    attacker's answers and the slowest probe."""
+    from .loadtest import make_request
+    host, port = _address(url)
+    body, headers = make() if make is not None else make_request(blocks=16, size=128, binary=True)
+    bad, bad_headers = costliest_valid_json()
+
+    def measure(stop_after: float) -> tuple[list[float], list[int | str]]:
+        lat, st = [], []
+        t_end = time.monotonic() + stop_after
+        while time.monotonic() < t_end and len(lat) < requests:
+            t0 = time.perf_counter()
+            status, _ = post(url, body, headers, token, timeout=120)
+            lat.append(time.perf_counter() - t0)
+            st.append(status)
+        return lat, st
+
+    def probes(stop: threading.Event, out: list[float]) -> None:
+        while not stop.is_set():
+            out.append(_get(host, port, "/v2/health/ready", timeout=10)[1])
+            stop.wait(0.05)
+
+    alone, alone_st = measure(seconds / 2)
+    stop = threading.Event()
+    probe_alone: list[float] = []
+    pt = threading.Thread(target=probes, args=(stop, probe_alone), daemon=True)
+    pt.start()
+    time.sleep(1.0)
+    stop.set()
+    pt.join()
+    attack_statuses: list[int | str] = []
+    attack_s: list[float] = []
+
+    def attacker(stop: threading.Event) -> None:
+        while not stop.is_set():
+            t0 = time.perf_counter()
+            attack_statuses.append(post(url, bad, bad_headers, token, timeout=120)[0])
+            attack_s.append(time.perf_counter() - t0)
+
+    stop = threading.Event()
+    probe_times: list[float] = []
+    threads = [threading.Thread(target=attacker, args=(stop,), daemon=True),
+               threading.Thread(target=probes, args=(stop, probe_times), daemon=True)]
+    for t in threads:
+        t.start()
+    time.sleep(1.0)
+    loaded, loaded_st = measure(seconds)
+    stop.set()
+    for t in threads:
+        t.join(130)
+    a, b = np.array(alone) * 1e3, np.array(loaded) * 1e3
+    return {"body_bytes": len(bad), "alone_p50_ms": float(np.percentile(a, 50)), "alone_p99_ms": float(np.percentile(a, 99)),
+            "loaded_p50_ms": float(np.percentile(b, 50)), "loaded_p99_ms": float(np.percentile(b, 99)),
+            "p99_ratio": float(np.percentile(b, 99) / np.percentile(a, 99)),
+            "normal_statuses": sorted({str(s) for s in alone_st + loaded_st}),
+            "normal_ok": sum(s == 200 for s in loaded_st), "normal_requests": len(loaded_st),
+            "attacker_statuses": sorted({str(s) for s in attack_statuses}), "attacker_requests": len(attack_statuses),
+            "attacker_mean_s": float(np.mean(attack_s)) if attack_s else None,
+            "health_max_ms": float(max(probe_times) * 1e3) if probe_times else None,
+            "health_idle_max_ms": float(max(probe_alone) * 1e3) if probe_alone else None,
+            "health_probes": len(probe_times)}

@@ -240,7 +240,105 @@ def bench_hardening() -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp:
         bundle = str(make_demo_bundle(Path(tmp) / "demo", name="demo"))
         return {"shapes": _shape_peaks(bundle), "slow": _slow_uploaders(bundle),
-                "auth": _auth_paths(bundle), "sighup": _sighup(bundle), "protocol": _protocol(bundle)}
+                "auth": _auth_paths(bundle), "sighup": _sighup(bundle), "protocol": _protocol(bundle),
+                "round3": bench_round3(bundle)}
+
+
+# ----------------------------------------------------------------------------- issue 34
+
+def bench_round3(bundle: str) -> dict[str, Any]:
+    """Issue 34's cases: the costliest valid JSON in a loop, burst-then-stall x16, the
+    hostile files (one line, exit 2, peak RSS, seconds) and the renders that ended wrong."""
+    from . import attack
+    from .loadtest import LocalServer
+    with LocalServer({"demo": bundle}) as s:
+        costly = attack.costly_json_loop(s.url, s.token, seconds=20.0)
+        costly["tracebacks"] = s.log().count("Traceback")
+    with LocalServer({"demo": bundle}) as s:
+        stall = attack.burst_then_stall(s.url, s.token, stallers=16, megabytes=63, hold_s=15.0, after_s=8.0)
+        stall["tracebacks"] = s.log().count("Traceback")
+    return {"costly_json": costly, "burst_then_stall": stall, "files": _hostile_files(bundle)}
+
+
+def _run_cli(argv: list[str], env: dict[str, str] | None = None, timeout: float = 60.0) -> dict[str, Any]:
+    """One `noisestop` command: exit status, seconds, stderr lines, last line, peak RSS (KiB)."""
+    t0 = time.monotonic()
+    environ = {**os.environ, "PYTHONPATH": str(ROOT), **(env or {})}
+    environ = {k: v for k, v in environ.items() if k not in ("NOISESTOP_TOKEN",) or "NOISESTOP_TOKEN_FILE" not in (env or {})}
+    wrapper = ("import resource, subprocess, sys; r = subprocess.run(sys.argv[1:]); "
+               "print('PEAK_RSS_KIB', resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, file=sys.stderr); "
+               "sys.exit(r.returncode)")
+    proc = subprocess.Popen([sys.executable, "-c", wrapper, sys.executable, "-m", "service.cli", *argv], env=environ, cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        _, err = proc.communicate(timeout=timeout)
+        code: int | str = proc.returncode
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        _, err = proc.communicate()
+        code = "hung"
+    peak = [int(x.split()[1]) for x in err.splitlines() if x.startswith("PEAK_RSS_KIB ")]
+    lines = [x for x in err.splitlines() if x.strip() and not x.startswith("PEAK_RSS_KIB ")]
+    return {"exit": code, "seconds": time.monotonic() - t0, "lines": len(lines),
+            "message": lines[-1][:200] if lines else "", "tracebacks": err.count("Traceback"),
+            "peak_rss_kib": peak[0] if peak else 0}
+
+
+def _hostile_files(bundle: str) -> list[dict[str, Any]]:
+    """Each hostile file the issue named, against the commands that read it."""
+    import shutil
+    fixtures = ROOT / "tests" / "fixtures" / "dataset"
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp_path = Path(tmp)
+
+        def stack(name: str) -> Path:
+            d = tmp_path / name / "data"
+            shutil.copytree(fixtures, d)
+            return d
+
+        d = stack("devzero")
+        (d / "checker" / "reference.exr").unlink(missing_ok=True)
+        (d / "checker" / "reference.exr").symlink_to("/dev/zero")
+        rows.append({"case": "reference.exr -> /dev/zero: evaluate", **_run_cli(["evaluate", "--data", str(d)])})
+        rows.append({"case": "reference.exr -> /dev/zero: dataset check",
+                     **_run_cli(["dataset", "check", str(d)])})
+        d = stack("bigmeta")
+        with open(d / "checker" / "meta.json", "r+b") as f:
+            f.truncate(3 << 30)                                   # sparse: no disk used
+        rows.append({"case": "meta.json of 3 GB (sparse): evaluate", **_run_cli(["evaluate", "--data", str(d)])})
+        rows.append({"case": "meta.json of 3 GB (sparse): dataset check", **_run_cli(["dataset", "check", str(d)])})
+        d = stack("zerotail")
+        level = sorted((d / "checker" / "levels").glob("*.exr"))[0]
+        data = bytearray(level.read_bytes())
+        data[len(data) // 2:] = bytes(len(data) - len(data) // 2)
+        level.write_bytes(bytes(data))
+        rows.append({"case": "level EXR, zero-filled tail, same size: evaluate",
+                     **_run_cli(["evaluate", "--data", str(d)])})
+        rows.append({"case": "level EXR, zero-filled tail, same size: dataset check",
+                     **_run_cli(["dataset", "check", str(d)])})
+        home = tmp_path / "home"
+        (home / "noisestop").mkdir(parents=True)
+        user_flip = home / "noisestop" / "flip.json"
+        with open(user_flip, "wb") as f:
+            f.truncate(3 << 30)
+        render = ["render", "--scene", "cornell", "--resolution", "64", "--max-spp", "32", "--criterion", "flip"]
+        rows.append({"case": "user flip.json of 3 GB (sparse): render",
+                     **_run_cli([*render, "--out", str(tmp_path / "r1")], {"NOISESTOP_DATA_DIR": str(home / "noisestop")})})
+        user_flip.unlink()
+        user_flip.write_text("[" * 100000 + "]" * 100000)
+        rows.append({"case": "user flip.json nested 100000 deep: render",
+                     **_run_cli([*render, "--out", str(tmp_path / "r2")], {"NOISESTOP_DATA_DIR": str(home / "noisestop")})})
+        user_flip.write_text(json.dumps({"pooling": "tile8-max", "curve": [{"tau": -0.01, "c": 0.1},
+                                                                          {"tau": 0.02, "c": 0.2}]}))
+        rows.append({"case": "user flip.json with a negative tau: render",
+                     **_run_cli([*render, "--out", str(tmp_path / "r3")], {"NOISESTOP_DATA_DIR": str(home / "noisestop")})})
+        rows.append({"case": "NOISESTOP_TOKEN_FILE=/dev/zero: serve",
+                     **_run_cli(["serve", "--model", bundle, "--port", "0"], {"NOISESTOP_TOKEN_FILE": "/dev/zero"})})
+        rows.append({"case": "render --spp-budget 8 (step 16)",
+                     **_run_cli([*render, "--spp-budget", "8", "--out", str(tmp_path / "r4")])})
+        rows.append({"case": "render --max-spp -1", **_run_cli([*render, "--max-spp", "-1", "--out", str(tmp_path / "r5")])})
+    return rows
 
 
 def _hardening_shapes() -> dict[str, Any]:
@@ -400,6 +498,23 @@ def _protocol(bundle: str) -> dict[str, Any]:
                 "metadata_without_token": attack._get("127.0.0.1", s.port, "/v2/models/default")[0]}
 
 
+def md_round3(r: dict[str, Any]) -> str:
+    c, b = r["costly_json"], r["burst_then_stall"]
+    lines = [f"Costliest valid JSON ({c['body_bytes'] / 2**20:.1f} MiB, every value in 7 nested lists) in a loop: "
+             f"normal requests p99 {c['alone_p99_ms']:.0f} -> {c['loaded_p99_ms']:.0f} ms ({c['p99_ratio']:.2f}x), "
+             f"{c['normal_ok']}/{c['normal_requests']} answered 200; health slowest {c['health_max_ms']:.0f} ms over "
+             f"{c['health_probes']} probes; the attacker got {', '.join(c['attacker_statuses'])}.",
+             f"Burst-then-stall x{b['stallers']} ({b['megabytes']} MiB each, held {b['hold_s']:.0f} s): normal requests "
+             f"{b['during_ok']}/{b['during']} answered 200 (statuses {', '.join(b['during_statuses'])}), p99 "
+             f"{b['during_p99_ms']:.0f} ms; after the stallers hung up: first 200 after "
+             f"{b['first_200_after_s'] if b['first_200_after_s'] is not None else 'never'} s, {b['after_ok']}/{b['after']} 200.",
+             "", "| hostile input | exit | seconds | stderr lines | peak RSS | message |", "|---|---|---|---|---|---|"]
+    for f in r["files"]:
+        lines.append(f"| {f['case']} | {f['exit']} | {f['seconds']:.1f} | {f['lines']} | "
+                     f"{f['peak_rss_kib'] / 1024:.0f} MiB | {f['message'].replace('|', '/')} |")
+    return "\n".join(lines)
+
+
 def md_hardening(r: dict[str, Any]) -> str:
     lines = ["| request | cap | answer | seconds | server peak RSS (idle peak) | after it |", "|---|---|---|---|---|---|"]
     for w in r["shapes"]:
@@ -435,4 +550,6 @@ def md_hardening(r: dict[str, Any]) -> str:
               "", f"Hangs (a server not answering health after a shape): {hangs}; tracebacks in any server or "
                   f"command output: {tracebacks}; silent auth-off paths (served without a token and without "
                   f"--no-auth): {silent}."]
+    if "round3" in r:
+        lines += ["", md_round3(r["round3"])]
     return "\n".join(lines)

@@ -32,7 +32,8 @@ def user_data_dir() -> Path:
     if explicit:
         return Path(explicit).expanduser()
     xdg = os.environ.get("XDG_DATA_HOME")
-    base = Path(xdg).expanduser() if xdg else Path.home() / ".local" / "share"
+    # the XDG rule: a relative path is invalid and is ignored
+    base = Path(xdg) if xdg and os.path.isabs(xdg) else Path.home() / ".local" / "share"
     return base / "noisestop"
 
 
@@ -57,4 +58,6 @@ def find(name: str, shipped: Path) -> Path:
         The file a reader without an explicit path should use.
     """
     mine = user_file(name)
-    return mine if mine.is_file() else shipped
+    # anything there (a link to a device included) is the user's: its reader refuses what is
+    # not a regular file, rather than the shipped file being used without a word
+    return mine if mine.exists() or mine.is_symlink() else shipped

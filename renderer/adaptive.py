@@ -44,6 +44,7 @@ from learning.data.stack import Stack
 from learning.names import DEFAULT_TAU
 from noisefeat.bounds import SizeBounds
 
+from .argcheck import check_budget_buys_a_pass, check_reference_image, check_render_args
 from .blocks import BlockRenderer
 from .budget import Budget
 from .checkpoint import CHECKPOINT
@@ -197,6 +198,7 @@ def load_reference(reference: Stack | str | os.PathLike[str] | np.ndarray, label
         img = np.asarray(reference, np.float32)
         if img.ndim != 3 or img.shape[2] != 3:
             raise ValueError(f"a reference image must be float [H, W, 3] linear RGB, got shape {img.shape}")
+        check_reference_image(img)
         return None, img
     if isinstance(reference, (str, os.PathLike)) and (os.fspath(reference).lower().endswith(".exr")
                                                       or Path(reference).is_file()):
@@ -204,7 +206,9 @@ def load_reference(reference: Stack | str | os.PathLike[str] | np.ndarray, label
 
         if not Path(reference).is_file():
             raise FileNotFoundError(f"{os.fspath(reference)}: reference image not found")
-        return None, read_exr(reference)
+        img = read_exr(reference)
+        check_reference_image(img)
+        return None, img
     return find_reference(reference, label, tau), None
 
 
@@ -272,8 +276,8 @@ def run_adaptive(scene: Any, criterion: Criterion | str, *,
     `grow`: trace several passes per launch as blocks stop (`grown_passes`; same result,
     fewer launches); False keeps one pass per launch (the benchmark's fixed step).
     """
-    if time_limit is not None and not (math.isfinite(time_limit) and time_limit > 0):
-        raise ValueError(f"time limit must be a positive number of seconds, got {time_limit!r}")
+    check_render_args(step=step, min_spp=min_spp, max_spp=max_spp, quick_spp=quick_spp,
+                      time_limit=time_limit, spp_budget=spp_budget)       # each error names its own argument
     if checkpoints is not None and not (math.isfinite(checkpoints.every) and checkpoints.every >= 0):
         raise ValueError(f"checkpoint interval must be 0 or more seconds, got {checkpoints.every!r}")
     budget = Budget(spp_budget, time_limit) if spp_budget is not None or time_limit is not None else None
@@ -288,12 +292,15 @@ def run_adaptive(scene: Any, criterion: Criterion | str, *,
     values, sources = resolve_settings(given, ref_stack)
     resolution, grid, block, step, min_spp, max_spp = (values[k] for k in given)
     resolution, grid = _check_args(resolution, grid, block, step, min_spp, max_spp)
+    check_budget_buys_a_pass(spp_budget, step)
     crit = _resolve_criterion(criterion, ref_stack, tau)
     ckpt_path = None
     if checkpoints is not None:
         ckpt_path = prepare_output_dir(checkpoints.out) / CHECKPOINT  # writable: before any pass
 
     variant = select_variant()
+    from .plugin import register
+    register()         # a scene file whose integrator is `noisestop` loads (issue 34)
     scene_obj = scene if loaded else load_scene(scene, resolution, defines=defines)
     if loaded and sensor is None and not scene_obj.sensors():
         raise ValueError(f"{label}: the scene has no sensor (camera) to render from; add one")

@@ -15,6 +15,8 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
+from noisefeat.safeio import InputFileError, read_text
+
 ENV_TOKEN = "NOISESTOP_TOKEN"
 ENV_TOKEN_FILE = "NOISESTOP_TOKEN_FILE"
 
@@ -32,10 +34,12 @@ def resolve_token(token: str | None = None, token_file: str | os.PathLike | None
     if token_file is not None:
         path = Path(token_file)
         try:
-            token = path.read_text(encoding="utf-8").strip()
+            token = read_text(path, "token file").strip()
         except FileNotFoundError:
             raise FileNotFoundError(f"{path}: token file ({ENV_TOKEN_FILE}) does not exist") from None
-        except (OSError, UnicodeDecodeError) as exc:
+        except InputFileError as exc:
+            raise ValueError(f"{exc} ({ENV_TOKEN_FILE})") from None
+        except OSError as exc:
             raise ValueError(f"{path}: token file is unreadable ({exc})") from None
         if not token:
             raise ValueError(f"{path}: token file is empty")

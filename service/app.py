@@ -37,7 +37,7 @@ from noisefeat.display import EXPOSURE_RANGE
 
 from .auth import require_token
 from .console import one_line
-from .connections import InFlightLimitMiddleware
+from .connections import HealthFastPath, InFlightLimitMiddleware
 from .limits import (ENV_MEMORY_BUDGET, UPLOAD_BODIES, UPLOAD_CLAIM, BodyLimitMiddleware, Limits, MemoryBudget,
                      UploadPolicy, busy, decode_cost, release_memory)
 from .metrics import ServiceMetrics
@@ -45,6 +45,7 @@ from .oip import (BINARY_EXTENSION, HEADER_LENGTH, ApiError, ErrorResponse, Infe
                   InferenceResponse, LiveResponse, ModelMetadata, ModelReadyResponse, ReadyResponse,
                   RepositoryModel, RequestOutput, ResponseOutput, ServerMetadata, decode_tensors,
                   encode_response, may_hold_bools, number_param, param, parse_request, split_body)
+from .parsepool import DEFAULT_PARSE_SECONDS, INLINE_BYTES, ParsePool, ParseRules
 from .registry import DEFAULT, OUTPUTS, ModelRegistry, ServedModel
 
 log = logging.getLogger(__name__)
@@ -83,13 +84,13 @@ def _version() -> str:
 def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Limits | None = None,
                inference_threads: int = 2, metrics: ServiceMetrics | None = None,
                limit_concurrency: int | None = None, body_timeout: float | None = None,
-               upload: UploadPolicy | None = None) -> FastAPI:
+               upload: UploadPolicy | None = None, parse_seconds: float = DEFAULT_PARSE_SECONDS) -> FastAPI:
     """The ASGI app; models load in its lifespan (now, if `registry` is not loaded yet).
 
     `limit_concurrency`: most requests in flight, health probes and /metrics not counted
     (None: no limit); `body_timeout`: seconds a request body may stall (None: no limit);
     `upload`: the whole upload policy (stall, deadline, minimum rate; `body_timeout` is then
-    ignored).
+    ignored); `parse_seconds`: the time a large JSON header may take to parse (service.parsepool).
 
     Requests are classified one by one, 2 at a time (`inference_threads`): a micro-batching
     window across concurrent requests was measured slower (BENCHMARKS.md "Verdict
@@ -101,10 +102,14 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.limiter = anyio.CapacityLimiter(inference_threads)
         await anyio.to_thread.run_sync(registry.load)
+        await anyio.to_thread.run_sync(app.state.parse_pool.start)
         for name, served in registry.models.items():
             metrics.load_seconds.labels(name).set(served.load_seconds)
         log.info("serving %s; %r is %s", ", ".join(registry.models), DEFAULT, registry.default_name)
-        yield
+        try:
+            yield
+        finally:
+            app.state.parse_pool.close()
 
     app = FastAPI(title="noisestop verdict service", version=_version(), lifespan=lifespan,
                   docs_url=None, redoc_url=None,
@@ -114,9 +119,14 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
     app.state.limits = limits
     app.state.metrics = metrics
     app.state.memory_budget = MemoryBudget(limits.memory_budget)
+    app.state.parse_pool = ParsePool(ParseRules(limits.max_batch, limits.max_block_side, limits.max_pixels,
+                                                tuple(EXPOSURE_RANGE), OFFSET_LIMIT),
+                                     workers=inference_threads, seconds=parse_seconds)
     app.state.upload_budget = MemoryBudget(UPLOAD_BODIES * limits.max_body_bytes)
     app.add_middleware(BodyLimitMiddleware, max_bytes=limits.max_body_bytes, body_timeout=body_timeout,
                        budget=app.state.upload_budget, upload=upload)
+    # probes answered before routing, the token, body limits (still counted by /metrics, outside it)
+    app.add_middleware(HealthFastPath, ready=lambda: registry.ready)
     metrics.instrument(app, dependencies=[Depends(require_token)], tags=["metrics"], responses={
         200: {"description": "Prometheus text format",
               "content": {"text/plain": {"schema": {"type": "string"}}}},
@@ -249,8 +259,12 @@ async def _infer(request: Request, served: ServedModel, header_length: str | Non
         state.upload_budget.release(upload_claim[0])
         upload_claim[0] = 0
     try:
+        parsed = None
+        head_size = len(body[0]) if length is None else min(length, len(body[0]))
+        if head_size > INLINE_BYTES:      # off the event loop and out of the GIL, with a time budget
+            parsed = await state.parse_pool.parse(body[0] if length is None else memoryview(body[0])[:head_size])
         content, json_length = await anyio.to_thread.run_sync(
-            _infer_sync, served, body, length, state.limits, state.metrics, limiter=state.limiter)
+            _infer_sync, served, body, length, state.limits, state.metrics, parsed, limiter=state.limiter)
     finally:
         body.clear()
         budget.release(cost)
@@ -323,14 +337,15 @@ async def _read_body(request: Request, align: int = 1, at: int = 0) -> memoryvie
 
 
 def _infer_sync(served: ServedModel, body: list[bytearray | memoryview], header_length: int | None,
-                limits: Limits, metrics: ServiceMetrics) -> tuple[bytes, int | None]:
+                limits: Limits, metrics: ServiceMetrics, parsed: InferenceRequest | None = None
+                ) -> tuple[bytes, int | None]:
     """Decode, classify, encode: everything CPU-bound about one request, in a worker thread.
 
     Running out of memory (a MemoryError under an address-space limit, or the JSON parser's
     native code giving up, which surfaces as a BaseException that is not an Exception) is
     answered 503 and logged; the request's memory is freed and the server serves on."""
     try:
-        req, tensors, exposure, offset, tau, wanted = _decode_sync(body, header_length, limits)
+        req, tensors, exposure, offset, tau, wanted = _decode_sync(body, header_length, limits, parsed)
         arrays, parameters = served.infer(tensors, exposure, offset, tau)
         return _encode(served, req, wanted, arrays, parameters, metrics)
     except MemoryError:
@@ -348,26 +363,29 @@ def _infer_sync(served: ServedModel, body: list[bytearray | memoryview], header_
                        headers={"Retry-After": "1", "Connection": "close"}) from None
 
 
-def _decode_sync(body: list[bytearray | memoryview], header_length: int | None, limits: Limits
-                 ) -> tuple[InferenceRequest, dict[str, np.ndarray], float, float | None, float | None,
+def _decode_sync(body: list[bytearray | memoryview], header_length: int | None, limits: Limits,
+                 parsed: InferenceRequest | None = None) -> tuple[InferenceRequest, dict[str, np.ndarray], float, float | None, float | None,
                             dict[str, bool]]:
     """The request, its tensors, exposure, offset, noise target tau and wanted outputs.
 
     `body` is a one-item list, emptied once the tensors are decoded: a JSON body's text is
     then freed before the model runs; binary tensors are views of the body (no copy), which
-    lives as long as they do."""
-    if header_length is None:                  # all JSON: parsed in place
+    lives as long as they do. `parsed`: the header as a parse worker returned it (its JSON
+    data already arrays, checked there: service.parsepool)."""
+    if parsed is not None:                     # parsed by a worker: only the binary tail is left
+        head, tail = b"", split_body(memoryview(body[0]), header_length)[1] if header_length is not None else b""
+    elif header_length is None:                # all JSON: parsed in place
         head, tail = body[0], b""
     else:
         head, tail = split_body(memoryview(body[0]), header_length)
         head = bytes(head)
-    req = parse_request(head)
+    req = parse_request(head) if parsed is None else parsed
     exposure = number_param(req.parameters, "exposure", 0.0, *EXPOSURE_RANGE)
     offset = number_param(req.parameters, "offset", None, -OFFSET_LIMIT, OFFSET_LIMIT)
     tau = number_param(req.parameters, "tau", None, 0.0, 1.0)    # the model's range is checked by infer
     limits.check_shapes(req.inputs)       # what the request declares, before any tensor is built
     wanted = _requested_outputs(req)
-    tensors = decode_tensors(req, tail, limits.max_batch, scan_bools=may_hold_bools(head))
+    tensors = decode_tensors(req, tail, limits.max_batch, scan_bools=parsed is None and may_hold_bools(head))
     del head, tail
     if isinstance(body[0], bytearray) and header_length is None:
         body[0].clear()                        # the JSON text (no view of it is left)

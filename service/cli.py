@@ -49,6 +49,9 @@ def _setup_logging(verbose: int, quiet: bool) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    if "serve" in (sys.argv[1:] if argv is None else list(argv)):
+        from .startup import guard_start_up
+        guard_start_up()         # before the imports: a hang-up while serve starts is logged
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args.verbose, args.quiet)

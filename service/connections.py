@@ -133,6 +133,32 @@ def guarded_protocol(header_timeout: float) -> type[H11Protocol]:
     return type("HeaderDeadlineProtocol", (_HeaderDeadlineProtocol,), {"header_timeout": float(header_timeout)})
 
 
+class HealthFastPath:
+    """GET /v2/health/live and /v2/health/ready answered here, outside every other layer
+    (limits, metrics, routing, the token): a probe is never queued behind a request.
+
+    The routes in service.app stay, for the OpenAPI document; this answers the same."""
+
+    def __init__(self, app: Any, ready: Any) -> None:
+        self.app = app
+        self.ready = ready          # () -> bool
+
+    async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
+        path = scope.get("path", "")
+        if scope["type"] != "http" or scope.get("method") not in ("GET", "HEAD") or \
+                path not in ("/v2/health/live", "/v2/health/ready"):
+            await self.app(scope, receive, send)
+            return
+        if path.endswith("/live"):
+            status, body = 200, b'{"live":true}'
+        else:
+            ok = bool(self.ready())
+            status, body = (200, b'{"ready":true}') if ok else (400, b'{"ready":false}')
+        await send({"type": "http.response.start", "status": status, "headers": [
+            (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
+        await send({"type": "http.response.body", "body": b"" if scope["method"] == "HEAD" else body})
+
+
 class InFlightLimitMiddleware:
     """503 (Retry-After: 1) beyond `limit` requests in flight; probes and metrics exempt."""
 

@@ -27,7 +27,6 @@ import functools
 import json
 import os
 import time
-from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -67,6 +66,12 @@ RESERVE_STEP = 1 << 20
 #: bodies being received may hold this many times --max-body-bytes together (a pool of
 #: its own: bodies waiting for the memory budget must not starve the one being decoded)
 UPLOAD_BODIES = 4
+#: an upload that has sent nothing for this many seconds while other requests wait for the
+#: upload budget is ended (408) and its claim given back (burst-then-stall clients held the
+#: whole budget for the 30 s stall limit, and every normal request got 503 or 408)
+STALL_EVICT = 1.0
+#: how often a claim waiting for the budget looks for stalled holders to end (seconds)
+RECLAIM_POLL = 0.25
 #: where BodyLimitMiddleware puts a request's upload claim for the route to hand it over
 UPLOAD_CLAIM = "noisestop.upload_claim"
 #: by default one request of the largest body at a time, or many smaller ones at once
@@ -213,21 +218,40 @@ class MemoryBudget:
     TCP flow control) while the budget is taken, and is answered 503 after `timeout`
     seconds. One event loop: no lock is needed."""
 
-    def __init__(self, total: int, timeout: float = 30.0) -> None:
+    def __init__(self, total: int, timeout: float = 30.0,
+                 reclaim: Callable[[int], None] | None = None) -> None:
         self.total = total
         self.timeout = timeout
         self.used = 0
-        self._waiters: deque[tuple[int, anyio.Event]] = deque()
+        self.reclaim = reclaim      # (rank) called while a claim of that rank waits: ends holders to free memory
+        self._waiters: list[tuple[int, anyio.Event, int, int]] = []
+        self._seq = 0
 
-    async def acquire(self, n: int) -> bool:
-        """Claim n bytes (n <= total); False if not granted within the timeout."""
-        if not self._waiters and self.used + n <= self.total:
+    async def acquire(self, n: int, rank: int = 0) -> bool:
+        """Claim n bytes (n <= total); False if not granted within the timeout. Waiting
+        claims are granted smallest `rank` first, then first come first served (the
+        upload budget ranks by declared body size: a stream of large bodies that stall
+        must not keep small ones waiting behind them)."""
+        if self.used + n <= self.total and all(rank < w[2] for w in self._waiters):
             self.used += n
             return True
-        entry = (n, anyio.Event())
+        self._seq += 1
+        entry = (n, anyio.Event(), rank, self._seq)
         self._waiters.append(entry)
-        with anyio.move_on_after(self.timeout):
-            await entry[1].wait()
+        deadline = time.monotonic() + self.timeout
+        try:
+            while not entry[1].is_set() and time.monotonic() < deadline:
+                if self.reclaim is not None:
+                    self.reclaim(rank)
+                with anyio.move_on_after(min(RECLAIM_POLL, max(0.0, deadline - time.monotonic()))):
+                    await entry[1].wait()
+        except BaseException:            # cancelled (preempted, or the request ended)
+            if entry[1].is_set():
+                self.release(n)
+            else:
+                self._waiters.remove(entry)
+                self._grant()
+            raise
         if entry[1].is_set():            # granted (possibly just as the time ran out)
             return True
         self._waiters.remove(entry)
@@ -239,10 +263,13 @@ class MemoryBudget:
         self._grant()
 
     def _grant(self) -> None:
-        while self._waiters and self.used + self._waiters[0][0] <= self.total:
-            n, event = self._waiters.popleft()
-            self.used += n
-            event.set()
+        while self._waiters:
+            first = min(self._waiters, key=lambda w: (w[2], w[3]))
+            if self.used + first[0] > self.total:
+                return
+            self._waiters.remove(first)
+            self.used += first[0]
+            first[1].set()
 
 
 class _MallInfo2(ctypes.Structure):
@@ -312,6 +339,25 @@ class BodyLimitMiddleware:
         self.max_bytes = max_bytes
         self.upload = upload or UploadPolicy(stall=body_timeout, deadline=None, min_rate=None)
         self.budget = budget
+        self._receiving: dict[int, _Upload] = {}     # uploads now waiting for their next bytes
+        if budget is not None and budget.reclaim is None:
+            budget.reclaim = self.evict_stalled
+
+    def evict_stalled(self, rank: int | None = None) -> int:
+        """Free upload memory for a claim of `rank` that waits: end every upload that holds
+        budget and has sent nothing for `STALL_EVICT` s (answered 408), and every upload of
+        a larger rank that holds budget while it waits for more (answered 503: holding
+        while waiting is how a few large bodies deadlock the budget). The number ended."""
+        now = time.monotonic()
+        ended = 0
+        for up in list(self._receiving.values()):
+            stalled = now - up.last >= STALL_EVICT
+            blocking = up.waiting and rank is not None and up.rank > rank
+            if up.held[0] > 0 and (stalled or blocking) and not up.evicted:
+                up.evicted = True
+                up.scope.cancel()
+                ended += 1
+        return ended
 
     async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
         if scope["type"] != "http":
@@ -330,18 +376,20 @@ class BodyLimitMiddleware:
                 await _send_error(send, too_large(self.max_bytes))
                 return
         held = [0]
+        rank = length if declared is not None else self.max_bytes     # smaller bodies first
         scope[UPLOAD_CLAIM] = held      # the infer route gives it back once the body is decoded
         try:
-            await self._guarded(scope, receive, send, held)
+            await self._guarded(scope, receive, send, held, rank)
         finally:
             if held[0] and self.budget is not None:
                 self.budget.release(held[0])
 
-    async def _guarded(self, scope: dict, receive: Any, send: Any, held: list[int]) -> None:
+    async def _guarded(self, scope: dict, receive: Any, send: Any, held: list[int], rank: int) -> None:
         received = 0
         body_done = False
         policy = self.upload
         start = time.monotonic()
+        last = start
 
         def wait_limit() -> tuple[float | None, str]:
             """Seconds the next bytes may take, and the rule that would be broken."""
@@ -362,20 +410,29 @@ class BodyLimitMiddleware:
             return min(limits, key=lambda x: x[0])
 
         async def counting_receive() -> dict:
-            nonlocal received, body_done
+            nonlocal received, body_done, start, last
             if body_done:
                 return await receive()
             seconds, rule = wait_limit()
-            if seconds is None:
-                message = await receive()
-            else:
-                try:
-                    if seconds <= 0:
-                        raise TimeoutError
-                    with anyio.fail_after(seconds):
+            up = _Upload(held, last, anyio.CancelScope(), rank)
+            self._receiving[id(up)] = up
+            try:
+                with up.scope:
+                    if seconds is None:
                         message = await receive()
-                except TimeoutError:
-                    raise ApiError(408, rule, headers={"Connection": "close"}) from None
+                    else:
+                        if seconds <= 0:
+                            raise TimeoutError
+                        with anyio.fail_after(seconds):
+                            message = await receive()
+            except TimeoutError:
+                raise ApiError(408, rule, headers={"Connection": "close"}) from None
+            finally:
+                del self._receiving[id(up)]
+            if up.evicted and up.scope.cancelled_caught:
+                raise ApiError(408, f"request body stalled for over {STALL_EVICT:g} s while other requests "
+                                    "waited for upload memory", headers={"Connection": "close"})
+            last = time.monotonic()
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 body_done = not message.get("more_body", False)
@@ -383,12 +440,37 @@ class BodyLimitMiddleware:
                     raise too_large(self.max_bytes)  # rendered by the app's ApiError handler
                 if self.budget is not None and held[0] < received:
                     step = min(max(RESERVE_STEP, received - held[0]), self.budget.total)
-                    if not await self.budget.acquire(step):
-                        raise busy(f"{received} body bytes received")
+                    t0 = time.monotonic()
+                    up = _Upload(held, last, anyio.CancelScope(), rank, waiting=True)
+                    self._receiving[id(up)] = up
+                    granted = False
+                    try:
+                        with up.scope:
+                            granted = await self.budget.acquire(step, rank)
+                    finally:
+                        del self._receiving[id(up)]
+                    if not granted:
+                        raise busy(f"{received} body bytes received" + (
+                            "; smaller requests were waiting" if up.evicted else ""))
                     held[0] += step
+                    waited = time.monotonic() - t0      # the server's wait, not the client's:
+                    start += waited                     # not counted against its deadline or rate
+                    last = time.monotonic()
             return message
 
         await self.app(scope, counting_receive, send)
+
+
+@dataclass
+class _Upload:
+    """An upload waiting for its next bytes or for more budget: its claim, when bytes last
+    came, its rank (declared size), how to end it."""
+    held: list[int]
+    last: float
+    scope: anyio.CancelScope
+    rank: int = 0
+    waiting: bool = False        # for budget (holding some), not for bytes
+    evicted: bool = False
 
 
 async def _send_error(send: Any, err: ApiError) -> None:

@@ -19,6 +19,7 @@ import pydantic_core
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainValidator, ValidationError
 
 from renderer import oip_codec
+from service.jsonguard import max_depth
 from renderer.oip_codec import BINARY_EXTENSION, DATATYPES, HEADER_LENGTH, WireError, join_body, read_tensor, tensor_bytes
 
 __all__ = ["BINARY_EXTENSION", "DATATYPES", "HEADER_LENGTH", "ApiError", "decode_tensors", "encode_response",
@@ -97,6 +98,8 @@ def _integral(value: Any) -> Any:
 #: a tensor dimension; numpy's own limits (64 axes, sizes below 2**63) turned into a 400
 MAX_DIM = 2**31 - 1
 MAX_RANK = 8
+#: the deepest JSON an infer request needs: request, inputs, input, data nested per axis
+MAX_JSON_DEPTH = 3 + MAX_RANK
 Dim = Annotated[int, BeforeValidator(_integral), Field(ge=0, le=MAX_DIM)]
 
 
@@ -160,6 +163,10 @@ def parse_request(header: bytes) -> InferenceRequest:
     """Validate the JSON header of an infer request; every problem is a 400, a key twice in
     one JSON object included (parsers keep the last: `exposure: 1e30, exposure: 0` would
     be served at 0)."""
+    depth = max_depth(header)
+    if depth > MAX_JSON_DEPTH:    # refused before anything is built (service.jsonguard)
+        raise ApiError(400, f"invalid inference request: JSON nested {depth} deep; a request needs at most "
+                            f"{MAX_JSON_DEPTH} (an input's data flat, or nested once per axis of its shape)")
     try:  # pydantic-core's parser: ~6x json.loads on number arrays; bounded nesting depth
         obj = pydantic_core.from_json(header, allow_inf_nan=True)
     except ValueError as exc:
@@ -270,10 +277,7 @@ def decode_tensors(req: InferenceRequest, binary: bytes | memoryview, max_batch:
     for t in req.inputs:       # what the request says is checked before what it weighs
         if t.datatype not in DATATYPES:
             raise ApiError(400, f"input {t.name!r}: unsupported datatype {t.datatype!r}")
-    for t in req.inputs:
-        if t.shape and t.shape[0] > max_batch:
-            raise ApiError(413, f"input {t.name!r} holds {t.shape[0]} items; the limit is "
-                                f"{max_batch} per request")
+    check_batch(req, max_batch)
     arrays, offset = {}, 0
     for t in req.inputs:
         dtype = DATATYPES[t.datatype]
@@ -300,7 +304,15 @@ def decode_tensors(req: InferenceRequest, binary: bytes | memoryview, max_batch:
     return arrays
 
 
-def _json_values(name: str, data: list[Any], dtype: np.dtype, scan_bools: bool = True) -> np.ndarray:
+def check_batch(req: InferenceRequest, max_batch: int) -> None:
+    """413 for an input whose first axis holds more than `max_batch` items."""
+    for t in req.inputs:
+        if t.shape and t.shape[0] > max_batch:
+            raise ApiError(413, f"input {t.name!r} holds {t.shape[0]} items; the limit is "
+                                f"{max_batch} per request")
+
+
+def _json_values(name: str, data: list[Any] | np.ndarray, dtype: np.dtype, scan_bools: bool = True) -> np.ndarray:
     try:
         values = np.asarray(data)
     except (ValueError, TypeError, RecursionError):
@@ -312,7 +324,7 @@ def _json_values(name: str, data: list[Any], dtype: np.dtype, scan_bools: bool =
         elif values.dtype.kind not in "iuf":
             got = "true/false" if values.dtype.kind == "b" else f"{values.dtype.kind!r}"
             raise ApiError(400, f"input {name!r}: data must be numbers for {dtype.name}, got {got} values")
-        elif scan_bools and _holds_bool(data):   # numpy would read true as 1
+        elif scan_bools and isinstance(data, list) and _holds_bool(data):   # numpy would read true as 1
             raise ApiError(400, f"input {name!r}: data must be numbers for {dtype.name}, got true/false "
                                 "among them")
     if values.size and dtype.kind in "iu" and values.dtype.kind == "f":

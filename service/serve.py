@@ -35,7 +35,9 @@ from .app import create_app
 from .auth import check_bind, resolve_token
 from .connections import guarded_protocol
 from .limits import Limits, UploadPolicy
+from .parsepool import DEFAULT_PARSE_SECONDS, ENV_PARSE_SECONDS
 from .registry import ModelRegistry, parse_model_specs
+from .startup import guard_start_up
 
 log = logging.getLogger(__name__)
 
@@ -86,10 +88,26 @@ def build(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", 
     _check_seconds("body_timeout", body_timeout)
     upload = UploadPolicy.from_env(stall=body_timeout, deadline=body_deadline, min_rate=min_body_rate,
                                    grace=body_grace)
+    parse_seconds = _env_seconds(ENV_PARSE_SECONDS, DEFAULT_PARSE_SECONDS)
     registry = ModelRegistry(dict(models or {}), offset=offset, tau=tau)
     registry.load()
     return create_app(registry, token=secret, limits=limits, inference_threads=inference_threads,
-                      limit_concurrency=limit_concurrency, body_timeout=body_timeout, upload=upload)
+                      limit_concurrency=limit_concurrency, body_timeout=body_timeout, upload=upload,
+                      parse_seconds=parse_seconds)
+
+
+def _env_seconds(key: str, default: float) -> float:
+    """A number of seconds in (0, 3600] from the environment (unset or blank: `default`)."""
+    raw = os.environ.get(key, "").strip()
+    if not raw:
+        return default
+    try:
+        value = float(raw)
+    except ValueError:
+        value = float("nan")
+    if not 0 < value <= 3600:
+        raise ValueError(f"{key} must be a number of seconds in (0, 3600], got {raw!r}")
+    return value
 
 
 def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", port: int = 8000, *,
@@ -112,6 +130,7 @@ def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", po
     `torch_threads`: torch's intra-op threads for each of the `inference_threads`. `tau`:
     the noise target verdicts are made at unless a request sends its own (None: each
     model's calibrated offset)."""
+    guard_start_up()          # SIGHUP until uvicorn's handlers take over (service.startup)
     if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
         raise ValueError(f"port must be 0..65535, got {port!r}")
     _check_seconds("graceful_timeout", graceful_timeout)

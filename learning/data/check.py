@@ -18,6 +18,8 @@ from typing import Any
 
 import numpy as np
 
+from noisefeat.safeio import InputFileError, check_regular, read_text
+
 from noisefeat.atomic import is_temporary
 
 from .exr import read_exr
@@ -100,12 +102,14 @@ def check_stack(d: str | os.PathLike, deep: bool = True) -> list[Problem]:
     """Every problem of one stack directory."""
     d = Path(d)
     meta_path = d / META
-    if not meta_path.is_file():
+    if not (meta_path.exists() or meta_path.is_symlink()):
         why = (f"incomplete build: {PARTIAL} present, rerun the build to finish it"
                if (d / PARTIAL).is_file() else "not a complete stack")
         return [Problem(meta_path, f"missing meta.json ({why})")]
     try:
-        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+        meta = json.loads(read_text(meta_path, "meta.json"))
+    except InputFileError as exc:
+        return [Problem(meta_path, str(exc).split(": ", 1)[-1])]
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         return [Problem(meta_path, f"meta.json is not valid JSON: {exc}")]
     except RecursionError:
@@ -135,9 +139,14 @@ def check_stack(d: str | os.PathLike, deep: bool = True) -> list[Problem]:
     ref_shape = None
     for path, what, is_ref in images:
         rel = path.relative_to(d)
-        if not path.is_file():
+        if not (path.exists() or path.is_symlink()):
             kind = "level file" if what.startswith("level") else "file"
             problems.append(Problem(path, f"missing {kind} {rel} ({what})"))
+            continue
+        try:
+            check_regular(path, "EXR")
+        except (InputFileError, OSError) as exc:
+            problems.append(Problem(path, f"{what}: {str(exc).split(': ', 1)[-1]}"))
             continue
         if not deep:
             continue

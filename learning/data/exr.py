@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from noisefeat.atomic import atomic_write
+from noisefeat.safeio import CAPS, read_input
 
 log = logging.getLogger(__name__)
 
@@ -121,6 +122,8 @@ def _check_exr_layout(data: bytes, path: Path) -> None:
     while True:
         if pos >= size:
             raise cut("the header")
+        if pos > CAPS["EXR header"]:
+            raise ValueError(f"{path}: unreadable EXR: header over {CAPS['EXR header']} bytes; refused")
         if data[pos] == 0:          # the header's terminating null
             pos += 1
             break
@@ -150,18 +153,24 @@ def _check_exr_layout(data: bytes, path: Path) -> None:
     for i, offset in enumerate(struct.unpack_from(f"<{chunks}Q", data, pos)):
         if offset < table_end or offset + 8 > size:
             raise cut(f"chunk {i} of {chunks}")
-        packed = struct.unpack_from("<i", data, offset + 4)[0]
-        if packed < 0 or offset + 8 + packed > size:
+        y, packed = struct.unpack_from("<ii", data, offset)
+        if packed <= 0:
+            raise ValueError(f"{path}: unreadable EXR: chunk {i} of {chunks} is empty (zero-filled or corrupt data)")
+        if offset + 8 + packed > size:
             raise cut(f"chunk {i} of {chunks}")
+        if y != window[1] + i * _LINES_PER_CHUNK[compression]:     # zero-filled or shuffled data
+            raise ValueError(f"{path}: unreadable EXR: chunk {i} of {chunks} is not the rows it should hold "
+                             f"(line {y}, expected {window[1] + i * _LINES_PER_CHUNK[compression]}): "
+                             "zero-filled or corrupt data")
 
 
 def _read_exr_file(path: str | os.PathLike) -> tuple[Path, dict[str, np.ndarray]]:
     """Every channel of an EXR's first part as float32 [H, W], in the order Mitsuba's
     Bitmap gives them: R, G, B, A first, then the others in file order (alphabetical)."""
     path = Path(path)
-    if not path.is_file():
+    if not (path.exists() or path.is_symlink()):
         raise FileNotFoundError(f"{path}: no such EXR file")
-    data = path.read_bytes()
+    data = read_input(path, "EXR")
     _check_exr_layout(data, path)
     exr = _openexr()
     try:

@@ -43,6 +43,8 @@ from typing import Any
 
 import numpy as np
 
+from noisefeat.safeio import open_input, read_input, read_text
+
 from noisefeat import split_blocks
 from noisefeat.atomic import atomic_write
 from noisefeat.pooling import MEAN, POOLINGS
@@ -382,7 +384,7 @@ def file_digest(path: Path) -> str:
     digest = _DIGESTS.get(sig)
     if digest is None:
         h = hashlib.sha256()
-        with open(path, "rb") as f:
+        with open_input(path, _kind(path)) as f:
             for chunk in iter(lambda: f.read(1 << 20), b""):
                 h.update(chunk)
         digest = _DIGESTS[sig] = h.hexdigest()
@@ -391,9 +393,13 @@ def file_digest(path: Path) -> str:
     return digest
 
 
+def _kind(path: Path) -> str:
+    return "meta.json" if path.name == META else "EXR" if path.suffix == ".exr" else "file"
+
+
 def load_json(path: Path) -> Any:
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        return json.loads(read_text(path, _kind(path)))
     except RecursionError:
         raise ValueError(f"{path}: not a stack description (JSON nested too deeply)") from None
     except json.JSONDecodeError as exc:
@@ -504,5 +510,5 @@ def dataset_fingerprint(root: str | os.PathLike) -> str:
     (e.g. a saved model comparison) are only reused on the very same one."""
     h = hashlib.sha256()
     for p in list_stacks(root):
-        h.update(p.name.encode() + b"\0" + (p / META).read_bytes())
+        h.update(p.name.encode() + b"\0" + read_input(p / META, "meta.json"))
     return h.hexdigest()[:16]

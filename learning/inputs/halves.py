@@ -26,6 +26,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from noisefeat.safeio import InputFileError, read_json
 from tqdm import tqdm
 
 from noisefeat.display import check_exposure
@@ -180,21 +182,25 @@ def load_flip_calibration(path: str | os.PathLike | None = None) -> dict[str, An
     calibrated, else the shipped `learning/flip.json` (`noisefeat.userdata`). Without any:
     the fallback c = DEFAULT_C at every tau, with a warning."""
     p = Path(path) if path is not None else find_user_file(FLIP_USER_FILE, FLIP_CALIBRATION)
-    if not p.is_file():
+    if not (p.exists() or p.is_symlink()):
         if path is not None:
             raise FileNotFoundError(f"{p}: no flip calibration file")
         log.warning("no flip calibration shipped (%s); using c = %g", p, DEFAULT_C)
         return {"c": DEFAULT_C, "source": "fallback", "pooling": CRITERION_POOLING, "curve": []}
     try:
-        cal = json.loads(p.read_text())
+        cal = read_json(p, "flip.json")
         curve = cal.get("curve") if isinstance(cal, dict) else None
         if not isinstance(cal, dict) or cal.get("pooling") != CRITERION_POOLING or not isinstance(curve, list):
             raise ValueError(f"not a c(tau) curve for pooling {CRITERION_POOLING!r} (a file calibrated for "
                              "the block mean, observer version 1?); recalibrate with `noisestop calibrate`")
         taus = [float(r["tau"]) for r in curve]
+        if not all(t > 0 for t in taus):
+            raise ValueError(f"taus must be positive, got {[t for t in taus if not t > 0][:3]}")
         for r in curve:
             flip_offset(float(r["c"]))
-    except (ValueError, KeyError, TypeError) as exc:
+    except InputFileError as exc:            # one line naming the file, as the others
+        raise InputFileError(f"{p}: unreadable flip calibration ({str(exc).split(': ', 1)[-1]})") from None
+    except (ValueError, KeyError, TypeError, OverflowError) as exc:
         raise ValueError(f"{p}: unreadable flip calibration ({exc})") from None
     if not taus or any(b <= a for a, b in zip(taus, taus[1:])) or not all(np.isfinite(taus)):
         raise ValueError(f"{p}: unreadable flip calibration (taus must be finite and increasing, got {taus[:6]})")

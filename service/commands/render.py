@@ -6,6 +6,8 @@ A thin layer on the in-memory loop (`renderer.adaptive.run_adaptive`, which
 from __future__ import annotations
 
 import argparse
+import contextlib
+from typing import Any
 
 from learning.names import DEFAULT_TAU
 from renderer.names import CRITERIA, DEFAULT_CRITERION
@@ -86,23 +88,34 @@ def register(sub: argparse._SubParsersAction) -> None:
 def cmd_render(args: argparse.Namespace) -> int:
     from renderer.render_many import render_command
     from renderer.outputs import format_report
-    from renderer.scenes import DEFAULT_SCENE
+    from renderer.outlock import locked_output
 
     criterion = args.criterion or ("model" if args.model or args.server or args.offset is not None
                                    else DEFAULT_CRITERION)
-    try:
-        result = render_command(
-            args.scene or DEFAULT_SCENE, args.out, criterion=criterion, model=args.model,
-            server=args.server, reference=args.reference, threshold=args.threshold,
-            quantile=args.quantile, offset=args.offset, workers=args.workers, scheduler=args.scheduler,
-            exposure=args.exposure, tau=args.tau,
-            resolution=args.resolution, grid=None if args.grid is None else tuple(args.grid), block=args.block,
-            checkpoint_every=args.checkpoint_every, step=args.step,
-            min_spp=args.min_spp, max_spp=args.max_spp, seed=args.seed, resume=args.resume,
-            defines=dict(args.defines) if args.defines else None, time_limit=args.time_limit,
-            spp_budget=args.spp_budget)
+    try:       # --out is locked for the render's lifetime (renderer.outlock)
+        lock = locked_output(args.out) if args.out else contextlib.nullcontext()
+        with lock:
+            result = _render(args, criterion, render_command)
     except ConnectionError as exc:      # verdict server unreachable or failing
         raise UsageError(str(exc)) from exc
+    return _print_result(args, result, format_report)
+
+
+def _render(args: argparse.Namespace, criterion: str, render_command: Any) -> dict[str, Any]:
+    from renderer.scenes import DEFAULT_SCENE
+    return render_command(
+        args.scene or DEFAULT_SCENE, args.out, criterion=criterion, model=args.model,
+        server=args.server, reference=args.reference, threshold=args.threshold,
+        quantile=args.quantile, offset=args.offset, workers=args.workers, scheduler=args.scheduler,
+        exposure=args.exposure, tau=args.tau,
+        resolution=args.resolution, grid=None if args.grid is None else tuple(args.grid), block=args.block,
+        checkpoint_every=args.checkpoint_every, step=args.step,
+        min_spp=args.min_spp, max_spp=args.max_spp, seed=args.seed, resume=args.resume,
+        defines=dict(args.defines) if args.defines else None, time_limit=args.time_limit,
+        spp_budget=args.spp_budget)
+
+
+def _print_result(args: argparse.Namespace, result: dict[str, Any], format_report: Any) -> int:
     single = "blocks" in result         # one scene: its report; several: a summary
     if args.json:
         emit_json(result)

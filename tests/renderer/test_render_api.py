@@ -112,7 +112,7 @@ def test_a_loaded_scene_renders_as_its_name(flip_result):
     ({"criterion": "bogus"}, "unknown criterion 'bogus'"),
     ({"tau": -1.0}, "tau must be a positive finite number"),
     ({"max_spp": 0}, "max_spp must be a positive integer"),
-    ({"time_limit": -1.0}, "time limit must be a positive number of seconds"),
+    ({"time_limit": -1.0}, "time_limit must be a positive number of seconds"),
     ({"scene": "nope"}, "unknown scene 'nope'"),
     ({"criterion": "oracle"}, "the oracle criterion needs true thresholds"),
 ], ids=["scene-type", "criterion", "tau", "max-spp", "time-limit", "scene-name", "oracle"])

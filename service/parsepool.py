@@ -1,0 +1,222 @@
+"""Large JSON request headers are parsed in worker processes, each with a time budget.
+
+Why: a JSON parser builds its objects holding the GIL, so in a thread it still stops the
+event loop (health probes included) and every other request for as long as it runs: an
+8 MiB body of nested lists took 6.7 s. In a separate process a parse costs the server only
+the transfer of the text and of the decoded arrays, and a parse that runs past `seconds`
+is ended (the worker is killed and replaced) and answered 413.
+
+Headers up to `INLINE_BYTES` (every binary-tensor request, small JSON ones) are parsed in
+the server's own thread: their worst case, capped in depth by `oip.MAX_JSON_DEPTH`, is a
+few tens of milliseconds.
+
+Wire: the server writes an 8-byte length and the JSON text to the worker's stdin; the
+worker answers an 8-byte length and a pickle of ("ok", InferenceRequest with numpy `data`)
+or ("error", status, message, headers). Both ends are this package: the pickle is trusted.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import pickle
+import select
+import struct
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import anyio
+import anyio.to_thread
+
+from .oip import DATATYPES, ApiError, InferenceRequest
+
+log = logging.getLogger(__name__)
+
+#: JSON headers larger than this go to a worker process
+INLINE_BYTES = 256 * 1024
+#: default seconds a worker may spend on one request (serve: NOISESTOP_PARSE_SECONDS)
+DEFAULT_PARSE_SECONDS = 10.0
+ENV_PARSE_SECONDS = "NOISESTOP_PARSE_SECONDS"
+_LEN = struct.Struct("<Q")
+
+
+@dataclass(frozen=True)
+class ParseRules:
+    """What a worker checks before it builds tensors (the server's limits and ranges)."""
+    max_batch: int
+    max_block_side: int
+    max_pixels: int
+    exposure: tuple[float, float]
+    offset_limit: float
+
+
+class _Worker:
+    """One worker process and its pipes; used by one request at a time."""
+
+    def __init__(self, rules: ParseRules) -> None:
+        self.rules = rules
+        self.proc = subprocess.Popen([sys.executable, "-m", "service.parsepool", json.dumps(asdict(rules))],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=None,
+                                     env={**os.environ, "OMP_NUM_THREADS": "1"})
+
+    def call(self, head: bytes | bytearray | memoryview, seconds: float) -> tuple[Any, ...]:
+        """The worker's answer, or ("timeout",) / ("died",) (the worker is then dead)."""
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        deadline = time.monotonic() + seconds
+        try:
+            self.proc.stdin.write(_LEN.pack(len(head)))
+            self.proc.stdin.write(head)
+            self.proc.stdin.flush()
+            size = _LEN.unpack(self._read(_LEN.size, deadline))[0]
+            return pickle.loads(self._read(size, deadline))
+        except TimeoutError:
+            self.kill()
+            return ("timeout",)
+        except (OSError, EOFError, pickle.UnpicklingError, struct.error):
+            self.kill()
+            return ("died",)
+
+    def _read(self, n: int, deadline: float) -> bytes:
+        assert self.proc.stdout is not None
+        fd = self.proc.stdout.fileno()
+        parts, got = [], 0
+        while got < n:
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([fd], [], [], left)[0]:
+                raise TimeoutError
+            chunk = os.read(fd, min(n - got, 1 << 20))
+            if not chunk:
+                raise EOFError
+            parts.append(chunk)
+            got += len(chunk)
+        return b"".join(parts)
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait()
+        for f in (self.proc.stdin, self.proc.stdout):
+            try:
+                f.close()          # type: ignore[union-attr]
+            except OSError:
+                pass
+
+
+class ParsePool:
+    """`workers` parse processes, started on first use (or by `start`), replaced when they die."""
+
+    def __init__(self, rules: ParseRules, workers: int = 2, seconds: float = DEFAULT_PARSE_SECONDS) -> None:
+        if not 0 < seconds <= 3600:
+            raise ValueError(f"parse seconds must be in (0, 3600], got {seconds!r}")
+        self.rules = rules
+        self.seconds = seconds
+        self._idle: list[_Worker] = []
+        self._lock = threading.Lock()
+        self._slots = anyio.CapacityLimiter(workers)
+        self._count = workers
+
+    def start(self) -> None:
+        """Start the workers now (blocking: run it in a thread)."""
+        with self._lock:
+            while len(self._idle) < self._count:
+                self._idle.append(_Worker(self.rules))
+
+    def close(self) -> None:
+        with self._lock:
+            for w in self._idle:
+                w.kill()
+            self._idle.clear()
+
+    async def parse(self, head: bytes | bytearray | memoryview) -> InferenceRequest:
+        """The request with its JSON tensor data as numpy arrays; ApiError as parse_request."""
+        async with self._slots:
+            answer = await anyio.to_thread.run_sync(self._call, head)
+        if answer[0] == "ok":
+            return answer[1]
+        if answer[0] == "error":
+            raise ApiError(answer[1], answer[2], headers=answer[3])
+        if answer[0] == "timeout":
+            raise ApiError(413, f"parsing this request's JSON took over {self.seconds:g} s (the time a request "
+                                f"may take, {ENV_PARSE_SECONDS}); send binary tensors or flat data",
+                           headers={"Connection": "close"})
+        raise ApiError(503, "server could not parse this request (out of memory?); retry, or send a smaller one",
+                       headers={"Retry-After": "1", "Connection": "close"})
+
+    def _call(self, head: bytes | bytearray | memoryview) -> tuple[Any, ...]:
+        with self._lock:
+            worker = self._idle.pop() if self._idle else None
+        if worker is None or not worker.alive():
+            worker = _Worker(self.rules)
+        answer = worker.call(head, self.seconds)
+        if worker.alive():
+            with self._lock:
+                self._idle.append(worker)
+        else:
+            log.warning("a JSON parse worker was ended (%s); a new one takes its place", answer[0])
+        return answer
+
+
+# ------------------------------------------------------------------------- the worker side
+
+def parse_in_worker(head: bytes, rules: ParseRules) -> tuple[Any, ...]:
+    """What the server's own thread does with a small header (service.app._decode_sync),
+    up to the tensors: parse (depth first), parameters, shapes, batch, JSON data as arrays."""
+    from .limits import Limits
+    from .oip import _json_values, check_batch, may_hold_bools, number_param, parse_request
+    try:
+        req = parse_request(head)
+        number_param(req.parameters, "exposure", 0.0, *rules.exposure)
+        number_param(req.parameters, "offset", None, -rules.offset_limit, rules.offset_limit)
+        number_param(req.parameters, "tau", None, 0.0, 1.0)
+        Limits(max_batch=rules.max_batch, max_block_side=rules.max_block_side,
+               max_pixels=rules.max_pixels).check_shapes(req.inputs)
+        check_batch(req, rules.max_batch)
+        scan = may_hold_bools(head)
+        del head
+        for t in req.inputs:
+            if isinstance(t.data, list) and t.datatype in DATATYPES:
+                t.data = _json_values(t.name, t.data, DATATYPES[t.datatype], scan)  # type: ignore[assignment]
+        return ("ok", req)
+    except ApiError as exc:
+        return ("error", exc.status, exc.message, exc.headers)
+    except MemoryError:
+        return ("error", 503, "server out of memory for this request; retry, or send a smaller one",
+                {"Retry-After": "1", "Connection": "close"})
+
+
+#: the workers' scheduling niceness: a parse yields the CPU to inference threads, so one
+#: client's costly bodies slow its own answers more than everyone else's
+WORKER_NICE = 10
+
+
+def _main() -> None:
+    from .limits import release_memory
+    try:
+        os.nice(WORKER_NICE)
+    except OSError:
+        pass
+    rules = ParseRules(**{k: tuple(v) if isinstance(v, list) else v for k, v in json.loads(sys.argv[1]).items()})
+    inp, out = sys.stdin.buffer, sys.stdout.buffer
+    while True:
+        raw = inp.read(_LEN.size)
+        if len(raw) < _LEN.size:
+            return                      # the server went away
+        head = inp.read(_LEN.unpack(raw)[0])
+        answer = pickle.dumps(parse_in_worker(head, rules), protocol=pickle.HIGHEST_PROTOCOL)
+        del head
+        out.write(_LEN.pack(len(answer)))
+        out.write(answer)
+        out.flush()
+        del answer
+        release_memory(0)
+
+
+if __name__ == "__main__":
+    _main()

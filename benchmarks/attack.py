@@ -512,7 +512,7 @@ def costliest_valid_json(budget_fraction: float = 0.9, budget: int | None = None
     """The JSON body that costs the most CPU to parse per byte among those a default server
     admits: a rank-8 `features` tensor whose every value sits in 7 nested lists (the most
     nesting its shape allows), sized to `budget_fraction` of the memory budget's estimate."""
-    from ..limits import DEFAULT_MEMORY_BUDGET, json_cost
+    from service.limits import DEFAULT_MEMORY_BUDGET, json_cost
     unit = b"[" * 7 + b"1" + b"]" * 7
     per = json_cost(unit + b",") + len(unit) + 1
     n = int(budget_fraction * (budget or DEFAULT_MEMORY_BUDGET) / per)

@@ -73,6 +73,16 @@ class Budget:
         if not 0.0 < self.band <= 1.0:
             raise ValueError(f"band must be in (0, 1], got {self.band!r}")
 
+    def state(self) -> dict[str, Any]:
+        """What a checkpoint keeps of the budget, so a resumed budget render goes on as the
+        interrupted one would have (`renderer.checkpoint`)."""
+        return {"prioritised_rounds": self.prioritised_rounds, "ended": self.ended, "cost": list(self._cost)}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        self.prioritised_rounds = int(state["prioritised_rounds"])
+        self.ended = bool(state["ended"])
+        self._cost = [float(c) for c in state["cost"]]
+
     def record(self, seconds: float, block_spp: int) -> None:
         """Seconds of a round and the block-samples it traced (the time budget's rate)."""
         self._cost[0] += float(seconds)

@@ -9,9 +9,14 @@ made with the same settings, and holds a state that the loop could have produced
 * every array has its dtype and the shape the settings imply (n blocks, p passes, the
   accumulator's grid and block, the frame of the quick image);
 * 0 <= p <= the passes of the settings, `done` only at the end or with no block active;
-* history is -1/0/+1, its spp the cumulative pass sizes; each pass rendered at most n blocks;
-* an active block has every pass's samples, a stopped one its stop spp, and it stopped
-  where its history says +1.
+* history is -1/0/+1, each row's per-block spp never decreasing and ending at what the
+  accumulator holds; each row rendered 1..n blocks;
+* every block holds exactly the samples of its passes; a stopped one stopped where its
+  history says +1, at its stop spp;
+* a plain render's active blocks are all at the last pass (its rows are the cumulative pass
+  sizes); a budget render's blocks may be at different passes (its rounds are rows), and
+  its budget's state (prioritised rounds, ended, seconds and samples spent) is kept, so a
+  resume continues from the last round written, not from the first prioritised one.
 
 Anything else is a ValueError naming the file and what is wrong; `--resume` never
 continues from a state it cannot vouch for.
@@ -30,7 +35,7 @@ from learning.data.npz import check_digest, read_npz, savez_bytes
 
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_FORMAT = "noisestop-adaptive-checkpoint"
-CHECKPOINT_VERSION = 2          # 2: content digest and validated state
+CHECKPOINT_VERSION = 3          # 2: content digest and validated state; 3: per-block spp history, budget state
 
 
 def _str_array(text: str) -> np.ndarray:
@@ -47,6 +52,7 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
         "stop_spp": np.asarray(state["stop_spp"], np.int64),
         "history": np.asarray(state["history"], np.int8).reshape(-1, len(state["active"])),
         "history_spp": np.asarray(state["history_spp"], np.int64),
+        "history_block_spp": np.asarray(state["history_block_spp"], np.int64).reshape(-1, len(state["active"])),
         "rendered": np.asarray(state["rendered"], np.int64),
         "pass_index": np.int64(state["pass_index"]),
         "done": np.bool_(state["done"]),
@@ -58,6 +64,12 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     }
     for k, v in state["acc"].items():
         arrays[f"acc_{k}"] = v
+    if state.get("budget") is not None:          # a budget render: its blocks may be out of step
+        b = state["budget"]
+        arrays.update({"budget_prioritised_rounds": np.int64(b["prioritised_rounds"]),
+                       "budget_ended": np.bool_(b["ended"]), "budget_cost": np.asarray(b["cost"], np.float64),
+                       "budget_ratio_asked": np.asarray(b["ratio_asked"], bool),
+                       "budget_ratio": np.asarray(b["ratio"], np.float64)})
     atomic_write(path, savez_bytes(arrays, with_digest=True))
 
 
@@ -124,27 +136,35 @@ def _validated(path: Path, data: dict[str, np.ndarray], settings: dict[str, Any]
 def _state(data: dict[str, np.ndarray], sizes: list[int], grid: tuple[int, int], block: tuple[int, int],
            frame: tuple[int, int]) -> dict[str, Any]:
     n = grid[0] * grid[1]
+    budget = "budget_cost" in data
     p = int(_get(data, "pass_index", "int64", ()))
-    if not 0 <= p <= len(sizes):
+    if not 0 <= p <= (n * len(sizes) if budget else len(sizes)):
         raise ValueError(f"pass {p} claimed, these settings make {len(sizes)} passes")
     active = _get(data, "active", "bool", (n,))
     stop_spp = _get(data, "stop_spp", "int64", (n,))
     history = _get(data, "history", "int8", (p, n))
     history_spp = _get(data, "history_spp", "int64", (p,))
+    block_spp = _get(data, "history_block_spp", "int64", (p, n))
     rendered = _get(data, "rendered", "int64", (p,))
     done = bool(_get(data, "done", "bool", ()))
-    cum = np.cumsum(sizes[:p], dtype=np.int64)
+    cum = np.concatenate([[0], np.cumsum(sizes, dtype=np.int64)])
     if not np.isin(history, (-1, 0, 1)).all():
         raise ValueError("history holds values other than -1, 0, +1")
-    if not np.array_equal(history_spp, cum):
-        raise ValueError("history spp are not the cumulative pass sizes")
     if ((rendered < 1) | (rendered > n)).any():
         raise ValueError(f"a pass rendered a number of blocks outside 1..{n}")
-    if done != (p == len(sizes) or not active.any()):
-        raise ValueError(f"done is {done} at pass {p} of {len(sizes)} with {int(active.sum())} blocks active")
-    stopped_at = np.where((history > 0).any(axis=0), history_spp[np.argmax(history > 0, axis=0)] if p else 0, 0)
-    if not np.array_equal(~active, (history > 0).any(axis=0)) or not np.array_equal(stop_spp, stopped_at):
+    if (block_spp < 0).any() or (block_spp > cum[-1]).any() or (p > 1 and (np.diff(block_spp, axis=0) < 0).any()):
+        raise ValueError("the per-block spp history is out of range or decreases")
+    if not np.array_equal(~active, (history > 0).any(axis=0)):
+        raise ValueError("stopped blocks disagree with the verdict history")
+    first = np.argmax(history > 0, axis=0)
+    stopped_at = np.where(~active, block_spp[first, np.arange(n)] if p else 0, 0)
+    if not np.array_equal(stop_spp, stopped_at):
         raise ValueError("stopped blocks and their stop spp disagree with the verdict history")
+    if not budget:
+        if not np.array_equal(history_spp, cum[1:p + 1]):
+            raise ValueError("history spp are not the cumulative pass sizes")
+        if done != (p == len(sizes) or not active.any()):
+            raise ValueError(f"done is {done} at pass {p} of {len(sizes)} with {int(active.sum())} blocks active")
     names = _get(data, "counter_names", "U")
     values = _get(data, "counter_values", "int64", names.shape)
     tnames = _get(data, "timer_names", "U")
@@ -169,19 +189,36 @@ def _state(data: dict[str, np.ndarray], sizes: list[int], grid: tuple[int, int],
         arr = _get(acc_state, key, dtype, shape)
         if arr.dtype.kind == "f" and not np.isfinite(arr).all():
             raise ValueError(f"accumulator {key!r} holds NaN or Inf")
-        most = {"weight": int(cum[-1]) if p else 0, "passes": p}.get(key)
+        most = {"weight": int(cum[-1]), "passes": len(sizes)}.get(key)
         if arr.dtype.kind == "i" and ((arr < 0).any() or (most is not None and (arr > most).any())):
             raise ValueError(f"accumulator {key!r} out of range")
     acc = BlockAccumulator.from_state(acc_state)
-    spp = acc.spp_all()
-    full = int(cum[-1]) if p else 0
-    if not np.array_equal(spp[active], np.full(int(active.sum()), full)) or \
-            not np.array_equal(spp[~active], stop_spp[~active]):
+    spp, passes = acc.spp_all(), acc.passes_all()
+    if not np.array_equal(spp, cum[passes]) or (p and not np.array_equal(block_spp[-1], spp)) \
+            or (not p and spp.any()):
         raise ValueError("the accumulated samples disagree with the passes and stops")
-    return {
+    if not budget and not (passes[active] == p).all():
+        raise ValueError("the accumulated samples disagree with the passes and stops")
+    state = {
         "acc": acc, "active": active.copy(), "stop_spp": stop_spp.copy(), "history": history.copy(),
-        "history_spp": history_spp.copy(), "rendered": rendered.copy(), "pass_index": p, "done": done,
+        "history_spp": history_spp.copy(), "history_block_spp": block_spp.copy(), "rendered": rendered.copy(),
+        "pass_index": p, "done": done,
         "counters": dict(zip(names.tolist(), values.tolist())),
         "timers": dict(zip(tnames.tolist(), tvalues.tolist())),
         "quick": None if quick.size == 0 else quick,
     }
+    if budget:
+        rounds = int(_get(data, "budget_prioritised_rounds", "int64", ()))
+        ended = bool(_get(data, "budget_ended", "bool", ()))
+        cost = _get(data, "budget_cost", "float64", (2,))
+        ratio_asked = _get(data, "budget_ratio_asked", "bool", (n,))
+        ratio = _get(data, "budget_ratio", "float64", (n,))
+        if not (0 <= rounds <= p) or not np.isfinite(cost).all() or (cost < 0).any() \
+                or (ratio[ratio_asked] < 0).any():
+            raise ValueError("budget state out of range")
+        left = active & (passes < len(sizes))
+        if done != (not left.any() or ended):
+            raise ValueError(f"done is {done} with {int(left.sum())} blocks able to take a pass")
+        state["budget"] = {"prioritised_rounds": rounds, "ended": ended, "cost": cost.tolist(),
+                           "ratio_asked": ratio_asked.copy(), "ratio": ratio.copy()}
+    return state

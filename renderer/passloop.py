@@ -43,8 +43,8 @@ class PassLoop:
         self.stop_spp = np.zeros(n, np.int64)
         self.history = np.zeros((0, n), np.int8)
         self.history_spp = np.zeros(0, np.int64)
+        self.history_block_spp = np.zeros((0, n), np.int64)   # every block's spp after each row
         self.rendered = np.zeros(0, np.int64)
-        self.events: dict[int, list[tuple[int, int]]] = {}    # block -> its own [(spp, verdict)]
 
     @property
     def active_ids(self) -> list[int]:
@@ -69,7 +69,7 @@ class PassLoop:
         rows_spp = []                     # each pass is a history row; only the last one is judged
         for images, pass_spp in passes:
             self.acc.add_batch(idx, images, pass_spp)
-            rows_spp.append(int(self.acc.spp_all()[idx].max()))
+            rows_spp.append(self.acc.spp_all())
         spp = self.acc.spp_all()[idx]
         asked = idx if self.min_spp is None else idx[spp >= self.min_spp]
         row = np.zeros(len(self.active), np.int8)
@@ -78,16 +78,25 @@ class PassLoop:
             row[asked] = np.where(verdict > 0, CONVERGED, NOISY)
         stopped = row > 0
         self.active[stopped] = False
-        all_spp = self.acc.spp_all()
-        self.stop_spp[stopped] = all_spp[stopped]
-        for b in np.flatnonzero(row).tolist():          # the blocks decided this step (the report's)
-            self.events.setdefault(b, []).append((int(all_spp[b]), int(row[b])))
+        self.stop_spp[stopped] = self.acc.spp_all()[stopped]
         rows = np.zeros((len(passes), len(self.active)), np.int8)
         rows[-1] = row
         self.history = np.vstack([self.history, rows])
-        self.history_spp = np.append(self.history_spp, rows_spp)
+        self.history_spp = np.append(self.history_spp, [int(r[idx].max()) for r in rows_spp])
+        self.history_block_spp = np.vstack([self.history_block_spp, np.stack(rows_spp)])
         self.rendered = np.append(self.rendered, [len(idx)] * len(passes))
         return row
+
+    @property
+    def events(self) -> dict[int, list[tuple[int, int]]]:
+        """Each decided block's own [(spp, verdict)], in order (budget rounds put blocks at
+        different spp in one row, so the spp are the block's own)."""
+        rows, cols = np.nonzero(self.history)
+        spp, verdict = self.history_block_spp[rows, cols], self.history[rows, cols]
+        out: dict[int, list[tuple[int, int]]] = {}
+        for b, s, v in zip(cols.tolist(), spp.tolist(), verdict.tolist()):   # once, for the report
+            out.setdefault(b, []).append((s, v))
+        return {b: sorted(e, key=lambda x: x[0]) for b, e in out.items()}
 
     def judge(self, ids: Sequence[int]) -> np.ndarray:
         """The criterion's verdicts on blocks as they stand, changing nothing here: refreshes
@@ -102,8 +111,8 @@ class PassLoop:
 
     def state(self) -> dict[str, Any]:
         return {"acc": self.acc.state(), "active": self.active, "stop_spp": self.stop_spp,
-                "history": self.history, "history_spp": self.history_spp, "rendered": self.rendered,
-                "events": self.events}
+                "history": self.history, "history_spp": self.history_spp,
+                "history_block_spp": self.history_block_spp, "rendered": self.rendered}
 
     def restore(self, state: dict[str, Any]) -> None:
         """Continue from a validated checkpoint's state (`renderer.checkpoint`)."""
@@ -115,10 +124,4 @@ class PassLoop:
         self.history = np.asarray(state["history"], np.int8).reshape(-1, len(self.active))
         self.history_spp = np.asarray(state["history_spp"], np.int64)
         self.rendered = np.asarray(state["rendered"], np.int64)
-        events = state.get("events")
-        if isinstance(events, dict) and events:
-            self.events = {int(b): [(int(s), int(v)) for s, v in e] for b, e in events.items()}
-        else:   # a checkpoint of a plain render: every decided block was at the step's spp
-            self.events = {b: [(int(self.history_spp[i]), int(self.history[i, b]))
-                               for i in np.flatnonzero(self.history[:, b] != 0)] for b in range(len(self.active))}
-            self.events = {b: e for b, e in self.events.items() if e}
+        self.history_block_spp = np.asarray(state["history_block_spp"], np.int64).reshape(self.history.shape)

@@ -30,13 +30,11 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
     nonfinite = acc.nonfinite_all()
     converged = ~state["active"]
     history = state["history"]
-    hist_spp = state["history_spp"]
+    block_spp = state["history_block_spp"]     # each block's own spp: budget rounds desync them
     blocks = []
-    events = state.get("events")        # each block's own (spp, verdict): budget rounds desync them
     for b in range(n):
         asked = np.flatnonzero(history[:, b] != 0)
-        own = [[int(s), int(v)] for s, v in events.get(b, [])] if events is not None else \
-            [[int(hist_spp[i]), int(history[i, b])] for i in asked]
+        own = [[int(block_spp[i, b]), int(history[i, b])] for i in asked]
         blocks.append({"id": b, "window": list(br.window(b)), "spp": int(spp[b]), "converged": bool(converged[b]),
                        "stop_spp": int(state["stop_spp"][b]) if converged[b] else None,
                        "nonfinite": int(nonfinite[b]), "history": own})

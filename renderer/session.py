@@ -93,8 +93,9 @@ def pass_step(loop: PassLoop, br: BlockRenderer, ids: Sequence[int], passes: Seq
 class RenderSession:
     """The state of one render between its set-up and its result (see the module docstring).
 
-    `state` is what a checkpoint restores (pass index, done, counters, timers, quick image;
-    the loop's arrays come from `loop.state()`); `settings` are what a resume must match.
+    `state` is what a checkpoint restores (pass index: the history rows so far, done,
+    counters, timers, quick image, a budget's state; the loop's arrays come from
+    `loop.state()`); `settings` are what a resume must match.
     """
 
     def __init__(self, br: BlockRenderer, crit: Criterion, settings: dict[str, Any], sizes: list[int], *,
@@ -120,6 +121,10 @@ class RenderSession:
         self.loop = PassLoop(crit, br.grid, br.block_shape, min_spp, quick_blocks, device=br.device)
         if "acc" in self.state:                       # resumed
             self.loop.restore(self.state)
+            if budget is not None and self.state.get("budget") is not None:
+                budget.restore(self.state["budget"])
+                asked, ratio = self.state["budget"]["ratio_asked"], self.state["budget"]["ratio"]
+                crit.ratios.put(np.flatnonzero(asked), ratio[asked])   # what the rounds are chosen by
         self.done_before = {k: int(self.state["counters"].pop(k, 0)) for k in RENDER_COUNTERS}
         if self.state["counters"]:  # resumed: continue the counts (this overrides what prepare counted)
             crit.restore_counters(self.state["counters"],
@@ -151,18 +156,21 @@ class RenderSession:
         return int(self.state["pass_index"])
 
     def plan(self) -> tuple[list[int], list[Pass]]:
-        """The blocks of the next step and their passes ([] when the render is over)."""
-        loop, p, sizes = self.loop, self.pass_index, self.sizes
+        """The blocks of the next step and their passes ([] when the render is over). Each
+        block takes its own next pass: in a plain render they are all at the same one
+        (unless it resumes a budget render whose rounds put them out of step)."""
+        loop, sizes = self.loop, np.asarray(self.sizes, np.int64)
+        passes = loop.acc.passes_all()
         if self.budget is None:
-            ids = loop.active_ids
-            if not ids or p >= len(sizes):
+            ids = np.flatnonzero(loop.active & (passes < len(sizes)))
+            if not ids.size:
                 return [], []
-            k = grown_passes(self.br.n_blocks, len(ids), len(sizes) - p, self.grow)
-            m = len(ids)
-            return ids, [(np.full(m, p + j, np.int64), np.full(m, sizes[p + j], np.int64)) for j in range(k)]
-        ids = self.budget.select(loop, sizes, time.perf_counter() - self.t_start)
-        own = loop.acc.passes_all()[np.asarray(ids, np.int64)]
-        return ids, [(own, np.asarray(sizes, np.int64)[own])] if ids else []
+            own = passes[ids]
+            k = grown_passes(self.br.n_blocks, len(ids), len(sizes) - int(own.max()), self.grow)
+            return ids.tolist(), [(own + j, sizes[own + j]) for j in range(k)]
+        ids = self.budget.select(loop, self.sizes, time.perf_counter() - self.t_start)
+        own = passes[np.asarray(ids, np.int64)]
+        return ids, [(own, sizes[own])] if ids else []
 
     def step(self) -> int:
         """One step (see the module docstring); returns the passes it added (0: done)."""
@@ -176,7 +184,7 @@ class RenderSession:
             self.budget.record(time.perf_counter() - t0, int(passes[0][1].sum()))
         self.state["pass_index"] = self.pass_index + stepped
         loop = self.loop
-        self.state["done"] = (not loop.active.any() or self.pass_index >= len(self.sizes)) \
+        self.state["done"] = not (loop.active & (loop.acc.passes_all() < len(self.sizes))).any() \
             if self.budget is None else self.budget.finished(loop, self.sizes)
         return stepped
 
@@ -193,6 +201,9 @@ class RenderSession:
     def snapshot(self) -> dict[str, Any]:
         wall = self.timers["wall_s"] + (time.perf_counter() - self.t_start)
         return {**self.state, **self.loop.state(), "settings": self.settings,
+                "budget": None if self.budget is None else {
+                    **self.budget.state(), **dict(zip(("ratio_asked", "ratio"),
+                                                      self.crit.ratios.take(np.arange(self.br.n_blocks))))},
                 "counters": {**dict(self.crit.counters), **self.counts()},
                 "timers": {**self.crit.timers, "render_s": self.timers["render_s"],
                            "setup_s": self.timers["setup_s"], "wall_s": wall}}
@@ -200,8 +211,6 @@ class RenderSession:
     def checkpoint(self) -> None:
         """Write the checkpoint (in memory: nothing to resume from, so nothing)."""
         if self.ckpt_path is None:
-            return
-        if self.budget is not None and self.budget.prioritised_rounds:   # blocks out of step: not resumable
             return
         self.checkpoints_written += 1
         save_checkpoint(self.ckpt_path, self.snapshot())

@@ -193,31 +193,50 @@ def assert_resumed(jobs: list[tuple[int, int]], whole: list[tuple[int, int]], pa
     assert sorted(saved | set(jobs)) == sorted(whole) and len(jobs) == len(set(jobs))
 
 
+class CrashingVariance(VarianceCriterion):
+    """Dies at its `at`-th decision: a kill in the middle of a budget render."""
+
+    def __init__(self, at: int) -> None:
+        super().__init__(0.05)
+        self.at = at
+
+    def _decide(self, ids, batch):
+        if self.counters["decide_calls"] + 1 == self.at:
+            raise RuntimeError("simulated kill")
+        return super()._decide(ids, batch)
+
+
 def test_a_budget_render_resumes_to_the_same_image(tmp_path, monkeypatch) -> None:
-    """Resumed from its checkpoint (written before the budget began prioritising), the
-    render gives the fresh run's image and report and renders only the passes the
-    checkpoint lacks; control: a 'resume' that restarts gives the same image, and fails the
-    pass count."""
+    """Killed while it prioritises (blocks out of step), a budget render resumes from its
+    last round's checkpoint: the fresh run's image and report, and only the passes the
+    checkpoint lacks are rendered. Controls: the checkpoint was written during prioritised
+    rounds (the old loop stopped writing them there), and a 'resume' that restarts gives
+    the same image but fails the pass count."""
     import shutil
 
     from learning.data.npz import read_npz
 
     opts = {**TINY, "checkpoint_every": 0.0, "spp_budget": 12}
     whole, whole_jobs = rendered_jobs(monkeypatch, lambda: adaptive_render(
-        "cornell", tmp_path / "a", VarianceCriterion(0.05), **opts))
-    assert whole["budget"]["prioritised_rounds"] > 0
-    passes_saved = read_npz(tmp_path / "a" / "checkpoint.npz")["acc_passes"]
+        "cornell", tmp_path / "b", VarianceCriterion(0.05), **opts))
+    assert whole["budget"]["prioritised_rounds"] > 1
+    late = whole["counters"]["decide_calls"] - 1                       # the kill: near the end
+    with pytest.raises(RuntimeError, match="simulated kill"):
+        adaptive_render("cornell", tmp_path / "a", CrashingVariance(late), **opts)
+    saved = read_npz(tmp_path / "a" / "checkpoint.npz")
+    assert int(saved["budget_prioritised_rounds"]) > 0 and not bool(saved["done"])
+    passes_saved = saved["acc_passes"]
     assert 0 < passes_saved.sum() < len(whole_jobs)
     shutil.copytree(tmp_path / "a", tmp_path / "c")
     again, jobs = rendered_jobs(monkeypatch, lambda: adaptive_render(
         "cornell", tmp_path / "a", VarianceCriterion(0.05), resume=True, **opts))
-    fresh = adaptive_render("cornell", tmp_path / "b", VarianceCriterion(0.05), **opts)
-    _same(tmp_path / "a", tmp_path / "b", again, fresh)
-    assert again["budget"]["above_target"] == fresh["budget"]["above_target"]
+    _same(tmp_path / "a", tmp_path / "b", again, whole)
+    assert again["budget"] == whole["budget"]
     assert_resumed(jobs, whole_jobs, passes_saved)
+    assert len(jobs) <= 2 * 16                      # what was left: the last rounds, not the render
     restarted, restart_jobs = rendered_jobs(monkeypatch, lambda: adaptive_render(
         "cornell", tmp_path / "c", VarianceCriterion(0.05), resume=False, **opts))
-    _same(tmp_path / "c", tmp_path / "b", restarted, fresh)           # the image cannot tell
+    _same(tmp_path / "c", tmp_path / "b", restarted, whole)           # the image cannot tell
     with pytest.raises(AssertionError, match="passes rendered again"):
         assert_resumed(restart_jobs, whole_jobs, passes_saved)
 

@@ -188,7 +188,7 @@ def _valid_checkpoint(path: Path) -> None:
         rendered.append(len(ids))
     save_checkpoint(path, {"settings": SETTINGS, "active": active, "stop_spp": stop_spp,
                            "history": np.stack(history), "history_spp": np.array([4, 8]),
-                           "rendered": np.array(rendered), "pass_index": 2, "done": False,
+                           "history_block_spp": np.array([[4] * 4, [8] * 4]), "rendered": np.array(rendered), "pass_index": 2, "done": False,
                            "counters": {"decide_calls": 2}, "timers": {"wall_s": 0.5}, "quick": None,
                            "acc": acc.state()})
 

@@ -15,7 +15,7 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.jsonguard import max_depth
-from service.lab.loadtest import make_demo_bundle, make_request
+from tests.support.demo import make_demo_bundle, make_request
 from service.limits import MemoryBudget
 from service.oip import MAX_JSON_DEPTH, ApiError, parse_request
 from service.registry import ModelRegistry

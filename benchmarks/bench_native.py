@@ -51,9 +51,9 @@ class Case:
     sweep_max: int
 
 
-#: sized for 2 CPU cores (about 15 minutes in all) and for one H100/H200 (about 3 minutes)
+#: sized for 2 CPU cores (about 15 minutes in all) and for one H100/H200 (about 4 minutes)
 CASES = {
-    "cpu": (Case("cornell_box", 512, 128, 1024, 512), Case("spot_stage", 256, 256, 0, 1024)),
+    "cpu": (Case("cornell_box", 512, 256, 1024, 512), Case("spot_stage", 256, 256, 0, 1024)),
     "cuda": (Case("cornell_box", 1024, 1024, 8192, 4096), Case("spot_stage", 1024, 1024, 8192, 4096)),
 }
 
@@ -129,7 +129,7 @@ def reference_image(case: Case, scene: Any) -> tuple[np.ndarray, str]:
     return ref, f"mi.render {case.ref_spp} spp ({secs:.0f} s)"
 
 
-def measure_case(case: Case, tau: float) -> dict[str, Any]:
+def measure_case(case: Case, tau: float, repeats: int = 3) -> dict[str, Any]:
     """Every figure of one case (see the module docstring)."""
     scene = load_case_scene(case)
     # warm: compile mi.render's kernel, our tracer's and FLIP's, at a small spp
@@ -139,15 +139,23 @@ def measure_case(case: Case, tau: float) -> dict[str, Any]:
     ref, ref_source = reference_image(case, scene)
     out: dict[str, Any] = {"case": asdict(case), "tau": tau, "reference": ref_source}
 
-    img, t_mi = mi_render(scene, case.max_spp, seed=1)
-    out["mi_render"] = {"wall_s": t_mi, **block_errors(img, ref, tau)}
-    uni = ours(scene, "uniform", case.max_spp, tau)
-    out["uniform"] = {k: v for k, v in uni.items() if k != "image"} | block_errors(uni["image"], ref, tau)
-    ada = ours(scene, "flip", case.max_spp, tau, grow=True)
-    out["adaptive"] = {k: v for k, v in ada.items() if k != "image"} | block_errors(ada["image"], ref, tau)
-    fixed = ours(scene, "flip", case.max_spp, tau, grow=False)
-    out["adaptive_fixed_step"] = {k: v for k, v in fixed.items() if k != "image"} | \
-        block_errors(fixed["image"], ref, tau)
+    # wall time to the same spp: the four runs interleaved, `repeats` times, medians kept
+    # (a machine's speed drifts by 10-20 % between minutes: one run each would measure that)
+    runs: dict[str, list[dict[str, Any]]] = {"mi_render": [], "uniform": [], "adaptive": [], "adaptive_fixed_step": []}
+    for _ in range(repeats):
+        img, t_mi = mi_render(scene, case.max_spp, seed=1)
+        runs["mi_render"].append({"wall_s": t_mi, "image": img})
+        runs["uniform"].append(ours(scene, "uniform", case.max_spp, tau))
+        runs["adaptive"].append(ours(scene, "flip", case.max_spp, tau, grow=True))
+        runs["adaptive_fixed_step"].append(ours(scene, "flip", case.max_spp, tau, grow=False))
+    for name, rs in runs.items():
+        walls = [r["wall_s"] for r in rs]
+        med = rs[int(np.argsort(walls)[len(walls) // 2])]
+        out[name] = {k: v for k, v in med.items() if k != "image"} | {"walls_s": walls} | \
+            block_errors(rs[0]["image"], ref, tau)
+    t_mi = out["mi_render"]["wall_s"]
+    ada, fixed = runs["adaptive"][0], runs["adaptive_fixed_step"][0]
+    ada = {**ada, "wall_s": out["adaptive"]["wall_s"]}
     # grown passes change no sample: the images agree to float rounding (splat order)
     out["grown_vs_fixed_max_diff"] = float(np.abs(ada["image"] - fixed["image"]).max())
 
@@ -186,7 +194,7 @@ def measure_case(case: Case, tau: float) -> dict[str, Any]:
 
 
 def bench_native(tau: float | None = None, cases: tuple[Case, ...] | None = None,
-                 on_case: Any = None) -> dict[str, Any]:
+                 on_case: Any = None, repeats: int = 3) -> dict[str, Any]:
     """Every case of the variant's device (`CASES`), with the device named; `on_case(result)`
     after each case (so a run cut short keeps what it measured)."""
     from learning.data.variant import select_variant
@@ -200,7 +208,7 @@ def bench_native(tau: float | None = None, cases: tuple[Case, ...] | None = None
     out = {"variant": variant, "device": device_name(kind), "tau": tau or DEFAULT_TAU, "cases": []}
     for c in cases or CASES[kind]:
         log.info("bench native: %s %dx%d on %s", c.scene, c.size, c.size, out["device"])
-        out["cases"].append(measure_case(c, tau or DEFAULT_TAU))
+        out["cases"].append(measure_case(c, tau or DEFAULT_TAU, repeats))
         if on_case is not None:
             on_case(out)
     return out
@@ -229,11 +237,17 @@ def _f(x: float | None, fmt: str = "{:.1f} s") -> str:
     return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else fmt.format(x)
 
 
+def _runs(x: dict[str, Any]) -> str:
+    walls = x.get("walls_s")
+    return "" if not walls or len(walls) < 2 else "(" + ", ".join(f"{w:.2f}" for w in walls) + ")"
+
+
 def md_native(r: dict[str, Any]) -> str:
     """BENCHMARKS.md section: one table per case, labelled with the device."""
     lines = [f"Device: **{r['device']}**, variant `{r['variant']}`, tau {r['tau']:g}, {BLOCK}-px blocks, step "
              f"{STEP}, flip criterion. Errors: DESIGN's observer (largest 16x16-tile FLIP per block) against the "
-             "reference. Wall times are warm."]
+             "reference. Wall times are warm; the first four rows are medians of runs interleaved with each "
+             "other (all runs in brackets)."]
     for c in r["cases"]:
         case, m = c["case"], c["mi_render"]
         ada, fixed, uni, eq = c["adaptive"], c["adaptive_fixed_step"], c["uniform"], c["mi_render_equal_time"]
@@ -242,12 +256,13 @@ def md_native(r: dict[str, Any]) -> str:
                   f"{c['reference']}.", "",
                   "| run | wall | vs mi.render | mean spp | launches | not rendering | worst block | mean block "
                   "| blocks above tau |", "|---|---|---|---|---|---|---|---|---|",
-                  f"| `mi.render`, {case['max_spp']} spp | {m['wall_s']:.2f} s | 1.00x | {case['max_spp']} | | "
-                  f"| {m['worst']:.4f} | {m['mean']:.4f} | {m['above_tau']} of {n} |"]
+                  f"| `mi.render`, {case['max_spp']} spp | {m['wall_s']:.2f} s {_runs(m)} | 1.00x | {case['max_spp']} "
+                  f"| | | {m['worst']:.4f} | {m['mean']:.4f} | {m['above_tau']} of {n} |"]
         for name, x in (("our uniform loop", uni), ("adaptive (flip), grown passes", ada),
                         ("adaptive (flip), fixed step", fixed)):
             other = max(0.0, x["wall_s"] - x["render_s"])
-            lines.append(f"| {name} | {x['wall_s']:.2f} s | {x['wall_s'] / m['wall_s']:.2f}x | {x['mean_spp']:.0f} "
+            lines.append(f"| {name} | {x['wall_s']:.2f} s {_runs(x)} | {x['wall_s'] / m['wall_s']:.2f}x "
+                         f"| {x['mean_spp']:.0f} "
                          f"| {x['launches']} | {other:.2f} s ({100 * other / max(x['wall_s'], 1e-9):.1f} %) "
                          f"| {x['worst']:.4f} | {x['mean']:.4f} | {x['above_tau']} |")
         lines.append(f"| `mi.render` at the adaptive wall time | {eq['wall_s']:.2f} s | | {eq['spp']} | | "
@@ -270,6 +285,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--json", default=None, help="write the results here")
     p.add_argument("--tau", type=float, default=None)
+    p.add_argument("--repeats", type=int, default=3, help="interleaved runs of each timed render (medians)")
     p.add_argument("--update", default=None, metavar="FILE",
                    help="rewrite FILE's section native (CPU) or native_gpu (GPU) with the results")
     args = p.parse_args(argv)
@@ -287,7 +303,7 @@ def main(argv: list[str] | None = None) -> int:
                                                 md_native(r)})
         print(md_native(r), flush=True)
 
-    bench_native(args.tau, on_case=save)
+    bench_native(args.tau, on_case=save, repeats=max(1, args.repeats))
     return 0
 
 

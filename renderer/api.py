@@ -61,7 +61,10 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
         Block side in pixels; None: 64 (the size the criteria were calibrated on), or the
         frame's short side if that is smaller. Edge windows are moved flush with the edge.
     min_spp : int or None
-        Samples per pixel before the first decision; None: 16.
+        Samples per pixel before the first decision; None: 16. Decisions come at the end
+        of a pass, so the first one is at the first pass that reaches min_spp: a min_spp
+        that is not a multiple of `step` (or below it) is not changed, it takes effect at
+        the next pass boundary (``report["min_spp"]`` keeps the value given).
     max_spp : int or None
         Most samples per pixel of any block; None: 1024.
     step : int or None

@@ -156,7 +156,9 @@ class BlockRenderer:
         self.grid = (len(self._ys), len(self._xs))
         # an XML scene may declare no integrator (mi.render then refuses): Mitsuba's path tracer
         self._integrator = scene.integrator() if integrator is None else integrator
-        self._integrator = getattr(self._integrator, "nested", self._integrator)   # the noisestop plugin
+        if hasattr(self._integrator, "property_error"):        # the noisestop plugin: its nested one
+            self._integrator.check()                            # (a bad property: one line, here)
+            self._integrator = self._integrator.nested
         if self._integrator is None:
             logger.info("scene declares no integrator; using Mitsuba's 'path'")
             self._integrator = mi.load_dict({"type": "path"})

@@ -65,24 +65,27 @@ def _integrator_class() -> type:
             super().__init__(props)
             nested = [props[k] for k in props.keys()
                       if props.type(k) == mi.Properties.Type.Object and isinstance(props[k], mi.Integrator)]
-            if len(nested) > 1:
-                raise ValueError("the noisestop integrator wraps one integrator, got "
-                                 f"{len(nested)} nested ones")
             #: the integrator the samples come from (Mitsuba's path tracer if none is nested)
             self.nested = nested[0] if nested else mi.load_dict({"type": "path"})
-            self.settings = {k: _read(props, k, kind) for k, kind in _PROPERTIES.items() if k in props}
-            for key in ("block", "min_spp", "max_spp", "step"):   # combinations are checked per render
-                if key in self.settings and not 1 <= self.settings[key] <= MAX_SPP:
-                    raise ValueError(f"noisestop integrator: {key} must be a positive integer, at most "
-                                     f"{MAX_SPP}, got {self.settings[key]}")
-            from .criteria import make_criterion
-
-            self.criterion = make_criterion(**self._criterion_options())
-            if self.criterion == "oracle":
-                raise ValueError("the noisestop integrator cannot use the oracle criterion (it needs a "
-                                 "labelled reference stack): use renderer.render")
             #: the last render's RenderResult (image, spp, converged, report)
             self.result = None
+            #: a bad property's one-line message, raised when the integrator is used: Mitsuba's
+            #: loader would print a Python traceback around an error raised here
+            self.property_error: str | None = None
+            self.settings: dict[str, Any] = {}
+            self.criterion: Any = None
+            try:
+                if len(nested) > 1:
+                    raise ValueError(f"the noisestop integrator wraps one integrator, got {len(nested)} nested ones")
+                self.settings = _checked_settings(props)
+                from .criteria import make_criterion
+
+                self.criterion = make_criterion(**self._criterion_options())
+                if self.criterion == "oracle":
+                    raise ValueError("the oracle criterion needs a labelled reference stack: use renderer.render")
+            except ValueError as exc:
+                self.property_error = f"noisestop integrator: {exc}".replace(
+                    "noisestop integrator: noisestop integrator: ", "noisestop integrator: ")
 
         def _criterion_options(self) -> dict[str, Any]:
             from learning.names import DEFAULT_TAU
@@ -94,6 +97,12 @@ def _integrator_class() -> type:
                     "model": s.get("model"), "threshold": s.get("threshold"), "offset": s.get("offset"),
                     "exposure": s.get("exposure", 0.0)}
 
+        def check(self) -> None:
+            """ValueError (one line) if a property was bad: raised where the integrator is used
+            (mi.render, renderer.render, the render loop), not while Mitsuba loads it."""
+            if self.property_error is not None:
+                raise ValueError(self.property_error)
+
         def aov_names(self) -> list[str]:
             return list(AOVS)
 
@@ -102,6 +111,7 @@ def _integrator_class() -> type:
             """The adaptive render of `scene` from `sensor` as [H, W, 5] (R, G, B, spp, converged)."""
             from .adaptive import run_adaptive
 
+            self.check()
             if not develop:
                 raise ValueError("the noisestop integrator returns its developed image: call it with "
                                  "develop=True (as mi.render does)")
@@ -129,6 +139,26 @@ def _integrator_class() -> type:
     return NoisestopIntegrator
 
 
+def _checked_settings(props: Any) -> dict[str, Any]:
+    """The properties set, each of its kind and in range, and their combination as a render
+    would check it (a block too small, min_spp above max_spp...): ValueError naming it."""
+    from noisefeat.bounds import SizeBounds
+
+    from .settings import DEFAULTS, check_spp_settings
+
+    settings = {k: _read(props, k, kind) for k, kind in _PROPERTIES.items() if k in props}
+    for key in ("block", "min_spp", "max_spp", "step"):
+        if key in settings and not 1 <= settings[key] <= MAX_SPP:
+            raise ValueError(f"{key} must be a positive integer, at most {MAX_SPP}, got {settings[key]}")
+    spp = {k: settings.get(k, DEFAULTS[k]) for k in ("step", "min_spp", "max_spp")}
+    if "min_spp" not in settings:          # the default min_spp gives way to a smaller max_spp
+        spp["min_spp"] = min(spp["min_spp"], spp["max_spp"])
+    check_spp_settings(spp["step"], spp["min_spp"], spp["max_spp"])
+    if "block" in settings:
+        SizeBounds.from_env().check_block(settings["block"], settings["block"], what="block")
+    return settings
+
+
 def scene_plugin_settings(scene: Any) -> dict[str, Any]:
     """The properties set on a loaded scene's ``noisestop`` integrator ({} for anything
     else: a path, a scene with another integrator): what `renderer.render` honours when it
@@ -141,6 +171,7 @@ def scene_plugin_settings(scene: Any) -> dict[str, Any]:
         return {}
     if not _classes or not isinstance(integrator, tuple(_classes.values())):
         return {}
+    integrator.check()
     return dict(integrator.settings)
 
 
@@ -149,14 +180,14 @@ def _read(props: Any, key: str, kind: type) -> Any:
     value = props[key]
     if kind is bool:
         if not isinstance(value, bool):
-            raise ValueError(f"noisestop integrator: {key} must be a boolean, got {value!r}")
+            raise ValueError(f"{key} must be a boolean, got {value!r}")
         return value
     if kind is int and (isinstance(value, bool) or not isinstance(value, (int, np.integer))):
-        raise ValueError(f"noisestop integrator: {key} must be an integer, got {value!r}")
+        raise ValueError(f"{key} must be an integer, got {value!r}")
     if kind is float and (isinstance(value, bool) or not isinstance(value, (int, float))):
-        raise ValueError(f"noisestop integrator: {key} must be a number, got {value!r}")
+        raise ValueError(f"{key} must be a number, got {value!r}")
     if kind is str and not isinstance(value, str):
-        raise ValueError(f"noisestop integrator: {key} must be a string, got {value!r}")
+        raise ValueError(f"{key} must be a string, got {value!r}")
     return kind(value)
 
 

@@ -161,3 +161,13 @@ def test_render_honours_the_scenes_own_plugin_properties(variant) -> None:
     assert mine.report["max_spp"] == 16 and mine.report["block"] == [32, 32]
     control = renderer.render(plain, progress=False, max_spp=16, step=8)
     assert control.report["block"] == [64, 64] and control.report["criterion"]["name"] == "flip"
+
+
+def test_a_min_spp_below_the_step_takes_effect_at_the_first_pass() -> None:
+    """Documented (renderer.render): min_spp is not changed, decisions come at pass ends,
+    so min_spp 7 with step 8 decides at 8, and min_spp 9 first at 16 (a control)."""
+    for min_spp, first in ((7, 8), (9, 16)):
+        r = run_adaptive("cornell", make_criterion("flip", tau=0.02, threshold=0.5), resolution=32, block=16,
+                         step=8, min_spp=min_spp, max_spp=32, progress=False)
+        assert r.report["min_spp"] == min_spp
+        assert min(h[0][0] for h in (b["history"] for b in r.report["blocks"]) if h) == first

@@ -128,14 +128,24 @@ def test_defaults_and_bad_properties(mi):
     assert integrator.result.report["criterion"] == want.report["criterion"]
     assert want.report["criterion"]["name"] == "flip" and want.report["criterion"]["tau"] == 0.02
     assert set(np.unique(want.spp)) <= {8, 16}
-    bad = [({"bogus": 1}, "bogus"), ({"criterion": "nope"}, "unknown criterion 'nope'"),
+    with pytest.raises(RuntimeError, match="bogus"):          # Mitsuba's own check, at load
+        mi.load_dict(scene_dict(mi, {"type": "noisestop", "bogus": 1}))
+    # ours: one line where the integrator is used (raised while Mitsuba loads, they would
+    # come wrapped in a Python traceback)
+    bad = [({"criterion": "nope"}, "unknown criterion 'nope'"),
            ({"tau": -1.0}, "tau must be a positive finite number"), ({"block": 1.5}, "block must be an integer"),
-           ({"criterion": "oracle"}, "cannot use the oracle criterion"),
-           ({"min_spp": 0}, "min_spp must be a positive integer"),
+           ({"criterion": "oracle"}, "oracle criterion needs a labelled reference stack"),
+           ({"min_spp": 0}, "min_spp must be a positive integer"), ({"block": 7}, "block must be at least 8x8"),
+           ({"min_spp": 64, "max_spp": 32}, r"min_spp \(64\) is above max_spp \(32\)"),
            ({"a": PATH, "b": PATH}, "wraps one integrator, got 2")]
     for props, message in bad:
-        with pytest.raises(RuntimeError, match=message):
-            mi.load_dict(scene_dict(mi, {"type": "noisestop", **props}))
+        broken = mi.load_dict(scene_dict(mi, {"type": "noisestop", **props}))
+        with pytest.raises(ValueError, match=message) as err:
+            renderer.render(broken, progress=False)
+        assert "\n" not in str(err.value) and str(err.value).startswith("noisestop integrator: ")
+        with pytest.raises(RuntimeError) as wrapped:                 # mi.render wraps every integrator's error
+            mi.render(broken)
+        assert isinstance(wrapped.value.__cause__, ValueError) and str(wrapped.value.__cause__) == str(err.value)
 
 
 #: every property at a value other than its default (model and offset: with the model criterion)

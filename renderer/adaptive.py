@@ -299,8 +299,6 @@ def run_adaptive(scene: Any, criterion: Criterion | str, *,
         ckpt_path = prepare_output_dir(checkpoints.out) / CHECKPOINT  # writable: before any pass
 
     variant = select_variant()
-    from .plugin import register
-    register()         # a scene file whose integrator is `noisestop` loads (issue 34)
     scene_obj = scene if loaded else load_scene(scene, resolution, defines=defines)
     if loaded and sensor is None and not scene_obj.sensors():
         raise ValueError(f"{label}: the scene has no sensor (camera) to render from; add one")

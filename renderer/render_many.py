@@ -25,8 +25,10 @@ logger = logging.getLogger(__name__)
 def _render_task(scene: str, out: str, criterion: Criterion | str, kwargs: dict[str, Any]) -> dict[str, Any]:
     """What one worker runs: one scene, start to finish (or resume to finish)."""
     from .farm import configure_worker_threads
+    from .plugin import register
 
     configure_worker_threads()
+    register()          # a scene file whose integrator is `noisestop` loads in this process too
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     return adaptive_render(scene, out, criterion, **kwargs)
 
@@ -98,6 +100,9 @@ def render_command(scenes: str | Sequence[str], out: str | os.PathLike, *, crite
         raise ValueError("a reference image is one scene's: render one scene with it (or give a dataset "
                          "directory holding every scene)")
     if len(names) == 1:
+        from .plugin import register
+
+        register()      # a scene file whose integrator is `noisestop` loads (the loop cannot import it)
         return adaptive_render(names[0], out, crit, reference=reference, tau=tau, **kwargs)
     return render_many(names, out, crit, workers=workers, scheduler=scheduler, reference=reference, tau=tau,
                        **kwargs)

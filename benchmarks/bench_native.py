@@ -129,14 +129,15 @@ def reference_image(case: Case, scene: Any) -> tuple[np.ndarray, str]:
     return ref, f"mi.render {case.ref_spp} spp ({secs:.0f} s)"
 
 
-def measure_case(case: Case, tau: float, repeats: int = 3) -> dict[str, Any]:
-    """Every figure of one case (see the module docstring)."""
+def measure_case(case: Case, tau: float, repeats: int = 3, walls_only: bool = False) -> dict[str, Any]:
+    """Every figure of one case (see the module docstring); `walls_only`: the wall times to
+    the same spp alone (no reference, no errors: a short run on a lent GPU)."""
     scene = load_case_scene(case)
     # warm: compile mi.render's kernel, our tracer's and FLIP's, at a small spp
     mi_render(scene, 16, seed=99)
     ours(scene, "uniform", 32, tau)
     ours(scene, "flip", 32, tau)
-    ref, ref_source = reference_image(case, scene)
+    ref, ref_source = (None, "none (wall times only)") if walls_only else reference_image(case, scene)
     out: dict[str, Any] = {"case": asdict(case), "tau": tau, "reference": ref_source}
 
     # wall time to the same spp: the four runs interleaved, `repeats` times, medians kept
@@ -152,7 +153,9 @@ def measure_case(case: Case, tau: float, repeats: int = 3) -> dict[str, Any]:
         walls = [r["wall_s"] for r in rs]
         med = rs[int(np.argsort(walls)[len(walls) // 2])]
         out[name] = {k: v for k, v in med.items() if k != "image"} | {"walls_s": walls} | \
-            block_errors(rs[0]["image"], ref, tau)
+            ({} if ref is None else block_errors(rs[0]["image"], ref, tau))
+    if ref is None:
+        return out
     t_mi = out["mi_render"]["wall_s"]
     ada, fixed = runs["adaptive"][0], runs["adaptive_fixed_step"][0]
     ada = {**ada, "wall_s": out["adaptive"]["wall_s"]}
@@ -194,7 +197,7 @@ def measure_case(case: Case, tau: float, repeats: int = 3) -> dict[str, Any]:
 
 
 def bench_native(tau: float | None = None, cases: tuple[Case, ...] | None = None,
-                 on_case: Any = None, repeats: int = 3) -> dict[str, Any]:
+                 on_case: Any = None, repeats: int = 3, walls_only: bool = False) -> dict[str, Any]:
     """Every case of the variant's device (`CASES`), with the device named; `on_case(result)`
     after each case (so a run cut short keeps what it measured)."""
     from learning.data.variant import select_variant
@@ -208,7 +211,7 @@ def bench_native(tau: float | None = None, cases: tuple[Case, ...] | None = None
     out = {"variant": variant, "device": device_name(kind), "tau": tau or DEFAULT_TAU, "cases": []}
     for c in cases or CASES[kind]:
         log.info("bench native: %s %dx%d on %s", c.scene, c.size, c.size, out["device"])
-        out["cases"].append(measure_case(c, tau or DEFAULT_TAU, repeats))
+        out["cases"].append(measure_case(c, tau or DEFAULT_TAU, repeats, walls_only))
         if on_case is not None:
             on_case(out)
     return out
@@ -242,6 +245,22 @@ def _runs(x: dict[str, Any]) -> str:
     return "" if not walls or len(walls) < 2 else "(" + ", ".join(f"{w:.2f}" for w in walls) + ")"
 
 
+def _md_walls(c: dict[str, Any]) -> list[str]:
+    """A walls-only case: wall time to the same spp, medians of interleaved runs."""
+    case, m = c["case"], c["mi_render"]
+    lines = ["", f"**{case['scene']} {case['size']}x{case['size']}**, max {case['max_spp']} spp, wall times only.", "",
+             "| run | wall | vs mi.render | mean spp | launches | not rendering |", "|---|---|---|---|---|---|",
+             f"| `mi.render`, {case['max_spp']} spp | {m['wall_s']:.2f} s {_runs(m)} | 1.00x | {case['max_spp']} | | |"]
+    for name, key in (("our uniform loop", "uniform"), ("adaptive (flip), grown passes", "adaptive"),
+                      ("adaptive (flip), fixed step", "adaptive_fixed_step")):
+        x = c[key]
+        other = max(0.0, x["wall_s"] - x["render_s"])
+        lines.append(f"| {name} | {x['wall_s']:.2f} s {_runs(x)} | {x['wall_s'] / m['wall_s']:.2f}x "
+                     f"| {x['mean_spp']:.0f} | {x['launches']} | {other:.2f} s "
+                     f"({100 * other / max(x['wall_s'], 1e-9):.1f} %) |")
+    return lines
+
+
 def md_native(r: dict[str, Any]) -> str:
     """BENCHMARKS.md section: one table per case, labelled with the device."""
     lines = [f"Device: **{r['device']}**, variant `{r['variant']}`, tau {r['tau']:g}, {BLOCK}-px blocks, step "
@@ -249,6 +268,9 @@ def md_native(r: dict[str, Any]) -> str:
              "reference. Wall times are warm; the first four rows are medians of runs interleaved with each "
              "other (all runs in brackets)."]
     for c in r["cases"]:
+        if "mi_render_equal_time" not in c:
+            lines += _md_walls(c)
+            continue
         case, m = c["case"], c["mi_render"]
         ada, fixed, uni, eq = c["adaptive"], c["adaptive_fixed_step"], c["uniform"], c["mi_render_equal_time"]
         n = m["blocks"]
@@ -286,6 +308,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", default=None, help="write the results here")
     p.add_argument("--tau", type=float, default=None)
     p.add_argument("--repeats", type=int, default=3, help="interleaved runs of each timed render (medians)")
+    p.add_argument("--walls-only", action="store_true",
+                   help="wall times to the same spp only (no reference, errors or sweep)")
     p.add_argument("--update", default=None, metavar="FILE",
                    help="rewrite FILE's section native (CPU) or native_gpu (GPU) with the results")
     args = p.parse_args(argv)
@@ -303,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
                                                 md_native(r)})
         print(md_native(r), flush=True)
 
-    bench_native(args.tau, on_case=save, repeats=max(1, args.repeats))
+    bench_native(args.tau, on_case=save, repeats=max(1, args.repeats), walls_only=args.walls_only)
     return 0
 
 

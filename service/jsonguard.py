@@ -14,6 +14,9 @@ import numpy as np
 
 #: bytes scanned at a time (bounds the scan's working memory to ~20x this)
 CHUNK = 1 << 20
+#: the scan's working arrays per byte of a slice (bool and int8 masks, int32 running sums,
+#: int64 positions where backslashes occur), rounded up: `limits.json_cost` counts them
+SCAN_BYTES_PER_BYTE = 32
 
 _OPEN = np.zeros(256, np.int8)
 _OPEN[[ord("["), ord("{")]] = 1

@@ -143,9 +143,13 @@ def json_cost(text: bytes | bytearray) -> int:
     """Working memory parsing and decoding this JSON text may take, from a byte count
     alone (no parsing; ~10 ms for 30 MB). Brackets, commas and colons inside strings are
     counted too: the estimate errs on the high side, never the low."""
+    from .jsonguard import CHUNK, SCAN_BYTES_PER_BYTE
+
     containers = text.count(b"[") + text.count(b"{")
     items = text.count(b",") + text.count(b":")
-    return JSON_COST_PER_CONTAINER * containers + JSON_COST_PER_ITEM * items + JSON_COST_PER_BYTE * len(text)
+    # plus the depth scan's working arrays (`jsonguard`), which run before the parser
+    return JSON_COST_PER_CONTAINER * containers + JSON_COST_PER_ITEM * items + JSON_COST_PER_BYTE * len(text) \
+        + SCAN_BYTES_PER_BYTE * min(len(text), CHUNK)
 
 
 def decode_cost(body: bytes | bytearray | memoryview, header_length: int | None) -> int:

@@ -33,7 +33,7 @@ from typing import Any
 
 log = logging.getLogger(__name__)
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 SUITES = ("tests/cli/test_error_contract.py", "tests/service/test_fuzz.py", "tests/renderer/test_kill_resume.py",
           "tests/service/test_service_hardening.py")
 ADDRESS_SPACE = 3 << 30

@@ -1,17 +1,22 @@
 """The adaptive progressive renderer (the paper's Figure 6): sample only the noisy blocks.
 
-Loop, one *pass* at a time (pass p adds `step` samples per pixel to every active block):
+`run_adaptive` checks its arguments, then steps a `renderer.session.RenderSession` until
+it is done, then builds the result. A step (a pass adds `step` samples per pixel):
 
-1. render the active blocks only (`BlockRenderer.render_blocks`, pass_index = p, so the
-   Mitsuba seed of (block, pass) is fixed whatever happened before);
-2. accumulate them (`BlockAccumulator`: exact means, even/odd half buffers);
-3. once spp >= min_spp, ask the criterion about the active blocks only; a block it calls
-   converged leaves the active set for good: never rendered, featured or asked again;
+1. trace the active blocks only, each at its next pass (`BlockRenderer.render_passes`:
+   the samples of (pixel, pass) are fixed whatever happened before), several passes in one
+   launch when few blocks remain (`renderer.session.grown_passes`), or in a budget render
+   the blocks the budget picks;
+2. accumulate them where they were traced (`BlockAccumulator`: exact means, even/odd half
+   buffers, torch tensors on the variant's device);
+3. once spp >= min_spp, ask the criterion about them in one batch, after each pass; a
+   block it calls converged leaves the active set for good: never rendered, featured or
+   asked again;
 4. checkpoint everything (accumulator, active set, verdict history, counters, timers, pass
    index) atomically into out/checkpoint.npz (`renderer.checkpoint`: digest-checked and
    validated against the settings before a resume trusts it), every `checkpoint_every`
    seconds, at the end, at the time limit and on SIGINT/SIGTERM (`renderer.signals`):
-   a pass is never half-saved.
+   a step is never half-saved.
 
 It stops when no block is active or max_spp is reached. Because samples depend only on
 (seed, pixel, pass) and the checkpoint holds all state, ``resume=True`` after a crash

@@ -76,10 +76,12 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
 def expected_bytes(frame: tuple[int, int], n_blocks: int, passes: int, block: tuple[int, int] | None = None) -> int:
     """An upper bound on a valid checkpoint's size: accumulator (float64 sums and int64
     weights of two halves, of every block window: overlapping windows hold more than the
-    frame), quick image, per-pass history, plus slack for names."""
+    frame), quick image, the history (a row per pass, or per budget round: verdicts and
+    per-block spp), plus slack for names."""
     h, w = frame
     held = max(h * w, n_blocks * block[0] * block[1]) if block is not None else h * w
-    return 2 * held * (3 * 8 + 8) + h * w * 3 * 4 + passes * (n_blocks + 24) + 16 * n_blocks + (1 << 20)
+    rows = passes * n_blocks          # a budget render's rounds: one block's pass each, at worst
+    return 2 * held * (3 * 8 + 8) + h * w * 3 * 4 + rows * (9 * n_blocks + 24) + 32 * n_blocks + (1 << 20)
 
 
 def load_checkpoint(path: Path, settings: dict[str, Any], *, sizes: list[int], grid: tuple[int, int],

@@ -1,10 +1,12 @@
 """Stopping criteria: one interface for the live adaptive loop and the dataset simulation.
 
-A criterion sees, for each block it is asked about, a `BlockView` (cumulative mean, the
-two half buffers, spp, quick block) and answers +1 (converged: stop sampling it) or -1
-(noisy: keep sampling). The live loop (`renderer.adaptive`) and the simulation on stored
-stacks (`renderer.simulate`) build the same views and call the same `decide`, so what is
-measured offline is what runs online.
+A criterion sees all the blocks it is asked about at once, as a `BlockBatch` (cumulative
+means and the two half buffers as tensors on the accumulator's device, spp, quick blocks;
+`BlockView`s, one per block, for callers outside the loop) and answers +1 (converged: stop
+sampling it) or -1 (noisy: keep sampling) for each. The live loop (`renderer.adaptive`)
+and the simulation on stored stacks (`renderer.simulate`) build the same batches from the
+same accumulator and call the same `decide`, so what is measured offline is what runs
+online.
 
 Criteria:
 

@@ -46,7 +46,7 @@ test-fast: setup
 # Time: BENCHMARKS.md "make bench". The sections live in benchmarks/ (this checkout only: not
 # installed, not in the image); `noisestop bench` loads them from here.
 bench: dataset heldout
-	$(NOISESTOP) bench features crop flip render passes service stability reliability --update BENCHMARKS.md
+	$(NOISESTOP) bench features crop flip render passes native service stability reliability --update BENCHMARKS.md
 	$(NOISESTOP) bench dataset inputs models criteria tradeoff ablation step knobs --data $(DATA) \
 		--heldout $(HELDOUT) --input halves,albedo --update BENCHMARKS.md
 

@@ -11,15 +11,16 @@ the server's own thread: their worst case, capped in depth by `oip.MAX_JSON_DEPT
 few tens of milliseconds.
 
 Wire: the server writes an 8-byte length and the JSON text to the worker's stdin; the
-worker answers an 8-byte length and a pickle of ("ok", InferenceRequest with numpy `data`)
-or ("error", status, message, headers). Both ends are this package: the pickle is trusted.
+worker answers an 8-byte length and a message: an 8-byte length, a small JSON document
+(the request with its decoded arrays left out and described by dtype and shape, or the
+error's status, message and headers), then the arrays' raw bytes. No pickle crosses the
+pipe: what comes back is read as JSON and numpy buffers, never executed.
 """
 from __future__ import annotations
 
 import json
 import logging
 import os
-import pickle
 import select
 import struct
 import subprocess
@@ -31,6 +32,8 @@ from typing import Any
 
 import anyio
 import anyio.to_thread
+
+import numpy as np
 
 from .oip import DATATYPES, ApiError, InferenceRequest
 
@@ -72,28 +75,29 @@ class _Worker:
             self.proc.stdin.write(head)
             self.proc.stdin.flush()
             size = _LEN.unpack(self._read(_LEN.size, deadline))[0]
-            return pickle.loads(self._read(size, deadline))
+            return decode_answer(self._read(size, deadline))
         except TimeoutError:
             self.kill()
             return ("timeout",)
-        except (OSError, EOFError, pickle.UnpicklingError, struct.error):
+        except (OSError, EOFError, ValueError, KeyError, TypeError, struct.error):
             self.kill()
             return ("died",)
 
-    def _read(self, n: int, deadline: float) -> bytes:
+    def _read(self, n: int, deadline: float) -> bytearray:
+        """`n` bytes from the worker into one writable buffer (the arrays are views of it)."""
         assert self.proc.stdout is not None
         fd = self.proc.stdout.fileno()
-        parts, got = [], 0
+        buf = bytearray(n)
+        view, got = memoryview(buf), 0
         while got < n:
             left = deadline - time.monotonic()
             if left <= 0 or not select.select([fd], [], [], left)[0]:
                 raise TimeoutError
-            chunk = os.read(fd, min(n - got, 1 << 20))
-            if not chunk:
+            k = os.readv(fd, [view[got:got + (1 << 20)]])
+            if not k:
                 raise EOFError
-            parts.append(chunk)
-            got += len(chunk)
-        return b"".join(parts)
+            got += k
+        return buf
 
     def alive(self) -> bool:
         return self.proc.poll() is None
@@ -163,6 +167,48 @@ class ParsePool:
         return answer
 
 
+# ------------------------------------------------------------------------- the wire
+
+
+def encode_answer(answer: tuple[Any, ...]) -> list[bytes | memoryview]:
+    """A worker's answer as the wire's parts (see the module docstring)."""
+    if answer[0] != "ok":
+        doc: dict[str, Any] = {"error": [answer[1], answer[2], answer[3]]}
+        arrays: list[np.ndarray] = []
+    else:
+        req = answer[1]
+        held = [i for i, t in enumerate(req.inputs) if isinstance(t.data, np.ndarray)]
+        arrays = [np.ascontiguousarray(req.inputs[i].data) for i in held]
+        described = [{"input": i, "dtype": a.dtype.str, "shape": list(a.shape)} for i, a in zip(held, arrays)]
+        dumped = req.model_dump(exclude_none=True, exclude={"inputs": {i: {"data"} for i in held}})
+        doc = {"request": dumped, "arrays": described}
+    text = json.dumps(doc).encode()
+    return [_LEN.pack(len(text)), text, *(memoryview(a).cast("B") for a in arrays)]
+
+
+def decode_answer(blob: bytearray) -> tuple[Any, ...]:
+    """The answer back from the wire's bytes: ("ok", InferenceRequest with numpy `data`,
+    views of `blob`) or ("error", status, message, headers). ValueError if it does not add up."""
+    (n,) = _LEN.unpack_from(blob, 0)
+    doc = json.loads(bytes(memoryview(blob)[_LEN.size:_LEN.size + n]))
+    if "error" in doc:
+        status, message, headers = doc["error"]
+        return ("error", int(status), str(message), dict(headers or {}))
+    req = InferenceRequest.model_validate(doc["request"])
+    offset = _LEN.size + n
+    for m in doc["arrays"]:
+        dtype, shape = np.dtype(m["dtype"]), tuple(int(d) for d in m["shape"])
+        if dtype.kind not in "biuf":
+            raise ValueError(f"unexpected array type {dtype} from a parse worker")
+        count = int(np.prod(shape, dtype=np.int64))
+        a = np.frombuffer(blob, dtype, count, offset).reshape(shape)
+        offset += a.nbytes
+        req.inputs[int(m["input"])].data = a   # type: ignore[assignment]
+    if offset != len(blob):
+        raise ValueError("a parse worker's answer has bytes left over")
+    return ("ok", req)
+
+
 # ------------------------------------------------------------------------- the worker side
 
 def parse_in_worker(head: bytes, rules: ParseRules) -> tuple[Any, ...]:
@@ -209,12 +255,13 @@ def _main() -> None:
         if len(raw) < _LEN.size:
             return                      # the server went away
         head = inp.read(_LEN.unpack(raw)[0])
-        answer = pickle.dumps(parse_in_worker(head, rules), protocol=pickle.HIGHEST_PROTOCOL)
+        parts = encode_answer(parse_in_worker(head, rules))
         del head
-        out.write(_LEN.pack(len(answer)))
-        out.write(answer)
+        out.write(_LEN.pack(sum(len(p) if isinstance(p, bytes) else p.nbytes for p in parts)))
+        for part in parts:
+            out.write(part)
         out.flush()
-        del answer
+        del parts
         release_memory(0)
 
 

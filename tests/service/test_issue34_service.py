@@ -122,3 +122,30 @@ def test_sighup_during_start_up_is_logged_and_ends_as_sigterm():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == -signal.SIGTERM
     assert "SIGHUP during start-up" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_the_parse_workers_wire_carries_no_pickle():
+    """The worker's answer comes back as JSON and raw array bytes: an array round-trips
+    (writable, same values); an object dtype or bytes left over are refused, not executed."""
+    import json as _json
+
+    import numpy as np
+
+    from service.oip import InferenceRequest
+    from service.parsepool import _LEN, decode_answer, encode_answer
+
+    req = InferenceRequest.model_validate({"id": "r", "inputs": [
+        {"name": "features", "shape": [2, 26], "datatype": "FP32", "data": [0.0] * 52}]})
+    req.inputs[0].data = np.arange(52, dtype=np.float32).reshape(2, 26)
+    blob = bytearray(b"".join(bytes(p) for p in encode_answer(("ok", req))))
+    kind, back = decode_answer(blob)
+    assert kind == "ok" and back.id == "r" and back.inputs[0].data.flags.writeable
+    np.testing.assert_array_equal(back.inputs[0].data, req.inputs[0].data)
+    assert decode_answer(bytearray(b"".join(bytes(p) for p in encode_answer(("error", 413, "too big", {}))))) == \
+        ("error", 413, "too big", {})
+    doc = _json.dumps({"request": req.model_dump(exclude={"inputs": {0: {"data"}}}),
+                       "arrays": [{"input": 0, "dtype": "|O", "shape": [1]}]}).encode()
+    with pytest.raises(ValueError, match="unexpected array type"):
+        decode_answer(bytearray(_LEN.pack(len(doc)) + doc + b"\0" * 8))
+    with pytest.raises(ValueError, match="left over"):
+        decode_answer(blob + b"x")

@@ -524,7 +524,7 @@ class ModelCriterion(Criterion):
         """Compute (and count) the quick blocks' features up front: every block needs them."""
         if self._local_features and self.needs_quick and len(ids):
             t0 = time.perf_counter()
-            self._quick_features([int(b) for b in ids], np.asarray(quick, np.float32))
+            self._quick_features(np.asarray(ids, np.int64).tolist(), np.asarray(quick, np.float32))
             self.timers["features_s"] += time.perf_counter() - t0
 
     def _decide(self, ids: list[int], batch: BlockBatch) -> np.ndarray:

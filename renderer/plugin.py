@@ -21,7 +21,14 @@ Properties (all optional): ``criterion`` (string: flip, model, variance, uniform
 take `renderer.render`'s defaults. ``mi.render``'s own arguments add to them: a nonzero
 ``spp`` is the render's max_spp, and ``seed`` is added to the property's seed, so
 ``mi.render(scene, seed=k)`` for k = 0, 1, ... gives independent renders, and
-``mi.render(scene)`` equals ``renderer.render(scene, ...)`` with the same settings.
+``mi.render(scene)`` equals ``renderer.render(scene, ...)`` with the same settings, and
+``renderer.render(scene)`` on such a scene takes these properties for the arguments it is
+not given.
+
+A bad property (a wrong type, out of range, a block too small, min_spp above max_spp, two
+nested integrators) does not fail the scene's loading, where Mitsuba would wrap the error
+in a Python traceback: it is one ValueError line wherever the integrator is used
+(`renderer.render`, `noisestop render`, and as the cause of ``mi.render``'s RuntimeError).
 
 Registering needs a Mitsuba variant, so ``import renderer`` does not do it (it would
 import Mitsuba). `register` (idempotent, per variant) does; importing this module and

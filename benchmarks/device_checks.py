@@ -25,16 +25,11 @@ ROOT = Path(__file__).resolve().parents[1]
 def golden() -> list[str]:
     from tests.support import passloop_golden as g
 
-    from renderer.adaptive import run_adaptive
-    from renderer.criteria import make_criterion
-
     gold = np.load(ROOT / "tests" / "fixtures" / "passloop_golden.npz")
     lines = []
-    for name, scene, kw in g.CASES:
+    for name, _, _ in g.CASES:
         for grow in (True, False):
-            crit = make_criterion(kw["criterion"], tau=0.02, threshold=kw.get("threshold"))
-            r = run_adaptive(g.load(scene), crit, progress=False, grow=grow,
-                             **{k: v for k, v in kw.items() if k not in ("criterion", "threshold")})
+            r = g.render_case(name, grow)
             spp = np.array([b["spp"] for b in r.report["blocks"]])
             want = gold[f"{name}/block_spp"]
             lines.append(f"{name} grow={grow}: {r.report['variant']}, stops equal {np.array_equal(spp, want)} "

@@ -47,6 +47,18 @@ def load(scene: str):
     return mi.load_dict(d)
 
 
+def render_case(case: str, grow: bool = True):
+    """One golden case rendered by the current loop (`run_adaptive`, grown passes or a
+    fixed step): its `RenderResult`, to hold against the recorded stops and image."""
+    from renderer.adaptive import run_adaptive
+    from renderer.criteria import make_criterion
+
+    _, scene, kw = next(c for c in CASES if c[0] == case)
+    crit = make_criterion(kw["criterion"], tau=0.02, threshold=kw.get("threshold"))
+    return run_adaptive(load(scene), crit, progress=False, grow=grow,
+                        **{k: v for k, v in kw.items() if k not in ("criterion", "threshold")})
+
+
 def main(out: str) -> None:
     arrays = {}
     for name, scene, kw in CASES:

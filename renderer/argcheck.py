@@ -27,24 +27,24 @@ def check_count(name: str, value: Any, optional: bool = True) -> None:
         raise ValueError(f"{name} must be a positive integer, at most {MAX_SPP}, got {_shown(value)}")
 
 
-def check_seconds(name: str, value: Any) -> None:
-    """None, or a number of seconds in (0, MAX_TIME_LIMIT]."""
+def _check_positive(name: str, value: Any, most: float, unit: str) -> None:
+    """None, or a finite number in (0, most]; else the one-line error naming `name`."""
     if value is None:
         return
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
-            or not 0 < value <= MAX_TIME_LIMIT or (isinstance(value, float) and not math.isfinite(value)):
-        raise ValueError(f"{name} must be a positive number of seconds, at most {MAX_TIME_LIMIT:g}, "
-                         f"got {_shown(value)}")
+            or not 0 < value <= most or (isinstance(value, float) and not math.isfinite(value)):
+        shown = f"{most:g}" if isinstance(most, float) else str(most)
+        raise ValueError(f"{name} must be a positive number of {unit}, at most {shown}, got {_shown(value)}")
+
+
+def check_seconds(name: str, value: Any) -> None:
+    """None, or a number of seconds in (0, MAX_TIME_LIMIT]."""
+    _check_positive(name, value, MAX_TIME_LIMIT, "seconds")
 
 
 def check_spp_budget(value: Any) -> None:
     """None, or a positive number of samples per pixel up to MAX_SPP."""
-    if value is None:
-        return
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
-            or not 0 < value <= MAX_SPP or (isinstance(value, float) and not math.isfinite(value)):
-        raise ValueError(f"spp_budget must be a positive number of samples per pixel, at most {MAX_SPP}, "
-                         f"got {_shown(value)}")
+    _check_positive("spp_budget", value, MAX_SPP, "samples per pixel")
 
 
 def check_budget_buys_a_pass(spp_budget: float | None, step: int) -> None:

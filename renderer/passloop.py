@@ -25,6 +25,17 @@ from learning.stoprule import CONVERGED, NOISY
 from .criteria import BlockBatch, Criterion
 
 
+def block_events(history: np.ndarray, block_spp: np.ndarray) -> dict[int, list[tuple[int, int]]]:
+    """Each decided block's own [(spp, verdict)], in history order, from the verdict rows
+    [K, n] and every block's spp after each row [K, n] (budget rounds put blocks at
+    different spp in one row, so the spp are the block's own). Read once, for the report."""
+    rows, cols = np.nonzero(history.T)              # block-major, rows in order within a block
+    out: dict[int, list[tuple[int, int]]] = {}
+    for b, s, v in zip(rows.tolist(), block_spp[cols, rows].tolist(), history[cols, rows].tolist()):
+        out.setdefault(b, []).append((s, v))
+    return out
+
+
 class PassLoop:
     """Active set, accumulator and verdict history of one render of `n` blocks.
 
@@ -89,14 +100,8 @@ class PassLoop:
 
     @property
     def events(self) -> dict[int, list[tuple[int, int]]]:
-        """Each decided block's own [(spp, verdict)], in order (budget rounds put blocks at
-        different spp in one row, so the spp are the block's own)."""
-        rows, cols = np.nonzero(self.history)
-        spp, verdict = self.history_block_spp[rows, cols], self.history[rows, cols]
-        out: dict[int, list[tuple[int, int]]] = {}
-        for b, s, v in zip(cols.tolist(), spp.tolist(), verdict.tolist()):   # once, for the report
-            out.setdefault(b, []).append((s, v))
-        return {b: sorted(e, key=lambda x: x[0]) for b, e in out.items()}
+        """Each decided block's own [(spp, verdict)], in order (`block_events`)."""
+        return block_events(self.history, self.history_block_spp)
 
     def judge(self, ids: Sequence[int]) -> np.ndarray:
         """The criterion's verdicts on blocks as they stand, changing nothing here: refreshes

@@ -13,6 +13,7 @@ from learning.data.stack import Stack
 
 from .blocks import BlockRenderer
 from .criteria import COUNTER_NAMES, Criterion
+from .passloop import block_events
 
 
 def pass_sizes(step: int, max_spp: int) -> list[int]:
@@ -29,12 +30,10 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
     spp = acc.spp_all()
     nonfinite = acc.nonfinite_all()
     converged = ~state["active"]
-    history = state["history"]
-    block_spp = state["history_block_spp"]     # each block's own spp: budget rounds desync them
+    events = block_events(state["history"], state["history_block_spp"])
     blocks = []
     for b in range(n):
-        asked = np.flatnonzero(history[:, b] != 0)
-        own = [[int(block_spp[i, b]), int(history[i, b])] for i in asked]
+        own = [[s, v] for s, v in events.get(b, [])]
         blocks.append({"id": b, "window": list(br.window(b)), "spp": int(spp[b]), "converged": bool(converged[b]),
                        "stop_spp": int(state["stop_spp"][b]) if converged[b] else None,
                        "nonfinite": int(nonfinite[b]), "history": own})

@@ -139,7 +139,7 @@ def bench_tradeoff(data: str, heldout: str | None = None, out_dir: str | Path = 
     from learning.evaluation.evaluate import stops_by_scene
     from learning.evaluation.generalisation import scene_groups, split_stacks, split_tables
     from learning.evaluation.calibrate import FLIP_CANDIDATES, flip_sweep
-    from learning.inputs.halves import flip_offset, load_flip_calibration, stack_flip_errors
+    from learning.inputs.halves import flip_offset, guarded_flip_scores, load_flip_calibration
     from learning.evaluation.metrics import true_thresholds
     from learning.stoprule import StopRule
     from learning.inputs.halves import stack_flat
@@ -202,7 +202,7 @@ def bench_tradeoff(data: str, heldout: str | None = None, out_dir: str | Path = 
     grids = {s.scene: tuple(s.grid) for s in test_stacks}
     per_model = stops_by_scene(test, scores, bundled.rule())
     flip_rule = StopRule(flip_offset(c))
-    per_flip = {s.scene: (flip_rule.stops(-stack_flip_errors(s), s.spp, stack_flat(s)), s.labels(),
+    per_flip = {s.scene: (flip_rule.stops(guarded_flip_scores(s), s.spp, stack_flat(s)), s.labels(),
                           s.thresholds, s.spp) for s in test_stacks}
     maps: dict[str, dict[str, np.ndarray]] = {}
     g_model, g_flip = _stop_grids(per_model, grids), _stop_grids(per_flip, grids)
@@ -234,9 +234,9 @@ def bench_step(data: str, heldout: str | None = None, multiples: tuple[int, ...]
     scores of every k-th level stand in for them; exact for a quick-image model, whose
     input is the cumulative mean). Wall time: real renders of
     `scene` with each criterion."""
-    from learning.evaluation.evaluate import by_scene
+    from learning.evaluation.evaluate import by_scene, scores_by_scene
     from learning.evaluation.generalisation import split_stacks, split_tables
-    from learning.inputs.halves import flip_offset, load_flip_calibration, stack_flip_errors
+    from learning.inputs.halves import flip_offset, guarded_flip_scores, load_flip_calibration
     from learning.evaluation.metrics import evaluate_verdicts
     from learning.stoprule import StopRule
     from learning.inputs.halves import stack_flat
@@ -249,10 +249,9 @@ def bench_step(data: str, heldout: str | None = None, multiples: tuple[int, ...]
     m = _model_and_check(model, [s.scene for s in test_stacks])
     test = split_tables(data, heldout, **m.table_options())[1]
     c = float(load_flip_calibration()["c"])
-    # a sub-image with no input yet (B empty at the first level of a `halves` model) never stops
-    scores = np.where(test.decidable, m.decision_function(test.X), -np.inf)
-    model_scores, flat = by_scene(test, scores), by_scene(test, test.flat)
-    flip_scores = {s.scene: -stack_flip_errors(s) for s in test_stacks}
+    # as the live loop reads them: no input yet, no stop; the dot guard holds its blocks
+    model_scores, flat = scores_by_scene(test, m.decision_function(test.X)), by_scene(test, test.flat)
+    flip_scores = {s.scene: guarded_flip_scores(s) for s in test_stacks}
     flats = {s.scene: stack_flat(s) for s in test_stacks}
     rules = {"model": (m.rule(), model_scores, flat), "flip": (StopRule(flip_offset(c)), flip_scores, flats)}
     with tempfile.TemporaryDirectory() as tmp:   # warm-up: every block's kernel compiled once

@@ -87,15 +87,28 @@ def mi_render(scene: Any, spp: int, seed: int) -> tuple[np.ndarray, float]:
     return image.astype(np.float32), time.perf_counter() - t0
 
 
-def block_errors(image: np.ndarray, reference: np.ndarray, tau: float) -> dict[str, Any]:
-    """DESIGN's observer per 64x64 block of `image` against `reference`: worst, mean, above tau."""
+def _dots(x: dict[str, Any]) -> str:
+    """The most dots a stopped block holds, and how many stopped blocks hold more than 16."""
+    if "max_stopped_dots" not in x:
+        return ""
+    return f"{x['max_stopped_dots']} ({x['dotted_stopped_blocks']} over 16)"
+
+
+def block_errors(image: np.ndarray, reference: np.ndarray, tau: float,
+                 stopped: list[bool] | None = None) -> dict[str, Any]:
+    """DESIGN's observer per 64x64 block of `image` against `reference`: worst, mean, above
+    tau; with the blocks a criterion `stopped`, the most dots one of them holds and how many
+    hold more than 16 (issue 33: none may)."""
     from renderer.report import final_vs_reference
 
     h, w = image.shape[:2]
     grid = (h // BLOCK, w // BLOCK)
-    r = final_vs_reference(image, reference, grid, tau)
-    return {"worst": r["worst_error"], "mean": r["mean_error"], "above_tau": r["visible_noise_blocks"],
-            "blocks": len(r["errors"])}
+    r = final_vs_reference(image, reference, grid, tau, stopped=stopped)
+    out = {"worst": r["worst_error"], "mean": r["mean_error"], "above_tau": r["visible_noise_blocks"],
+           "blocks": len(r["errors"])}
+    if stopped is not None:
+        out.update(max_stopped_dots=r["max_stopped_dots"], dotted_stopped_blocks=r["dotted_stopped_blocks"])
+    return out
 
 
 def ours(scene: Any, criterion: str, max_spp: int, tau: float, grow: bool = True) -> dict[str, Any]:
@@ -113,7 +126,8 @@ def ours(scene: Any, criterion: str, max_spp: int, tau: float, grow: bool = True
             "decisions_s": float(t.get("decisions_s", 0.0)) + float(t.get("features_s", 0.0)),
             "overhead_s": float(t.get("overhead_s", 0.0)) + float(t.get("setup_s", 0.0)),
             "mean_spp": float(np.mean([b["spp"] for b in r.report["blocks"]])),
-            "launches": int(r.report["render_calls"]["kernel_launches"]), "image": r.image}
+            "launches": int(r.report["render_calls"]["kernel_launches"]), "image": r.image,
+            "stopped": [bool(b["converged"]) for b in r.report["blocks"]]}
 
 
 def reference_image(case: Case, scene: Any) -> tuple[np.ndarray, str]:
@@ -152,8 +166,8 @@ def measure_case(case: Case, tau: float, repeats: int = 3, walls_only: bool = Fa
     for name, rs in runs.items():
         walls = [r["wall_s"] for r in rs]
         med = rs[int(np.argsort(walls)[len(walls) // 2])]
-        out[name] = {k: v for k, v in med.items() if k != "image"} | {"walls_s": walls} | \
-            ({} if ref is None else block_errors(rs[0]["image"], ref, tau))
+        out[name] = {k: v for k, v in med.items() if k not in ("image", "stopped")} | {"walls_s": walls} | \
+            ({} if ref is None else block_errors(rs[0]["image"], ref, tau, rs[0].get("stopped")))
     if ref is None:
         return out
     t_mi = out["mi_render"]["wall_s"]
@@ -277,18 +291,18 @@ def md_native(r: dict[str, Any]) -> str:
         lines += ["", f"**{case['scene']} {case['size']}x{case['size']}**, max {case['max_spp']} spp, reference: "
                   f"{c['reference']}.", "",
                   "| run | wall | vs mi.render | mean spp | launches | not rendering | worst block | mean block "
-                  "| blocks above tau |", "|---|---|---|---|---|---|---|---|---|",
+                  "| blocks above tau | most dots in a stopped block |", "|---|---|---|---|---|---|---|---|---|---|",
                   f"| `mi.render`, {case['max_spp']} spp | {m['wall_s']:.2f} s {_runs(m)} | 1.00x | {case['max_spp']} "
-                  f"| | | {m['worst']:.4f} | {m['mean']:.4f} | {m['above_tau']} of {n} |"]
+                  f"| | | {m['worst']:.4f} | {m['mean']:.4f} | {m['above_tau']} of {n} | |"]
         for name, x in (("our uniform loop", uni), ("adaptive (flip), grown passes", ada),
                         ("adaptive (flip), fixed step", fixed)):
             other = max(0.0, x["wall_s"] - x["render_s"])
             lines.append(f"| {name} | {x['wall_s']:.2f} s {_runs(x)} | {x['wall_s'] / m['wall_s']:.2f}x "
                          f"| {x['mean_spp']:.0f} "
                          f"| {x['launches']} | {other:.2f} s ({100 * other / max(x['wall_s'], 1e-9):.1f} %) "
-                         f"| {x['worst']:.4f} | {x['mean']:.4f} | {x['above_tau']} |")
+                         f"| {x['worst']:.4f} | {x['mean']:.4f} | {x['above_tau']} | {_dots(x)} |")
         lines.append(f"| `mi.render` at the adaptive wall time | {eq['wall_s']:.2f} s | | {eq['spp']} | | "
-                     f"| {eq['worst']:.4f} | {eq['mean']:.4f} | {eq['above_tau']} |")
+                     f"| {eq['worst']:.4f} | {eq['mean']:.4f} | {eq['above_tau']} | |")
         t_mi, t_ad = c["mi_render_time_to_target"], c["adaptive_time_to_target"]
         mi_txt = f"{t_mi['wall_s']:.1f} s ({t_mi['spp']} spp)" if t_mi else \
             f"not reached by {case['sweep_max']} spp"

@@ -8,7 +8,13 @@ the block, so the observer and the `flip` criterion take the largest of the mean
 side is not a multiple of 16 the last row/column of tiles is moved flush with the block's
 edge (overlapping its neighbour); a side under 16 is one tile of that side.
 
-"mean" (the first observer's block mean) stays selectable for comparison. "tile8-max"
+"tile16-max+dots" (observer version 3, the default) adds a sparse-outlier term to the tile
+maximum: a block fails while it holds more than a handful of pixels far off the reference on
+the display (`noisefeat.dots`). That term reads the display images, not the FLIP map, so
+`pool_maps` does not compute it; the observer takes the larger of the two terms.
+
+"tile16-max" (version 2) and "mean" (the first observer's block mean) stay selectable for
+comparison. "tile8-max"
 (8x8 tiles) is offered to the criteria, not to labels: a criterion may pool more finely
 than the observer it is calibrated against (`noisefeat.pooling.CRITERION_POOLING`).
 
@@ -21,13 +27,16 @@ import numpy as np
 
 TILE = 16
 TILE_MAX = "tile16-max"
+DOTS = "tile16-max+dots"
 MEAN = "mean"
 #: tile side of each tile pooling
 TILES = {TILE_MAX: TILE, "tile8-max": 8}
-#: the poolings a labeler record may name; the first is DESIGN's observer
-POOLINGS = (TILE_MAX, MEAN)
-DEFAULT_POOLING = TILE_MAX
-#: every pooling `pool_maps` computes (the criteria may use the finer one too)
+#: the poolings a labeler record may name; the first is DESIGN's observer (version 3)
+POOLINGS = (DOTS, TILE_MAX, MEAN)
+DEFAULT_POOLING = DOTS
+#: the poolings of a FLIP map alone (`pool_maps`); DOTS is TILE_MAX and the dot term
+FLIP_POOLINGS = (TILE_MAX, MEAN)
+#: every pooling name (the criteria may use the finer tile too)
 ALL_POOLINGS = (*POOLINGS, "tile8-max")
 #: how the `flip` criterion (and the halves input's `f`) pools FLIP between the half buffers
 CRITERION_POOLING = "tile8-max"
@@ -50,11 +59,14 @@ def tile_starts(n: int, tile: int = TILE) -> np.ndarray:
     return np.asarray(starts, np.int64)
 
 
-def pool_maps(maps: np.ndarray, pooling: str = DEFAULT_POOLING) -> np.ndarray:
+def pool_maps(maps: np.ndarray, pooling: str = TILE_MAX) -> np.ndarray:
     """float64 [N]: each map of [N, H, W] pooled (`POOLINGS`); a NaN pixel makes its map's
     value NaN. Sums are taken in float64 (a float32 map's tile means are exact to float64
     rounding)."""
     p = check_pooling(pooling)
+    if p == DOTS:
+        raise ValueError(f"{DOTS!r} needs the display images as well as the FLIP map: "
+                         "learning.data.observer computes it")
     m = np.asarray(maps, np.float64)
     if m.ndim != 3:
         raise ValueError(f"maps must be [N, H, W], got shape {m.shape}")
@@ -78,7 +90,7 @@ def pool_maps(maps: np.ndarray, pooling: str = DEFAULT_POOLING) -> np.ndarray:
     return (s / (th * tw)).reshape(n, -1).max(axis=1)
 
 
-def pool_blocks(values: np.ndarray, grid: tuple[int, int], pooling: str = DEFAULT_POOLING) -> np.ndarray:
+def pool_blocks(values: np.ndarray, grid: tuple[int, int], pooling: str = TILE_MAX) -> np.ndarray:
     """float64 [gh*gw]: a frame's [H, W] map cut into its grid's blocks (row-major), each pooled."""
     v = np.asarray(values, np.float64)
     gh, gw = int(grid[0]), int(grid[1])

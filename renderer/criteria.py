@@ -56,7 +56,7 @@ logger = logging.getLogger(__name__)
 # verdicts; flat_blocks: blocks settled by the flat shortcut; nonfinite_blocks: verdicts on
 # blocks that held non-finite samples.
 COUNTER_NAMES = ("decide_calls", "blocks_asked", "blocks_featured", "feature_rows", "converged",
-                 "flat_blocks", "nonfinite_blocks")
+                 "flat_blocks", "nonfinite_blocks", "dotted_blocks")
 TIMER_NAMES = ("features_s", "decisions_s")
 
 
@@ -312,6 +312,22 @@ class Criterion(ABC):
         flat = flat_blocks(batch.mean, exposure)
         self.counters["flat_blocks"] += int(flat.sum())
         return flat
+
+    def _dots(self, batch: BlockBatch, ask: np.ndarray, exposure: float, tau: float) -> np.ndarray:
+        """float64 [len(batch)]: the asked blocks' dot term from their half buffers, relative
+        to tau (`noisefeat.dots.halves_dots` / tau; 0 for the others). Above 1 a block still
+        holds more isolated outlier pixels than the observer lets through, so it stays noisy
+        whatever its score: the observer's version-3 rule, seen through the halves (issue 33).
+        Computed where the buffers live; only the numbers cross to the host."""
+        from noisefeat.dots import halves_dots
+
+        out = np.zeros(len(batch.spp))
+        if ask.size:
+            a, b = batch.halves     # type: ignore[misc]
+            sel = torch.from_numpy(ask).to(a.device)
+            out[ask] = halves_dots(a[sel], b[sel], exposure).cpu().numpy() / tau
+            self.counters["dotted_blocks"] += int((out[ask] > 1).sum())
+        return out
 
 
 class UniformCriterion(Criterion):
@@ -578,13 +594,18 @@ class ModelCriterion(Criterion):
                 if verdict.shape != (len(ask),):
                     raise RuntimeError(f"model returned {verdict.shape} verdicts for {len(ask)} blocks")
                 remote_verdict[ask] = np.where(verdict > 0, CONVERGED, NOISY)
+        # a halves model sees the observer's dots through the same halves (`Criterion._dots`)
+        dots = self._dots(batch, np.asarray(ask, np.int64), self.exposure, self.tau or DEFAULT_TAU) \
+            if self.needs_halves else np.zeros(len(ids))
+        dotted = dots > 1
         if self.rule is None:                  # a server's verdicts, by the same rule there
-            self._keep_ratios(ids, np.where(flat, 0.0, np.nan))
-            return np.where(flat, CONVERGED, remote_verdict)
+            self._keep_ratios(ids, np.where(flat, 0.0, np.where(dotted, dots, np.nan)))
+            return np.where(flat, CONVERGED, np.where(dotted, NOISY, remote_verdict))
         # a score is a signed distance, not a ratio: exp(offset - score) is 1 at the offset
         with np.errstate(over="ignore"):
-            self._keep_ratios(ids, np.where(flat, 0.0, np.exp(np.clip(self.rule.offset - score, -50, 50))))
-        return self.rule.verdict(score, flat)
+            ratio = np.exp(np.clip(self.rule.offset - score, -50, 50))
+        self._keep_ratios(ids, np.where(flat, 0.0, np.where(dotted, np.fmax(ratio, dots), ratio)))
+        return self.rule.verdict(np.where(dotted, np.nan, score), flat)
 
 
 class FlipCriterion(Criterion):
@@ -594,7 +615,9 @@ class FlipCriterion(Criterion):
     means, pooled as the observer pools (the largest 16x16 tile mean,
     `learning.inputs.halves`); the block is converged when e <= c (the stop rule with score
     -e), or at once when flat. `c` defaults to c(tau), the curve calibrated on training
-    scenes only and shipped in `learning/flip.json`. A block whose odd half is
+    scenes only and shipped in `learning/flip.json`. A block whose halves still disagree on
+    more isolated pixels than the observer lets through (`Criterion._dots`, issue 33) stays
+    noisy whatever e is. A block whose odd half is
     still empty (one pass) has no estimate yet and stays noisy, so the first flip decision
     comes after two passes unless the block is flat. FLIP runs on the active, non-flat
     blocks only; its time is the decision cost (`decisions_s`).
@@ -632,9 +655,13 @@ class FlipCriterion(Criterion):
             # FLIP where the half buffers live (the GPU with cuda_ad_rgb): scores come back
             score[ask] = -flip_halves_tensor(a[sel], b[sel], self.exposure, pooling=CRITERION_POOLING).cpu().numpy()
             self.counters["blocks_featured"] += int(ask.size)
-        # the half-buffer FLIP relative to c (the criterion's threshold c(tau)); flat: 0
-        self._keep_ratios(ids, np.where(flat, 0.0, -score / self.c if self.c > 0 else np.inf))
-        return self.rule.verdict(score, flat)
+        dots = self._dots(batch, ask, self.exposure, self.tau)
+        # the half-buffer FLIP relative to c (the criterion's threshold c(tau)), or the dot
+        # term relative to tau where that is larger; flat: 0
+        with np.errstate(invalid="ignore"):
+            ratio = np.fmax(-score / self.c if self.c > 0 else np.inf, dots)
+        self._keep_ratios(ids, np.where(flat, 0.0, np.where(np.isnan(score), np.nan, ratio)))
+        return self.rule.verdict(np.where(dots > 1, np.nan, score), flat)
 
 
 def build_criterion(kind: str, *, model: str | None = None, server: str | None = None,

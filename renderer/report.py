@@ -102,26 +102,39 @@ def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int
                        exposure: float = 0.0, stopped: np.ndarray | None = None,
                        windows: Sequence[Sequence[int]] | None = None) -> dict[str, Any]:
     """What a person would see flipping between final.png and the reference: the virtual
-    observer's per-block error of the finished image (DESIGN's pooling: the largest 16x16
-    tile mean), the blocks still above the noise target tau (visible noise left), and among
-    them those the criterion stopped (the others ran out of samples at max spp).
+    observer's per-block error of the finished image (DESIGN's pooling, version 3), the
+    blocks still above the noise target tau (visible noise left), and among them those the
+    criterion stopped (the others ran out of samples at max spp); per block the pixels over
+    the reports' dot level (`dots`, display error > 2.5 tau: 0.05 at tau 0.02, issue 33's
+    yardstick), and among the stopped blocks the most of them and how many hold more than
+    a block may (16 in 64x64).
 
     `windows` (x, y, w, h) per block: pool each window of the FLIP map instead of cutting
     the frame into `grid` (block windows that overlap at the frame's edge do not tile it).
     """
-    from learning.data.observer import VirtualObserver, display, flip_map
-    from noisefeat.pooling import pool_maps
+    from learning.data.observer import VirtualObserver, window_errors
+    from noisefeat.dots import REPORT_LEVEL, count_outliers, dot_rank
 
     obs = VirtualObserver(tau=tau, exposure=exposure)
     if windows is None:
         e = obs.errors(reference, image[None], grid)[0]
+        gh, gw = int(grid[0]), int(grid[1])
+        bh, bw = image.shape[0] // gh, image.shape[1] // gw
+        windows = [(c * bw, r * bh, bw, bh) for r in range(gh) for c in range(gw)]
     else:
-        emap = flip_map(display(reference, exposure), display(image, exposure), obs.ppd)
-        e = np.array([pool_maps(emap[None, y:y + h, x:x + w], obs.pooling)[0] for x, y, w, h in windows])
+        e = window_errors(reference, image, windows, obs.ppd, exposure, obs.pooling)
+    dots = np.array([count_outliers(image[y:y + h, x:x + w], reference[y:y + h, x:x + w], tau, exposure)
+                     for x, y, w, h in windows])
+    allowed = np.array([dot_rank(h, w) - 1 for _, _, w, h in windows])
     visible = e > tau
     out = {"tau": tau, "pooling": obs.pooling, "errors": [float(x) for x in e],
            "worst_error": float(e.max()), "mean_error": float(e.mean()),
-           "visible_noise_blocks": int(visible.sum())}
+           "visible_noise_blocks": int(visible.sum()), "dots": dots.tolist(),
+           "dot_level": REPORT_LEVEL * tau}
     if stopped is not None:
-        out["visible_noise_stopped_blocks"] = int((visible & np.asarray(stopped, bool)).sum())
+        stop = np.asarray(stopped, bool)
+        out["visible_noise_stopped_blocks"] = int((visible & stop).sum())
+        # issue 33's check: no block the criterion stopped holds more dots than a block may
+        out["max_stopped_dots"] = int(dots[stop].max()) if stop.any() else 0
+        out["dotted_stopped_blocks"] = int((stop & (dots > allowed)).sum())
     return out

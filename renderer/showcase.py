@@ -5,10 +5,15 @@
 3. Write out/equal_time.png: both images side by side, and below them the block where
    the adaptive render spent the most samples, enlarged: where noise is hardest to
    remove, equal time buys the adaptive render more samples.
+   At the bottom, the darkest block the criterion stopped, at 1:1 and 3x, in each panel:
+   where dots on black would show (issue 33).
 4. Print one summary line: the share of uniform's samples used, the speed-up over a
    uniform render to the same max spp (its time from the equal-time run's rate), how
-   many blocks stopped, and each side's worst-block and mean error against the scene's
-   reference under DESIGN's observer (the largest 16x16-tile mean FLIP of a block).
+   many blocks stopped, each side's worst-block and mean error against the scene's
+   reference under DESIGN's observer (version 3: the largest 16x16-tile mean FLIP of a
+   block, or its dot term if larger), and per side the pixels over the dot level (display
+   error > 2.5 tau, 0.05 at tau 0.02: issue 33's yardstick): in all, in the worst stopped block, and how many
+   blocks hold more of them adaptive than uniform.
 
 The default scene is the held-out ``spot_stage`` (never used to train or calibrate): a
 dark stage lit by one spot, where the blocks need from 32 to 2048 spp, so where the
@@ -30,6 +35,7 @@ import numpy as np
 from .adaptive import adaptive_render
 from .names import DEFAULT_CRITERION
 from .outputs import prepare_output_dir, to_srgb8
+from noisefeat.dots import REPORT_LEVEL
 from noisefeat.extras import require
 
 logger = logging.getLogger(__name__)
@@ -51,22 +57,47 @@ def shipped_reference(scene: str) -> np.ndarray | None:
 def block_errors_vs(image: np.ndarray, reference: np.ndarray, report: dict[str, Any], tau: float) -> np.ndarray:
     """Per block of `report`, the observer's error of `image` against `reference` (DESIGN's
     pooling), each block judged on its own window."""
-    from learning.data.observer import VirtualObserver
+    from learning.data.observer import VirtualObserver, window_errors
 
     obs = VirtualObserver(tau=tau, exposure=float(report.get("exposure", 0.0)))
+    return window_errors(reference, image, [b["window"] for b in report["blocks"]], obs.ppd, obs.exposure,
+                         obs.pooling)
+
+
+def block_outliers_vs(image: np.ndarray, reference: np.ndarray, report: dict[str, Any], tau: float) -> np.ndarray:
+    """int [blocks]: per block of `report`, the pixels of `image` whose display error against
+    `reference` exceeds the reports' dot level (2.5 tau: 0.05 at tau 0.02, issue 33's
+    yardstick; `noisefeat.dots`)."""
+    from noisefeat.dots import count_outliers
+
+    exposure = float(report.get("exposure", 0.0))
     out = []
     for b in report["blocks"]:
         x, y, bw, bh = b["window"]
         win = (slice(y, y + bh), slice(x, x + bw))
-        out.append(float(obs.errors(reference[win], image[win][None], (1, 1))[0, 0]))
-    return np.asarray(out)
+        out.append(count_outliers(image[win], reference[win], tau, exposure))
+    return np.asarray(out, np.int64)
+
+
+def darkest_stopped(a: dict[str, Any], image: np.ndarray) -> dict[str, Any] | None:
+    """The stopped block of the adaptive report whose window is darkest in `image` (where
+    dots on black show first), or None if no block stopped."""
+    stopped = [b for b in a["blocks"] if b["converged"]]
+    if not stopped:
+        return None
+
+    def mean(b: dict[str, Any]) -> float:
+        x, y, bw, bh = b["window"]
+        return float(np.mean(image[y:y + bh, x:x + bw]))
+    return min(stopped, key=mean)
 
 
 def equal_time_png(adaptive: np.ndarray, uniform: np.ndarray, a: dict[str, Any], u: dict[str, Any],
                    reference: np.ndarray | None = None, errors: dict[str, np.ndarray] | None = None) -> bytes:
-    """PNG bytes: adaptive | uniform at equal time (| the reference), and below them the
-    block the adaptive render spent most samples on (or, with errors, the adaptive
-    render's worst block against the reference) enlarged 3x in each."""
+    """PNG bytes: adaptive | uniform at equal time (| the reference); below them the block
+    the adaptive render spent most samples on (or, with errors, the adaptive render's worst
+    block against the reference) enlarged 3x in each; and at the bottom the darkest block
+    the criterion stopped, at 1:1 (pixel for pixel, as a person sees dots on black) and 3x."""
     require("matplotlib")
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -78,6 +109,7 @@ def equal_time_png(adaptive: np.ndarray, uniform: np.ndarray, a: dict[str, Any],
     else:
         hard = max(a["blocks"], key=lambda b: b["spp"])
         what = "block with most samples"
+    dark = darkest_stopped(a, adaptive if reference is None else reference)
     x, y, bw, bh = hard["window"]
     h, w = adaptive.shape[:2]
     panels = [(adaptive, f"adaptive ({a['criterion']['name']}, tau {a.get('tau')}): mean "
@@ -87,23 +119,56 @@ def equal_time_png(adaptive: np.ndarray, uniform: np.ndarray, a: dict[str, Any],
     if reference is not None:
         panels.append((reference, "reference (8192 spp)", None, None))
     cols = len(panels)
-    fig = Figure(figsize=(5 * cols, 5 * h / w + 5.4), dpi=100)
+    dpi, col_w, pad, title = 100, 500, 20, 30           # pixels: the layout is fixed, never squeezed
+    img_h = int(round((col_w - 2 * pad) * h / w))
+    zoom_h = col_w - 2 * pad
+    band = 0 if dark is None else 3 * dark["window"][3] + 2 * title   # the 1:1 and 3x row
+    fig_w, fig_h = cols * col_w, title + img_h + title + zoom_h + pad + band + pad
+    fig = Figure(figsize=(fig_w / dpi, fig_h / dpi), dpi=dpi)
     FigureCanvasAgg(fig)
-    for i, (img, title, key, spp) in enumerate(panels):
-        ax = fig.add_subplot(2, cols, i + 1)
+
+    def axes(i: int, top: int, height: int) -> Any:
+        """An axes in column i whose top edge is `top` pixels below the figure's top."""
+        return fig.add_axes(((i * col_w + pad) / fig_w, 1 - (top + height) / fig_h,
+                             (col_w - 2 * pad) / fig_w, height / fig_h))
+    for i, (img, title_text, key, spp) in enumerate(panels):
+        ax = axes(i, title, img_h)
         ax.imshow(img, interpolation="nearest")
         ax.add_patch(Rectangle((x - 0.5, y - 0.5), bw, bh, fill=False, ec="red", lw=1.2))
-        ax.set_title(title, fontsize=9)
+        if dark is not None:
+            dx, dy, dw, dh = dark["window"]
+            ax.add_patch(Rectangle((dx - 0.5, dy - 0.5), dw, dh, fill=False, ec="cyan", lw=1.2))
+        ax.set_title(title_text, fontsize=9)
         ax.set_axis_off()
-        zoom = fig.add_subplot(2, cols, cols + i + 1)
+        zoom = axes(i, title + img_h + title, zoom_h)
         zoom.imshow(np.repeat(np.repeat(img[y:y + bh, x:x + bw], 3, axis=0), 3, axis=1), interpolation="nearest")
         err = f", error {errors[key][hard['id']]:.4f}" if errors is not None and key else ""
-        zoom.set_title(f"{what}, 3x" + (f": {spp} spp{err}" if spp is not None else ""), fontsize=9)
+        zoom.set_title(f"{what} (red), 3x" + (f": {spp} spp{err}" if spp is not None else ""), fontsize=9)
         zoom.set_axis_off()
-    fig.tight_layout()
+    if dark is not None:
+        _one_to_one_row(fig, panels, dark, u, errors, col_w, pad)
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
+    fig.savefig(buf, format="png", dpi=dpi)
     return buf.getvalue()
+
+
+def _one_to_one_row(fig: Any, panels: list[tuple], dark: dict[str, Any], u: dict[str, Any],
+                    errors: dict[str, np.ndarray] | None, col_w: int, pad: int) -> None:
+    """The bottom row of equal_time.png: the darkest stopped block (cyan) of each panel,
+    placed pixel for pixel (`figimage`, no resampling) at 1:1 and beside it at 3x, with
+    its spp and (with a reference) its count of pixels over the dot level."""
+    dx, dy, dw, dh = dark["window"]
+    fig_w, fig_h = fig.get_figwidth() * fig.dpi, fig.get_figheight() * fig.dpi
+    for i, (img, _, key, _) in enumerate(panels):
+        crop = np.ascontiguousarray(img[dy:dy + dh, dx:dx + dw])
+        x0 = int(i * col_w + pad)
+        fig.figimage(crop, xo=x0, yo=pad, origin="upper")
+        fig.figimage(np.repeat(np.repeat(crop, 3, axis=0), 3, axis=1), xo=x0 + dw + pad, yo=pad, origin="upper")
+        spp = {"adaptive": dark["spp"], "uniform": int(u["blocks"][dark["id"]]["spp"])}.get(key)
+        dots = f", {errors['outliers_' + key][dark['id']]} px over the dot level" \
+            if errors is not None and key and f"outliers_{key}" in errors else ""
+        label = "darkest stopped block (cyan), 1:1 and 3x" + (f": {spp} spp{dots}" if spp is not None else "")
+        fig.text(x0 / fig_w, (pad + 3 * dh + 8) / fig_h, label, fontsize=9, va="bottom")
 
 
 def summary_line(a: dict[str, Any], u: dict[str, Any], errors: dict[str, np.ndarray] | None = None) -> str:
@@ -122,7 +187,21 @@ def summary_line(a: dict[str, Any], u: dict[str, Any], errors: dict[str, np.ndar
     return (line + f"; error against the reference (tau {a['tau']:g}): worst block {ea.max():.4f} adaptive, "
             f"{eu.max():.4f} uniform; mean {ea.mean():.4f} adaptive, {eu.mean():.4f} uniform; adaptive blocks "
             f"above tau: {int((ea > a['tau']).sum())} ({sum(bool(e > a['tau']) and not b['converged'] for e, b in zip(ea, a['blocks']))} "
-            f"of them at max spp)")
+            f"of them at max spp)" + dots_summary(a, errors))
+
+
+def dots_summary(a: dict[str, Any], errors: dict[str, np.ndarray]) -> str:
+    """The summary's dots clause: per side, the pixels over the dot level (2.5 tau on the
+    display) in all blocks and in the worst block the criterion stopped, and how many
+    blocks hold more of them adaptive than uniform (issue 33: none should)."""
+    oa, ou = errors["outliers_adaptive"], errors["outliers_uniform"]
+    stopped = np.array([b["converged"] for b in a["blocks"]], bool)
+    worst = int(np.argmax(np.where(stopped, oa, -1))) if stopped.any() else None
+    level = REPORT_LEVEL * float(a["tau"])
+    where = "no block stopped" if worst is None else \
+        f"worst stopped block {int(oa[worst])} adaptive, {int(ou[worst])} uniform"
+    return (f"; pixels over {level:g} display error (dots): {int(oa.sum())} adaptive, {int(ou.sum())} uniform; "
+            f"{where}; blocks with more adaptive than uniform: {int((oa > ou).sum())}")
 
 
 def showcase(scene: str = SCENE, out: str | Path = "out", **settings: Any) -> dict[str, Any]:
@@ -140,8 +219,9 @@ def showcase(scene: str = SCENE, out: str | Path = "out", **settings: Any) -> di
         logger.warning("the shipped reference of %s is %s, the render %s: no error figures", scene,
                        reference.shape, linear["adaptive"].shape)
         reference = None
-    errors = None if reference is None else \
-        {d: block_errors_vs(img, reference, a, float(a["tau"])) for d, img in linear.items()}
+    errors = None if reference is None else {
+        **{d: block_errors_vs(img, reference, a, float(a["tau"])) for d, img in linear.items()},
+        **{f"outliers_{d}": block_outliers_vs(img, reference, a, float(a["tau"])) for d, img in linear.items()}}
     show = [to_srgb8(linear[d], a.get("exposure", 0.0)) for d in ("adaptive", "uniform")]
     ref8 = None if reference is None else to_srgb8(reference, a.get("exposure", 0.0))
     atomic_write(root / EQUAL_TIME, equal_time_png(show[0], show[1], a, u, ref8, errors))

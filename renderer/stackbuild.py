@@ -30,8 +30,8 @@ import numpy as np
 from tqdm import tqdm
 
 from learning.data.exr import read_exr
-from learning.data.observer import (VirtualObserver, pooled_errors, relabel_if_stale, stack_observer_errors,
-                                    thresholds_from_errors)
+from learning.data.observer import (VirtualObserver, observer_terms, poolings, relabel_if_stale,
+                                    stack_observer_errors, thresholds_from_errors)
 from noisefeat.atomic import atomic_write
 from learning.data.stack import EXTRA_QUICK, REFERENCE, level_name, read_stack
 from learning.data.stack_write import StackWriter, make_plan
@@ -182,10 +182,10 @@ def build_stack(scene: str, out_root: str | os.PathLike, settings: BuildSettings
     bar.close()
 
     levels = (read_exr(out / level_name(s)) for s in settings.spp)   # one at a time
-    errors = pooled_errors(read_exr(out / REFERENCE), levels, settings.grid, observer.ppd, observer.exposure)
-    thresholds = thresholds_from_errors(errors[POOLINGS.index(observer.pooling)], settings.spp, observer.tau)
+    terms = observer_terms(read_exr(out / REFERENCE), levels, settings.grid, observer.ppd, observer.exposure)
+    thresholds = thresholds_from_errors(poolings(terms)[POOLINGS.index(observer.pooling)], settings.spp, observer.tau)
     stack = writer.finish(thresholds, observer.labeler)
-    stack_observer_errors(stack, observer.ppd, observer.exposure, computed=errors)   # cached for relabelling
+    stack_observer_errors(stack, observer.ppd, observer.exposure, computed=terms)   # cached for relabelling
     shutil.rmtree(build_dir, ignore_errors=True)
     if settings.contact_sheet:
         from .contact import contact_sheet

@@ -23,6 +23,7 @@ import numpy as np
 from learning.models.bundle import BUNDLED_DIR, MANIFEST, Model, load_model
 from learning.models.bundle_check import read_manifest
 from learning.models.noise_target import tau_range
+from learning.names import DEFAULT_TAU
 from learning.stoprule import check_offset
 from noisefeat.base import MIN_SIZE
 
@@ -162,7 +163,8 @@ class ServedModel:
                 verdict, score = self.model.score_inputs(self._features(tensors), offset)
             elif self.model.needs_halves:
                 even, odd = self._halves(tensors)
-                verdict, score, bad = self.model.assess_halves(even, odd, exposure=exposure, offset=offset)
+                verdict, score, bad = self.model.assess_halves(even, odd, exposure=exposure, offset=offset,
+                                                               tau=params.get("tau", DEFAULT_TAU))
                 params["nonfinite_pixels"] = [int(c) for c in bad]
             else:
                 blocks, quick = self._blocks(tensors)

@@ -2,9 +2,12 @@
 
 1. E_k = the raw FLIP map (LDR, 67 ppd) between display(reference) and display(level k),
    computed on the whole frame.
-2. e[k, b] = E_k pooled over block b: the largest of its 16x16 tile means ("tile16-max",
-   `noisefeat.pooling`), so noise confined to part of a block is not averaged away by the
-   clean rest. The first observer's block mean ("mean") stays selectable for comparison.
+2. e[k, b] = E_k pooled over block b: the largest of its 16x16 tile means (`noisefeat.pooling`),
+   so noise confined to part of a block is not averaged away by the clean rest; version 3
+   ("tile16-max+dots", the default) takes the larger of that and the dot term
+   (`noisefeat.dots`: the block's 17th-largest per-pixel display error / 2.5 for 64x64), so a
+   block holding more than a handful of visible dots is not converged either. Version 2
+   ("tile16-max") and the first observer's block mean ("mean") stay selectable for comparison.
 3. Level k of block b is converged iff e[j, b] <= tau for every j >= k (tau = 0.02).
 4. T_b = spp of the first converged level, or None.
 (Rule 5, the labels, lives in `Stack.labels`.)
@@ -35,7 +38,9 @@ import torch
 from noisefeat.display import display as _display
 from noisefeat.display import srgb_decode as _srgb_decode
 from noisefeat.flip import check_ppd
-from noisefeat.pooling import DEFAULT_POOLING, MEAN, POOLINGS, check_pooling, pool_blocks
+from noisefeat.dots import DOT_DENSITY, DOT_LEVEL, OBSERVER_DOTS, display_error, rank_pool
+from noisefeat.pooling import (DEFAULT_POOLING, DOTS, FLIP_POOLINGS, MEAN, POOLINGS, TILE_MAX, check_pooling,
+                               pool_blocks, pool_maps)
 
 from ..names import DEFAULT_TAU
 from .cache import cached_array
@@ -45,6 +50,9 @@ from noisefeat.extras import require
 log = logging.getLogger(__name__)
 
 DEFAULT_PPD = 67.0
+DOT_TERM = "dots"
+#: the observer's per-block terms (`observer_terms`), from which every pooling is made
+TERMS = (*FLIP_POOLINGS, DOT_TERM)
 
 
 # ----------------------------------------------------------------------------- display
@@ -100,10 +108,11 @@ def flip_map(ref_srgb: np.ndarray, test_srgb: np.ndarray, ppd: float = DEFAULT_P
     return emap.reshape(emap.shape[0], emap.shape[1])
 
 
-def pooled_errors(reference_rgb: np.ndarray, levels_rgb: np.ndarray | Iterable[np.ndarray],
-                  grid: Sequence[int] = (4, 4), ppd: float = DEFAULT_PPD, exposure: float = 0.0) -> np.ndarray:
-    """e [len(POOLINGS), K, n_blocks] (rules 1-2): FLIP between display(reference) and each
-    level, pooled per block in every known pooling (one FLIP map serves them all).
+def observer_terms(reference_rgb: np.ndarray, levels_rgb: np.ndarray | Iterable[np.ndarray],
+                   grid: Sequence[int] = (4, 4), ppd: float = DEFAULT_PPD, exposure: float = 0.0) -> np.ndarray:
+    """The observer's per-block terms, float64 [len(TERMS), K, n_blocks]: the FLIP map of
+    display(reference) against display(level k) pooled in each of `FLIP_POOLINGS`, and the
+    dot term (`noisefeat.dots`) of the display images. `poolings` combines them.
 
     `levels_rgb` is [K, H, W, 3] or any iterable of [H, W, 3] linear images (a generator
     keeps memory to one level).
@@ -113,17 +122,62 @@ def pooled_errors(reference_rgb: np.ndarray, levels_rgb: np.ndarray | Iterable[n
         raise ValueError(f"reference must be linear RGB [H, W, 3], got shape {ref.shape}")
     block_shape(ref.shape[0], ref.shape[1], grid)
     g = (int(grid[0]), int(grid[1]))
-    ref_d = display(ref, exposure)
+    ref_t = _display(np.asarray(ref), exposure)
+    ref_d = np.ascontiguousarray(ref_t.numpy(), dtype=np.float32)
     rows = []
     for k, lev in enumerate(levels_rgb):
         lev = np.asarray(lev)
         if lev.shape != ref.shape:
             raise ValueError(f"level {k} has shape {lev.shape}, the reference {ref.shape}")
-        emap = flip_map(ref_d, display(lev, exposure), ppd)
-        rows.append([pool_blocks(emap, g, p) for p in POOLINGS])
+        lev_t = _display(lev, exposure)
+        emap = flip_map(ref_d, np.ascontiguousarray(lev_t.numpy(), dtype=np.float32), ppd)
+        rows.append([*(pool_blocks(emap, g, p) for p in FLIP_POOLINGS), _block_dots(ref_t, lev_t, g)])
     if not rows:
         raise ValueError("no levels given")
     return np.asarray(rows, np.float64).transpose(1, 0, 2)
+
+
+def _block_dots(ref_display: torch.Tensor, level_display: torch.Tensor, grid: Sequence[int]) -> np.ndarray:
+    """float64 [n_blocks]: the dot term (`noisefeat.dots`) of each block of a frame's grid."""
+    gh, gw = int(grid[0]), int(grid[1])
+    err = display_error(level_display, ref_display)
+    bh, bw = err.shape[0] // gh, err.shape[1] // gw
+    return rank_pool(err.reshape(gh, bh, gw, bw).permute(0, 2, 1, 3).reshape(gh * gw, bh, bw)).numpy()
+
+
+def poolings(terms: np.ndarray) -> np.ndarray:
+    """e [len(POOLINGS), K, n_blocks] from `observer_terms`: each FLIP pooling as it is, and
+    version 3 (DOTS) the larger of the tile maximum and the dot term (NaN stays NaN)."""
+    t = np.asarray(terms, np.float64)
+    by_name = {**{p: t[i] for i, p in enumerate(FLIP_POOLINGS)},
+               DOTS: np.maximum(t[FLIP_POOLINGS.index(TILE_MAX)], t[TERMS.index(DOT_TERM)])}
+    return np.stack([by_name[p] for p in POOLINGS])
+
+
+def pooled_errors(reference_rgb: np.ndarray, levels_rgb: np.ndarray | Iterable[np.ndarray],
+                  grid: Sequence[int] = (4, 4), ppd: float = DEFAULT_PPD, exposure: float = 0.0) -> np.ndarray:
+    """e [len(POOLINGS), K, n_blocks] (rules 1-2) in every known pooling (one FLIP map per
+    level serves them all; `observer_terms`)."""
+    return poolings(observer_terms(reference_rgb, levels_rgb, grid, ppd, exposure))
+
+
+def window_errors(reference_rgb: np.ndarray, image_rgb: np.ndarray, windows: Sequence[Sequence[int]],
+                  ppd: float = DEFAULT_PPD, exposure: float = 0.0, pooling: str = DEFAULT_POOLING) -> np.ndarray:
+    """e [len(windows)] of one image: the observer's error of each (x, y, w, h) window of
+    the frame (FLIP on the whole frame, as rule 1 says; windows may overlap)."""
+    check_pooling(pooling)
+    ref_t, img_t = _display(np.asarray(reference_rgb), exposure), _display(np.asarray(image_rgb), exposure)
+    emap = flip_map(np.ascontiguousarray(ref_t.numpy(), np.float32), np.ascontiguousarray(img_t.numpy(), np.float32), ppd)
+    derr = display_error(img_t, ref_t)
+    out = []
+    for x, y, w, h in windows:
+        win = (slice(y, y + h), slice(x, x + w))
+        if pooling == DOTS:
+            tile = pool_maps(emap[None][(slice(None), *win)], TILE_MAX)[0]
+            out.append(max(tile, float(rank_pool(derr[win][None])[0])) if np.isfinite(tile) else tile)
+        else:
+            out.append(pool_maps(emap[None][(slice(None), *win)], pooling)[0])
+    return np.asarray(out, np.float64)
 
 
 def block_errors(reference_rgb: np.ndarray, levels_rgb: np.ndarray | Iterable[np.ndarray],
@@ -173,9 +227,11 @@ class VirtualObserver:
 
     @property
     def labeler(self) -> dict:
-        """The meta.json `labeler` entry describing this observer."""
+        """The meta.json `labeler` entry describing this observer (version 3 also records its
+        dot level and density, so labels of other dot settings are relabelled, never read)."""
+        dots = OBSERVER_DOTS if self.pooling == DOTS else {}
         return {"name": "flip", "tau": self.tau, "ppd": self.ppd, "display": "clip+srgb",
-                "exposure": self.exposure, "pooling": self.pooling}
+                "exposure": self.exposure, "pooling": self.pooling, **dots}
 
     def errors(self, reference: np.ndarray, levels: np.ndarray | Iterable[np.ndarray],
                grid: Sequence[int] = (4, 4)) -> np.ndarray:
@@ -208,22 +264,39 @@ def check_tau(tau: object) -> float:
 def stack_observer_errors(stack: Stack, ppd: float = DEFAULT_PPD, exposure: float = 0.0,
                           computed: np.ndarray | None = None) -> np.ndarray:
     """e float64 [len(POOLINGS), K, n_blocks]: the observer's errors of a stack for every
-    pooling, from one FLIP map per level; cached next to the stack, so relabelling at
-    another tau or pooling costs no FLIP. `computed`: the errors a build just computed
-    (`pooled_errors`), stored instead of computed again."""
-    shape = (len(POOLINGS), stack.n_levels, stack.n_blocks)
+    pooling. The FLIP poolings (one FLIP map per level) and the dot term are cached next to
+    the stack apart, so relabelling at another tau or pooling costs no FLIP, and a stack
+    labelled before version 3 only needs its dot term computed. `computed`: the terms a
+    build just computed (`observer_terms`), stored instead of computed again."""
+    k, n = stack.n_levels, stack.n_blocks
+    terms = None if computed is None else np.asarray(computed, np.float64)
 
-    def compute() -> np.ndarray:
-        if computed is not None:
-            return np.asarray(computed, np.float64)
-        return pooled_errors(stack.reference(), stack.iter_levels(), stack.grid, ppd, exposure)
-    return cached_array(stack, f"observer-e{exposure:g}-ppd{ppd:g}", shape, compute)
+    def flip() -> np.ndarray:
+        if terms is not None:
+            return terms[:len(FLIP_POOLINGS)]
+        return observer_terms(stack.reference(), stack.iter_levels(), stack.grid, ppd, exposure)[:len(FLIP_POOLINGS)]
+
+    def dots() -> np.ndarray:
+        if terms is not None:
+            return terms[TERMS.index(DOT_TERM)]
+        ref = _display(stack.reference(), exposure)
+        return np.stack([_block_dots(ref, _display(lev, exposure), stack.grid) for lev in stack.iter_levels()])
+    flip_e = cached_array(stack, f"observer-e{exposure:g}-ppd{ppd:g}", (len(FLIP_POOLINGS), k, n), flip)
+    dot_e = cached_array(stack, f"observer-dots-e{exposure:g}-l{DOT_LEVEL:g}-d{DOT_DENSITY}", (k, n), dots)
+    return poolings(np.concatenate([flip_e, dot_e[None]]))
 
 
 def label_stack(stack: Stack, tau: float = DEFAULT_TAU, ppd: float = DEFAULT_PPD,
                 exposure: float = 0.0, pooling: str = DEFAULT_POOLING) -> list[int | None]:
     """Thresholds of a stack by the virtual observer."""
     return VirtualObserver(tau, ppd, exposure, pooling).label_stack(stack)
+
+
+def label_tau(stack: Stack) -> float:
+    """The noise target a stack's labels are at: its observer's tau (DEFAULT_TAU for labels
+    of any other labeler), which the criteria's dot guard is judged at on that stack."""
+    lab = stack.labeler
+    return float(lab.get("tau", DEFAULT_TAU)) if is_virtual(lab) else DEFAULT_TAU  # type: ignore[union-attr]
 
 
 def labeler_pooling(labeler: Mapping) -> str:
@@ -242,7 +315,7 @@ def labeler_matches(labeler: Mapping | None, observer: VirtualObserver) -> bool:
         return False
     want = observer.labeler
     return labeler_pooling(labeler) == observer.pooling and all(  # type: ignore[arg-type]
-        labeler.get(k) == want[k] for k in ("tau", "ppd", "exposure"))  # type: ignore[union-attr]
+        labeler.get(k) == want.get(k) for k in ("tau", "ppd", "exposure", "dot_level", "dot_density"))  # type: ignore[union-attr]
 
 
 def observer_for(stack: Stack, tau: float | None = None, pooling: str = DEFAULT_POOLING) -> VirtualObserver:

@@ -18,11 +18,12 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from noisefeat.dots import OBSERVER_DOTS
 from noisefeat.pooling import CRITERION_POOLING, DEFAULT_POOLING
 
-from ..data.observer import DEFAULT_TAU, observed
+from ..data.observer import DEFAULT_TAU, label_tau, observed
 from ..data.stack import Stack
-from ..inputs.halves import flip_offset, stack_flip_errors
+from ..inputs.halves import flip_offset, guarded_flip_scores
 from ..inputs.halves import stack_flat
 from ..inputs.table import SubImageTable
 from ..stoprule import StopRule
@@ -173,6 +174,14 @@ def calibrate_offset(fit: Callable[[SubImageTable], Any], table: SubImageTable, 
         by_tau.append({"tau": float(tau), "offset": float(safest), "offset_raw": float(pick["offset"]),
                        "early_stop_rate": pick["early_stop_rate"],
                        "spp_ratio_vs_oracle": pick["spp_ratio_vs_oracle"]})
+    # the bundle's own offset is the curve's at the labels' tau, so `offset` and `offset_at(tau)`
+    # never disagree: the running maximum can raise it (the dot guard is tau's own, so a looser
+    # target may need a larger offset than a stricter one; issue 33)
+    at_label = [r for r in by_tau if abs(r["tau"] - label_tau(next(iter(table.stacks.values())))) < 1e-12]
+    if at_label and at_label[0]["offset"] != chosen["offset"]:
+        row = next(r for r in curve if r["offset"] == at_label[0]["offset"])
+        chosen = {**row, "internal_target": chosen.get("internal_target"), "out_of_fold": chosen.get("out_of_fold"),
+                  "raised_from": float(chosen["offset"])}
     return float(chosen["offset"]), {
         "target_early_stop_rate": max_early_stop, "route": "stop rule",
         "chosen": _record(chosen),
@@ -196,13 +205,13 @@ def flip_sweep(stacks: Sequence[Stack], candidates: Sequence[float] = FLIP_CANDI
     unlabelled = [str(s.path) for s in stacks if s.thresholds is None]
     if unlabelled:
         raise ValueError(f"stacks without thresholds cannot be scored: {', '.join(unlabelled[:3])}")
-    errors = {s.scene: stack_flip_errors(s, progress=progress, pooling=pooling) for s in stacks}
+    scores = {s.scene: guarded_flip_scores(s, progress=progress, pooling=pooling) for s in stacks}
     flats = {s.scene: stack_flat(s) for s in stacks}
     groups = scene_groups(stacks)
     curve = []
     for c in sorted(candidates):
         rule = StopRule(flip_offset(c), min_spp)
-        per = {s.scene: (rule.stops(-errors[s.scene], s.spp, flats[s.scene]), s.labels(), s.thresholds, s.spp)
+        per = {s.scene: (rule.stops(scores[s.scene], s.spp, flats[s.scene]), s.labels(), s.thresholds, s.spp)
                for s in stacks}
         curve.append({"threshold": float(c), **evaluate_verdicts(per, groups)})
     return curve
@@ -245,6 +254,7 @@ def calibrate_flip_curve(stacks: Sequence[Stack], max_early_stop: float = 0.05, 
                        "per_scene": cal["per_scene"] if abs(tau - DEFAULT_TAU) < 1e-12 else None})
     at_default = [p for p in points if abs(p["tau"] - DEFAULT_TAU) < 1e-12]
     return {"format": "noisestop-flip-curve", "pooling": pooling, "observer_pooling": DEFAULT_POOLING,
+            "observer_dots": OBSERVER_DOTS,
             "target_early_stop_rate": max_early_stop,
             "curve": [{k: v for k, v in p.items() if v is not None} for p in points],
             "c": at_default[0]["c"] if at_default else None,

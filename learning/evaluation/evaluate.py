@@ -9,6 +9,8 @@ import numpy as np
 
 from noisefeat.runtime import median_s
 
+from ..data.observer import label_tau
+from ..inputs.halves import guard_dots
 from ..inputs.table import SubImageTable
 from ..models.bundle import Model
 from ..stoprule import StopRule
@@ -26,11 +28,21 @@ def by_scene(table: SubImageTable, values: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
+def scores_by_scene(table: SubImageTable, scores: np.ndarray) -> dict[str, np.ndarray]:
+    """Per scene [K, B]: per-row `scores` as the stop rule reads them in the live loop: -inf
+    where there is no input yet, NaN (no stop) where a `halves` table's dot guard holds the
+    row at its stack's tau (`learning.inputs.halves.guard_dots`)."""
+    s = by_scene(table, np.where(table.decidable, scores, -np.inf))   # no input yet: never stops (unless flat)
+    if table.dots is None:
+        return s
+    dots = by_scene(table, table.dots)
+    return {scene: guard_dots(s[scene], dots[scene], label_tau(st)) for scene, st in table.stacks.items()}
+
+
 def stops_by_scene(table: SubImageTable, scores: np.ndarray, rule: StopRule) -> dict[str, tuple]:
     """Per scene: (held verdicts V [K, B], labels, thresholds, spp) for learning.evaluation.metrics,
     the stops `rule` makes from per-row `scores` (flat sub-images stop at once)."""
-    scores = np.where(table.decidable, scores, -np.inf)    # no input yet: never stops (unless flat)
-    s, flat, labels = by_scene(table, scores), by_scene(table, table.flat), by_scene(table, table.y)
+    s, flat, labels = scores_by_scene(table, scores), by_scene(table, table.flat), by_scene(table, table.y)
     return {scene: (rule.stops(s[scene], st.spp, flat[scene]), labels[scene], st.thresholds, st.spp)
             for scene, st in table.stacks.items()}
 

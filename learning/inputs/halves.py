@@ -26,18 +26,19 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from noisefeat.safeio import InputFileError, read_json
+import torch
 from tqdm import tqdm
 
+from noisefeat.safeio import InputFileError, read_json
 from noisefeat.display import check_exposure
+from noisefeat.dots import DOT_DENSITY, DOT_LEVEL, OBSERVER_DOTS, halves_dots
 from noisefeat.flip import flip_halves
-from noisefeat.pooling import CRITERION_POOLING, pool_maps
+from noisefeat.pooling import CRITERION_POOLING, DEFAULT_POOLING, pool_maps
 from noisefeat.userdata import find as find_user_file
 
 from ..data.accumulator import BlockAccumulator
 from ..data.cache import cached_array
-from ..data.observer import DEFAULT_PPD, display, flip_map
+from ..data.observer import DEFAULT_PPD, display, flip_map, label_tau
 from ..data.stack import Stack
 from ..stoprule import FLAT_TOLERANCE, flat_blocks
 
@@ -171,6 +172,35 @@ def stack_flip_errors(stack: Stack, exposure: float = 0.0, ppd: float = DEFAULT_
     return cached_array(stack, f"flip-halves-{pooling}-e{exposure:g}-ppd{ppd:g}", shape, compute)
 
 
+def stack_halves_dots(stack: Stack, exposure: float = 0.0, progress: bool = False) -> np.ndarray:
+    """d float64 [K, n_blocks]: the criteria's dot term of every sub-image (`noisefeat.dots.
+    halves_dots` of its half buffers; compare with tau), NaN at level 0 (B empty). Cached
+    next to the stack like the half-buffer FLIP."""
+    shape = (stack.n_levels, stack.n_blocks)
+
+    def compute() -> np.ndarray:
+        d = np.full(shape, np.nan)         # level 0 stays NaN: B is empty there
+        for k, even, odd in iter_stack_halves(stack, progress):
+            d[k] = halves_dots(torch.as_tensor(even), torch.as_tensor(odd), exposure).numpy()
+        return d
+    return cached_array(stack, f"dots-halves-v2-e{exposure:g}-l{DOT_LEVEL:g}-d{DOT_DENSITY}", shape, compute)
+
+
+def guard_dots(scores: np.ndarray, dots: np.ndarray, tau: float) -> np.ndarray:
+    """`scores` with NaN (no stop) where the dot term exceeds tau: what the live criteria do
+    with a block whose halves still disagree on isolated pixels (`renderer.criteria`)."""
+    with np.errstate(invalid="ignore"):
+        return np.where(np.asarray(dots) > tau, np.nan, scores)
+
+
+def guarded_flip_scores(stack: Stack, exposure: float = 0.0, progress: bool = False,
+                        pooling: str = CRITERION_POOLING) -> np.ndarray:
+    """The flip criterion's scores [K, n_blocks] of a stack as the live loop makes them:
+    -e (`stack_flip_errors`), NaN where the dot guard holds the block at the stack's tau."""
+    return guard_dots(-stack_flip_errors(stack, exposure, progress=progress, pooling=pooling),
+                      stack_halves_dots(stack, exposure, progress), label_tau(stack))
+
+
 # ----------------------------------------------------------------------------- the shipped c
 
 
@@ -193,6 +223,10 @@ def load_flip_calibration(path: str | os.PathLike | None = None) -> dict[str, An
         if not isinstance(cal, dict) or cal.get("pooling") != CRITERION_POOLING or not isinstance(curve, list):
             raise ValueError(f"not a c(tau) curve for pooling {CRITERION_POOLING!r} (a file calibrated for "
                              "the block mean, observer version 1?); recalibrate with `noisestop calibrate`")
+        if cal.get("observer_pooling") != DEFAULT_POOLING or cal.get("observer_dots") != OBSERVER_DOTS:
+            raise ValueError(f"c(tau) was calibrated against the observer pooling {cal.get('observer_pooling')!r} "
+                             f"(dots {cal.get('observer_dots')}), this noisestop's observer is {DEFAULT_POOLING!r} "
+                             f"(version 3, dots {OBSERVER_DOTS}); recalibrate with `noisestop calibrate`")
         taus = [float(r["tau"]) for r in curve]
         if not all(t > 0 for t in taus):
             raise ValueError(f"taus must be positive, got {[t for t in taus if not t > 0][:3]}")

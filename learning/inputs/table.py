@@ -26,7 +26,7 @@ from ..data.observer import observed
 from ..data.stack import Stack, list_stacks, read_stack
 from ..names import DEFAULT_TAU
 from ..names import QUICK_MODES
-from .halves import iter_stack_halves, stack_flat, stack_flip_errors
+from .halves import iter_stack_halves, stack_flat, stack_flip_errors, stack_halves_dots
 from .noise_input import HALVES, RAW_COLUMNS, RAW_VERSION, compose, halves_raw, needs, noise_lightness
 from .pictures import stack_pictures
 
@@ -50,6 +50,9 @@ class SubImageTable:
     #: filled yet: the first level of a `halves` table); None = every row. Rows that are not
     #: decidable never stop (unless flat) and are never trained on.
     decidable: np.ndarray | None = None
+    #: [n] the criteria's dot term of a `halves` table's rows (`stack_halves_dots`): a row
+    #: whose term exceeds its stack's tau never stops, as in the live loop; None: no guard
+    dots: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.decidable is None:
@@ -62,7 +65,8 @@ class SubImageTable:
         keep = set(np.unique(self.scene[mask]).tolist())
         return SubImageTable(self.X[mask], self.y[mask], self.scene[mask], self.level[mask],
                              self.block[mask], self.spp[mask], self.groups[mask], self.flat[mask],
-                             {k: v for k, v in self.stacks.items() if k in keep}, self.decidable[mask])
+                             {k: v for k, v in self.stacks.items() if k in keep}, self.decidable[mask],
+                             None if self.dots is None else self.dots[mask])
 
     def trainable(self) -> "SubImageTable":
         """The rows a model may be fitted on (its input exists there)."""
@@ -199,7 +203,7 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
     paths = list_stacks(root)
     if not paths:
         raise ValueError(f"{root}: no stacks found (no meta.json below it)")
-    xs, ys, sc, lv, bl, sp, gr, fl, ok, stacks = [], [], [], [], [], [], [], [], [], {}
+    xs, ys, sc, lv, bl, sp, gr, fl, ok, dots, stacks = [], [], [], [], [], [], [], [], [], [], {}
     gid = 0
     for p in tqdm(paths, desc="stacks", disable=not progress, leave=False):
         st = read_stack(p)
@@ -231,6 +235,8 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
         gr.append(gid + np.repeat(np.arange(k), b))
         fl.append(stack_flat(st).reshape(-1))
         ok.append(stack_decidable(st, quick).reshape(-1))
+        if quick == "halves":
+            dots.append(stack_halves_dots(st).reshape(-1))
         gid += k
     if not stacks:
         raise ValueError(f"{root}: no labelled stack matched")
@@ -238,7 +244,8 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
         raise ValueError(f"{'raw-pixel' if raw else 'image'} models need one block size across the dataset")
     return SubImageTable(np.concatenate(xs), np.concatenate(ys).astype(np.int8), np.concatenate(sc),
                          np.concatenate(lv), np.concatenate(bl), np.concatenate(sp),
-                         np.concatenate(gr), np.concatenate(fl), stacks, np.concatenate(ok))
+                         np.concatenate(gr), np.concatenate(fl), stacks, np.concatenate(ok),
+                         np.concatenate(dots) if dots else None)
 
 
 def rgb_blocks(table: SubImageTable, halves: bool = False) -> np.ndarray:

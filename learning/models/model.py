@@ -21,11 +21,13 @@ import torch
 from noisefeat import FeatureBase, default_base, extract_features
 from noisefeat.base import N_FEATURES
 from noisefeat.display import nonfinite_pixels
+from noisefeat.dots import halves_dots
 from noisefeat.extract import analyse_many
 
 from ..inputs.noise_input import HALVES, halves_input, halves_input_and_stats, halves_mean, noise_lightness
 from ..inputs.table import feature_input, raw_input
-from ..stoprule import FLAT_TOLERANCE, StopRule, flat_blocks
+from ..names import DEFAULT_TAU
+from ..stoprule import FLAT_TOLERANCE, NOISY, StopRule, flat_blocks
 from .estimators import RBFSVM
 from .noise_target import offset_at, tau_range
 
@@ -222,26 +224,43 @@ class Model:
         return [(scores[a:b], flat, counts) for a, b, (flat, counts) in zip(bounds[:-1], bounds[1:], out)]
 
     def score_halves(self, even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
-                     offset: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     offset: float | None = None, tau: float = DEFAULT_TAU) -> tuple[np.ndarray, np.ndarray]:
         """(verdict int8 [N], score float [N]) for the half buffers of N blocks (a `halves`
         model); the block judged is their mean, which is also what the flat test reads."""
-        verdict, score, _ = self.assess_halves(even, odd, exposure, offset)
+        verdict, score, _ = self.assess_halves(even, odd, exposure, offset, tau)
         return verdict, score
 
     def assess_halves(self, even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
-                      offset: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      offset: float | None = None, tau: float = DEFAULT_TAU) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """`score_halves` plus the non-finite pixels per block of both half buffers [N],
-        counted in the pass that computes the input (the server's route)."""
+        counted in the pass that computes the input (the server's route). A block whose
+        halves still disagree on more isolated pixels than the observer at `tau` lets through
+        is noisy whatever its score (`noisefeat.dots.halves_dots`, as in the live loop)."""
         if not self.needs_halves:
             raise ValueError(f"this model reads {'raw blocks' if self.input == 'raw' else 'blocks'}"
                              f"{' and their quick images' if self.needs_quick else ''}, not half buffers")
+        mean = halves_mean(np.asarray(even), np.asarray(odd))
         if self.input == "raw":
             x = self.inputs_from_halves(even, odd, exposure)
-            flat = flat_blocks(halves_mean(np.asarray(even), np.asarray(odd)), exposure) if len(x) \
-                else np.zeros(0, bool)
-            return (*self.score_inputs(x, offset, flat), nonfinite_counts(even) + nonfinite_counts(odd))
-        x, stats = halves_input_and_stats(even, odd, exposure, composition=self.composition or HALVES)
-        return (*self.score_inputs(x, offset, stats.display_range <= FLAT_TOLERANCE), stats.nonfinite)
+            flat = flat_blocks(mean, exposure) if len(x) else np.zeros(0, bool)
+            verdict, score = self.score_inputs(x, offset, flat)
+            bad = nonfinite_counts(even) + nonfinite_counts(odd)
+        else:
+            x, stats = halves_input_and_stats(even, odd, exposure, composition=self.composition or HALVES)
+            flat = stats.display_range <= FLAT_TOLERANCE
+            (verdict, score), bad = self.score_inputs(x, offset, flat), stats.nonfinite
+        return hold_dotted(verdict, even, odd, flat, exposure, tau), score, bad
+
+
+def hold_dotted(verdict: np.ndarray, even: np.ndarray, odd: np.ndarray, flat: np.ndarray,
+                exposure: float, tau: float) -> np.ndarray:
+    """`verdict` with NOISY where a (non-flat) block's halves still disagree on more isolated
+    pixels than the observer at `tau` lets through (`noisefeat.dots.halves_dots`): the served
+    `halves` route's copy of the live loop's guard (`renderer.criteria.Criterion._dots`)."""
+    if not len(verdict):
+        return verdict
+    dotted = halves_dots(torch.as_tensor(np.asarray(even)), torch.as_tensor(np.asarray(odd)), exposure).numpy() > tau
+    return np.where(dotted & ~np.asarray(flat, bool), NOISY, verdict).astype(np.int8)
 
 
 def nonfinite_counts(rgb: np.ndarray) -> np.ndarray:

@@ -21,10 +21,10 @@ from noisefeat.atomic import atomic_write
 
 from ..inputs.noise_input import halves_mean
 from ..inputs.pictures import image_input, noise_picture
-from ..names import OFFSET_LIMIT, TRANSFER_INPUTS, TRANSFER_KINDS
+from ..names import DEFAULT_TAU, OFFSET_LIMIT, TRANSFER_INPUTS, TRANSFER_KINDS
 from ..stoprule import flat_blocks
 from .bundle_check import MAX_MODEL_BYTES, file_sha256
-from .model import FORMAT, MANIFEST, VERSION, Model, json_default, nonfinite_counts, versions
+from .model import FORMAT, MANIFEST, VERSION, Model, hold_dotted, json_default, nonfinite_counts, versions
 from .transfer import ARCHS, STATE_FILE, TENSOR_FILE, TransferClassifier, import_torchvision
 
 #: `input` of an image classifier's manifest
@@ -93,12 +93,14 @@ class TransferModel(Model):
         return noise_picture(even, odd, exposure)
 
     def assess_halves(self, even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
-                      offset: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(verdict, score, non-finite pixels of both halves [N]); flat: their mean's display."""
+                      offset: float | None = None, tau: float = DEFAULT_TAU) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(verdict, score, non-finite pixels of both halves [N]); flat: their mean's display;
+        dotted blocks held noisy at `tau` (`hold_dotted`), as `Model.assess_halves`."""
         x = self.inputs_from_halves(even, odd, exposure)
         flat = flat_blocks(halves_mean(np.asarray(even), np.asarray(odd)), exposure) if len(x) \
             else np.zeros(0, bool)
-        return (*self.score_inputs(x, offset, flat), nonfinite_counts(even) + nonfinite_counts(odd))
+        verdict, score = self.score_inputs(x, offset, flat)
+        return hold_dotted(verdict, even, odd, flat, exposure, tau), score, nonfinite_counts(even) + nonfinite_counts(odd)
 
 
 def save_transfer_model(clf: TransferClassifier, path: str | os.PathLike, *, quick: str,

@@ -10,6 +10,7 @@ thread): the speed knob next to its accuracy cost.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -33,8 +34,7 @@ def with_composition(table: SubImageTable, composition: str) -> SubImageTable:
     """`table` (a `halves` table) with its inputs rebuilt for another composition."""
     X = np.concatenate([stack_halves_input(table.stacks[s], composition=composition).reshape(
         table.stacks[s].n_levels * table.stacks[s].n_blocks, -1) for s in dict.fromkeys(table.scene)])
-    return SubImageTable(X, table.y, table.scene, table.level, table.block, table.spp, table.groups,
-                         table.flat, table.stacks, table.decidable)
+    return dataclasses.replace(table, X=X)
 
 
 def per_block_ms(fn: Callable[[np.ndarray, np.ndarray], Any], block: tuple[int, int] = (64, 64),

@@ -140,7 +140,7 @@ def test_calibrate_writes_c_and_refuses_held_out_scenes(tmp_path):
     assert [p["c"] for p in got["curve"]] == [p["c"] for p in saved["curve"]]
     assert all(p["chosen"]["early_stop_rate"] <= 0.05 for p in saved["curve"])
     assert saved["scenes"] == ["checker", "cornell", "cornell_dark", "sky"] and saved["fingerprint"]
-    assert saved["pooling"] == "tile8-max" and saved["observer_pooling"] == "tile16-max"
+    assert saved["pooling"] == "tile8-max" and saved["observer_pooling"] == "tile16-max+dots"
     # a held-out scene may take no part in calibration (nor in training)
     held = tmp_path / "data" / "studio_preview"
     make_synthetic_stack(held, size=32, spp=(8, 16))
@@ -193,7 +193,7 @@ def test_dataset_relabel_rewrites_first_observer_labels_and_keeps_human_ones(tmp
     out = json.loads(run("dataset", "relabel", str(data), "--json").stdout)
     done = {r["scene"]: r["relabelled"] for r in out["stacks"]}
     assert done == {"checker": False, "cornell": True, "cornell_dark": False, "sky": False}
-    assert json.loads(meta.read_text())["labeler"]["pooling"] == "tile16-max"
+    assert json.loads(meta.read_text())["labeler"]["pooling"] == "tile16-max+dots"
     out = run("dataset", "relabel", str(data), "--pooling", "mean")
     assert out.returncode == 0 and "3 of 4 stacks relabelled (mean)" in out.stdout
     m = json.loads(meta.read_text())

@@ -6,6 +6,8 @@ import json
 import numpy as np
 import pytest
 
+from noisefeat.dots import OBSERVER_DOTS
+
 from learning import make_synthetic_stack
 from learning.evaluation.calibrate import calibrate_flip, calibrate_flip_curve, flip_sweep
 from learning.inputs.halves import (flip_c, flip_offset, flip_tau_range, halves_flip, load_flip_calibration,
@@ -107,8 +109,9 @@ def test_stack_errors_are_cached_and_calibration_meets_its_target(stacks):
         calibrate_flip([])
 
 
-def _curve(points, pooling="tile8-max"):
-    return {"format": "noisestop-flip-curve", "pooling": pooling,
+def _curve(points, pooling="tile8-max", observer="tile16-max+dots"):
+    return {"format": "noisestop-flip-curve", "pooling": pooling, "observer_pooling": observer,
+            "observer_dots": OBSERVER_DOTS,
             "curve": [{"tau": t, "c": c} for t, c in points]}
 
 
@@ -127,6 +130,9 @@ def test_a_calibration_file_is_read_and_checked(tmp_path):
         load_flip_calibration(p)
     p.write_text(json.dumps(_curve([(0.01, 0.02)], pooling="mean")))
     with pytest.raises(ValueError, match="recalibrate"):
+        load_flip_calibration(p)
+    p.write_text(json.dumps(_curve([(0.01, 0.02)], observer="tile16-max")))    # observer version 2
+    with pytest.raises(ValueError, match="observer pooling 'tile16-max'.*recalibrate"):
         load_flip_calibration(p)
     p.write_text(json.dumps(_curve([(0.01, -1)])))
     with pytest.raises(ValueError, match="non-negative"):
@@ -157,4 +163,4 @@ def test_c_of_tau_calibration_relabels_and_keeps_a_monotone_curve(stacks):
     cs = [p["c"] for p in cal["curve"]]
     assert [p["tau"] for p in cal["curve"]] == [0.01, 0.02, 0.04] and cs == sorted(cs)
     assert all(p["c"] >= p["c_raw"] for p in cal["curve"]) and cal["c"] == cs[1]
-    assert cal["pooling"] == "tile8-max" and cal["observer_pooling"] == "tile16-max"
+    assert cal["pooling"] == "tile8-max" and cal["observer_pooling"] == "tile16-max+dots"

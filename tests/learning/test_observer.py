@@ -8,7 +8,8 @@ from learning.data.observer import (VirtualObserver, block_errors, display, flip
                                     observed, pooled_errors, read_observed, relabel_if_stale,
                                     srgb_decode, stack_observer_errors, thresholds_from_errors)
 from learning.data.stack import read_stack, update_labels
-from noisefeat.pooling import pool_blocks
+from noisefeat.dots import OBSERVER_DOTS
+from noisefeat.pooling import POOLINGS, pool_blocks
 from learning.data.synthetic import make_synthetic_stack, synthetic_images
 
 SPP = [4, 8, 16, 32, 64, 128, 256, 512, 1024]
@@ -102,7 +103,7 @@ def test_noise_in_one_tile_is_diluted_by_the_mean_but_not_by_tile_pooling():
     lev = ref.copy()
     lev[:16, :16] *= np.random.default_rng(0).lognormal(0, 0.6, (16, 16, 1)).astype(np.float32)
     e = pooled_errors(ref, [lev], (1, 1))
-    tile, mean = e[0, 0, 0], e[1, 0, 0]
+    tile, mean = e[POOLINGS.index("tile16-max"), 0, 0], e[POOLINGS.index("mean"), 0, 0]
     assert tile > 0.05 and 10 < tile / mean <= 16      # the noisy tile (FLIP spreads a little past it)
     obs = VirtualObserver()
     assert obs.thresholds(ref, [lev, ref], [8, 16], (1, 1)) == [16]
@@ -113,7 +114,7 @@ def test_identical_levels_give_zero_error_and_first_level_thresholds():
     ref = np.random.default_rng(0).random((32, 32, 3)).astype(np.float32) * 3  # HDR
     e = block_errors(ref, [ref, ref, ref])
     assert e.shape == (3, 16) and float(np.abs(e).max()) == 0.0
-    assert pooled_errors(ref, [ref]).shape == (2, 1, 16)
+    assert pooled_errors(ref, [ref]).shape == (len(POOLINGS), 1, 16)
     assert thresholds_from_errors(e, [10, 20, 30]) == [10] * 16
     assert VirtualObserver().thresholds(ref, np.stack([ref, ref]), [5, 9]) == [5] * 16
 
@@ -187,8 +188,9 @@ def test_label_stack_matches_stored_thresholds(tmp_path):
 def test_virtual_observer_settings():
     obs = VirtualObserver(tau=0.03, ppd=40)
     assert obs.labeler == {"name": "flip", "tau": 0.03, "ppd": 40, "display": "clip+srgb",
-                           "exposure": 0.0, "pooling": "tile16-max"}
+                           "exposure": 0.0, "pooling": "tile16-max+dots", **OBSERVER_DOTS}
     assert VirtualObserver(pooling="mean").labeler["pooling"] == "mean"
+    assert VirtualObserver(pooling="tile16-max").labeler["pooling"] == "tile16-max"
     for bad in (-1, 0, float("nan"), float("inf"), "x"):
         with pytest.raises(ValueError, match="tau"):
             VirtualObserver(tau=bad)
@@ -212,7 +214,7 @@ def test_a_stack_without_pooling_counts_as_mean_labelled_and_is_relabelled_never
     big = 10 ** 9
     assert all((big if t is None else t) >= (big if m is None else m) for t, m in zip(tile_th, mean_th))
     seen = observed(st)                                            # in memory: tile labels
-    assert seen.thresholds == tile_th and seen.labeler["pooling"] == "tile16-max"
+    assert seen.thresholds == tile_th and seen.labeler["pooling"] == "tile16-max+dots"
     assert read_stack(st.path).thresholds == mean_th               # meta.json untouched
     assert observed(st, pooling="mean").thresholds == mean_th      # still selectable
     assert [s.thresholds for s in read_observed(str(tmp_path))] == [tile_th]
@@ -222,7 +224,7 @@ def test_a_stack_without_pooling_counts_as_mean_labelled_and_is_relabelled_never
 def test_relabelling_reads_cached_errors_and_never_renders(tmp_path, monkeypatch):
     st = _mean_labelled(tmp_path)
     e = stack_observer_errors(st)                                  # computed once, cached
-    assert e.shape == (2, 5, 4)
+    assert e.shape == (len(POOLINGS), 5, 4)
     import learning.data.observer as obs_mod
     monkeypatch.setattr(obs_mod, "flip_map", lambda *a, **k: (_ for _ in ()).throw(AssertionError("FLIP ran")))
     for tau in (0.01, 0.02, 0.04):
@@ -252,3 +254,61 @@ def test_relabel_if_stale_updates_flip_labels_and_keeps_human_ones(tmp_path):
     human = update_labels(again, [16] * 4, {"name": "human", "source": "LISIC"})
     assert relabel_if_stale(human) == (human, False)
     assert observed(human, tau=0.01) is human                       # human labels are the data
+
+
+def _dotted(n_dots: int, value: float = 0.005, size: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """A black reference and a level holding `n_dots` single pixels on it, spread apart
+    (linear 0.005: display 0.061, over the 0.03 a dot needs at tau 0.02)."""
+    ref = np.zeros((size, size, 3), np.float32)
+    lev = ref.copy()
+    ys, xs = np.unravel_index(np.random.default_rng(1).choice(size * size // 4, n_dots, replace=False),
+                              (size // 2, size // 2))
+    lev[2 * ys, 2 * xs] = value
+    return ref, lev
+
+
+@pytest.mark.parametrize("n_dots,v3_converged", [(0, True), (8, True), (16, True), (17, False), (60, False)])
+def test_version_3_refuses_dots_on_black_that_the_tile_mean_blurs_away(n_dots, v3_converged):
+    """Issue 33: single light pixels on black at 1:1. FLIP's 16x16 tile mean stays under tau
+    with sixty of them; the dot term lets at most 16 of a 64x64 block through."""
+    ref, lev = _dotted(n_dots)
+    e = pooled_errors(ref, [lev], (1, 1))[:, 0, 0]
+    assert e[POOLINGS.index("tile16-max")] <= 0.02                 # version 2 calls it converged
+    assert (e[POOLINGS.index("tile16-max+dots")] <= 0.02) == v3_converged
+    assert VirtualObserver().thresholds(ref, [lev, ref], [8, 16], (1, 1)) == [8 if v3_converged else 16]
+    assert VirtualObserver(pooling="tile16-max").thresholds(ref, [lev, ref], [8, 16], (1, 1)) == [8]
+
+
+def test_the_dot_level_follows_tau():
+    """A dot is an outlier at 1.5 tau: a stricter target sees fainter dots."""
+    ref, lev = _dotted(30, value=0.002)           # display 0.026 each: under 0.03, over 0.0225
+    e = pooled_errors(ref, [lev], (1, 1))[:, 0, 0]
+    assert e[POOLINGS.index("tile16-max")] < 0.01
+    e = e[POOLINGS.index("tile16-max+dots")]
+    assert thresholds_from_errors(np.array([[e]]), [8], 0.02) == [8]
+    assert thresholds_from_errors(np.array([[e]]), [8], 0.015) == [None]
+
+
+def test_a_version_2_stack_is_relabelled_by_its_dot_term_alone(tmp_path, monkeypatch):
+    """Stacks labelled before version 3 keep their cached FLIP errors: relabelling reads the
+    levels for the dot term only, never FLIP."""
+    st = make_synthetic_stack(tmp_path / "s", size=128, grid=(2, 2), spp=[16, 64, 256, 1024])
+    st = update_labels(st, label_stack(st, pooling="tile16-max"), {**st.labeler, "pooling": "tile16-max"})
+    stack_observer_errors(st)
+    for f in (st.path / ".cache").glob("observer-dots-*"):
+        f.unlink()
+    import learning.data.observer as obs_mod
+    monkeypatch.setattr(obs_mod, "flip_map", lambda *a, **k: (_ for _ in ()).throw(AssertionError("FLIP ran")))
+    new, relabelled = relabel_if_stale(read_stack(st.path))
+    assert relabelled and new.labeler["pooling"] == "tile16-max+dots"
+    assert list(st.path.joinpath(".cache").glob("observer-dots-*"))
+
+
+def test_labels_of_other_dot_settings_are_relabelled_never_read(tmp_path, monkeypatch):
+    """The labeler record names the dot level and density: a stack labelled at another
+    setting is relabelled like one of another pooling."""
+    st = make_synthetic_stack(tmp_path / "s", size=64, spp=[16, 64, 256, 1024])
+    assert st.labeler["dot_level"] == OBSERVER_DOTS["dot_level"]
+    other = update_labels(st, st.thresholds, {**st.labeler, "dot_level": 9.0})
+    assert observed(other).labeler["dot_level"] == OBSERVER_DOTS["dot_level"]
+    assert relabel_if_stale(other)[1]

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from noisefeat.pooling import POOLINGS, check_pooling, pool_blocks, pool_maps, tile_starts
+from noisefeat.pooling import FLIP_POOLINGS, check_pooling, pool_blocks, pool_maps, tile_starts
 
 
 def brute_force(m: np.ndarray) -> float:
@@ -37,7 +37,7 @@ def test_one_bright_pixel_counts_256_times_more_in_its_tile_than_in_a_64px_block
 @pytest.mark.parametrize("value", [0.0, 1e-30, 0.5, 1.0, 1e30, np.finfo(np.float32).max])
 def test_constant_maps_pool_to_their_value_at_any_magnitude(value):
     m = np.full((2, 48, 40), value, np.float32)
-    for p in POOLINGS:
+    for p in FLIP_POOLINGS:
         np.testing.assert_allclose(pool_maps(m, p), float(np.float32(value)), rtol=1e-6)
         assert np.isfinite(pool_maps(m, p)).all()
 
@@ -46,7 +46,7 @@ def test_nan_and_inf_are_not_hidden():
     m = np.zeros((3, 40, 40))
     m[0, 2, 2] = np.nan
     m[1, 39, 39] = np.inf
-    for p in POOLINGS:
+    for p in FLIP_POOLINGS:
         out = pool_maps(m, p)
         assert np.isnan(out[0]) and out[1] == np.inf and out[2] == 0.0   # only its own map
 

@@ -48,7 +48,7 @@ def test_grown_passes_keep_the_result_and_save_launches(variant) -> None:
     """Once few blocks are active, a launch traces several passes: fewer launches, the
     same stops and image. A control: without growth the launches are one per pass."""
     kw = {"resolution": 64, "block": 16, "step": 4, "min_spp": 8, "max_spp": 96, "progress": False}
-    runs = {g: run_adaptive("cornell", make_criterion("flip", tau=0.02, threshold=0.2), grow=g, **kw)
+    runs = {g: run_adaptive("cornell", make_criterion("flip", tau=golden.NO_DOTS, threshold=0.2), grow=g, **kw)
             for g in (True, False)}
     grown, fixed = runs[True].report, runs[False].report
     assert [b["spp"] for b in grown["blocks"]] == [b["spp"] for b in fixed["blocks"]]

@@ -180,3 +180,19 @@ def test_the_command_line_takes_a_reference_exr(tmp_path, capsys, _quiet_cli):
     lines = [line for line in re.split(r"[\r\n]", err) if line.strip() and "%|" not in line]
     assert rc == 2 and len(lines) == 1 and "Traceback" not in err, err
     assert "the reference image is 32x32, the render 64x64" in lines[0]
+
+
+def test_no_block_the_default_criterion_stops_holds_visible_dots():
+    """Issue 33 on a live render: `make run`'s scene (black background, one spot light), the
+    shipped criterion at its defaults, judged against the shipped 8192-spp reference: no
+    stopped block holds more than 16 pixels over 0.05 display error (at tau 0.02), and
+    blocks do stop, the near-black ones among them (else the check says nothing)."""
+    from renderer.showcase import shipped_reference
+
+    ref = shipped_reference("spot_stage")
+    r = renderer.render("spot_stage", reference=ref, resolution=256, block=64, step=32, min_spp=32,
+                        max_spp=1024, progress=False)
+    f = r.report["final_vs_reference"]
+    stopped = [b["converged"] for b in r.report["blocks"]]
+    assert sum(stopped[:4]) >= 2, stopped              # the black top row stops
+    assert f["dotted_stopped_blocks"] == 0 and f["max_stopped_dots"] <= 16, (f["dots"], stopped)

@@ -21,10 +21,10 @@ blocks did not show; at 1.5 tau they stop with 0-1 pixels over 0.05. Reports cou
 over the issue's yardstick, `REPORT_LEVEL` * tau (0.05 = 13 of 255 levels at tau 0.02).
 
 The criteria see the dots through their half buffers A and B (`halves_dots`). The image
-shown is (up to one pass) their mean M; a pixel's error against the truth is estimated by the larger of
-|d(M) - d(A)| and |d(M) - d(B)|: with Gaussian noise either has the spread of M's own error
-(M - A = (B - A) / 2), and a firefly that landed in A alone leaves B at the truth, so
-|d(M) - d(B)| is the dot's own display error. Both scale with the same `DOT_LEVEL` * tau.
+shown is (up to one pass) their mean M; a pixel's error against the truth is estimated by
+the larger of |d(M) - d(A)| and |d(M) - d(B)|: with Gaussian noise either has the spread of
+M's own error (M - A = (B - A) / 2), and a firefly that landed in A alone leaves B at the
+truth, so |d(M) - d(B)| is the dot's own display error. Both scale with `DOT_LEVEL` * tau.
 """
 from __future__ import annotations
 

@@ -239,10 +239,10 @@ class Model:
         if not self.needs_halves:
             raise ValueError(f"this model reads {'raw blocks' if self.input == 'raw' else 'blocks'}"
                              f"{' and their quick images' if self.needs_quick else ''}, not half buffers")
-        mean = halves_mean(np.asarray(even), np.asarray(odd))
         if self.input == "raw":
             x = self.inputs_from_halves(even, odd, exposure)
-            flat = flat_blocks(mean, exposure) if len(x) else np.zeros(0, bool)
+            flat = flat_blocks(halves_mean(np.asarray(even), np.asarray(odd)), exposure) if len(x) \
+                else np.zeros(0, bool)
             verdict, score = self.score_inputs(x, offset, flat)
             bad = nonfinite_counts(even) + nonfinite_counts(odd)
         else:

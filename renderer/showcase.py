@@ -66,17 +66,11 @@ def block_errors_vs(image: np.ndarray, reference: np.ndarray, report: dict[str, 
 
 def block_outliers_vs(image: np.ndarray, reference: np.ndarray, report: dict[str, Any], tau: float) -> np.ndarray:
     """int [blocks]: per block of `report`, the pixels of `image` whose display error against
-    `reference` exceeds the reports' dot level (2.5 tau: 0.05 at tau 0.02, issue 33's
-    yardstick; `noisefeat.dots`)."""
-    from noisefeat.dots import count_outliers
+    `reference` exceeds the reports' dot level (`renderer.report.window_dots`)."""
+    from .report import window_dots
 
-    exposure = float(report.get("exposure", 0.0))
-    out = []
-    for b in report["blocks"]:
-        x, y, bw, bh = b["window"]
-        win = (slice(y, y + bh), slice(x, x + bw))
-        out.append(count_outliers(image[win], reference[win], tau, exposure))
-    return np.asarray(out, np.int64)
+    return window_dots(image, reference, [b["window"] for b in report["blocks"]], tau,
+                       float(report.get("exposure", 0.0)))
 
 
 def darkest_stopped(a: dict[str, Any], image: np.ndarray) -> dict[str, Any] | None:

@@ -5,7 +5,7 @@
 2. e[k, b] = E_k pooled over block b: the largest of its 16x16 tile means (`noisefeat.pooling`),
    so noise confined to part of a block is not averaged away by the clean rest; version 3
    ("tile16-max+dots", the default) takes the larger of that and the dot term
-   (`noisefeat.dots`: the block's 17th-largest per-pixel display error / 2.5 for 64x64), so a
+   (`noisefeat.dots`: the block's 17th-largest per-pixel display error / 1.5 for 64x64), so a
    block holding more than a handful of visible dots is not converged either. Version 2
    ("tile16-max") and the first observer's block mean ("mean") stay selectable for comparison.
 3. Level k of block b is converged iff e[j, b] <= tau for every j >= k (tau = 0.02).
@@ -269,17 +269,21 @@ def stack_observer_errors(stack: Stack, ppd: float = DEFAULT_PPD, exposure: floa
     labelled before version 3 only needs its dot term computed. `computed`: the terms a
     build just computed (`observer_terms`), stored instead of computed again."""
     k, n = stack.n_levels, stack.n_blocks
-    terms = None if computed is None else np.asarray(computed, np.float64)
+    # every term from one pass over the levels, made at most once (FLIP's pass makes the dots too)
+    made: list[np.ndarray] = [] if computed is None else [np.asarray(computed, np.float64)]
+
+    def all_terms() -> np.ndarray:
+        if not made:
+            made.append(observer_terms(stack.reference(), stack.iter_levels(), stack.grid, ppd, exposure))
+        return made[0]
 
     def flip() -> np.ndarray:
-        if terms is not None:
-            return terms[:len(FLIP_POOLINGS)]
-        return observer_terms(stack.reference(), stack.iter_levels(), stack.grid, ppd, exposure)[:len(FLIP_POOLINGS)]
+        return all_terms()[:len(FLIP_POOLINGS)]
 
     def dots() -> np.ndarray:
-        if terms is not None:
-            return terms[TERMS.index(DOT_TERM)]
-        ref = _display(stack.reference(), exposure)
+        if made:
+            return made[0][TERMS.index(DOT_TERM)]
+        ref = _display(stack.reference(), exposure)      # FLIP cached already: the dot term alone
         return np.stack([_block_dots(ref, _display(lev, exposure), stack.grid) for lev in stack.iter_levels()])
     flip_e = cached_array(stack, f"observer-e{exposure:g}-ppd{ppd:g}", (len(FLIP_POOLINGS), k, n), flip)
     dot_e = cached_array(stack, f"observer-dots-e{exposure:g}-l{DOT_LEVEL:g}-d{DOT_DENSITY}", (k, n), dots)

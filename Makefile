@@ -14,7 +14,7 @@ LIBRARY ?= data/default
 HELDOUT ?= data/heldout
 OUT ?= out
 
-.PHONY: setup run test test-fast bench dataset library heldout fixture model clean
+.PHONY: setup run test test-fast test-portability bench dataset library heldout fixture model clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -35,6 +35,14 @@ run: setup
 
 test: setup
 	$(PY) -m pytest -q
+
+# The CPU-portability check (issue 39): how far pixels and decisions move when Dr.Jit's LLVM
+# backend compiles for another CPU (AVX2 Haswell code, 8 lanes, on whatever this machine
+# is), then the whole suite with every in-process kernel compiled so, in a fresh kernel cache.
+PORTABLE_TARGET ?= haswell,8
+test-portability: setup
+	$(PY) -m tests.support.passloop_golden shift $(PORTABLE_TARGET)
+	DRJIT_CACHE_DIR=$$(mktemp -d) NOISESTOP_TEST_LLVM_TARGET=$(PORTABLE_TARGET) $(PY) -m pytest -q
 
 test-fast: setup
 	$(PY) -m pytest -q -m "not slow"

@@ -194,7 +194,7 @@ print(json.dumps(out))
 
 
 def test_one_kernel_compile_per_render_whatever_the_active_set(tmp_path) -> None:
-    """In a process with a cold Dr.Jit cache (its own HOME): the first pass compiles the
+    """In a process with a cold Dr.Jit cache (its own HOME and cache folder): the first pass compiles the
     kernel, no later pass compiles anything, whatever blocks and spp it traces."""
     import json
     import os
@@ -204,7 +204,8 @@ def test_one_kernel_compile_per_render_whatever_the_active_set(tmp_path) -> None
 
     tests = str(Path(__file__).parent)
     root = str(Path(__file__).resolve().parents[2])
-    env = {**os.environ, "HOME": str(tmp_path), "PYTHONPATH": os.pathsep.join([root, tests])}
+    env = {**os.environ, "HOME": str(tmp_path), "DRJIT_CACHE_DIR": str(tmp_path / "drjit-cache"),
+           "PYTHONPATH": os.pathsep.join([root, tests])}     # cold whatever the caller's cache dir
     done = subprocess.run([sys.executable, "-c", COMPILES.format(tests=tests)], capture_output=True, text=True,
                           env=env, timeout=300)
     assert done.returncode == 0, done.stderr

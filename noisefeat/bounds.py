@@ -48,6 +48,21 @@ def env_int(environ: Mapping[str, str], key: str, default: int, minimum: int | N
     return value
 
 
+def env_seconds(environ: Mapping[str, str], key: str, default: float, most: float, zero: bool = False) -> float:
+    """A number of seconds in (0, most] ([0, most] with `zero`) from the environment
+    (`default` when unset or blank): the one parser of every NOISESTOP_* time setting."""
+    raw = environ.get(key, "")
+    if not raw.strip():
+        return default
+    try:
+        value = float(raw)
+    except ValueError:
+        value = float("nan")
+    if not (0 <= value <= most) or (value == 0 and not zero):
+        raise ValueError(f"{key} must be a number of seconds in {'[' if zero else '('}0, {most:g}], got {raw!r}")
+    return value
+
+
 @dataclass(frozen=True)
 class SizeBounds:
     """The three ceilings above; every check raises ValueError naming the bound it hit."""

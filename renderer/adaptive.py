@@ -113,7 +113,9 @@ def _resolve_criterion(criterion: Criterion | str, reference: Stack | None, tau:
     if isinstance(criterion, str):
         th = reference.thresholds if reference is not None else None
         return build_criterion(criterion, thresholds=th, tau=tau)
-    raise ValueError(f"criterion must be a Criterion or one of model/variance/uniform/oracle, "
+    from .names import CRITERIA
+
+    raise ValueError(f"criterion must be a Criterion or one of {', '.join(CRITERIA)}, "
                      f"got {type(criterion).__name__}")
 
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from learning.names import DEFAULT_TAU
 
-from .names import DEFAULT_CRITERION
+from .names import criterion_name
 from .result import RenderResult
 
 if TYPE_CHECKING:
@@ -35,7 +35,7 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
            defines: Mapping[str, str] | None = None,
            reference: Stack | str | os.PathLike[str] | np.ndarray | None = None,
            model: str | os.PathLike[str] | None = None, threshold: float | None = None,
-           offset: float | None = None, exposure: float = 0.0, quick_spp: int = 16,
+           offset: float | None = None, exposure: float | None = None, quick_spp: int = 16,
            spp_budget: float | None = None) -> RenderResult:
     """Render `scene` adaptively: sample each block until it looks converged, in memory.
 
@@ -52,7 +52,8 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
         When a block has converged: ``flip`` (training-free, the default), ``model`` (the
         learned model), ``variance`` (Cycles' rule), ``uniform`` (never: max_spp
         everywhere) or ``oracle`` (needs a labelled reference stack); or a Criterion object.
-        None: the scene's ``noisestop`` integrator's, if it has one, else ``flip``.
+        None: the scene's ``noisestop`` integrator's, if it has one; else ``model`` when
+        `model` or `offset` is given, as on the command line; else ``flip``.
     tau : float or None
         The noise target: the virtual observer's FLIP threshold the criterion is
         calibrated for (smaller: cleaner and more samples); None: the scene's
@@ -97,8 +98,9 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
         ``variance``: the noise threshold (None: 0.01).
     offset : float or None
         ``model``: the decision offset (None: the model's calibrated offset at tau).
-    exposure : float
-        Display exposure in stops the criteria judge the image at.
+    exposure : float or None
+        Display exposure in stops the criteria judge the image at; None: the scene's
+        ``noisestop`` integrator's, else 0.
     quick_spp : int
         Samples of the quick image a model criterion reads (rendered once).
     spp_budget : float or None
@@ -126,16 +128,16 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
     register()
     own = scene_plugin_settings(scene)        # the scene's own noisestop integrator, if any
     given = {"criterion": criterion, "tau": tau, "block": block, "min_spp": min_spp, "max_spp": max_spp,
-             "step": step, "seed": seed, "threshold": threshold, "offset": offset, "model": model}
+             "step": step, "seed": seed, "threshold": threshold, "offset": offset, "model": model,
+             "exposure": exposure}
     for key, value in given.items():
         if value is None and key in own:
             given[key] = own[key]
-    if exposure == 0.0 and "exposure" in own:
-        exposure = own["exposure"]
-    criterion, tau, block, min_spp, max_spp, step, seed, threshold, offset, model = given.values()
-    criterion = DEFAULT_CRITERION if criterion is None else criterion
+    criterion, tau, block, min_spp, max_spp, step, seed, threshold, offset, model, exposure = given.values()
+    criterion = criterion_name(criterion, model=model, offset=offset)
     tau = DEFAULT_TAU if tau is None else tau
     seed = 0 if seed is None else seed
+    exposure = 0.0 if exposure is None else exposure
     crit = make_criterion(criterion, tau=tau, model=model, threshold=threshold, offset=offset, exposure=exposure)
     return run_adaptive(scene, crit, resolution=resolution, grid=grid, block=block, step=step, min_spp=min_spp,
                         max_spp=max_spp, seed=seed, progress=progress, reference=reference,

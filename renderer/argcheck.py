@@ -13,10 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from .settings import MAX_SPP
-
-#: the longest time limit accepted, seconds (a year: anything longer is a typo)
-MAX_TIME_LIMIT = 365 * 24 * 3600.0
+from .settings import MAX_SPP, MAX_TIME_LIMIT
 
 
 def check_count(name: str, value: Any, optional: bool = True) -> None:

@@ -42,22 +42,13 @@ from .passloop import PassLoop
 BAND = 0.8
 
 
-def check_budget(spp_budget: Any) -> float | None:
-    """`spp_budget` as a float (None: no budget); ValueError unless a positive finite number."""
-    if spp_budget is None:
-        return None
-    if isinstance(spp_budget, bool) or not isinstance(spp_budget, (int, float, np.integer, np.floating)) \
-            or not math.isfinite(float(spp_budget)) or spp_budget <= 0:
-        raise ValueError(f"spp budget must be a positive number of samples per pixel, got {spp_budget!r}")
-    return float(spp_budget)
-
-
 @dataclass
 class Budget:
     """What a budget render may still spend, and which blocks a round renders.
 
     `spp_budget`: samples per pixel averaged over the blocks (None: no sample budget);
-    `time_limit`: seconds (None: none). `band`: see the module docstring.
+    `time_limit`: seconds (None: none). `band`: see the module docstring. The limits are
+    checked at the doors (`renderer.argcheck`: `run_adaptive`, `simulate_budget`), not here.
     """
 
     spp_budget: float | None = None
@@ -69,7 +60,6 @@ class Budget:
     _cost: list[float] = field(default_factory=lambda: [0.0, 0.0])   # render seconds, block-spp rendered
 
     def __post_init__(self) -> None:
-        self.spp_budget = check_budget(self.spp_budget)
         if not 0.0 < self.band <= 1.0:
             raise ValueError(f"band must be in (0, 1], got {self.band!r}")
 
@@ -181,6 +171,9 @@ def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int 
     """
     from learning.inputs.halves import check_constant_step, recover_passes
 
+    from .argcheck import check_spp_budget
+
+    check_spp_budget(spp_budget)
     if criterion.needs_halves:
         check_constant_step(stack)
     passes, sizes = [], []

@@ -57,7 +57,9 @@ def configure_worker_threads() -> None:
     mitsuba 3.9.1; tests/renderer/test_dataset_build.py guards it), so the renderer keeps its own
     pool and the OS shares the cores.
     """
-    threads = os.environ.get("NOISESTOP_THREADS")
+    from noisefeat.bounds import env_int
+
+    threads = env_int(os.environ, "NOISESTOP_THREADS", 0, minimum=1)   # unset or blank: 0, left alone
     if threads:
         import torch
-        torch.set_num_threads(max(1, int(threads)))
+        torch.set_num_threads(threads)

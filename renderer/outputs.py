@@ -23,6 +23,7 @@ from learning.data.exr import write_exr_channels, write_png
 from noisefeat.atomic import atomic_write
 from noisefeat.display import display
 from noisefeat.extras import require
+from noisefeat.jsonout import json_default
 
 FINAL_EXR = "final.exr"
 FINAL_PNG = "final.png"
@@ -59,19 +60,9 @@ def to_srgb8(image: np.ndarray, exposure: float = 0.0) -> np.ndarray:
     return np.clip(np.rint(d * 255.0), 0, 255).astype(np.uint8)
 
 
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, os.PathLike):
-        return os.fspath(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
 def write_report(path: str | os.PathLike, report: dict[str, Any]) -> Path:
     path = Path(path)
-    atomic_write(path, (json.dumps(report, indent=2, default=_json_default) + "\n").encode("utf-8"))
+    atomic_write(path, (json.dumps(report, indent=2, default=json_default) + "\n").encode("utf-8"))
     return path
 
 

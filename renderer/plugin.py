@@ -97,10 +97,10 @@ def _integrator_class() -> type:
         def _criterion_options(self) -> dict[str, Any]:
             from learning.names import DEFAULT_TAU
 
-            from .names import DEFAULT_CRITERION
+            from .names import criterion_name
 
             s = self.settings
-            return {"criterion": s.get("criterion", DEFAULT_CRITERION), "tau": s.get("tau", DEFAULT_TAU),
+            return {"criterion": criterion_name(s.get("criterion"), model=s.get("model"), offset=s.get("offset")), "tau": s.get("tau", DEFAULT_TAU),
                     "model": s.get("model"), "threshold": s.get("threshold"), "offset": s.get("offset"),
                     "exposure": s.get("exposure", 0.0)}
 

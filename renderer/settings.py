@@ -34,6 +34,8 @@ DEFAULTS: dict[str, Any] = {"block": DEFAULT_BLOCK, "step": 16, "min_spp": 16, "
 #: makes at most MAX_PASSES passes (each appends a row to the checkpointed history)
 MAX_SPP = 1 << 20
 MAX_PASSES = 10_000
+#: the longest time limit accepted on every door, seconds (a year: anything longer is a typo)
+MAX_TIME_LIMIT = 365 * 24 * 3600.0
 KEYS = ("resolution", "grid", "block", "step", "min_spp", "max_spp")
 SCENE = "scene"
 COMMAND_LINE = "command line"

@@ -9,6 +9,8 @@ import os
 import sys
 from typing import Any
 
+from noisefeat.jsonout import json_default
+
 log = logging.getLogger("noisestop")
 
 
@@ -18,19 +20,8 @@ class UsageError(ValueError):
 
 def emit_json(obj: Any) -> None:
     """The only thing a --json command writes to stdout."""
-    sys.stdout.write(json.dumps(obj, indent=None, default=_json_default) + "\n")
+    sys.stdout.write(json.dumps(obj, indent=None, default=json_default) + "\n")
     sys.stdout.flush()
-
-
-def _json_default(o: Any) -> Any:
-    import numpy as np
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if hasattr(o, "__fspath__"):
-        return os.fspath(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 def one_line(exc: BaseException, limit: int = 2000) -> str:

@@ -33,7 +33,7 @@ from typing import Any
 
 import anyio
 
-from noisefeat.bounds import DEFAULT_MAX_BLOCK_SIDE, DEFAULT_MAX_PIXELS, ENV as BOUNDS_ENV, MIN_SIDE, env_int
+from noisefeat.bounds import DEFAULT_MAX_BLOCK_SIDE, DEFAULT_MAX_PIXELS, ENV as BOUNDS_ENV, MIN_SIDE, env_int, env_seconds
 
 from .oip import ApiError, RequestInput
 
@@ -194,23 +194,12 @@ class UploadPolicy:
         """Explicit values win over NOISESTOP_BODY_DEADLINE / NOISESTOP_MIN_BODY_RATE /
         NOISESTOP_BODY_GRACE, which win over the defaults (120 s, 64 KiB/s, 10 s)."""
         return cls(stall=stall,
-                   deadline=deadline if deadline is not None else _env_float(environ, ENV_BODY_DEADLINE, 120.0),
+                   deadline=deadline if deadline is not None else env_seconds(environ, ENV_BODY_DEADLINE, 120.0,
+                                                                              86400),
                    min_rate=min_rate if min_rate is not None else env_int(environ, ENV_MIN_BODY_RATE, 64 * 1024,
                                                                           minimum=1),
-                   grace=grace if grace is not None else _env_float(environ, ENV_BODY_GRACE, 10.0, zero=True))
-
-
-def _env_float(environ: Mapping[str, str], key: str, default: float, zero: bool = False) -> float:
-    raw = environ.get(key)
-    if raw is None or not raw.strip():
-        return default
-    try:
-        value = float(raw)
-    except ValueError:
-        value = float("nan")
-    if not (0 <= value <= 86400) or (value == 0 and not zero):
-        raise ValueError(f"{key} must be a number of seconds in {'[' if zero else '('}0, 86400], got {raw!r}")
-    return value
+                   grace=grace if grace is not None else env_seconds(environ, ENV_BODY_GRACE, 10.0, 86400,
+                                                                     zero=True))
 
 
 class MemoryBudget:

@@ -26,6 +26,7 @@ import threading
 from collections.abc import Iterator
 from types import FrameType
 
+from noisefeat.bounds import env_seconds
 from noisefeat.extras import require_extra
 
 require_extra("serve")   # one line naming the extra, not an ImportError from uvicorn
@@ -88,26 +89,12 @@ def build(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", 
     _check_seconds("body_timeout", body_timeout)
     upload = UploadPolicy.from_env(stall=body_timeout, deadline=body_deadline, min_rate=min_body_rate,
                                    grace=body_grace)
-    parse_seconds = _env_seconds(ENV_PARSE_SECONDS, DEFAULT_PARSE_SECONDS)
+    parse_seconds = env_seconds(os.environ, ENV_PARSE_SECONDS, DEFAULT_PARSE_SECONDS, 3600)
     registry = ModelRegistry(dict(models or {}), offset=offset, tau=tau)
     registry.load()
     return create_app(registry, token=secret, limits=limits, inference_threads=inference_threads,
                       limit_concurrency=limit_concurrency, body_timeout=body_timeout, upload=upload,
                       parse_seconds=parse_seconds)
-
-
-def _env_seconds(key: str, default: float) -> float:
-    """A number of seconds in (0, 3600] from the environment (unset or blank: `default`)."""
-    raw = os.environ.get(key, "").strip()
-    if not raw:
-        return default
-    try:
-        value = float(raw)
-    except ValueError:
-        value = float("nan")
-    if not 0 < value <= 3600:
-        raise ValueError(f"{key} must be a number of seconds in (0, 3600], got {raw!r}")
-    return value
 
 
 def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", port: int = 8000, *,

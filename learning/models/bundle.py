@@ -19,11 +19,12 @@ import skops.io as sio
 
 from noisefeat import FeatureBase, default_base
 from noisefeat.atomic import atomic_path, atomic_write
+from noisefeat.jsonout import json_default
 
 from ..inputs.noise_input import HALVES, n_inputs
 from .bundle_check import check_estimator, check_model_file, file_sha256, model_bytes, read_manifest
 from .estimators import RBFSVM
-from .model import FORMAT, MANIFEST, VERSION, Model, json_default, versions
+from .model import FORMAT, MANIFEST, VERSION, Model, versions
 
 __all__ = ["ALLOWED_TYPES", "BUNDLED_DIR", "FORMAT", "MANIFEST", "MODEL_FILE", "VERSION", "Model", "load_model",
            "save_model"]

@@ -270,12 +270,3 @@ def nonfinite_counts(rgb: np.ndarray) -> np.ndarray:
     if not len(rgb):
         return np.zeros(0, np.int64)
     return nonfinite_pixels(torch.as_tensor(rgb)).numpy().astype(np.int64)
-
-
-def json_default(o: Any) -> Any:
-    """`json.dumps` default for manifests: numpy scalars and arrays as plain values."""
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

@@ -18,13 +18,14 @@ import numpy as np
 import torch
 
 from noisefeat.atomic import atomic_write
+from noisefeat.jsonout import json_default
 
 from ..inputs.noise_input import halves_mean
 from ..inputs.pictures import image_input, noise_picture
 from ..names import DEFAULT_TAU, OFFSET_LIMIT, TRANSFER_INPUTS, TRANSFER_KINDS
 from ..stoprule import flat_blocks
 from .bundle_check import MAX_MODEL_BYTES, file_sha256
-from .model import FORMAT, MANIFEST, VERSION, Model, hold_dotted, json_default, nonfinite_counts, versions
+from .model import FORMAT, MANIFEST, VERSION, Model, hold_dotted, nonfinite_counts, versions
 from .transfer import ARCHS, STATE_FILE, TENSOR_FILE, TransferClassifier, import_torchvision
 
 #: `input` of an image classifier's manifest

@@ -10,7 +10,8 @@ import contextlib
 from typing import Any
 
 from learning.names import DEFAULT_TAU
-from renderer.names import CRITERIA, DEFAULT_CRITERION
+from renderer.settings import MAX_TIME_LIMIT
+from renderer.names import CRITERIA, DEFAULT_CRITERION, criterion_name
 
 from ..console import UsageError, emit_json, log
 from . import arguments as arg
@@ -44,8 +45,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(final_vs_reference only)")
     p.add_argument("--exposure", type=arg.exposure, default=0.0,
                    help="display exposure (stops, -64..64) the criteria judge the image at (default 0)")
-    p.add_argument("--time-limit", type=arg.float_in(0.0, 1e9, open_low=True), default=None, metavar="S",
-                   help="stop after the pass under way at S seconds, writing the outputs and the "
+    p.add_argument("--time-limit", type=arg.float_in(0.0, MAX_TIME_LIMIT, open_low=True), default=None,
+                   metavar="S", help="stop after the pass under way at S seconds, writing the outputs and the "
                         "checkpoint (--resume continues); when the time will not cover every block, "
                         "passes go to the blocks farthest from the noise target first")
     p.add_argument("--spp-budget", type=arg.float_in(0.0, arg.MAX_SPP, open_low=True), default=None, metavar="N",
@@ -90,8 +91,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from renderer.outputs import format_report
     from renderer.outlock import locked_output
 
-    criterion = args.criterion or ("model" if args.model or args.server or args.offset is not None
-                                   else DEFAULT_CRITERION)
+    criterion = criterion_name(args.criterion, model=args.model, server=args.server, offset=args.offset)
     try:       # --out is locked for the render's lifetime (renderer.outlock)
         lock = locked_output(args.out) if args.out else contextlib.nullcontext()
         with lock:

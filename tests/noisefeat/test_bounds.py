@@ -98,3 +98,39 @@ def test_size_bounds_name_the_bound_they_hit():
     for bad in ({"NOISESTOP_MAX_PIXELS": "many"}, {"NOISESTOP_MAX_PIXELS": "4"}):
         with pytest.raises(ValueError, match="max_pixels|NOISESTOP_MAX_PIXELS"):
             SizeBounds.from_env(bad)
+
+
+@pytest.mark.parametrize("raw,zero,want", [
+    (None, False, 7.0), ("  ", False, 7.0), ("5", False, 5.0), ("3600", False, 3600.0), ("0", True, 0.0),
+    ("0", False, None), ("3600.5", False, None), ("-1", False, None), ("nan", False, None), ("inf", False, None),
+    ("1e999", False, None), ("abc", False, None)])
+def test_env_seconds_is_the_one_parser_of_time_settings(raw, zero, want):
+    """Unset or blank: the default; else a number of seconds in (0, most] ([0, most] with
+    zero), or one error line naming the variable and the range."""
+    from noisefeat.bounds import env_seconds
+
+    environ = {} if raw is None else {"NOISESTOP_X": raw}
+    if want is not None:
+        assert env_seconds(environ, "NOISESTOP_X", 7.0, 3600, zero=zero) == want
+        return
+    with pytest.raises(ValueError, match=r"NOISESTOP_X must be a number of seconds in \(0, 3600\], got"):
+        env_seconds(environ, "NOISESTOP_X", 7.0, 3600, zero=zero)
+
+
+def test_no_noisestop_number_is_parsed_outside_bounds():
+    """One parser of NOISESTOP_* numbers (`env_int`, `env_seconds`): no product module turns
+    an environment value into a number itself (issue 40 found three)."""
+    import re
+
+    from tests.support import ROOT
+
+    found = []
+    for pkg in ("noisefeat", "learning", "renderer", "service"):
+        for p in sorted((ROOT / pkg).rglob("*.py")):
+            if p.name == "bounds.py":
+                continue
+            text = p.read_text()
+            names = re.findall(r"(\w+) = (?:os\.)?environ\.get\(", text)       # values read from the env
+            conv = re.compile(r"\b(?:int|float)\(\s*(?:(?:os\.)?environ\b" + "".join(f"|{n}\\b" for n in names) + ")")
+            found += [f"{p.relative_to(ROOT)}:{i}" for i, line in enumerate(text.splitlines(), 1) if conv.search(line)]
+    assert found == []

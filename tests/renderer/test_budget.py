@@ -2,16 +2,19 @@
 from __future__ import annotations
 
 import json
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from learning.data.exr import read_exr
-from renderer.adaptive import adaptive_render
+from renderer.adaptive import adaptive_render, run_adaptive
 from renderer.blocks import BlockRenderer
-from renderer.budget import Budget, check_budget
+from renderer.budget import Budget
 from renderer.criteria import OracleCriterion, UniformCriterion, VarianceCriterion
 from renderer.passloop import PassLoop
+from renderer.settings import MAX_SPP
 from tests.support.errors import assert_one_line_error, run
 from tests.renderer.test_renderer_blocks import _scene
 
@@ -130,12 +133,23 @@ def test_a_budget_is_spent_to_the_last_pass_it_pays_for(tmp_path) -> None:
     assert rep["budget"]["ended"] and len(rep["budget"]["above_target"]) == 16
 
 
-@pytest.mark.parametrize("bad", [-1, 0, float("nan"), float("inf"), "12", True])
-def test_bad_budgets_are_refused(bad) -> None:
-    with pytest.raises(ValueError, match="spp budget"):
-        check_budget(bad)
-    with pytest.raises(ValueError, match="spp budget"):
-        Budget(spp_budget=bad)
+@pytest.mark.parametrize("bad", [-1, 0, float("nan"), float("inf"), "12", True, MAX_SPP * 2])
+def test_bad_budgets_are_refused_at_each_door_by_one_check(bad) -> None:
+    """One check, one message (renderer.argcheck): the live render and the simulation on a
+    stack refuse the same budgets, MAX_SPP included (the budget's own check had no upper
+    bound, issue 40)."""
+    from learning import make_synthetic_stack
+    from renderer.argcheck import check_spp_budget
+    from renderer.budget import simulate_budget
+
+    with pytest.raises(ValueError, match="spp_budget must be a positive number") as one:
+        check_spp_budget(bad)
+    with pytest.raises(ValueError) as live:
+        run_adaptive("cornell", UniformCriterion(), spp_budget=bad, **TINY)
+    st = make_synthetic_stack(Path(tempfile.mkdtemp()) / "s", size=32, spp=(8, 16))
+    with pytest.raises(ValueError) as sim:
+        simulate_budget(st, UniformCriterion(), spp_budget=bad)
+    assert str(live.value) == str(sim.value) == str(one.value)
 
 
 @pytest.mark.parametrize("value", ["-5", "0", "nan", "abc", "inf"])

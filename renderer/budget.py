@@ -106,10 +106,7 @@ class Budget:
         unknown = ids[~known & ((spp[ids] >= loop.min_spp) if loop.min_spp is not None else True)]
         if unknown.size:            # judged before a resume: ask again (same state, same answer)
             loop.judge(unknown.tolist())
-        _, ratio = loop.criterion.ratios.take(ids)
-        ratio = np.where(np.isnan(ratio), np.inf, ratio)   # no estimate yet: first
-        if self.per_sample:
-            ratio = ratio / np.sqrt(np.maximum(spp[ids], 1))
+        ratio = self.priority(loop, ids)
         top = ratio.max()
         chosen = ratio >= self.band * top if np.isfinite(top) else ~np.isfinite(ratio)
         if self.spp_budget is not None:                    # what fits, worst first
@@ -129,6 +126,15 @@ class Budget:
         elif picked.size < ids.size:
             self.prioritised_rounds += 1                   # blocks now out of step
         return picked.tolist()
+
+    def priority(self, loop: PassLoop, ids: np.ndarray) -> np.ndarray:
+        """The priority `select` ranks blocks `ids` by: each one's last ratio to its target
+        (inf: no estimate yet, so first), over sqrt(spp) with `per_sample`."""
+        _, ratio = loop.criterion.ratios.take(ids)
+        ratio = np.where(np.isnan(ratio), np.inf, ratio)
+        if self.per_sample:
+            ratio = ratio / np.sqrt(np.maximum(loop.acc.spp_all()[ids], 1))
+        return ratio
 
     def finished(self, loop: PassLoop, sizes: Sequence[int]) -> bool:
         """Whether the render is over: no active block has a pass left, or the sample

@@ -147,9 +147,8 @@ class DecisionLog:
         def logged_select(budget: Any, loop: Any, sizes: Any, elapsed: float = 0.0) -> list[int]:
             picked = select(budget, loop, sizes, elapsed)
             ids = np.flatnonzero(loop.active & (loop.acc.passes_all() < len(sizes)))
-            _, ratio = loop.criterion.ratios.take(ids)
-            priority = ratio / np.sqrt(np.maximum(loop.acc.spp_all()[ids], 1))
-            if picked and np.isfinite(priority).all() and budget.per_sample:
+            priority = budget.priority(loop, ids)          # what the round was chosen by
+            if picked and np.isfinite(priority).all():
                 self.values.append(priority / (budget.band * priority.max()))
             return picked
 

@@ -21,7 +21,7 @@ def bench_budget(data: str | None, heldout: str | None = None, spp: int = UNIFOR
                  tau: float = DEFAULT_TAU) -> dict[str, Any]:
     from learning.data.observer import observer_for, read_observed
     from learning.evaluation.generalisation import scene_groups
-    from renderer.budget import simulate_budget
+    from renderer.simulate import simulate_budget
     from renderer.criteria import FlipCriterion
 
     root = heldout or data

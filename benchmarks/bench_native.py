@@ -114,11 +114,9 @@ def block_errors(image: np.ndarray, reference: np.ndarray, tau: float,
 def ours(scene: Any, criterion: str, max_spp: int, tau: float, grow: bool = True) -> dict[str, Any]:
     """One render by our loop: wall, render time, mean spp, image."""
     from renderer.adaptive import run_adaptive
-    from renderer.criteria import make_criterion
 
-    crit = make_criterion(criterion, tau=tau)
     t0 = time.perf_counter()            # the whole call, as a user times it (report and image included)
-    r = run_adaptive(scene, crit, block=BLOCK, step=STEP, min_spp=MIN_SPP, max_spp=max_spp, progress=False,
+    r = run_adaptive(scene, criterion, block=BLOCK, step=STEP, min_spp=MIN_SPP, max_spp=max_spp, progress=False,
                      tau=tau, grow=grow)
     wall = time.perf_counter() - t0
     t = r.report["timing"]

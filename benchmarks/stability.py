@@ -63,17 +63,17 @@ def entry_points(model=None) -> dict[str, Entry]:
                           half_spp=(8, 8) if halves else None, quick=x) for x in b]
 
     def render_model(blocks: np.ndarray) -> Any:
-        return ModelCriterion(m).decide(list(range(len(blocks))), views(blocks, m.needs_halves))
+        return ModelCriterion(m).decide(list(range(len(blocks))), views(blocks, m.needs_halves)).verdict
 
     def model_decision(blocks: np.ndarray) -> Any:
         b = np.asarray(blocks)
         return (m.score_halves(b, b * 0.9) if m.needs_halves else m.score_blocks(b, b))[1]
 
     def render_flip(blocks: np.ndarray) -> Any:
-        return FlipCriterion(0.02).decide(list(range(len(blocks))), views(blocks, True))
+        return FlipCriterion(0.02).decide(list(range(len(blocks))), views(blocks, True)).verdict
 
     def render_variance(blocks: np.ndarray) -> Any:
-        return VarianceCriterion().decide(list(range(len(blocks))), views(blocks, True))
+        return VarianceCriterion().decide(list(range(len(blocks))), views(blocks, True)).verdict
 
     raw_svm, transfer = small_models()
     return {

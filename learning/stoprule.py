@@ -8,7 +8,7 @@ business judging such out-of-distribution input.
 
 Who uses it: training's offset calibration and `evaluate` (`StopRule.stops` on stored
 score matrices), the simulation on stacks and the live render loop (`decide_active`,
-level by level, with a criterion's `StopRule.verdict`), and the HTTP service
+the gate `renderer.passloop.PassLoop.step` calls, with a criterion's `StopRule.verdict`), and the HTTP service
 (`StopRule.verdict` on the blocks of one request). A NaN score is no decision: the block
 stays noisy.
 """
@@ -45,18 +45,23 @@ def flat_blocks(blocks: np.ndarray, exposure: float = 0.0) -> np.ndarray:
     return display_range(blocks, exposure) <= FLAT_TOLERANCE
 
 
-def decide_active(active: np.ndarray, spp: int, min_spp: int | None,
-                  decide: Callable[[list[int]], np.ndarray]) -> np.ndarray:
-    """One level of the rule for the blocks still `active` (bool [B], updated in place).
+def decide_active(active: np.ndarray, spp: int | np.ndarray, min_spp: int | None,
+                  decide: Callable[[list[int]], np.ndarray], among: np.ndarray | None = None) -> np.ndarray:
+    """One decision of the rule for the blocks still `active` (bool [B], updated in place).
 
-    Nothing is decided below `min_spp`; otherwise `decide(ids)` answers (+1/-1 per id) for
-    the active blocks only, and those it calls converged leave `active` for good. Returns
-    the level's verdict row, int8 [B]: +1 / -1 for the blocks asked, 0 for the others.
+    `spp`: the level's spp, one for every block or one per block (a budget round puts
+    blocks at different spp); `among`: the block ids this decision is about (default:
+    all). Nothing is decided below `min_spp`; otherwise `decide(ids)` answers (+1/-1 per
+    id) for the active blocks only, and those it calls converged leave `active` for good.
+    Returns the verdict row, int8 [B]: +1 / -1 for the blocks asked, 0 for the others.
     """
     row = np.zeros(len(active), np.int8)
-    if min_spp is not None and spp < min_spp:
-        return row
-    ids = np.flatnonzero(active).tolist()
+    asked = active.copy()
+    if among is not None:
+        asked &= np.isin(np.arange(len(active)), among)
+    if min_spp is not None:
+        asked &= np.broadcast_to(np.asarray(spp), asked.shape) >= min_spp
+    ids = np.flatnonzero(asked).tolist()
     if not ids:
         return row
     verdict = np.asarray(decide(ids))

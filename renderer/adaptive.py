@@ -1,34 +1,20 @@
 """The adaptive progressive renderer (the paper's Figure 6): sample only the noisy blocks.
 
-`run_adaptive` checks its arguments, then steps a `renderer.session.RenderSession` until
-it is done, then builds the result. A step (a pass adds `step` samples per pixel):
+`run_adaptive` is the loop, in memory: it resolves the render spec (`renderer.spec`: every
+setting defaulted and checked there, once), builds the criterion (`make_criterion`), loads
+the scene (a built-in name, an XML path or an already-loaded ``mi.Scene``), steps a
+`renderer.session.RenderSession` until it is done (a step: `renderer.passloop`) and returns
+a `RenderResult`. It stops when no block is active or max_spp is reached.
 
-1. trace the active blocks only, each at its next pass (`BlockRenderer.render_passes`:
-   the samples of (pixel, pass) are fixed whatever happened before), several passes in one
-   launch when few blocks remain (`renderer.session.grown_passes`), or in a budget render
-   the blocks the budget picks;
-2. accumulate them where they were traced (`BlockAccumulator`: exact means, even/odd half
-   buffers, torch tensors on the variant's device);
-3. once spp >= min_spp, ask the criterion about them in one batch, after each pass; a
-   block it calls converged leaves the active set for good: never rendered, featured or
-   asked again;
-4. checkpoint everything (accumulator, active set, verdict history, counters, timers, pass
-   index) atomically into out/checkpoint.npz (`renderer.checkpoint`: digest-checked and
-   validated against the settings before a resume trusts it), every `checkpoint_every`
-   seconds, at the end, at the time limit and on SIGINT/SIGTERM (`renderer.signals`):
-   a step is never half-saved.
-
-It stops when no block is active or max_spp is reached. Because samples depend only on
-(seed, pixel, pass) and the checkpoint holds all state, ``resume=True`` after a crash
-gives the very image and report (timings aside) of an uninterrupted run.
-
-`run_adaptive` is the loop itself, in memory: it takes a scene name, an XML path or an
-already-loaded ``mi.Scene`` and returns a `RenderResult`. Checkpoints (step 4) are taken
-only when it is given a `Checkpoints` (the command line's resumable render,
-`adaptive_render`); `renderer.render` and the ``noisestop`` Mitsuba plugin run without.
-
-The quick image (the kind the model was trained with, `quick_spp` samples) is rendered once, and only if the
-criterion needs it; it is stored in the checkpoint so a resume does not re-render it.
+Checkpoints are taken only when it is given a `Checkpoints` (the command line's resumable
+render, `adaptive_render`): the whole state (accumulator, active set, verdict history,
+counters, timers, pass index, quick image), atomically into out/checkpoint.npz
+(`renderer.checkpoint`: digest-checked and validated against the settings before a resume
+trusts it), every `checkpoint_every` seconds, at the end, at the time limit and on
+SIGINT/SIGTERM (`renderer.signals`): a step is never half-saved. Because samples depend
+only on (seed, pixel, pass), ``resume=True`` after a crash gives the very image and report
+(timings aside) of an uninterrupted run. `renderer.render` and the ``noisestop`` Mitsuba
+plugin run without checkpoints.
 """
 from __future__ import annotations
 
@@ -37,7 +23,7 @@ import math
 import os
 import time
 from contextlib import nullcontext
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -46,21 +32,15 @@ import numpy as np
 from tqdm import tqdm
 
 from learning.data.stack import Stack
-from learning.names import DEFAULT_TAU
-from noisefeat.bounds import SizeBounds
 
-from .argcheck import check_budget_buys_a_pass, check_reference_image, check_render_args
 from .blocks import BlockRenderer
-from .budget import Budget
 from .checkpoint import CHECKPOINT
-from .criteria import Criterion, build_criterion
 from .outputs import prepare_output_dir
-from .report import pass_sizes
+from .report import render_result
 from .result import RenderResult
-from .session import RenderSession
-from .settings import DEFAULT, check_spp_settings, resolve_settings
-from .settings import describe as describe_settings
+from .session import RenderSession, run_settings
 from .signals import DeferredStop
+from .spec import ARGUMENT, DEFAULT, fit_frame, resolve
 
 logger = logging.getLogger(__name__)
 
@@ -82,7 +62,7 @@ def _run_steps(session: RenderSession, progress: bool, time_limit: float | None,
     raises KeyboardInterrupt). Returns whether the time limit ended the render."""
     every = checkpoints.every if checkpoints is not None else math.inf
     last_saved = time.perf_counter()
-    bar = tqdm(total=len(session.sizes), initial=session.pass_index, desc=f"{session.label} passes", unit="pass",
+    bar = tqdm(total=len(session.loop.schedule), initial=session.pass_index, desc=f"{session.label} passes", unit="pass",
                disable=not progress, leave=False)
     stop = DeferredStop() if checkpoints is not None else None
     with stop if stop is not None else nullcontext(), bar:
@@ -105,43 +85,6 @@ def _run_steps(session: RenderSession, progress: bool, time_limit: float | None,
                             "; --resume continues" if session.ckpt_path is not None else "")
                 return True
     return False
-
-
-def _resolve_criterion(criterion: Criterion | str, reference: Stack | None, tau: float) -> Criterion:
-    if isinstance(criterion, Criterion):
-        return criterion
-    if isinstance(criterion, str):
-        th = reference.thresholds if reference is not None else None
-        return build_criterion(criterion, thresholds=th, tau=tau)
-    from .names import CRITERIA
-
-    raise ValueError(f"criterion must be a Criterion or one of {', '.join(CRITERIA)}, "
-                     f"got {type(criterion).__name__}")
-
-
-def _check_args(resolution: Any, grid: Sequence[int] | None, block: int | None, step: int, min_spp: int,
-                max_spp: int) -> tuple[Any, tuple[int, int] | None]:
-    """Documented ranges (renderer.settings, noisefeat.bounds), checked before the scene is
-    loaded: resolution None (the scene's own) passes, else its frame and blocks must fit.
-    Returns (resolution as N or (W, H), grid or None)."""
-    from .scenes import parse_resolution
-
-    check_spp_settings(step, min_spp, max_spp)
-    bounds = SizeBounds.from_env()
-    if grid is not None:
-        if len(grid) != 2 or any(isinstance(g, bool) or not isinstance(g, (int, np.integer)) or g < 1
-                                 for g in grid):
-            raise ValueError(f"grid must be two positive integers (rows, columns), got {grid!r}")
-        grid = (int(grid[0]), int(grid[1]))
-    elif isinstance(block, bool) or not isinstance(block, (int, np.integer)):
-        raise ValueError(f"block must be a whole number of pixels, got {block!r}")
-    else:
-        bounds.check_block(int(block), int(block), what="--block")
-    if resolution is not None:
-        resolution = parse_resolution(resolution)
-        w, h = resolution if isinstance(resolution, tuple) else (resolution, resolution)
-        bounds.check_frame(h, w, grid or (1, 1), block=None if grid else (int(block), int(block)))
-    return resolution, grid
 
 
 @dataclass(frozen=True)
@@ -194,67 +137,47 @@ def _check_scene_arg(scene: Any, resolution: Any, defines: Mapping[str, str] | N
     return True, _scene_object_label(scene)
 
 
-def load_reference(reference: Stack | str | os.PathLike[str] | np.ndarray, label: str,
-                   tau: float) -> tuple[Stack | None, np.ndarray | None]:
-    """(labelled stack, None) for a stack or dataset directory; (None, image) for a
-    reference image: an EXR file or a float [H, W, 3] array. An image gives the
-    final-vs-reference check only: it has no per-level errors, so no oracle thresholds."""
-    from .simulate import find_reference
+def load_reference(reference: Stack | str | os.PathLike[str] | np.ndarray,
+                   label: str) -> tuple[Stack | None, np.ndarray | None]:
+    """(stack, None) for a stack or dataset directory (not yet labelled: the observer's tau
+    is the spec's); (None, image) for a reference image: an EXR file or a float [H, W, 3]
+    array. An image gives the final-vs-reference check only: it has no per-level errors,
+    so no oracle thresholds."""
+    from .simulate import find_stack
 
+    img = None
     if isinstance(reference, np.ndarray):
         img = np.asarray(reference, np.float32)
         if img.ndim != 3 or img.shape[2] != 3:
             raise ValueError(f"a reference image must be float [H, W, 3] linear RGB, got shape {img.shape}")
-        check_reference_image(img)
-        return None, img
-    if isinstance(reference, (str, os.PathLike)) and (os.fspath(reference).lower().endswith(".exr")
-                                                      or Path(reference).is_file()):
+    elif isinstance(reference, (str, os.PathLike)) and (os.fspath(reference).lower().endswith(".exr")
+                                                        or Path(reference).is_file()):
         from learning.data.exr import read_exr
 
         if not Path(reference).is_file():
             raise FileNotFoundError(f"{os.fspath(reference)}: reference image not found")
         img = read_exr(reference)
-        check_reference_image(img)
-        return None, img
-    return find_reference(reference, label, tau), None
+    if img is None:
+        return find_stack(reference, label), None
+    finite = np.isfinite(img)
+    if not finite.all():       # every figure would be NaN
+        raise ValueError(f"the reference image has {int(finite.size - np.count_nonzero(finite))} non-finite "
+                         f"value(s) (NaN/Inf) of {img.size}: a reference must be finite")
+    return None, img
 
 
-def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion: Criterion | str, *,
-                    resolution: int | tuple[int, int] | str | None = None, grid: Sequence[int] | None = None,
-                    block: int | None = None, step: int | None = None,
-                    min_spp: int | None = None, max_spp: int | None = None, seed: int = 0, resume: bool = False,
-                    progress: bool = True, reference: Stack | str | os.PathLike | None = None,
-                    quick_spp: int = 16, defines: Mapping[str, str] | None = None,
-                    time_limit: float | None = None, checkpoint_every: float = 30.0,
-                    tau: float = DEFAULT_TAU, spp_budget: float | None = None,
-                    grow: bool = True) -> dict[str, Any]:
+def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion: Any = None, *,
+                    resume: bool = False, checkpoint_every: float = 30.0, **kwargs: Any) -> dict[str, Any]:
     """Render `scene` adaptively into `out`; return the report (also out/report.json).
 
-    The command line's render: `run_adaptive` with checkpoints in `out`, then
-    `RenderResult.save(out)`. wall_s in the report runs from the call to the end of the
-    last pass (writing the output files is not in it); resumed runs add up the time of
-    every attempt.
-
-    `criterion`: a `Criterion`, or its name ('oracle' takes the thresholds of `reference`).
-    `reference`: a labelled Stack, or a dataset/stack directory holding this scene: adds
-    early_stop_rate, spp_ratio_vs_oracle and per-block true thresholds to the report; or
-    a reference image (an EXR file): adds final_vs_reference only.
-    Settings left None come from the reference, the scene or the defaults
-    (`renderer.settings`); the report's `settings_source` says which. `defines`: an XML
-    scene's parameters, as `mitsuba -D key=value` (recorded in the report). `time_limit`:
-    seconds this call may run; the pass under way when it is reached is finished, then the
-    outputs and the checkpoint are written and `resume` continues from there.
-    `checkpoint_every`: seconds between checkpoints (0: after every pass). `tau`: the
-    noise target, recorded in the report; the reference's labels and the final-vs-reference
-    check use the observer at it (a criterion given by name is built for it too).
-    `spp_budget` (samples per pixel, averaged over the blocks) and `time_limit` make it a
-    budget render (`renderer.budget`): passes go to the blocks farthest from their target.
+    The command line's render: `run_adaptive` with checkpoints in `out` (`resume`:
+    continue from them; `checkpoint_every`: seconds between them, 0: after every pass),
+    then `RenderResult.save(out)`. wall_s in the report runs from the call to the end of
+    the last pass (writing the output files is not in it); resumed runs add up the time of
+    every attempt. `kwargs`: `run_adaptive`'s (the render spec's settings, `reference`,
+    `progress`, `source`).
     """
-    result = run_adaptive(scene, criterion, resolution=resolution, grid=grid, block=block, step=step,
-                          min_spp=min_spp, max_spp=max_spp, seed=seed, progress=progress, reference=reference,
-                          quick_spp=quick_spp, defines=defines, time_limit=time_limit, tau=tau,
-                          checkpoints=Checkpoints(out, resume, checkpoint_every), spp_budget=spp_budget,
-                          grow=grow)
+    result = run_adaptive(scene, criterion, checkpoints=Checkpoints(out, resume, checkpoint_every), **kwargs)
     result.save(out)
     report = result.report
     logger.info("%s: %d passes, saved %.1f%% vs uniform, %.2f s", report["scene"], report["passes"],
@@ -262,89 +185,72 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     return report
 
 
-def run_adaptive(scene: Any, criterion: Criterion | str, *,
-                 resolution: int | tuple[int, int] | str | None = None, grid: Sequence[int] | None = None,
-                 block: int | None = None, step: int | None = None,
-                 min_spp: int | None = None, max_spp: int | None = None, seed: int = 0,
-                 progress: bool = True, reference: Stack | str | os.PathLike | np.ndarray | None = None,
-                 quick_spp: int = 16, defines: Mapping[str, str] | None = None,
-                 time_limit: float | None = None, tau: float = DEFAULT_TAU,
-                 checkpoints: Checkpoints | None = None, sensor: Any = None,
-                 integrator: Any = None, spp_budget: float | None = None, grow: bool = True) -> RenderResult:
-    """The adaptive loop, in memory (see the module docstring and `adaptive_render`).
+def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
+                 reference: Stack | str | os.PathLike | np.ndarray | None = None,
+                 checkpoints: Checkpoints | None = None, sensor: Any = None, integrator: Any = None,
+                 grow: bool = True, source: str = ARGUMENT, plugin: Mapping[str, Any] | None = None,
+                 **settings: Any) -> RenderResult:
+    """The adaptive loop, in memory (see the module docstring).
 
-    `scene`: a built-in name, an XML path or a loaded ``mi.Scene`` (then `resolution` and
-    `defines` are refused: the scene is already built). `sensor` / `integrator`: render
-    from this sensor with this integrator instead of the scene's first sensor and own
-    integrator (the Mitsuba plugin passes its nested one). `checkpoints`: None renders
-    without any file; given, the loop checkpoints into its folder and can resume from it.
-    `spp_budget` (samples per pixel, averaged over the blocks) and `time_limit` make it a
-    budget render (`renderer.budget`): passes go to the blocks farthest from their target.
-    `grow`: trace several passes per launch as blocks stop (`grown_passes`; same result,
-    fewer launches); False keeps one pass per launch (the benchmark's fixed step).
+    `criterion` and `settings`: the render spec's rows (`renderer.spec.ROWS`; None: not
+    given), given by `source` ("argument", "command line" or "scene plugin"); `plugin`: a
+    scene's ``noisestop`` integrator's properties, under them. `reference`: a labelled
+    stack or dataset directory of this scene (its grid and levels become the defaults;
+    early-stop metrics, oracle thresholds, final_vs_reference), or a reference image (EXR
+    path or float [H, W, 3] array: final_vs_reference only). `scene`: a built-in name, an
+    XML path or a loaded ``mi.Scene`` (then `resolution` and `defines` are refused).
+    `sensor` / `integrator`: render from this sensor with this integrator instead of the
+    scene's first sensor and own integrator (the plugin passes its nested one).
+    `checkpoints`: None renders without any file. `grow`: trace several passes per launch
+    as blocks stop (`renderer.session.grown_passes`; same result, fewer launches).
     """
-    check_render_args(step=step, min_spp=min_spp, max_spp=max_spp, quick_spp=quick_spp,
-                      time_limit=time_limit, spp_budget=spp_budget)       # each error names its own argument
-    if checkpoints is not None and not (math.isfinite(checkpoints.every) and checkpoints.every >= 0):
-        raise ValueError(f"checkpoint interval must be 0 or more seconds, got {checkpoints.every!r}")
-    budget = Budget(spp_budget, time_limit) if spp_budget is not None or time_limit is not None else None
-    from .scenes import load_scene
+    from learning.data.observer import observed
     from learning.data.variant import current_variant, select_variant
 
+    from .criteria import make_criterion
+    from .scenes import load_scene
+
     t_start = time.perf_counter()
-    loaded, label = _check_scene_arg(scene, resolution, defines)
-    ref_stack, ref_image = load_reference(reference, label, tau) if reference is not None else (None, None)
-    given = {"resolution": resolution, "grid": grid, "block": block, "step": step, "min_spp": min_spp,
-             "max_spp": max_spp}
-    values, sources = resolve_settings(given, ref_stack)
-    resolution, grid, block, step, min_spp, max_spp = (values[k] for k in given)
-    resolution, grid = _check_args(resolution, grid, block, step, min_spp, max_spp)
-    check_budget_buys_a_pass(spp_budget, step)
-    crit = _resolve_criterion(criterion, ref_stack, tau)
+    if checkpoints is not None and not (math.isfinite(checkpoints.every) and checkpoints.every >= 0):
+        raise ValueError(f"checkpoint interval must be 0 or more seconds, got {checkpoints.every!r}")
+    loaded, label = _check_scene_arg(scene, settings.get("resolution"), settings.get("defines"))
+    ref_stack, ref_image = load_reference(reference, label) if reference is not None else (None, None)
+    spec = resolve({"criterion": criterion, **settings}, source=source, plugin=plugin, reference=ref_stack)
+    if ref_stack is not None:
+        ref_stack = observed(ref_stack, spec.tau)
+    crit = make_criterion(spec, None if ref_stack is None else ref_stack.thresholds)
     ckpt_path = None
     if checkpoints is not None:
         ckpt_path = prepare_output_dir(checkpoints.out) / CHECKPOINT  # writable: before any pass
 
     variant = select_variant()
-    scene_obj = scene if loaded else load_scene(scene, resolution, defines=defines)
+    scene_obj = scene if loaded else load_scene(scene, spec.resolution, defines=spec.defines)
     if loaded and sensor is None and not scene_obj.sensors():
         raise ValueError(f"{label}: the scene has no sensor (camera) to render from; add one")
-    if block is not None and sources["block"] == DEFAULT:     # a frame smaller than the default block
+    if spec.sources["block"] == DEFAULT:     # the default block, no larger than the frame
         crop = (sensor if sensor is not None else scene_obj.sensors()[0]).film().crop_size()
-        if block > min(int(crop[0]), int(crop[1])):
-            block = min(int(crop[0]), int(crop[1]))
-            sources["block"] = f"{DEFAULT} (the frame's short side)"
+        spec = fit_frame(spec, int(crop[0]), int(crop[1]))
     given_objects = {k: v for k, v in (("sensor", sensor), ("integrator", integrator)) if v is not None}
-    br = BlockRenderer(scene_obj, grid=grid, block=block, **given_objects)
+    br = BlockRenderer(scene_obj, grid=spec.grid, block=spec.block, **given_objects)
     try:
-        SizeBounds.from_env().check_frame(br.height, br.width, br.grid, block=br.block_shape)  # an XML film's own size
-        gh, gw = br.grid
-        values["resolution"] = [br.width, br.height]
-        logger.info("%s: %s, exposure %g", label, describe_settings(values, sources), getattr(crit, "exposure", 0.0))
+        spec = fit_frame(spec, br.width, br.height)     # the frame as rendered, within the bounds
+        logger.info("%s: %s", label, spec.describe())
         if ref_stack is not None:
-            if tuple(ref_stack.grid) != (gh, gw):
+            if tuple(ref_stack.grid) != tuple(br.grid):
                 raise ValueError(f"{ref_stack.path}: reference grid {list(ref_stack.grid)} differs from "
-                                 f"the render's {[gh, gw]}: its thresholds are for other blocks")
+                                 f"the render's {list(br.grid)}: its thresholds are for other blocks")
             if (ref_stack.width, ref_stack.height) != (br.width, br.height):
                 logger.warning("reference %s is %dx%d, the render %dx%d: thresholds compared anyway",
                                ref_stack.path, ref_stack.width, ref_stack.height, br.width, br.height)
         if ref_image is not None and ref_image.shape[:2] != (br.height, br.width):
             raise ValueError(f"the reference image is {ref_image.shape[1]}x{ref_image.shape[0]}, the render "
                              f"{br.width}x{br.height}: give a reference of the render's size")
-        settings = {"scene": os.fspath(scene) if not loaded else label, "resolution": [br.width, br.height],
-                    "grid": [gh, gw], "block": [br.block_h, br.block_w],
-                    "exposure": float(getattr(crit, "exposure", 0.0)),
-                    "step": int(step), "min_spp": int(min_spp), "max_spp": int(max_spp), "seed": int(seed),
-                    "quick_spp": int(quick_spp), "quick": crit.quick_kind if crit.needs_quick else "none",
-                    "criterion": crit.describe(), "variant": variant, "defines": dict(defines or {}),
-                    "tau": float(tau), **({} if spp_budget is None else {"spp_budget": float(spp_budget)})}
-        sizes = pass_sizes(step, max_spp)
-        session = RenderSession(br, crit, settings, sizes, label=label, seed=seed, min_spp=min_spp,
-                                quick_spp=quick_spp, budget=budget, ckpt_path=ckpt_path,
+        settings_run = run_settings(spec, br, crit, variant or current_variant(),
+                                    os.fspath(scene) if not loaded else label)
+        session = RenderSession(br, crit, spec, settings_run, label=label, ckpt_path=ckpt_path,
                                 resume=checkpoints is not None and checkpoints.resume, grow=grow, t_start=t_start)
-        time_limit_reached = _run_steps(session, progress, time_limit, checkpoints)
-        return session.result(variant=variant or current_variant(), sources=sources, given=list(given), tau=tau,
-                              defines=defines, time_limit=time_limit, time_limit_reached=time_limit_reached,
-                              ref_stack=ref_stack, ref_image=ref_image, reference=reference)
+        time_limit_reached = _run_steps(session, progress, spec.time_limit, checkpoints)
+        return render_result(session, time_limit_reached=time_limit_reached, ref_stack=ref_stack,
+                             ref_image=ref_image, reference=reference)
     finally:
         br.close()

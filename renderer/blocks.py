@@ -4,15 +4,9 @@ The paper cuts every image into blocks and keeps sampling only the blocks a huma
 still find noisy, so the renderer must spend samples on any subset of blocks, and a block
 rendered alone must be the very estimator of that block cut out of a full-frame render.
 
-Geometry. Blocks are either a grid that divides the frame (``grid=(rows, cols)``: stacks,
-references) or windows of a given size in pixels (``block=64``: the live render of any
-film). With a size, windows start every `block` pixels and the last row and column are
-moved flush with the frame's edge, so an edge block smaller than the size is judged
-together with its neighbour's pixels: every window the criterion sees is a full
-``block x block`` window of one sample count, the size the model and the flip threshold
-were calibrated on. Overlapping pixels are traced once per pass and shared by the
-windows that hold them (`renderer.wavefront`); the final image takes each pixel from the
-covering window with the most samples (`compose`).
+Geometry. Blocks are a grid that divides the frame or windows of a given size in pixels,
+the last row and column flush with the frame's edge (`renderer.block_windows`, which also
+composes the final image from overlapping windows).
 
 Engines. On vectorised variants (llvm, cuda) `renderer.wavefront.WavefrontTracer` traces
 the pixels of all requested blocks in one kernel launch, its random numbers keyed per
@@ -41,12 +35,16 @@ import numpy as np
 import torch
 
 from learning.data.variant import select_variant
-from .wavefront import WavefrontTracer, guard_band, torch_device
+from .block_windows import BlockWindows
+from .wavefront import WavefrontTracer, filter_guard, torch_device
 from noisefeat.extras import require
 
 logger = logging.getLogger(__name__)
 
-FULL_FRAME = -1  # block id used to derive the seeds of full-frame renders
+#: the block id that keys the seeds of passes traced over the whole frame: full-frame renders,
+#: quick images and every wavefront pass (keyed per pixel, a pass of some blocks is the
+#: frame's pass cut down); -1, no block's id
+FRAME_SEED_KEY = -1
 
 
 def derive_seed(seed: int, block_id: int, pass_index: int) -> int:
@@ -79,43 +77,12 @@ def _to_rgb(img: Any, where: str) -> np.ndarray:
 QUICK_KINDS = ("albedo", "direct")
 
 
-def tile_starts(size: int, block: int) -> list[int]:
-    """Window starts along one axis: every `block` pixels, the last one flush with the edge."""
-    if block > size:
-        raise ValueError(f"a block of {block} px is larger than the frame's {size} px side")
-    starts = list(range(0, size - block + 1, block))
-    if starts[-1] + block < size:
-        starts.append(size - block)
-    return starts
-
-
-def compose(means: Sequence[np.ndarray], windows: Sequence[tuple[int, int, int, int]],
-            spp: Sequence[int], frame: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(image [H, W, C], spp per pixel [H, W], owner block per pixel [H, W]) of a frame.
-
-    Each pixel comes from the window holding it with the most samples (with keyed random
-    numbers that window's samples include every other window's for the pixel).
-    """
-    h, w = frame
-    image = np.zeros((h, w, np.asarray(means[0]).shape[-1]), np.float64)
-    best = np.full((h, w), -1, np.int64)
-    owner = np.full((h, w), -1, np.int64)
-    for b in np.argsort(np.asarray(spp), kind="stable"):     # most samples written last
-        x, y, bw, bh = windows[b]
-        image[y:y + bh, x:x + bw] = means[b]
-        best[y:y + bh, x:x + bw] = spp[b]
-        owner[y:y + bh, x:x + bw] = b
-    if (owner < 0).any():
-        raise ValueError("the block windows do not cover the frame")
-    return image, best, owner
-
-
-class BlockRenderer:
+class BlockRenderer(BlockWindows):
     """Render any subset of the blocks of one scene's first sensor.
 
     Blocks are numbered row-major, block 0 top-left: a `grid` (rows, columns) that must
-    divide the frame, or windows of `block` pixels (see the module docstring). If the
-    film has a crop window (possible in XML files), that window is the frame. `engine`
+    divide the frame, or windows of `block` pixels (`BlockWindows`). If the film has a
+    crop window (possible in XML files), that window is the frame. `engine`
     'wavefront' or 'crop' overrides the choice by variant (tests). `sensor` and
     `integrator` default to the scene's first sensor and its own integrator; a scene whose
     integrator is the ``noisestop`` plugin is traced with the plugin's nested integrator.
@@ -131,29 +98,7 @@ class BlockRenderer:
         self.sensor = scene.sensors()[0] if sensor is None else sensor
         film = self.sensor.film()
         self._frame_offset = (int(film.crop_offset()[0]), int(film.crop_offset()[1]))
-        self.width, self.height = int(film.crop_size()[0]), int(film.crop_size()[1])
-        if (grid is None) == (block is None):
-            raise ValueError("give the blocks either as a grid (rows, columns) or as a size in pixels")
-        if block is not None:
-            if isinstance(block, bool) or not isinstance(block, (int, np.integer)) or block < 1:
-                raise ValueError(f"block must be a positive number of pixels, got {block!r}")
-            if block > min(self.width, self.height):
-                raise ValueError(f"block of {block} px is larger than the {self.width}x{self.height} frame: "
-                                 f"take --block {min(self.width, self.height)} or less")
-            self.block_h = self.block_w = int(block)
-            self._xs, self._ys = tile_starts(self.width, int(block)), tile_starts(self.height, int(block))
-        else:
-            gh, gw = (int(g) for g in grid)  # type: ignore[union-attr]
-            if gh < 1 or gw < 1:
-                raise ValueError(f"grid must be two positive integers (rows, columns), got {grid!r}")
-            if self.width % gw or self.height % gh:
-                raise ValueError(
-                    f"image {self.width}x{self.height} (WxH) cannot be cut into a {gh}x{gw} grid of equal "
-                    f"blocks: width must be divisible by {gw} and height by {gh}")
-            self.block_h, self.block_w = self.height // gh, self.width // gw
-            self._xs = [c * self.block_w for c in range(gw)]
-            self._ys = [r * self.block_h for r in range(gh)]
-        self.grid = (len(self._ys), len(self._xs))
+        super().__init__(int(film.crop_size()[0]), int(film.crop_size()[1]), grid, block)
         # an XML scene may declare no integrator (mi.render then refuses): Mitsuba's path tracer
         self._integrator = scene.integrator() if integrator is None else integrator
         if hasattr(self._integrator, "property_error"):        # the noisestop plugin: its nested one
@@ -162,8 +107,7 @@ class BlockRenderer:
         if self._integrator is None:
             logger.info("scene declares no integrator; using Mitsuba's 'path'")
             self._integrator = mi.load_dict({"type": "path"})
-        rfilter = film.rfilter()
-        self.guard = 0 if rfilter.is_box_filter() else guard_band(rfilter.radius())
+        self.guard = filter_guard(film.rfilter())           # the crop engine's; the tracer has its own
         if engine is None:
             engine = "wavefront" if variant.split("_")[0] in ("llvm", "cuda") else "crop"
         if engine not in ("wavefront", "crop"):
@@ -174,18 +118,16 @@ class BlockRenderer:
         self.device = torch_device(variant) if engine == "wavefront" else torch.device("cpu")
         self._tracer = WavefrontTracer(scene, self.sensor, self._integrator, self.device) \
             if engine == "wavefront" else None
-        # flat pixel indices of every window [n, bh * bw]: a pass gathers its blocks at once
-        ys = torch.tensor(self._ys)[:, None, None, None] + torch.arange(self.block_h)[None, None, :, None]
-        xs = torch.tensor(self._xs)[None, :, None, None] + torch.arange(self.block_w)[None, None, None, :]
-        self._win_idx = (ys * self.width + xs).reshape(self.n_blocks, -1).to(self.device)
-        self.mitsuba_calls = 0
+        self._win_idx = self._win_idx.to(self.device)         # the windows' pixels, where passes live
+        self.mitsuba_calls = 0    # render calls: one per mi.render or per wavefront trace (of any launches)
         self.kernel_compiles = 0
         self._crop_samples = 0
-        self._history = variant.split("_")[0] in ("llvm", "cuda")
-        self._history_before: bool | None = None
-        if self._history:
+        # a JIT variant: Dr.Jit's kernel history can count its compilations (kernel_compiles)
+        self._counts_kernels = variant.split("_")[0] in ("llvm", "cuda")
+        self._history_flag_before: bool | None = None
+        if self._counts_kernels:
             dr = require("drjit")
-            self._history_before = bool(dr.flag(dr.JitFlag.KernelHistory))
+            self._history_flag_before = bool(dr.flag(dr.JitFlag.KernelHistory))
             dr.set_flag(dr.JitFlag.KernelHistory, True)
             dr.kernel_history()                               # start counting from here
         self._params = mi.traverse(self.sensor)
@@ -196,59 +138,17 @@ class BlockRenderer:
         """Put the process-wide kernel-history flag back as it was before this renderer
         (it is on only to count compilations; left on, Dr.Jit keeps a record of every
         launch for whoever renders next in the process)."""
-        if self._history and self._history_before is not None:
+        if self._counts_kernels and self._history_flag_before is not None:
             dr = require("drjit")
             self._count_kernels()
-            dr.set_flag(dr.JitFlag.KernelHistory, self._history_before)
-            self._history_before = None
+            dr.set_flag(dr.JitFlag.KernelHistory, self._history_flag_before)
+            self._history_flag_before = None
 
     def __enter__(self) -> BlockRenderer:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-    # -- geometry ---------------------------------------------------------------
-
-    @property
-    def n_blocks(self) -> int:
-        return self.grid[0] * self.grid[1]
-
-    @property
-    def block_shape(self) -> tuple[int, int]:
-        """(block height, block width) in pixels."""
-        return self.block_h, self.block_w
-
-    @property
-    def overlapping(self) -> bool:
-        """Whether edge windows overlap their neighbours (block size not dividing the frame)."""
-        return self._xs[-1] + self.block_w != len(self._xs) * self.block_w or \
-            self._ys[-1] + self.block_h != len(self._ys) * self.block_h
-
-    def block_origin(self, block_id: int) -> tuple[int, int]:
-        """(x, y) of the block's top-left pixel within the frame."""
-        self._check_id(block_id)
-        row, col = divmod(int(block_id), self.grid[1])
-        return self._xs[col], self._ys[row]
-
-    def window(self, block_id: int) -> tuple[int, int, int, int]:
-        """(x, y, width, height) of the block within the frame."""
-        x, y = self.block_origin(block_id)
-        return x, y, self.block_w, self.block_h
-
-    def block_slices(self, block_id: int) -> tuple[slice, slice]:
-        """(rows, columns) slices that cut the block out of a [H, W, ...] frame."""
-        x0, y0 = self.block_origin(block_id)
-        return slice(y0, y0 + self.block_h), slice(x0, x0 + self.block_w)
-
-    def cut_blocks(self, frame: np.ndarray) -> np.ndarray:
-        """Every block's window of a host frame [H, W, C]: [n, bh, bw, C] (one gather)."""
-        flat = np.asarray(frame).reshape(self.height * self.width, -1)
-        return flat[self._win_idx.cpu().numpy()].reshape(self.n_blocks, self.block_h, self.block_w, -1)
-
-    def _check_id(self, block_id: int) -> None:
-        if not isinstance(block_id, (int, np.integer)) or not 0 <= int(block_id) < self.n_blocks:
-            raise ValueError(f"block id {block_id!r} out of range 0..{self.n_blocks - 1}")
 
     # -- rendering --------------------------------------------------------------
 
@@ -265,7 +165,7 @@ class BlockRenderer:
         self._crop = crop
 
     def _count_kernels(self) -> None:
-        if self._history:
+        if self._counts_kernels:
             dr = require("drjit")
             self.kernel_compiles += sum(1 for k in dr.kernel_history()
                                         if k.get("type") == dr.KernelType.JIT and not k.get("cache_hit"))
@@ -358,7 +258,7 @@ class BlockRenderer:
                 rows = np.flatnonzero(same & (passes == p))
                 mask = torch.zeros(self.height * self.width, dtype=torch.bool, device=self.device)
                 mask[self._win_idx[torch.from_numpy(blocks[rows]).to(self.device)].flatten()] = True
-                masks.append((mask.view(self.height, self.width), derive_seed(seed, FULL_FRAME, p), rows))
+                masks.append((mask.view(self.height, self.width), derive_seed(seed, FRAME_SEED_KEY, p), rows))
             frames = self._tracer.trace_jobs([(m, k) for m, k, _ in masks], int(size))
             self.mitsuba_calls += 1
             self._count_kernels()
@@ -384,12 +284,12 @@ class BlockRenderer:
         """`spp` samples for the whole frame: float32 [H, W, 3] (host)."""
         if self._tracer is not None:
             image = self._tracer.trace(torch.ones((self.height, self.width), dtype=torch.bool), spp,
-                                       derive_seed(seed, FULL_FRAME, pass_index))
+                                       derive_seed(seed, FRAME_SEED_KEY, pass_index))
             self.mitsuba_calls += 1
             self._count_kernels()
             return image.cpu().numpy()
         self._set_crop(0, 0, self.width, self.height)
-        return self._render(spp, derive_seed(seed, FULL_FRAME, pass_index), where="full frame")
+        return self._render(spp, derive_seed(seed, FRAME_SEED_KEY, pass_index), where="full frame")
 
     def quick_image(self, spp: int = 16, seed: int = 0, kind: str = "albedo") -> np.ndarray:
         """The noise-free-ish 'quick' image of the design, full frame.
@@ -405,7 +305,7 @@ class BlockRenderer:
             integrator = self._mi.load_dict({"type": "direct"})
         else:
             raise ValueError(f"quick image kind must be one of {QUICK_KINDS}, got {kind!r}")
-        return self._render(spp, derive_seed(seed, FULL_FRAME, -1), integrator=integrator,
+        return self._render(spp, derive_seed(seed, FRAME_SEED_KEY, -1), integrator=integrator,
                             where=f"{kind} quick image")
 
 

@@ -5,8 +5,8 @@ best image by that time instead (Cycles, Arnold and LuxCore pair a noise target 
 time limit), so with ``--spp-budget N`` (samples per pixel averaged over the blocks) or
 ``--time-limit S`` each round renders the active blocks farthest from their target:
 
-* `Criterion.ratios` holds, per block, its last score relative to the criterion's
-  threshold (flip: the half-buffer FLIP over c(tau); > 1 is above the target). Blocks
+* The loop's `ratios` (`renderer.passloop.BlockRatios`) hold, per block, its last score
+  relative to the criterion's threshold (flip: the half-buffer FLIP over c(tau); > 1 is above the target). Blocks
   with no estimate yet (before their first decision) come first, all together.
 * Priority = ratio / sqrt(spp). Noise falls as 1/sqrt(spp), so a block's ratio is about
   a_b / sqrt(spp_b) with a_b its noise per sample; levelling the priority gives each block
@@ -21,16 +21,15 @@ time limit), so with ``--spp-budget N`` (samples per pixel averaged over the blo
 * While the budget left covers every active block to max spp, rounds render all of them:
   a roomy budget renders exactly what the unbudgeted loop renders, pass for pass.
 
-A block's j-th pass always draws the samples of pass j (`BlockRenderer.render_passes`; the
-round itself is `renderer.session.RenderSession.step`),
-so a block ends with the very image the unbudgeted loop gives it at the same spp; blocks
-that reach the target stop as always. When the budget ends, the blocks still above the
-target are listed with their ratios (`above_target`).
+A block's j-th pass always draws the samples of pass j (`BlockRenderer.render_passes`; a
+round is a step, `renderer.passloop`), so a block ends with the very image the unbudgeted
+loop gives it at the same spp; blocks that reach the target stop as always. When the
+budget ends, the blocks still above the target are listed with their ratios
+(`above_target`).
 """
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -48,7 +47,7 @@ class Budget:
 
     `spp_budget`: samples per pixel averaged over the blocks (None: no sample budget);
     `time_limit`: seconds (None: none). `band`: see the module docstring. The limits are
-    checked at the doors (`renderer.argcheck`: `run_adaptive`, `simulate_budget`), not here.
+    the render spec's (`renderer.spec`), checked there.
     """
 
     spp_budget: float | None = None
@@ -62,6 +61,13 @@ class Budget:
     def __post_init__(self) -> None:
         if not 0.0 < self.band <= 1.0:
             raise ValueError(f"band must be in (0, 1], got {self.band!r}")
+
+    @classmethod
+    def for_spec(cls, spec: Any) -> Budget | None:
+        """The budget a render spec asks for (None: neither an spp budget nor a time limit)."""
+        if spec.spp_budget is None and spec.time_limit is None:
+            return None
+        return cls(spec.spp_budget, spec.time_limit)
 
     def state(self) -> dict[str, Any]:
         """What a checkpoint keeps of the budget, so a resumed budget render goes on as the
@@ -88,21 +94,19 @@ class Budget:
             left = min(left, max(0.0, self.time_limit - elapsed) / rate if rate > 0 else math.inf)
         return left
 
-    def select(self, loop: PassLoop, sizes: Sequence[int], elapsed: float = 0.0) -> list[int]:
+    def select(self, loop: PassLoop, elapsed: float = 0.0) -> list[int]:
         """The blocks of the next round, in block order ([]: the budget or the blocks ran out)."""
         acc = loop.acc
         n = acc.n_blocks
         spp, passes = acc.spp_all(), acc.passes_all()
-        ids = np.flatnonzero(loop.active & (passes < len(sizes)))
+        ids = np.flatnonzero(loop.pending())
         if not ids.size:
             return []
-        sizes_a = np.asarray(sizes, np.int64)
-        step = sizes_a[passes[ids]]
-        max_spp = int(sizes_a.sum())
+        next_spp = loop.pass_spp[passes[ids]]           # what each block's next pass costs
         left = self._left(spp, elapsed)
-        if left >= float((max_spp - spp[ids]).sum()):
+        if left >= float((int(loop.schedule[-1]) - spp[ids]).sum()):
             return ids.tolist()                            # enough for everything: as unbudgeted
-        known, _ = loop.criterion.ratios.take(ids)
+        known, _ = loop.ratios.take(ids)
         unknown = ids[~known & ((spp[ids] >= loop.min_spp) if loop.min_spp is not None else True)]
         if unknown.size:            # judged before a resume: ask again (same state, same answer)
             loop.judge(unknown.tolist())
@@ -113,7 +117,7 @@ class Budget:
             order = np.flatnonzero(chosen)[np.argsort(-ratio[chosen], kind="stable")]
             room = self.spp_budget * n - float(spp.sum())
             fit = []                 # greedy: a block that does not fit leaves its room to the next
-            for i, need in zip(order.tolist(), step[order].tolist()):
+            for i, need in zip(order.tolist(), next_spp[order].tolist()):
                 if need <= room:
                     fit.append(i)
                     room -= need
@@ -130,24 +134,23 @@ class Budget:
     def priority(self, loop: PassLoop, ids: np.ndarray) -> np.ndarray:
         """The priority `select` ranks blocks `ids` by: each one's last ratio to its target
         (inf: no estimate yet, so first), over sqrt(spp) with `per_sample`."""
-        _, ratio = loop.criterion.ratios.take(ids)
+        _, ratio = loop.ratios.take(ids)
         ratio = np.where(np.isnan(ratio), np.inf, ratio)
         if self.per_sample:
             ratio = ratio / np.sqrt(np.maximum(loop.acc.spp_all()[ids], 1))
         return ratio
 
-    def finished(self, loop: PassLoop, sizes: Sequence[int]) -> bool:
-        """Whether the render is over: no active block has a pass left, or the sample
-        budget cannot pay for another pass of any of them (the budget ended)."""
+    def finished(self, loop: PassLoop) -> bool:
+        """Whether the render is over: no block is pending, or the sample budget cannot pay
+        for another pass of any of them (the budget ended)."""
         acc = loop.acc
-        passes = acc.passes_all()
-        left = loop.active & (passes < len(sizes))
+        left = loop.pending()
         if not left.any():
             return True
         if self.spp_budget is None:
             return False
-        steps = np.asarray(sizes, np.int64)[passes[left]]
-        if int(steps.min()) > self.spp_budget * acc.n_blocks - float(acc.spp_all().sum()):
+        next_spp = loop.pass_spp[acc.passes_all()[left]]
+        if int(next_spp.min()) > self.spp_budget * acc.n_blocks - float(acc.spp_all().sum()):
             self.ended = True
         return self.ended
 
@@ -157,50 +160,10 @@ class Budget:
         ended = bool(self.ended or time_limit_reached)
         spp = loop.acc.spp_all()
         ids = np.flatnonzero(loop.active)
-        _, ratio = loop.criterion.ratios.take(ids)
+        _, ratio = loop.ratios.take(ids)
         above = [{"id": int(b), "ratio": None if math.isnan(r) else float(r), "spp": int(spp[b])}
                  for b, r in zip(ids.tolist(), ratio.tolist())]
         above.sort(key=lambda x: -(math.inf if x["ratio"] is None else x["ratio"]))
         return {"spp_budget": self.spp_budget, "time_limit": self.time_limit, "band": self.band,
                 "ended": ended, "prioritised_rounds": self.prioritised_rounds,
                 "above_target": above if ended else []}
-
-
-def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int | None = None,
-                    band: float = BAND) -> dict[str, Any]:
-    """The budget render on a stored stack: block b's j-th pass is the stack's pass j
-    (`learning.inputs.halves.recover_passes`), as the live render's keyed samples make it,
-    so the loop (`Budget.select`, `PassLoop.step`) sees what it would see live.
-
-    Returns each block's final spp, whether it stopped, the budget's report part and the
-    rounds run. The final image of block b is the stack's level at its spp.
-    """
-    from learning.inputs.halves import check_constant_step, recover_passes
-
-    from .argcheck import check_spp_budget
-
-    check_spp_budget(spp_budget)
-    if criterion.needs_halves:
-        check_constant_step(stack)
-    passes, sizes = [], []
-    for _, _, pass_spp, pass_img in recover_passes(stack):
-        passes.append(stack.split(pass_img))
-        sizes.append(int(pass_spp))
-    quick = stack.split(stack.quick()) if criterion.needs_quick else None
-    if quick is not None:
-        criterion.prepare(list(range(stack.n_blocks)), quick)
-    loop = PassLoop(criterion, tuple(stack.grid), tuple(stack.block), min_spp, quick)
-    budget = Budget(spp_budget, band=band)
-    rounds = 0
-    while True:
-        ids = budget.select(loop, sizes)
-        if not ids:
-            break
-        own = loop.acc.passes_all()[ids]
-        loop.step(ids, [(np.stack([passes[p][b] for b, p in zip(ids, own.tolist())]),
-                         np.asarray(sizes, np.int64)[own])])
-        rounds += 1
-        if not loop.active.any() or budget.finished(loop, sizes):
-            break
-    return {"spp": loop.acc.spp_all().tolist(), "converged": (~loop.active).tolist(),
-            "budget": budget.describe(loop), "rounds": rounds}

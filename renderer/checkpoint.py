@@ -84,13 +84,13 @@ def expected_bytes(frame: tuple[int, int], n_blocks: int, passes: int, block: tu
     return 2 * held * (3 * 8 + 8) + h * w * 3 * 4 + rows * (9 * n_blocks + 24) + 32 * n_blocks + (1 << 20)
 
 
-def load_checkpoint(path: Path, settings: dict[str, Any], *, sizes: list[int], grid: tuple[int, int],
+def load_checkpoint(path: Path, settings: dict[str, Any], *, pass_spp: list[int], grid: tuple[int, int],
                     block: tuple[int, int], frame: tuple[int, int]) -> dict[str, Any]:
     """The state a checkpoint written by `save_checkpoint` for these settings holds, or ValueError."""
     n = grid[0] * grid[1]
     try:
-        data = read_npz(path, max_bytes=expected_bytes(frame, n, len(sizes), block))
-        return _validated(path, data, settings, sizes, grid, block, frame)
+        data = read_npz(path, max_bytes=expected_bytes(frame, n, len(pass_spp), block))
+        return _validated(path, data, settings, pass_spp, grid, block, frame)
     except ValueError as exc:
         if "start over" in str(exc):
             raise
@@ -109,7 +109,7 @@ def _get(data: dict[str, np.ndarray], key: str, dtype: str, shape: tuple[int, ..
     return arr
 
 
-def _validated(path: Path, data: dict[str, np.ndarray], settings: dict[str, Any], sizes: list[int],
+def _validated(path: Path, data: dict[str, np.ndarray], settings: dict[str, Any], pass_spp: list[int],
                grid: tuple[int, int], block: tuple[int, int], frame: tuple[int, int]) -> dict[str, Any]:
     fmt, version = data.get("format"), data.get("version")
     if fmt is None or fmt.shape != () or str(fmt) != CHECKPOINT_FORMAT:
@@ -130,18 +130,18 @@ def _validated(path: Path, data: dict[str, np.ndarray], settings: dict[str, Any]
         raise ValueError(f"{path}: checkpoint was made with other settings ({'; '.join(diff)}); "
                          "rerun with the same options or without --resume to start over")
     try:
-        return _state(data, sizes, grid, block, frame)
+        return _state(data, pass_spp, grid, block, frame)
     except ValueError as exc:
         raise ValueError(f"{path}: inconsistent checkpoint: {exc}") from None
 
 
-def _state(data: dict[str, np.ndarray], sizes: list[int], grid: tuple[int, int], block: tuple[int, int],
+def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, int], block: tuple[int, int],
            frame: tuple[int, int]) -> dict[str, Any]:
     n = grid[0] * grid[1]
     budget = "budget_cost" in data
     p = int(_get(data, "pass_index", "int64", ()))
-    if not 0 <= p <= (n * len(sizes) if budget else len(sizes)):
-        raise ValueError(f"pass {p} claimed, these settings make {len(sizes)} passes")
+    if not 0 <= p <= (n * len(pass_spp) if budget else len(pass_spp)):
+        raise ValueError(f"pass {p} claimed, these settings make {len(pass_spp)} passes")
     active = _get(data, "active", "bool", (n,))
     stop_spp = _get(data, "stop_spp", "int64", (n,))
     history = _get(data, "history", "int8", (p, n))
@@ -149,7 +149,7 @@ def _state(data: dict[str, np.ndarray], sizes: list[int], grid: tuple[int, int],
     block_spp = _get(data, "history_block_spp", "int64", (p, n))
     rendered = _get(data, "rendered", "int64", (p,))
     done = bool(_get(data, "done", "bool", ()))
-    cum = np.concatenate([[0], np.cumsum(sizes, dtype=np.int64)])
+    cum = np.concatenate([[0], np.cumsum(pass_spp, dtype=np.int64)])   # [0, *schedule]
     if not np.isin(history, (-1, 0, 1)).all():
         raise ValueError("history holds values other than -1, 0, +1")
     if ((rendered < 1) | (rendered > n)).any():
@@ -164,9 +164,9 @@ def _state(data: dict[str, np.ndarray], sizes: list[int], grid: tuple[int, int],
         raise ValueError("stopped blocks and their stop spp disagree with the verdict history")
     if not budget:
         if not np.array_equal(history_spp, cum[1:p + 1]):
-            raise ValueError("history spp are not the cumulative pass sizes")
-        if done != (p == len(sizes) or not active.any()):
-            raise ValueError(f"done is {done} at pass {p} of {len(sizes)} with {int(active.sum())} blocks active")
+            raise ValueError("history spp are not the schedule (cumulative pass spp)")
+        if done != (p == len(pass_spp) or not active.any()):
+            raise ValueError(f"done is {done} at pass {p} of {len(pass_spp)} with {int(active.sum())} blocks active")
     names = _get(data, "counter_names", "U")
     values = _get(data, "counter_values", "int64", names.shape)
     tnames = _get(data, "timer_names", "U")
@@ -191,7 +191,7 @@ def _state(data: dict[str, np.ndarray], sizes: list[int], grid: tuple[int, int],
         arr = _get(acc_state, key, dtype, shape)
         if arr.dtype.kind == "f" and not np.isfinite(arr).all():
             raise ValueError(f"accumulator {key!r} holds NaN or Inf")
-        most = {"weight": int(cum[-1]), "passes": len(sizes)}.get(key)
+        most = {"weight": int(cum[-1]), "passes": len(pass_spp)}.get(key)
         if arr.dtype.kind == "i" and ((arr < 0).any() or (most is not None and (arr > most).any())):
             raise ValueError(f"accumulator {key!r} out of range")
     acc = BlockAccumulator.from_state(acc_state)
@@ -218,7 +218,7 @@ def _state(data: dict[str, np.ndarray], sizes: list[int], grid: tuple[int, int],
         if not (0 <= rounds <= p) or not np.isfinite(cost).all() or (cost < 0).any() \
                 or (ratio[ratio_asked] < 0).any():
             raise ValueError("budget state out of range")
-        left = active & (passes < len(sizes))
+        left = active & (passes < len(pass_spp))
         if done != (not left.any() or ended):
             raise ValueError(f"done is {done} with {int(left.sum())} blocks able to take a pass")
         state["budget"] = {"prioritised_rounds": rounds, "ended": ended, "cost": cost.tolist(),

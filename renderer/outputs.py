@@ -160,7 +160,7 @@ def compare_png(final8: np.ndarray, reference8: np.ndarray, windows: Sequence[Se
 def write_outputs(out: str | os.PathLike, image: np.ndarray, report: dict[str, Any], *, spp: np.ndarray,
                   converged: np.ndarray, reference: np.ndarray | None = None) -> dict[str, str]:
     """Write the outputs of a render into `out`; return their paths by name. `spp` and
-    `converged` are per pixel [H, W] (`renderer.blocks.compose`). With the reference image
+    `converged` are per pixel [H, W] (`renderer.block_windows.compose`). With the reference image
     (and `final_vs_reference` in the report) also compare.png."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,16 +1,26 @@
-"""One step of a progressive render, the same for the live render and the simulation.
+"""The pass loop: what one step of a progressive render does, for the live render and the
+simulation on stored stacks alike.
 
-Both the live loop (`renderer.adaptive`, passes from Mitsuba) and the simulation on stored
-stacks (`renderer.simulate`, passes recovered from the levels) do, per step: add the new
-samples of the blocks rendered to the `BlockAccumulator` (exact means, even/odd half
-buffers), then ask the criterion, in one batched call, about those of them at or past
-min_spp; a block it calls converged leaves the active set for good. A step is one pass of
-every active block (a plain pass), one pass of some blocks at their own pass counts (a
-budget round), or several passes of the same blocks traced in one launch (a grown pass,
-`renderer.adaptive`): `PassLoop.step` is all three, so they cannot drift apart.
+The vocabulary: the `schedule` is the spp at the end of each pass (pass j adds
+`pass_spp[j]` samples per pixel); a block's `pass_index` is how many passes it has; it is
+`pending` while it is active and has a pass left.
 
-Everything per block is an array: the pass images stay on the accumulator's device, the
-criterion gets a `BlockBatch`, and only verdicts and counters cross to the host.
+**One step** (the one explanation; other modules point here). The caller picks blocks
+and their passes (`renderer.session.RenderSession.step`: every pending block at its next
+pass, several passes per launch as blocks stop, or in a budget render the blocks
+`renderer.budget.Budget.select` picks) and traces them (`BlockRenderer.render_passes`, or
+a stack's recovered passes in `renderer.simulate`). `PassLoop.step` then:
+
+1. adds each pass to the `BlockAccumulator` (exact means, even/odd half buffers, tensors on
+   the accumulator's device); each pass is one row of the verdict history;
+2. applies the stop rule's gate (`learning.stoprule.decide_active`): the blocks of the step
+   at or past min_spp are judged in one batched `Criterion.decide`, and those it calls
+   converged leave the active set for good: never traced, featured or asked again.
+
+The loop owns what a render accumulates: the counters and timers of its decisions and each
+block's last ratio to its target (`BlockRatios`, what a budget spends by). A criterion is
+configuration only. Everything per block is an array; only verdicts and numbers cross to
+the host.
 """
 from __future__ import annotations
 
@@ -20,9 +30,14 @@ from typing import Any
 import numpy as np
 
 from learning.data.accumulator import BlockAccumulator
-from learning.stoprule import CONVERGED, NOISY
+from learning.stoprule import decide_active
 
-from .criteria import BlockBatch, Criterion
+from .criteria import COUNTER_NAMES, TIMER_NAMES, BlockBatch, Criterion, Decision
+
+
+def schedule(step: int, max_spp: int) -> np.ndarray:
+    """The spp at the end of each pass up to max_spp, int64 (the last pass may be shorter)."""
+    return np.minimum(np.arange(1, -(-int(max_spp) // int(step)) + 1, dtype=np.int64) * int(step), int(max_spp))
 
 
 def block_events(history: np.ndarray, block_spp: np.ndarray) -> dict[int, list[tuple[int, int]]]:
@@ -36,20 +51,49 @@ def block_events(history: np.ndarray, block_spp: np.ndarray) -> dict[int, list[t
     return out
 
 
-class PassLoop:
-    """Active set, accumulator and verdict history of one render of `n` blocks.
+class BlockRatios:
+    """Per block, how far its last verdict was from the target, as a ratio (> 1: above it;
+    NaN: no estimate): arrays indexed by block id, read and written a batch at a time."""
 
-    `quick`: the criterion's quick-image blocks [n, bh, bw, 3] (None if it needs none).
-    `device`: where the accumulator's tensors live (the renderer's). The state
-    (`state()` / `restore`) is what the live render checkpoints.
+    def __init__(self, n: int) -> None:
+        self.asked = np.zeros(n, bool)
+        self.value = np.full(n, np.nan)
+
+    def put(self, ids: Any, ratio: Any) -> None:
+        idx = np.asarray(ids, np.int64).reshape(-1)
+        self.asked[idx] = True
+        self.value[idx] = np.asarray(ratio, np.float64).reshape(-1)
+
+    def take(self, ids: Any) -> tuple[np.ndarray, np.ndarray]:
+        """(asked bool [k], ratio float64 [k], NaN where unknown) of blocks `ids`."""
+        idx = np.asarray(ids, np.int64).reshape(-1)
+        return self.asked[idx].copy(), np.where(self.asked[idx], self.value[idx], np.nan)
+
+
+class PassLoop:
+    """Active set, accumulator, verdict history, decision counters and ratios of one render.
+
+    `schedule`: the spp at the end of each pass; `min_spp`: no decision below it (None: from
+    the first pass). `quick`: the quick image's blocks [n, bh, bw, 3] when the criterion
+    reads them (prepared once here). `device`: where the accumulator's tensors live (the
+    renderer's). `state()` / `restore` is what the live render checkpoints.
     """
 
     def __init__(self, criterion: Criterion, grid: tuple[int, int], block: tuple[int, int],
-                 min_spp: int | None, quick: np.ndarray | None = None, device: Any = None) -> None:
-        self.criterion, self.min_spp, self.quick, self.device = criterion, min_spp, quick, device
-        criterion.start_render()               # a new render: nothing carried over from the last
+                 schedule: Sequence[int], min_spp: int | None, quick: np.ndarray | None = None,
+                 device: Any = None) -> None:
+        self.criterion, self.min_spp, self.device = criterion, min_spp, device
+        self.schedule = np.asarray(schedule, np.int64)
+        self.pass_spp = np.diff(self.schedule, prepend=0)
         self.acc = BlockAccumulator(grid, block, device=device)
         n = self.acc.n_blocks
+        self.counters = {k: 0 for k in COUNTER_NAMES}
+        self.timers = {k: 0.0 for k in TIMER_NAMES}
+        self.ratios = BlockRatios(n)
+        self.quick = None
+        if quick is not None:
+            self.quick, made = criterion.prepare(quick)
+            self._count(made, {"features_s": float(made.pop("features_s", 0.0))})
         self.active = np.ones(n, bool)
         self.stop_spp = np.zeros(n, np.int64)
         self.history = np.zeros((0, n), np.int8)
@@ -57,17 +101,16 @@ class PassLoop:
         self.history_block_spp = np.zeros((0, n), np.int64)   # every block's spp after each row
         self.rendered = np.zeros(0, np.int64)
 
-    @property
-    def active_ids(self) -> list[int]:
-        return np.flatnonzero(self.active).tolist()
+    def pending(self) -> np.ndarray:
+        """bool [n]: the blocks that still get passes (active, with a pass left)."""
+        return self.active & (self.acc.passes_all() < len(self.schedule))
 
     def step(self, ids: Sequence[int], passes: Sequence[tuple[Any, int | Sequence[int]]]) -> np.ndarray:
-        """Add `passes` to the blocks `ids` (each an (images [len(ids), bh, bw, 3], spp) pair:
-        one spp for all or one per block; images on any device), then judge those of
-        `ids` at or past min_spp, in one batched call.
+        """One step (the module docstring): add `passes` to the blocks `ids` (each an
+        (images [len(ids), bh, bw, 3], pass_spp) pair: one spp for all or one per block;
+        images on any device), then judge them through the stop rule's gate.
 
-        Each pass is one row of the verdict history (the checkpoint's invariant: a row per
-        pass); the verdicts go in the step's last row. Returns that row, int8 [n]: +1
+        The verdicts go in the step's last history row. Returns that row, int8 [n]: +1
         converged now, -1 noisy, 0 not asked.
         """
         idx = np.asarray(ids, np.int64).reshape(-1)
@@ -77,19 +120,13 @@ class PassLoop:
             raise ValueError("a step adds at least one pass")
         if not self.active[idx].all():
             raise ValueError(f"blocks {idx[~self.active[idx]].tolist()} are stopped: they get no samples")
-        rows_spp = []                     # each pass is a history row; only the last one is judged
+        rows_spp = []
         for images, pass_spp in passes:
             self.acc.add_batch(idx, images, pass_spp)
             rows_spp.append(self.acc.spp_all())
-        spp = self.acc.spp_all()[idx]
-        asked = idx if self.min_spp is None else idx[spp >= self.min_spp]
-        row = np.zeros(len(self.active), np.int8)
-        if asked.size:
-            verdict = np.asarray(self.criterion.decide(asked.tolist(), self._batch(asked)))
-            row[asked] = np.where(verdict > 0, CONVERGED, NOISY)
+        row = decide_active(self.active, rows_spp[-1], self.min_spp, self.judge, among=idx)
         stopped = row > 0
-        self.active[stopped] = False
-        self.stop_spp[stopped] = self.acc.spp_all()[stopped]
+        self.stop_spp[stopped] = rows_spp[-1][stopped]
         rows = np.zeros((len(passes), len(self.active)), np.int8)
         rows[-1] = row
         self.history = np.vstack([self.history, rows])
@@ -98,19 +135,26 @@ class PassLoop:
         self.rendered = np.append(self.rendered, [len(idx)] * len(passes))
         return row
 
+    def judge(self, ids: Sequence[int]) -> np.ndarray:
+        """The criterion's verdicts int8 [k] on blocks as they stand, counted, their ratios
+        kept; the active set is `step`'s to change (a resumed budget render asks blocks
+        judged before the interruption again: same state, same answer)."""
+        idx = np.asarray(ids, np.int64).reshape(-1)
+        d: Decision = self.criterion.decide(idx, BlockBatch.from_accumulator(self.acc, idx, self.quick))
+        self.ratios.put(idx, d.ratio)
+        self._count(d.counts, d.timers)
+        return d.verdict
+
+    def _count(self, counts: dict[str, Any] | Any, timers: dict[str, float] | Any) -> None:
+        for k, v in counts.items():
+            self.counters[k] = self.counters.get(k, 0) + int(v)
+        for k, v in timers.items():
+            self.timers[k] = self.timers.get(k, 0.0) + float(v)
+
     @property
     def events(self) -> dict[int, list[tuple[int, int]]]:
         """Each decided block's own [(spp, verdict)], in order (`block_events`)."""
         return block_events(self.history, self.history_block_spp)
-
-    def judge(self, ids: Sequence[int]) -> np.ndarray:
-        """The criterion's verdicts on blocks as they stand, changing nothing here: refreshes
-        `criterion.ratios` (a resumed budget render has none from before)."""
-        idx = np.asarray(ids, np.int64).reshape(-1)
-        return self.criterion.decide(idx.tolist(), self._batch(idx))
-
-    def _batch(self, idx: np.ndarray) -> BlockBatch:
-        return BlockBatch.from_accumulator(self.acc, idx, self.quick)
 
     # -- checkpointing ---------------------------------------------------------------
 
@@ -130,3 +174,5 @@ class PassLoop:
         self.history_spp = np.asarray(state["history_spp"], np.int64)
         self.rendered = np.asarray(state["rendered"], np.int64)
         self.history_block_spp = np.asarray(state["history_block_spp"], np.int64).reshape(self.history.shape)
+        self.counters.update({k: int(v) for k, v in state.get("counters", {}).items() if k in COUNTER_NAMES})
+        self.timers.update({k: float(v) for k, v in state.get("timers", {}).items() if k in TIMER_NAMES})

@@ -15,10 +15,11 @@ the criterion stopped the block), the way Mitsuba's ``aov`` integrator appends i
 channels. The last render's `RenderResult` (report included) is kept as
 ``integrator.result``.
 
-Properties (all optional): ``criterion`` (string: flip, model, variance, uniform),
-``tau``, ``block``, ``min_spp``, ``max_spp``, ``step``, ``seed``, ``threshold``,
-``offset``, ``exposure``, ``model`` (a bundle path), ``progress`` (boolean); unset ones
-take `renderer.render`'s defaults. ``mi.render``'s own arguments add to them: a nonzero
+Properties (all optional): the render spec's rows the plugin offers
+(`renderer.spec.PLUGIN_ROWS`: criterion, tau, threshold, offset, quantile, model,
+exposure, block, min_spp, max_spp, step, seed, time_limit, spp_budget, quick_spp), plus
+``progress`` (boolean); they are resolved and checked by the same resolver as
+`renderer.render`'s arguments (source "scene plugin"), and unset ones take its defaults. ``mi.render``'s own arguments add to them: a nonzero
 ``spp`` is the render's max_spp, and ``seed`` is added to the property's seed, so
 ``mi.render(scene, seed=k)`` for k = 0, 1, ... gives independent renders, and
 ``mi.render(scene)`` equals ``renderer.render(scene, ...)`` with the same settings, and
@@ -41,15 +42,14 @@ from typing import Any
 
 import numpy as np
 
-from .settings import MAX_SPP
+from .spec import PLUGIN as FROM_PLUGIN
+from .spec import PLUGIN_ROWS, resolve
 
 PLUGIN = "noisestop"
 #: the channels mi.render returns, after R, G, B
 AOVS = ("spp", "converged")
-#: property -> (kind, what it is given as in XML)
-_PROPERTIES = {"criterion": str, "tau": float, "block": int, "min_spp": int, "max_spp": int, "step": int,
-               "seed": int, "threshold": float, "offset": float, "exposure": float, "model": str,
-               "progress": bool}
+#: the properties it reads: the render spec's rows it offers, and whether to show progress
+PROPERTIES = (*(r.name for r in PLUGIN_ROWS), "progress")
 
 _registered: set[str] = set()
 _classes: dict[str, type] = {}
@@ -79,30 +79,21 @@ def _integrator_class() -> type:
             #: a bad property's one-line message, raised when the integrator is used: Mitsuba's
             #: loader would print a Python traceback around an error raised here
             self.property_error: str | None = None
+            #: the properties set (the render spec's rows, as given), resolved at each render
             self.settings: dict[str, Any] = {}
-            self.criterion: Any = None
+            self.progress = False
             try:
                 if len(nested) > 1:
                     raise ValueError(f"the noisestop integrator wraps one integrator, got {len(nested)} nested ones")
-                self.settings = _checked_settings(props)
-                from .criteria import make_criterion
-
-                self.criterion = make_criterion(**self._criterion_options())
-                if self.criterion == "oracle":
-                    raise ValueError("the oracle criterion needs a labelled reference stack: use renderer.render")
+                self.settings = {k: props[k] for k in PROPERTIES if k in props and k != "progress"}
+                if "progress" in props:
+                    if not isinstance(props["progress"], bool):
+                        raise ValueError(f"progress must be a boolean, got {props['progress']!r}")
+                    self.progress = props["progress"]
+                resolve(self.settings, source=FROM_PLUGIN)      # a bad property: known now, raised when used
             except ValueError as exc:
                 self.property_error = f"noisestop integrator: {exc}".replace(
                     "noisestop integrator: noisestop integrator: ", "noisestop integrator: ")
-
-        def _criterion_options(self) -> dict[str, Any]:
-            from learning.names import DEFAULT_TAU
-
-            from .names import criterion_name
-
-            s = self.settings
-            return {"criterion": criterion_name(s.get("criterion"), model=s.get("model"), offset=s.get("offset")), "tau": s.get("tau", DEFAULT_TAU),
-                    "model": s.get("model"), "threshold": s.get("threshold"), "offset": s.get("offset"),
-                    "exposure": s.get("exposure", 0.0)}
 
         def check(self) -> None:
             """ValueError (one line) if a property was bad: raised where the integrator is used
@@ -124,12 +115,13 @@ def _integrator_class() -> type:
                                  "develop=True (as mi.render does)")
             if isinstance(sensor, (int, np.integer)):
                 sensor = scene.sensors()[int(sensor)]
-            s = self.settings
-            max_spp = int(spp) if int(spp) > 0 else s.get("max_spp")
-            result = run_adaptive(scene, self.criterion, block=s.get("block"), step=s.get("step"),
-                                  min_spp=s.get("min_spp"), max_spp=max_spp,
-                                  seed=s.get("seed", 0) + _as_int(seed), progress=s.get("progress", False),
-                                  tau=self._criterion_options()["tau"], sensor=sensor, integrator=self.nested)
+            s = dict(self.settings)
+            if int(spp) > 0:
+                s["max_spp"] = int(spp)
+            if _as_int(seed):
+                s["seed"] = s.get("seed", 0) + _as_int(seed)
+            result = run_adaptive(scene, source=FROM_PLUGIN, progress=self.progress, sensor=sensor,
+                                  integrator=self.nested, **s)
             self.result = result
             data = np.concatenate([result.image, result.spp[..., None].astype(np.float32),
                                    result.converged[..., None].astype(np.float32)], axis=-1)
@@ -146,26 +138,6 @@ def _integrator_class() -> type:
     return NoisestopIntegrator
 
 
-def _checked_settings(props: Any) -> dict[str, Any]:
-    """The properties set, each of its kind and in range, and their combination as a render
-    would check it (a block too small, min_spp above max_spp...): ValueError naming it."""
-    from noisefeat.bounds import SizeBounds
-
-    from .settings import DEFAULTS, check_spp_settings
-
-    settings = {k: _read(props, k, kind) for k, kind in _PROPERTIES.items() if k in props}
-    for key in ("block", "min_spp", "max_spp", "step"):
-        if key in settings and not 1 <= settings[key] <= MAX_SPP:
-            raise ValueError(f"{key} must be a positive integer, at most {MAX_SPP}, got {settings[key]}")
-    spp = {k: settings.get(k, DEFAULTS[k]) for k in ("step", "min_spp", "max_spp")}
-    if "min_spp" not in settings:          # the default min_spp gives way to a smaller max_spp
-        spp["min_spp"] = min(spp["min_spp"], spp["max_spp"])
-    check_spp_settings(spp["step"], spp["min_spp"], spp["max_spp"])
-    if "block" in settings:
-        SizeBounds.from_env().check_block(settings["block"], settings["block"], what="block")
-    return settings
-
-
 def scene_plugin_settings(scene: Any) -> dict[str, Any]:
     """The properties set on a loaded scene's ``noisestop`` integrator ({} for anything
     else: a path, a scene with another integrator): what `renderer.render` honours when it
@@ -180,22 +152,6 @@ def scene_plugin_settings(scene: Any) -> dict[str, Any]:
         return {}
     integrator.check()
     return dict(integrator.settings)
-
-
-def _read(props: Any, key: str, kind: type) -> Any:
-    """One property as its kind, or ValueError naming it."""
-    value = props[key]
-    if kind is bool:
-        if not isinstance(value, bool):
-            raise ValueError(f"{key} must be a boolean, got {value!r}")
-        return value
-    if kind is int and (isinstance(value, bool) or not isinstance(value, (int, np.integer))):
-        raise ValueError(f"{key} must be an integer, got {value!r}")
-    if kind is float and (isinstance(value, bool) or not isinstance(value, (int, float))):
-        raise ValueError(f"{key} must be a number, got {value!r}")
-    if kind is str and not isinstance(value, str):
-        raise ValueError(f"{key} must be a string, got {value!r}")
-    return kind(value)
 
 
 def _as_int(seed: Any) -> int:

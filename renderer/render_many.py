@@ -13,16 +13,13 @@ from typing import Any
 from tqdm import tqdm
 
 from .adaptive import adaptive_render, scene_label
-from learning.names import DEFAULT_TAU
-
-from .criteria import Criterion, build_criterion
-from .names import DEFAULT_CRITERION
 from .outputs import prepare_output_dir
+from .spec import COMMAND_LINE
 
 logger = logging.getLogger(__name__)
 
 
-def _render_task(scene: str, out: str, criterion: Criterion | str, kwargs: dict[str, Any]) -> dict[str, Any]:
+def _render_task(scene: str, out: str, kwargs: dict[str, Any]) -> dict[str, Any]:
     """What one worker runs: one scene, start to finish (or resume to finish)."""
     from .farm import configure_worker_threads
     from .plugin import register
@@ -30,17 +27,18 @@ def _render_task(scene: str, out: str, criterion: Criterion | str, kwargs: dict[
     configure_worker_threads()
     register()          # a scene file whose integrator is `noisestop` loads in this process too
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    return adaptive_render(scene, out, criterion, **kwargs)
+    return adaptive_render(scene, out, **kwargs)
 
 
-def render_many(scenes: Sequence[str | os.PathLike], out: str | os.PathLike, criterion: Criterion | str, *,
+def render_many(scenes: Sequence[str | os.PathLike], out: str | os.PathLike, *,
                 workers: int | None = None, scheduler: str | None = None, progress: bool = True,
                 **kwargs: Any) -> dict[str, Any]:
     """`adaptive_render` for many scenes, one task per scene, into out/<scene>/.
 
-    Runs on `renderer.farm.executor` (local Dask processes or a cluster). Each task gets
-    its own copy of `criterion`. A failing scene does not stop the others: it is listed
-    under ``failed``. `kwargs` are `adaptive_render`'s keyword arguments.
+    Runs on `renderer.farm.executor` (local Dask processes or a cluster). Each task
+    resolves its own render spec and builds its own criterion. A failing scene does not
+    stop the others: it is listed under ``failed``. `kwargs` are `adaptive_render`'s
+    keyword arguments (the render spec's settings included).
     """
     from .farm import executor
 
@@ -56,7 +54,7 @@ def render_many(scenes: Sequence[str | os.PathLike], out: str | os.PathLike, cri
     failed: dict[str, str] = {}
     kwargs = {**kwargs, "progress": False}
     with executor(workers, scheduler) as pool:
-        futures = {pool.submit(_render_task, os.fspath(s), str(root / lab), criterion, kwargs): lab
+        futures = {pool.submit(_render_task, os.fspath(s), str(root / lab), kwargs): lab
                    for s, lab in zip(scenes, labels)}
         for fut in tqdm(as_completed(futures), total=len(futures), desc="scenes", unit="scene",
                         disable=not progress):
@@ -70,39 +68,26 @@ def render_many(scenes: Sequence[str | os.PathLike], out: str | os.PathLike, cri
             "scenes": dict(sorted(reports.items())), "failed": failed}
 
 
-def render_command(scenes: str | Sequence[str], out: str | os.PathLike, *, criterion: str = DEFAULT_CRITERION,
-                   model: str | None = None, server: str | None = None, reference: str | None = None,
-                   threshold: float | None = None, quantile: float = 1.0, offset: float | None = None,
-                   workers: int | None = None, scheduler: str | None = None, exposure: float = 0.0,
-                   tau: float = DEFAULT_TAU, **kwargs: Any) -> dict[str, Any]:
+def render_command(scenes: str | Sequence[str], out: str | os.PathLike, given: dict[str, Any], *,
+                   reference: str | None = None, workers: int | None = None, scheduler: str | None = None,
+                   **kwargs: Any) -> dict[str, Any]:
     """What `noisestop render` runs: one scene -> its report; several -> `render_many`'s summary.
 
-    `scenes`: a name, an XML path, or a comma-separated list. The model is loaded (or the
-    server contacted) once here; the oracle's thresholds come from `reference` per scene.
+    `scenes`: a name, an XML path, or a comma-separated list; `given`: the render spec's
+    settings the command line gave (None: not given), resolved per scene (its reference
+    stack may imply some); `kwargs`: `adaptive_render`'s (resume, checkpoint_every).
     """
     names = [s.strip() for s in scenes.split(",") if s.strip()] if isinstance(scenes, str) else list(scenes)
     if not names:
         raise ValueError("no scene given")
     prepare_output_dir(out)                 # a bad --out fails before any model or scene is loaded
-    if criterion == "oracle" and reference is None:
-        raise ValueError("--criterion oracle needs --reference DIR (a labelled dataset or stack of the scene)")
-    if criterion != "model" and (model or server or offset is not None):
-        logger.warning("--model/--server/--offset are ignored with --criterion %s", criterion)
-    if criterion not in ("flip", "variance") and threshold is not None:
-        logger.warning("--threshold is ignored with --criterion %s", criterion)
-    crit: Criterion | str = criterion if criterion == "oracle" else build_criterion(
-        criterion, model=model, server=server, threshold=threshold, quantile=quantile,
-        exposure=exposure, offset=offset, tau=tau)
-    remote = getattr(crit, "model", None)
-    if server and criterion == "model" and hasattr(remote, "ready") and not remote.ready():
-        raise ConnectionError(f"{server}: the server answers but model {remote.model!r} is not ready")
     if len(names) > 1 and reference is not None and str(reference).lower().endswith(".exr"):
         raise ValueError("a reference image is one scene's: render one scene with it (or give a dataset "
                          "directory holding every scene)")
+    kwargs = {**given, **kwargs, "reference": reference, "source": COMMAND_LINE}
     if len(names) == 1:
         from .plugin import register
 
         register()      # a scene file whose integrator is `noisestop` loads (the loop cannot import it)
-        return adaptive_render(names[0], out, crit, reference=reference, tau=tau, **kwargs)
-    return render_many(names, out, crit, workers=workers, scheduler=scheduler, reference=reference, tau=tau,
-                       **kwargs)
+        return adaptive_render(names[0], out, **kwargs)
+    return render_many(names, out, workers=workers, scheduler=scheduler, **kwargs)

@@ -3,6 +3,8 @@ and, against a labelled reference stack, DESIGN's early-stop metrics and what a 
 would see flipping between final.png and the reference."""
 from __future__ import annotations
 
+import logging
+import os
 from collections.abc import Sequence
 from typing import Any
 
@@ -11,20 +13,20 @@ import numpy as np
 from learning.data.accumulator import BlockAccumulator
 from learning.data.stack import Stack
 
+from .block_windows import compose
 from .blocks import BlockRenderer
 from .criteria import COUNTER_NAMES, Criterion
-from .passloop import block_events
+from .passloop import block_events, schedule
+from .result import RenderResult
 
-
-def pass_sizes(step: int, max_spp: int) -> list[int]:
-    """spp of every pass up to max_spp (the last one may be shorter)."""
-    n = -(-int(max_spp) // int(step))
-    return [min(step, max_spp - p * step) for p in range(n)]
+logger = logging.getLogger(__name__)
 
 
 def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit: Criterion, state: dict[str, Any],
-            acc: BlockAccumulator, timers: dict[str, float], variant: str | None,
-            ref: Stack | None) -> dict[str, Any]:
+                  acc: BlockAccumulator, counters: dict[str, int], timers: dict[str, float], variant: str | None,
+                  ref: Stack | None) -> dict[str, Any]:
+    """report.json of a render: its settings (`renderer.session.run_settings`), the loop's
+    state, counters and timers, per block window, and against `ref` the early-stop metrics."""
     n = br.n_blocks
     max_spp = settings["max_spp"]
     spp = acc.spp_all()
@@ -41,7 +43,7 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
     wall = float(timers.get("wall_s", 0.0))
     setup_s, render_s, features_s, decisions_s = (float(timers.get(k, 0.0))
                                                   for k in ("setup_s", "render_s", "features_s", "decisions_s"))
-    c = crit.counters
+    c = counters
     described = crit.describe()
     report: dict[str, Any] = {
         "scene": label, "variant": variant, "criterion": described,
@@ -85,7 +87,7 @@ def against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settin
     if ref.thresholds is None:
         raise ValueError(f"{ref.path}: reference stack has no thresholds (not labelled)")
     max_spp, min_spp = settings["max_spp"], settings["min_spp"]
-    cum = np.cumsum(pass_sizes(settings["step"], max_spp))
+    cum = schedule(settings["step"], max_spp)
     oracle = []
     for t in ref.thresholds:
         need = max(min_spp, t) if t is not None else None
@@ -145,3 +147,41 @@ def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int
         out["max_stopped_dots"] = int(dots[stop].max()) if stop.any() else 0
         out["dotted_stopped_blocks"] = int((stop & (dots > allowed)).sum())
     return out
+
+
+def render_result(session: Any, *, time_limit_reached: bool, ref_stack: Stack | None,
+                  ref_image: np.ndarray | None, reference: Any) -> RenderResult:
+    """A finished `renderer.session.RenderSession` as the image, per-pixel spp and stops,
+    and the report (report.json)."""
+    br, loop, acc, n, spec = session.br, session.loop, session.loop.acc, session.br.n_blocks, session.spec
+    final = session.snapshot()
+    report = render_report(session.label, br, session.settings, session.crit, {**session.state, **loop.state()},
+                           acc, loop.counters, final["timers"], session.settings["variant"], ref_stack)
+    report["settings_source"] = spec.settings_source()
+    if spec.defines:
+        report["defines"] = dict(spec.defines)
+    if spec.time_limit is not None:
+        report["time_limit"] = {"seconds": float(spec.time_limit), "reached": time_limit_reached}
+    if session.budget is not None:
+        report["budget"] = session.budget.describe(loop, time_limit_reached)
+    report["render_calls"] = session.counts()
+    windows = [br.window(b) for b in range(n)]
+    image, spp_px, owner = compose(acc.means(np.arange(n)).cpu().numpy(), windows, acc.spp_all(),
+                                   (br.height, br.width))
+    image = image.astype(np.float32)
+    ref_img = ref_image
+    if ref_stack is not None:
+        ref_img = ref_stack.reference()
+        if ref_img.shape != image.shape:
+            logger.warning("reference image %s differs from the render %s: no final-vs-reference check",
+                           ref_img.shape, image.shape)
+            ref_img = None
+    if ref_img is not None:
+        report["final_vs_reference"] = final_vs_reference(
+            image, ref_img, br.grid, float(spec.tau), float(spec.exposure), ~loop.active,
+            windows=windows if br.overlapping else None)
+        if ref_stack is None:
+            report["reference"] = {"image": os.fspath(reference) if isinstance(reference, (str, os.PathLike))
+                                   else "array", "width": br.width, "height": br.height}
+    return RenderResult(image=image, spp=spp_px, converged=(~loop.active)[owner], report=report,
+                        reference=ref_img)

@@ -33,38 +33,80 @@ from learning.names import DEFAULT_TAU
 
 from .criteria import Criterion
 from .passloop import PassLoop
+from .spec import ROW
 
 logger = logging.getLogger(__name__)
 
 
-def simulate_stack(stack: Stack, criterion: Criterion, min_spp: int | None = None,
-                   progress: bool = False) -> np.ndarray:
-    """Verdicts V int8 [K, n_blocks] the live loop would produce on this stack.
+def simulate_loop(stack: Stack, criterion: Criterion, min_spp: int | None = None,
+                  progress: bool = False) -> tuple[np.ndarray, PassLoop]:
+    """Verdicts V int8 [K, n_blocks] the live loop would produce on this stack, and the
+    loop (its decision counters and timers).
 
-    `min_spp` (None: no minimum): no decision before that many samples.
+    `min_spp` (None: no minimum; else checked by the render spec's row): no decision
+    before that many samples.
     """
-    if min_spp is not None and min_spp < 1:
-        raise ValueError(f"min_spp must be a positive integer, got {min_spp!r}")
-    n = stack.n_blocks
-    K = stack.n_levels
-    V = np.full((K, n), -1, np.int8)
-    quick = stack.split(stack.quick()) if criterion.needs_quick else None
-    if quick is not None:
-        criterion.prepare(list(range(n)), quick)
+    if min_spp is not None:
+        ROW["min_spp"].check(min_spp)
     if criterion.needs_halves:
         check_constant_step(stack)
-    loop = PassLoop(criterion, tuple(stack.grid), tuple(stack.block), min_spp, quick)
+    K = stack.n_levels
+    V = np.full((K, stack.n_blocks), -1, np.int8)
+    quick = stack.split(stack.quick()) if criterion.needs_quick else None
+    loop = PassLoop(criterion, tuple(stack.grid), tuple(stack.block), stack.spp, min_spp, quick)
     bar = tqdm(total=K, desc=f"{stack.scene} simulate", unit="lvl", disable=not progress, leave=False)
     for k, _, pass_spp, pass_img in recover_passes(stack):
         bar.update(1)
-        ids = loop.active_ids
-        if not ids:
+        ids = np.flatnonzero(loop.active)
+        if not ids.size:
             V[k:] = 1
             break
         loop.step(ids, [(stack.split(pass_img)[ids], pass_spp)])   # stopped blocks get no more samples
         V[k, ~loop.active] = 1
     bar.close()
-    return V
+    return V, loop
+
+
+def simulate_stack(stack: Stack, criterion: Criterion, min_spp: int | None = None,
+                   progress: bool = False) -> np.ndarray:
+    """Verdicts V int8 [K, n_blocks] the live loop would produce on this stack (`simulate_loop`)."""
+    return simulate_loop(stack, criterion, min_spp, progress)[0]
+
+
+def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int | None = None,
+                    band: float | None = None) -> dict[str, Any]:
+    """The budget render on a stored stack: block b's j-th pass is the stack's pass j
+    (`learning.inputs.halves.recover_passes`), as the live render's keyed samples make it,
+    so the loop (`Budget.select`, `PassLoop.step`) sees what it would see live.
+    `spp_budget` is checked by the render spec's row.
+
+    Returns each block's final spp, whether it stopped, the budget's report part and the
+    rounds run. The final image of block b is the stack's level at its spp.
+    """
+    from .budget import BAND, Budget
+
+    ROW["spp_budget"].check(spp_budget)
+    if criterion.needs_halves:
+        check_constant_step(stack)
+    passes, pass_spp = [], []
+    for _, _, spp_j, pass_img in recover_passes(stack):
+        passes.append(stack.split(pass_img))
+        pass_spp.append(int(spp_j))
+    quick = stack.split(stack.quick()) if criterion.needs_quick else None
+    loop = PassLoop(criterion, tuple(stack.grid), tuple(stack.block), np.cumsum(pass_spp), min_spp, quick)
+    budget = Budget(spp_budget, band=BAND if band is None else band)
+    rounds = 0
+    while True:
+        ids = budget.select(loop)
+        if not ids:
+            break
+        own = loop.acc.passes_all()[ids]
+        loop.step(ids, [(np.stack([passes[p][b] for b, p in zip(ids, own.tolist())]), loop.pass_spp[own])])
+        rounds += 1
+        if not loop.active.any() or budget.finished(loop):
+            break
+    return {"spp": loop.acc.spp_all().tolist(), "converged": (~loop.active).tolist(),
+            "budget": budget.describe(loop), "rounds": rounds}
 
 
 def _as_stacks(stacks: Stack | str | os.PathLike | Iterable[Stack | str | os.PathLike],
@@ -87,7 +129,8 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
     """DESIGN metrics of a criterion simulated on labelled stacks, overall and per scene.
 
     `stacks`: a dataset directory, a stack, or a list of either. `criterion_factory(stack)`
-    returns a fresh criterion for each stack (the oracle needs that stack's thresholds).
+    returns the criterion for each stack (the oracle needs that stack's thresholds; the
+    others are configuration only, one object for every stack).
     Stacks read from directories are labelled by the observer at `tau`. The result is `evaluate_verdicts`' dict plus ``criterion`` (its description) and
     ``counters`` (summed criterion counters and timers).
     """
@@ -103,9 +146,9 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
         if st.scene in per_scene:
             raise ValueError(f"{st.path}: scene {st.scene!r} appears twice")
         crit = criterion_factory(st)
-        V = simulate_stack(st, crit, min_spp=min_spp, progress=progress)
+        V, loop = simulate_loop(st, crit, min_spp=min_spp, progress=progress)
         per_scene[st.scene] = (V, st.labels(), st.thresholds, st.spp)
-        for k, v in {**crit.counters, **crit.timers}.items():
+        for k, v in {**loop.counters, **loop.timers}.items():
             counters[k] = counters.get(k, 0) + v
         description = crit.describe()
         if description.get("name") == "oracle":
@@ -118,29 +161,25 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
 
 def criterion_factory(kind: str, *, model: str | None = None, server: str | None = None,
                       threshold: float | None = None, offset: float | None = None,
-                      exposure: float = 0.0, tau: float = DEFAULT_TAU) -> Callable[[Stack], Criterion]:
-    """A fresh criterion per stack for `evaluate_criterion`, from command-line style options.
+                      exposure: float | None = None, tau: float | None = None) -> Callable[[Stack], Criterion]:
+    """The criterion of each stack for `evaluate_criterion`, from command-line style options
+    (None: not given), resolved and checked by the render spec and built by the one
+    factory (`renderer.criteria.make_criterion`): one criterion for every stack, or the
+    oracle with each stack's own thresholds."""
+    from .criteria import make_criterion
+    from .spec import COMMAND_LINE, resolve
 
-    The model (or server connection) is set up once and shared; the oracle takes each
-    stack's own thresholds. `threshold`: flip's c or variance's threshold (None: their
-    defaults); `offset`: the model's decision offset (None: its calibrated one at `tau`,
-    the noise target, which also picks flip's c).
-    """
-    from .criteria import CRITERIA, ModelCriterion, OracleCriterion, build_criterion
-
-    if kind not in CRITERIA:
-        raise ValueError(f"unknown criterion {kind!r}; choose one of {', '.join(CRITERIA)}")
-    if kind == "oracle":
+    spec = resolve({"criterion": kind, "model": model, "server": server, "threshold": threshold,
+                    "offset": offset, "exposure": exposure, "tau": tau}, source=COMMAND_LINE,
+                   thresholds_known=True)
+    if spec.criterion == "oracle":
         def oracle(st: Stack) -> Criterion:
             if st.thresholds is None:
                 raise ValueError(f"{st.path}: stack has no thresholds; the oracle needs them")
-            return OracleCriterion(st.thresholds)
+            return make_criterion(spec, st.thresholds)
         return oracle
-    if kind == "model":
-        shared = build_criterion("model", model=model, server=server, offset=offset, exposure=exposure, tau=tau)
-        assert isinstance(shared, ModelCriterion)
-        return lambda st: ModelCriterion(shared.model, exposure=shared.exposure, offset=shared.offset, tau=tau)
-    return lambda st: build_criterion(kind, threshold=threshold, exposure=exposure, tau=tau)
+    crit = make_criterion(spec)
+    return lambda st: crit
 
 
 def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list[str] | None = None, *,
@@ -171,13 +210,12 @@ def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list
     return {**out, "tau": float(tau)}
 
 
-def find_reference(reference: Stack | str | os.PathLike, scene: str, tau: float = DEFAULT_TAU) -> Stack:
-    """The stack of `scene` in a dataset directory (or that stack itself), labelled by the
-    observer at `tau`."""
+def find_stack(reference: Stack | str | os.PathLike, scene: str) -> Stack:
+    """The stack of `scene` in a dataset directory (or that stack itself), not yet labelled."""
     if isinstance(reference, Stack):
-        return observed(reference, tau)
+        return reference
     root = Path(reference)
-    stacks = [observed(read_stack(p), tau) for p in list_stacks(root)]
+    stacks = [read_stack(p) for p in list_stacks(root)]
     match = [s for s in stacks if s.scene == scene]
     if len(stacks) == 1 and not match:
         raise ValueError(f"{root}: the stack there is scene {stacks[0].scene!r}, not {scene!r}")
@@ -185,3 +223,9 @@ def find_reference(reference: Stack | str | os.PathLike, scene: str, tau: float 
         raise ValueError(f"{root}: no stack of scene {scene!r} (found: "
                          f"{', '.join(s.scene for s in stacks[:10]) or 'none'})")
     return match[0]
+
+
+def find_reference(reference: Stack | str | os.PathLike, scene: str, tau: float = DEFAULT_TAU) -> Stack:
+    """The stack of `scene` in a dataset directory (or that stack itself), labelled by the
+    observer at `tau`."""
+    return observed(find_stack(reference, scene), tau)

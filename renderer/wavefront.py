@@ -57,6 +57,12 @@ def guard_band(radius: float) -> int:
     return int(math.floor(float(radius) + 0.5))
 
 
+def filter_guard(rfilter: Any) -> int:
+    """The guard band a film's reconstruction filter needs, for both engines: none for a box
+    filter (each sample stays in its own pixel), else `guard_band` of its radius."""
+    return 0 if rfilter.is_box_filter() else guard_band(rfilter.radius())
+
+
 def _keyed_sampler_class() -> type:
     """`KeyedSampler` needs a variant; built on first use and cached."""
     global _KEYED
@@ -134,7 +140,7 @@ class WavefrontTracer:
         self._film_size = (int(film.size()[0]), int(film.size()[1]))
         self.rfilter = film.rfilter()
         self.box = bool(self.rfilter.is_box_filter())
-        self.guard = 0 if self.box else guard_band(self.rfilter.radius())
+        self.guard = filter_guard(self.rfilter)
         self._sampler = _keyed_sampler_class()()
         self.launches = 0
         self.lanes = 0            # lanes launched (one per sample), over every launch

@@ -1,24 +1,20 @@
 """Argument types and checks shared by the sub-commands: every documented range
 as an argparse type, so a bad value is a one-line usage error before any work.
 
-The choices and ranges come from their one home, in modules that import nothing heavy; frame
-and block sizes are also checked against noisefeat.bounds (environment-configurable)."""
+The choices and ranges come from their one home, in modules that import nothing heavy: a
+render setting's from its row of the render spec (`renderer.spec.ROWS`, whose `parse` is the
+argparse type); frame and block sizes are also checked against noisefeat.bounds
+(environment-configurable)."""
 from __future__ import annotations
 
 import argparse
 import math
-import re
 from collections.abc import Callable
 
-from learning.names import OFFSET_LIMIT, QUICK_MODES
-from noisefeat.bounds import EXPOSURE_RANGE
-from renderer.settings import MAX_SPP
+from learning.names import QUICK_MODES
+from renderer.spec import MAX_SIDE, MAX_SPP, ROW
 
 from ..console import UsageError
-
-
-MAX_SIDE = 65536
-MAX_SEED = 2**32 - 1
 
 
 def int_in(low: int, high: int | None = None) -> Callable[[str], int]:
@@ -57,19 +53,18 @@ def float_in(low: float, high: float, *, open_low: bool = False) -> Callable[[st
 positive_int = int_in(1)
 spp = int_in(1, MAX_SPP)
 side = int_in(1, MAX_SIDE)
-seed = int_in(0, MAX_SEED)
-offset = float_in(-OFFSET_LIMIT, OFFSET_LIMIT)
-exposure = float_in(*EXPOSURE_RANGE)
 fraction = float_in(0.0, 1.0, open_low=True)
 rate = float_in(0.0, 1.0)
 seconds = float_in(0.0, 3600.0, open_low=True)
-threshold = float_in(0.0, 1000.0)
+# the render settings other commands share, parsed and checked by their render-spec rows
+seed = ROW["seed"].parse
+offset = ROW["offset"].parse
+exposure = ROW["exposure"].parse
+threshold = ROW["threshold"].parse
 #: the noise target: any positive FLIP value up to 1 parses; the criterion then checks it
 #: against the range its calibration covers (flip's c(tau), a model's offsets by tau)
-tau = float_in(0.0, 1.0, open_low=True)
-TAU_HELP = ("noise target: the largest 16x16-tile mean FLIP against the reference a converged block may "
-            "show (smaller is stricter; default %(default)s); picks flip's c(tau) or the model's offset "
-            "within their calibrated range")
+tau = ROW["tau"].parse
+TAU_HELP = ROW["tau"].doc + " (default %(default)s)"
 
 
 def check_frame(height: int, width: int, grid: tuple[int, int], what: str) -> None:
@@ -79,31 +74,6 @@ def check_frame(height: int, width: int, grid: tuple[int, int], what: str) -> No
         SizeBounds.from_env().check_frame(height, width, grid)
     except ValueError as exc:
         raise UsageError(f"{what}: {exc}") from None
-
-
-_DEFINE_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
-
-
-def resolution(text: str) -> int | tuple[int, int]:
-    """`--resolution N|WxH`, each side within the frame bounds' range."""
-    from renderer.scenes import parse_resolution
-
-    try:
-        value = parse_resolution(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    for side in value if isinstance(value, tuple) else (value,):
-        if side > MAX_SIDE:
-            raise argparse.ArgumentTypeError(f"a side of {side} px is over the largest, {MAX_SIDE}")
-    return value
-
-
-def define(text: str) -> tuple[str, str]:
-    """`-D key=value`: key a name as in an XML scene's <default name=...>, value non-empty."""
-    key, sep, value = text.partition("=")
-    if not sep or not _DEFINE_KEY.fullmatch(key.strip()) or not value.strip():
-        raise argparse.ArgumentTypeError(f"expected KEY=VALUE with KEY a parameter name, got {text!r}")
-    return key.strip(), value.strip()
 
 
 def quick_modes(text: str) -> tuple[str, ...]:

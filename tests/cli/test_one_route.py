@@ -23,7 +23,7 @@ from learning.inputs.table import load_table
 from learning.training.train import train_model
 from renderer.client import RemoteModel
 from renderer.criteria import FlipCriterion, ModelCriterion
-from renderer.simulate import evaluate_criterion, simulate_stack
+from renderer.simulate import evaluate_criterion, simulate_loop, simulate_stack
 from tests.support.local_server import LocalServer
 from tests.support.stack_renderer import live
 from tests.support import FIXTURE_DATASET as FIXTURE
@@ -105,8 +105,8 @@ def test_model_stops_agree_on_every_route(data, model, server, monkeypatch, tmp_
     truth = stop_spp(V_eval, stack.spp)
     assert truth[FLAT_BLOCK] == MIN_SPP                              # flat: at the first decision
     # 2. the simulation on the stack (the criterion code the live loop runs)
-    sim = ModelCriterion(model, offset=off)
-    assert stop_spp(simulate_stack(stack, sim, min_spp=MIN_SPP), stack.spp) == truth
+    V_sim, sim = simulate_loop(stack, ModelCriterion(model, offset=off), min_spp=MIN_SPP)
+    assert stop_spp(V_sim, stack.spp) == truth
     assert sim.counters["flat_blocks"] >= 1
     # 3. the live loop, fed the stack's passes
     report, _ = live(monkeypatch, tmp_path, stack, ModelCriterion(model, offset=off), MIN_SPP)
@@ -175,8 +175,8 @@ def test_flip_stops_agree_on_every_route(data, monkeypatch, tmp_path):
     truth = stop_spp(rule.stops(guarded_flip_scores(stack), stack.spp, stack_flat(stack)), stack.spp)
     assert truth[FLAT_BLOCK] == stack.spp[0]             # flat: at the first level, halves or not
     assert 2 <= sum(t > 0 for t in truth) <= 14
-    sim = FlipCriterion(c)
-    assert stop_spp(simulate_stack(stack, sim), stack.spp) == truth
+    V_sim, sim = simulate_loop(stack, FlipCriterion(c))
+    assert stop_spp(V_sim, stack.spp) == truth
     assert sim.timers["decisions_s"] > 0 and sim.counters["blocks_featured"] > 0
     report, renderer = live(monkeypatch, tmp_path, stack, FlipCriterion(c), int(stack.spp[0]))
     assert spp_from_report(report) == truth and report["threshold"] == c

@@ -13,7 +13,8 @@ from learning.evaluation.calibrate import calibrate_flip, calibrate_flip_curve, 
 from learning.inputs.halves import (flip_c, flip_offset, flip_tau_range, halves_flip, load_flip_calibration,
                                     stack_flip_errors)
 from learning.stoprule import StopRule
-from renderer.criteria import BlockView, FlipCriterion, build_criterion
+from renderer.criteria import BlockView, FlipCriterion, make_criterion
+from renderer.spec import resolve
 
 SPP = [8 * (k + 1) for k in range(12)]
 
@@ -68,18 +69,21 @@ def test_flip_criterion_decisions():
     quiet, loud = halves(noise=0.002), halves(noise=0.1, seed=1)       # e 0.014 and ~0.3
     flat = (np.full((16, 16, 3), 0.5), np.full((16, 16, 3), 0.5))
     one_pass = halves(noise=0.01, seed=2)
-    out = crit.decide([0, 1, 2, 3], [view(*quiet), view(*loud), view(*flat, spp=(8, 0)),
-                                      view(*one_pass, spp=(8, 0))])
-    assert out.tolist() == [1, -1, 1, -1]          # one pass: no noise estimate yet, unless flat
-    assert crit.counters["flat_blocks"] == 1 and crit.counters["blocks_featured"] == 2
+    d = crit.decide([0, 1, 2, 3], [view(*quiet), view(*loud), view(*flat, spp=(8, 0)),
+                                    view(*one_pass, spp=(8, 0))])
+    assert d.verdict.tolist() == [1, -1, 1, -1]          # one pass: no noise estimate yet, unless flat
+    assert d.counts["flat_blocks"] == 1 and d.counts["blocks_featured"] == 2
     assert crit.describe() == {"name": "flip", "threshold": 0.02, "tau": 0.02, "pooling": "tile8-max",
                                "source": "argument"}
     with pytest.raises(ValueError, match="half buffers"):
-        crit.decide([0], [BlockView(mean=quiet[0], spp=8)])
-    shipped = build_criterion("flip")
+        crit.decide([0], [BlockView(mean=quiet[0], spp=8)]).verdict
+    def flip(**given):
+        return make_criterion(resolve({"criterion": "flip", **given}))
+
+    shipped = flip()
     assert isinstance(shipped, FlipCriterion) and shipped.c == flip_c(load_flip_calibration(), 0.02)
-    assert build_criterion("flip", threshold=0.05).c == 0.05
-    assert build_criterion("flip", tau=0.01).c < shipped.c < build_criterion("flip", tau=0.04).c
+    assert flip(threshold=0.05).c == 0.05
+    assert flip(tau=0.01).c < shipped.c < flip(tau=0.04).c
 
 
 @pytest.fixture(scope="module")

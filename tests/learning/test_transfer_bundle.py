@@ -26,7 +26,7 @@ from learning.names import MODEL_KINDS, TRANSFER_KINDS
 from learning.training import compare
 from learning.training.train_transfer import train_transfer
 from renderer.criteria import ModelCriterion
-from renderer.simulate import simulate_stack
+from renderer.simulate import simulate_loop
 from service.app import create_app
 from service.cli import main
 from service.registry import ModelRegistry
@@ -294,10 +294,9 @@ def test_simulation_makes_the_evaluate_stops(trained):
     off = float(np.quantile(scores[sub.decidable], 0.5))
     V = stops_by_scene(sub, scores, model.rule(off))["cornell"][0]
     assert len(set(stop_thresholds(V, stack.spp).tolist())) > 2      # blocks stop at several spp
-    crit = ModelCriterion(model, offset=off)
-    got = simulate_stack(stack, crit)
+    got, loop = simulate_loop(stack, ModelCriterion(model, offset=off))
     np.testing.assert_array_equal(stop_thresholds(got, stack.spp), stop_thresholds(V, stack.spp))
-    assert crit.counters["blocks_featured"] > 0
+    assert loop.counters["blocks_featured"] > 0
 
 
 def test_calibration_offsets_follow_the_scores():

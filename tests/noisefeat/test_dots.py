@@ -113,11 +113,12 @@ def test_flip_criterion_holds_a_block_whose_halves_disagree_on_dots():
     a, b = dots_on_black(40, value=0.01, seed=1), np.zeros((64, 64, 3))
     quiet = (np.full((64, 64, 3), 0.3), np.full((64, 64, 3), 0.3) + 1e-4)
     unguarded = FlipCriterion(0.05, tau=1.0)
-    assert unguarded.decide([0, 1], [view(a, b), view(*quiet)]).tolist() == [1, 1]
+    assert unguarded.decide([0, 1], [view(a, b), view(*quiet)]).verdict.tolist() == [1, 1]
     crit = FlipCriterion(0.05, tau=0.02)
-    assert crit.decide([0, 1], [view(a, b), view(*quiet)]).tolist() == [-1, 1]
-    assert crit.counters["dotted_blocks"] == 1
-    assert crit.ratios[0] > 1 >= crit.ratios[1]
+    d = crit.decide([0, 1], [view(a, b), view(*quiet)])
+    assert d.verdict.tolist() == [-1, 1]
+    assert d.counts["dotted_blocks"] == 1
+    assert d.ratio[0] > 1 >= d.ratio[1]
 
 
 class _Accepting:
@@ -143,8 +144,8 @@ def test_model_criterion_holds_dotted_blocks_too():
     a, b = dots_on_black(40, value=0.01, seed=2), np.zeros((64, 64, 3))
     quiet = (np.full((64, 64, 3), 0.3), np.full((64, 64, 3), 0.3) + 1e-4)
     crit = ModelCriterion(_Accepting(), tau=0.02)
-    assert crit.decide([0, 1], [view(a, b), view(*quiet)]).tolist() == [-1, 1]
-    assert ModelCriterion(_Accepting(), tau=1.0).decide([0], [view(a, b)]).tolist() == [1]
+    assert crit.decide([0, 1], [view(a, b), view(*quiet)]).verdict.tolist() == [-1, 1]
+    assert ModelCriterion(_Accepting(), tau=1.0).decide([0], [view(a, b)]).verdict.tolist() == [1]
 
 
 def test_the_served_halves_route_holds_dotted_blocks():

@@ -13,10 +13,12 @@ from renderer.adaptive import adaptive_render, run_adaptive
 from renderer.blocks import BlockRenderer
 from renderer.budget import Budget
 from renderer.criteria import OracleCriterion, UniformCriterion, VarianceCriterion
-from renderer.passloop import PassLoop
-from renderer.settings import MAX_SPP
+from renderer.passloop import PassLoop, schedule
+from renderer.spec import MAX_SPP
 from tests.support.errors import assert_one_line_error, run
 from tests.renderer.test_renderer_blocks import _scene
+
+SCHEDULE = schedule(4, 64)
 
 pytestmark = pytest.mark.slow
 
@@ -52,9 +54,9 @@ def test_a_budget_round_is_the_plain_pass_when_every_block_is_at_the_same_pass()
     """One step, two callers: a plain pass (one size for all) and a budget round (a size per
     block) over the same blocks give the same verdicts, state and sums."""
     rng = np.random.default_rng(0)
-    loops = [PassLoop(VarianceCriterion(0.5), (2, 2), (4, 4), 8) for _ in range(2)]
+    loops = [PassLoop(VarianceCriterion(0.5), (2, 2), (4, 4), SCHEDULE, 8) for _ in range(2)]
     for k in range(4):
-        ids = loops[0].active_ids
+        ids = np.flatnonzero(loops[0].active).tolist()
         noise = np.array([0.0, 0.002, 0.5, 0.5])[ids, None, None, None]   # a flat, a quiet and two noisy blocks
         images = 0.5 + noise * rng.standard_normal((len(ids), 4, 4, 3))
         row0 = loops[0].step(ids, [(images, 4)])
@@ -72,18 +74,18 @@ def test_several_passes_in_one_step_are_history_rows_judged_once() -> None:
     go in the last one, and the sums are those of the passes added one by one."""
     rng = np.random.default_rng(1)
     images = [0.5 + 0.1 * rng.standard_normal((4, 4, 4, 3)) for _ in range(3)]
-    one = PassLoop(UniformCriterion(), (2, 2), (4, 4), None)
+    one = PassLoop(UniformCriterion(), (2, 2), (4, 4), SCHEDULE, None)
     for img in images:
         one.step([0, 1, 2, 3], [(img, 4)])
-    grown = PassLoop(UniformCriterion(), (2, 2), (4, 4), None)
+    grown = PassLoop(UniformCriterion(), (2, 2), (4, 4), SCHEDULE, None)
     row = grown.step([0, 1, 2, 3], [(img, 4) for img in images])
     assert row.tolist() == [-1] * 4
     assert grown.history.tolist() == [[0] * 4, [0] * 4, [-1] * 4]
     assert grown.history_spp.tolist() == [4, 8, 12] == one.history_spp.tolist()
-    assert grown.criterion.counters["decide_calls"] == 1 and one.criterion.counters["decide_calls"] == 3
+    assert grown.counters["decide_calls"] == 1 and one.counters["decide_calls"] == 3
     np.testing.assert_array_equal(grown.acc.state()["sum"], one.acc.state()["sum"])
     with pytest.raises(ValueError, match="stopped"):
-        stopped = PassLoop(OracleCriterion([4, None, None, None]), (2, 2), (4, 4), None)
+        stopped = PassLoop(OracleCriterion([4, None, None, None]), (2, 2), (4, 4), SCHEDULE, None)
         stopped.step([0, 1, 2, 3], [(images[0], 4)])
         stopped.step([0, 1], [(images[1][:2], 4)])
 
@@ -135,15 +137,15 @@ def test_a_budget_is_spent_to_the_last_pass_it_pays_for(tmp_path) -> None:
 
 @pytest.mark.parametrize("bad", [-1, 0, float("nan"), float("inf"), "12", True, MAX_SPP * 2])
 def test_bad_budgets_are_refused_at_each_door_by_one_check(bad) -> None:
-    """One check, one message (renderer.argcheck): the live render and the simulation on a
-    stack refuse the same budgets, MAX_SPP included (the budget's own check had no upper
+    """One check, one message (the render spec's row): the live render and the simulation on
+    a stack refuse the same budgets, MAX_SPP included (the budget's own check had no upper
     bound, issue 40)."""
     from learning import make_synthetic_stack
-    from renderer.argcheck import check_spp_budget
-    from renderer.budget import simulate_budget
+    from renderer.simulate import simulate_budget
+    from renderer.spec import ROW
 
-    with pytest.raises(ValueError, match="spp_budget must be a positive number") as one:
-        check_spp_budget(bad)
+    with pytest.raises(ValueError, match="spp_budget must be a finite number in") as one:
+        ROW["spp_budget"].check(bad)
     with pytest.raises(ValueError) as live:
         run_adaptive("cornell", UniformCriterion(), spp_budget=bad, **TINY)
     st = make_synthetic_stack(Path(tempfile.mkdtemp()) / "s", size=32, spp=(8, 16))
@@ -214,10 +216,11 @@ class CrashingVariance(VarianceCriterion):
         super().__init__(0.05)
         self.at = at
 
-    def _decide(self, ids, batch):
-        if self.counters["decide_calls"] + 1 == self.at:
+    def _decide(self, ids, batch, tally):
+        self.calls = getattr(self, "calls", 0) + 1       # the test's own count: a criterion keeps none
+        if self.calls == self.at:
             raise RuntimeError("simulated kill")
-        return super()._decide(ids, batch)
+        return super()._decide(ids, batch, tally)
 
 
 def test_a_budget_render_resumes_to_the_same_image(tmp_path, monkeypatch) -> None:
@@ -257,7 +260,7 @@ def test_a_budget_render_resumes_to_the_same_image(tmp_path, monkeypatch) -> Non
 
 def test_the_budget_simulated_on_a_stack(tmp_path) -> None:
     from learning import make_synthetic_stack
-    from renderer.budget import simulate_budget
+    from renderer.simulate import simulate_budget
     from renderer.simulate import simulate_stack
 
     spp = [32 * (k + 1) for k in range(12)]
@@ -274,14 +277,13 @@ def test_the_budget_simulated_on_a_stack(tmp_path) -> None:
 
 
 def test_a_time_budget_prioritises_once_the_time_left_will_not_cover_every_block() -> None:
-    loop = PassLoop(OracleCriterion([8, 64, None, 16]), (2, 2), (4, 4), 4)
-    sizes = [4] * 16                                                        # max 64 spp
+    loop = PassLoop(OracleCriterion([8, 64, None, 16]), (2, 2), (4, 4), schedule(4, 64), 4)   # 16 passes
     loop.step([0, 1, 2, 3], [(np.full((4, 4, 4, 3), 0.5), [4] * 4)])       # ratios T/spp: 2, 16, inf, 4
     budget = Budget(time_limit=100.0)
-    assert budget.select(loop, sizes, elapsed=90.0) == [0, 1, 2, 3]         # no rate known yet
+    assert budget.select(loop, elapsed=90.0) == [0, 1, 2, 3]         # no rate known yet
     budget.record(1.0, 16)                                                  # 1/16 s per block-spp
-    assert budget.select(loop, sizes, elapsed=50.0) == [0, 1, 2, 3]         # 800 block-spp left >= 240 needed
-    assert budget.select(loop, sizes, elapsed=90.0) == [2]                  # 160 left: the censored block first
+    assert budget.select(loop, elapsed=50.0) == [0, 1, 2, 3]         # 800 block-spp left >= 240 needed
+    assert budget.select(loop, elapsed=90.0) == [2]                  # 160 left: the censored block first
     assert budget.prioritised_rounds == 1 and not budget.ended
-    loop.criterion.ratios[2] = 1.5                                          # now finite: the band decides
-    assert budget.select(loop, sizes, elapsed=90.0) == [1]                  # 16/2 = 8 > 0.8 x others
+    loop.ratios.put([2], [1.5])                                             # now finite: the band decides
+    assert budget.select(loop, elapsed=90.0) == [1]                  # 16/2 = 8 > 0.8 x others

@@ -212,6 +212,7 @@ def test_model_criterion_over_http(server):
     rng = np.random.default_rng(1)
     views = [BlockView(mean=0.1 + 0.05 * rng.random((8, 8, 3)), spp=16, quick=np.full((8, 8, 3), 0.5)),
              BlockView(mean=0.8 + 0.05 * rng.random((8, 8, 3)), spp=16, quick=np.full((8, 8, 3), 0.5))]
-    assert crit.decide([2, 9], views).tolist() == [-1, 1]
-    assert crit.counters["blocks_featured"] == 2 and crit.counters["feature_rows"] == 0
+    d = crit.decide([2, 9], views)
+    assert d.verdict.tolist() == [-1, 1]
+    assert d.counts["blocks_featured"] == 2 and d.counts.get("feature_rows", 0) == 0
     assert crit.describe()["model"]["remote"] == server

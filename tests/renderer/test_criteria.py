@@ -10,7 +10,8 @@ from learning.models.estimators import DSVM
 from learning.inputs.table import stack_features
 from noisefeat.display import display_range
 from renderer.criteria import (BlockView, ModelCriterion, OracleCriterion, UniformCriterion,
-                               VarianceCriterion, build_criterion)
+                               VarianceCriterion, make_criterion)
+from renderer.spec import resolve
 
 
 def train_model(tmp_path):
@@ -57,10 +58,10 @@ def test_threshold_boundary_and_scale():
     a = i.copy()
     a[..., 0] += 0.0087                                       # error ~ 0.0087/0.866 = 0.01004
     err = 0.0087 / (1e-4 + np.sqrt(0.75))
-    assert VarianceCriterion(err * 1.001, flat_shortcut=False).decide([0], [view(i, a)])[0] == 1
-    assert VarianceCriterion(err * 0.999, flat_shortcut=False).decide([0], [view(i, a)])[0] == -1
+    assert VarianceCriterion(err * 1.001, flat_shortcut=False).decide([0], [view(i, a)]).verdict[0] == 1
+    assert VarianceCriterion(err * 0.999, flat_shortcut=False).decide([0], [view(i, a)]).verdict[0] == -1
     # a scale of 5 (REFERENCES.md's reading) loosens the same test five-fold
-    assert VarianceCriterion(err / 4.9, scale=5.0, flat_shortcut=False).decide([0], [view(i, a)])[0] == 1
+    assert VarianceCriterion(err / 4.9, scale=5.0, flat_shortcut=False).decide([0], [view(i, a)]).verdict[0] == 1
 
 
 def test_all_pixels_by_default_quantile_optional():
@@ -68,29 +69,29 @@ def test_all_pixels_by_default_quantile_optional():
     i[:, :5] = 0.3                                             # not flat: no shortcut
     a = i.copy()
     a[0, 0, 0] += 0.5                                          # one bad pixel of 100
-    assert VarianceCriterion(0.01).decide([0], [view(i, a)])[0] == -1
-    assert VarianceCriterion(0.01, quantile=0.99).decide([0], [view(i, a)])[0] == 1
+    assert VarianceCriterion(0.01).decide([0], [view(i, a)]).verdict[0] == -1
+    assert VarianceCriterion(0.01, quantile=0.99).decide([0], [view(i, a)]).verdict[0] == 1
     a[0, 1, 0] += 0.5                                          # two bad pixels: 98 % pass
-    assert VarianceCriterion(0.01, quantile=0.99).decide([0], [view(i, a)])[0] == -1
+    assert VarianceCriterion(0.01, quantile=0.99).decide([0], [view(i, a)]).verdict[0] == -1
 
 
 def test_one_pass_has_no_noise_estimate():
     i = noisy_block()
     v = view(i, i, half_spp=(16, 0))                          # A == I after one pass
-    assert VarianceCriterion(1.0).decide([0], [v])[0] == -1
-    assert VarianceCriterion(1.0).decide([0], [view(i, i, half_spp=(8, 8))])[0] == 1
+    assert VarianceCriterion(1.0).decide([0], [v]).verdict[0] == -1
+    assert VarianceCriterion(1.0).decide([0], [view(i, i, half_spp=(8, 8))]).verdict[0] == 1
 
 
 def test_flat_blocks_are_converged_without_halves():
     c = VarianceCriterion(0.01)
     black = np.zeros((8, 8, 3))
     sky = np.full((8, 8, 3), 0.5)
-    out = c.decide([0, 1], [view(black, half_spp=(16, 0)), view(sky, half_spp=(16, 0))])
-    assert out.tolist() == [1, 1]
-    assert c.counters["flat_blocks"] == 2
+    d = c.decide([0, 1], [view(black, half_spp=(16, 0)), view(sky, half_spp=(16, 0))])
+    assert d.verdict.tolist() == [1, 1] and d.ratio.tolist() == [0.0, 0.0]
+    assert d.counts["flat_blocks"] == 2
     assert display_range(sky[None])[0] == 0.0 and display_range(noisy_block()[None])[0] > 0.1
     off = VarianceCriterion(0.01, flat_shortcut=False)
-    assert off.decide([0], [view(black, half_spp=(16, 0))])[0] == -1
+    assert off.decide([0], [view(black, half_spp=(16, 0))]).verdict[0] == -1
 
 
 def test_nonfinite_pixels_never_give_nan_decisions():
@@ -101,9 +102,9 @@ def test_nonfinite_pixels_never_give_nan_decisions():
     c = VarianceCriterion(0.05)
     err = c.pixel_error(i, a)
     assert np.isfinite(err).all()
-    out = c.decide([3], [view(i, a)])
-    assert out.dtype == np.int8 and out[0] in (-1, 1)
-    assert c.counters["nonfinite_blocks"] == 1
+    d = c.decide([3], [view(i, a)])
+    assert d.verdict.dtype == np.int8 and d.verdict[0] in (-1, 1) and np.isfinite(d.ratio).all()
+    assert d.counts["nonfinite_blocks"] == 1
 
 
 # ----------------------------------------------------------------------------- oracle, uniform
@@ -112,36 +113,37 @@ def test_nonfinite_pixels_never_give_nan_decisions():
 def test_oracle_and_uniform():
     o = OracleCriterion([32, None, 16])
     views = [view(noisy_block(), spp=32)] * 3
-    assert o.decide([0, 1, 2], views).tolist() == [1, -1, 1]
-    assert o.decide([0, 2], [view(noisy_block(), spp=16)] * 2).tolist() == [-1, 1]
+    assert o.decide([0, 1, 2], views).verdict.tolist() == [1, -1, 1]
+    assert o.decide([0, 2], [view(noisy_block(), spp=16)] * 2).verdict.tolist() == [-1, 1]
     with pytest.raises(ValueError, match="out of range"):
-        o.decide([5], views[:1])
+        o.decide([5], views[:1]).verdict
     with pytest.raises(ValueError, match="positive integer"):
         OracleCriterion([0])
     u = UniformCriterion()
-    assert u.decide([0, 1], views[:2]).tolist() == [-1, -1]
-    assert u.counters["blocks_asked"] == 2 and u.counters["decide_calls"] == 1
+    d = u.decide([0, 1], views[:2])
+    assert d.verdict.tolist() == [-1, -1]
+    assert d.counts["blocks_asked"] == 2 and d.counts["decide_calls"] == 1
 
 
 def test_bad_input_is_a_clear_error():
     c = VarianceCriterion()
     with pytest.raises(ValueError, match="2 block ids but 1 views"):
-        c.decide([0, 1], [view(noisy_block())])
+        c.decide([0, 1], [view(noisy_block())]).verdict
     with pytest.raises(ValueError, match="half buffers"):
-        c.decide([0], [BlockView(mean=noisy_block(), spp=4)])
-    with pytest.raises(ValueError, match="oracle.*--reference"):
-        build_criterion("oracle")
-    with pytest.raises(ValueError, match="unknown criterion 'magic'"):
-        build_criterion("magic")
+        c.decide([0], [BlockView(mean=noisy_block(), spp=4)]).verdict
+    with pytest.raises(ValueError, match="oracle criterion needs true thresholds"):
+        make_criterion(resolve({"criterion": "oracle"}, thresholds_known=True))
+    with pytest.raises(ValueError, match="criterion must be one of .* got 'magic'"):
+        resolve({"criterion": "magic"})
     with pytest.raises(ValueError, match="threshold"):
         VarianceCriterion(-1.0)
-    assert c.decide([], []).shape == (0,)
+    assert c.decide([], []).verdict.shape == (0,)
 
 
 # ----------------------------------------------------------------------------- model
 
 
-def test_model_criterion_matches_score_blocks_and_caches_quick(model_and_stack):
+def test_model_criterion_matches_score_blocks(model_and_stack):
     model, st = model_and_stack
     crit = ModelCriterion(model)
     assert crit.needs_quick
@@ -150,13 +152,12 @@ def test_model_criterion_matches_score_blocks_and_caches_quick(model_and_stack):
     for k in (0, st.n_levels - 1):
         blocks = st.blocks(k)
         expected, _ = model.score_blocks(blocks, quick)
-        got = crit.decide(ids, [BlockView(mean=blocks[b], spp=st.spp[k], quick=quick[b]) for b in ids])
-        assert got.tolist() == expected.tolist()
-    # two passes over 16 blocks: 32 current rows + 16 quick rows (cached the second time)
-    assert crit.counters["blocks_featured"] == 32
-    assert crit.counters["feature_rows"] == 48
-    assert crit.counters["blocks_asked"] == 32
-    assert crit.timers["features_s"] > 0 and crit.timers["decisions_s"] > 0
+        d = crit.decide(ids, [BlockView(mean=blocks[b], spp=st.spp[k], quick=quick[b]) for b in ids])
+        assert d.verdict.tolist() == expected.tolist()
+        # 16 current rows + 16 quick rows (views carry raw quick blocks; the loop prepares them once)
+        assert d.counts["blocks_featured"] == 16 and d.counts["feature_rows"] == 32
+        assert d.counts["blocks_asked"] == 16
+        assert d.timers["features_s"] > 0 and d.timers["decisions_s"] > 0
     assert set(expected.tolist()) <= {-1, 1}
 
 
@@ -165,12 +166,12 @@ def test_model_criterion_skips_flat_blocks(model_and_stack):
     crit = ModelCriterion(model)
     quick = st.split(st.quick())
     flat = np.zeros_like(quick[0])
-    out = crit.decide([0, 1], [BlockView(mean=flat, spp=4, quick=quick[0]),
-                               BlockView(mean=st.blocks(0)[1], spp=4, quick=quick[1])])
-    assert out[0] == 1
-    assert crit.counters["flat_blocks"] == 1 and crit.counters["blocks_featured"] == 1
+    d = crit.decide([0, 1], [BlockView(mean=flat, spp=4, quick=quick[0]),
+                             BlockView(mean=st.blocks(0)[1], spp=4, quick=quick[1])])
+    assert d.verdict[0] == 1
+    assert d.counts["flat_blocks"] == 1 and d.counts["blocks_featured"] == 1
     with pytest.raises(ValueError, match="needs the quick image"):
-        crit.decide([0], [BlockView(mean=st.blocks(0)[0], spp=4)])
+        crit.decide([0], [BlockView(mean=st.blocks(0)[0], spp=4)]).verdict
 
 
 def test_model_criterion_uses_any_scorer():
@@ -188,11 +189,11 @@ def test_model_criterion_uses_any_scorer():
     fake = Fake()
     crit = ModelCriterion(fake)
     views = [BlockView(mean=noisy_block(level=lv), spp=8, quick=np.ones((8, 8, 3))) for lv in (0.1, 0.5)]
-    assert crit.decide([4, 7], views).tolist() == [-1, 1]
+    assert crit.decide([4, 7], views).verdict.tolist() == [-1, 1]
     assert fake.calls == [((2, 8, 8, 3), (2, 8, 8, 3), 0.0, None)]
     assert crit.describe()["model"] == {"type": "Fake"}
     # a remote scorer gets the display exposure and the user's offset with every call
-    ModelCriterion(fake, exposure=1.5, offset=0.7).decide([4], views[:1])
+    ModelCriterion(fake, exposure=1.5, offset=0.7).decide([4], views[:1]).verdict
     assert fake.calls[-1] == ((1, 8, 8, 3), (1, 8, 8, 3), 1.5, 0.7)
 
 
@@ -208,5 +209,30 @@ def test_model_criterion_without_quick_image(tmp_path):
     crit = ModelCriterion(load_model(tmp_path / "m"))
     assert not crit.needs_quick
     views = [BlockView(mean=rng.random((16, 16, 3)).astype(np.float32), spp=16) for _ in range(3)]
-    out = crit.decide([0, 1, 2], views)
+    out = crit.decide([0, 1, 2], views).verdict
     assert out.shape == (3,) and set(out.tolist()) <= {-1, 1}
+
+
+# ----------------------------------------------------------------------------- configuration only
+
+
+def test_a_criterion_is_configuration_only_and_the_loop_keeps_the_render(model_and_stack):
+    """Issue 40: a render changes nothing in its criterion (no counters, ratios or caches
+    there), so one object judges any number of renders alike; the loop counts, and prepares
+    the quick image's features once per render (16 quick rows, then one row per block asked)."""
+    from renderer.criteria import FlipCriterion
+    from renderer.simulate import simulate_loop
+
+    model, st = model_and_stack
+    for crit in (ModelCriterion(model), VarianceCriterion(0.08), FlipCriterion(0.05), OracleCriterion(st.thresholds)):
+        before = repr(sorted(vars(crit).items()))
+        first, loop = simulate_loop(st, crit, min_spp=8)
+        second, again = simulate_loop(st, crit, min_spp=8)
+        assert repr(sorted(vars(crit).items())) == before, crit.name
+        np.testing.assert_array_equal(first, second)
+        assert loop.counters == again.counters and loop.counters["blocks_asked"] > 0
+        assert not hasattr(crit, "counters") and not hasattr(crit, "ratios")
+        if crit.name == "model":
+            assert loop.counters["feature_rows"] == st.n_blocks + loop.counters["blocks_featured"]
+        asked, ratio = loop.ratios.take(np.arange(st.n_blocks))
+        assert asked.all() and not np.isnan(ratio[asked & np.isfinite(ratio)]).any()

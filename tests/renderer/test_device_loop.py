@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from renderer.adaptive import run_adaptive
-from renderer.criteria import BlockBatch, FlipCriterion, OracleCriterion, make_criterion
+from renderer.criteria import BlockBatch, FlipCriterion, OracleCriterion
 from renderer.session import grown_passes
 from tests.support import passloop_golden as golden
 
@@ -108,7 +108,7 @@ def test_grown_passes_keep_the_result_and_save_launches(variant) -> None:
     """Once few blocks are active, a launch traces several passes: fewer launches, the
     same stops and image. A control: without growth the launches are one per pass."""
     kw = {"resolution": 64, "block": 16, "step": 4, "min_spp": 8, "max_spp": 96, "progress": False}
-    runs = {g: run_adaptive("cornell", make_criterion("flip", tau=golden.NO_DOTS, threshold=0.2), grow=g, **kw)
+    runs = {g: run_adaptive("cornell", "flip", tau=golden.NO_DOTS, threshold=0.2, grow=g, **kw)
             for g in (True, False)}
     grown, fixed = runs[True].report, runs[False].report
     assert [b["spp"] for b in grown["blocks"]] == [b["spp"] for b in fixed["blocks"]]
@@ -160,17 +160,17 @@ def test_the_flip_criterion_judges_a_batch_without_host_blocks() -> None:
                                            0.5 + 0.4 * rng.standard_normal((16, 16, 3))]), 8)
     batch = BlockBatch.from_accumulator(acc, [0, 1, 2])
     crit = FlipCriterion(c=0.05)
-    verdict = crit.decide([0, 1, 2], batch)
-    assert verdict.tolist() == [1, 1, -1]
-    assert crit.ratios[0] == 0.0 and crit.ratios[2] > 1.0
-    assert crit.counters["flat_blocks"] == 1 and crit.counters["blocks_featured"] == 2
+    d = crit.decide([0, 1, 2], batch)
+    assert d.verdict.tolist() == [1, 1, -1]
+    assert d.ratio[0] == 0.0 and d.ratio[2] > 1.0
+    assert d.counts["flat_blocks"] == 1 and d.counts["blocks_featured"] == 2
 
 
 def test_a_reused_criterion_carries_nothing_into_the_next_render() -> None:
     """simulate_budget twice with one criterion object: the second render is the first
     (ratios of the first render used to reorder the second's rounds)."""
     from learning import make_synthetic_stack
-    from renderer.budget import simulate_budget
+    from renderer.simulate import simulate_budget
 
     st = make_synthetic_stack(Path(__import__("tempfile").mkdtemp()) / "s", size=32, spp=tuple(range(8, 200, 8)))
     late = [None if b % 5 == 0 else 8 * (1 + b % 7) for b in range(st.n_blocks)]
@@ -225,7 +225,7 @@ def test_a_min_spp_below_the_step_takes_effect_at_the_first_pass() -> None:
     """Documented (renderer.render): min_spp is not changed, decisions come at pass ends,
     so min_spp 7 with step 8 decides at 8, and min_spp 9 first at 16 (a control)."""
     for min_spp, first in ((7, 8), (9, 16)):
-        r = run_adaptive("cornell", make_criterion("flip", tau=0.02, threshold=0.5), resolution=32, block=16,
+        r = run_adaptive("cornell", "flip", tau=0.02, threshold=0.5, resolution=32, block=16,
                          step=8, min_spp=min_spp, max_spp=32, progress=False)
         assert r.report["min_spp"] == min_spp
         assert min(h[0][0] for h in (b["history"] for b in r.report["blocks"]) if h) == first

@@ -8,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from renderer import argcheck
+from renderer.spec import resolve
 from renderer.outlock import LOCK_NAME, OutputLocked, locked_output
 
 
@@ -20,9 +20,8 @@ from renderer.outlock import LOCK_NAME, OutputLocked, locked_output
     ({"time_limit": "5"}, "time_limit"), ({"spp_budget": float("nan")}, "spp_budget"),
 ])
 def test_each_bad_argument_is_named(kwargs, name):
-    args = {"step": None, "min_spp": None, "max_spp": None, "quick_spp": 16, "time_limit": None, "spp_budget": None}
     with pytest.raises(ValueError) as exc:
-        argcheck.check_render_args(**{**args, **kwargs})
+        resolve(kwargs)
     message = str(exc.value)
     assert f"({name})" in message or message.startswith(name), message
     assert "\n" not in message
@@ -38,15 +37,17 @@ def test_run_adaptive_names_max_spp_not_min_spp():
 
 def test_a_budget_below_one_pass_is_refused():
     with pytest.raises(ValueError, match="cannot buy one pass of 16"):
-        argcheck.check_budget_buys_a_pass(8, 16)
-    argcheck.check_budget_buys_a_pass(16, 16)
+        resolve({"spp_budget": 8, "step": 16})
+    assert resolve({"spp_budget": 16, "step": 16}).spp_budget == 16.0
 
 
 @pytest.mark.parametrize("value", [np.nan, np.inf])
 def test_a_non_finite_reference_is_refused(value):
     img = np.full((4, 4, 3), value, np.float32)
+    from renderer.adaptive import load_reference
+
     with pytest.raises(ValueError, match="non-finite"):
-        argcheck.check_reference_image(img)
+        load_reference(img, "scene")
 
 
 def _hold(out: str, ready, release) -> None:

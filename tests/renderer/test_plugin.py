@@ -132,10 +132,10 @@ def test_defaults_and_bad_properties(mi):
         mi.load_dict(scene_dict(mi, {"type": "noisestop", "bogus": 1}))
     # ours: one line where the integrator is used (raised while Mitsuba loads, they would
     # come wrapped in a Python traceback)
-    bad = [({"criterion": "nope"}, "unknown criterion 'nope'"),
-           ({"tau": -1.0}, "tau must be a positive finite number"), ({"block": 1.5}, "block must be an integer"),
-           ({"criterion": "oracle"}, "oracle criterion needs a labelled reference stack"),
-           ({"min_spp": 0}, "min_spp must be a positive integer"), ({"block": 7}, "block must be at least 8x8"),
+    bad = [({"criterion": "nope"}, "criterion must be one of .* got 'nope'"),
+           ({"tau": -1.0}, r"tau must be a finite number in \(0, 1\]"), ({"block": 1.5}, "block must be a whole number"),
+           ({"criterion": "oracle"}, "oracle criterion needs true thresholds"),
+           ({"min_spp": 0}, "min_spp must be a whole number"), ({"block": 7}, "block must be at least 8x8"),
            ({"min_spp": 64, "max_spp": 32}, r"min_spp \(64\) is above max_spp \(32\)"),
            ({"a": PATH, "b": PATH}, "wraps one integrator, got 2")]
     for props, message in bad:
@@ -149,7 +149,7 @@ def test_defaults_and_bad_properties(mi):
 
 
 #: every property at a value other than its default (model and offset: with the model criterion)
-CHANGED = {"criterion": "variance", "tau": 0.05, "block": 16, "min_spp": 16, "max_spp": 40, "step": 4, "seed": 7,
+CHANGED = {"criterion": "variance", "tau": 0.05, "block": 16, "min_spp": 12, "max_spp": 40, "step": 4, "seed": 7,
            "threshold": 0.1, "exposure": 0.5, "progress": True}
 MODEL = {"criterion": "model", "offset": 0.25, "progress": True}      # tau: the demo model knows 0.02 only
 #: run_adaptive's arguments that both routes pass
@@ -161,15 +161,21 @@ def _as_property(value):
 
 
 def what_the_loop_gets(mi, monkeypatch, route) -> dict:
-    """The criterion (its report entry and exposure) and loop arguments `route()` hands to
-    run_adaptive, which is stubbed out: nothing renders."""
+    """The criterion (its report entry and exposure) and settings the loop gets from what
+    `route()` hands to run_adaptive, which is stubbed out after the one resolver and the
+    one criterion factory: nothing renders."""
     import renderer.adaptive
+    from renderer.criteria import make_criterion
+    from renderer.spec import ARGUMENT, resolve
 
     seen = {}
 
-    def stub(scene, crit, **kw):
-        seen.update(criterion=crit.describe(), exposure=getattr(crit, "exposure", None),
-                    **{k: kw.get(k) for k in LOOP_ARGS})
+    def stub(scene, criterion=None, *, source=ARGUMENT, plugin=None, progress=True, sensor=None,
+             integrator=None, reference=None, **given):
+        spec = resolve({"criterion": criterion, **given}, source=source, plugin=plugin)
+        crit = make_criterion(spec)
+        seen.update(criterion=crit.describe(), exposure=getattr(crit, "exposure", None), progress=progress,
+                    **{k: getattr(spec, k) for k in LOOP_ARGS if k != "progress"})
         raise _Stop
     with monkeypatch.context() as m:
         m.setattr(renderer.adaptive, "run_adaptive", stub)

@@ -16,7 +16,7 @@ import pytest
 
 from learning.data.exr import read_exr, read_exr_channels
 from renderer.adaptive import adaptive_render
-from renderer.report import pass_sizes
+from renderer.passloop import schedule
 from renderer.blocks import BlockRenderer
 from renderer.criteria import VarianceCriterion
 from renderer.scenes import load_scene
@@ -107,7 +107,7 @@ def test_live_blocks_equal_full_frame_passes_with_a_gaussian_filter(scenes, tmp_
     assert 8 < min(spp) < max(spp), spp            # some blocks stopped, others went on alone
     br = BlockRenderer(load_scene(str(scenes["wide"])), block=32)
     assert br.guard == 2
-    sizes = pass_sizes(8, 64)
+    sizes = np.diff(schedule(8, 64), prepend=0).tolist()
     image = read_exr(tmp_path / "final.exr").astype(np.float64)
     px_spp = read_exr_channels(tmp_path / "final.exr")["spp"]
     total, count = np.zeros_like(image), 0

@@ -83,7 +83,7 @@ def test_save_writes_the_command_line_files(flip_result, tmp_path):
 
 def test_render_is_the_command_lines_loop(flip_result, tmp_path):
     """adaptive_render (noisestop render) and render: same stops, same image, same report."""
-    report = adaptive_render("cornell", tmp_path, "flip", checkpoint_every=0.0,
+    report = adaptive_render("cornell", tmp_path, checkpoint_every=0.0,
                              **{k: v for k, v in TINY.items()})
     ch = read_exr_channels(tmp_path / "final.exr")
     assert np.array_equal(np.stack([ch[c] for c in "RGB"], -1), flip_result.image)
@@ -109,10 +109,10 @@ def test_a_loaded_scene_renders_as_its_name(flip_result):
 
 @pytest.mark.parametrize("kwargs, message", [
     ({"scene": 42}, "scene must be an mi.Scene, an XML file path or a built-in scene name, got int"),
-    ({"criterion": "bogus"}, "unknown criterion 'bogus'"),
-    ({"tau": -1.0}, "tau must be a positive finite number"),
-    ({"max_spp": 0}, "max_spp must be a positive integer"),
-    ({"time_limit": -1.0}, "time_limit must be a positive number of seconds"),
+    ({"criterion": "bogus"}, "criterion must be one of model, flip, variance, uniform, oracle or a Criterion, got 'bogus'"),
+    ({"tau": -1.0}, "tau must be a finite number in (0, 1], got -1.0"),
+    ({"max_spp": 0}, "max_spp must be a whole number in [1, 1048576], got 0"),
+    ({"time_limit": -1.0}, "time_limit must be a finite number in (0, 31536000], got -1.0"),
     ({"scene": "nope"}, "unknown scene 'nope'"),
     ({"criterion": "oracle"}, "the oracle criterion needs true thresholds"),
 ], ids=["scene-type", "criterion", "tau", "max-spp", "time-limit", "scene-name", "oracle"])

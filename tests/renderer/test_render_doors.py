@@ -7,7 +7,7 @@ import pytest
 
 import renderer
 from learning.models.bundle import BUNDLED_DIR
-from renderer.settings import MAX_TIME_LIMIT
+from renderer.spec import MAX_TIME_LIMIT
 from service.cli import build_parser
 from tests.support.errors import assert_one_line_error, run
 
@@ -37,10 +37,12 @@ def test_a_model_given_alone_means_the_model_criterion_on_every_door() -> None:
     plugin = renderer.render(_plugin_scene(model=str(BUNDLED_DIR)), **TINY)
     assert plugin.report["criterion"]["name"] == "model"
     assert renderer.render("cornell", resolution=32, **TINY).report["criterion"]["name"] == "flip"   # control
-    args = build_parser().parse_args(["render", "--out", "o", "--model", str(BUNDLED_DIR)])
-    from renderer.names import criterion_name
+    from renderer.spec import COMMAND_LINE, resolve
+    from service.commands.render import given_from_args
 
-    assert criterion_name(args.criterion, model=args.model, server=args.server, offset=args.offset) == "model"
+    args = build_parser().parse_args(["render", "--out", "o", "--model", str(BUNDLED_DIR)])
+    spec = resolve(given_from_args(args), source=COMMAND_LINE)
+    assert spec.criterion == "model" and spec.sources["criterion"] == "command line (model)"
 
 
 def test_an_exposure_given_as_zero_wins_over_the_scene_plugins() -> None:
@@ -57,7 +59,7 @@ def test_the_time_limit_has_one_bound_on_every_door(capsys, seconds, ok) -> None
     if ok:
         assert parser.parse_args(["render", "--out", "o", "--time-limit", repr(seconds)]).time_limit == seconds
         return
-    with pytest.raises(ValueError, match="time_limit must be a positive number of seconds"):
+    with pytest.raises(ValueError, match=r"time_limit must be a finite number in \(0, 31536000\]"):
         renderer.render("cornell", resolution=32, time_limit=seconds, **TINY)
     rc, err = run(capsys, "render", "--scene", "cornell", "--out", "o", "--time-limit", repr(seconds))
     assert_one_line_error(rc, err, "--time-limit")

@@ -1,4 +1,5 @@
-"""Render settings come from the command line, the reference stack, the scene, then defaults."""
+"""Render settings come from what a door was given, the scene plugin, the reference stack,
+the scene, then defaults (`renderer.spec.resolve`)."""
 from __future__ import annotations
 
 import pytest
@@ -6,7 +7,7 @@ import pytest
 from learning import make_synthetic_stack
 from renderer.adaptive import adaptive_render
 from renderer.criteria import UniformCriterion
-from renderer.settings import DEFAULTS, describe, reference_settings, resolve_settings
+from renderer.spec import ROWS, reference_settings, resolve
 
 
 @pytest.fixture(scope="module")
@@ -17,21 +18,28 @@ def stack(tmp_path_factory):
 
 
 def test_nothing_given_means_scene_resolution_and_documented_defaults():
-    values, sources = resolve_settings({})
-    assert values["resolution"] is None and sources["resolution"] == "scene"
-    assert {k: values[k] for k in DEFAULTS} == DEFAULTS
-    assert all(sources[k] == "default" for k in DEFAULTS)
+    spec = resolve({})
+    assert spec.resolution is None and spec.sources["resolution"] == "scene"
+    assert spec.grid is None and spec.sources["grid"] == "not used"
+    for row in ROWS:
+        if row.name not in ("resolution", "grid", "criterion"):
+            assert getattr(spec, row.name) == row.default and spec.sources[row.name] == "default", row.name
+    assert spec.criterion == "flip" and spec.sources["criterion"] == "default"
 
 
 def test_command_line_beats_reference_beats_defaults(stack):
     implied = reference_settings(stack)
     assert implied["grid"] == tuple(stack.grid) and implied["resolution"] == stack.width
     assert implied["max_spp"] == stack.spp[-1] and implied["min_spp"] == stack.spp[0]
-    values, sources = resolve_settings({"step": 7, "grid": None}, stack)
-    assert values["step"] == 7 and sources["step"] == "command line"
-    assert values["grid"] == tuple(stack.grid) and sources["grid"].startswith("reference")
-    assert values["max_spp"] == stack.spp[-1]
-    assert "step 7 (command line)" in describe(values, sources)
+    spec = resolve({"step": 7, "grid": None}, source="command line", reference=stack)
+    assert spec.step == 7 and spec.sources["step"] == "command line"
+    assert spec.grid == tuple(stack.grid) and spec.sources["grid"].startswith("reference")
+    assert spec.block is None and spec.sources["block"] == "not used"
+    assert spec.max_spp == stack.spp[-1]
+    assert "step 7 (command line)" in spec.describe()
+    # a block size given beats the reference's grid
+    spec = resolve({"block": 16}, reference=stack)
+    assert spec.block == 16 and spec.grid is None and spec.sources["block"] == "argument"
 
 
 def test_uneven_reference_levels_imply_no_step(stack, tmp_path):
@@ -40,17 +48,20 @@ def test_uneven_reference_levels_imply_no_step(stack, tmp_path):
                      reference=stack.reference(), quick=None, reference_spp=stack.reference_spp,
                      grid=stack.grid)
     assert "step" not in reference_settings(st)
-    _, sources = resolve_settings({}, st)
-    assert sources["step"] == "default"
+    assert resolve({}, reference=st).sources["step"] == "default"
 
 
 def test_a_given_bound_wins_over_a_defaulted_one():
-    values, sources = resolve_settings({"max_spp": 8})
-    assert values["min_spp"] == 8 and "clipped" in sources["min_spp"]
-    values, sources = resolve_settings({"min_spp": 2048})
-    assert values["max_spp"] == 2048 and "clipped" in sources["max_spp"]
-    with pytest.raises(ValueError, match="unknown"):
-        resolve_settings({"spp": 3})
+    spec = resolve({"max_spp": 8})
+    assert spec.min_spp == 8 and "clipped" in spec.sources["min_spp"]
+    spec = resolve({"min_spp": 2048})
+    assert spec.max_spp == 2048 and "clipped" in spec.sources["max_spp"]
+    spec = resolve({"max_spp": 8}, plugin={"min_spp": 32})     # given beats the scene plugin's
+    assert spec.min_spp == 8 and "clipped" in spec.sources["min_spp"]
+    with pytest.raises(ValueError, match="min_spp .32. is above max_spp .8."):
+        resolve({"max_spp": 8, "min_spp": 32})                # both given: no winner, an error
+    with pytest.raises(ValueError, match="unknown render setting 'spp'"):
+        resolve({"spp": 3})
 
 
 @pytest.mark.slow
@@ -65,8 +76,11 @@ def test_render_takes_an_xml_scenes_own_film_and_reports_sources(tmp_path):
     r = adaptive_render(str(xml), tmp_path / "o", UniformCriterion(), grid=(2, 2), step=4, min_spp=4,
                         max_spp=8, progress=False)
     assert r["resolution"] == [40, 24] and r["block"] == [12, 20]
-    assert r["settings_source"] == {"resolution": "scene", "grid": "command line", "step": "command line",
-                                    "min_spp": "command line", "max_spp": "command line"}
+    src = r["settings_source"]
+    assert {k: src[k] for k in ("resolution", "grid", "step", "min_spp", "max_spp")} == {
+        "resolution": "scene", "grid": "argument", "step": "argument", "min_spp": "argument",
+        "max_spp": "argument"}
+    assert "block" not in src and src["tau"] == "default"
 
 
 @pytest.mark.slow
@@ -80,4 +94,4 @@ def test_render_follows_its_reference_stack(tmp_path, stack):
     r = adaptive_render("sky", tmp_path / "o", UniformCriterion(), reference=ref, progress=False)
     assert r["resolution"] == [stack.width, stack.height] and r["grid"] == list(stack.grid)
     assert r["max_spp"] == stack.spp[-1] and r["step"] == stack.spp[0]
-    assert all(v.startswith("reference") for v in r["settings_source"].values())
+    assert all(r["settings_source"][k].startswith("reference") for k in ("grid", "max_spp", "min_spp", "step"))

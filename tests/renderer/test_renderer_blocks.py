@@ -230,7 +230,7 @@ def test_block_windows_cover_any_frame_with_full_size_edge_windows() -> None:
 
 
 def test_compose_takes_each_pixel_from_the_window_with_most_samples() -> None:
-    from renderer.blocks import compose
+    from renderer.block_windows import compose
 
     windows = [(0, 0, 4, 4), (2, 0, 4, 4)]                  # 6x4 frame, columns 2-3 shared
     means = [np.full((4, 4, 3), 1.0), np.full((4, 4, 3), 2.0)]

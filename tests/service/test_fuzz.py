@@ -194,7 +194,7 @@ def _valid_checkpoint(path: Path) -> None:
 
 
 def _load(path: Path) -> dict:
-    return load_checkpoint(path, SETTINGS, sizes=SIZES, grid=GRID, block=BLOCK, frame=FRAME)
+    return load_checkpoint(path, SETTINGS, pass_spp=SIZES, grid=GRID, block=BLOCK, frame=FRAME)
 
 
 @pytest.fixture(scope="module")

@@ -137,16 +137,15 @@ class DecisionLog:
 
         decide, select = crit.decide, budget_cls.select
 
-        def logged_decide(ids: Any, batch: Any) -> np.ndarray:
+        def logged_decide(ids: Any, batch: Any) -> Any:
             out = decide(ids, batch)
-            _, ratio = crit.ratios.take(ids)
             flat = display_range(batch.mean, getattr(crit, "exposure", 0.0)) / FLAT_TOLERANCE
-            self.values += [ratio, flat]
+            self.values += [out.ratio, flat]
             return out
 
-        def logged_select(budget: Any, loop: Any, sizes: Any, elapsed: float = 0.0) -> list[int]:
-            picked = select(budget, loop, sizes, elapsed)
-            ids = np.flatnonzero(loop.active & (loop.acc.passes_all() < len(sizes)))
+        def logged_select(budget: Any, loop: Any, elapsed: float = 0.0) -> list[int]:
+            picked = select(budget, loop, elapsed)
+            ids = np.flatnonzero(loop.pending())
             priority = budget.priority(loop, ids)          # what the round was chosen by
             if picked and np.isfinite(priority).all():
                 self.values.append(priority / (budget.band * priority.max()))
@@ -181,9 +180,10 @@ def render_case(case: str, grow: bool = True, log: DecisionLog | None = None):
     from renderer.adaptive import run_adaptive
     from renderer.budget import Budget
     from renderer.criteria import make_criterion
+    from renderer.spec import resolve
 
     _, scene, kw = next(c for c in CASES if c[0] == case)
-    crit = make_criterion(kw["criterion"], tau=kw.get("tau", 0.02), threshold=kw.get("threshold"))
+    crit = make_criterion(resolve({k: kw.get(k) for k in ("criterion", "tau", "threshold")}))
     undo = log.attach(crit, Budget) if log is not None else None
     try:
         return run_adaptive(load(scene), crit, progress=False, grow=grow,

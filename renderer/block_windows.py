@@ -1,0 +1,130 @@
+"""Where a frame's blocks lie: their windows in pixels, and the image they compose.
+
+Kept apart from the engines that fill the windows (`renderer.blocks`): this is arithmetic
+on pixel positions only, no Mitsuba, the same for every variant and engine.
+
+Blocks are either a grid that divides the frame (``grid=(rows, cols)``: stacks,
+references) or windows of a given size in pixels (``block=64``: the live render of any
+film). With a size, windows start every `block` pixels and the last row and column are
+moved flush with the frame's edge, so an edge block smaller than the size is judged
+together with its neighbour's pixels: every window the criterion sees is a full
+``block x block`` window of one sample count, the size the model and the flip threshold
+were calibrated on. Overlapping pixels are traced once per pass and shared by the
+windows that hold them (`renderer.wavefront`); the final image takes each pixel from the
+covering window with the most samples (`compose`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+
+def tile_starts(size: int, block: int) -> list[int]:
+    """Window starts along one axis: every `block` pixels, the last one flush with the edge."""
+    if block > size:
+        raise ValueError(f"a block of {block} px is larger than the frame's {size} px side")
+    starts = list(range(0, size - block + 1, block))
+    if starts[-1] + block < size:
+        starts.append(size - block)
+    return starts
+
+
+def compose(means: Sequence[np.ndarray], windows: Sequence[tuple[int, int, int, int]],
+            spp: Sequence[int], frame: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(image [H, W, C], spp per pixel [H, W], owner block per pixel [H, W]) of a frame.
+
+    Each pixel comes from the window holding it with the most samples (with keyed random
+    numbers that window's samples include every other window's for the pixel).
+    """
+    h, w = frame
+    image = np.zeros((h, w, np.asarray(means[0]).shape[-1]), np.float64)
+    best = np.full((h, w), -1, np.int64)
+    owner = np.full((h, w), -1, np.int64)
+    for b in np.argsort(np.asarray(spp), kind="stable"):     # most samples written last
+        x, y, bw, bh = windows[b]
+        image[y:y + bh, x:x + bw] = means[b]
+        best[y:y + bh, x:x + bw] = spp[b]
+        owner[y:y + bh, x:x + bw] = b
+    if (owner < 0).any():
+        raise ValueError("the block windows do not cover the frame")
+    return image, best, owner
+
+
+class BlockWindows:
+    """The blocks of a `width` x `height` frame, numbered row-major, block 0 top-left: a
+    `grid` (rows, columns) that must divide the frame, or windows of `block` pixels (see
+    the module docstring). Exactly one of the two is given."""
+
+    def __init__(self, width: int, height: int, grid: tuple[int, int] | None = None,
+                 block: int | None = None) -> None:
+        self.width, self.height = width, height
+        if (grid is None) == (block is None):
+            raise ValueError("give the blocks either as a grid (rows, columns) or as a size in pixels")
+        if block is not None:
+            if isinstance(block, bool) or not isinstance(block, (int, np.integer)) or block < 1:
+                raise ValueError(f"block must be a positive number of pixels, got {block!r}")
+            if block > min(self.width, self.height):
+                raise ValueError(f"block of {block} px is larger than the {self.width}x{self.height} frame: "
+                                 f"take --block {min(self.width, self.height)} or less")
+            self.block_h = self.block_w = int(block)
+            self._xs, self._ys = tile_starts(self.width, int(block)), tile_starts(self.height, int(block))
+        else:
+            gh, gw = (int(g) for g in grid)  # type: ignore[union-attr]
+            if gh < 1 or gw < 1:
+                raise ValueError(f"grid must be two positive integers (rows, columns), got {grid!r}")
+            if self.width % gw or self.height % gh:
+                raise ValueError(
+                    f"image {self.width}x{self.height} (WxH) cannot be cut into a {gh}x{gw} grid of equal "
+                    f"blocks: width must be divisible by {gw} and height by {gh}")
+            self.block_h, self.block_w = self.height // gh, self.width // gw
+            self._xs = [c * self.block_w for c in range(gw)]
+            self._ys = [r * self.block_h for r in range(gh)]
+        self.grid = (len(self._ys), len(self._xs))
+        # flat pixel indices of every window [n, bh * bw] (host; a renderer moves them to its
+        # device): a pass gathers its blocks at once
+        ys = torch.tensor(self._ys)[:, None, None, None] + torch.arange(self.block_h)[None, None, :, None]
+        xs = torch.tensor(self._xs)[None, :, None, None] + torch.arange(self.block_w)[None, None, None, :]
+        self._win_idx = (ys * self.width + xs).reshape(self.n_blocks, -1)
+
+    @property
+    def n_blocks(self) -> int:
+        return self.grid[0] * self.grid[1]
+
+    @property
+    def block_shape(self) -> tuple[int, int]:
+        """(block height, block width) in pixels."""
+        return self.block_h, self.block_w
+
+    @property
+    def overlapping(self) -> bool:
+        """Whether edge windows overlap their neighbours (block size not dividing the frame)."""
+        return self._xs[-1] + self.block_w != len(self._xs) * self.block_w or \
+            self._ys[-1] + self.block_h != len(self._ys) * self.block_h
+
+    def block_origin(self, block_id: int) -> tuple[int, int]:
+        """(x, y) of the block's top-left pixel within the frame."""
+        self._check_id(block_id)
+        row, col = divmod(int(block_id), self.grid[1])
+        return self._xs[col], self._ys[row]
+
+    def window(self, block_id: int) -> tuple[int, int, int, int]:
+        """(x, y, width, height) of the block within the frame."""
+        x, y = self.block_origin(block_id)
+        return x, y, self.block_w, self.block_h
+
+    def block_slices(self, block_id: int) -> tuple[slice, slice]:
+        """(rows, columns) slices that cut the block out of a [H, W, ...] frame."""
+        x0, y0 = self.block_origin(block_id)
+        return slice(y0, y0 + self.block_h), slice(x0, x0 + self.block_w)
+
+    def cut_blocks(self, frame: np.ndarray) -> np.ndarray:
+        """Every block's window of a host frame [H, W, C]: [n, bh, bw, C] (one gather)."""
+        flat = np.asarray(frame).reshape(self.height * self.width, -1)
+        return flat[self._win_idx.cpu().numpy()].reshape(self.n_blocks, self.block_h, self.block_w, -1)
+
+    def _check_id(self, block_id: int) -> None:
+        if not isinstance(block_id, (int, np.integer)) or not 0 <= int(block_id) < self.n_blocks:
+            raise ValueError(f"block id {block_id!r} out of range 0..{self.n_blocks - 1}")

@@ -1,0 +1,67 @@
+"""The training-free criterion: FLIP between the two half buffers' display images."""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from learning.names import DEFAULT_TAU
+from learning.stoprule import StopRule
+from noisefeat.pooling import CRITERION_POOLING
+
+from ..spec import ROW
+from .contract import BlockBatch, Criterion, Tally
+
+
+class FlipCriterion(Criterion):
+    """Training-free: FLIP between display(A) and display(B), the two half buffers.
+
+    e = the raw LDR-FLIP map between the display images of the even-pass and odd-pass
+    means, pooled as the observer pools (the largest 16x16 tile mean,
+    `learning.inputs.halves`); the block is converged when e <= c (the stop rule with score
+    -e), or at once when flat. `c` defaults to c(tau), the curve calibrated on training
+    scenes only and shipped in `learning/flip.json`. A block whose halves still disagree on
+    more isolated pixels than the observer lets through (`Criterion._dots`, issue 33) stays
+    noisy whatever e is. A block whose odd half is still empty (one pass) has no estimate
+    yet and stays noisy, so the first flip decision comes after two passes unless the block
+    is flat. FLIP runs on the active, non-flat blocks only, where the half buffers live (the
+    GPU with cuda_ad_rgb); its time is the decision cost. The ratio is e / c, or the dot
+    term where that is larger.
+    """
+
+    name = "flip"
+    needs_halves = True
+
+    def __init__(self, c: float | None = None, exposure: float = 0.0, tau: float = DEFAULT_TAU) -> None:
+        from learning.inputs.halves import flip_c, flip_offset, load_flip_calibration
+
+        self.tau, exposure = ROW["tau"].check(tau), ROW["exposure"].check(exposure)   # their rows' checks
+        if c is None:
+            cal = load_flip_calibration()
+            self.c, self.source = flip_c(cal, self.tau), str(cal.get("source", "learning/flip.json"))
+        else:
+            self.c, self.source = ROW["threshold"].check(c), "argument"
+        self.rule = StopRule(flip_offset(self.c))
+        self.exposure = float(exposure)
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "threshold": self.c, "tau": self.tau, "pooling": CRITERION_POOLING,
+                "source": self.source}
+
+    def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
+        from noisefeat.flip import flip_halves_tensor
+
+        flat = self._flat(batch, self.exposure, tally)
+        ask = self._ready(batch, flat)
+        score = np.full(len(ids), np.nan)
+        if ask.size:
+            a, b = batch.halves     # type: ignore[misc]
+            sel = torch.from_numpy(ask).to(a.device)
+            score[ask] = -flip_halves_tensor(a[sel], b[sel], self.exposure, pooling=CRITERION_POOLING).cpu().numpy()
+            tally.add("blocks_featured", int(ask.size))
+        dots = self._dots(batch, ask, self.exposure, self.tau, tally)
+        with np.errstate(invalid="ignore"):
+            ratio = np.fmax(-score / self.c if self.c > 0 else np.inf, dots)
+        ratio = np.where(flat, 0.0, np.where(np.isnan(score), np.nan, ratio))
+        return self.rule.verdict(np.where(dots > 1, np.nan, score), flat), ratio

@@ -1,0 +1,188 @@
+"""The learned criterion: a model bundle in this process, or a verdict server, behind one
+adapter per kind of scorer."""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from learning.names import DEFAULT_TAU
+from learning.stoprule import CONVERGED, NOISY, StopRule
+from noisefeat.runtime import torch_threads
+
+from ..spec import ROW
+from .contract import BlockBatch, Criterion, Tally
+
+
+class ScoresBlocks(Protocol):
+    """Anything that turns linear RGB blocks into verdicts (local Model or RemoteModel)."""
+
+    def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None, exposure: float = 0.0,
+                     offset: float | None = None) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+def _asked(tensor: torch.Tensor, ask: np.ndarray) -> np.ndarray:
+    """The asked blocks of a device tensor, gathered to the host as float32 (the models run there)."""
+    return tensor[torch.from_numpy(ask).to(tensor.device)].to(torch.float32).cpu().numpy()
+
+
+class LocalScorer:
+    """A `learning.models.bundle.Model` in this process: scores here, verdicts by its stop
+    rule at `offset`. Its input is one of: the two half buffers (``halves``), the features
+    of the current block next to its quick block's (``features``: the quick features are
+    computed once per render, in `prepare`), or the blocks themselves (``raw``)."""
+
+    def __init__(self, model: Any, offset: float | None) -> None:
+        self.model = model
+        #: what the model reads: its two half buffers, features next to quick features, or blocks
+        self.input = "halves" if getattr(model, "needs_halves", False) else \
+            "features" if getattr(model, "input", "features") == "features" else "raw"
+        self.rule: StopRule = model.rule(offset)
+
+    def prepare(self, quick: np.ndarray, exposure: float, tally: Tally) -> np.ndarray:
+        if self.input != "features" or not getattr(self.model, "needs_quick", True):
+            return quick
+        from noisefeat import extract_features
+
+        with torch_threads(1):
+            feats = extract_features(np.ascontiguousarray(quick, np.float32), exposure=exposure)
+        tally.add("feature_rows", len(quick))
+        return feats
+
+    def judge(self, batch: BlockBatch, ask: np.ndarray, exposure: float,
+              tally: Tally) -> tuple[np.ndarray, np.ndarray]:
+        """(verdict, ratio) of the asked blocks: the rule at the offset, and the distance to
+        it as a ratio (a score is a signed distance: exp(offset - score) is 1 at the offset)."""
+        m = self.model
+        with torch_threads(1):
+            with tally.timing():
+                if self.input == "halves":
+                    even, odd = (_asked(h, ask) for h in batch.halves)   # type: ignore[union-attr]
+                    x = m.inputs_from_halves(even, odd, exposure)
+                elif self.input == "features":
+                    from learning.inputs.table import feature_input
+                    from noisefeat import extract_features
+
+                    quick = batch.quick
+                    if quick is not None and quick.ndim != 2:        # raw quick blocks: not prepared
+                        quick = self.prepare(quick, exposure, Tally())
+                    x = feature_input(extract_features(_asked(batch.mean, ask), exposure=exposure),
+                                      None if quick is None else quick[ask])
+                else:
+                    x = m.inputs_from_blocks(_asked(batch.mean, ask),
+                                             None if batch.quick is None else batch.quick[ask], exposure=exposure)
+            if self.input != "raw":
+                tally.add("feature_rows", len(ask))
+            score = np.asarray(m.decision_function(x), np.float64)
+        with np.errstate(over="ignore"):
+            ratio = np.exp(np.clip(self.rule.offset - score, -50, 50))
+        return self.rule.verdict(score), ratio
+
+
+class RemoteScorer:
+    """A verdict server (`renderer.client.RemoteModel`): it applies the stop rule itself at
+    its model's offset, or at `offset` when given (sent with every request, as is the
+    exposure), so its verdicts are used as they come; it reports no ratio."""
+
+    def __init__(self, model: Any, offset: float | None) -> None:
+        self.model, self.offset = model, offset
+        self.rule = None
+
+    def prepare(self, quick: np.ndarray, exposure: float, tally: Tally) -> np.ndarray:
+        return quick
+
+    def judge(self, batch: BlockBatch, ask: np.ndarray, exposure: float,
+              tally: Tally) -> tuple[np.ndarray, np.ndarray]:
+        m = self.model
+        if getattr(m, "needs_halves", False):
+            even, odd = (_asked(h, ask) for h in batch.halves)   # type: ignore[union-attr]
+            verdict, _ = m.score_halves(even, odd, exposure=exposure, offset=self.offset)
+        else:
+            quick = None if batch.quick is None else np.asarray(batch.quick, np.float32)[ask]
+            verdict, _ = m.score_blocks(_asked(batch.mean, ask), quick, exposure=exposure, offset=self.offset)
+        verdict = np.asarray(verdict)
+        if verdict.shape != (len(ask),):
+            raise RuntimeError(f"model returned {verdict.shape} verdicts for {len(ask)} blocks")
+        return np.where(verdict > 0, CONVERGED, NOISY), np.full(len(ask), np.nan)
+
+
+class ModelCriterion(Criterion):
+    """A learned verdict model: a local `learning.models.bundle.Model` or a `RemoteModel`.
+
+    Verdicts follow the one stop rule: flat blocks are converged without asking the model;
+    the others are converged when their score exceeds the offset (the model's calibrated
+    offset at `tau`, or `offset` if given: the user's speed/accuracy knob). The scorer
+    adapter (`LocalScorer`, `RemoteScorer`) answers for the blocks asked. A `halves` model
+    is asked from the second pass on (both halves must hold a pass) and sees the observer's
+    dots through the same halves (`Criterion._dots`): a dotted block stays noisy.
+    """
+
+    name = "model"
+
+    def __init__(self, model: ScoresBlocks, exposure: float = 0.0, offset: float | None = None,
+                 tau: float | None = None) -> None:
+        if not hasattr(model, "score_blocks"):
+            raise ValueError(f"model must have score_blocks(blocks, quick), got {type(model).__name__}")
+        self.model = model
+        self.exposure = ROW["exposure"].check(exposure)           # the settings by their rows' checks
+        self.tau = None if tau is None else ROW["tau"].check(tau)
+        if offset is not None:
+            offset = ROW["offset"].check(offset)
+        elif tau is not None and hasattr(model, "offset_at"):
+            offset = model.offset_at(tau)       # the model's calibrated offset at the noise target
+        self.offset = None if offset is None else float(offset)
+        self.needs_halves = bool(getattr(model, "needs_halves", False))
+        self.needs_quick = not self.needs_halves and bool(
+            getattr(model, "needs_quick", getattr(model, "input", "features") != "raw"))
+        self.quick_kind = str(getattr(model, "quick", "albedo")) if self.needs_quick else "albedo"
+        local = hasattr(model, "rule") and hasattr(model, "decision_function")
+        self.scorer = LocalScorer(model, self.offset) if local else RemoteScorer(model, self.offset)
+
+    @property
+    def rule(self) -> StopRule | None:
+        """The rule verdicts are made by here (None: a server's, applied there)."""
+        return self.scorer.rule
+
+    @property
+    def effective_offset(self) -> float | None:
+        """The offset verdicts are made at (None: a remote server's own, not known here)."""
+        return self.rule.offset if self.rule is not None else self.offset
+
+    def describe(self) -> dict[str, Any]:
+        m = self.model
+        d: dict[str, Any] = {"name": self.name, "offset": self.effective_offset, "tau": self.tau}
+        manifest = getattr(m, "manifest", None)
+        if isinstance(manifest, Mapping):
+            d["model"] = {"kind": manifest.get("kind"), "name": manifest.get("name"),
+                          "input": manifest.get("input"), "quick": manifest.get("quick"),
+                          "path": str(getattr(m, "path", "") or "")}
+        elif hasattr(m, "url"):
+            d["model"] = {"remote": str(m.url), "name": str(getattr(m, "model", ""))}
+        else:
+            d["model"] = {"type": type(m).__name__}
+        return d
+
+    def prepare(self, quick: np.ndarray) -> tuple[np.ndarray, Tally]:
+        """The quick blocks' features, once per render, for a local feature model."""
+        tally = Tally()
+        if not self.needs_quick:
+            return quick, tally
+        with tally.timing():
+            out = self.scorer.prepare(np.asarray(quick, np.float32), self.exposure, tally)
+        return out, tally
+
+    def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
+        flat = self._flat(batch, self.exposure, tally)
+        ask = self._ready(batch, flat) if self.needs_halves else np.flatnonzero(~flat)
+        verdict = np.full(len(ids), NOISY, np.int8)
+        ratio = np.full(len(ids), np.nan)
+        if ask.size:
+            tally.add("blocks_featured", int(ask.size))
+            verdict[ask], ratio[ask] = self.scorer.judge(batch, ask, self.exposure, tally)
+        dots = self._dots(batch, ask, self.exposure, self.tau or DEFAULT_TAU, tally) if self.needs_halves \
+            else np.zeros(len(ids))
+        dotted = dots > 1
+        ratio = np.where(flat, 0.0, np.where(dotted, np.fmax(ratio, dots), ratio))
+        return np.where(flat, CONVERGED, np.where(dotted, NOISY, verdict)).astype(np.int8), ratio

@@ -1,0 +1,39 @@
+"""The oracle: a labelled stack's true thresholds, the best stops any criterion can make."""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from learning.stoprule import CONVERGED, NOISY
+
+from .contract import BlockBatch, Criterion, Tally
+
+
+class OracleCriterion(Criterion):
+    """Block b is converged iff spp >= T_b; a null threshold (censored) never converges.
+
+    With the thresholds of a labelled stack this is the best any criterion can do on that
+    stack: the yardstick of `spp_ratio_vs_oracle`. Its ratio is T_b / spp.
+    """
+
+    name = "oracle"
+
+    def __init__(self, thresholds: Sequence[int | None]) -> None:
+        th = list(thresholds)
+        for i, t in enumerate(th):
+            if t is not None and (isinstance(t, bool) or not isinstance(t, (int, np.integer)) or t < 1):
+                raise ValueError(f"threshold of block {i} must be a positive integer or None, got {t!r}")
+        self.thresholds: list[int | None] = [None if t is None else int(t) for t in th]
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "thresholds": self.thresholds}
+
+    def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
+        idx = np.asarray(ids, np.int64)
+        bad = idx[(idx < 0) | (idx >= len(self.thresholds))]
+        if bad.size:
+            raise ValueError(f"block id {int(bad[0])} out of range: the oracle knows {len(self.thresholds)} blocks")
+        th = np.array([np.inf if t is None else t for t in self.thresholds], np.float64)[idx]
+        return np.where(batch.spp >= th, CONVERGED, NOISY).astype(np.int8), th / np.maximum(batch.spp, 1)

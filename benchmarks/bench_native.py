@@ -111,19 +111,21 @@ def block_errors(image: np.ndarray, reference: np.ndarray, tau: float,
     return out
 
 
-def ours(scene: Any, criterion: str, max_spp: int, tau: float, grow: bool = True) -> dict[str, Any]:
-    """One render by our loop: wall, render time, mean spp, image."""
+def ours(scene: Any, criterion: str, max_spp: int, tau: float, grow: bool = True,
+         tile: int | None = None) -> dict[str, Any]:
+    """One render by our loop: wall, render time, mean spp, image. `tile`: the grain (None:
+    the render's default, 16-pixel tiles; BLOCK: whole blocks, the loop before issue 41)."""
     from renderer.adaptive import run_adaptive
 
     t0 = time.perf_counter()            # the whole call, as a user times it (report and image included)
     r = run_adaptive(scene, criterion, block=BLOCK, step=STEP, min_spp=MIN_SPP, max_spp=max_spp, progress=False,
-                     tau=tau, grow=grow)
+                     tau=tau, grow=grow, tile=tile)
     wall = time.perf_counter() - t0
     t = r.report["timing"]
     return {"wall_s": wall, "render_s": float(t.get("render_s", 0.0)),
             "decisions_s": float(t.get("decisions_s", 0.0)) + float(t.get("features_s", 0.0)),
             "overhead_s": float(t.get("overhead_s", 0.0)) + float(t.get("setup_s", 0.0)),
-            "mean_spp": float(np.mean([b["spp"] for b in r.report["blocks"]])),
+            "mean_spp": float(r.report["mean_spp"]),
             "launches": int(r.report["render_calls"]["kernel_launches"]), "image": r.image,
             "stopped": [bool(b["converged"]) for b in r.report["blocks"]]}
 
@@ -154,13 +156,15 @@ def measure_case(case: Case, tau: float, repeats: int = 3, walls_only: bool = Fa
 
     # wall time to the same spp: the four runs interleaved, `repeats` times, medians kept
     # (a machine's speed drifts by 10-20 % between minutes: one run each would measure that)
-    runs: dict[str, list[dict[str, Any]]] = {"mi_render": [], "uniform": [], "adaptive": [], "adaptive_fixed_step": []}
+    runs: dict[str, list[dict[str, Any]]] = {"mi_render": [], "uniform": [], "adaptive": [], "adaptive_fixed_step": [],
+                                             "adaptive_block": []}
     for _ in range(repeats):
         img, t_mi = mi_render(scene, case.max_spp, seed=1)
         runs["mi_render"].append({"wall_s": t_mi, "image": img})
         runs["uniform"].append(ours(scene, "uniform", case.max_spp, tau))
         runs["adaptive"].append(ours(scene, "flip", case.max_spp, tau, grow=True))
         runs["adaptive_fixed_step"].append(ours(scene, "flip", case.max_spp, tau, grow=False))
+        runs["adaptive_block"].append(ours(scene, "flip", case.max_spp, tau, tile=BLOCK))     # issue 41's baseline
     for name, rs in runs.items():
         walls = [r["wall_s"] for r in rs]
         med = rs[int(np.argsort(walls)[len(walls) // 2])]
@@ -264,7 +268,10 @@ def _md_walls(c: dict[str, Any]) -> list[str]:
              "| run | wall | vs mi.render | mean spp | launches | not rendering |", "|---|---|---|---|---|---|",
              f"| `mi.render`, {case['max_spp']} spp | {m['wall_s']:.2f} s {_runs(m)} | 1.00x | {case['max_spp']} | | |"]
     for name, key in (("our uniform loop", "uniform"), ("adaptive (flip), grown passes", "adaptive"),
-                      ("adaptive (flip), fixed step", "adaptive_fixed_step")):
+                      ("adaptive (flip), fixed step", "adaptive_fixed_step"),
+                      ("adaptive (flip), whole blocks", "adaptive_block")):
+        if key not in c:
+            continue
         x = c[key]
         other = max(0.0, x["wall_s"] - x["render_s"])
         lines.append(f"| {name} | {x['wall_s']:.2f} s {_runs(x)} | {x['wall_s'] / m['wall_s']:.2f}x "
@@ -292,8 +299,10 @@ def md_native(r: dict[str, Any]) -> str:
                   "| blocks above tau | most dots in a stopped block |", "|---|---|---|---|---|---|---|---|---|---|",
                   f"| `mi.render`, {case['max_spp']} spp | {m['wall_s']:.2f} s {_runs(m)} | 1.00x | {case['max_spp']} "
                   f"| | | {m['worst']:.4f} | {m['mean']:.4f} | {m['above_tau']} of {n} | |"]
-        for name, x in (("our uniform loop", uni), ("adaptive (flip), grown passes", ada),
-                        ("adaptive (flip), fixed step", fixed)):
+        for name, x in (("our uniform loop", uni), ("adaptive (flip), 16-px tiles, grown passes", ada),
+                        ("adaptive (flip), 16-px tiles, fixed step", fixed),
+                        *((("adaptive (flip), whole 64-px blocks", c["adaptive_block"]),) if "adaptive_block" in c
+                          else ())):
             other = max(0.0, x["wall_s"] - x["render_s"])
             lines.append(f"| {name} | {x['wall_s']:.2f} s {_runs(x)} | {x['wall_s'] / m['wall_s']:.2f}x "
                          f"| {x['mean_spp']:.0f} "

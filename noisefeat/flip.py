@@ -36,6 +36,7 @@ each block's map as the observer does (`noisefeat.pooling`).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from functools import lru_cache
 
 import numpy as np
@@ -377,22 +378,51 @@ def flip_halves_tensor(even: torch.Tensor | np.ndarray, odd: torch.Tensor | np.n
     a, b = _check_pair(even, odd, "half buffers")
     p = check_ppd(ppd)
     check_pooling(pooling)
-    n, h, w = a.shape[:3]
-    out = torch.zeros(n, dtype=torch.float64, device=a.device)
-    if h * w == 0 or n == 0:
-        return out
+    out = torch.zeros(a.shape[0], dtype=torch.float64, device=a.device)
     with torch.inference_mode():
-        for i, j in _chunks(n, h, w, a.device):
-            lin = _planes(a[i:j], b[i:j], exposure)
-            m = j - i
-            differ = (lin[:, :m] != lin[:, m:]).reshape(3, m, -1).any(dim=2).any(dim=0)
-            keep = torch.nonzero(differ).flatten()          # identical display images score 0
-            if keep.numel() == 0:
-                continue
-            if keep.numel() < m:
-                lin = lin.index_select(1, torch.cat([keep, keep + m]))
-            out[i + keep] = _pool(_flip_maps_linear(lin, p), pooling)
+        for i, keep, maps in _maps_by_chunk(a, b, exposure, p):
+            out[i + keep] = _pool(maps, pooling)
     return out
+
+
+def flip_maps_tensor(even: torch.Tensor | np.ndarray, odd: torch.Tensor | np.ndarray,
+                     exposure: float = 0.0, ppd: float = DEFAULT_PPD) -> torch.Tensor:
+    """The LDR-FLIP maps between the display images of half buffers [N, h, w, 3], float32
+    [N, h, w] on their device (0 where the two display images are identical): for pooling
+    parts of a window apart (a block's tiles, each judged with its neighbours as context)."""
+    a, b = _check_pair(even, odd, "half buffers")
+    p = check_ppd(ppd)
+    out = torch.zeros(a.shape[:3], dtype=torch.float32, device=a.device)
+    with torch.inference_mode():
+        for i, keep, maps in _maps_by_chunk(a, b, exposure, p):
+            out[i + keep] = maps.to(torch.float32)
+    return out
+
+
+def _maps_by_chunk(a: torch.Tensor, b: torch.Tensor, exposure: float,
+                   ppd: float) -> Iterator[tuple[int, torch.Tensor, torch.Tensor]]:
+    """(first row, rows kept, their FLIP maps) per chunk of pairs [N, h, w, 3]: pairs whose
+    display images are identical are left out (their FLIP is 0)."""
+    n, h, w = a.shape[:3]
+    if h * w == 0 or n == 0:
+        return
+    for i, j in _chunks(n, h, w, a.device):
+        lin = _planes(a[i:j], b[i:j], exposure)
+        m = j - i
+        differ = (lin[:, :m] != lin[:, m:]).reshape(3, m, -1).any(dim=2).any(dim=0)
+        keep = torch.nonzero(differ).flatten()          # identical display images score 0
+        if keep.numel() == 0:
+            continue
+        if keep.numel() < m:
+            lin = lin.index_select(1, torch.cat([keep, keep + m]))
+        yield i, keep, _flip_maps_linear(lin, ppd)
+
+
+def pool_tensor(maps: torch.Tensor, pooling: str = CRITERION_POOLING) -> torch.Tensor:
+    """FLIP maps [N, h, w] pooled as the observer pools (`noisefeat.pooling`), float64 [N]
+    on their device."""
+    check_pooling(pooling)
+    return _pool(maps, pooling)
 
 
 def _pool(maps: torch.Tensor, pooling: str) -> torch.Tensor:

@@ -59,6 +59,15 @@ def tile_starts(n: int, tile: int = TILE) -> np.ndarray:
     return np.asarray(starts, np.int64)
 
 
+def tile_windows(h: int, w: int, tile: int = TILE) -> list[tuple[int, int, int, int]]:
+    """(x, y, width, height) of the tiles of an h x w window, row-major: every `tile` pixels,
+    the last flush with the edge (one tile when the window is no larger). The decision
+    grain's tiles (DESIGN "Decision grain"): the renderer's units and the observer's tile
+    truth cut blocks by this one rule."""
+    th, tw = min(int(tile), int(h)), min(int(tile), int(w))
+    return [(int(x), int(y), tw, th) for y in tile_starts(h, th) for x in tile_starts(w, tw)]
+
+
 def pool_maps(maps: np.ndarray, pooling: str = TILE_MAX) -> np.ndarray:
     """float64 [N]: each map of [N, H, W] pooled (`POOLINGS`); a NaN pixel makes its map's
     value NaN. Sums are taken in float64 (a float32 map's tile means are exact to float64

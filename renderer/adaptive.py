@@ -218,7 +218,6 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
     spec = resolve({"criterion": criterion, **settings}, source=source, plugin=plugin, reference=ref_stack)
     if ref_stack is not None:
         ref_stack = observed(ref_stack, spec.tau)
-    crit = make_criterion(spec, None if ref_stack is None else ref_stack.thresholds)
     ckpt_path = None
     if checkpoints is not None:
         ckpt_path = prepare_output_dir(checkpoints.out) / CHECKPOINT  # writable: before any pass
@@ -231,9 +230,10 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
         crop = (sensor if sensor is not None else scene_obj.sensors()[0]).film().crop_size()
         spec = fit_frame(spec, int(crop[0]), int(crop[1]))
     given_objects = {k: v for k, v in (("sensor", sensor), ("integrator", integrator)) if v is not None}
-    br = BlockRenderer(scene_obj, grid=spec.grid, block=spec.block, **given_objects)
+    br = BlockRenderer(scene_obj, grid=spec.grid, block=spec.block, tile=spec.tile, **given_objects)
     try:
         spec = fit_frame(spec, br.width, br.height)     # the frame as rendered, within the bounds
+        crit = make_criterion(spec, None if ref_stack is None else ref_stack.thresholds)   # knows its grain now
         logger.info("%s: %s", label, spec.describe())
         if ref_stack is not None:
             if tuple(ref_stack.grid) != tuple(br.grid):

@@ -12,6 +12,12 @@ together with its neighbour's pixels: every window the criterion sees is a full
 were calibrated on. Overlapping pixels are traced once per pass and shared by the
 windows that hold them (`renderer.wavefront`); the final image takes each pixel from the
 covering window with the most samples (`compose`).
+
+Tiles: each block window is cut into tiles of `tile` pixels by the same rule (every
+`tile` pixels, the last flush with the block's edge), the same layout in every block. The
+tiles are the live loop's units (DESIGN "Decision grain": each has its own samples and
+stop); unit u is tile u % T of block u // T, T tiles a block. Without a tile size (or
+with tile = block) a block is its one tile.
 """
 
 from __future__ import annotations
@@ -20,6 +26,8 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
+
+from noisefeat.pooling import tile_windows
 
 
 def tile_starts(size: int, block: int) -> list[int]:
@@ -59,7 +67,7 @@ class BlockWindows:
     the module docstring). Exactly one of the two is given."""
 
     def __init__(self, width: int, height: int, grid: tuple[int, int] | None = None,
-                 block: int | None = None) -> None:
+                 block: int | None = None, tile: int | None = None) -> None:
         self.width, self.height = width, height
         if (grid is None) == (block is None):
             raise ValueError("give the blocks either as a grid (rows, columns) or as a size in pixels")
@@ -88,10 +96,55 @@ class BlockWindows:
         ys = torch.tensor(self._ys)[:, None, None, None] + torch.arange(self.block_h)[None, None, :, None]
         xs = torch.tensor(self._xs)[None, :, None, None] + torch.arange(self.block_w)[None, None, None, :]
         self._win_idx = (ys * self.width + xs).reshape(self.n_blocks, -1)
+        # the tiles of a block: their offsets inside it, the same in every block
+        windows = tile_windows(self.block_h, self.block_w, max(self.block_h, self.block_w) if tile is None else tile)
+        self.tile_w, self.tile_h = windows[0][2:]
+        self._tile_offsets = [(dx, dy) for dx, dy, _, _ in windows]
+        oy = torch.tensor([dy for _, dy in self._tile_offsets])[:, None, None]
+        ox = torch.tensor([dx for dx, _ in self._tile_offsets])[:, None, None]
+        inner = (oy + torch.arange(self.tile_h)[None, :, None]) * self.block_w + ox + torch.arange(self.tile_w)[None, None, :]
+        #: flat frame pixel indices of every unit (tile) window [n_units, th * tw]
+        self._unit_idx = self._win_idx[:, inner.reshape(-1)].reshape(self.n_units, -1) \
+            if self.tiles_per_block > 1 else self._win_idx
+        #: where each pixel of a block window comes from: (tile, row, column) of its last tile
+        self._block_from_tiles = torch.full((self.block_h * self.block_w,), -1, dtype=torch.int64)
+        self._block_from_tiles[inner.reshape(len(self._tile_offsets), -1)] = torch.arange(
+            len(self._tile_offsets) * self.tile_h * self.tile_w).reshape(len(self._tile_offsets), -1)
 
     @property
     def n_blocks(self) -> int:
         return self.grid[0] * self.grid[1]
+
+    @property
+    def tiles_per_block(self) -> int:
+        return len(self._tile_offsets)
+
+    @property
+    def n_units(self) -> int:
+        """The loop's units: every block's tiles (the blocks themselves without tiles)."""
+        return self.n_blocks * self.tiles_per_block
+
+    @property
+    def tile_shape(self) -> tuple[int, int]:
+        """(tile height, tile width) in pixels: the units' shape."""
+        return self.tile_h, self.tile_w
+
+    def unit_window(self, unit: int) -> tuple[int, int, int, int]:
+        """(x, y, width, height) of unit (tile) `unit` within the frame."""
+        x, y = self.block_origin(int(unit) // self.tiles_per_block)
+        dx, dy = self._tile_offsets[int(unit) % self.tiles_per_block]
+        return x + dx, y + dy, self.tile_w, self.tile_h
+
+    def tile_windows(self) -> list[tuple[int, int, int, int]]:
+        """(x, y, width, height) of every tile inside its block."""
+        return [(dx, dy, self.tile_w, self.tile_h) for dx, dy in self._tile_offsets]
+
+    def assemble(self, tiles: torch.Tensor) -> torch.Tensor:
+        """Block windows [k, bh, bw, C] from their tiles [k, T, th, tw, C] (where tiles
+        overlap at a block's edge, the later tile's pixel)."""
+        k, c = tiles.shape[0], tiles.shape[-1]
+        src = self._block_from_tiles.to(tiles.device)
+        return tiles.reshape(k, -1, c)[:, src].reshape(k, self.block_h, self.block_w, c)
 
     @property
     def block_shape(self) -> tuple[int, int]:

@@ -89,7 +89,8 @@ class BlockRenderer(BlockWindows):
     """
 
     def __init__(self, scene: Any, grid: tuple[int, int] | None = None, block: int | None = None,
-                 engine: str | None = None, sensor: Any = None, integrator: Any = None) -> None:
+                 engine: str | None = None, sensor: Any = None, integrator: Any = None,
+                 tile: int | None = None) -> None:
         variant = select_variant()
         mi = require("mitsuba")
 
@@ -98,7 +99,7 @@ class BlockRenderer(BlockWindows):
         self.sensor = scene.sensors()[0] if sensor is None else sensor
         film = self.sensor.film()
         self._frame_offset = (int(film.crop_offset()[0]), int(film.crop_offset()[1]))
-        super().__init__(int(film.crop_size()[0]), int(film.crop_size()[1]), grid, block)
+        super().__init__(int(film.crop_size()[0]), int(film.crop_size()[1]), grid, block, tile)
         # an XML scene may declare no integrator (mi.render then refuses): Mitsuba's path tracer
         self._integrator = scene.integrator() if integrator is None else integrator
         if hasattr(self._integrator, "property_error"):        # the noisestop plugin: its nested one
@@ -118,7 +119,7 @@ class BlockRenderer(BlockWindows):
         self.device = torch_device(variant) if engine == "wavefront" else torch.device("cpu")
         self._tracer = WavefrontTracer(scene, self.sensor, self._integrator, self.device) \
             if engine == "wavefront" else None
-        self._win_idx = self._win_idx.to(self.device)         # the windows' pixels, where passes live
+        self._unit_idx = self._unit_idx.to(self.device)       # the units' pixels, where passes live
         self.mitsuba_calls = 0    # render calls: one per mi.render or per wavefront trace (of any launches)
         self.kernel_compiles = 0
         self._crop_samples = 0
@@ -207,15 +208,16 @@ class BlockRenderer(BlockWindows):
 
     def _check_jobs(self, jobs: Sequence[tuple[int, int]] | np.ndarray, spp: int | Sequence[int]) -> tuple[np.ndarray, np.ndarray,
                                                                                                np.ndarray]:
-        """(blocks, pass indices, sizes) as int64 arrays; one-line errors for bad jobs."""
+        """(units, pass indices, sizes) as int64 arrays; one-line errors for bad jobs."""
         arr = np.asarray(jobs)
         if arr.size and (arr.dtype == bool or not np.issubdtype(arr.dtype, np.integer)):
             raise ValueError(f"block ids and pass indices must be whole numbers, got {jobs!r:.80}")
         arr = arr.astype(np.int64).reshape(-1, 2)
         blocks, passes = arr[:, 0], arr[:, 1]
-        if blocks.size and (blocks.min() < 0 or blocks.max() >= self.n_blocks):
-            raise ValueError(f"block id {int(blocks[(blocks < 0) | (blocks >= self.n_blocks)][0])!r} out of range "
-                             f"0..{self.n_blocks - 1}")
+        if blocks.size and (blocks.min() < 0 or blocks.max() >= self.n_units):
+            unit = "block" if self.tiles_per_block == 1 else "tile"
+            raise ValueError(f"{unit} id {int(blocks[(blocks < 0) | (blocks >= self.n_units)][0])!r} out of range "
+                             f"0..{self.n_units - 1}")
         if len(np.unique(arr, axis=0)) != len(arr):
             raise ValueError(f"duplicate block ids or (block, pass) jobs in {arr.tolist()[:8]}: one call renders "
                              "each once")
@@ -230,8 +232,9 @@ class BlockRenderer(BlockWindows):
         return blocks, passes, sizes
 
     def render_passes(self, jobs: Sequence[tuple[int, int]] | np.ndarray, spp: int | Sequence[int], seed: int) -> torch.Tensor:
-        """One pass per (block, pass index) job, all in as few launches as the engine allows:
-        float32 [len(jobs), bh, bw, 3] on `device`.
+        """One pass per (unit, pass index) job, all in as few launches as the engine allows:
+        float32 [len(jobs), th, tw, 3] on `device`. A unit is a block, or one of its tiles
+        when the renderer cuts blocks into tiles (`tile`).
 
         Job (b, p) is exactly ``render_blocks([b], spp, seed, pass_index=p)``: blocks at
         different pass counts (a budget render spends passes unevenly), or several steps
@@ -240,7 +243,7 @@ class BlockRenderer(BlockWindows):
         pass from the traced frame on the device in one indexing step.
         """
         blocks, passes, sizes = self._check_jobs(jobs, spp)
-        out = torch.empty((len(blocks), self.block_h, self.block_w, 3), dtype=torch.float32, device=self.device)
+        out = torch.empty((len(blocks), self.tile_h, self.tile_w, 3), dtype=torch.float32, device=self.device)
         if not len(blocks):
             return out
         if self._tracer is None:                  # scalar variants: one mi.render per block
@@ -257,28 +260,28 @@ class BlockRenderer(BlockWindows):
             for p in keys.tolist():          # the distinct pass indices of the round: one in a plain pass
                 rows = np.flatnonzero(same & (passes == p))
                 mask = torch.zeros(self.height * self.width, dtype=torch.bool, device=self.device)
-                mask[self._win_idx[torch.from_numpy(blocks[rows]).to(self.device)].flatten()] = True
+                mask[self._unit_idx[torch.from_numpy(blocks[rows]).to(self.device)].flatten()] = True
                 masks.append((mask.view(self.height, self.width), derive_seed(seed, FRAME_SEED_KEY, p), rows))
             frames = self._tracer.trace_jobs([(m, k) for m, k, _ in masks], int(size))
             self.mitsuba_calls += 1
             self._count_kernels()
             for frame, (_, _, rows) in zip(frames, masks):
-                idx = self._win_idx[torch.from_numpy(blocks[rows]).to(self.device)]
+                idx = self._unit_idx[torch.from_numpy(blocks[rows]).to(self.device)]
                 out[torch.from_numpy(rows).to(self.device)] = frame.view(-1, 3)[idx].view(
-                    len(rows), self.block_h, self.block_w, 3)
+                    len(rows), self.tile_h, self.tile_w, 3)
         return out
 
     def _render_crop(self, b: int, spp: int, seed: int, pass_index: int) -> np.ndarray:
-        """The crop engine: block `b` as one mi.render of its window grown by the guard band
-        (the caller puts the crop back)."""
+        """The crop engine: unit `b` (a block, or a tile) as one mi.render of its window grown
+        by the guard band (the caller puts the crop back)."""
         g = self.guard
-        x0, y0 = self.block_origin(b)
+        x0, y0, w, h = self.unit_window(b)
         gx, gy = min(g, x0), min(g, y0)          # the guard band, clipped to the frame
-        x1, y1 = min(self.width, x0 + self.block_w + g), min(self.height, y0 + self.block_h + g)
+        x1, y1 = min(self.width, x0 + w + g), min(self.height, y0 + h + g)
         self._set_crop(x0 - gx, y0 - gy, x1 - x0 + gx, y1 - y0 + gy)
         img = self._render(spp, derive_seed(seed, b, pass_index), where=f"block {b}")
         self._crop_samples += int(spp) * img.shape[0] * img.shape[1]
-        return img[gy:gy + self.block_h, gx:gx + self.block_w]
+        return img[gy:gy + h, gx:gx + w]
 
     def render_full(self, spp: int, seed: int, pass_index: int = 0) -> np.ndarray:
         """`spp` samples for the whole frame: float32 [H, W, 3] (host)."""

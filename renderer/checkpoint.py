@@ -35,7 +35,8 @@ from learning.data.npz import check_digest, read_npz, savez_bytes
 
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_FORMAT = "noisestop-adaptive-checkpoint"
-CHECKPOINT_VERSION = 3          # 2: content digest and validated state; 3: per-block spp history, budget state
+CHECKPOINT_VERSION = 4          # 2: content digest and validated state; 3: per-block spp history, budget state;
+                                # 4: per-tile state (units: every block's tiles, issue 41)
 
 
 def _str_array(text: str) -> np.ndarray:

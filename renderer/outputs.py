@@ -172,13 +172,15 @@ def write_outputs(out: str | os.PathLike, image: np.ndarray, report: dict[str, A
     blocks = report["blocks"]
     block_spp = [b["spp"] for b in blocks]
     windows = [b["window"] for b in blocks]
+    units = report.get("tiles", blocks)       # the spp map at the grain that stops: tiles when cut
     write_exr_channels(out / FINAL_EXR, {"R": img[..., 0], "G": img[..., 1], "B": img[..., 2],
                                          "spp": np.asarray(spp, np.float32),
                                          "converged": np.asarray(converged, np.float32)})
     write_png(out / FINAL_PNG, srgb8)
     above = [b["id"] for b in (report.get("budget") or {}).get("above_target", [])]
-    atomic_write(out / SPP_MAP, spp_map_png(spp, windows, block_spp, [b["converged"] for b in blocks],
-                                            report["min_spp"], report["max_spp"], above))
+    atomic_write(out / SPP_MAP, spp_map_png(spp, [u["window"] for u in units], [u["spp"] for u in units],
+                                            [u["converged"] for u in units], report["min_spp"], report["max_spp"],
+                                            above))
     names = [FINAL_EXR, FINAL_PNG, SPP_MAP, REPORT]
     check = report.get("final_vs_reference")
     if reference is not None and check is not None:

@@ -73,16 +73,20 @@ class BlockRatios:
 class PassLoop:
     """Active set, accumulator, verdict history, decision counters and ratios of one render.
 
-    `schedule`: the spp at the end of each pass; `min_spp`: no decision below it (None: from
-    the first pass). `quick`: the quick image's blocks [n, bh, bw, 3] when the criterion
-    reads them (prepared once here). `device`: where the accumulator's tensors live (the
-    renderer's). `state()` / `restore` is what the live render checkpoints.
+    Its units are a live render's tiles (`grid` = (blocks, tiles a block), `block` the tile's
+    shape; `tiling`, the renderer's `BlockWindows`, puts them back into blocks for a
+    criterion that judges a tile in its block's context), or blocks. `schedule`: the spp at
+    the end of each pass; `min_spp`: no decision below it (None: from the first pass).
+    `quick`: the quick image's blocks [n, bh, bw, 3] when the criterion reads them
+    (prepared once here). `device`: where the accumulator's tensors live (the renderer's).
+    `state()` / `restore` is what the live render checkpoints.
     """
 
     def __init__(self, criterion: Criterion, grid: tuple[int, int], block: tuple[int, int],
                  schedule: Sequence[int], min_spp: int | None, quick: np.ndarray | None = None,
-                 device: Any = None) -> None:
+                 device: Any = None, tiling: Any = None) -> None:
         self.criterion, self.min_spp, self.device = criterion, min_spp, device
+        self.tiling = tiling if tiling is not None and tiling.tiles_per_block > 1 else None
         self.schedule = np.asarray(schedule, np.int64)
         self.pass_spp = np.diff(self.schedule, prepend=0)
         self.acc = BlockAccumulator(grid, block, device=device)
@@ -140,7 +144,7 @@ class PassLoop:
         kept; the active set is `step`'s to change (a resumed budget render asks blocks
         judged before the interruption again: same state, same answer)."""
         idx = np.asarray(ids, np.int64).reshape(-1)
-        d: Decision = self.criterion.decide(idx, BlockBatch.from_accumulator(self.acc, idx, self.quick))
+        d: Decision = self.criterion.decide(idx, BlockBatch.from_accumulator(self.acc, idx, self.quick, self.tiling))
         self.ratios.put(idx, d.ratio)
         self._count(d.counts, d.timers)
         return d.verdict

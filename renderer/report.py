@@ -27,19 +27,29 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
                   ref: Stack | None) -> dict[str, Any]:
     """report.json of a render: its settings (`renderer.session.run_settings`), the loop's
     state, counters and timers, per block window, and against `ref` the early-stop metrics."""
-    n = br.n_blocks
+    n, T = br.n_blocks, br.tiles_per_block
     max_spp = settings["max_spp"]
-    spp = acc.spp_all()
+    spp = acc.spp_all()                       # per unit: a block, or one of its T tiles
     nonfinite = acc.nonfinite_all()
     converged = ~state["active"]
     events = block_events(state["history"], state["history_block_spp"])
-    blocks = []
-    for b in range(n):
-        own = [[s, v] for s, v in events.get(b, [])]
-        blocks.append({"id": b, "window": list(br.window(b)), "spp": int(spp[b]), "converged": bool(converged[b]),
-                       "stop_spp": int(state["stop_spp"][b]) if converged[b] else None,
-                       "nonfinite": int(nonfinite[b]), "history": own})
-    pixels = br.block_h * br.block_w          # samples_spent counts shared window pixels once per window
+    units = []
+    for u in range(n * T):
+        own = [[s, v] for s, v in events.get(u, [])]
+        units.append({"id": u, "window": list(br.unit_window(u)), "spp": int(spp[u]),
+                      "converged": bool(converged[u]), "stop_spp": int(state["stop_spp"][u]) if converged[u] else None,
+                      "nonfinite": int(nonfinite[u]), "history": own})
+    block_spp, block_done = spp.reshape(n, T), converged.reshape(n, T).all(axis=1)
+    if T == 1:
+        blocks = units
+    else:                                     # a block: its tiles' mean spp, done when all of them are
+        blocks = [{"id": b, "window": list(br.window(b)), "spp": int(round(float(block_spp[b].mean()))),
+                   "converged": bool(block_done[b]),
+                   "stop_spp": int(block_spp[b].max()) if block_done[b] else None,
+                   "nonfinite": int(nonfinite.reshape(n, T)[b].sum()), "history": []} for b in range(n)]
+        for t in units:
+            t["block"] = t["id"] // T
+    pixels = br.tile_h * br.tile_w            # samples_spent counts shared window pixels once per window
     wall = float(timers.get("wall_s", 0.0))
     setup_s, render_s, features_s, decisions_s = (float(timers.get(k, 0.0))
                                                   for k in ("setup_s", "render_s", "features_s", "decisions_s"))
@@ -53,12 +63,13 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
         # the noise target: the observer's tau the knob above was calibrated for (flip: c = c(tau))
         "tau": settings["tau"],
         "resolution": [br.width, br.height], "grid": list(br.grid), "block": [br.block_h, br.block_w],
+        "tile": [br.tile_h, br.tile_w],
         "step": settings["step"], "min_spp": settings["min_spp"], "max_spp": max_spp,
         "seed": settings["seed"], "exposure": settings["exposure"], "quick": settings["quick"],
         "passes": int(state["pass_index"]),
         "samples_spent": int(spp.sum()) * pixels, "mean_spp": float(spp.mean()),
-        "saved_vs_uniform": 1.0 - float(spp.sum()) / (n * max_spp),
-        "blocks_converged": int(converged.sum()),
+        "saved_vs_uniform": 1.0 - float(spp.sum()) / (n * T * max_spp),
+        "blocks_converged": int(block_done.sum()), "tiles_converged": int(converged.sum()),
         "wall_s": wall,
         "timing": {"setup_s": setup_s, "render_s": render_s, "features_s": features_s,
                    "decisions_s": decisions_s,
@@ -68,10 +79,10 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
                      "blocks_featured": int(c.get("blocks_featured", 0)),
                      "decisions": int(c.get("blocks_asked", 0)),
                      **{k: int(c.get(k, 0)) for k in COUNTER_NAMES}},
-        "blocks": blocks,
+        "blocks": blocks, **({"tiles": units} if T > 1 else {}),
     }
     if ref is not None:
-        report.update(against_reference(ref, spp, converged, settings))
+        report.update(against_reference(ref, block_spp.mean(axis=1) if T > 1 else spp, block_done, settings))
         for b, t in enumerate(ref.thresholds or []):
             report["blocks"][b]["true_threshold"] = t
     return report
@@ -153,7 +164,7 @@ def render_result(session: Any, *, time_limit_reached: bool, ref_stack: Stack | 
                   ref_image: np.ndarray | None, reference: Any) -> RenderResult:
     """A finished `renderer.session.RenderSession` as the image, per-pixel spp and stops,
     and the report (report.json)."""
-    br, loop, acc, n, spec = session.br, session.loop, session.loop.acc, session.br.n_blocks, session.spec
+    br, loop, acc, n, spec = session.br, session.loop, session.loop.acc, session.br.n_units, session.spec
     final = session.snapshot()
     report = render_report(session.label, br, session.settings, session.crit, {**session.state, **loop.state()},
                            acc, loop.counters, final["timers"], session.settings["variant"], ref_stack)
@@ -165,9 +176,10 @@ def render_result(session: Any, *, time_limit_reached: bool, ref_stack: Stack | 
     if session.budget is not None:
         report["budget"] = session.budget.describe(loop, time_limit_reached)
     report["render_calls"] = session.counts()
-    windows = [br.window(b) for b in range(n)]
+    windows = [br.unit_window(u) for u in range(n)]
     image, spp_px, owner = compose(acc.means(np.arange(n)).cpu().numpy(), windows, acc.spp_all(),
                                    (br.height, br.width))
+    block_done = (~loop.active).reshape(br.n_blocks, br.tiles_per_block).all(axis=1)
     image = image.astype(np.float32)
     ref_img = ref_image
     if ref_stack is not None:
@@ -178,8 +190,8 @@ def render_result(session: Any, *, time_limit_reached: bool, ref_stack: Stack | 
             ref_img = None
     if ref_img is not None:
         report["final_vs_reference"] = final_vs_reference(
-            image, ref_img, br.grid, float(spec.tau), float(spec.exposure), ~loop.active,
-            windows=windows if br.overlapping else None)
+            image, ref_img, br.grid, float(spec.tau), float(spec.exposure), block_done,
+            windows=[br.window(b) for b in range(br.n_blocks)] if br.overlapping else None)
         if ref_stack is None:
             report["reference"] = {"image": os.fspath(reference) if isinstance(reference, (str, os.PathLike))
                                    else "array", "width": br.width, "height": br.height}

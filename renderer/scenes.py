@@ -40,6 +40,7 @@ from . import heldout
 from . import training_scenes as training
 from .procedural import procedural_scene, procedural_seed
 from .scene_kit import SceneDict
+from .setting_row import parse_resolution
 from learning.data.variant import select_variant
 from noisefeat.extras import require
 
@@ -135,31 +136,6 @@ def scene_dict(name: str, resolution: int) -> SceneDict:
 # ----------------------------------------------------------------------------- loading
 
 Resolution = int | tuple[int, int]
-
-
-def parse_resolution(text: str | int | Sequence[int]) -> Resolution:
-    """`--resolution` as given: N (the long side; the film's aspect ratio is kept) or
-    'WxH' (both sides). ValueError with the accepted forms otherwise."""
-    if isinstance(text, (int, np.integer)) and not isinstance(text, bool):
-        value: Resolution = int(text)
-    elif isinstance(text, str):
-        parts = text.lower().replace("×", "x").split("x")
-        try:
-            nums = [int(p) for p in parts]
-        except ValueError:
-            nums = []
-        if len(nums) not in (1, 2):
-            raise ValueError(f"resolution {text!r}: expected N (long side, aspect kept) or WxH, e.g. 512 or "
-                             "1280x720")
-        value = nums[0] if len(nums) == 1 else (nums[0], nums[1])
-    elif isinstance(text, Sequence) and len(text) == 2:
-        value = (int(text[0]), int(text[1]))
-    else:
-        raise ValueError(f"resolution {text!r}: expected N or WxH")
-    sides = value if isinstance(value, tuple) else (value,)
-    if any(v < 1 for v in sides):
-        raise ValueError(f"resolution {text!r}: sides must be positive whole numbers")
-    return value
 
 
 def film_size_for(resolution: Resolution, width: int, height: int) -> tuple[int, int]:

@@ -57,6 +57,7 @@ def run_settings(spec: Any, br: BlockRenderer, crit: Criterion, variant: str, sc
     blocks, the criterion as built, the variant)."""
     gh, gw = br.grid
     return {"scene": scene, "resolution": [br.width, br.height], "grid": [gh, gw], "block": [br.block_h, br.block_w],
+            "tile": [br.tile_h, br.tile_w],
             "exposure": float(spec.exposure), "step": int(spec.step), "min_spp": int(spec.min_spp),
             "max_spp": int(spec.max_spp), "seed": int(spec.seed), "quick_spp": int(spec.quick_spp),
             "quick": crit.quick_kind if crit.needs_quick else "none", "criterion": crit.describe(),
@@ -90,7 +91,9 @@ class RenderSession:
                 self.state["quick"] = br.quick_image(spp=spec.quick_spp, seed=spec.seed, kind=crit.quick_kind)
                 self.timers["render_s"] += time.perf_counter() - t0
             quick_blocks = br.cut_blocks(self.state["quick"])
-        self.loop = PassLoop(crit, br.grid, br.block_shape, sched, spec.min_spp, quick_blocks, device=br.device)
+        # the loop's units: the blocks' tiles (T a block; the blocks themselves when T = 1)
+        self.loop = PassLoop(crit, (br.n_blocks, br.tiles_per_block), br.tile_shape, sched, spec.min_spp, quick_blocks,
+                             device=br.device, tiling=br)
         if "acc" in self.state:                       # resumed: counters and timers go on from there
             self.loop.restore(self.state)
             if self.budget is not None and self.state.get("budget") is not None:
@@ -103,8 +106,8 @@ class RenderSession:
     def _initial_state(self, resume: bool, pass_spp: list[int]) -> dict[str, Any]:
         path, br = self.ckpt_path, self.br
         if path is not None and resume and path.exists():
-            state = load_checkpoint(path, self.settings, pass_spp=pass_spp, grid=br.grid, block=br.block_shape,
-                                    frame=(br.height, br.width))
+            state = load_checkpoint(path, self.settings, pass_spp=pass_spp, grid=(br.n_blocks, br.tiles_per_block),
+                                    block=br.tile_shape, frame=(br.height, br.width))
             logger.info("%s: resuming after pass %d (%d active blocks)", path, state["pass_index"],
                         int(state["active"].sum()))
             return state
@@ -132,7 +135,7 @@ class RenderSession:
         own_all = loop.acc.passes_all()
         if self.budget is None:
             ids = np.flatnonzero(loop.pending())
-            k = grown_passes(self.br.n_blocks, len(ids), len(loop.schedule) - int(own_all[ids].max()), self.grow) \
+            k = grown_passes(self.br.n_units, len(ids), len(loop.schedule) - int(own_all[ids].max()), self.grow) \
                 if ids.size else 0
         else:
             ids = np.asarray(self.budget.select(loop, time.perf_counter() - self.t_start), np.int64)
@@ -179,7 +182,7 @@ class RenderSession:
         return {**self.state, **self.loop.state(), "settings": self.settings,
                 "budget": None if self.budget is None else {
                     **self.budget.state(), **dict(zip(("ratio_asked", "ratio"),
-                                                      self.loop.ratios.take(np.arange(self.br.n_blocks))))},
+                                                      self.loop.ratios.take(np.arange(self.br.n_units))))},
                 "counters": {**self.loop.counters, **self.counts()},
                 "timers": {**self.loop.timers, "render_s": self.timers["render_s"],
                            "setup_s": self.timers["setup_s"], "wall_s": wall}}

@@ -27,7 +27,7 @@ from tqdm import tqdm
 from learning.evaluation.generalisation import scene_groups
 from learning.inputs.halves import check_constant_step, recover_passes
 from learning.evaluation.metrics import evaluate_verdicts
-from learning.data.observer import observed, read_observed
+from learning.data.observer import observed, read_observed, with_tile_truth
 from learning.data.stack import Stack, list_stacks, read_stack, read_stacks
 from learning.names import DEFAULT_TAU
 
@@ -39,21 +39,30 @@ logger = logging.getLogger(__name__)
 
 
 def simulate_loop(stack: Stack, criterion: Criterion, min_spp: int | None = None,
-                  progress: bool = False) -> tuple[np.ndarray, PassLoop]:
-    """Verdicts V int8 [K, n_blocks] the live loop would produce on this stack, and the
-    loop (its decision counters and timers).
+                  progress: bool = False, tile: int | None = None) -> tuple[np.ndarray, PassLoop]:
+    """Verdicts V int8 [K, n_units] the live loop would produce on this stack, and the loop
+    (its decision counters and timers). Units: the stack's blocks, or with `tile` (smaller
+    than a block) each block's tiles, numbered as the live render numbers them.
 
     `min_spp` (None: no minimum; else checked by the render spec's row): no decision
     before that many samples.
     """
+    from .block_windows import BlockWindows
+
     if min_spp is not None:
         ROW["min_spp"].check(min_spp)
     if criterion.needs_halves:
         check_constant_step(stack)
+    tiling = BlockWindows(stack.width, stack.height, grid=tuple(stack.grid), tile=tile)
+    units = tiling._unit_idx.numpy()
+
+    def cut(frame: np.ndarray) -> np.ndarray:
+        return np.asarray(frame).reshape(-1, 3)[units].reshape(len(units), tiling.tile_h, tiling.tile_w, 3)
     K = stack.n_levels
-    V = np.full((K, stack.n_blocks), -1, np.int8)
+    V = np.full((K, tiling.n_units), -1, np.int8)
     quick = stack.split(stack.quick()) if criterion.needs_quick else None
-    loop = PassLoop(criterion, tuple(stack.grid), tuple(stack.block), stack.spp, min_spp, quick)
+    loop = PassLoop(criterion, (stack.n_blocks, tiling.tiles_per_block), tiling.tile_shape, stack.spp, min_spp,
+                    quick, tiling=tiling)
     bar = tqdm(total=K, desc=f"{stack.scene} simulate", unit="lvl", disable=not progress, leave=False)
     for k, _, pass_spp, pass_img in recover_passes(stack):
         bar.update(1)
@@ -61,7 +70,7 @@ def simulate_loop(stack: Stack, criterion: Criterion, min_spp: int | None = None
         if not ids.size:
             V[k:] = 1
             break
-        loop.step(ids, [(stack.split(pass_img)[ids], pass_spp)])   # stopped blocks get no more samples
+        loop.step(ids, [(cut(pass_img)[ids], pass_spp)])   # stopped units get no more samples
         V[k, ~loop.active] = 1
     bar.close()
     return V, loop
@@ -125,19 +134,23 @@ def _as_stacks(stacks: Stack | str | os.PathLike | Iterable[Stack | str | os.Pat
 
 def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str | os.PathLike],
                        criterion_factory: Callable[[Stack], Criterion], min_spp: int | None = None,
-                       progress: bool = False, tau: float = DEFAULT_TAU) -> dict[str, Any]:
+                       progress: bool = False, tau: float = DEFAULT_TAU, tile: int | None = None) -> dict[str, Any]:
     """DESIGN metrics of a criterion simulated on labelled stacks, overall and per scene.
 
     `stacks`: a dataset directory, a stack, or a list of either. `criterion_factory(stack)`
     returns the criterion for each stack (the oracle needs that stack's thresholds; the
-    others are configuration only, one object for every stack).
-    Stacks read from directories are labelled by the observer at `tau`. The result is `evaluate_verdicts`' dict plus ``criterion`` (its description) and
-    ``counters`` (summed criterion counters and timers).
+    others are configuration only, one object for every stack). Stacks read from
+    directories are labelled by the observer at `tau`. The result is `evaluate_verdicts`'
+    dict plus ``criterion`` (its description) and ``counters`` (summed counters and
+    timers). With `tile`, the criterion decides per tile and is scored against the tile
+    truth (`learning.data.observer.with_tile_truth`); ``blocks`` then holds the same
+    metrics per block (a block stops when all its tiles have), against the block truth.
     """
     todo = _as_stacks(stacks, tau)
     if not todo:
         raise ValueError(f"no stacks found in {stacks!r}")
     per_scene: dict[str, tuple] = {}
+    per_block: dict[str, tuple] = {}
     counters: dict[str, float] = {}
     description: dict[str, Any] = {}
     for st in tqdm(todo, desc="stacks", unit="stack", disable=not progress):
@@ -145,27 +158,60 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
             raise ValueError(f"{st.path}: stack has no thresholds; label it first")
         if st.scene in per_scene:
             raise ValueError(f"{st.path}: scene {st.scene!r} appears twice")
+        if tile is not None:
+            st = with_tile_truth(st, tile)
         crit = criterion_factory(st)
-        V, loop = simulate_loop(st, crit, min_spp=min_spp, progress=progress)
-        per_scene[st.scene] = (V, st.labels(), st.thresholds, st.spp)
+        V, loop = simulate_loop(st, crit, min_spp=min_spp, progress=progress, tile=tile)
+        if tile is None:
+            per_scene[st.scene] = (V, st.labels(), st.thresholds, st.spp)
+        else:
+            per_scene[st.scene] = (V, st.tile_labels(), st.tile_thresholds, st.spp)
+            blocks = V.reshape(len(V), st.n_blocks, -1).min(axis=2)          # +1 once every tile is
+            per_block[st.scene] = (blocks, st.labels(), st.thresholds, st.spp)
         for k, v in {**loop.counters, **loop.timers}.items():
             counters[k] = counters.get(k, 0) + v
         description = crit.describe()
         if description.get("name") == "oracle":
             description = {"name": "oracle"}
     out = evaluate_verdicts(per_scene, scene_groups(todo))
+    if tile is not None:
+        out["tile"] = int(tile)
+        out["blocks"] = evaluate_verdicts(per_block, scene_groups(todo))
+        _against_block_oracle(out)
     out["criterion"] = description
     out["counters"] = counters
     return out
 
 
+def _against_block_oracle(out: dict[str, Any]) -> None:
+    """Add to a tile-grain evaluation, per scene and overall: the samples spent per tile and
+    the tile oracle's, each as a ratio to the block oracle's (a block's samples are the mean
+    of its tiles'): what deciding per tile saves against the best block-grain stops."""
+    totals = {"spent": 0.0, "tile_oracle": 0.0, "block_oracle": 0.0}
+    for scene, entry in out["per_scene"].items():
+        t, b = entry["counts"], out["blocks"]["per_scene"][scene]["counts"]
+        per_block = t["blocks"] / b["blocks"]                  # tiles a block
+        mine = {"spent": t["spent"] / per_block, "tile_oracle": t["oracle"] / per_block,
+                "block_oracle": float(b["oracle"])}
+        for k in totals:
+            totals[k] += mine[k]
+        out["blocks"]["per_scene"][scene].update(_ratios(mine))
+    out["blocks"].update(_ratios(totals))
+
+
+def _ratios(c: dict[str, float]) -> dict[str, float]:
+    div = c["block_oracle"] or float("nan")
+    return {"spp_ratio_vs_block_oracle": c["spent"] / div, "tile_oracle_vs_block_oracle": c["tile_oracle"] / div}
+
+
 def criterion_factory(kind: str, *, model: str | None = None, server: str | None = None,
                       threshold: float | None = None, offset: float | None = None,
-                      exposure: float | None = None, tau: float | None = None) -> Callable[[Stack], Criterion]:
+                      exposure: float | None = None, tau: float | None = None,
+                      tile: int | None = None) -> Callable[[Stack], Criterion]:
     """The criterion of each stack for `evaluate_criterion`, from command-line style options
     (None: not given), resolved and checked by the render spec and built by the one
     factory (`renderer.criteria.make_criterion`): one criterion for every stack, or the
-    oracle with each stack's own thresholds."""
+    oracle with each stack's own thresholds (its tiles' with `tile`)."""
     from .criteria import make_criterion
     from .spec import COMMAND_LINE, resolve
 
@@ -174,9 +220,10 @@ def criterion_factory(kind: str, *, model: str | None = None, server: str | None
                    thresholds_known=True)
     if spec.criterion == "oracle":
         def oracle(st: Stack) -> Criterion:
-            if st.thresholds is None:
+            truth = st.thresholds if tile is None else st.tile_thresholds     # one per unit
+            if truth is None:
                 raise ValueError(f"{st.path}: stack has no thresholds; the oracle needs them")
-            return make_criterion(spec, st.thresholds)
+            return make_criterion(spec, truth)
         return oracle
     crit = make_criterion(spec)
     return lambda st: crit
@@ -186,12 +233,12 @@ def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list
                            min_spp: int | None = None, threshold: float | None = None,
                            offset: float | None = None, model: str | None = None,
                            server: str | None = None, progress: bool = True,
-                           tau: float = DEFAULT_TAU) -> dict[str, Any]:
+                           tau: float = DEFAULT_TAU, tile: int | None = None) -> dict[str, Any]:
     """What `noisestop evaluate --criterion C` runs for a rule criterion: simulate C on the
     stacks of `data` (only `scenes` if given), labelled by the observer at the noise target
     `tau`, and return the DESIGN metrics, overall and per scene."""
     factory = criterion_factory(criterion, model=model, server=server, threshold=threshold, offset=offset,
-                                tau=tau)         # a knob out of range fails before any stack is read
+                                tau=tau, tile=tile)   # a knob out of range fails before any stack is read
     stacks = read_observed(str(data), tau)
     if scenes:
         missing = sorted(set(scenes) - {st.scene for st in stacks})
@@ -206,7 +253,7 @@ def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list
         raise ValueError(f"{data}: no labelled stacks to evaluate on")
     for st in stacks:
         st.validate()
-    out = evaluate_criterion(stacks, factory, min_spp=min_spp, progress=progress, tau=tau)
+    out = evaluate_criterion(stacks, factory, min_spp=min_spp, progress=progress, tau=tau, tile=tile)
     return {**out, "tau": float(tau)}
 
 

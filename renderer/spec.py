@@ -16,21 +16,16 @@ module imports nothing heavy: the command line builds its parser from it.
 """
 from __future__ import annotations
 
-import argparse
 import logging
-import math
-import os
-import re
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, make_dataclass, replace
+from collections.abc import Mapping
+from dataclasses import field, make_dataclass, replace
 from typing import Any
-
-import numpy as np
 
 from learning.names import DEFAULT_TAU, OFFSET_LIMIT
 from noisefeat.bounds import EXPOSURE_RANGE, SizeBounds
 
-from .names import CRITERIA, DEFAULT_CRITERION
+from .names import DEFAULT_CRITERION
+from .setting_row import API, CLI, MAX_SIDE, XML, Row, block_bounds, frame_bounds
 
 logger = logging.getLogger(__name__)
 
@@ -40,12 +35,13 @@ MAX_SPP = 1 << 20
 MAX_PASSES = 10_000
 #: the longest time limit, seconds (a year: anything longer is a typo)
 MAX_TIME_LIMIT = 365 * 24 * 3600.0
-#: the largest frame side and grid count a setting may name (the frame bounds of
-#: noisefeat.bounds then cap the pixels)
-MAX_SIDE = 65536
 MAX_SEED = 2**32 - 1
 #: the block size the bundled model and flip's c(tau) were trained and calibrated on
 DEFAULT_BLOCK = 64
+#: the observer's tile (its 16x16 tile means): the finest grain its guarantee holds at
+DEFAULT_TILE = 16
+#: the criteria that judge whole blocks (their unit is the paper's block)
+BLOCK_GRAIN = ("model", "oracle")
 
 # where a value came from
 ARGUMENT = "argument"
@@ -54,149 +50,6 @@ PLUGIN = "scene plugin"
 DEFAULT = "default"
 SCENE = "scene"
 NOT_USED = "not used"
-
-API, CLI, XML = "api", "cli", "plugin"
-ALL_DOORS = frozenset({API, CLI, XML})
-_DEFINE_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
-
-
-def _shown(value: Any) -> str:
-    if isinstance(value, (int, np.integer)) and not isinstance(value, bool) and abs(int(value)) >= 10**15:
-        return f"a {len(str(abs(int(value))))}-digit number"
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
-def _num(x: Any) -> str:
-    """A bound as written: whole numbers in full (1048576, not 1.04858e+06)."""
-    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:g}"
-
-
-def parse_resolution(text: Any) -> int | tuple[int, int]:
-    """N (the long side; the film's aspect ratio is kept) or 'WxH' / (W, H) (both sides),
-    each side in [1, MAX_SIDE]; ValueError with the accepted forms otherwise."""
-    value: Any = None
-    if isinstance(text, (int, np.integer)) and not isinstance(text, bool):
-        value = int(text)
-    elif isinstance(text, str):
-        try:
-            nums = [int(p) for p in text.lower().replace("×", "x").split("x")]
-        except ValueError:
-            nums = []
-        value = None if len(nums) not in (1, 2) else nums[0] if len(nums) == 1 else (nums[0], nums[1])
-    elif isinstance(text, Sequence) and len(text) == 2 and all(
-            isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in text):
-        value = (int(text[0]), int(text[1]))
-    if value is None:
-        raise ValueError(f"resolution must be N (long side, aspect kept) or WxH, e.g. 512 or 1280x720, "
-                         f"got {_shown(text)}")
-    if any(not 1 <= v <= MAX_SIDE for v in (value if isinstance(value, tuple) else (value,))):
-        raise ValueError(f"resolution sides must be whole numbers in [1, {MAX_SIDE}], got {_shown(text)}")
-    return value
-
-
-@dataclass(frozen=True)
-class Row:
-    """One setting: name, kind, default (None: none, or decided as `doc` says), allowed
-    range [low, high] ((low, high] with `open_low`), one line of documentation, and the
-    doors that offer it."""
-
-    name: str
-    kind: str                  # int, float, str, grid, resolution, defines, criterion
-    default: Any
-    doc: str
-    low: float | None = None
-    high: float | None = None
-    open_low: bool = False
-    doors: frozenset[str] = ALL_DOORS
-    metavar: str | None = None
-    extra: Callable[[Any], None] | None = None     # a further check (environment-set bounds)
-
-    @property
-    def flag(self) -> str:
-        return "--" + self.name.replace("_", "-")
-
-    def range_text(self) -> str:
-        return f"{'(' if self.open_low else '['}{_num(self.low)}, {_num(self.high)}]"
-
-    def check(self, value: Any) -> Any:
-        """`value` as this row's type, or a one-line ValueError naming the setting."""
-        kind, name = self.kind, self.name
-        if kind == "int":
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) \
-                    or not self.low <= value <= self.high:    # type: ignore[operator]
-                raise ValueError(f"{name} must be a whole number in {self.range_text()}, got {_shown(value)}")
-            value = int(value)
-        elif kind == "float":
-            ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
-            if ok:
-                v = float(value)
-                ok = math.isfinite(v) and self.low <= v <= self.high and not (self.open_low and v == self.low)  # type: ignore[operator]
-            if not ok:
-                raise ValueError(f"{name} must be a finite number in {self.range_text()}, got {_shown(value)}")
-            value = float(value)
-        elif kind == "criterion":
-            if not isinstance(value, str) and hasattr(value, "decide") and hasattr(value, "describe"):
-                return value                    # a Criterion object (renderer.render only)
-            if value not in CRITERIA:
-                raise ValueError(f"criterion must be one of {', '.join(CRITERIA)} or a Criterion, "
-                                 f"got {_shown(value)}")
-        elif kind == "str":
-            if not isinstance(value, (str, os.PathLike)) or not os.fspath(value):
-                raise ValueError(f"{name} must be a non-empty path or string, got {_shown(value)}")
-            value = os.fspath(value)
-        elif kind == "grid":
-            if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) or len(value) != 2 or any(
-                    isinstance(g, bool) or not isinstance(g, (int, np.integer)) or not 1 <= g <= MAX_SIDE
-                    for g in value):
-                raise ValueError(f"grid must be two whole numbers (rows, columns) in [1, {MAX_SIDE}], "
-                                 f"got {_shown(value)}")
-            value = (int(value[0]), int(value[1]))
-        elif kind == "resolution":
-            value = parse_resolution(value)
-        elif kind == "defines":
-            if not isinstance(value, Mapping) or not all(
-                    isinstance(k, str) and _DEFINE_KEY.fullmatch(k) and isinstance(v, str) and v.strip()
-                    for k, v in value.items()):
-                raise ValueError(f"defines must be KEY=VALUE pairs, KEY a parameter name and VALUE not empty, "
-                                 f"got {_shown(value)}")
-            value = {k: v.strip() for k, v in value.items()}
-        if self.extra is not None:
-            self.extra(value)
-        return value
-
-    def parse(self, text: str) -> Any:
-        """Command-line text as this row's value (then `check`, whose message it gives for
-        text that is no number at all): argparse's type."""
-        value: Any = text
-        try:
-            if self.kind in ("int", "float"):
-                try:
-                    value = (int if self.kind == "int" else float)(text)
-                except ValueError:
-                    pass                    # `check` refuses the text in the row's own words
-            elif self.kind == "defines":
-                key, sep, val = text.partition("=")
-                if not sep:
-                    raise ValueError(f"defines must be KEY=VALUE pairs, KEY a parameter name and VALUE not "
-                                     f"empty, got {_shown(text)}")
-                value = {key.strip(): val}
-            return self.check(value)
-        except ValueError as exc:
-            raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def _block_bounds(side: int) -> None:
-    SizeBounds.from_env().check_block(side, side, what="block")
-
-
-def _frame_bounds(resolution: int | tuple[int, int]) -> None:
-    """A frame asked for must fit the frame bounds before any scene loads (N: N x N at most)."""
-    w, h = resolution if isinstance(resolution, tuple) else (resolution, resolution)
-    bounds = SizeBounds.from_env()
-    if w * h > bounds.max_frame_pixels:
-        bounds.check_frame(h, w, (1, 1))     # its one-line message names the bound
-
 
 _SPP = dict(kind="int", low=1, high=MAX_SPP)
 #: every setting of a render, in the order renderer.render lists them
@@ -227,12 +80,16 @@ ROWS: tuple[Row, ...] = (
     Row("resolution", "resolution", None,
         "frame size: N scales the film's long side to N keeping its aspect, WxH sets both (default: "
         "the reference's, else the scene's own)", metavar="N|WxH", doors=frozenset({API, CLI}),
-        extra=_frame_bounds),
+        extra=frame_bounds),
     Row("grid", "grid", None, "blocks as a (rows, columns) grid dividing the frame, instead of block "
         "(default: the reference's)", doors=frozenset({API, CLI})),
     Row("block", "int", DEFAULT_BLOCK,
         "block side in pixels (default 64, or the frame's short side if smaller); edge windows move "
-        "flush with the frame's edge", low=1, high=MAX_SIDE, metavar="PX", extra=_block_bounds),
+        "flush with the frame's edge", low=1, high=MAX_SIDE, metavar="PX", extra=block_bounds),
+    Row("tile", "int", DEFAULT_TILE,
+        "side in pixels of the tiles each block is cut into, the unit that stops: each tile has its "
+        "own samples and stop, a block is done when all its tiles are; the block's side: whole blocks "
+        "(the model and oracle criteria decide whole blocks)", low=8, high=MAX_SIDE, metavar="PX"),
     Row("min_spp", doc="samples per pixel before the first decision (default: the reference's first "
         "level, else 16); it takes effect at the first pass boundary at or past it", default=16, **_SPP),
     Row("max_spp", doc="most samples per pixel of any block (default: the reference's last level, "
@@ -276,6 +133,14 @@ class _Spec:
         return ", ".join(f"{k} {fmt(getattr(self, k))} ({self.sources[k]})" for k in
                          ("resolution", "grid", "block", "step", "min_spp", "max_spp", "tau", "exposure")
                          if getattr(self, k) is not None)
+
+    def tile_grain(self) -> int | None:
+        """The tile side when blocks are cut into tiles (tile smaller than the block), else
+        None: whole blocks, or a grid whose block size the frame decides, not known yet."""
+        side = self.block
+        if side is None and self.grid is not None and isinstance(self.resolution, tuple):
+            side = max(self.resolution[1] // self.grid[0], self.resolution[0] // self.grid[1])
+        return self.tile if side is not None and self.tile < side else None
 
     def settings_source(self) -> dict[str, str]:
         """report.json ``settings_source``: where every setting in use came from."""
@@ -370,6 +235,8 @@ def _combine(values: dict[str, Any], sources: dict[str, str], rank: list[str], t
                             ("threshold", "flip variance"), ("quantile", "variance")):
             if values[name] is not None and sources[name] != DEFAULT and crit not in users.split():
                 logger.warning("%s is ignored with the %s criterion", name, crit)
+    if _block_grain(crit) and sources["tile"] == DEFAULT:
+        values["tile"], sources["tile"] = MAX_SIDE, f"{DEFAULT} (whole blocks: the {getattr(crit, 'name', crit)} criterion)"
     lo, hi = values["min_spp"], values["max_spp"]
     if lo > hi:
         if level("min_spp") == level("max_spp"):
@@ -386,6 +253,11 @@ def _combine(values: dict[str, Any], sources: dict[str, str], rank: list[str], t
                          "samples per pixel (the step): give a budget of at least the step, or a smaller step")
 
 
+def _block_grain(criterion: Any) -> bool:
+    """Whether a criterion judges whole blocks only (its tiles are the block)."""
+    return criterion in BLOCK_GRAIN if isinstance(criterion, str) else not getattr(criterion, "per_tile", True)
+
+
 def fit_frame(spec: Any, width: int, height: int) -> Any:
     """The spec for the loaded frame: its resolution, a default block no larger than the
     frame's short side, and the frame and block bounds (noisefeat.bounds) checked."""
@@ -395,6 +267,11 @@ def fit_frame(spec: Any, width: int, height: int) -> Any:
         values["block"] = int(min(width, height))
         sources["block"] = f"{DEFAULT} (the frame's short side)"
     block = values["block"]
+    side = block if block is not None else max(int(height) // spec.grid[0], int(width) // spec.grid[1])
+    if _block_grain(spec.criterion) and values["tile"] < side:
+        raise ValueError(f"the {getattr(spec.criterion, 'name', spec.criterion)} criterion decides whole blocks: "
+                         f"leave tile unset or give the block's side ({side})")
+    values["tile"] = min(values["tile"], side)            # a tile is at most its block
     SizeBounds.from_env().check_frame(int(height), int(width), spec.grid or (1, 1),
                                       block=None if spec.grid else (block, block))
     return replace(spec, **values, sources=sources)

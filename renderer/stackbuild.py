@@ -186,6 +186,7 @@ def build_stack(scene: str, out_root: str | os.PathLike, settings: BuildSettings
     thresholds = thresholds_from_errors(poolings(terms)[POOLINGS.index(observer.pooling)], settings.spp, observer.tau)
     stack = writer.finish(thresholds, observer.labeler)
     stack_observer_errors(stack, observer.ppd, observer.exposure, computed=terms)   # cached for relabelling
+    stack, _ = relabel_if_stale(stack, observer.pooling)                            # and the tile truth
     shutil.rmtree(build_dir, ignore_errors=True)
     if settings.contact_sheet:
         from .contact import contact_sheet

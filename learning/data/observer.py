@@ -28,7 +28,7 @@ import dataclasses
 import io
 import logging
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,8 +39,8 @@ from noisefeat.display import display as _display
 from noisefeat.display import srgb_decode as _srgb_decode
 from noisefeat.flip import check_ppd
 from noisefeat.dots import DOT_DENSITY, DOT_LEVEL, OBSERVER_DOTS, display_error, rank_pool
-from noisefeat.pooling import (DEFAULT_POOLING, DOTS, FLIP_POOLINGS, MEAN, POOLINGS, TILE_MAX, check_pooling,
-                               pool_blocks, pool_maps)
+from noisefeat.pooling import (DEFAULT_POOLING, DOTS, FLIP_POOLINGS, MEAN, POOLINGS, TILE, TILE_MAX, check_pooling,
+                               pool_blocks, pool_maps, tile_windows)
 
 from ..names import DEFAULT_TAU
 from .cache import cached_array
@@ -122,19 +122,25 @@ def observer_terms(reference_rgb: np.ndarray, levels_rgb: np.ndarray | Iterable[
         raise ValueError(f"reference must be linear RGB [H, W, 3], got shape {ref.shape}")
     block_shape(ref.shape[0], ref.shape[1], grid)
     g = (int(grid[0]), int(grid[1]))
+    rows = [[*(pool_blocks(emap, g, p) for p in FLIP_POOLINGS), _block_dots(ref_t, lev_t, g)]
+            for ref_t, lev_t, emap in _level_maps(ref, levels_rgb, ppd, exposure)]
+    if not rows:
+        raise ValueError("no levels given")
+    return np.asarray(rows, np.float64).transpose(1, 0, 2)
+
+
+def _level_maps(ref: np.ndarray, levels_rgb: np.ndarray | Iterable[np.ndarray], ppd: float,
+                exposure: float) -> Iterator[tuple[torch.Tensor, torch.Tensor, np.ndarray]]:
+    """(display(reference), display(level), FLIP map of the frame) for each level, in turn
+    (one level in memory at a time)."""
     ref_t = _display(np.asarray(ref), exposure)
     ref_d = np.ascontiguousarray(ref_t.numpy(), dtype=np.float32)
-    rows = []
     for k, lev in enumerate(levels_rgb):
         lev = np.asarray(lev)
         if lev.shape != ref.shape:
             raise ValueError(f"level {k} has shape {lev.shape}, the reference {ref.shape}")
         lev_t = _display(lev, exposure)
-        emap = flip_map(ref_d, np.ascontiguousarray(lev_t.numpy(), dtype=np.float32), ppd)
-        rows.append([*(pool_blocks(emap, g, p) for p in FLIP_POOLINGS), _block_dots(ref_t, lev_t, g)])
-    if not rows:
-        raise ValueError("no levels given")
-    return np.asarray(rows, np.float64).transpose(1, 0, 2)
+        yield ref_t, lev_t, flip_map(ref_d, np.ascontiguousarray(lev_t.numpy(), dtype=np.float32), ppd)
 
 
 def _block_dots(ref_display: torch.Tensor, level_display: torch.Tensor, grid: Sequence[int]) -> np.ndarray:
@@ -143,6 +149,49 @@ def _block_dots(ref_display: torch.Tensor, level_display: torch.Tensor, grid: Se
     err = display_error(level_display, ref_display)
     bh, bw = err.shape[0] // gh, err.shape[1] // gw
     return rank_pool(err.reshape(gh, bh, gw, bw).permute(0, 2, 1, 3).reshape(gh * gw, bh, bw)).numpy()
+
+
+def tile_terms(reference_rgb: np.ndarray, levels_rgb: np.ndarray | Iterable[np.ndarray],
+               grid: Sequence[int] = (4, 4), tile: int = TILE, ppd: float = DEFAULT_PPD,
+               exposure: float = 0.0) -> np.ndarray:
+    """The observer's terms per tile (issue 41), float64 [2, K, n_blocks * T]: for each
+    block's tiles (`noisefeat.pooling.tile_windows`, block-major, as the renderer numbers
+    its units), the mean of the frame's FLIP map over the tile and the tile's dot term (at
+    most one outlier pixel in a 16x16 tile). `tile_errors` combines them."""
+    ref = np.asarray(reference_rgb)
+    if ref.ndim != 3 or ref.shape[2] != 3:
+        raise ValueError(f"reference must be linear RGB [H, W, 3], got shape {ref.shape}")
+    bh, bw = block_shape(ref.shape[0], ref.shape[1], grid)
+    gh, gw = int(grid[0]), int(grid[1])
+    windows = tile_windows(bh, bw, tile)
+
+    def blocks(m: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
+        return m.reshape(gh, bh, gw, bw).transpose(1, 2).reshape(gh * gw, bh, bw) if isinstance(m, torch.Tensor) \
+            else m.reshape(gh, bh, gw, bw).transpose(0, 2, 1, 3).reshape(gh * gw, bh, bw)
+    rows = []
+    for ref_t, lev_t, frame_map in _level_maps(ref, levels_rgb, ppd, exposure):
+        emap = blocks(frame_map.astype(np.float64))
+        derr = blocks(display_error(lev_t, ref_t))
+        flip_mean = np.stack([emap[:, y:y + h, x:x + w].mean(axis=(1, 2)) for x, y, w, h in windows], axis=1)
+        dots = torch.stack([rank_pool(derr[:, y:y + h, x:x + w]) for x, y, w, h in windows], dim=1).numpy()
+        rows.append([flip_mean.reshape(-1), dots.reshape(-1)])
+    if not rows:
+        raise ValueError("no levels given")
+    return np.asarray(rows, np.float64).transpose(1, 0, 2)
+
+
+def tile_errors(terms: np.ndarray) -> np.ndarray:
+    """e [K, n_tiles] from `tile_terms`: the larger of the tile's FLIP mean and its dot term
+    (version 3 at the tile's grain; NaN stays NaN)."""
+    return np.maximum(terms[0], terms[1])
+
+
+def stack_tile_errors(stack: Stack, tile: int = TILE, ppd: float = DEFAULT_PPD, exposure: float = 0.0) -> np.ndarray:
+    """e [K, n_tiles] of a stack (cached next to it, so relabelling at another tau costs no FLIP)."""
+    n = stack.n_blocks * len(tile_windows(stack.block[0], stack.block[1], tile))
+    terms = cached_array(stack, f"observer-tiles{tile}-e{exposure:g}-ppd{ppd:g}-l{DOT_LEVEL:g}", (2, stack.n_levels, n),
+                         lambda: tile_terms(stack.reference(), stack.iter_levels(), stack.grid, tile, ppd, exposure))
+    return tile_errors(terms)
 
 
 def poolings(terms: np.ndarray) -> np.ndarray:
@@ -249,6 +298,11 @@ class VirtualObserver:
     def label_stack(self, stack: Stack) -> list[int | None]:
         return thresholds_from_errors(self.stack_errors(stack), stack.spp, self.tau)
 
+    def label_tiles(self, stack: Stack, tile: int = TILE) -> list[int | None]:
+        """The tile truth: each tile converged from the first level at which its FLIP mean is
+        at most tau with at most one outlier pixel, at that level and every later one."""
+        return thresholds_from_errors(stack_tile_errors(stack, tile, self.ppd, self.exposure), stack.spp, self.tau)
+
 
 def check_tau(tau: object) -> float:
     """tau as a positive finite float, else ValueError (a noise target of 0 is never met)."""
@@ -344,7 +398,19 @@ def observed(stack: Stack, tau: float | None = DEFAULT_TAU, pooling: str = DEFAU
     obs = observer_for(stack, tau, pooling)
     if labeler_matches(stack.labeler, obs):
         return stack
-    return dataclasses.replace(stack, thresholds=obs.label_stack(stack), labeler=obs.labeler)
+    return dataclasses.replace(stack, thresholds=obs.label_stack(stack), labeler=obs.labeler, tile=None,
+                               tile_thresholds=None)
+
+
+def with_tile_truth(stack: Stack, tile: int = TILE) -> Stack:
+    """The stack with its tile truth (issue 41) by the observer of its labels: as stored when
+    meta.json holds it for this observer and tile, else computed (cached per stack)."""
+    if stack.tile == tile and stack.tile_thresholds is not None:
+        return stack
+    if not is_virtual(stack.labeler):
+        raise ValueError(f"{stack.path}: labels of labeler {(stack.labeler or {}).get('name')!r} have no tile "
+                         "truth (only the virtual observer's can be computed)")
+    return dataclasses.replace(stack, tile=tile, tile_thresholds=observer_for(stack).label_tiles(stack, tile))
 
 
 def read_observed(root: str, tau: float | None = DEFAULT_TAU, pooling: str = DEFAULT_POOLING) -> list[Stack]:
@@ -363,6 +429,6 @@ def relabel_if_stale(stack: Stack, pooling: str = DEFAULT_POOLING,
     if not is_virtual(stack.labeler):
         return stack, False
     obs = observer_for(stack, tau, pooling)
-    if labeler_matches(stack.labeler, obs):
+    if labeler_matches(stack.labeler, obs) and stack.tile == TILE and stack.tile_thresholds is not None:
         return stack, False
-    return update_labels(stack, obs.label_stack(stack), obs.labeler), True
+    return update_labels(stack, obs.label_stack(stack), obs.labeler, TILE, obs.label_tiles(stack)), True

@@ -47,7 +47,7 @@ from noisefeat.safeio import open_input, read_input, read_text
 
 from noisefeat import split_blocks
 from noisefeat.atomic import atomic_write
-from noisefeat.pooling import MEAN, POOLINGS
+from noisefeat.pooling import MEAN, POOLINGS, tile_windows
 
 from .exr import read_exr
 
@@ -68,7 +68,7 @@ MID_GREY_LINEAR = 0.21404114
 
 REQUIRED_KEYS = ("format", "version", "scene", "width", "height", "grid", "block", "spp",
                  "reference_spp", "quick", "renderer")
-OPTIONAL_KEYS = ("labeler", "thresholds")
+OPTIONAL_KEYS = ("labeler", "thresholds", "tile", "tile_thresholds")
 KNOWN_KEYS = REQUIRED_KEYS + OPTIONAL_KEYS
 
 
@@ -180,6 +180,28 @@ def validate_meta(meta: Any) -> list[str]:
             if bad:
                 errs.append("thresholds must be positive integers (spp) or null; bad: "
                             + ", ".join(f"block {i}: {t!r}" for i, t in bad[:5]))
+    errs += _tile_errors(meta)
+    return errs
+
+
+def _tile_errors(meta: Mapping) -> list[str]:
+    """The tile truth's keys (issue 41): `tile` (pixels) and `tile_thresholds`, one per tile
+    of every block (`noisefeat.pooling.tile_windows`, block-major), given together."""
+    tile, th = meta.get("tile"), meta.get("tile_thresholds")
+    if tile is None and th is None:
+        return []
+    if not is_pos_int(tile) or not isinstance(th, list):
+        return [f"tile (a positive integer) and tile_thresholds (a list) go together, got {tile!r} and "
+                f"{type(th).__name__}"]
+    errs = []
+    if _pair(meta.get("grid")) and _pair(meta.get("block")):
+        n = meta["grid"][0] * meta["grid"][1] * len(tile_windows(meta["block"][0], meta["block"][1], tile))
+        if len(th) != n:
+            errs.append(f"tile_thresholds has {len(th)} entries, the blocks' {tile}-pixel tiles are {n}")
+    bad = [(i, t) for i, t in enumerate(th) if t is not None and not is_pos_int(t)]
+    if bad:
+        errs.append("tile_thresholds must be positive integers (spp) or null; bad: "
+                    + ", ".join(f"tile {i}: {t!r}" for i, t in bad[:5]))
     return errs
 
 
@@ -202,6 +224,10 @@ class Stack:
     thresholds: list[int | None] | None
     path: Path
     extras: dict = field(default_factory=dict)
+    #: the tile truth (issue 41): the side of the tiles each block is cut into, and each
+    #: tile's threshold (block-major, `noisefeat.pooling.tile_windows`), or None
+    tile: int | None = None
+    tile_thresholds: list[int | None] | None = None
 
     @property
     def n_levels(self) -> int:
@@ -339,10 +365,13 @@ class Stack:
         """int8 [K, n_blocks]: +1 iff threshold not null and spp[k] >= T_b, else -1."""
         if self.thresholds is None:
             raise ValueError(f"{self.path / META}: stack has no thresholds (not labelled)")
-        spp = np.asarray(self.spp, np.int64)[:, None]
-        never = np.iinfo(np.int64).max
-        t = np.array([never if v is None else v for v in self.thresholds], np.int64)[None, :]
-        return np.where(spp >= t, 1, -1).astype(np.int8)
+        return _labels(self.spp, self.thresholds)
+
+    def tile_labels(self) -> np.ndarray:
+        """int8 [K, n_tiles]: the tile truth's labels, as `labels` are the blocks'."""
+        if self.tile_thresholds is None:
+            raise ValueError(f"{self.path / META}: stack has no tile thresholds (dataset relabel writes them)")
+        return _labels(self.spp, self.tile_thresholds)
 
     def meta(self) -> dict:
         """The meta.json dict of this stack."""
@@ -352,6 +381,8 @@ class Stack:
                "reference_spp": self.reference_spp, "quick": self.quick_description,
                "renderer": self.renderer, "labeler": self.labeler,
                "thresholds": None if self.thresholds is None else list(self.thresholds)}
+        if self.tile_thresholds is not None:
+            out.update(tile=self.tile, tile_thresholds=list(self.tile_thresholds))
         out.update(self.extras)
         return out
 
@@ -467,17 +498,33 @@ def from_meta(meta: Mapping, d: Path) -> Stack:
                  reference_spp=meta["reference_spp"], quick_description=meta["quick"],
                  renderer=meta["renderer"], labeler=meta.get("labeler"),
                  thresholds=None if th is None else list(th), path=d,
-                 extras={k: v for k, v in meta.items() if k not in KNOWN_KEYS})
+                 extras={k: v for k, v in meta.items() if k not in KNOWN_KEYS}, tile=meta.get("tile"),
+                 tile_thresholds=None if meta.get("tile_thresholds") is None else list(meta["tile_thresholds"]))
+
+
+def _labels(spp: Sequence[int], thresholds: Sequence[int | None]) -> np.ndarray:
+    """int8 [K, n]: +1 iff a threshold is not null and spp[k] >= it, else -1."""
+    s = np.asarray(spp, np.int64)[:, None]
+    never = np.iinfo(np.int64).max
+    t = np.array([never if v is None else v for v in thresholds], np.int64)[None, :]
+    return np.where(s >= t, 1, -1).astype(np.int8)
 
 
 def update_labels(stack: Stack | str | os.PathLike, thresholds: Sequence[int | None] | None,
-                  labeler: Mapping | None) -> Stack:
-    """Replace a complete stack's thresholds/labeler (e.g. relabel with another tau)."""
+                  labeler: Mapping | None, tile: int | None = None,
+                  tile_thresholds: Sequence[int | None] | None = None) -> Stack:
+    """Replace a complete stack's thresholds/labeler (e.g. relabel with another tau), and
+    with `tile` its tile truth (else the tile truth is dropped: it was the old labeler's)."""
     st = stack if isinstance(stack, Stack) else read_stack(stack)
     meta = st.meta()
     meta["thresholds"] = None if thresholds is None else [None if t is None else int(t)
                                                           for t in thresholds]
     meta["labeler"] = None if labeler is None else dict(labeler)
+    meta.pop("tile", None)
+    meta.pop("tile_thresholds", None)
+    if tile is not None:
+        meta["tile"] = int(tile)
+        meta["tile_thresholds"] = [None if t is None else int(t) for t in tile_thresholds or []]
     errs = validate_meta(meta)
     if errs:
         raise ValueError(f"{st.path / META}: refusing to write: " + "; ".join(errs))

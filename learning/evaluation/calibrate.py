@@ -21,9 +21,9 @@ from tqdm import tqdm
 from noisefeat.dots import OBSERVER_DOTS
 from noisefeat.pooling import CRITERION_POOLING, DEFAULT_POOLING
 
-from ..data.observer import DEFAULT_TAU, label_tau, observed
+from ..data.observer import DEFAULT_TAU, label_tau, observed, with_tile_truth
 from ..data.stack import Stack
-from ..inputs.halves import flip_offset, guarded_flip_scores
+from ..inputs.halves import flip_offset, guarded_flip_scores, guarded_tile_flip_scores
 from ..inputs.halves import stack_flat
 from ..inputs.table import SubImageTable
 from ..stoprule import StopRule
@@ -197,21 +197,29 @@ FLIP_CANDIDATES = tuple(float(f"{c:.5g}") for c in np.geomspace(0.004, 0.4, 311)
 
 def flip_sweep(stacks: Sequence[Stack], candidates: Sequence[float] = FLIP_CANDIDATES, *,
                min_spp: int | None = None, progress: bool = False,
-               pooling: str = CRITERION_POOLING) -> list[dict[str, Any]]:
+               pooling: str = CRITERION_POOLING, tile: int | None = None) -> list[dict[str, Any]]:
     """Metrics of the flip criterion at each c (overall, per scene, per group), through the
-    one stop rule (min spp, held stops, flat blocks at once), on labelled `stacks`."""
+    one stop rule (min spp, held stops, flat units at once), on labelled `stacks`: per
+    block, or with `tile` per tile against the tile truth (issue 41)."""
     if not stacks:
         raise ValueError("no stacks to sweep c on")
     unlabelled = [str(s.path) for s in stacks if s.thresholds is None]
     if unlabelled:
         raise ValueError(f"stacks without thresholds cannot be scored: {', '.join(unlabelled[:3])}")
-    scores = {s.scene: guarded_flip_scores(s, progress=progress, pooling=pooling) for s in stacks}
-    flats = {s.scene: stack_flat(s) for s in stacks}
+    if tile is None:
+        scores = {s.scene: guarded_flip_scores(s, progress=progress, pooling=pooling) for s in stacks}
+        flats = {s.scene: stack_flat(s) for s in stacks}
+        truth = {s.scene: (s.labels(), s.thresholds) for s in stacks}
+    else:
+        stacks = [with_tile_truth(s, tile) for s in stacks]
+        both = {s.scene: guarded_tile_flip_scores(s, tile, progress=progress) for s in stacks}
+        scores, flats = {k: v[0] for k, v in both.items()}, {k: v[1] for k, v in both.items()}
+        truth = {s.scene: (s.tile_labels(), s.tile_thresholds) for s in stacks}
     groups = scene_groups(stacks)
     curve = []
     for c in sorted(candidates):
         rule = StopRule(flip_offset(c), min_spp)
-        per = {s.scene: (rule.stops(scores[s.scene], s.spp, flats[s.scene]), s.labels(), s.thresholds, s.spp)
+        per = {s.scene: (rule.stops(scores[s.scene], s.spp, flats[s.scene]), *truth[s.scene], s.spp)
                for s in stacks}
         curve.append({"threshold": float(c), **evaluate_verdicts(per, groups)})
     return curve
@@ -219,11 +227,12 @@ def flip_sweep(stacks: Sequence[Stack], candidates: Sequence[float] = FLIP_CANDI
 
 def calibrate_flip(stacks: Sequence[Stack], max_early_stop: float = 0.05, *, min_spp: int | None = None,
                    candidates: Sequence[float] = FLIP_CANDIDATES, progress: bool = True,
-                   pooling: str = CRITERION_POOLING) -> dict[str, Any]:
+                   pooling: str = CRITERION_POOLING, tile: int | None = None) -> dict[str, Any]:
     """c for the `flip` criterion on labelled `stacks` (training scenes, never the held-out
     ones): the largest c (fewest samples) whose early-stop rate stays within
-    `max_early_stop` on scenes it was not chosen on (`choose_out_of_fold`)."""
-    curve = flip_sweep(stacks, candidates, min_spp=min_spp, progress=progress, pooling=pooling)
+    `max_early_stop` on scenes it was not chosen on (`choose_out_of_fold`); per block, or
+    per tile of `tile` pixels against the tile truth."""
+    curve = flip_sweep(stacks, candidates, min_spp=min_spp, progress=progress, pooling=pooling, tile=tile)
     chosen = choose_out_of_fold(curve, max_early_stop, larger_is_safer=False)
     return {"c": chosen["threshold"], "target_early_stop_rate": max_early_stop, "chosen": _record(chosen),
             "per_scene": {s: {k: v for k, v in m.items() if k != "counts"} for s, m in chosen["per_scene"].items()},
@@ -234,7 +243,7 @@ def calibrate_flip(stacks: Sequence[Stack], max_early_stop: float = 0.05, *, min
 def calibrate_flip_curve(stacks: Sequence[Stack], max_early_stop: float = 0.05, *,
                          taus: Sequence[float] = CURVE_TAUS, min_spp: int | None = None,
                          candidates: Sequence[float] = FLIP_CANDIDATES, progress: bool = True,
-                         pooling: str = CRITERION_POOLING) -> dict[str, Any]:
+                         pooling: str = CRITERION_POOLING, tile: int | None = None) -> dict[str, Any]:
     """The curve c(tau) for the `flip` criterion: at each noise target tau, the stacks are
     labelled by the observer at that tau (`observed`: relabelled from cached errors, never
     re-rendered) and c is chosen out of fold for `max_early_stop` (`calibrate_flip`).
@@ -247,13 +256,14 @@ def calibrate_flip_curve(stacks: Sequence[Stack], max_early_stop: float = 0.05, 
     for tau in tqdm(sorted(taus), desc="c(tau)", disable=not progress, leave=False):
         labelled = [observed(s, tau) for s in stacks]          # DESIGN's observer at this tau
         cal = calibrate_flip(labelled, max_early_stop, min_spp=min_spp, candidates=candidates,
-                             progress=False, pooling=pooling)
+                             progress=False, pooling=pooling, tile=tile)
         raw.append(cal["c"])
         points.append({"tau": float(tau), "c": max(raw), "c_raw": cal["c"], "chosen": cal["chosen"],
                        "internal_target": cal["chosen"].get("internal_target"),
                        "per_scene": cal["per_scene"] if abs(tau - DEFAULT_TAU) < 1e-12 else None})
     at_default = [p for p in points if abs(p["tau"] - DEFAULT_TAU) < 1e-12]
     return {"format": "noisestop-flip-curve", "pooling": pooling, "observer_pooling": DEFAULT_POOLING,
+            "unit": "block" if tile is None else f"tile{tile}",
             "observer_dots": OBSERVER_DOTS,
             "target_early_stop_rate": max_early_stop,
             "curve": [{k: v for k, v in p.items() if v is not None} for p in points],

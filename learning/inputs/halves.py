@@ -32,8 +32,8 @@ from tqdm import tqdm
 from noisefeat.safeio import InputFileError, read_json
 from noisefeat.display import check_exposure
 from noisefeat.dots import DOT_DENSITY, DOT_LEVEL, OBSERVER_DOTS, halves_dots
-from noisefeat.flip import flip_halves
-from noisefeat.pooling import CRITERION_POOLING, DEFAULT_POOLING, pool_maps
+from noisefeat.flip import flip_halves, flip_maps_tensor, pool_tensor
+from noisefeat.pooling import CRITERION_POOLING, DEFAULT_POOLING, pool_maps, tile_windows
 from noisefeat.userdata import find as find_user_file
 
 from ..data.accumulator import BlockAccumulator
@@ -201,6 +201,45 @@ def guarded_flip_scores(stack: Stack, exposure: float = 0.0, progress: bool = Fa
                       stack_halves_dots(stack, exposure, progress), label_tau(stack))
 
 
+# ----------------------------------------------------------------------------- at tile grain
+
+
+def stack_tile_terms(stack: Stack, tile: int, exposure: float = 0.0, ppd: float = DEFAULT_PPD,
+                     progress: bool = False, pooling: str = CRITERION_POOLING) -> np.ndarray:
+    """float64 [3, K, n_tiles]: the flip criterion's terms per tile (issue 41), as the live
+    loop makes them at tile grain: the FLIP map between the halves of each whole block (its
+    tiles' neighbours are context) pooled over the tile; the tile's dot term; whether the
+    tile is flat (1.0) in the level's image. Tiles block-major (`noisefeat.pooling.
+    tile_windows`); level 0 NaN (B empty) but for the flat test. Cached next to the stack."""
+    windows = tile_windows(stack.block[0], stack.block[1], tile)
+    shape = (3, stack.n_levels, stack.n_blocks * len(windows))
+
+    def per_tile(x: torch.Tensor, fn: Any) -> np.ndarray:
+        return torch.stack([fn(x[:, y:y + h, x0:x0 + w]) for x0, y, w, h in windows], dim=1).reshape(-1).numpy()
+
+    def compute() -> np.ndarray:
+        out = np.full(shape, np.nan)
+        for k in range(stack.n_levels):
+            out[2, k] = per_tile(torch.as_tensor(stack.blocks(k), dtype=torch.float64),
+                                 lambda t: torch.as_tensor(flat_blocks(t, exposure)).to(torch.float64))
+        for k, even, odd in iter_stack_halves(stack, progress):
+            a, b = torch.as_tensor(even), torch.as_tensor(odd)
+            maps = flip_maps_tensor(a, b, exposure, ppd)
+            out[0, k] = per_tile(maps, lambda m: pool_tensor(m, pooling))
+            out[1, k] = torch.stack([halves_dots(a[:, y:y + h, x0:x0 + w], b[:, y:y + h, x0:x0 + w], exposure)
+                                     for x0, y, w, h in windows], dim=1).reshape(-1).numpy()
+        return out
+    return cached_array(stack, f"tile{tile}-flip-{pooling}-e{exposure:g}-ppd{ppd:g}-l{DOT_LEVEL:g}", shape, compute)
+
+
+def guarded_tile_flip_scores(stack: Stack, tile: int, exposure: float = 0.0,
+                             progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(scores [K, n_tiles], flat [K, n_tiles]) of the flip criterion at tile grain: -e, NaN
+    where the tile's dot guard holds it at the stack's tau; flat where the tile is."""
+    terms = stack_tile_terms(stack, tile, exposure, progress=progress)
+    return guard_dots(-terms[0], terms[1], label_tau(stack)), terms[2] > 0.5
+
+
 # ----------------------------------------------------------------------------- the shipped c
 
 
@@ -227,18 +266,43 @@ def load_flip_calibration(path: str | os.PathLike | None = None) -> dict[str, An
             raise ValueError(f"c(tau) was calibrated against the observer pooling {cal.get('observer_pooling')!r} "
                              f"(dots {cal.get('observer_dots')}), this noisestop's observer is {DEFAULT_POOLING!r} "
                              f"(version 3, dots {OBSERVER_DOTS}); recalibrate with `noisestop calibrate`")
-        taus = [float(r["tau"]) for r in curve]
-        if not all(t > 0 for t in taus):
-            raise ValueError(f"taus must be positive, got {[t for t in taus if not t > 0][:3]}")
-        for r in curve:
-            flip_offset(float(r["c"]))
+        tiles = cal.get("tiles") or {}
+        if not isinstance(tiles, dict):
+            raise ValueError(f"tiles must be an object of curves by tile size, got {type(tiles).__name__}")
+        for part in (cal, *tiles.values()):          # the block curve, and one per tile size
+            _check_curve(part["curve"] if isinstance(part, dict) else None)
     except InputFileError as exc:            # one line naming the file, as the others
         raise InputFileError(f"{p}: unreadable flip calibration ({str(exc).split(': ', 1)[-1]})") from None
     except (ValueError, KeyError, TypeError, OverflowError) as exc:
         raise ValueError(f"{p}: unreadable flip calibration ({exc})") from None
-    if not taus or any(b <= a for a, b in zip(taus, taus[1:])) or not all(np.isfinite(taus)):
-        raise ValueError(f"{p}: unreadable flip calibration (taus must be finite and increasing, got {taus[:6]})")
     return {**cal, "source": str(p)}
+
+
+def _check_curve(curve: Any) -> None:
+    """A c(tau) curve: points of finite, increasing, positive tau and non-negative c."""
+    if not isinstance(curve, list):
+        raise ValueError(f"a curve must be a list of points, got {type(curve).__name__}")
+    taus = [float(r["tau"]) for r in curve]
+    if not all(t > 0 for t in taus):
+        raise ValueError(f"taus must be positive, got {[t for t in taus if not t > 0][:3]}")
+    for r in curve:
+        flip_offset(float(r["c"]))
+    if not taus or any(b <= a for a, b in zip(taus, taus[1:])) or not all(np.isfinite(taus)):
+        raise ValueError(f"taus must be finite and increasing, got {taus[:6]}")
+
+
+def unit_calibration(cal: dict[str, Any], tile: int | None) -> dict[str, Any]:
+    """The part of a calibration for one grain: the block curve, or with `tile` the curve
+    calibrated per tile against the tile truth (``tiles`` in flip.json, issue 41); a file
+    without it gives the block curve, with a warning (`noisestop calibrate` makes both)."""
+    if tile is None:
+        return {**cal, "unit": cal.get("unit", "block")}
+    part = (cal.get("tiles") or {}).get(str(int(tile)))
+    if not isinstance(part, dict) or not isinstance(part.get("curve"), list):
+        log.warning("%s has no c(tau) for %d-pixel tiles: the block curve is used (recalibrate with "
+                    "`noisestop calibrate`)", cal.get("source", "flip.json"), tile)
+        return {**cal, "unit": "block"}
+    return {**part, "source": cal.get("source"), "unit": f"tile{int(tile)}"}
 
 
 def flip_tau_range(cal: dict[str, Any]) -> tuple[float, float] | None:

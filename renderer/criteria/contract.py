@@ -72,23 +72,27 @@ class BlockBatch:
     computed on first use (a criterion that does not read them costs nothing); `spp`
     int64 [k], `half_spp` int64 [k, 2] and `nonfinite` int64 [k] are host arrays; `quick`
     is what the criterion's `prepare` made of the quick image's blocks [k, ...] (the
-    blocks themselves unless it prepares them), or None.
+    blocks themselves unless it prepares them), or None. `tiling` (the renderer's
+    `BlockWindows`, when the units are tiles of blocks): `block_halves` puts the asked
+    tiles' blocks back together, for a criterion that judges a tile in its context.
     """
 
     def __init__(self, spp: np.ndarray, *, mean: Any = None, halves: Any = None,
                  half_spp: np.ndarray | None = None, nonfinite: Any = None, quick: np.ndarray | None = None,
-                 source: Any = None) -> None:
+                 source: Any = None, tiling: Any = None) -> None:
         self.spp = np.asarray(spp, np.int64).reshape(-1)
+        self.tiling = tiling
         self.half_spp = None if half_spp is None else np.asarray(half_spp, np.int64).reshape(-1, 2)
         self.quick = quick
         self._mean, self._halves, self._nonfinite, self._source = mean, halves, nonfinite, source
 
     @classmethod
-    def from_accumulator(cls, acc: Any, ids: Sequence[int], quick: np.ndarray | None = None) -> BlockBatch:
-        """The blocks `ids` of a `BlockAccumulator`, read lazily from its device tensors."""
+    def from_accumulator(cls, acc: Any, ids: Sequence[int], quick: np.ndarray | None = None,
+                         tiling: Any = None) -> BlockBatch:
+        """The units `ids` of a `BlockAccumulator`, read lazily from its device tensors."""
         ids_a = np.asarray(ids, np.int64)
         return cls(acc.spp_all()[ids_a], half_spp=acc.half_spp_all()[ids_a],
-                   quick=None if quick is None else quick[ids_a], source=(acc, ids_a))
+                   quick=None if quick is None else quick[ids_a], source=(acc, ids_a), tiling=tiling)
 
     @classmethod
     def from_views(cls, views: Sequence[BlockView]) -> BlockBatch:
@@ -124,6 +128,18 @@ class BlockBatch:
             acc, ids = self._source
             self._halves = acc.halves(ids)
         return self._halves
+
+    def block_halves(self, among: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
+        """(A, B, row, slot): the half buffers of the blocks the batch's tiles `among` lie in,
+        each block window put together from all its tiles (stopped ones as they stopped),
+        [kb, bh, bw, C] on the device; tile among[i] is tile `slot[i]` of block `row[i]`."""
+        acc, ids = self._source
+        ids = ids[among]
+        t = self.tiling.tiles_per_block
+        blocks, row = np.unique(ids // t, return_inverse=True)
+        a, b = acc.halves((blocks[:, None] * t + np.arange(t)).reshape(-1))
+        shape = (len(blocks), t, *a.shape[1:])
+        return self.tiling.assemble(a.reshape(shape)), self.tiling.assemble(b.reshape(shape)), row, ids % t
 
     @property
     def nonfinite(self) -> np.ndarray:
@@ -167,10 +183,13 @@ class Criterion(ABC):
 
     `needs_quick` / `needs_halves` tell the caller what the batches must carry, so the
     quick image is rendered (and half buffers recovered) only when some criterion uses
-    them; `quick_kind` says which quick image ('albedo' or 'direct').
+    them; `quick_kind` says which quick image ('albedo' or 'direct'). `per_tile`: whether it
+    judges the tiles of blocks (the render spec gives the others whole blocks).
     """
 
     name: str = "criterion"
+    #: judges tiles as well as blocks (DESIGN "Decision grain"); else whole blocks only
+    per_tile: bool = True
     needs_quick: bool = False
     quick_kind: str = "albedo"
     needs_halves: bool = False

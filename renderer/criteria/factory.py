@@ -27,7 +27,7 @@ def make_criterion(spec: Any, thresholds: Sequence[int | None] | None = None) ->
     if kind == "flip":
         from .flip import FlipCriterion
 
-        return FlipCriterion(spec.threshold, exposure=spec.exposure, tau=spec.tau)
+        return FlipCriterion(spec.threshold, exposure=spec.exposure, tau=spec.tau, tile=spec.tile_grain())
     if kind == "oracle":
         from .oracle import OracleCriterion
 

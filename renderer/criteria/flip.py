@@ -33,13 +33,17 @@ class FlipCriterion(Criterion):
     name = "flip"
     needs_halves = True
 
-    def __init__(self, c: float | None = None, exposure: float = 0.0, tau: float = DEFAULT_TAU) -> None:
-        from learning.inputs.halves import flip_c, flip_offset, load_flip_calibration
+    def __init__(self, c: float | None = None, exposure: float = 0.0, tau: float = DEFAULT_TAU,
+                 tile: int | None = None) -> None:
+        from learning.inputs.halves import flip_c, flip_offset, load_flip_calibration, unit_calibration
 
         self.tau, exposure = ROW["tau"].check(tau), ROW["exposure"].check(exposure)   # their rows' checks
+        #: the grain c(tau) is taken at: "block", or "tile16" when blocks are cut into tiles
+        self.unit = "block" if tile is None else f"tile{int(tile)}"
         if c is None:
-            cal = load_flip_calibration()
+            cal = unit_calibration(load_flip_calibration(), tile)
             self.c, self.source = flip_c(cal, self.tau), str(cal.get("source", "learning/flip.json"))
+            self.unit = str(cal.get("unit", "block"))
         else:
             self.c, self.source = ROW["threshold"].check(c), "argument"
         self.rule = StopRule(flip_offset(self.c))
@@ -47,18 +51,34 @@ class FlipCriterion(Criterion):
 
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "threshold": self.c, "tau": self.tau, "pooling": CRITERION_POOLING,
-                "source": self.source}
+                "source": self.source, "unit": self.unit}
+
+    def _flip(self, batch: BlockBatch, ask: np.ndarray) -> np.ndarray:
+        """e of the asked units: of a block, its pooled FLIP between the halves; of a tile,
+        the FLIP map of its whole block (its neighbours are context) pooled over the tile."""
+        from noisefeat.flip import flip_halves_tensor, flip_maps_tensor, pool_tensor
+
+        if batch.tiling is None:
+            a, b = batch.halves     # type: ignore[misc]
+            sel = torch.from_numpy(ask).to(a.device)
+            return flip_halves_tensor(a[sel], b[sel], self.exposure, pooling=CRITERION_POOLING).cpu().numpy()
+        a, b, row, slot = batch.block_halves(ask)
+        maps = flip_maps_tensor(a, b, self.exposure)
+        e = np.zeros(len(ask))
+        windows = batch.tiling.tile_windows()
+        for s in np.unique(slot).tolist():
+            rows = np.flatnonzero(slot == s)
+            dx, dy, tw, th = windows[s]
+            part = maps[torch.from_numpy(row[rows]).to(maps.device), dy:dy + th, dx:dx + tw]
+            e[rows] = pool_tensor(part, CRITERION_POOLING).cpu().numpy()
+        return e
 
     def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
-        from noisefeat.flip import flip_halves_tensor
-
         flat = self._flat(batch, self.exposure, tally)
         ask = self._ready(batch, flat)
         score = np.full(len(ids), np.nan)
         if ask.size:
-            a, b = batch.halves     # type: ignore[misc]
-            sel = torch.from_numpy(ask).to(a.device)
-            score[ask] = -flip_halves_tensor(a[sel], b[sel], self.exposure, pooling=CRITERION_POOLING).cpu().numpy()
+            score[ask] = -self._flip(batch, ask)
             tally.add("blocks_featured", int(ask.size))
         dots = self._dots(batch, ask, self.exposure, self.tau, tally)
         with np.errstate(invalid="ignore"):

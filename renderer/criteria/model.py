@@ -120,6 +120,7 @@ class ModelCriterion(Criterion):
     """
 
     name = "model"
+    per_tile = False            # the paper's block is its unit
 
     def __init__(self, model: ScoresBlocks, exposure: float = 0.0, offset: float | None = None,
                  tau: float | None = None) -> None:

@@ -19,6 +19,7 @@ class OracleCriterion(Criterion):
     """
 
     name = "oracle"
+    per_tile = False            # its thresholds are per block
 
     def __init__(self, thresholds: Sequence[int | None]) -> None:
         th = list(thresholds)

@@ -61,6 +61,7 @@ seed = ROW["seed"].parse
 offset = ROW["offset"].parse
 exposure = ROW["exposure"].parse
 threshold = ROW["threshold"].parse
+tile = ROW["tile"].parse
 #: the noise target: any positive FLIP value up to 1 parses; the criterion then checks it
 #: against the range its calibration covers (flip's c(tau), a model's offsets by tau)
 tau = ROW["tau"].parse

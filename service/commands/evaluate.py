@@ -25,6 +25,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "observer at this tau")
     p.add_argument("--min-spp", type=arg.spp, default=None,
                    help="no decision below this many spp (default: from the first level)")
+    p.add_argument("--tile", type=arg.tile, default=None, metavar="PX",
+                   help="rule criteria: decide per tile of PX pixels and score against the tile truth, with "
+                        "the same figures per block beside them (default: whole blocks)")
     p.add_argument("--scenes", default=None,
                    help="comma-separated scenes to evaluate (default: those the model was not trained on)")
     p.add_argument("--plots", default="out/evaluate", help="directory for the plots")
@@ -44,7 +47,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.criterion != "model":
         from renderer.simulate import evaluate_criterion_cli
         result = evaluate_criterion_cli(args.data, args.criterion, arg.scene_list(args.scenes),
-                                        min_spp=args.min_spp, threshold=args.threshold, tau=args.tau)
+                                        min_spp=args.min_spp, threshold=args.threshold, tau=args.tau,
+                                        tile=args.tile)
         result["threshold"] = result["criterion"].get("threshold")
     else:
         model = load_model(args.model)

@@ -15,6 +15,8 @@ from noisefeat.atomic import atomic_write
 from noisefeat.userdata import UPDATE_PACKAGE, user_file
 from learning.names import DEFAULT_INPUT, DEFAULT_TAU, MODEL_KINDS, QUICK_MODES, TRANSFER_INPUTS, TRANSFER_KINDS
 
+from renderer.spec import DEFAULT_TILE
+
 from ..console import UsageError, emit_json
 from . import arguments as arg
 
@@ -66,6 +68,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="largest early-stop rate accepted on the training scenes (default 0.05)")
     p.add_argument("--min-spp", type=arg.spp, default=None,
                    help="no decision below this many spp (default: from the first level)")
+    p.add_argument("--tile", type=arg.int_in(0, 4096), default=DEFAULT_TILE, metavar="PX",
+                   help=f"also calibrate c(tau) per tile of PX pixels against the tile truth (default "
+                        f"{DEFAULT_TILE}, the render's; 0: blocks only)")
     _destination(p, "calibration file to write (default: flip.json in the user data directory, which the "
                     "flip criterion then reads instead of the shipped one)", "learning/flip.json")
     p.add_argument("--json", action="store_true")
@@ -216,6 +221,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         raise UsageError(f"{args.data}: no stacks found")
     _refuse_heldout([s.scene for s in stacks], "calibrate")
     cal = calibrate_flip_curve(stacks, args.max_early_stop, min_spp=args.min_spp)
+    if args.tile:                # the same, per tile against the tile truth (the live loop's default grain)
+        part = calibrate_flip_curve(stacks, args.max_early_stop, min_spp=args.min_spp, tile=args.tile)
+        cal["tiles"] = {str(args.tile): {k: part[k] for k in ("unit", "curve", "c", "target_early_stop_rate")}}
     cal.update(criterion="flip", data=str(args.data), fingerprint=dataset_fingerprint(args.data),
                observer={"ppd": 67, "display": "clip+srgb", "pooling": cal["pooling"]},
                calibrated=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
@@ -227,10 +235,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             {k: p["chosen"][k] if k in p["chosen"] else p[k] for k in ("tau", "c", "early_stop_rate",
                                                                      "spp_ratio_vs_oracle")} for p in points]})
     else:
-        for p in points:
-            print(f"flip: tau {p['tau']:<7g} c = {p['c']:<8.5g} on {len(stacks)} training scenes: early stops "
-                  f"{p['chosen']['early_stop_rate']:.3f} (target {args.max_early_stop:g}), samples "
-                  f"{p['chosen']['spp_ratio_vs_oracle']:.3f} x oracle")
+        for unit, part in (("block", cal), *((f"tile{t}", c) for t, c in cal.get("tiles", {}).items())):
+            for p in part["curve"]:
+                print(f"flip per {unit}: tau {p['tau']:<7g} c = {p['c']:<8.5g} on {len(stacks)} training scenes: "
+                      f"early stops {p['chosen']['early_stop_rate']:.3f} (target {args.max_early_stop:g}), "
+                      f"samples {p['chosen']['spp_ratio_vs_oracle']:.3f} x oracle")
         print(f"wrote {out}")
     return 0
 

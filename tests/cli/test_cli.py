@@ -192,8 +192,12 @@ def test_dataset_relabel_rewrites_first_observer_labels_and_keeps_human_ones(tmp
     (data / "sky" / "meta.json").write_text(json.dumps(h))
     out = json.loads(run("dataset", "relabel", str(data), "--json").stdout)
     done = {r["scene"]: r["relabelled"] for r in out["stacks"]}
-    assert done == {"checker": False, "cornell": True, "cornell_dark": False, "sky": False}
+    # the fixture's current labels lacked the tile truth (issue 41): relabel writes it too
+    assert done == {"checker": True, "cornell": True, "cornell_dark": True, "sky": False}
     assert json.loads(meta.read_text())["labeler"]["pooling"] == "tile16-max+dots"
+    assert len(json.loads(meta.read_text())["tile_thresholds"]) == 16   # 16-px blocks: a tile each
+    again = json.loads(run("dataset", "relabel", str(data), "--json").stdout)
+    assert not any(r["relabelled"] for r in again["stacks"])         # now current: nothing to do
     out = run("dataset", "relabel", str(data), "--pooling", "mean")
     assert out.returncode == 0 and "3 of 4 stacks relabelled (mean)" in out.stdout
     m = json.loads(meta.read_text())

@@ -74,14 +74,20 @@ def test_flip_criterion_decisions():
     assert d.verdict.tolist() == [1, -1, 1, -1]          # one pass: no noise estimate yet, unless flat
     assert d.counts["flat_blocks"] == 1 and d.counts["blocks_featured"] == 2
     assert crit.describe() == {"name": "flip", "threshold": 0.02, "tau": 0.02, "pooling": "tile8-max",
-                               "source": "argument"}
+                               "source": "argument", "unit": "block"}
     with pytest.raises(ValueError, match="half buffers"):
         crit.decide([0], [BlockView(mean=quiet[0], spp=8)]).verdict
     def flip(**given):
-        return make_criterion(resolve({"criterion": "flip", **given}))
+        return make_criterion(resolve({"criterion": "flip", "tile": 64, **given}))      # whole 64-px blocks
 
     shipped = flip()
     assert isinstance(shipped, FlipCriterion) and shipped.c == flip_c(load_flip_calibration(), 0.02)
+    # per 16-px tile (the render's default): the curve calibrated against the tile truth
+    from learning.inputs.halves import unit_calibration
+
+    per_tile = make_criterion(resolve({"criterion": "flip"}))
+    assert per_tile.unit == "tile16" and per_tile.c == flip_c(unit_calibration(load_flip_calibration(), 16), 0.02)
+    assert per_tile.c < shipped.c
     assert flip(threshold=0.05).c == 0.05
     assert flip(tau=0.01).c < shipped.c < flip(tau=0.04).c
 

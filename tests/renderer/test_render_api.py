@@ -28,16 +28,16 @@ def flip_result():
 
 
 def assert_adaptive(res, max_spp: int) -> None:
-    """The arrays are the report's blocks (each block's window carries its spp and its
-    converged flag), and the render was adaptive: some block stopped before max_spp, where
-    a uniform render would have sampled every block to it."""
-    for b in res.report["blocks"]:
+    """The arrays are the report's units, its blocks' tiles (each tile's window carries its
+    spp and its converged flag), and the render was adaptive: some tile stopped before
+    max_spp, where a uniform render would have sampled every one to it."""
+    for b in res.report.get("tiles", res.report["blocks"]):
         x, y, w, h = b["window"]
         assert (res.spp[y:y + h, x:x + w] == b["spp"]).all(), b["id"]
         assert (res.converged[y:y + h, x:x + w] == b["converged"]).all(), b["id"]
         if b["converged"]:
             assert b["spp"] == b["stop_spp"] <= max_spp
-    spp = [b["spp"] for b in res.report["blocks"]]
+    spp = [b["spp"] for b in res.report.get("tiles", res.report["blocks"])]
     assert min(spp) < max_spp and len(set(spp)) > 1, spp
     saved = 1 - sum(spp) / (len(spp) * max_spp)
     assert saved > 0 and res.report["saved_vs_uniform"] == pytest.approx(saved)

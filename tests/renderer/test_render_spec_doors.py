@@ -2,8 +2,8 @@
 render` and the ``noisestop`` Mitsuba plugin. At its bounds a value resolves to the same
 spec value on every door; just past them, or of a wrong type, every door gives the same
 one-line error naming the setting (the text before ", got", which shows the value as that
-door received it). Each door runs its own code up to the one resolver; the criterion
-factory is replaced by a catch that stops the render there, so no scene is traced."""
+door received it). Each door runs its own code up to the one resolver, which is wrapped in
+a catch that stops the render there, so no scene is loaded or traced."""
 from __future__ import annotations
 
 import math
@@ -28,9 +28,12 @@ class Resolved(BaseException):
 
 @pytest.fixture
 def caught(monkeypatch):
-    def factory(spec: Any, thresholds: Any = None) -> Any:
-        raise Resolved(spec)
-    monkeypatch.setattr("renderer.criteria.make_criterion", factory)
+    import renderer.adaptive
+    from renderer.spec import resolve
+
+    def resolved(*args: Any, **kwargs: Any) -> Any:
+        raise Resolved(resolve(*args, **kwargs))
+    monkeypatch.setattr(renderer.adaptive, "resolve", resolved)
 
 
 #: per row: (values that resolve, values refused). A value is (API value, command-line
@@ -49,6 +52,7 @@ CASES: dict[str, tuple[list, list, dict]] = {
     "quantile": (*_num(1e-9, 1.0, 0.0, 1.5), {}),
     "exposure": (*_num(-64.0, 64.0, -64.5, 64.5), {}),
     "block": (*_num(8, 2048, 7, 2049), {}),
+    "tile": (*_num(8, MAX_SIDE, 7, MAX_SIDE + 1), {}),
     "min_spp": (*_num(1, MAX_SPP, 0, MAX_SPP + 1), {"step": MAX_SPP}),
     "max_spp": (*_num(1, MAX_SPP, 0, MAX_SPP + 1), {"step": MAX_SPP}),
     "step": (*_num(1, MAX_SPP, 0, MAX_SPP + 1), {}),

@@ -120,7 +120,8 @@ print(json.dumps(sorted(sys.modules)))
     assert not loaded & optional, loaded & optional
     # of the renderer, only the pure-Python rooms the command line, the token rule and the
     # OIP codec the client shares with the server live in
-    light = {"renderer", "renderer.names", "renderer.spec", "renderer.token", "renderer.oip_codec"}
+    light = {"renderer", "renderer.names", "renderer.spec", "renderer.setting_row", "renderer.token",
+             "renderer.oip_codec"}
     assert {m for m in modules if m.split(".")[0] == "renderer"} <= light
 
 

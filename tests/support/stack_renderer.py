@@ -20,7 +20,9 @@ class StackRenderer:
         self.height, self.width = stack.height, stack.width
         self.block_h, self.block_w = stack.block
         self.block_shape = tuple(stack.block)
-        self.n_blocks = stack.n_blocks
+        self.n_blocks = self.n_units = stack.n_blocks
+        self.tiles_per_block, self.tile_shape = 1, self.block_shape     # block grain: a block is its tile
+        self.tile_h, self.tile_w = self.block_shape
         self.calls = []
         self.kernel_compiles = self.samples_traced = self.kernel_lanes = 0
         self.device = torch.device("cpu")
@@ -45,6 +47,8 @@ class StackRenderer:
         rows, cols = self.block_slices(b)
         return cols.start, rows.start, self.block_w, self.block_h
 
+    unit_window = window
+
     def render_blocks(self, ids, spp, seed, pass_index=0):
         assert spp == self.step
         self.calls.append(list(ids))
@@ -68,13 +72,14 @@ def live(monkeypatch, tmp_path, stack, crit, min_spp, name="live", grow=False):
     per launch unless `grow` (then passes traced past a block's stop are in `calls` too)."""
     made = []
 
-    def fake_renderer(scene, grid=None, block=None):
+    def fake_renderer(scene, grid=None, block=None, tile=None):
         made.append(StackRenderer(stack, grid))
         return made[-1]
 
     monkeypatch.setattr(adaptive, "BlockRenderer", fake_renderer)
     monkeypatch.setattr("renderer.scenes.load_scene", lambda scene, resolution, defines=None: scene)
     report = adaptive.adaptive_render(stack.scene, tmp_path / name, crit, resolution=stack.width,
-                                      grid=tuple(stack.grid), step=int(stack.spp[0]), min_spp=min_spp,
+                                      grid=tuple(stack.grid), tile=max(stack.block), step=int(stack.spp[0]),
+                                      min_spp=min_spp,
                                       max_spp=int(stack.spp[-1]), progress=False, grow=grow)
     return report, made[0]

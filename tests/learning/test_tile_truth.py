@@ -1,0 +1,154 @@
+"""The truth at tile grain (issue 41): a tile is converged at a level when its FLIP mean is at
+most tau and at most one pixel exceeds the dot level, at that level and every later one."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from learning import write_stack
+from learning.data.observer import (VirtualObserver, relabel_if_stale, thresholds_from_errors, tile_errors,
+                                    tile_terms, with_tile_truth)
+from learning.data.stack import read_stack, update_labels, validate_meta
+
+SPP = [8, 16, 24, 32]
+#: tile t of the 4x4 tiles of a 64x64 block is noisy up to level CONV[t]: its truth is SPP[CONV[t]]
+CONV = np.array([0, 1, 2, 3] * 4)
+
+
+def _levels(amplitude: float = 0.04, dots_in: int | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
+    rng = np.random.default_rng(0)
+    ref = np.full((64, 64, 3), 0.4, np.float32)
+    levels = []
+    for k in range(len(SPP)):
+        img = ref.copy()
+        for t in np.flatnonzero(k < CONV):
+            r, c = divmod(int(t), 4)
+            img[r * 16:(r + 1) * 16, c * 16:(c + 1) * 16] += amplitude * rng.standard_normal((16, 16, 3))
+        if dots_in is not None:                       # two outlier pixels in one tile, at every level
+            r, c = divmod(dots_in, 4)
+            img[r * 16 + 3, c * 16 + 3] = img[r * 16 + 9, c * 16 + 11] = 0.9
+        levels.append(img)
+    return ref, levels
+
+
+def test_tile_thresholds_are_the_construction() -> None:
+    ref, levels = _levels()
+    e = tile_errors(tile_terms(ref, levels, (1, 1), 16))
+    assert thresholds_from_errors(e, SPP, 0.02) == [SPP[c] for c in CONV]
+    # control: the block, judged whole, waits for its slowest tile
+    assert VirtualObserver().thresholds(ref, levels, SPP, (1, 1)) == [32]
+
+
+def test_two_outlier_pixels_keep_a_tile_noisy_and_one_does_not() -> None:
+    """The dot guard at tile grain: one pixel in 256 may exceed the dot level."""
+    ref, levels = _levels(amplitude=0.0, dots_in=6)
+    e = tile_errors(tile_terms(ref, levels, (1, 1), 16))
+    th = thresholds_from_errors(e, SPP, 0.02)
+    assert th[6] is None and all(t == 8 for i, t in enumerate(th) if i != 6)
+    one = [lev.copy() for lev in levels]
+    for lev in one:
+        lev[16 + 9, 32 + 11] = 0.4                    # tile 6 (row 1, column 2) keeps one dot only
+    assert thresholds_from_errors(tile_errors(tile_terms(ref, one, (1, 1), 16)), SPP, 0.02)[6] == 8
+
+
+def test_relabel_writes_block_and_tile_truth(tmp_path) -> None:
+    ref, levels = _levels()
+    obs = VirtualObserver()
+    st = write_stack(tmp_path / "s", scene="s", levels=levels, spp=SPP, reference=ref, quick=None,
+                     reference_spp=256, grid=(1, 1), labeler=obs.labeler,
+                     thresholds=obs.thresholds(ref, levels, SPP, (1, 1)))
+    assert st.tile_thresholds is None
+    assert with_tile_truth(st).tile_thresholds == [SPP[c] for c in CONV]      # in memory
+    after, changed = relabel_if_stale(read_stack(st.path))
+    assert changed and after.tile == 16 and after.tile_thresholds == [SPP[c] for c in CONV]
+    meta = json.loads((st.path / "meta.json").read_text())
+    assert meta["thresholds"] == [32] and meta["tile"] == 16 and len(meta["tile_thresholds"]) == 16
+    assert read_stack(st.path).tile_labels().shape == (4, 16)
+    assert relabel_if_stale(read_stack(st.path)) == (read_stack(st.path), False)     # now current
+    # relabelled at another tau: both truths go with the labels
+    other, changed = relabel_if_stale(read_stack(st.path), tau=0.05)
+    assert changed and other.labeler["tau"] == 0.05 and other.tile_thresholds is not None
+    # a tile truth of the wrong length, or without its tile size, is refused
+    bad = {**meta, "tile_thresholds": meta["tile_thresholds"][:5]}
+    assert any("tile_thresholds has 5 entries" in e for e in validate_meta(bad))
+    assert any("go together" in e for e in validate_meta({**meta, "tile": None}))
+    with pytest.raises(ValueError, match="no tile thresholds"):
+        update_labels(st.path, [32], obs.labeler).tile_labels()
+
+
+def test_the_simulation_decides_tiles_and_reports_both_grains(tmp_path) -> None:
+    """`evaluate --tile`: the oracle per tile against the tile truth makes no early stop and
+    spends the tile oracle's samples: 20 of 32 spp a block here by construction (0.625x the
+    block oracle, which waits for the slowest tile). Control: at block grain the same oracle
+    saves nothing on this block."""
+    from renderer.simulate import criterion_factory, evaluate_criterion, simulate_loop
+
+    ref, levels = _levels()
+    obs = VirtualObserver()
+    st = write_stack(tmp_path / "s", scene="s", levels=levels, spp=SPP, reference=ref, quick=None,
+                     reference_spp=256, grid=(1, 1), labeler=obs.labeler,
+                     thresholds=obs.thresholds(ref, levels, SPP, (1, 1)))
+    tiles = evaluate_criterion([st], criterion_factory("oracle", tile=16), tile=16)
+    assert tiles["tile"] == 16 and tiles["early_stop_rate"] == 0.0 and tiles["spp_ratio_vs_oracle"] == 1.0
+    assert tiles["blocks"]["tile_oracle_vs_block_oracle"] == pytest.approx(20 / 32)
+    assert tiles["blocks"]["spp_ratio_vs_block_oracle"] == pytest.approx(20 / 32)
+    assert tiles["blocks"]["per_scene"]["s"]["tile_oracle_vs_block_oracle"] == pytest.approx(20 / 32)
+    blocks = evaluate_criterion([st], criterion_factory("oracle"))
+    assert blocks["saved_vs_uniform"] == 0.0 and "blocks" not in blocks
+    # tile = block is the block loop, verdict for verdict
+    from renderer.criteria import VarianceCriterion
+
+    whole, _ = simulate_loop(st, VarianceCriterion(0.2), tile=64)
+    np.testing.assert_array_equal(whole, simulate_loop(st, VarianceCriterion(0.2))[0])
+
+
+def _noisy_stack(path, scene: str, seed: int):
+    """A virtual-observer stack whose levels are true cumulative means of noisy passes (8 spp
+    each), its 16 tiles noisy to different degrees: the halves the live loop would keep."""
+    rng = np.random.default_rng(seed)
+    ref = np.full((64, 64, 3), 0.35, np.float32)
+    amp = np.repeat(np.repeat(rng.uniform(0.02, 0.3, (4, 4)), 16, 0), 16, 1)[..., None]
+    total, levels, spp = np.zeros_like(ref, np.float64), [], []
+    for k in range(12):
+        total += (ref + amp * rng.standard_normal(ref.shape)) * 8
+        spp.append(8 * (k + 1))
+        levels.append((total / spp[-1]).astype(np.float32))
+    obs = VirtualObserver()
+    return write_stack(path, scene=scene, levels=levels, spp=spp, reference=ref, quick=None, reference_spp=4096,
+                       grid=(1, 1), labeler=obs.labeler, thresholds=obs.thresholds(ref, levels, spp, (1, 1)))
+
+
+def test_c_is_calibrated_per_tile_against_the_tile_truth(tmp_path) -> None:
+    """`noisestop calibrate` makes the tile curve too: chosen on tiles against the tile
+    truth, out of fold, and recorded with its unit; the flip criterion at tile grain reads
+    it, a file without it falls back to the block curve."""
+    from learning.evaluation.calibrate import calibrate_flip_curve
+    from learning.inputs.halves import unit_calibration
+
+    stacks = [_noisy_stack(tmp_path / f"s{i}", f"s{i}", i) for i in range(3)]
+    tiles = calibrate_flip_curve(stacks, 0.05, taus=(0.02,), progress=False, tile=16)
+    assert tiles["unit"] == "tile16" and len(tiles["curve"]) == 1
+    point = tiles["curve"][0]
+    assert point["c"] > 0 and point["chosen"]["early_stop_rate"] <= 0.25
+    blocks = calibrate_flip_curve(stacks, 0.05, taus=(0.02,), progress=False)
+    assert blocks["unit"] == "block"
+    cal = {**blocks, "tiles": {"16": {k: tiles[k] for k in ("unit", "curve", "c", "target_early_stop_rate")}}}
+    assert unit_calibration(cal, 16)["curve"] == tiles["curve"] and unit_calibration(cal, 16)["unit"] == "tile16"
+    assert unit_calibration(blocks, 16)["curve"] == blocks["curve"]          # no tile curve: the block one
+
+
+def test_the_shipped_calibration_holds_a_checked_tile_curve(tmp_path) -> None:
+    """learning/flip.json carries c(tau) per 16-px tile beside the block curve; a damaged tile
+    curve is refused in one line like a damaged block curve."""
+    from learning.inputs.halves import FLIP_CALIBRATION, flip_c, load_flip_calibration, unit_calibration
+
+    cal = load_flip_calibration()
+    tiles = unit_calibration(cal, 16)
+    assert tiles["unit"] == "tile16" and 0 < flip_c(tiles, 0.02) < flip_c(cal, 0.02)
+    bad = json.loads(FLIP_CALIBRATION.read_text())
+    bad["tiles"]["16"]["curve"][1]["tau"] = bad["tiles"]["16"]["curve"][0]["tau"]     # not increasing
+    (tmp_path / "flip.json").write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match="unreadable flip calibration .taus must be finite and increasing"):
+        load_flip_calibration(tmp_path / "flip.json")

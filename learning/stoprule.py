@@ -58,7 +58,9 @@ def decide_active(active: np.ndarray, spp: int | np.ndarray, min_spp: int | None
     row = np.zeros(len(active), np.int8)
     asked = active.copy()
     if among is not None:
-        asked &= np.isin(np.arange(len(active)), among)
+        mask = np.zeros(len(active), bool)
+        mask[np.asarray(among, np.int64)] = True
+        asked &= mask
     if min_spp is not None:
         asked &= np.broadcast_to(np.asarray(spp), asked.shape) >= min_spp
     ids = np.flatnonzero(asked).tolist()

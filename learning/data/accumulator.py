@@ -64,11 +64,13 @@ class BlockAccumulator:
             raise ValueError(f"block id {block_id!r} out of range 0..{self.n_blocks - 1}")
         return int(block_id)
 
-    def _check_ids(self, block_ids: Sequence[int] | np.ndarray) -> np.ndarray:
+    def _check_ids(self, block_ids: Sequence[int] | np.ndarray, once: bool = False) -> np.ndarray:
+        """The ids as int64, in range; with `once` (a pass adds each block once) no repeats.
+        Reads may repeat an id: the duplicate test is a sort, paid only where it matters."""
         ids = np.asarray(block_ids, dtype=np.int64).reshape(-1)
         if ids.size and (ids.min() < 0 or ids.max() >= self.n_blocks):
             raise ValueError(f"block ids out of range 0..{self.n_blocks - 1}: {ids[(ids < 0) | (ids >= self.n_blocks)][:5].tolist()}")
-        if len(np.unique(ids)) != ids.size:
+        if once and len(np.unique(ids)) != ids.size:
             raise ValueError("duplicate block ids: one pass adds each block once")
         return ids
 
@@ -93,7 +95,7 @@ class BlockAccumulator:
         (a tensor on any device or an array), `spp` one size for all or one per block.
         Returns the dropped pixel count of each block, int64 [k] on the device (reading it
         is a host sync: the live loop does not)."""
-        ids = self._check_ids(block_ids)
+        ids = self._check_ids(block_ids, once=True)
         sizes = np.broadcast_to(np.asarray(spp), ids.shape)
         if sizes.size and (not np.issubdtype(sizes.dtype, np.integer) or sizes.min() < 1):
             raise ValueError(f"spp must be a positive integer, got {spp!r}")

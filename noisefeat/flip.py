@@ -36,7 +36,7 @@ each block's map as the observer does (`noisefeat.pooling`).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from functools import lru_cache
 
 import numpy as np
@@ -418,11 +418,14 @@ def _maps_by_chunk(a: torch.Tensor, b: torch.Tensor, exposure: float,
         yield i, keep, _flip_maps_linear(lin, ppd)
 
 
-def pool_tensor(maps: torch.Tensor, pooling: str = CRITERION_POOLING) -> torch.Tensor:
-    """FLIP maps [N, h, w] pooled as the observer pools (`noisefeat.pooling`), float64 [N]
-    on their device."""
+def pool_tiles(maps: torch.Tensor, windows: Sequence[tuple[int, int, int, int]],
+               pooling: str = CRITERION_POOLING) -> torch.Tensor:
+    """FLIP maps [N, h, w] of whole blocks pooled over each of their tiles' (x, y, w, h)
+    `windows` (`noisefeat.pooling.tile_windows`), as the observer pools, float64 [N, T] on
+    their device: the tiles keep their block as FLIP's context. The live criterion and the
+    calibration on stacks both judge a tile by this one function."""
     check_pooling(pooling)
-    return _pool(maps, pooling)
+    return torch.stack([_pool(maps[:, y:y + h, x:x + w], pooling) for x, y, w, h in windows], dim=1)
 
 
 def _pool(maps: torch.Tensor, pooling: str) -> torch.Tensor:

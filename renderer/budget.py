@@ -6,8 +6,9 @@ time limit), so with ``--spp-budget N`` (samples per pixel averaged over the blo
 ``--time-limit S`` each round renders the active blocks farthest from their target:
 
 * The loop's `ratios` (`renderer.passloop.BlockRatios`) hold, per block, its last score
-  relative to the criterion's threshold (flip: the half-buffer FLIP over c(tau); > 1 is above the target). Blocks
-  with no estimate yet (before their first decision) come first, all together.
+  relative to the criterion's threshold (flip: the half-buffer FLIP over c(tau); > 1 is
+  above the target). Blocks with no estimate yet (before their first decision) come
+  first, all together.
 * Priority = ratio / sqrt(spp). Noise falls as 1/sqrt(spp), so a block's ratio is about
   a_b / sqrt(spp_b) with a_b its noise per sample; levelling the priority gives each block
   samples in proportion to a_b. Against uniform sampling with the same samples that

@@ -137,9 +137,7 @@ class _Spec:
     def tile_grain(self) -> int | None:
         """The tile side when blocks are cut into tiles (tile smaller than the block), else
         None: whole blocks, or a grid whose block size the frame decides, not known yet."""
-        side = self.block
-        if side is None and self.grid is not None and isinstance(self.resolution, tuple):
-            side = max(self.resolution[1] // self.grid[0], self.resolution[0] // self.grid[1])
+        side = _block_side(self.block, self.grid, self.resolution)
         return self.tile if side is not None and self.tile < side else None
 
     def settings_source(self) -> dict[str, str]:
@@ -253,6 +251,16 @@ def _combine(values: dict[str, Any], sources: dict[str, str], rank: list[str], t
                          "samples per pixel (the step): give a budget of at least the step, or a smaller step")
 
 
+def _block_side(block: int | None, grid: tuple[int, int] | None, resolution: Any) -> int | None:
+    """A block's longer side in pixels: the block size, or a grid's block on a frame of
+    (W, H) pixels; None while a grid's frame is not known."""
+    if block is not None:
+        return block
+    if grid is not None and isinstance(resolution, tuple):
+        return max(resolution[1] // grid[0], resolution[0] // grid[1])
+    return None
+
+
 def _block_grain(criterion: Any) -> bool:
     """Whether a criterion judges whole blocks only (its tiles are the block)."""
     return criterion in BLOCK_GRAIN if isinstance(criterion, str) else not getattr(criterion, "per_tile", True)
@@ -267,7 +275,7 @@ def fit_frame(spec: Any, width: int, height: int) -> Any:
         values["block"] = int(min(width, height))
         sources["block"] = f"{DEFAULT} (the frame's short side)"
     block = values["block"]
-    side = block if block is not None else max(int(height) // spec.grid[0], int(width) // spec.grid[1])
+    side = _block_side(block, spec.grid, values["resolution"])
     if _block_grain(spec.criterion) and values["tile"] < side:
         raise ValueError(f"the {getattr(spec.criterion, 'name', spec.criterion)} criterion decides whole blocks: "
                          f"leave tile unset or give the block's side ({side})")

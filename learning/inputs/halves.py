@@ -32,7 +32,7 @@ from tqdm import tqdm
 from noisefeat.safeio import InputFileError, read_json
 from noisefeat.display import check_exposure
 from noisefeat.dots import DOT_DENSITY, DOT_LEVEL, OBSERVER_DOTS, halves_dots
-from noisefeat.flip import flip_halves, flip_maps_tensor, pool_tensor
+from noisefeat.flip import flip_halves, flip_maps_tensor, pool_tiles
 from noisefeat.pooling import CRITERION_POOLING, DEFAULT_POOLING, pool_maps, tile_windows
 from noisefeat.userdata import find as find_user_file
 
@@ -214,20 +214,20 @@ def stack_tile_terms(stack: Stack, tile: int, exposure: float = 0.0, ppd: float 
     windows = tile_windows(stack.block[0], stack.block[1], tile)
     shape = (3, stack.n_levels, stack.n_blocks * len(windows))
 
-    def per_tile(x: torch.Tensor, fn: Any) -> np.ndarray:
-        return torch.stack([fn(x[:, y:y + h, x0:x0 + w]) for x0, y, w, h in windows], dim=1).reshape(-1).numpy()
+    def per_tile(fn: Any) -> np.ndarray:
+        """fn(slices of one tile in [n, bh, bw, ...] arrays) for every tile, block-major."""
+        return torch.stack([torch.as_tensor(fn((slice(None), slice(y, y + h), slice(x, x + w))))
+                            for x, y, w, h in windows], dim=1).to(torch.float64).reshape(-1).numpy()
 
     def compute() -> np.ndarray:
         out = np.full(shape, np.nan)
         for k in range(stack.n_levels):
-            out[2, k] = per_tile(torch.as_tensor(stack.blocks(k), dtype=torch.float64),
-                                 lambda t: torch.as_tensor(flat_blocks(t, exposure)).to(torch.float64))
+            blocks = torch.as_tensor(stack.blocks(k), dtype=torch.float64)
+            out[2, k] = per_tile(lambda t: flat_blocks(blocks[t], exposure))
         for k, even, odd in iter_stack_halves(stack, progress):
             a, b = torch.as_tensor(even), torch.as_tensor(odd)
-            maps = flip_maps_tensor(a, b, exposure, ppd)
-            out[0, k] = per_tile(maps, lambda m: pool_tensor(m, pooling))
-            out[1, k] = torch.stack([halves_dots(a[:, y:y + h, x0:x0 + w], b[:, y:y + h, x0:x0 + w], exposure)
-                                     for x0, y, w, h in windows], dim=1).reshape(-1).numpy()
+            out[0, k] = pool_tiles(flip_maps_tensor(a, b, exposure, ppd), windows, pooling).reshape(-1).numpy()
+            out[1, k] = per_tile(lambda t: halves_dots(a[t], b[t], exposure))
         return out
     return cached_array(stack, f"tile{tile}-flip-{pooling}-e{exposure:g}-ppd{ppd:g}-l{DOT_LEVEL:g}", shape, compute)
 

@@ -56,22 +56,15 @@ class FlipCriterion(Criterion):
     def _flip(self, batch: BlockBatch, ask: np.ndarray) -> np.ndarray:
         """e of the asked units: of a block, its pooled FLIP between the halves; of a tile,
         the FLIP map of its whole block (its neighbours are context) pooled over the tile."""
-        from noisefeat.flip import flip_halves_tensor, flip_maps_tensor, pool_tensor
+        from noisefeat.flip import flip_halves_tensor, flip_maps_tensor, pool_tiles
 
         if batch.tiling is None:
             a, b = batch.halves     # type: ignore[misc]
             sel = torch.from_numpy(ask).to(a.device)
             return flip_halves_tensor(a[sel], b[sel], self.exposure, pooling=CRITERION_POOLING).cpu().numpy()
         a, b, row, slot = batch.block_halves(ask)
-        maps = flip_maps_tensor(a, b, self.exposure)
-        e = np.zeros(len(ask))
-        windows = batch.tiling.tile_windows()
-        for s in np.unique(slot).tolist():
-            rows = np.flatnonzero(slot == s)
-            dx, dy, tw, th = windows[s]
-            part = maps[torch.from_numpy(row[rows]).to(maps.device), dy:dy + th, dx:dx + tw]
-            e[rows] = pool_tensor(part, CRITERION_POOLING).cpu().numpy()
-        return e
+        e = pool_tiles(flip_maps_tensor(a, b, self.exposure), batch.tiling.tile_windows(), CRITERION_POOLING)
+        return e.cpu().numpy()[row, slot]
 
     def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
         flat = self._flat(batch, self.exposure, tally)

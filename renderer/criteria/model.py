@@ -42,7 +42,7 @@ class LocalScorer:
         self.rule: StopRule = model.rule(offset)
 
     def prepare(self, quick: np.ndarray, exposure: float, tally: Tally) -> np.ndarray:
-        if self.input != "features" or not getattr(self.model, "needs_quick", True):
+        if self.input != "features":
             return quick
         from noisefeat import extract_features
 
@@ -51,10 +51,11 @@ class LocalScorer:
         tally.add("feature_rows", len(quick))
         return feats
 
-    def judge(self, batch: BlockBatch, ask: np.ndarray, exposure: float,
+    def judge(self, batch: BlockBatch, ask: np.ndarray, quick: np.ndarray | None, exposure: float,
               tally: Tally) -> tuple[np.ndarray, np.ndarray]:
         """(verdict, ratio) of the asked blocks: the rule at the offset, and the distance to
-        it as a ratio (a score is a signed distance: exp(offset - score) is 1 at the offset)."""
+        it as a ratio (a score is a signed distance: exp(offset - score) is 1 at the offset).
+        `quick`: what `prepare` made of the batch's quick blocks, or None (a model without one)."""
         m = self.model
         with torch_threads(1):
             with tally.timing():
@@ -65,14 +66,11 @@ class LocalScorer:
                     from learning.inputs.table import feature_input
                     from noisefeat import extract_features
 
-                    quick = batch.quick
-                    if quick is not None and quick.ndim != 2:        # raw quick blocks: not prepared
-                        quick = self.prepare(quick, exposure, Tally())
                     x = feature_input(extract_features(_asked(batch.mean, ask), exposure=exposure),
                                       None if quick is None else quick[ask])
                 else:
-                    x = m.inputs_from_blocks(_asked(batch.mean, ask),
-                                             None if batch.quick is None else batch.quick[ask], exposure=exposure)
+                    x = m.inputs_from_blocks(_asked(batch.mean, ask), None if quick is None else quick[ask],
+                                             exposure=exposure)
             if self.input != "raw":
                 tally.add("feature_rows", len(ask))
             score = np.asarray(m.decision_function(x), np.float64)
@@ -93,15 +91,15 @@ class RemoteScorer:
     def prepare(self, quick: np.ndarray, exposure: float, tally: Tally) -> np.ndarray:
         return quick
 
-    def judge(self, batch: BlockBatch, ask: np.ndarray, exposure: float,
+    def judge(self, batch: BlockBatch, ask: np.ndarray, quick: np.ndarray | None, exposure: float,
               tally: Tally) -> tuple[np.ndarray, np.ndarray]:
         m = self.model
         if getattr(m, "needs_halves", False):
             even, odd = (_asked(h, ask) for h in batch.halves)   # type: ignore[union-attr]
             verdict, _ = m.score_halves(even, odd, exposure=exposure, offset=self.offset)
         else:
-            quick = None if batch.quick is None else np.asarray(batch.quick, np.float32)[ask]
-            verdict, _ = m.score_blocks(_asked(batch.mean, ask), quick, exposure=exposure, offset=self.offset)
+            verdict, _ = m.score_blocks(_asked(batch.mean, ask), None if quick is None else
+                                        np.asarray(quick, np.float32)[ask], exposure=exposure, offset=self.offset)
         verdict = np.asarray(verdict)
         if verdict.shape != (len(ask),):
             raise RuntimeError(f"model returned {verdict.shape} verdicts for {len(ask)} blocks")
@@ -181,7 +179,8 @@ class ModelCriterion(Criterion):
         ratio = np.full(len(ids), np.nan)
         if ask.size:
             tally.add("blocks_featured", int(ask.size))
-            verdict[ask], ratio[ask] = self.scorer.judge(batch, ask, self.exposure, tally)
+            quick = batch.quick if self.needs_quick else None     # a model without a quick image reads none
+            verdict[ask], ratio[ask] = self.scorer.judge(batch, ask, quick, self.exposure, tally)
         dots = self._dots(batch, ask, self.exposure, self.tau or DEFAULT_TAU, tally) if self.needs_halves \
             else np.zeros(len(ids))
         dotted = dots > 1

@@ -122,11 +122,19 @@ def md_observer(r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+#: the runs of the tau bench: (name, criterion, tile); flip at the loop's default tile and
+#: per block, the bundled model per block (its unit)
+TAU_RUNS = (("flip", "flip", 16), ("flip per block", "flip", None), ("model", "model", None))
+
+
 def bench_tau(data: str, heldout: str | None = None, taus: tuple[float, ...] = TAUS,
               model: str | None = None) -> dict[str, Any]:
-    """flip at c(tau) and the bundled model at its offset for tau, against labels at tau."""
+    """flip at c(tau) (per 16x16 tile, the loop's default, and per block) and the bundled
+    model at its offset for tau, against labels at tau; at tile grain early stops count
+    tiles against the tile truth and blocks holding an early tile; every run also says how
+    many blocks the version-3 observer finds above tau in the image it ends with."""
     from learning.evaluation.generalisation import scene_groups
-    from learning.inputs.halves import flip_c, load_flip_calibration
+    from learning.inputs.halves import flip_c, load_flip_calibration, unit_calibration
     from learning.models.bundle import load_model
     from renderer.simulate import evaluate_criterion_cli
 
@@ -134,42 +142,55 @@ def bench_tau(data: str, heldout: str | None = None, taus: tuple[float, ...] = T
         raise ValueError("bench tau needs --heldout DIR (the scenes no knob was set on)")
     cal = load_flip_calibration()
     bundled = load_model(model)
-    out: dict[str, Any] = {"taus": list(taus), "flip": {}, "model": {}}
+    out: dict[str, Any] = {"taus": list(taus), "runs": [name for name, _, _ in TAU_RUNS]}
     from learning.data.observer import read_observed
     for tau in taus:
         groups = scene_groups(read_observed(heldout, tau))
-        for name, kw in (("flip", {}), ("model", {"model": model})):
-            r = evaluate_criterion_cli(heldout, name, progress=False, tau=tau, **kw)
-            knob = flip_c(cal, tau) if name == "flip" else bundled.offset_at(tau)
+        for name, kind, tile in TAU_RUNS:
+            r = evaluate_criterion_cli(heldout, kind, progress=False, tau=tau, tile=tile,
+                                       **({"model": model} if kind == "model" else {}))
+            knob = flip_c(unit_calibration(cal, tile), tau) if kind == "flip" else bundled.offset_at(tau)
             conv = r.get("groups", {}).get("converging", {})
-            out[name][str(tau)] = {"knob": knob, "groups": groups,
-                                   **{k: r[k] for k in KEYS},
-                                   "converging": {k: conv.get(k) for k in KEYS},
-                                   "per_scene": {s: {**{k: m[k] for k in KEYS},
-                                                     "early_blocks": int(m["counts"].get("early", 0))}
-                                                 for s, m in r["per_scene"].items()}}
+            end = r["end"]["per_scene"]
+            blocks = r.get("blocks", {}).get("per_scene", {})
+            out.setdefault(name, {})[str(tau)] = {
+                "knob": knob, "tile": tile, "groups": groups, **{k: r[k] for k in KEYS},
+                "converging": {k: conv.get(k) for k in KEYS}, "end_above_tau": r["end"]["above_tau"],
+                "per_scene": {s: {**{k: m[k] for k in KEYS}, "early_units": int(m["counts"].get("early", 0)),
+                                  "early_block_rate": m.get("early_block_rate"),
+                                  "vs_block_oracle": blocks.get(s, {}).get("spp_ratio_vs_block_oracle"),
+                                  "end_above_tau": end[s]["above_tau"], "blocks": end[s]["blocks"]}
+                              for s, m in r["per_scene"].items()}}
     return out
 
 
 def md_tau(r: dict[str, Any]) -> str:
-    lines = ["Every knob from the training scenes only: flip's c(tau) from `learning/flip.json`, the bundled "
-             "model's offset for tau from its training record; labels by the observer at that tau "
-             "(`noisestop evaluate --data data/heldout --criterion flip|model --tau T`).", ""]
-    for name in ("flip", "model"):
+    lines = ["Every knob from the training scenes only: flip's c(tau) from `learning/flip.json` (its tile curve "
+             "at tile grain), the bundled model's offset for tau from its training record; labels by the "
+             "observer at that tau (`noisestop evaluate --data data/heldout --criterion flip|model --tau T "
+             "[--tile 16]`). At tile grain an early stop is a tile's, against the tile truth; \"above tau at the "
+             "end\" is the version-3 block observer on the image the simulated render ends with.", ""]
+    for name in r.get("runs", ("flip", "model")):
         for tau in r["taus"]:
             row = r[name][str(tau)]
             conv = row["converging"]
-            lines.append(f"**{name}, tau {tau:g}** ({'c' if name == 'flip' else 'offset'} {row['knob']:.4g}): "
-                         f"early stops {row['early_stop_rate']:.1%} at {row['spp_ratio_vs_oracle']:.2f}x the "
-                         f"oracle (converging scenes: {_pct(conv.get('early_stop_rate'))} at "
-                         f"{_x(conv.get('spp_ratio_vs_oracle'))})")
+            unit = "tiles" if row.get("tile") else "blocks"
+            lines.append(f"**{name}, tau {tau:g}** ({'c' if name.startswith('flip') else 'offset'} "
+                         f"{row['knob']:.4g}): early {unit} {row['early_stop_rate']:.1%} at "
+                         f"{row['spp_ratio_vs_oracle']:.2f}x the oracle (converging scenes: "
+                         f"{_pct(conv.get('early_stop_rate'))} at {_x(conv.get('spp_ratio_vs_oracle'))}); "
+                         f"{row.get('end_above_tau', 'n/a')} blocks above tau at the end")
             lines.append("")
-            lines.append("| scene | early blocks | early stops | samples / oracle | saved vs uniform |")
-            lines.append("|---|---|---|---|---|")
+            lines.append(f"| scene | early {unit} | early stops | samples / oracle | samples / block oracle | "
+                         "blocks with an early tile | above tau at the end | saved vs uniform |")
+            lines.append("|---|---|---|---|---|---|---|---|")
             for s, m in sorted(row["per_scene"].items()):
                 mark = "" if s in row["groups"].get("converging", []) else " (does not converge)"
-                lines.append(f"| {s}{mark} | {m['early_blocks']} | {m['early_stop_rate']:.1%} | "
-                             f"{m['spp_ratio_vs_oracle']:.2f}x | {m['saved_vs_uniform']:.1%} |")
+                lines.append(f"| {s}{mark} | {m.get('early_units', m.get('early_blocks'))} | "
+                             f"{m['early_stop_rate']:.1%} | {m['spp_ratio_vs_oracle']:.2f}x | "
+                             f"{_x(m.get('vs_block_oracle'))} | {_pct(m.get('early_block_rate'))} | "
+                             f"{m.get('end_above_tau', 'n/a')} of {m.get('blocks', 'n/a')} | "
+                             f"{m['saved_vs_uniform']:.1%} |")
             lines.append("")
     return "\n".join(lines)
 

@@ -151,6 +151,7 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
         raise ValueError(f"no stacks found in {stacks!r}")
     per_scene: dict[str, tuple] = {}
     per_block: dict[str, tuple] = {}
+    end: dict[str, dict[str, float]] = {}
     counters: dict[str, float] = {}
     description: dict[str, Any] = {}
     for st in tqdm(todo, desc="stacks", unit="stack", disable=not progress):
@@ -168,19 +169,49 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
             per_scene[st.scene] = (V, st.tile_labels(), st.tile_thresholds, st.spp)
             blocks = V.reshape(len(V), st.n_blocks, -1).min(axis=2)          # +1 once every tile is
             per_block[st.scene] = (blocks, st.labels(), st.thresholds, st.spp)
+        end[st.scene] = end_of_render(st, V, tile, tau)
         for k, v in {**loop.counters, **loop.timers}.items():
             counters[k] = counters.get(k, 0) + v
         description = crit.describe()
         if description.get("name") == "oracle":
             description = {"name": "oracle"}
-    out = evaluate_verdicts(per_scene, scene_groups(todo))
+    per_unit = None if tile is None else {s: len(v[2]) // len(per_block[s][2]) for s, v in per_scene.items()}
+    out = evaluate_verdicts(per_scene, scene_groups(todo), per_unit)
     if tile is not None:
         out["tile"] = int(tile)
         out["blocks"] = evaluate_verdicts(per_block, scene_groups(todo))
         _against_block_oracle(out)
+    out["end"] = {"per_scene": end, "above_tau": sum(e["above_tau"] for e in end.values()),
+                  "blocks": sum(e["blocks"] for e in end.values())}
     out["criterion"] = description
     out["counters"] = counters
     return out
+
+
+def end_of_render(stack: Stack, verdicts: np.ndarray, tile: int | None, tau: float) -> dict[str, float]:
+    """What the version-3 block observer says of the image the simulated render ends with:
+    each unit (block, or tile) at the level it stopped at (the last if never), put
+    together into the frame and judged against the reference. ``above_tau``: blocks whose
+    error exceeds tau (what a user sees as noise left); ``worst``: the largest error.
+    At tile grain this is the honest block count: a tile that stopped early shows in its
+    block whatever the tile truth's thresholds say."""
+    from learning.data.observer import block_errors
+
+    from .block_windows import BlockWindows
+
+    units = BlockWindows(stack.width, stack.height, grid=tuple(stack.grid), tile=tile)._unit_idx.numpy()
+    stopped = np.asarray(verdicts) > 0
+    level = np.where(stopped.any(axis=0), stopped.argmax(axis=0), len(stopped) - 1)
+    owner = np.full(stack.height * stack.width, -1, np.int64)
+    for u, pixels in enumerate(units):   # the later unit's pixel where windows overlap, as in the frame
+        owner[pixels] = u
+    pixel_level = level[owner]
+    frame = np.zeros((stack.height * stack.width, 3), np.float32)
+    for k, image in enumerate(stack.iter_levels()):
+        here = pixel_level == k
+        frame[here] = np.asarray(image, np.float32).reshape(-1, 3)[here]
+    e = block_errors(stack.reference(), frame.reshape(stack.height, stack.width, 3)[None], stack.grid)[0]
+    return {"above_tau": int((~(e <= tau)).sum()), "blocks": int(e.size), "worst": float(np.nanmax(e))}
 
 
 def _against_block_oracle(out: dict[str, Any]) -> None:
@@ -213,11 +244,13 @@ def criterion_factory(kind: str, *, model: str | None = None, server: str | None
     factory (`renderer.criteria.make_criterion`): one criterion for every stack, or the
     oracle with each stack's own thresholds (its tiles' with `tile`)."""
     from .criteria import make_criterion
+    from .setting_row import MAX_SIDE
     from .spec import COMMAND_LINE, resolve
 
     spec = resolve({"criterion": kind, "model": model, "server": server, "threshold": threshold,
-                    "offset": offset, "exposure": exposure, "tau": tau}, source=COMMAND_LINE,
-                   thresholds_known=True)
+                    "offset": offset, "exposure": exposure, "tau": tau,
+                    "tile": MAX_SIDE if tile is None else tile},    # None: whole blocks
+                   source=COMMAND_LINE, thresholds_known=True)
     if spec.criterion == "oracle":
         def oracle(st: Stack) -> Criterion:
             truth = st.thresholds if tile is None else st.tile_thresholds     # one per unit

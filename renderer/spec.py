@@ -40,8 +40,11 @@ MAX_SEED = 2**32 - 1
 DEFAULT_BLOCK = 64
 #: the observer's tile (its 16x16 tile means): the finest grain its guarantee holds at
 DEFAULT_TILE = 16
-#: the criteria that judge whole blocks (their unit is the paper's block)
+#: the criteria whose unit is the paper's block: whole blocks unless a tile is given; the
+#: model, given one, gates flip's tile verdicts with its block verdict (criteria.gated),
+#: the oracle (a labelled stack's block thresholds) refuses it
 BLOCK_GRAIN = ("model", "oracle")
+BLOCK_ONLY = ("oracle",)
 
 # where a value came from
 ARGUMENT = "argument"
@@ -89,7 +92,8 @@ ROWS: tuple[Row, ...] = (
     Row("tile", "int", DEFAULT_TILE,
         "side in pixels of the tiles each block is cut into, the unit that stops: each tile has its "
         "own samples and stop, a block is done when all its tiles are; the block's side: whole blocks "
-        "(the model and oracle criteria decide whole blocks)", low=8, high=MAX_SIDE, metavar="PX"),
+        "(the default of the model and oracle criteria; given a smaller tile, the model's block "
+        "verdict gates flip's tile verdicts)", low=8, high=MAX_SIDE, metavar="PX"),
     Row("min_spp", doc="samples per pixel before the first decision (default: the reference's first "
         "level, else 16); it takes effect at the first pass boundary at or past it", default=16, **_SPP),
     Row("max_spp", doc="most samples per pixel of any block (default: the reference's last level, "
@@ -261,9 +265,10 @@ def _block_side(block: int | None, grid: tuple[int, int] | None, resolution: Any
     return None
 
 
-def _block_grain(criterion: Any) -> bool:
-    """Whether a criterion judges whole blocks only (its tiles are the block)."""
-    return criterion in BLOCK_GRAIN if isinstance(criterion, str) else not getattr(criterion, "per_tile", True)
+def _block_grain(criterion: Any, only: bool = False) -> bool:
+    """Whether a criterion judges whole blocks unless told otherwise (`only`: always)."""
+    return criterion in (BLOCK_ONLY if only else BLOCK_GRAIN) if isinstance(criterion, str) \
+        else not getattr(criterion, "per_tile", True)
 
 
 def fit_frame(spec: Any, width: int, height: int) -> Any:
@@ -276,7 +281,7 @@ def fit_frame(spec: Any, width: int, height: int) -> Any:
         sources["block"] = f"{DEFAULT} (the frame's short side)"
     block = values["block"]
     side = _block_side(block, spec.grid, values["resolution"])
-    if _block_grain(spec.criterion) and values["tile"] < side:
+    if _block_grain(spec.criterion, only=True) and values["tile"] < side:
         raise ValueError(f"the {getattr(spec.criterion, 'name', spec.criterion)} criterion decides whole blocks: "
                          f"leave tile unset or give the block's side ({side})")
     values["tile"] = min(values["tile"], side)            # a tile is at most its block

@@ -215,13 +215,14 @@ def flip_sweep(stacks: Sequence[Stack], candidates: Sequence[float] = FLIP_CANDI
         both = {s.scene: guarded_tile_flip_scores(s, tile, progress=progress) for s in stacks}
         scores, flats = {k: v[0] for k, v in both.items()}, {k: v[1] for k, v in both.items()}
         truth = {s.scene: (s.tile_labels(), s.tile_thresholds) for s in stacks}
+    per_block = None if tile is None else {s.scene: len(s.tile_thresholds) // s.n_blocks for s in stacks}
     groups = scene_groups(stacks)
     curve = []
     for c in sorted(candidates):
         rule = StopRule(flip_offset(c), min_spp)
         per = {s.scene: (rule.stops(scores[s.scene], s.spp, flats[s.scene]), *truth[s.scene], s.spp)
                for s in stacks}
-        curve.append({"threshold": float(c), **evaluate_verdicts(per, groups)})
+        curve.append({"threshold": float(c), **evaluate_verdicts(per, groups, per_block)})
     return curve
 
 

@@ -36,14 +36,21 @@ def true_thresholds(thresholds: Sequence[int | None], spp: Sequence[int]) -> np.
 
 
 def stack_counts(verdicts: np.ndarray, labels: np.ndarray, thresholds: Sequence[int | None],
-                 spp: Sequence[int]) -> dict[str, float]:
-    """Additive counts for one stack (summed over stacks, then turned into metrics)."""
+                 spp: Sequence[int], per_block: int | None = None) -> dict[str, float]:
+    """Additive counts for one stack (summed over stacks, then turned into metrics).
+
+    `per_block`: the units are tiles, this many a block (block-major): the counts then
+    also hold how many blocks have an early tile, what a user sees as a block above tau
+    at the end (`early_block_rate`)."""
     v = np.asarray(verdicts) > 0
     truth = np.asarray(labels) > 0
     t_pred = stop_thresholds(verdicts, spp)
     t_true = true_thresholds(thresholds, spp)
     spp_max = int(spp[-1])
-    return {
+    whole = {} if per_block is None else {
+        "whole_blocks": len(t_true) // per_block,
+        "blocks_with_early": int((t_pred < t_true).reshape(-1, per_block).any(axis=1).sum())}
+    return {**whole,
         "n": v.size, "correct": int((v == truth).sum()),
         "tp": int((v & truth).sum()), "fp": int((v & ~truth).sum()), "fn": int((~v & truth).sum()),
         "blocks": len(t_true),
@@ -66,23 +73,29 @@ def metrics_from_counts(c: Mapping[str, float]) -> dict[str, float]:
         "early_stop_rate": c["early"] / c["blocks"] if c["blocks"] else float("nan"),
         "spp_ratio_vs_oracle": c["spent"] / c["oracle"] if c["oracle"] else float("nan"),
         "saved_vs_uniform": 1.0 - c["spent"] / c["uniform"] if c["uniform"] else float("nan"),
+        **({"early_block_rate": c["blocks_with_early"] / c["whole_blocks"] if c["whole_blocks"] else float("nan")}
+           if "whole_blocks" in c else {}),
     }
 
 
 def evaluate_verdicts(per_scene: Mapping[str, tuple[np.ndarray, np.ndarray, Sequence[int | None],
                                                      Sequence[int]]],
-                      groups: Mapping[str, Sequence[str]] | None = None) -> dict[str, Any]:
+                      groups: Mapping[str, Sequence[str]] | None = None,
+                      per_block: int | Mapping[str, int] | None = None) -> dict[str, Any]:
     """{scene: (V [K, B], labels [K, B], thresholds, spp)} -> metrics overall and per scene
     (each scene's entry also holds its additive `counts`, so that any subset of scenes can
     be pooled later: `pool_counts`).
 
     `groups` ({name: scenes}) adds ``groups`` (name -> metrics pooled over those scenes,
     absent when none of them was evaluated), e.g. scenes that converge inside their
-    stacks apart from those that never do (`learning.evaluation.generalisation`)."""
+    stacks apart from those that never do (`learning.evaluation.generalisation`).
+    `per_block`: the units are tiles, this many a block (`stack_counts`), one number or
+    one per scene."""
     counts: dict[str, dict[str, float]] = {}
     out: dict[str, Any] = {"per_scene": {}}
     for scene, (v, labels, th, spp) in sorted(per_scene.items()):
-        counts[scene] = stack_counts(v, labels, th, spp)
+        counts[scene] = stack_counts(v, labels, th, spp,
+                                     per_block.get(scene) if isinstance(per_block, Mapping) else per_block)
         out["per_scene"][scene] = {**metrics_from_counts(counts[scene]), "counts": counts[scene]}
     if not counts:
         raise ValueError("nothing to evaluate: no scenes")

@@ -38,9 +38,10 @@ from learning.stoprule import flat_blocks
 # feature_rows: 26-feature rows computed in this process (current and quick blocks);
 # converged: +1 verdicts; flat_blocks: blocks settled by the flat test; nonfinite_blocks:
 # verdicts on blocks that held non-finite samples; dotted_blocks: blocks held noisy by the
-# dot guard.
+# dot guard; gated_tiles: tiles flip called converged that the model's block verdict held
+# (the model at tile grain, `renderer.criteria.gated`).
 COUNTER_NAMES = ("decide_calls", "blocks_asked", "blocks_featured", "feature_rows", "converged",
-                 "flat_blocks", "nonfinite_blocks", "dotted_blocks")
+                 "flat_blocks", "nonfinite_blocks", "dotted_blocks", "gated_tiles")
 TIMER_NAMES = ("features_s", "decisions_s")
 
 
@@ -89,10 +90,12 @@ class BlockBatch:
     @classmethod
     def from_accumulator(cls, acc: Any, ids: Sequence[int], quick: np.ndarray | None = None,
                          tiling: Any = None) -> BlockBatch:
-        """The units `ids` of a `BlockAccumulator`, read lazily from its device tensors."""
+        """The units `ids` of a `BlockAccumulator`, read lazily from its device tensors.
+        `quick` is per block: with `tiling`, a tile's row is its block's."""
         ids_a = np.asarray(ids, np.int64)
+        rows = ids_a if tiling is None else ids_a // tiling.tiles_per_block
         return cls(acc.spp_all()[ids_a], half_spp=acc.half_spp_all()[ids_a],
-                   quick=None if quick is None else quick[ids_a], source=(acc, ids_a), tiling=tiling)
+                   quick=None if quick is None else quick[rows], source=(acc, ids_a), tiling=tiling)
 
     @classmethod
     def from_views(cls, views: Sequence[BlockView]) -> BlockBatch:
@@ -140,6 +143,27 @@ class BlockBatch:
         a, b = acc.halves((blocks[:, None] * t + np.arange(t)).reshape(-1))
         shape = (len(blocks), t, *a.shape[1:])
         return self.tiling.assemble(a.reshape(shape)), self.tiling.assemble(b.reshape(shape)), row, ids % t
+
+    def whole_blocks(self) -> tuple[BlockBatch, np.ndarray, np.ndarray]:
+        """(batch, blocks, row): the blocks the batch's tiles lie in as one batch of whole
+        blocks (windows put together from all their tiles, stopped ones as they stopped; a
+        block's spp and half spp are its least sampled tile's, its dropped values the sum),
+        their ids, and the row of each asked tile's block: what a block-grain criterion
+        judges a tile's block by."""
+        acc, ids = self._source
+        t = self.tiling.tiles_per_block
+        blocks, first, row = np.unique(ids // t, return_index=True, return_inverse=True)
+        every = (blocks[:, None] * t + np.arange(t)).reshape(-1)
+        a, b = acc.halves(every)
+        shape = (len(blocks), t, *a.shape[1:])
+        per_block = (len(blocks), t)
+        batch = BlockBatch(acc.spp_all()[every].reshape(per_block).min(axis=1),
+                           mean=self.tiling.assemble(acc.means(every).reshape(shape)),
+                           halves=(self.tiling.assemble(a.reshape(shape)), self.tiling.assemble(b.reshape(shape))),
+                           half_spp=acc.half_spp_all()[every].reshape(*per_block, 2).min(axis=1),
+                           nonfinite=acc.nonfinite_all()[every].reshape(per_block).sum(axis=1),
+                           quick=None if self.quick is None else self.quick[first])
+        return batch, blocks, row
 
     @property
     def nonfinite(self) -> np.ndarray:

@@ -48,4 +48,10 @@ def make_criterion(spec: Any, thresholds: Sequence[int | None] | None = None) ->
         from learning.models.bundle import load_model
 
         scorer = load_model(spec.model)
-    return ModelCriterion(scorer, exposure=spec.exposure, offset=spec.offset, tau=spec.tau)
+    model = ModelCriterion(scorer, exposure=spec.exposure, offset=spec.offset, tau=spec.tau)
+    if spec.tile_grain() is None:
+        return model
+    from .flip import FlipCriterion
+    from .gated import GatedCriterion
+
+    return GatedCriterion(model, FlipCriterion(exposure=spec.exposure, tau=spec.tau, tile=spec.tile_grain()))

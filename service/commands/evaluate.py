@@ -26,8 +26,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--min-spp", type=arg.spp, default=None,
                    help="no decision below this many spp (default: from the first level)")
     p.add_argument("--tile", type=arg.tile, default=None, metavar="PX",
-                   help="rule criteria: decide per tile of PX pixels and score against the tile truth, with "
-                        "the same figures per block beside them (default: whole blocks)")
+                   help="decide per tile of PX pixels and score against the tile truth, with the same "
+                        "figures per block beside them (default: whole blocks); --criterion model then gates "
+                        "flip's tile verdicts with the model's block verdict, simulated on the stacks")
     p.add_argument("--scenes", default=None,
                    help="comma-separated scenes to evaluate (default: those the model was not trained on)")
     p.add_argument("--plots", default="out/evaluate", help="directory for the plots")
@@ -44,11 +45,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         log.warning("--offset is ignored with --criterion %s (it moves the model's decision)", args.criterion)
     if args.criterion not in ("flip", "variance") and args.threshold is not None:
         log.warning("--threshold is ignored with --criterion %s", args.criterion)
-    if args.criterion != "model":
+    if args.criterion != "model" or args.tile:      # the model per tile: gated, simulated as it renders
         from renderer.simulate import evaluate_criterion_cli
         result = evaluate_criterion_cli(args.data, args.criterion, arg.scene_list(args.scenes),
                                         min_spp=args.min_spp, threshold=args.threshold, tau=args.tau,
-                                        tile=args.tile)
+                                        tile=args.tile, model=args.model, offset=args.offset)
         result["threshold"] = result["criterion"].get("threshold")
     else:
         model = load_model(args.model)
@@ -88,5 +89,14 @@ def _print_metrics(result: dict) -> None:
     rows = [("overall", result), *sorted(result["per_scene"].items())]
     for name, r in rows:
         print(f"{name:<{width}}  " + "  ".join(f"{r[m]:>19.4f}" for m in METRIC_NAMES))
+    if "end" in result:              # the simulated render's last image, judged by the block observer
+        end = result["end"]
+        print(f"blocks above tau at the end: {end['above_tau']} of {end['blocks']} (" + ", ".join(
+            f"{s} {e['above_tau']}, worst {e['worst']:.4f}" for s, e in sorted(end["per_scene"].items())) + ")")
+    if "blocks" in result:
+        b = result["blocks"]
+        print(f"per tile: {b['spp_ratio_vs_block_oracle']:.2f}x the block oracle's samples "
+              f"(the tile oracle {b['tile_oracle_vs_block_oracle']:.2f}x); blocks holding an early tile "
+              f"{result['early_block_rate']:.3f}")
     for p in result.get("plots", []):
         print(f"plot: {p}")

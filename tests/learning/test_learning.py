@@ -155,6 +155,10 @@ def test_metrics_by_hand():
     assert m["spp_ratio_vs_oracle"] == pytest.approx(0.75)
     assert m["saved_vs_uniform"] == pytest.approx(0.5)
     assert m["per_scene"]["a"]["early_stop_rate"] == pytest.approx(2 / 3)
+    assert "early_block_rate" not in m
+    # the same units as tiles, 3 a block, and again with one block of one tile each: blocks holding an early tile
+    assert evaluate_verdicts({"a": (V, labels, th, spp)}, per_block=3)["early_block_rate"] == 1.0
+    assert evaluate_verdicts({"a": (V, labels, th, spp)}, per_block={"a": 1})["early_block_rate"] == pytest.approx(2 / 3)
 
 
 def test_never_converging_blocks_spend_spp_max():

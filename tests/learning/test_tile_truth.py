@@ -104,6 +104,32 @@ def test_the_simulation_decides_tiles_and_reports_both_grains(tmp_path) -> None:
     np.testing.assert_array_equal(whole, simulate_loop(st, VarianceCriterion(0.2))[0])
 
 
+def test_the_end_of_a_simulated_render_is_judged_by_the_block_observer(tmp_path) -> None:
+    """`end_of_render` puts each unit at the level it stopped at (the last if never) into
+    the frame and judges it with the version-3 block observer: tiles stopped at their truth
+    leave a clean block; the same stops one level early leave it above tau. Control: the
+    composed frame is the one built here by hand."""
+    from learning.data.observer import block_errors
+    from renderer.simulate import end_of_render
+
+    ref, levels = _levels()
+    obs = VirtualObserver()
+    st = write_stack(tmp_path / "s", scene="s", levels=levels, spp=SPP, reference=ref, quick=None,
+                     reference_spp=256, grid=(1, 1), labeler=obs.labeler,
+                     thresholds=obs.thresholds(ref, levels, SPP, (1, 1)))
+    at_truth = np.where(np.arange(len(SPP))[:, None] >= CONV[None], 1, -1).astype(np.int8)
+    assert end_of_render(st, at_truth, 16, 0.02)["above_tau"] == 0
+    early = np.where(np.arange(len(SPP))[:, None] >= np.maximum(CONV - 1, 0)[None], 1, -1).astype(np.int8)
+    got = end_of_render(st, early, 16, 0.02)
+    by_hand = levels[-1].copy()
+    for t, k in enumerate(np.maximum(CONV - 1, 0)):
+        r, c = divmod(t, 4)
+        by_hand[r * 16:(r + 1) * 16, c * 16:(c + 1) * 16] = levels[k][r * 16:(r + 1) * 16, c * 16:(c + 1) * 16]
+    assert got["above_tau"] == 1 and got["worst"] == pytest.approx(float(block_errors(ref, by_hand[None], (1, 1))[0, 0]))
+    never = end_of_render(st, np.full((len(SPP), 1), -1, np.int8), None, 0.02)   # whole block, last level
+    assert never == {"above_tau": 0, "blocks": 1, "worst": pytest.approx(float(block_errors(ref, levels[-1][None], (1, 1))[0, 0]))}
+
+
 def _noisy_stack(path, scene: str, seed: int):
     """A virtual-observer stack whose levels are true cumulative means of noisy passes (8 spp
     each), its 16 tiles noisy to different degrees: the halves the live loop would keep."""

@@ -128,15 +128,57 @@ def test_a_render_at_tile_grain_resumes_bit_for_bit(tmp_path) -> None:
         adaptive_render("cornell", tmp_path / "b", VarianceCriterion(0.2), resume=True, **kw)
 
 
-def test_the_model_and_the_oracle_decide_whole_blocks() -> None:
-    """The learned model's unit is the paper's block: left unset, its tile is the block; a
-    smaller tile is refused in one line."""
-    from renderer.spec import resolve
+def test_the_model_and_the_oracle_decide_whole_blocks_unless_told() -> None:
+    """The learned model's unit is the paper's block: left unset, its tile is the block;
+    given a smaller tile it gates flip's tile verdicts (`GatedCriterion`). The oracle's
+    thresholds are per block: a smaller tile is refused in one line."""
+    from renderer.criteria import GatedCriterion, ModelCriterion, make_criterion
+    from renderer.spec import fit_frame, resolve
 
     spec = resolve({"criterion": "model"})
     assert spec.tile >= spec.block and "whole blocks" in spec.sources["tile"]
     assert resolve({}).tile == 16 and resolve({"criterion": "variance"}).tile == 16
-    from renderer.spec import fit_frame
+    assert isinstance(make_criterion(fit_frame(spec, 256, 256)), ModelCriterion)
+    gated = make_criterion(fit_frame(resolve({"criterion": "model", "tile": 16}), 256, 256))
+    assert isinstance(gated, GatedCriterion) and gated.tiles.unit == "tile16"
+    with pytest.raises(ValueError, match="the oracle criterion decides whole blocks"):
+        fit_frame(resolve({"criterion": "oracle", "tile": 16}, thresholds_known=True), 256, 256)
 
-    with pytest.raises(ValueError, match="the model criterion decides whole blocks"):
-        fit_frame(resolve({"criterion": "model", "tile": 16}), 256, 256)
+
+class _Gate:
+    """A verdict model that answers every block the same (a server's shape: verdicts only)."""
+
+    needs_quick = False
+
+    def __init__(self, verdict: int) -> None:
+        self.verdict, self.seen = verdict, []
+
+    def score_blocks(self, blocks, quick=None, exposure=0.0, offset=None):
+        self.seen.append(np.asarray(blocks).shape)
+        return np.full(len(blocks), self.verdict), None
+
+
+@pytest.mark.parametrize("gate", [1, -1])
+def test_the_models_block_verdict_gates_the_tiles(gate: int) -> None:
+    """A tile stops when flip calls it converged and the model calls its whole block
+    converged: an open gate stops exactly the tiles flip alone stops, a closed one none,
+    and the model is shown whole 64x64 blocks, never tiles."""
+    from renderer.criteria import GatedCriterion, ModelCriterion
+
+    tiling = BlockWindows(64, 64, block=64, tile=16)
+    flip_only, _ = _one_noisy_tile(tiling, steps=2)
+    model = _Gate(gate)
+    crit = GatedCriterion(ModelCriterion(model, tau=0.02), FlipCriterion(0.05, tau=0.02))
+    loop = PassLoop(crit, (1, 16), (16, 16), schedule(8, 64), 8, tiling=tiling)
+    rng = np.random.default_rng(0)
+    for _ in range(2):                                  # the same passes as _one_noisy_tile's
+        frame = 0.4 + 0.002 * rng.standard_normal((64, 64, 3))
+        frame[16:32, 16:32] += 0.3 * rng.standard_normal((16, 16, 3))
+        units = frame.reshape(4, 16, 4, 16, 3).transpose(0, 2, 1, 3, 4).reshape(16, 16, 16, 3)
+        ids = np.flatnonzero(loop.active)
+        loop.step(ids, [(units[ids], 8)])
+    assert model.seen and all(shape == (1, 64, 64, 3) for shape in model.seen)
+    if gate > 0:
+        assert loop.active.tolist() == flip_only.active.tolist() and loop.counters["gated_tiles"] == 0
+    else:
+        assert loop.active.all() and loop.counters["gated_tiles"] == (~flip_only.active).sum()

@@ -1,0 +1,47 @@
+"""The learned model at tile grain: its block verdict gates the block's tiles, whose own
+flip verdicts still apply inside it (DESIGN "Decision grain")."""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from learning.stoprule import CONVERGED, NOISY
+
+from .contract import BlockBatch, Criterion, Tally
+from .flip import FlipCriterion
+from .model import ModelCriterion
+
+
+class GatedCriterion(Criterion):
+    """A tile stops when the model calls its whole 64x64 block converged (the paper's unit,
+    the one the model was trained and calibrated on) *and* the flip criterion calls the
+    tile converged. Why both: the model alone cannot tell a block's clean tiles from its
+    noisy one, and flip alone stops a tile on its own noisy estimate; the model's verdict
+    on the whole block is a second opinion the tile must also pass.
+
+    The block's image is put together from all its tiles as they stand (stopped tiles as
+    they stopped), so the model judges what the frame will show. The ratio is the larger
+    of the two (a budget render spends on the farther from the target).
+    """
+
+    name = "model"
+    needs_halves = True
+
+    def __init__(self, gate: ModelCriterion, tiles: FlipCriterion) -> None:
+        self.gate, self.tiles = gate, tiles
+        self.needs_quick, self.quick_kind = gate.needs_quick, gate.quick_kind
+
+    def describe(self) -> dict[str, Any]:
+        return {**self.gate.describe(), "tiles": self.tiles.describe()}
+
+    def prepare(self, quick: np.ndarray) -> tuple[np.ndarray, Tally]:
+        return self.gate.prepare(quick)
+
+    def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
+        verdict, ratio = self.tiles._decide(ids, batch, tally)
+        whole, block_ids, row = batch.whole_blocks()
+        gate, gate_ratio = self.gate._decide(block_ids.tolist(), whole, tally)
+        both = (np.asarray(verdict) > 0) & (np.asarray(gate)[row] > 0)
+        tally.add("gated_tiles", int(((np.asarray(verdict) > 0) & ~both).sum()))
+        return np.where(both, CONVERGED, NOISY).astype(np.int8), np.fmax(ratio, np.asarray(gate_ratio)[row])

@@ -24,6 +24,9 @@ CAPS: dict[str, int] = {
     "EXR header": 1 << 20,        # the header of an EXR (attributes before the offset table)
     "JSON": 16 << 20,             # other small JSON records (reports, bundles' manifests)
     "bundle": 2 << 30,            # a model bundle's files
+    "weights": 256 << 20,         # safetensors weights (the feature base's: 60 KB; a transfer head's: MBs)
+    "checkpoint": 4 << 30,        # a render's checkpoint.npz (its own bound is the frame's: renderer.checkpoint)
+    "npz": 4 << 30,               # other .npz files (stack caches; each reader bounds it further)
     "file": 2 << 30,              # anything else
 }
 #: deepest nesting accepted in an input JSON file (none of ours is deeper than 6)

@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load, save_file
 
 from .atomic import atomic_write
+from .safeio import read_input
 from .userdata import find as find_user_file
 
 KERNEL_SIZES: tuple[int, ...] = (3, 5) * 6
@@ -65,8 +66,9 @@ def load_kernels(path: Path | str | None = None) -> tuple[list[torch.Tensor], st
     path = SMOOTHING_FILE if path is None else named_file(str(path)) or Path(path)
     if not path.exists():
         raise FileNotFoundError(f"feature-base weights not found: {path}")
+    data = read_input(path, "weights")       # a regular file within its cap: a FIFO or device is refused
     try:
-        tensors = load_file(str(path))
+        tensors = load(data)
     except Exception as exc:  # safetensors raises its own error types
         raise ValueError(f"{path}: not a readable safetensors file ({exc})") from exc
     kernels = []

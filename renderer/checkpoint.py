@@ -90,7 +90,7 @@ def load_checkpoint(path: Path, settings: dict[str, Any], *, pass_spp: list[int]
     """The state a checkpoint written by `save_checkpoint` for these settings holds, or ValueError."""
     n = grid[0] * grid[1]
     try:
-        data = read_npz(path, max_bytes=expected_bytes(frame, n, len(pass_spp), block))
+        data = read_npz(path, max_bytes=expected_bytes(frame, n, len(pass_spp), block), kind="checkpoint")
         return _validated(path, data, settings, pass_spp, grid, block, frame)
     except ValueError as exc:
         if "start over" in str(exc):

@@ -544,18 +544,20 @@ class TransferClassifier(OffsetClassifierMixin, ClassifierMixin, BaseEstimator):
     @classmethod
     def load(cls, path: str | os.PathLike) -> TransferClassifier:
         """Rebuild a saved classifier; the frozen base must be the same weights file (hash checked)."""
-        from safetensors.torch import load_file
+        from safetensors.torch import load as load_tensors
+
+        from noisefeat.safeio import read_input, read_json
         path = Path(path)
         for f in (STATE_FILE, TENSOR_FILE):
             if not (path / f).is_file():
                 raise FileNotFoundError(f"{path / f}: missing (not a saved TransferClassifier)")
         try:
-            state = json.loads((path / STATE_FILE).read_text())
+            state = read_json(path / STATE_FILE)
             est = cls(**state["params"])
-        except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        except (KeyError, TypeError) as exc:
             raise ValueError(f"{path / STATE_FILE}: not a TransferClassifier state ({exc})") from exc
         spec = est._check_params()
-        tensors = load_file(str(path / TENSOR_FILE))
+        tensors = load_tensors(read_input(path / TENSOR_FILE, "weights"))
         weights = Path(state["base_weights"]) if state["base_weights"] else None
         if est.freeze_base and weights is not None:
             if not weights.is_file():

@@ -45,6 +45,22 @@ def flat_blocks(blocks: np.ndarray, exposure: float = 0.0) -> np.ndarray:
     return display_range(blocks, exposure) <= FLAT_TOLERANCE
 
 
+def flat_halves(even: Any, odd: Any, exposure: float = 0.0) -> np.ndarray:
+    """bool [N]: blocks whose two half buffers [N, h, w, 3] show one flat image: both finite,
+    and every pixel of either within one 8-bit level of every pixel of both (the display
+    range of the two together). Why not the flat test of their mean: halves that disagree
+    completely (all NaN against grey, +3e38 against -3e38) can have a flat mean, and a
+    block whose halves disagree is noisy, never flat (issue 42)."""
+    import torch
+
+    e, o = torch.as_tensor(even), torch.as_tensor(odd)
+    both = torch.cat([e, o], dim=1)
+    if not len(both):
+        return np.zeros(0, bool)
+    finite = torch.isfinite(both).flatten(1).all(dim=1).cpu().numpy()
+    return finite & (display_range(both, exposure) <= FLAT_TOLERANCE)
+
+
 def decide_active(active: np.ndarray, spp: int | np.ndarray, min_spp: int | None,
                   decide: Callable[[list[int]], np.ndarray], among: np.ndarray | None = None) -> np.ndarray:
     """One decision of the rule for the blocks still `active` (bool [B], updated in place).

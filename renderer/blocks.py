@@ -36,7 +36,7 @@ import torch
 
 from learning.data.variant import select_variant
 from .block_windows import BlockWindows
-from .wavefront import WavefrontTracer, filter_guard, torch_device
+from .wavefront import WavefrontTracer, filter_guard, filter_nonnegative, torch_device
 from noisefeat.extras import require
 
 logger = logging.getLogger(__name__)
@@ -109,6 +109,8 @@ class BlockRenderer(BlockWindows):
             logger.info("scene declares no integrator; using Mitsuba's 'path'")
             self._integrator = mi.load_dict({"type": "path"})
         self.guard = filter_guard(film.rfilter())           # the crop engine's; the tracer has its own
+        #: whether the film's filter has no negative lobe (then every pixel's radiance is >= 0)
+        self.nonnegative = filter_nonnegative(film.rfilter())
         if engine is None:
             engine = "wavefront" if variant.split("_")[0] in ("llvm", "cuda") else "crop"
         if engine not in ("wavefront", "crop"):

@@ -86,12 +86,13 @@ def expected_bytes(frame: tuple[int, int], n_blocks: int, passes: int, block: tu
 
 
 def load_checkpoint(path: Path, settings: dict[str, Any], *, pass_spp: list[int], grid: tuple[int, int],
-                    block: tuple[int, int], frame: tuple[int, int]) -> dict[str, Any]:
-    """The state a checkpoint written by `save_checkpoint` for these settings holds, or ValueError."""
+                    block: tuple[int, int], frame: tuple[int, int], nonnegative: bool = True) -> dict[str, Any]:
+    """The state a checkpoint written by `save_checkpoint` for these settings holds, or
+    ValueError. `nonnegative`: the film's filter has no negative lobe (radiance sums >= 0)."""
     n = grid[0] * grid[1]
     try:
         data = read_npz(path, max_bytes=expected_bytes(frame, n, len(pass_spp), block), kind="checkpoint")
-        return _validated(path, data, settings, pass_spp, grid, block, frame)
+        return _validated(path, data, settings, pass_spp, grid, block, frame, nonnegative)
     except ValueError as exc:
         if "start over" in str(exc):
             raise
@@ -111,7 +112,8 @@ def _get(data: dict[str, np.ndarray], key: str, dtype: str, shape: tuple[int, ..
 
 
 def _validated(path: Path, data: dict[str, np.ndarray], settings: dict[str, Any], pass_spp: list[int],
-               grid: tuple[int, int], block: tuple[int, int], frame: tuple[int, int]) -> dict[str, Any]:
+               grid: tuple[int, int], block: tuple[int, int], frame: tuple[int, int],
+               nonnegative: bool) -> dict[str, Any]:
     fmt, version = data.get("format"), data.get("version")
     if fmt is None or fmt.shape != () or str(fmt) != CHECKPOINT_FORMAT:
         raise ValueError(f"{path}: not a noisestop adaptive-render checkpoint")
@@ -131,13 +133,37 @@ def _validated(path: Path, data: dict[str, np.ndarray], settings: dict[str, Any]
         raise ValueError(f"{path}: checkpoint was made with other settings ({'; '.join(diff)}); "
                          "rerun with the same options or without --resume to start over")
     try:
-        return _state(data, pass_spp, grid, block, frame)
+        return _state(data, pass_spp, grid, block, frame, nonnegative)
     except ValueError as exc:
         raise ValueError(f"{path}: inconsistent checkpoint: {exc}") from None
 
 
+#: the largest radiance one pass of a pixel can hold (Mitsuba's images are float32)
+PASS_MAX = float(np.finfo(np.float32).max)
+
+
+def _check_meaning(acc: dict[str, np.ndarray], nonnegative: bool) -> None:
+    """What the accumulator's arrays mean, beyond their shapes and types: each pixel's
+    weight is the samples of its half's passes that were finite, all of them in a block that
+    dropped nothing (`BlockAccumulator.add_batch`); a sum is at most weight x the largest
+    float32 radiance, and not negative when the film's filter has no negative lobe. A digest
+    recomputed over forged values passes; these do not."""
+    total, weight, spp, dropped = acc["sum"], acc["weight"], acc["spp"], acc["nonfinite"]
+    half_spp = spp.T[:, :, None, None]                          # [2, n, 1, 1]
+    if (weight > half_spp).any():
+        raise ValueError("a pixel's weight exceeds its half buffer's samples")
+    short = (weight < half_spp).sum(axis=(0, 2, 3))             # pixels that dropped a pass, per block
+    if (short > dropped).any():
+        raise ValueError("more pixels short of their samples than the values their block dropped")
+    if (np.abs(total) > PASS_MAX * weight[..., None]).any():
+        raise ValueError("a sum exceeds its weight times the largest float32 radiance")
+    if nonnegative and (total < 0).any():
+        raise ValueError("negative radiance sums, with a film filter that has no negative lobe "
+                         "(a scene with negative emitters or textures cannot resume)")
+
+
 def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, int], block: tuple[int, int],
-           frame: tuple[int, int]) -> dict[str, Any]:
+           frame: tuple[int, int], nonnegative: bool = True) -> dict[str, Any]:
     n = grid[0] * grid[1]
     budget = "budget_cost" in data
     p = int(_get(data, "pass_index", "int64", ()))
@@ -195,6 +221,7 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
         most = {"weight": int(cum[-1]), "passes": len(pass_spp)}.get(key)
         if arr.dtype.kind == "i" and ((arr < 0).any() or (most is not None and (arr > most).any())):
             raise ValueError(f"accumulator {key!r} out of range")
+    _check_meaning(acc_state, nonnegative)
     acc = BlockAccumulator.from_state(acc_state)
     spp, passes = acc.spp_all(), acc.passes_all()
     if not np.array_equal(spp, cum[passes]) or (p and not np.array_equal(block_spp[-1], spp)) \
@@ -216,9 +243,12 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
         cost = _get(data, "budget_cost", "float64", (2,))
         ratio_asked = _get(data, "budget_ratio_asked", "bool", (n,))
         ratio = _get(data, "budget_ratio", "float64", (n,))
+        asked = ratio[ratio_asked]
         if not (0 <= rounds <= p) or not np.isfinite(cost).all() or (cost < 0).any() \
-                or (ratio[ratio_asked] < 0).any():
-            raise ValueError("budget state out of range")
+                or (asked < 0).any() or np.isinf(asked).any():
+            raise ValueError("budget state out of range (a ratio is NaN or finite and >= 0)")
+        if cost[1] != float(spp.sum()):
+            raise ValueError(f"the budget counts {cost[1]:g} block-spp rendered, the accumulator holds {int(spp.sum())}")
         left = active & (passes < len(pass_spp))
         if done != (not left.any() or ended):
             raise ValueError(f"done is {done} with {int(left.sum())} blocks able to take a pass")

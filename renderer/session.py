@@ -107,7 +107,7 @@ class RenderSession:
         path, br = self.ckpt_path, self.br
         if path is not None and resume and path.exists():
             state = load_checkpoint(path, self.settings, pass_spp=pass_spp, grid=(br.n_blocks, br.tiles_per_block),
-                                    block=br.tile_shape, frame=(br.height, br.width))
+                                    block=br.tile_shape, frame=(br.height, br.width), nonnegative=br.nonnegative)
             logger.info("%s: resuming after pass %d (%d active blocks)", path, state["pass_index"],
                         int(state["active"].sum()))
             return state

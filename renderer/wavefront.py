@@ -57,6 +57,13 @@ def guard_band(radius: float) -> int:
     return int(math.floor(float(radius) + 0.5))
 
 
+def filter_nonnegative(rfilter: Any) -> bool:
+    """Whether a reconstruction filter is >= 0 over its radius (box, tent, gaussian; not
+    mitchell or catmullrom), sampled at 64 points: a checkpoint's sums are then >= 0."""
+    r = float(rfilter.radius())
+    return all(float(np.asarray(rfilter.eval(r * i / 63)).min()) >= 0.0 for i in range(64))
+
+
 def filter_guard(rfilter: Any) -> int:
     """The guard band a film's reconstruction filter needs, for both engines: none for a box
     filter (each sample stays in its own pixel), else `guard_band` of its radius."""

@@ -24,10 +24,10 @@ from noisefeat.display import nonfinite_pixels
 from noisefeat.dots import halves_dots
 from noisefeat.extract import analyse_many
 
-from ..inputs.noise_input import HALVES, halves_input, halves_input_and_stats, halves_mean, noise_lightness
+from ..inputs.noise_input import HALVES, halves_input, halves_input_and_stats, noise_lightness
 from ..inputs.table import feature_input, raw_input
 from ..names import DEFAULT_TAU
-from ..stoprule import FLAT_TOLERANCE, NOISY, StopRule, flat_blocks
+from ..stoprule import FLAT_TOLERANCE, NOISY, StopRule, flat_blocks, flat_halves
 from .estimators import RBFSVM
 from .noise_target import offset_at, tau_range
 
@@ -241,13 +241,12 @@ class Model:
                              f"{' and their quick images' if self.needs_quick else ''}, not half buffers")
         if self.input == "raw":
             x = self.inputs_from_halves(even, odd, exposure)
-            flat = flat_blocks(halves_mean(np.asarray(even), np.asarray(odd)), exposure) if len(x) \
-                else np.zeros(0, bool)
+            flat = flat_halves(even, odd, exposure) if len(x) else np.zeros(0, bool)
             verdict, score = self.score_inputs(x, offset, flat)
             bad = nonfinite_counts(even) + nonfinite_counts(odd)
         else:
             x, stats = halves_input_and_stats(even, odd, exposure, composition=self.composition or HALVES)
-            flat = stats.display_range <= FLAT_TOLERANCE
+            flat = flat_halves(even, odd, exposure) if len(x) else np.zeros(0, bool)
             (verdict, score), bad = self.score_inputs(x, offset, flat), stats.nonfinite
         return hold_dotted(verdict, even, odd, flat, exposure, tau), score, bad
 

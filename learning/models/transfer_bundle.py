@@ -20,10 +20,9 @@ import torch
 from noisefeat.atomic import atomic_write
 from noisefeat.jsonout import json_default
 
-from ..inputs.noise_input import halves_mean
 from ..inputs.pictures import image_input, noise_picture
 from ..names import DEFAULT_TAU, OFFSET_LIMIT, TRANSFER_INPUTS, TRANSFER_KINDS
-from ..stoprule import flat_blocks
+from ..stoprule import flat_halves
 from .bundle_check import MAX_MODEL_BYTES, file_sha256
 from .model import FORMAT, MANIFEST, VERSION, Model, hold_dotted, nonfinite_counts, versions
 from .transfer import ARCHS, STATE_FILE, TENSOR_FILE, TransferClassifier, import_torchvision
@@ -95,11 +94,10 @@ class TransferModel(Model):
 
     def assess_halves(self, even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
                       offset: float | None = None, tau: float = DEFAULT_TAU) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(verdict, score, non-finite pixels of both halves [N]); flat: their mean's display;
+        """(verdict, score, non-finite pixels of both halves [N]); flat: both halves, alike;
         dotted blocks held noisy at `tau` (`hold_dotted`), as `Model.assess_halves`."""
         x = self.inputs_from_halves(even, odd, exposure)
-        flat = flat_blocks(halves_mean(np.asarray(even), np.asarray(odd)), exposure) if len(x) \
-            else np.zeros(0, bool)
+        flat = flat_halves(even, odd, exposure) if len(x) else np.zeros(0, bool)
         verdict, score = self.score_inputs(x, offset, flat)
         return hold_dotted(verdict, even, odd, flat, exposure, tau), score, nonfinite_counts(even) + nonfinite_counts(odd)
 

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from learning.stoprule import flat_blocks
+from learning.stoprule import flat_blocks, flat_halves
 
 # decide_calls: calls to decide; blocks_asked: verdicts given; blocks_featured: blocks whose
 # current image went through the feature extractor or FLIP (here or on a server);
@@ -286,8 +286,16 @@ class Criterion(ABC):
     @staticmethod
     def _flat(batch: BlockBatch, exposure: float, tally: Tally) -> np.ndarray:
         """bool [n]: blocks with no visible variation at all (the stop rule's flat test),
-        computed where the means live."""
+        computed where the means live. Once both half buffers hold a pass, a flat mean is
+        not enough: the halves must agree within one 8-bit level too (`learning.stoprule.
+        flat_halves`, the served route's rule): a mean can be flat over halves that differ."""
         flat = flat_blocks(batch.mean, exposure)
+        if batch.half_spp is not None and batch.halves is not None:
+            check = np.flatnonzero(flat & (batch.half_spp.min(axis=1) > 0))
+            if check.size:
+                a, b = batch.halves
+                sel = torch.from_numpy(check).to(a.device)
+                flat[check] = flat_halves(a[sel], b[sel], exposure)
         tally.add("flat_blocks", int(flat.sum()))
         return flat
 

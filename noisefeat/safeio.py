@@ -23,7 +23,10 @@ CAPS: dict[str, int] = {
     "EXR": 2 << 30,               # a level, reference or final image (a 16k x 8k float RGB: 1.5 GiB)
     "EXR header": 1 << 20,        # the header of an EXR (attributes before the offset table)
     "JSON": 16 << 20,             # other small JSON records (reports, bundles' manifests)
-    "bundle": 2 << 30,            # a model bundle's files
+    "bundle": 2 << 30,            # a model bundle's other files
+    "manifest": 16 << 20,         # a model bundle's manifest.json
+    "model": 96 << 20,            # a model.skops, packed and unpacked (the bundled one: 44 KB); under 100 MiB
+    "transfer head": 256 << 20,   # a transfer bundle's tensors and state
     "weights": 256 << 20,         # safetensors weights (the feature base's: 60 KB; a transfer head's: MBs)
     "checkpoint": 4 << 30,        # a render's checkpoint.npz (its own bound is the frame's: renderer.checkpoint)
     "npz": 4 << 30,               # other .npz files (stack caches; each reader bounds it further)
@@ -78,10 +81,19 @@ def read_input(path: str | os.PathLike, kind: str = "file") -> bytes:
     file grows while it is read."""
     cap = CAPS.get(kind, CAPS["file"])
     with open_input(path, kind) as f:
-        data = f.read(cap + 1)
+        data = read_named(f, path, kind, cap + 1)
     if len(data) > cap:
         raise InputFileError(f"{path}: {kind} grew past the limit of {cap} bytes while it was read; refused")
     return data
+
+
+def read_named(f: BinaryIO, path: str | os.PathLike, kind: str, size: int = -1) -> bytes:
+    """`f.read(size)`, an OS error naming the file (/proc/self/mem passes as a regular file
+    of size 0, and its read fails with a bare "[Errno 5] Input/output error")."""
+    try:
+        return f.read(size)
+    except OSError as exc:
+        raise InputFileError(f"{path}: {kind} cannot be read ({exc.strerror or exc})") from None
 
 
 def read_text(path: str | os.PathLike, kind: str = "file") -> str:

@@ -13,6 +13,7 @@ import fcntl
 import logging
 import os
 import socket
+import stat
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -34,7 +35,7 @@ def locked_output(out: str | os.PathLike) -> Iterator[Path]:
     created = not out.exists()
     prepare_output_dir(out)           # a file, an unwritable folder: its one-line errors first
     path = out / LOCK_NAME
-    fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOFOLLOW", 0), 0o644)
+    fd = _open_lock(path)
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -58,6 +59,24 @@ def locked_output(out: str | os.PathLike) -> Iterator[Path]:
                 pass
     finally:
         os.close(fd)
+
+
+def _open_lock(path: Path) -> int:
+    """The lock file's descriptor: created if missing, a regular file or refused in one line
+    naming it (a link, a FIFO or a device in its place is no lock of ours)."""
+    flags = os.O_RDWR | os.O_CREAT | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOFOLLOW", 0)
+    try:
+        fd = os.open(path, flags, 0o644)
+    except OSError as exc:
+        what = "a symbolic link" if path.is_symlink() else exc.strerror or str(exc)
+        raise ValueError(f"{path}: the output folder's lock file cannot be opened ({what}); remove it "
+                         "if no render is running") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise ValueError(f"{path}: the output folder's lock file is not a regular file; remove it "
+                         "if no render is running")
+    os.set_blocking(fd, True)
+    return fd
 
 
 def _holder(fd: int) -> str:

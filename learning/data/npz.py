@@ -27,12 +27,14 @@ def read_npz(path: str | os.PathLike, max_bytes: int | None = None, kind: str = 
     """Every array of the .npz at `path` by name; ValueError if anything about it is off.
     The file is opened through `noisefeat.safeio` (a regular file within the cap of its
     `kind`: a link to /dev/zero or a FIFO is refused at once, in one line naming it);
-    `max_bytes` bounds the file and what it unpacks to."""
-    from noisefeat.safeio import open_input
+    `max_bytes` (default: the kind's cap) bounds the file and what its members' headers say
+    they unpack to, checked before any is inflated; zipfile inflates a member no further
+    than its header's size."""
+    from noisefeat.safeio import CAPS, open_input
 
     path = Path(path)
     with open_input(path, kind) as raw:
-        return _read_npz(path, raw, max_bytes)
+        return _read_npz(path, raw, CAPS.get(kind, CAPS["file"]) if max_bytes is None else max_bytes)
 
 
 def _read_npz(path: Path, raw: Any, max_bytes: int | None) -> dict[str, np.ndarray]:

@@ -101,14 +101,14 @@ def load_model(path: str | os.PathLike | None = None, base: FeatureBase | None =
     path = BUNDLED_DIR if path is None else Path(path)
     if path.is_file() and path.name == MANIFEST:
         path = path.parent
-    if not (path / MANIFEST).is_file():
+    if not (path / MANIFEST).exists():           # a FIFO or a device there is read_manifest's to name
         raise FileNotFoundError(f"{path}: not a noisestop model bundle (no {MANIFEST})")
     manifest = read_manifest(path / MANIFEST)
     if manifest["input"] == "image":        # a transfer baseline: torchvision, loaded only here
         from .transfer_bundle import load_transfer_model
         return load_transfer_model(path, manifest)
     model_file = path / MODEL_FILE
-    if not model_file.is_file():
+    if not model_file.exists():
         raise FileNotFoundError(f"{model_file}: missing")
     check_model_file(model_file, manifest)
     data = model_bytes(model_file)

@@ -23,11 +23,14 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from noisefeat.safeio import CAPS, open_input, read_input, read_named
+
 from ..names import TRANSFER_INPUTS, TRANSFER_KINDS
 from ..stoprule import OFFSET_LIMIT
 
-MAX_MANIFEST_BYTES = 16 * 1024 * 1024
-MAX_MODEL_BYTES = 2 * 1024 * 1024 * 1024      # uncompressed members of model.skops, all together
+#: the members of a model.skops, unpacked, all together (their headers' sizes, which bound
+#: what zipfile inflates); the file itself is capped alike (`noisefeat.safeio.CAPS`)
+MAX_MODEL_BYTES = CAPS["model"]
 MAX_FEATURES = 1 << 24                        # a 4096x4096 raw block
 MAX_SUPPORT_VECTORS = 1 << 22
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
@@ -74,11 +77,9 @@ class Manifest(_Strict):
 
 def read_manifest(path: Path) -> dict[str, Any]:
     """The manifest at `path` as a dict, validated against `Manifest`; ValueError otherwise."""
-    size = path.stat().st_size
-    if size > MAX_MANIFEST_BYTES:
-        raise ValueError(f"{path}: {size} bytes, more than a manifest may hold ({MAX_MANIFEST_BYTES})")
+    data = read_input(path, "manifest")          # a regular file within its cap, else one line
     try:
-        raw = json.loads(path.read_bytes())
+        raw = json.loads(data)
     except RecursionError:
         raise ValueError(f"{path}: not a manifest (JSON nested too deeply)") from None
     except (ValueError, UnicodeDecodeError) as exc:
@@ -117,10 +118,12 @@ def read_manifest(path: Path) -> dict[str, Any]:
     return raw
 
 
-def file_sha256(path: Path) -> str:
+def file_sha256(path: Path, kind: str = "bundle") -> str:
+    """SHA-256 of a file read in bounded chunks through `noisefeat.safeio` (a regular file
+    within the cap of its `kind`: a link to a 3 GB sparse file is refused before hashing)."""
     h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
+    with open_input(path, kind) as f:
+        for chunk in iter(lambda: read_named(f, path, kind, 1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
 
@@ -128,15 +131,17 @@ def file_sha256(path: Path) -> str:
 def check_model_file(path: Path, manifest: dict[str, Any]) -> None:
     """The model file is a zip whose members fit in memory, with the manifest's hash if it has one."""
     want = manifest.get("model_sha256")
-    if want is not None and file_sha256(path) != want:
+    if want is not None and file_sha256(path, "model") != want:
         raise ValueError(f"{path}: content does not match the manifest's model_sha256 (changed or damaged)")
-    try:
-        with zipfile.ZipFile(path) as zf:
-            total = sum(i.file_size for i in zf.infolist())
-    except (zipfile.BadZipFile, OSError, ValueError) as exc:
-        raise ValueError(f"{path}: unreadable skops file ({exc})") from None
+    with open_input(path, "model") as f:
+        try:
+            with zipfile.ZipFile(f) as zf:
+                total = sum(i.file_size for i in zf.infolist())
+        except (zipfile.BadZipFile, OSError, ValueError) as exc:
+            raise ValueError(f"{path}: unreadable skops file ({exc})") from None
     if total > MAX_MODEL_BYTES:
-        raise ValueError(f"{path}: unpacks to {total} bytes, more than a model may take ({MAX_MODEL_BYTES})")
+        raise ValueError(f"{path}: unpacks to {total} bytes, more than a model may take ({MAX_MODEL_BYTES}); "
+                         "refused before inflating it")
 
 
 #: where our estimators lived before `learning` had sub-packages; a
@@ -149,9 +154,10 @@ def model_bytes(path: Path) -> bytes:
     """The model file's content, with the module names of estimators that have moved since
     it was written replaced by their homes now, so that older bundles keep loading (the
     allow-list then judges the current names)."""
-    data = path.read_bytes()
+    data = read_input(path, "model")
     try:
         with zipfile.ZipFile(io.BytesIO(data)) as zf:
+            _check_unpacked(path, zf)
             schema = zf.read("schema.json")
             if not any(f'"{old}"'.encode() in schema for old in MOVED_MODULES):
                 return data
@@ -173,6 +179,16 @@ def model_bytes(path: Path) -> bytes:
         for info, raw in members:
             zf.writestr(info, json.dumps(tree).encode() if info.filename == "schema.json" else raw)
     return out.getvalue()
+
+
+def _check_unpacked(path: Path, zf: zipfile.ZipFile) -> None:
+    """The members' unpacked sizes from their headers, within `MAX_MODEL_BYTES`: zipfile
+    never inflates a member past its header's size (it stops there and checks the CRC),
+    so this bounds what reading the members, here or in skops, can cost."""
+    total = sum(i.file_size for i in zf.infolist())
+    if total > MAX_MODEL_BYTES:
+        raise ValueError(f"{path}: unpacks to {total} bytes, more than a model may take ({MAX_MODEL_BYTES}); "
+                         "refused before inflating it")
 
 
 # ----------------------------------------------------------------------------- estimator

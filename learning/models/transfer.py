@@ -329,7 +329,7 @@ class TransferClassifier(OffsetClassifierMixin, ClassifierMixin, BaseEstimator):
         self.base_ = build_base(self.arch, path, int(self.random_state))
         self.base_pretrained_ = path is not None
         self.base_weights_ = str(path) if path is not None else None
-        self.base_sha256_ = file_sha256(path) if path is not None else None
+        self.base_sha256_ = file_sha256(path, "weights") if path is not None else None
         if path is None:
             self.base_source_ = "untrained base"
             folder = Path(torch.hub.get_dir()) / "checkpoints"
@@ -557,12 +557,12 @@ class TransferClassifier(OffsetClassifierMixin, ClassifierMixin, BaseEstimator):
         except (KeyError, TypeError) as exc:
             raise ValueError(f"{path / STATE_FILE}: not a TransferClassifier state ({exc})") from exc
         spec = est._check_params()
-        tensors = load_tensors(read_input(path / TENSOR_FILE, "weights"))
+        tensors = load_tensors(read_input(path / TENSOR_FILE, "transfer head"))
         weights = Path(state["base_weights"]) if state["base_weights"] else None
         if est.freeze_base and weights is not None:
             if not weights.is_file():
                 raise FileNotFoundError(f"{path}: its base weights {weights} are gone")
-            if file_sha256(weights) != state["base_sha256"]:
+            if file_sha256(weights, "weights") != state["base_sha256"]:
                 raise ValueError(f"{path}: base weights {weights} changed since training "
                                  f"(SHA-256 differs): its verdicts would be wrong")
         est.base_ = build_base(est.arch, weights if est.freeze_base else None, int(est.random_state))

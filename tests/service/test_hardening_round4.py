@@ -119,3 +119,161 @@ def test_a_checkpoint_that_is_a_device_or_a_fifo_is_refused_at_once(tmp_path, ki
         adaptive_render("cornell", out, VarianceCriterion(0.05), resume=True, resolution=32, grid=(4, 4),
                         step=4, max_spp=8, progress=False)
     assert str(out / CHECKPOINT) in str(err.value) and "not a regular file" in str(err.value)
+
+
+# --- every file through one door: devices, FIFOs, huge sparse files, zip bombs --------------
+
+def _bad_file(path, kind: str) -> None:
+    """Put a /dev/zero link, a FIFO or a 3 GB sparse file at `path`."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.exists() or path.is_symlink():
+        path.unlink()
+    if kind == "/dev/zero":
+        os.symlink("/dev/zero", path)
+    elif kind == "FIFO":
+        os.mkfifo(path)
+    else:
+        with open(path, "wb") as f:
+            f.truncate(3 << 30)
+
+
+BAD = ("/dev/zero", "FIFO", "3 GB sparse")
+
+
+def _refused_in_one_line(call, path, seconds: float = 5.0) -> str:
+    import time
+
+    t0 = time.perf_counter()
+    with pytest.raises((ValueError, OSError)) as err:
+        call()
+    assert time.perf_counter() - t0 < seconds
+    msg = str(err.value)
+    assert str(path) in msg and "\n" not in msg, msg
+    return msg
+
+
+@pytest.mark.parametrize("kind", BAD)
+def test_feature_weights_that_are_not_a_small_regular_file_are_refused(tmp_path, kind: str) -> None:
+    from noisefeat.weights import load_kernels
+
+    path = tmp_path / "weights.safetensors"
+    _bad_file(path, kind)
+    _refused_in_one_line(lambda: load_kernels(path), path)
+
+
+@pytest.mark.parametrize("member", ["model.skops", "manifest.json"])
+@pytest.mark.parametrize("kind", BAD)
+def test_bundle_members_that_are_not_small_regular_files_are_refused(tmp_path, member: str, kind: str) -> None:
+    """A bundle member linked to /dev/zero, a FIFO, or a 3 GB sparse file (it was hashed
+    for 18 s, or read whole): refused before it is read, naming the member."""
+    import shutil
+
+    from learning.models.bundle import BUNDLED_DIR, load_model
+
+    bundle = tmp_path / "b"
+    shutil.copytree(BUNDLED_DIR, bundle)
+    _bad_file(bundle / member, kind)
+    _refused_in_one_line(lambda: load_model(bundle), bundle / member)
+
+
+def test_a_skops_zip_bomb_is_refused_before_it_inflates(tmp_path) -> None:
+    """schema.json inflating to 200 MiB of whitespace (a 200 KB file, its hash in the
+    manifest, so only the size can catch it): refused from the zip headers, before any
+    member is inflated. Control: the bundled model loads from a copy."""
+    import hashlib
+    import json
+    import shutil
+    import zipfile
+
+    from learning.models.bundle import BUNDLED_DIR, load_model
+
+    bundle = tmp_path / "b"
+    shutil.copytree(BUNDLED_DIR, bundle)
+    assert load_model(bundle).needs_halves
+    with zipfile.ZipFile(BUNDLED_DIR / "model.skops") as src, \
+            zipfile.ZipFile(bundle / "model.skops", "w", zipfile.ZIP_DEFLATED) as dst:
+        for info in src.infolist():
+            data = src.read(info)
+            if info.filename == "schema.json":
+                data = data[:-1] + b" " * (200 << 20) + data[-1:]
+            dst.writestr(info.filename, data)
+    assert (bundle / "model.skops").stat().st_size < (2 << 20)
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    manifest["model_sha256"] = hashlib.sha256((bundle / "model.skops").read_bytes()).hexdigest()
+    (bundle / "manifest.json").write_text(json.dumps(manifest))
+    msg = _refused_in_one_line(lambda: load_model(bundle), bundle / "model.skops")
+    assert "refused before inflating" in msg
+
+
+def test_an_npz_bomb_is_refused_before_it_inflates(tmp_path) -> None:
+    """An .npz whose one member inflates to 200 MiB of zeros (a 200 KB file): refused from
+    its headers at a checkpoint's size bound."""
+    import io
+    import zipfile
+
+    from learning.data.npz import read_npz
+
+    buf = io.BytesIO()
+    np.save(buf, np.zeros(200 << 17))            # 200 MiB of float64 zeros
+    path = tmp_path / "bomb.npz"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("a.npy", buf.getvalue())
+    assert path.stat().st_size < (1 << 20)
+    msg = _refused_in_one_line(lambda: read_npz(path, max_bytes=64 << 20, kind="checkpoint"), path)
+    assert "unpacks to" in msg
+
+
+@pytest.mark.parametrize("kind", ["symlink", "FIFO"])
+def test_a_lock_file_that_is_a_link_or_a_fifo_names_itself(tmp_path, kind: str) -> None:
+    from renderer.outlock import LOCK_NAME, locked_output
+
+    out = tmp_path / "out"
+    out.mkdir()
+    if kind == "FIFO":
+        os.mkfifo(out / LOCK_NAME)
+    else:
+        os.symlink(tmp_path / "elsewhere", out / LOCK_NAME)
+
+    def hold() -> None:
+        with locked_output(out):
+            pass
+    msg = _refused_in_one_line(hold, out / LOCK_NAME)
+    assert "remove it" in msg
+
+
+def test_an_input_whose_read_fails_is_named(tmp_path) -> None:
+    """/proc/self/mem passes as a regular file of size 0 and its read fails with a bare
+    "[Errno 5] Input/output error": the error names the file."""
+    import shutil
+
+    from learning.models.bundle import BUNDLED_DIR, load_model
+
+    if not os.path.exists("/proc/self/mem"):
+        pytest.skip("no /proc")
+    bundle = tmp_path / "b"
+    shutil.copytree(BUNDLED_DIR, bundle)
+    (bundle / "manifest.json").unlink()
+    os.symlink("/proc/self/mem", bundle / "manifest.json")
+    msg = _refused_in_one_line(lambda: load_model(bundle), bundle / "manifest.json")
+    assert "cannot be read" in msg
+
+
+def test_dataset_check_reports_an_unreadable_meta_json_as_that_stacks_problem(tmp_path) -> None:
+    """A FIFO or /proc/self/mem as a stack's meta.json: a problem of that stack, the others
+    checked (it exited 2 before)."""
+    import shutil
+
+    from learning.data.check import check_dataset
+
+    root = tmp_path / "d"
+    shutil.copytree("tests/fixtures/dataset", root)
+    stacks = sorted(p for p in root.iterdir() if (p / "meta.json").exists())
+    os.unlink(stacks[0] / "meta.json")
+    os.mkfifo(stacks[0] / "meta.json")
+    if os.path.exists("/proc/self/mem"):
+        os.unlink(stacks[1] / "meta.json")
+        os.symlink("/proc/self/mem", stacks[1] / "meta.json")
+    problems = check_dataset(root)
+    where = {str(p.path) for p in problems}
+    assert str(stacks[0] / "meta.json") in where
+    assert any("FIFO" in p.message for p in problems)

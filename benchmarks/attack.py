@@ -521,15 +521,35 @@ def costliest_valid_json(budget_fraction: float = 0.9, budget: int | None = None
             + data + b"}]}", {"Content-Type": "application/json"})
 
 
+def nested_json_255k(depth: int = 7) -> tuple[bytes, dict[str, str]]:
+    """Issue 42's body: 255 kB of `[[[[[[[0]]]]]]]` (11 deep with the envelope, the most a
+    request may nest), a rank-8 `features` tensor: parsed in full, then refused (400)."""
+    unit = b"[" * depth + b"0" + b"]" * depth
+    n = (255_000 - 100) // (len(unit) + 1)
+    return (b'{"inputs":[{"name":"features","shape":[%d%s],"datatype":"FP32","data":[' % (n, b",1" * depth)
+            + b",".join([unit] * n) + b"]}]}", {"Content-Type": "application/json"})
+
+
+def valid_json_255k() -> tuple[bytes, dict[str, str]]:
+    """Issue 42's other body: a fully valid JSON request (184 kB), 8x8 blocks as the demo
+    model takes them (120 blocks and their 120 quick images: 240 of [8, 8, 3])."""
+    values = b"[" + b",".join([b"0.5"] * (120 * 8 * 8 * 3)) + b"]"
+    return (b'{"inputs":[{"name":"blocks","shape":[120,8,8,3],"datatype":"FP32","data":' + values +
+            b'},{"name":"quick","shape":[120,8,8,3],"datatype":"FP32","data":' + values + b"}]}",
+            {"Content-Type": "application/json"})
+
+
 def costly_json_loop(url: str, token: str | None, seconds: float = 20.0, requests: int = 200,
-                     make: Callable[[], tuple[bytes, dict[str, str]]] | None = None) -> dict[str, Any]:
-    """Normal requests (and health probes every 50 ms) timed alone, then while one client
-    posts `costliest_valid_json` in a loop for up to `seconds`: p50/p99 of each, the
-    attacker's answers and the slowest probe."""
+                     make: Callable[[], tuple[bytes, dict[str, str]]] | None = None,
+                     attack: Callable[[], tuple[bytes, dict[str, str]]] = costliest_valid_json,
+                     attackers: int = 1) -> dict[str, Any]:
+    """Normal requests (and health probes every 50 ms) timed alone, then while `attackers`
+    clients post `attack()`'s body (default `costliest_valid_json`) in a loop for up to
+    `seconds`: p50/p99 of each, the attackers' answers and the slowest probe."""
     from .loadtest import make_request
     host, port = _address(url)
     body, headers = make() if make is not None else make_request(blocks=16, size=128, binary=True)
-    bad, bad_headers = costliest_valid_json()
+    bad, bad_headers = attack()
 
     def measure(stop_after: float) -> tuple[list[float], list[int | str]]:
         lat, st = [], []
@@ -565,7 +585,7 @@ def costly_json_loop(url: str, token: str | None, seconds: float = 20.0, request
 
     stop = threading.Event()
     probe_times: list[float] = []
-    threads = [threading.Thread(target=attacker, args=(stop,), daemon=True),
+    threads = [*(threading.Thread(target=attacker, args=(stop,), daemon=True) for _ in range(attackers)),
                threading.Thread(target=probes, args=(stop, probe_times), daemon=True)]
     for t in threads:
         t.start()
@@ -583,5 +603,6 @@ def costly_json_loop(url: str, token: str | None, seconds: float = 20.0, request
             "attacker_statuses": sorted({str(s) for s in attack_statuses}), "attacker_requests": len(attack_statuses),
             "attacker_mean_s": float(np.mean(attack_s)) if attack_s else None,
             "health_max_ms": float(max(probe_times) * 1e3) if probe_times else None,
+            "health_p95_ms": float(np.percentile(probe_times, 95) * 1e3) if probe_times else None,
             "health_idle_max_ms": float(max(probe_alone) * 1e3) if probe_alone else None,
             "health_probes": len(probe_times)}

@@ -241,7 +241,26 @@ def bench_hardening() -> dict[str, Any]:
         bundle = str(make_demo_bundle(Path(tmp) / "demo", name="demo"))
         return {"shapes": _shape_peaks(bundle), "slow": _slow_uploaders(bundle),
                 "auth": _auth_paths(bundle), "sighup": _sighup(bundle), "protocol": _protocol(bundle),
-                "round3": bench_round3(bundle)}
+                "round3": bench_round3(bundle), "round4": bench_round4(bundle)}
+
+
+# ----------------------------------------------------------------------------- issue 42
+
+def bench_round4(bundle: str, seconds: float = 10.0) -> list[dict[str, Any]]:
+    """Issue 42's bodies looped against a fresh server: 255 kB nested 11 deep, and a valid
+    255 kB [240, 8, 8, 3] request, by 1 and by 4 clients; normal p99 against alone and
+    health p95 (goals: at most 2x, at most 100 ms)."""
+    from . import attack
+    from .loadtest import LocalServer
+    rows = []
+    for name, body in (("255 kB nested 11 deep", attack.nested_json_255k),
+                       ("valid 184 kB, 2 x [120,8,8,3]", attack.valid_json_255k)):
+        for clients in (1, 4):
+            with LocalServer({"demo": bundle}) as s:
+                r = attack.costly_json_loop(s.url, s.token, seconds=seconds, attack=body, attackers=clients)
+                r["tracebacks"] = s.log().count("Traceback")
+            rows.append({"body": name, "clients": clients, **r})
+    return rows
 
 
 # ----------------------------------------------------------------------------- issue 34

@@ -6,9 +6,11 @@ event loop (health probes included) and every other request for as long as it ru
 the transfer of the text and of the decoded arrays, and a parse that runs past `seconds`
 is ended (the worker is killed and replaced) and answered 413.
 
-Headers up to `INLINE_BYTES` (every binary-tensor request, small JSON ones) are parsed in
+Headers up to `INLINE_BYTES` (every binary-tensor request's, tiny JSON ones) are parsed in
 the server's own thread: their worst case, capped in depth by `oip.MAX_JSON_DEPTH`, is a
-few tens of milliseconds.
+couple of milliseconds. A 255 kB body nested 11 deep, parsed there, moved other requests'
+p99 13x (issue 42). Writing into a worker and reading its answer share one deadline, and
+idle workers that die are reaped at once.
 
 Wire: the server writes an 8-byte length and the JSON text to the worker's stdin; the
 worker answers an 8-byte length and a message: an 8-byte length, a small JSON document
@@ -39,8 +41,12 @@ from .oip import DATATYPES, ApiError, InferenceRequest
 
 log = logging.getLogger(__name__)
 
-#: JSON headers larger than this go to a worker process
-INLINE_BYTES = 256 * 1024
+#: JSON headers larger than this go to a worker process: the costliest JSON this size
+#: (nested lists, or valid tensor data) decodes in about 2 ms holding the GIL (measured,
+#: BENCHMARKS "Hardening, fourth round"); a binary request's header is far smaller
+INLINE_BYTES = 16 * 1024
+#: how often idle workers are checked for death (and reaped)
+REAP_SECONDS = 0.5
 #: default seconds a worker may spend on one request (serve: NOISESTOP_PARSE_SECONDS)
 DEFAULT_PARSE_SECONDS = 10.0
 ENV_PARSE_SECONDS = "NOISESTOP_PARSE_SECONDS"
@@ -65,15 +71,16 @@ class _Worker:
         self.proc = subprocess.Popen([sys.executable, "-m", "service.parsepool", json.dumps(asdict(rules))],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=None,
                                      env={**os.environ, "OMP_NUM_THREADS": "1"})
+        assert self.proc.stdin is not None
+        os.set_blocking(self.proc.stdin.fileno(), False)      # writes wait in select, with a deadline
 
     def call(self, head: bytes | bytearray | memoryview, seconds: float) -> tuple[Any, ...]:
         """The worker's answer, or ("timeout",) / ("died",) (the worker is then dead)."""
         assert self.proc.stdin is not None and self.proc.stdout is not None
         deadline = time.monotonic() + seconds
         try:
-            self.proc.stdin.write(_LEN.pack(len(head)))
-            self.proc.stdin.write(head)
-            self.proc.stdin.flush()
+            self._write(_LEN.pack(len(head)), deadline)
+            self._write(head, deadline)
             size = _LEN.unpack(self._read(_LEN.size, deadline))[0]
             return decode_answer(self._read(size, deadline))
         except TimeoutError:
@@ -82,6 +89,21 @@ class _Worker:
         except (OSError, EOFError, ValueError, KeyError, TypeError, struct.error):
             self.kill()
             return ("died",)
+
+    def _write(self, data: bytes | bytearray | memoryview, deadline: float) -> None:
+        """All of `data` into the worker within the deadline: a stopped worker fills the
+        pipe and would hold the request (and its slot) for ever on a blocking write."""
+        assert self.proc.stdin is not None
+        fd = self.proc.stdin.fileno()
+        view, sent = memoryview(data).cast("B"), 0
+        while sent < len(view):
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([], [fd], [], left)[1]:
+                raise TimeoutError
+            try:
+                sent += os.write(fd, view[sent:sent + (1 << 20)])
+            except BlockingIOError:
+                continue
 
     def _read(self, n: int, deadline: float) -> bytearray:
         """`n` bytes from the worker into one writable buffer (the arrays are views of it)."""
@@ -125,18 +147,40 @@ class ParsePool:
         self._lock = threading.Lock()
         self._slots = anyio.CapacityLimiter(workers)
         self._count = workers
+        self._closed = threading.Event()
+        self._reaper: threading.Thread | None = None
 
     def start(self) -> None:
-        """Start the workers now (blocking: run it in a thread)."""
+        """Start the workers now (blocking: run it in a thread), and the reaper."""
         with self._lock:
             while len(self._idle) < self._count:
                 self._idle.append(_Worker(self.rules))
+            if self._reaper is None:
+                self._reaper = threading.Thread(target=self._reap, name="parse-reaper", daemon=True)
+                self._reaper.start()
 
     def close(self) -> None:
+        self._closed.set()
         with self._lock:
             for w in self._idle:
                 w.kill()
             self._idle.clear()
+
+    def _reap(self, every: float = REAP_SECONDS) -> None:
+        """Idle workers that died (killed, out of memory) are reaped and replaced at once,
+        not left as zombies until their slot is next used."""
+        while not self._closed.wait(every):
+            with self._lock:
+                dead = [w for w in self._idle if not w.alive()]
+                self._idle = [w for w in self._idle if w.alive()]
+            for w in dead:
+                w.kill()                        # waits: the zombie is gone
+                log.warning("an idle JSON parse worker died (exit %s); a new one takes its place",
+                            w.proc.returncode)
+            if dead and not self._closed.is_set():
+                fresh = [_Worker(self.rules) for _ in dead]
+                with self._lock:
+                    self._idle.extend(fresh)
 
     async def parse(self, head: bytes | bytearray | memoryview) -> InferenceRequest:
         """The request with its JSON tensor data as numpy arrays; ApiError as parse_request."""

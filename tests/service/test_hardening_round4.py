@@ -277,3 +277,75 @@ def test_dataset_check_reports_an_unreadable_meta_json_as_that_stacks_problem(tm
     where = {str(p.path) for p in problems}
     assert str(stacks[0] / "meta.json") in where
     assert any("FIFO" in p.message for p in problems)
+
+
+# --- the parse pool: every sizeable JSON body off the event loop, deadlines both ways -------
+
+@pytest.fixture(scope="module")
+def demo_bundle(tmp_path_factory):
+    from tests.support.demo import make_demo_bundle
+
+    return str(make_demo_bundle(tmp_path_factory.mktemp("r4") / "demo", name="demo"))
+
+
+def test_a_stopped_parse_worker_costs_a_request_its_budget_not_for_ever(demo_bundle) -> None:
+    """Both workers stopped (SIGSTOP): a large JSON request is answered 413 within the parse
+    budget plus a second (the write into the worker had no deadline: it hung past 120 s and
+    kept its slot), and a binary request is served meanwhile."""
+    import signal
+    import time
+
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from service.registry import ModelRegistry
+    from tests.support.demo import make_request
+
+    app = create_app(ModelRegistry({"demo": demo_bundle}), parse_seconds=1.0)
+    body, headers = make_request(blocks=16, size=64, binary=False)          # ~1 MB of JSON: the pool's
+    small, small_headers = make_request(blocks=1, size=64, binary=True)
+    with TestClient(app) as c:
+        pool = app.state.parse_pool
+        pids = [w.proc.pid for w in pool._idle]
+        assert len(pids) == 2
+        for pid in pids:
+            os.kill(pid, signal.SIGSTOP)
+        try:
+            for _ in range(2):
+                t0 = time.monotonic()
+                r = c.post("/v2/models/default/infer", content=body, headers=headers)
+                assert r.status_code in (413, 503) and time.monotonic() - t0 < 1.0 + 1.0
+            assert c.post("/v2/models/default/infer", content=small, headers=small_headers).status_code == 200
+        finally:
+            for pid in pids:
+                try:
+                    os.kill(pid, signal.SIGCONT)
+                except ProcessLookupError:
+                    pass
+        assert c.post("/v2/models/default/infer", content=body, headers=headers).status_code == 200
+
+
+def test_an_idle_parse_worker_that_dies_is_reaped_and_replaced_at_once(demo_bundle) -> None:
+    """A worker killed while idle stayed a zombie until its slot was used again: now it is
+    reaped (no zombie left) and a new worker takes its place within a second."""
+    import signal
+    import time
+
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from service.registry import ModelRegistry
+
+    app = create_app(ModelRegistry({"demo": demo_bundle}))
+    with TestClient(app):
+        pool = app.state.parse_pool
+        victim = pool._idle[0].proc
+        os.kill(victim.pid, signal.SIGKILL)
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline and (victim.returncode is None or len(pool._idle) < 2):
+            time.sleep(0.05)
+        assert victim.returncode is not None                       # waited for: not a zombie
+        with pytest.raises(ChildProcessError):
+            os.waitpid(victim.pid, os.WNOHANG)
+        assert len(pool._idle) == 2 and all(w.alive() for w in pool._idle)
+        assert victim.pid not in [w.proc.pid for w in pool._idle]

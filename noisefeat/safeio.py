@@ -20,6 +20,7 @@ CAPS: dict[str, int] = {
     "meta.json": 16 << 20,        # a stack's metadata: thresholds of ~100k blocks at most
     "flip.json": 1 << 20,         # the criterion's calibrated curve
     "token file": 64 << 10,       # a bearer token
+    "scene": 64 << 20,            # a scene's XML (Mitsuba reads its meshes and textures itself)
     "EXR": 2 << 30,               # a level, reference or final image (a 16k x 8k float RGB: 1.5 GiB)
     "EXR header": 1 << 20,        # the header of an EXR (attributes before the offset table)
     "JSON": 16 << 20,             # other small JSON records (reports, bundles' manifests)

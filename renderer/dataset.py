@@ -12,6 +12,8 @@ from typing import Any
 
 from tqdm import tqdm
 
+from noisefeat.safeio import read_text
+
 from .farm import configure_worker_threads, executor
 from .stackbuild import BuildSettings, build_stack
 
@@ -73,7 +75,7 @@ def read_build_log(out: str | os.PathLike) -> list[dict[str, Any]]:
     if not path.is_file():
         return []
     runs = []
-    for line in path.read_text().splitlines():
+    for line in read_text(path, "build log").splitlines():
         try:
             runs.append(json.loads(line))
         except json.JSONDecodeError:      # a line cut short by an interrupted run

@@ -43,6 +43,7 @@ from .scene_kit import SceneDict
 from .setting_row import parse_resolution
 from learning.data.variant import select_variant
 from noisefeat.extras import require
+from noisefeat.safeio import check_regular
 
 logger = logging.getLogger(__name__)
 
@@ -252,8 +253,9 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | st
     if not looks_like_file and not os.path.exists(name_or_path):
         raise _unknown(name_or_path)
     path = os.path.abspath(name_or_path)
-    if not os.path.isfile(path):
+    if not os.path.exists(path):
         raise FileNotFoundError(f"{name_or_path}: scene file not found")
+    check_regular(path, "scene")        # Mitsuba reads it: a FIFO or a device is refused first
     try:
         scene = mi.load_file(path, **dict(defines or {}))
     except Exception as exc:  # Mitsuba raises RuntimeError with its parser message

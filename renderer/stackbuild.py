@@ -30,6 +30,7 @@ import numpy as np
 from tqdm import tqdm
 
 from learning.data.exr import read_exr
+from learning.data.npz import read_npz
 from learning.data.observer import (VirtualObserver, observer_terms, poolings, relabel_if_stale,
                                     stack_observer_errors, thresholds_from_errors)
 from noisefeat.atomic import atomic_write
@@ -119,8 +120,8 @@ def _load_checkpoint(path: Path, shape: tuple[int, ...]) -> tuple[int, np.ndarra
     if not path.exists():
         return None
     try:
-        with np.load(path, allow_pickle=False) as z:
-            level, total = int(z["level"]), np.array(z["sum"])
+        z = read_npz(path, kind="npz")
+        level, total = int(z["level"]), np.array(z["sum"])
     except Exception as exc:  # a damaged checkpoint costs a re-render, not a wrong stack
         log.warning("%s: unreadable checkpoint (%s); levels will be re-rendered", path, exc)
         return None

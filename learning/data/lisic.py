@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from noisefeat.safeio import read_input
+
 from .exr import read_png
 from .observer import srgb_decode
 from .stack import QUICK_NONE, block_shape
@@ -67,7 +69,7 @@ def read_threshold(path: Path) -> int:
     """The integer of one seuilExpe file."""
     if not path.is_file():
         raise FileNotFoundError(f"{path}: missing human threshold file")
-    text = path.read_text(encoding="utf-8", errors="replace")
+    text = read_input(path, "LISIC file").decode("utf-8", errors="replace")
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
     if len(lines) < 1:
         raise ValueError(f"{path}: empty; expected one integer (samples per pixel)")
@@ -83,7 +85,7 @@ def read_threshold(path: Path) -> int:
 
 def read_config(path: Path) -> tuple[str, int, int, int, int]:
     """config -> (prefix, start, end, step, index width)."""
-    lines = [ln.strip() for ln in path.read_text(encoding="utf-8", errors="replace")
+    lines = [ln.strip() for ln in read_input(path, "LISIC file").decode("utf-8", errors="replace")
              .splitlines()]
     lines = [ln for ln in lines if ln]
     if len(lines) < 5:

@@ -297,7 +297,7 @@ class Stack:
         if key in _VALIDATED:
             return
         try:
-            if marker.read_text(encoding="utf-8").strip() == key:
+            if read_text(marker, "cache marker").strip() == key:
                 _VALIDATED.add(key)
                 return
         except (OSError, UnicodeDecodeError):

@@ -165,7 +165,11 @@ _DENSENET_OLD_KEY = re.compile(
 
 def _read_state_dict(path: Path) -> dict[str, torch.Tensor]:
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)  # no pickled code
+        import io
+
+        from noisefeat.safeio import read_input
+        data = read_input(path, "transfer head")              # a regular file within its cap
+        state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)  # no pickled code
     except Exception as exc:
         raise ValueError(f"{path}: not a readable torch state_dict file ({exc})") from exc
     for key in ("state_dict", "model"):

@@ -349,3 +349,14 @@ def test_an_idle_parse_worker_that_dies_is_reaped_and_replaced_at_once(demo_bund
             os.waitpid(victim.pid, os.WNOHANG)
         assert len(pool._idle) == 2 and all(w.alive() for w in pool._idle)
         assert victim.pid not in [w.proc.pid for w in pool._idle]
+
+
+@pytest.mark.parametrize("kind", ["/dev/zero", "FIFO"])
+def test_a_scene_file_that_is_a_device_or_a_fifo_is_refused(tmp_path, kind: str) -> None:
+    """Mitsuba reads the scene XML itself: a FIFO there would hang it, so the path is
+    checked through safeio first."""
+    from renderer.scenes import load_scene
+
+    path = tmp_path / "scene.xml"
+    _bad_file(path, kind)
+    _refused_in_one_line(lambda: load_scene(str(path)), path)

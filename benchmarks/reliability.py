@@ -241,7 +241,7 @@ def bench_hardening() -> dict[str, Any]:
         bundle = str(make_demo_bundle(Path(tmp) / "demo", name="demo"))
         return {"shapes": _shape_peaks(bundle), "slow": _slow_uploaders(bundle),
                 "auth": _auth_paths(bundle), "sighup": _sighup(bundle), "protocol": _protocol(bundle),
-                "round3": bench_round3(bundle), "round4": bench_round4(bundle)}
+                "round3": bench_round3(bundle), "round4": bench_round4(bundle), "round4_files": _round4_files(bundle)}
 
 
 # ----------------------------------------------------------------------------- issue 42
@@ -260,6 +260,50 @@ def bench_round4(bundle: str, seconds: float = 10.0) -> list[dict[str, Any]]:
                 r = attack.costly_json_loop(s.url, s.token, seconds=seconds, attack=body, attackers=clients)
                 r["tracebacks"] = s.log().count("Traceback")
             rows.append({"body": name, "clients": clients, **r})
+    return rows
+
+
+def _round4_files(bundle: str) -> list[dict[str, Any]]:
+    """Issue 42's input slots, each as /dev/zero, a FIFO and a 3 GB sparse file, against the
+    command that reads it (goal: exit 2, one line naming the file, at most 5 s and 400 MiB)."""
+    import shutil
+
+    rows = []
+    render = ["render", "--scene", "cornell", "--resolution", "32", "--max-spp", "16", "--criterion", "variance"]
+    evaluate = ["evaluate", "--data", str(ROOT / "tests" / "fixtures" / "dataset"), "--criterion", "model"]
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp_path = Path(tmp)
+
+        def bad(path: Path, kind: str) -> Path:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            if kind == "/dev/zero":
+                path.symlink_to("/dev/zero")
+            elif kind == "FIFO":
+                os.mkfifo(path)
+            else:
+                with open(path, "wb") as f:
+                    f.truncate(3 << 30)
+            return path
+
+        for i, kind in enumerate(("/dev/zero", "FIFO", "3 GB sparse")):
+            out = tmp_path / f"ck{i}"
+            bad(out / "checkpoint.npz", kind)
+            rows.append({"case": f"checkpoint.npz as {kind}: render --resume",
+                         **_run_cli([*render, "--resume", "--out", str(out)])})
+            weights = bad(tmp_path / f"w{i}" / "weights.safetensors", kind)
+            rows.append({"case": f"NOISESTOP_FEATURE_WEIGHTS as {kind}: evaluate --criterion model",
+                         **_run_cli([*evaluate, "--model", bundle], {"NOISESTOP_FEATURE_WEIGHTS": str(weights)})})
+            for member in ("model.skops", "manifest.json"):
+                b = tmp_path / f"b{i}{member}"
+                shutil.copytree(bundle, b)
+                (b / member).unlink()
+                bad(b / member, kind)
+                rows.append({"case": f"bundle {member} as {kind}: evaluate --criterion model",
+                             **_run_cli([*evaluate, "--model", str(b)])})
+            if kind != "3 GB sparse":             # a lock file's content is never read past 200 bytes
+                out = tmp_path / f"lk{i}"
+                bad(out / ".noisestop.lock", kind)
+                rows.append({"case": f"output lock file as {kind}: render", **_run_cli([*render, "--out", str(out)])})
     return rows
 
 

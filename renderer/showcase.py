@@ -166,22 +166,25 @@ def _one_to_one_row(fig: Any, panels: list[tuple], dark: dict[str, Any], u: dict
 
 
 def summary_line(a: dict[str, Any], u: dict[str, Any], errors: dict[str, np.ndarray] | None = None) -> str:
-    """Share of uniform's samples, speed-up over uniform to max spp, blocks stopped, and
-    (with `errors`) each side's worst-block and mean error against the reference."""
+    """What a user judges first (with `errors`: blocks above tau and the worst block against
+    the reference, each side at equal time), then samples and time (share of uniform's
+    samples, speed-up over uniform to max spp, blocks stopped), then the mean error and the
+    dots."""
     share = 1.0 - a["saved_vs_uniform"]
     reached = max(1, min(b["spp"] for b in u["blocks"]))
     uniform_full = u["timing"]["setup_s"] + u["timing"]["render_s"] / reached * a["max_spp"]
-    line = (f"{a['scene']}: adaptive used {share:.0%} of uniform's samples (mean {a['mean_spp']:.0f} of "
-            f"{a['max_spp']} spp), {uniform_full / a['wall_s']:.1f}x faster than uniform to {a['max_spp']} spp "
-            f"(uniform's time from its equal-time run), {a['blocks_converged']} of {len(a['blocks'])} blocks "
-            f"stopped; at equal time uniform reached {reached} spp")
+    cost = (f"adaptive used {share:.0%} of uniform's samples (mean {a['mean_spp']:.0f} of {a['max_spp']} spp), "
+            f"{uniform_full / a['wall_s']:.1f}x faster than uniform to {a['max_spp']} spp (uniform's time from its "
+            f"equal-time run), {a['blocks_converged']} of {len(a['blocks'])} blocks stopped; at equal time uniform "
+            f"reached {reached} spp")
     if errors is None:
-        return line
-    ea, eu = errors["adaptive"], errors["uniform"]
-    return (line + f"; error against the reference (tau {a['tau']:g}): worst block {ea.max():.4f} adaptive, "
-            f"{eu.max():.4f} uniform; mean {ea.mean():.4f} adaptive, {eu.mean():.4f} uniform; adaptive blocks "
-            f"above tau: {int((ea > a['tau']).sum())} ({sum(bool(e > a['tau']) and not b['converged'] for e, b in zip(ea, a['blocks']))} "
-            f"of them at max spp)" + dots_summary(a, errors))
+        return f"{a['scene']}: {cost}"
+    ea, eu, tau = errors["adaptive"], errors["uniform"], float(a["tau"])
+    at_max = sum(bool(e > tau) and not b["converged"] for e, b in zip(ea, a["blocks"]))
+    return (f"{a['scene']} at equal time ({a['wall_s']:.0f} s each), against the reference (tau {tau:g}): blocks "
+            f"above tau {int((ea > tau).sum())} adaptive ({at_max} of them at max spp), {int((eu > tau).sum())} "
+            f"uniform, of {len(ea)}; worst block {ea.max():.4f} adaptive, {eu.max():.4f} uniform; {cost}; "
+            f"mean block error {ea.mean():.4f} adaptive, {eu.mean():.4f} uniform" + dots_summary(a, errors))
 
 
 def dots_summary(a: dict[str, Any], errors: dict[str, np.ndarray]) -> str:

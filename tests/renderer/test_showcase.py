@@ -90,3 +90,22 @@ def test_the_report_counts_dots_in_stopped_blocks_only():
     assert f["dots"] == [256, 128, 16, 0] and f["dot_level"] == pytest.approx(0.05)
     assert f["max_stopped_dots"] == 128 and f["dotted_stopped_blocks"] == 1
     assert "max_stopped_dots" not in final_vs_reference(img, ref, (2, 2), 0.02)
+
+
+def test_the_summary_leads_with_blocks_above_tau_and_the_worst_block():
+    """Issue 43: what a user judges first (blocks above tau, the worst block, each side), then
+    samples and time, then the mean error."""
+    from renderer.showcase import summary_line
+
+    a = {**report([True, True, False, True], [32, 64, 256, 32]), "scene": "s", "saved_vs_uniform": 0.5,
+         "max_spp": 256, "blocks_converged": 3, "timing": {"setup_s": 0.1, "render_s": 0.9}}
+    u = {**report([False] * 4, [128] * 4), "timing": {"setup_s": 0.1, "render_s": 0.9}}
+    errors = {"adaptive": np.array([0.01, 0.03, 0.025, 0.0]), "uniform": np.array([0.021, 0.02, 0.04, 0.03]),
+              "outliers_adaptive": np.zeros(4, int), "outliers_uniform": np.zeros(4, int)}
+    line = summary_line(a, u, errors)
+    above = line.index("blocks above tau 2 adaptive (1 of them at max spp), 3 uniform, of 4")
+    worst = line.index("worst block 0.0300 adaptive, 0.0400 uniform")
+    samples = line.index("adaptive used 50% of uniform's samples")
+    mean = line.index("mean block error 0.0163 adaptive, 0.0278 uniform")
+    assert above < worst < samples < mean
+    assert summary_line(a, u).startswith("s: adaptive used 50%")           # no reference: cost alone

@@ -52,6 +52,8 @@ class Case:
 
 
 #: sized for 2 CPU cores (about 15 minutes in all) and for one H100/H200 (about 4 minutes)
+#: the cold row's (size, max spp) per device: issue 43's cases
+COLD = {"cpu": (256, 1024), "cuda": (1024, 1024)}
 CASES = {
     "cpu": (Case("cornell_box", 512, 256, 1024, 512), Case("spot_stage", 256, 256, 0, 1024)),
     "cuda": (Case("cornell_box", 1024, 1024, 8192, 4096), Case("spot_stage", 1024, 1024, 8192, 4096)),
@@ -213,9 +215,10 @@ def measure_case(case: Case, tau: float, repeats: int = 3, walls_only: bool = Fa
 
 
 def bench_native(tau: float | None = None, cases: tuple[Case, ...] | None = None,
-                 on_case: Any = None, repeats: int = 3, walls_only: bool = False) -> dict[str, Any]:
-    """Every case of the variant's device (`CASES`), with the device named; `on_case(result)`
-    after each case (so a run cut short keeps what it measured)."""
+                 on_case: Any = None, repeats: int = 3, walls_only: bool = False, cold: bool = True) -> dict[str, Any]:
+    """Every case of the variant's device (`CASES`), with the device named, then the cold row
+    (`benchmarks.bench_cold`: fresh processes, `noisestop render` against a plain `mi.render`
+    script); `on_case(result)` after each (so a run cut short keeps what it measured)."""
     from learning.data.variant import select_variant
     from learning.names import DEFAULT_TAU
 
@@ -228,6 +231,13 @@ def bench_native(tau: float | None = None, cases: tuple[Case, ...] | None = None
     for c in cases or CASES[kind]:
         log.info("bench native: %s %dx%d on %s", c.scene, c.size, c.size, out["device"])
         out["cases"].append(measure_case(c, tau or DEFAULT_TAU, repeats, walls_only))
+        if on_case is not None:
+            on_case(out)
+    if cold:
+        from .bench_cold import cold_row
+
+        log.info("bench native: cold start, Mitsuba's Cornell box %dx%d", *COLD[kind][:1] * 2)
+        out["cold"] = cold_row(*COLD[kind], variant=variant)
         if on_case is not None:
             on_case(out)
     return out
@@ -282,6 +292,7 @@ def _md_walls(c: dict[str, Any]) -> list[str]:
 
 def md_native(r: dict[str, Any]) -> str:
     """BENCHMARKS.md section: one table per case, labelled with the device."""
+    cold = md_cold(r["cold"]) if "cold" in r else []
     lines = [f"Device: **{r['device']}**, variant `{r['variant']}`, tau {r['tau']:g}, {BLOCK}-px blocks, step "
              f"{STEP}, flip criterion. Errors: DESIGN's observer (largest 16x16-tile FLIP per block) against the "
              "reference. Wall times are warm; the first four rows are medians of runs interleaved with each "
@@ -321,7 +332,25 @@ def md_native(r: dict[str, Any]) -> str:
         lines += ["", f"Time to target (every block at or below tau): `mi.render` {mi_txt}; adaptive {ad_txt}. "
                   f"Sweep (progressive): {sweep}. Largest pixel difference between the grown and the "
                   f"fixed-step image: {c['grown_vs_fixed_max_diff']:.2g}."]
-    return "\n".join(lines)
+    return "\n".join(lines + cold)
+
+
+def md_cold(c: dict[str, Any]) -> list[str]:
+    """The cold row: each command from a fresh process to its files, broken down."""
+    m, o = c["mi_render"], c["noisestop"]
+    rest = o["wall_s"] - o["imports_s"] - o["report_wall_s"]
+    return ["", f"**Cold start** (issue 43): Mitsuba's Cornell box {c['size']}x{c['size']} as XML, max "
+            f"{c['max_spp']} spp, each a fresh process from the command to its files written "
+            "(`benchmarks/bench_cold.py`).", "",
+            "| command | wall | vs the script | breakdown |", "|---|---|---|---|",
+            f"| plain `mi.render` script, {c['max_spp']} spp | {m['wall_s']:.2f} s | 1.00x | import "
+            f"{m['import_s']:.2f}, variant {m['variant_s']:.2f}, load {m['load_s']:.2f}, render (compile "
+            f"included) {m['render_s']:.2f}, write {m['write_s']:.2f} s |",
+            f"| `noisestop render` (flip), mean {o['mean_spp']:.0f} spp | {o['wall_s']:.2f} s | {c['ratio']:.2f}x | "
+            f"imports {o['imports_s']:.2f}; the render's own wall {o['report_wall_s']:.2f} (setup "
+            f"{o.get('setup_s', 0):.2f}, render {o.get('render_s', 0):.2f}, decisions "
+            f"{o.get('decisions_s', 0) + o.get('features_s', 0):.2f}, overhead {o.get('overhead_s', 0):.2f}); the "
+            f"rest (variant, scene load, outputs, process) {rest:.2f} s |"]
 
 
 def main(argv: list[str] | None = None) -> int:

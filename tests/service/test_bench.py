@@ -219,3 +219,21 @@ def test_flip_section_compares_both_routes_on_labelled_stacks():
     assert d["flip_verdict_changes"] == 0 and d["model_verdict_changes"] == 0
     assert d["flip_candidates"] > 100 and d["model_max_score_diff"] < 1e-2
     assert f"| {FIXTURE} | {d['values']} (" in md_flip(r)
+
+
+def test_the_cold_rows_xml_is_mitsubas_cornell_box() -> None:
+    """bench native's cold row renders Mitsuba's Cornell box from an XML file (the plain
+    script and `noisestop render` both read one): the XML written renders the very image
+    `mi.cornell_box()` does."""
+    import mitsuba as mi
+    import numpy as np
+
+    from benchmarks.bench_cold import cbox_xml
+    from learning.data.variant import select_variant
+
+    mi.set_variant(select_variant())
+    d = mi.cornell_box()
+    d["sensor"]["film"]["width"] = d["sensor"]["film"]["height"] = 32
+    a = np.asarray(mi.render(mi.load_string(cbox_xml(32)), spp=4, seed=3))
+    b = np.asarray(mi.render(mi.load_dict(d), spp=4, seed=3))
+    assert a.shape == (32, 32, 3) and np.allclose(a, b, atol=1e-5) and a.mean() > 0.05

@@ -10,7 +10,8 @@ Checkpoints are taken only when it is given a `Checkpoints` (the command line's 
 render, `adaptive_render`): the whole state (accumulator, active set, verdict history,
 counters, timers, pass index, quick image), atomically into out/checkpoint.npz
 (`renderer.checkpoint`: digest-checked and validated against the settings before a resume
-trusts it), every `checkpoint_every` seconds, at the end, at the time limit and on
+trusts it), every `checkpoint_every` seconds, at the end (unless the render ended within its
+first period), at the time limit and on
 SIGINT/SIGTERM (`renderer.signals`): a step is never half-saved. Because samples depend
 only on (seed, pixel, pass), ``resume=True`` after a crash gives the very image and report
 (timings aside) of an uninterrupted run. `renderer.render` and the ``noisestop`` Mitsuba
@@ -59,7 +60,9 @@ def _run_steps(session: RenderSession, progress: bool, time_limit: float | None,
                checkpoints: Checkpoints | None) -> bool:
     """Step the session until it is done, checkpointing on time, at the end, at the time
     limit and on a signal (the first SIGINT/SIGTERM finishes the step, checkpoints and
-    raises KeyboardInterrupt). Returns whether the time limit ended the render."""
+    raises KeyboardInterrupt). A render that ends within its first period writes none (a
+    1024x1024 checkpoint costs about half a second; resuming a render that short is
+    rendering it again). Returns whether the time limit ended the render."""
     every = checkpoints.every if checkpoints is not None else math.inf
     last_saved = time.perf_counter()
     bar = tqdm(total=len(session.loop.schedule), initial=session.pass_index, desc=f"{session.label} passes", unit="pass",
@@ -73,7 +76,9 @@ def _run_steps(session: RenderSession, progress: bool, time_limit: float | None,
             now = time.perf_counter()
             reached = time_limit is not None and not session.done and now - session.t_start >= time_limit
             requested = stop is not None and stop.requested
-            if session.done or reached or requested or now - last_saved >= every:
+            if session.done and session.counts()["checkpoints"] == 0 and now - session.t_start < every:
+                session.drop_checkpoint()     # shorter than the period: nothing worth resuming (issue 43)
+            elif session.done or reached or requested or now - last_saved >= every:
                 session.checkpoint()
                 last_saved = time.perf_counter()
             if requested and not session.done:

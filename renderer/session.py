@@ -187,6 +187,12 @@ class RenderSession:
                 "timers": {**self.loop.timers, "render_s": self.timers["render_s"],
                            "setup_s": self.timers["setup_s"], "wall_s": wall}}
 
+    def drop_checkpoint(self) -> None:
+        """A finished render that wrote no checkpoint: remove one an earlier run left, so
+        that no stale state stays beside this render's outputs."""
+        if self.ckpt_path is not None:
+            self.ckpt_path.unlink(missing_ok=True)
+
     def checkpoint(self) -> None:
         """Write the checkpoint (in memory: nothing to resume from, so nothing)."""
         if self.ckpt_path is None:

@@ -52,12 +52,12 @@ class Case:
 
 
 #: sized for 2 CPU cores (about 15 minutes in all) and for one H100/H200 (about 4 minutes)
-#: the cold row's (size, max spp) per device: issue 43's cases
-COLD = {"cpu": (256, 1024), "cuda": (1024, 1024)}
 CASES = {
     "cpu": (Case("cornell_box", 512, 256, 1024, 512), Case("spot_stage", 256, 256, 0, 1024)),
     "cuda": (Case("cornell_box", 1024, 1024, 8192, 4096), Case("spot_stage", 1024, 1024, 8192, 4096)),
 }
+#: the cold row's (size, max spp) per device: issue 43's cases
+COLD = {"cpu": (256, 1024), "cuda": (1024, 1024)}
 
 
 def load_case_scene(case: Case) -> Any:

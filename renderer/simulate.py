@@ -197,20 +197,20 @@ def end_of_render(stack: Stack, verdicts: np.ndarray, tile: int | None, tau: flo
     block whatever the tile truth's thresholds say."""
     from learning.data.observer import block_errors
 
-    from .block_windows import BlockWindows
+    from .block_windows import BlockWindows, compose
 
-    units = BlockWindows(stack.width, stack.height, grid=tuple(stack.grid), tile=tile)._unit_idx.numpy()
+    tiling = BlockWindows(stack.width, stack.height, grid=tuple(stack.grid), tile=tile)
     stopped = np.asarray(verdicts) > 0
     level = np.where(stopped.any(axis=0), stopped.argmax(axis=0), len(stopped) - 1)
-    owner = np.full(stack.height * stack.width, -1, np.int64)
-    for u, pixels in enumerate(units):   # the later unit's pixel where windows overlap, as in the frame
-        owner[pixels] = u
-    pixel_level = level[owner]
-    frame = np.zeros((stack.height * stack.width, 3), np.float32)
+    windows = [tiling.unit_window(u) for u in range(tiling.n_units)]
+    means: list[np.ndarray] = [np.empty(0)] * tiling.n_units
     for k, image in enumerate(stack.iter_levels()):
-        here = pixel_level == k
-        frame[here] = np.asarray(image, np.float32).reshape(-1, 3)[here]
-    e = block_errors(stack.reference(), frame.reshape(stack.height, stack.width, 3)[None], stack.grid)[0]
+        for u in np.flatnonzero(level == k).tolist():
+            x, y, w, h = windows[u]
+            means[u] = np.asarray(image, np.float32)[y:y + h, x:x + w]
+    # as the renderer puts its frame together: each pixel from the unit holding it with the most samples
+    frame, _, _ = compose(means, windows, np.asarray(stack.spp)[level], (stack.height, stack.width))
+    e = block_errors(stack.reference(), frame.astype(np.float32)[None], stack.grid)[0]
     return {"above_tau": int((~(e <= tau)).sum()), "blocks": int(e.size), "worst": float(np.nanmax(e))}
 
 

@@ -22,7 +22,7 @@ from noisefeat.atomic import atomic_path, atomic_write
 from noisefeat.jsonout import json_default
 
 from ..inputs.noise_input import HALVES, n_inputs
-from .bundle_check import check_estimator, check_model_file, file_sha256, model_bytes, read_manifest
+from .bundle_check import check_estimator, file_sha256, model_bytes, read_manifest
 from .estimators import RBFSVM
 from .model import FORMAT, MANIFEST, VERSION, Model, versions
 
@@ -110,8 +110,7 @@ def load_model(path: str | os.PathLike | None = None, base: FeatureBase | None =
     model_file = path / MODEL_FILE
     if not model_file.exists():
         raise FileNotFoundError(f"{model_file}: missing")
-    check_model_file(model_file, manifest)
-    data = model_bytes(model_file)
+    data = model_bytes(model_file, manifest)
     try:
         untrusted = sio.get_untrusted_types(data=data)
     except Exception as exc:     # skops raises many kinds of errors on a malformed file

@@ -128,43 +128,35 @@ def file_sha256(path: Path, kind: str = "bundle") -> str:
     return h.hexdigest()
 
 
-def check_model_file(path: Path, manifest: dict[str, Any]) -> None:
-    """The model file is a zip whose members fit in memory, with the manifest's hash if it has one."""
-    want = manifest.get("model_sha256")
-    if want is not None and file_sha256(path, "model") != want:
-        raise ValueError(f"{path}: content does not match the manifest's model_sha256 (changed or damaged)")
-    with open_input(path, "model") as f:
-        try:
-            with zipfile.ZipFile(f) as zf:
-                total = sum(i.file_size for i in zf.infolist())
-        except (zipfile.BadZipFile, OSError, ValueError) as exc:
-            raise ValueError(f"{path}: unreadable skops file ({exc})") from None
-    if total > MAX_MODEL_BYTES:
-        raise ValueError(f"{path}: unpacks to {total} bytes, more than a model may take ({MAX_MODEL_BYTES}); "
-                         "refused before inflating it")
-
-
 #: where our estimators lived before `learning` had sub-packages; a
 #: bundle written then names the old module in its skops schema, and skops finds a class
 #: by its module's name
 MOVED_MODULES = {"learning.estimators": "learning.models.estimators"}
 
 
-def model_bytes(path: Path) -> bytes:
-    """The model file's content, with the module names of estimators that have moved since
-    it was written replaced by their homes now, so that older bundles keep loading (the
-    allow-list then judges the current names)."""
+def model_bytes(path: Path, manifest: dict[str, Any]) -> bytes:
+    """The model file's content, read once: with the manifest's hash if it has one, a zip
+    whose members fit in memory (from its headers, before any is inflated), and with the
+    module names of estimators that have moved since it was written replaced by their homes
+    now, so that older bundles keep loading (the allow-list then judges the current names)."""
     data = read_input(path, "model")
+    want = manifest.get("model_sha256")
+    if want is not None and hashlib.sha256(data).hexdigest() != want:
+        raise ValueError(f"{path}: content does not match the manifest's model_sha256 (changed or damaged)")
     try:
-        with zipfile.ZipFile(io.BytesIO(data)) as zf:
-            _check_unpacked(path, zf)
+        zf = zipfile.ZipFile(io.BytesIO(data))
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise ValueError(f"{path}: unreadable skops file ({exc})") from None
+    with zf:
+        _check_unpacked(path, zf)
+        try:
             schema = zf.read("schema.json")
             if not any(f'"{old}"'.encode() in schema for old in MOVED_MODULES):
                 return data
             members = [(info, zf.read(info)) for info in zf.infolist()]
-        tree = json.loads(schema)
-    except (zipfile.BadZipFile, KeyError, OSError, ValueError, RecursionError) as exc:
-        raise ValueError(f"{path}: unreadable skops file ({type(exc).__name__}: {exc})") from None
+            tree = json.loads(schema)
+        except (zipfile.BadZipFile, KeyError, OSError, ValueError, RecursionError) as exc:
+            raise ValueError(f"{path}: unreadable skops file ({type(exc).__name__}: {exc})") from None
     todo = [tree]
     while todo:                                   # iterative: a crafted schema may nest deep
         node = todo.pop()

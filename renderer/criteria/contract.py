@@ -86,6 +86,7 @@ class BlockBatch:
         self.half_spp = None if half_spp is None else np.asarray(half_spp, np.int64).reshape(-1, 2)
         self.quick = quick
         self._mean, self._halves, self._nonfinite, self._source = mean, halves, nonfinite, source
+        self._blocks: Any = None           # the tiles' whole blocks, assembled once (`_assembled`)
 
     @classmethod
     def from_accumulator(cls, acc: Any, ids: Sequence[int], quick: np.ndarray | None = None,
@@ -132,17 +133,30 @@ class BlockBatch:
             self._halves = acc.halves(ids)
         return self._halves
 
+    def _assembled(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[torch.Tensor, torch.Tensor]]:
+        """(blocks, first, row, every, (A, B)) of the blocks the batch's tiles lie in, once a
+        batch: their ids, the first of the batch's tiles in each, each tile's block row, the
+        ids of all their tiles, and their half buffers put together from all their tiles
+        (stopped ones as they stopped), [kb, bh, bw, C] on the device."""
+        if self._blocks is None:
+            acc, ids = self._source
+            t = self.tiling.tiles_per_block
+            blocks, first, row = np.unique(ids // t, return_index=True, return_inverse=True)
+            every = (blocks[:, None] * t + np.arange(t)).reshape(-1)
+            a, b = acc.halves(every)
+            shape = (len(blocks), t, *a.shape[1:])
+            self._blocks = (blocks, first, row, every,
+                            (self.tiling.assemble(a.reshape(shape)), self.tiling.assemble(b.reshape(shape))))
+        return self._blocks
+
     def block_halves(self, among: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
         """(A, B, row, slot): the half buffers of the blocks the batch's tiles `among` lie in,
         each block window put together from all its tiles (stopped ones as they stopped),
         [kb, bh, bw, C] on the device; tile among[i] is tile `slot[i]` of block `row[i]`."""
-        acc, ids = self._source
-        ids = ids[among]
-        t = self.tiling.tiles_per_block
-        blocks, row = np.unique(ids // t, return_inverse=True)
-        a, b = acc.halves((blocks[:, None] * t + np.arange(t)).reshape(-1))
-        shape = (len(blocks), t, *a.shape[1:])
-        return self.tiling.assemble(a.reshape(shape)), self.tiling.assemble(b.reshape(shape)), row, ids % t
+        _, _, rows, _, (a, b) = self._assembled()
+        need, row = np.unique(rows[among], return_inverse=True)
+        sel = torch.from_numpy(need).to(a.device)
+        return a[sel], b[sel], row, self._source[1][among] % self.tiling.tiles_per_block
 
     def whole_blocks(self) -> tuple[BlockBatch, np.ndarray, np.ndarray]:
         """(batch, blocks, row): the blocks the batch's tiles lie in as one batch of whole
@@ -150,16 +164,12 @@ class BlockBatch:
         block's spp and half spp are its least sampled tile's, its dropped values the sum),
         their ids, and the row of each asked tile's block: what a block-grain criterion
         judges a tile's block by."""
-        acc, ids = self._source
-        t = self.tiling.tiles_per_block
-        blocks, first, row = np.unique(ids // t, return_index=True, return_inverse=True)
-        every = (blocks[:, None] * t + np.arange(t)).reshape(-1)
-        a, b = acc.halves(every)
-        shape = (len(blocks), t, *a.shape[1:])
-        per_block = (len(blocks), t)
+        acc, _ = self._source
+        blocks, first, row, every, halves = self._assembled()
+        per_block = (len(blocks), self.tiling.tiles_per_block)
+        mean = acc.means(every)
         batch = BlockBatch(acc.spp_all()[every].reshape(per_block).min(axis=1),
-                           mean=self.tiling.assemble(acc.means(every).reshape(shape)),
-                           halves=(self.tiling.assemble(a.reshape(shape)), self.tiling.assemble(b.reshape(shape))),
+                           mean=self.tiling.assemble(mean.reshape(*per_block, *mean.shape[1:])), halves=halves,
                            half_spp=acc.half_spp_all()[every].reshape(*per_block, 2).min(axis=1),
                            nonfinite=acc.nonfinite_all()[every].reshape(per_block).sum(axis=1),
                            quick=None if self.quick is None else self.quick[first])

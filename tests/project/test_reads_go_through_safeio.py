@@ -14,8 +14,7 @@ LOADERS = {"np", "numpy", "json", "pickle", "torch"}
 #: (module, call) pairs that read a file object or bytes safeio opened, or hand a checked path on
 ALLOWED = {
     ("learning/data/npz.py", "ZipFile"): "a file object from safeio.open_input",
-    ("learning/models/bundle_check.py", "ZipFile"): "a file object from safeio.open_input, bytes from "
-                                                    "safeio.read_input, or an archive being written",
+    ("learning/models/bundle_check.py", "ZipFile"): "bytes from safeio.read_input, or an archive being written",
     ("learning/models/transfer.py", "torch.load"): "bytes from safeio.read_input",
     ("renderer/scenes.py", "load_file"): "Mitsuba reads the XML after safeio.check_regular",
 }

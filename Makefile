@@ -26,10 +26,10 @@ setup: $(STAMP)
 	@bash scripts/install-llvm.sh
 
 # The main job, showing what the product is for (renderer/showcase.py): the held-out
-# spot_stage rendered adaptively with the default criterion, then uniformly for the same
-# wall time; out/equal_time.png puts them side by side and one line sums up the samples
-# used, the speed-up and the blocks stopped. README "make run".
-RUN_SCENE ?= spot_stage
+# studio_preview rendered adaptively with the default criterion, then uniformly for the same
+# wall time; out/equal_time.png puts them side by side with the shipped reference, and one
+# line sums up blocks above tau, the worst block, the samples and time. README "make run".
+RUN_SCENE ?= studio_preview
 run: setup
 	$(PY) -m renderer.showcase --scene $(RUN_SCENE) --out $(OUT)
 

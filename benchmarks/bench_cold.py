@@ -16,6 +16,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 #: the plain script users compare against: import, variant, load, render, write, each timed
 MI_SCRIPT = r"""
 import json, sys, time
@@ -38,7 +40,7 @@ print(json.dumps({"import_s": t1 - t0, "variant_s": t2 - t1, "load_s": t3 - t2, 
 
 
 #: what the `noisestop` entry point runs (also where no entry point is installed: a GPU site)
-NOISESTOP = "import sys; from service.cli import main; sys.exit(main())"
+NOISESTOP = "from service.cli import run; run()"
 
 
 def cbox_xml(size: int) -> str:
@@ -83,37 +85,51 @@ def _tag(kind: str) -> str:
             "gaussian": "rfilter", "box": "rfilter"}[kind]
 
 
-def cold_row(size: int = 256, max_spp: int = 1024, variant: str | None = None) -> dict[str, Any]:
-    """One fresh process each: `noisestop render` (flip, default settings, max `max_spp`)
-    and the plain `mi.render` script, both on the same XML, each from the command to the
-    files written; with each one's breakdown."""
+def cold_row(size: int = 256, max_spp: int = 1024, variant: str | None = None, repeats: int = 3) -> dict[str, Any]:
+    """Fresh processes, interleaved `repeats` times: `noisestop render` (flip, default
+    settings, max `max_spp`) and the plain `mi.render` script, both on the same XML, each
+    from the command to the files written, with each one's breakdown. The figures are the
+    medians; every run is kept (`runs`). The first pair also pays for a cold page cache and
+    Dr.Jit kernel cache, as a user's first call does."""
     from learning.data.variant import select_variant
 
     variant = variant or select_variant()
+    runs: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory() as tmp:
         xml = Path(tmp) / "cbox.xml"
         xml.write_text(cbox_xml(size))
-        t0 = time.perf_counter()
-        mi_out = subprocess.run([sys.executable, "-c", MI_SCRIPT, str(xml), str(max_spp), str(Path(tmp) / "mi.exr"),
-                                 variant], capture_output=True, text=True, check=True)
-        mi_wall = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-c", "import renderer.adaptive, service.cli"], check=True)
-        imports = time.perf_counter() - t0
-        out = Path(tmp) / "ours"
-        t0 = time.perf_counter()
-        ours = subprocess.run([sys.executable, "-c", NOISESTOP, "render", "--scene", str(xml),
-                               "--max-spp", str(max_spp), "--out", str(out), "--json"], capture_output=True, text=True)
-        ours_wall = time.perf_counter() - t0
-        if ours.returncode != 0:
-            raise RuntimeError(f"noisestop render failed: {ours.stderr[-500:]}")
-        report = json.loads((out / "report.json").read_text())
-    return {"variant": variant, "size": size, "max_spp": max_spp,
-            "mi_render": {"wall_s": mi_wall, **json.loads(mi_out.stdout.strip().splitlines()[-1])},
+        for _ in range(max(1, int(repeats))):
+            runs.append(_cold_pair(xml, Path(tmp), max_spp, variant))
+    med = {side: {k: float(np.median([r[side][k] for r in runs])) for k in runs[0][side]}
+           for side in ("mi_render", "noisestop")}
+    return {"variant": variant, "size": size, "max_spp": max_spp, "repeats": len(runs), **med,
+            "ratio": float(np.median([r["noisestop"]["wall_s"] / r["mi_render"]["wall_s"] for r in runs])),
+            "runs": runs}
+
+
+def _cold_pair(xml: Path, tmp: Path, max_spp: int, variant: str) -> dict[str, Any]:
+    """One run of each command (the script first), and how long the imports alone take."""
+    t0 = time.perf_counter()
+    mi_out = subprocess.run([sys.executable, "-c", MI_SCRIPT, str(xml), str(max_spp), str(tmp / "mi.exr"),
+                             variant], capture_output=True, text=True, check=True)
+    mi_wall = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-c", "import renderer.adaptive, service.cli"], check=True)
+    imports = time.perf_counter() - t0
+    out = tmp / "ours"
+    t0 = time.perf_counter()
+    ours = subprocess.run([sys.executable, "-c", NOISESTOP, "render", "--scene", str(xml),
+                           "--max-spp", str(max_spp), "--out", str(out), "--json"], capture_output=True, text=True)
+    ours_wall = time.perf_counter() - t0
+    if ours.returncode != 0:
+        raise RuntimeError(f"noisestop render failed: {ours.stderr[-500:]}")
+    report = json.loads((out / "report.json").read_text())
+    calls = report["render_calls"]
+    return {"mi_render": {"wall_s": mi_wall, **json.loads(mi_out.stdout.strip().splitlines()[-1])},
             "noisestop": {"wall_s": ours_wall, "imports_s": imports, "report_wall_s": report["wall_s"],
-                          "mean_spp": report["mean_spp"], **{k: v for k, v in report["timing"].items()
-                                                             if isinstance(v, (int, float))}},
-            "ratio": ours_wall / mi_wall}
+                          "mean_spp": report["mean_spp"],
+                          "traced_vs_spent": calls["samples_traced"] / max(1, report["samples_spent"]),
+                          **{k: v for k, v in report["timing"].items() if isinstance(v, (int, float))}}}
 
 
 if __name__ == "__main__":

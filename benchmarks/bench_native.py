@@ -237,7 +237,7 @@ def bench_native(tau: float | None = None, cases: tuple[Case, ...] | None = None
         from .bench_cold import cold_row
 
         log.info("bench native: cold start, Mitsuba's Cornell box %dx%d", *COLD[kind][:1] * 2)
-        out["cold"] = cold_row(*COLD[kind], variant=variant)
+        out["cold"] = cold_row(*COLD[kind], variant=variant, repeats=repeats)
         if on_case is not None:
             on_case(out)
     return out
@@ -341,7 +341,9 @@ def md_cold(c: dict[str, Any]) -> list[str]:
     rest = o["wall_s"] - o["imports_s"] - o["report_wall_s"]
     return ["", f"**Cold start** (issue 43): Mitsuba's Cornell box {c['size']}x{c['size']} as XML, max "
             f"{c['max_spp']} spp, each a fresh process from the command to its files written "
-            "(`benchmarks/bench_cold.py`).", "",
+            f"(`benchmarks/bench_cold.py`); medians of {c.get('repeats', 1)} interleaved runs (walls: "
+            + ", ".join(f"{r['noisestop']['wall_s']:.2f}/{r['mi_render']['wall_s']:.2f} s" for r in c.get("runs", []))
+            + ", ours/the script).", "",
             "| command | wall | vs the script | breakdown |", "|---|---|---|---|",
             f"| plain `mi.render` script, {c['max_spp']} spp | {m['wall_s']:.2f} s | 1.00x | import "
             f"{m['import_s']:.2f}, variant {m['variant_s']:.2f}, load {m['load_s']:.2f}, render (compile "
@@ -350,7 +352,8 @@ def md_cold(c: dict[str, Any]) -> list[str]:
             f"imports {o['imports_s']:.2f}; the render's own wall {o['report_wall_s']:.2f} (setup "
             f"{o.get('setup_s', 0):.2f}, render {o.get('render_s', 0):.2f}, decisions "
             f"{o.get('decisions_s', 0) + o.get('features_s', 0):.2f}, overhead {o.get('overhead_s', 0):.2f}); the "
-            f"rest (variant, scene load, outputs, process) {rest:.2f} s |"]
+            f"rest (variant, scene load, outputs, process) {rest:.2f} s; samples traced "
+            f"{o.get('traced_vs_spent', 1.0):.3f}x those kept |"]
 
 
 def main(argv: list[str] | None = None) -> int:

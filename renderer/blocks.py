@@ -36,7 +36,7 @@ import torch
 
 from learning.data.variant import select_variant
 from .block_windows import BlockWindows
-from .wavefront import WavefrontTracer, filter_guard, filter_nonnegative, torch_device
+from .wavefront import Traced, WavefrontTracer, filter_guard, filter_nonnegative, torch_device
 from noisefeat.extras import require
 
 logger = logging.getLogger(__name__)
@@ -123,7 +123,7 @@ class BlockRenderer(BlockWindows):
             if engine == "wavefront" else None
         self._unit_idx = self._unit_idx.to(self.device)       # the units' pixels, where passes live
         self.mitsuba_calls = 0    # render calls: one per mi.render or per wavefront trace (of any launches)
-        self.kernel_compiles = 0
+        self._compiles = 0
         self._crop_samples = 0
         # a JIT variant: Dr.Jit's kernel history can count its compilations (kernel_compiles)
         self._counts_kernels = variant.split("_")[0] in ("llvm", "cuda")
@@ -168,10 +168,19 @@ class BlockRenderer(BlockWindows):
         self._crop = crop
 
     def _count_kernels(self) -> None:
+        """Add the compilations in Dr.Jit's kernel history since the last count. Reading
+        the history waits for every queued kernel: only a count asked for does it, never a
+        pass (`kernel_compiles`), so a queued step traces while the loop judges the last."""
         if self._counts_kernels:
             dr = require("drjit")
-            self.kernel_compiles += sum(1 for k in dr.kernel_history()
-                                        if k.get("type") == dr.KernelType.JIT and not k.get("cache_hit"))
+            self._compiles += sum(1 for k in dr.kernel_history()
+                                  if k.get("type") == dr.KernelType.JIT and not k.get("cache_hit"))
+
+    @property
+    def kernel_compiles(self) -> int:
+        """Kernels compiled (not found in Dr.Jit's cache) since this renderer was made."""
+        self._count_kernels()
+        return self._compiles
 
     def _render(self, spp: int, mitsuba_seed: int, integrator: Any = None, where: str = "render") -> np.ndarray:
         if not isinstance(spp, (int, np.integer)) or spp < 1:
@@ -244,34 +253,44 @@ class BlockRenderer(BlockWindows):
         of the same size share a launch). The wavefront engine gathers every block of a
         pass from the traced frame on the device in one indexing step.
         """
+        return self.submit_passes(jobs, spp, seed).result()
+
+    def submit_passes(self, jobs: Sequence[tuple[int, int]] | np.ndarray, spp: int | Sequence[int],
+                      seed: int) -> Traced[torch.Tensor]:
+        """`render_passes` without waiting for the wavefront engine's launches: `result()`
+        gives the tensor `render_passes` returns (`WavefrontTracer.submit_jobs`; the crop
+        engine renders at once)."""
         blocks, passes, sizes = self._check_jobs(jobs, spp)
         out = torch.empty((len(blocks), self.tile_h, self.tile_w, 3), dtype=torch.float32, device=self.device)
         if not len(blocks):
-            return out
+            return Traced(lambda: out)
         if self._tracer is None:                  # scalar variants: one mi.render per block
             try:
                 for i, (b, p, s) in enumerate(zip(blocks.tolist(), passes.tolist(), sizes.tolist())):
                     out[i] = torch.from_numpy(self._render_crop(b, s, seed, p))
             finally:
                 self._set_crop(0, 0, self.width, self.height)  # leave the scene as we found it
-            return out
+            return Traced(lambda: out)
+        launched = []
         for size in np.unique(sizes).tolist():
             same = sizes == size
-            keys = np.unique(passes[same])
             masks = []
-            for p in keys.tolist():          # the distinct pass indices of the round: one in a plain pass
+            for p in np.unique(passes[same]).tolist():   # the distinct pass indices: one in a plain pass
                 rows = np.flatnonzero(same & (passes == p))
                 mask = torch.zeros(self.height * self.width, dtype=torch.bool, device=self.device)
                 mask[self._unit_idx[torch.from_numpy(blocks[rows]).to(self.device)].flatten()] = True
                 masks.append((mask.view(self.height, self.width), derive_seed(seed, FRAME_SEED_KEY, p), rows))
-            frames = self._tracer.trace_jobs([(m, k) for m, k, _ in masks], int(size))
+            launched.append((self._tracer.submit_jobs([(m, k) for m, k, _ in masks], int(size)), masks))
             self.mitsuba_calls += 1
-            self._count_kernels()
-            for frame, (_, _, rows) in zip(frames, masks):
-                idx = self._unit_idx[torch.from_numpy(blocks[rows]).to(self.device)]
-                out[torch.from_numpy(rows).to(self.device)] = frame.view(-1, 3)[idx].view(
-                    len(rows), self.tile_h, self.tile_w, 3)
-        return out
+
+        def gather() -> torch.Tensor:
+            for traced, masks in launched:
+                for frame, (_, _, rows) in zip(traced.result(), masks):
+                    idx = self._unit_idx[torch.from_numpy(blocks[rows]).to(self.device)]
+                    out[torch.from_numpy(rows).to(self.device)] = frame.view(-1, 3)[idx].view(
+                        len(rows), self.tile_h, self.tile_w, 3)
+            return out
+        return Traced(gather)
 
     def _render_crop(self, b: int, spp: int, seed: int, pass_index: int) -> np.ndarray:
         """The crop engine: unit `b` (a block, or a tile) as one mi.render of its window grown

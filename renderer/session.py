@@ -26,6 +26,7 @@ from .budget import Budget
 from .checkpoint import load_checkpoint, save_checkpoint
 from .criteria import Criterion
 from .passloop import PassLoop, schedule
+from .wavefront import Traced
 
 #: what a render cost in Mitsuba, over every attempt (report.json "render_calls"); like the
 #: timings these depend on the process (a resumed run compiles its kernel again)
@@ -102,6 +103,8 @@ class RenderSession:
                 self.loop.ratios.put(np.flatnonzero(asked), ratio[asked])   # what the rounds are chosen by
         self.done_before = {k: int(self.state["counters"].pop(k, 0)) for k in RENDER_COUNTERS}
         self.checkpoints_written = 0
+        #: the next step, queued on the device while this one is judged (`step`)
+        self._ahead: tuple[np.ndarray, list[np.ndarray], Traced[torch.Tensor]] | None = None
 
     def _initial_state(self, resume: bool, pass_spp: list[int]) -> dict[str, Any]:
         path, br = self.ckpt_path, self.br
@@ -143,22 +146,39 @@ class RenderSession:
         return ids, [own_all[ids] + j for j in range(k if ids.size else 0)]
 
     def step(self) -> int:
-        """One step (`renderer.passloop`); returns the passes it added (0: done)."""
-        ids, passes = self.plan()
-        if not ids.size:
-            self.state["done"] = True
-            return 0
-        loop, m = self.loop, len(ids)
+        """One step (`renderer.passloop`); returns the passes it added (0: done).
+
+        Without a budget (and with `grow`) the next step is queued on the device as soon as
+        this one's passes are in, before they are judged, planned as if none of its blocks
+        stopped (`_queue_next`): the device traces while the host accumulates and decides.
+        (Queued before waiting for this step instead, the host's work competes with the
+        trace for a CPU's cores: 3 % slower on this project's 2-core machine.) The passes
+        queued for blocks that stop are dropped, as a grown launch drops those past a stop,
+        so the image, the stops and the history are those of the step-by-step loop; only
+        samples_traced counts the dropped passes."""
+        ahead, self._ahead = self._ahead, None
         t0 = time.perf_counter()
-        jobs = np.concatenate([np.stack([ids, own], axis=1) for own in passes])   # (block, pass), pass-major
-        images = self.br.render_passes(jobs, np.concatenate([loop.pass_spp[own] for own in passes]), self.spec.seed)
+        if ahead is None:
+            ids, passes = self.plan()
+            if not ids.size:
+                self.state["done"] = True
+                return 0
+            traced = self._submit(ids, passes)
+        else:
+            ids, passes, traced = ahead
+        images = traced.result()
+        if self.budget is None and self.grow:
+            self._ahead = self._queue_next(ids, passes)
         self.timers["render_s"] += time.perf_counter() - t0
+        loop, m = self.loop, len(ids)
         stepped = 0
         with torch_threads(1):
             for j, own in enumerate(passes):          # the passes of one launch, in order
                 keep = np.flatnonzero(loop.active[ids])
                 if not keep.size:                      # every block stopped: the rest is dropped
                     break
+                if (loop.acc.passes_all()[ids[keep]] != own[keep]).any():
+                    raise RuntimeError("internal: a queued pass is not its block's next pass")
                 rows = torch.from_numpy(j * m + keep).to(images.device)
                 loop.step(ids[keep], [(images[rows], loop.pass_spp[own[keep]])])
                 stepped += 1
@@ -166,7 +186,31 @@ class RenderSession:
             self.budget.record(time.perf_counter() - t0, int(loop.pass_spp[passes[0]].sum()))
         self.state["pass_index"] = self.pass_index + stepped
         self.state["done"] = not loop.pending().any() if self.budget is None else self.budget.finished(loop)
+        if self.done:
+            self._ahead = None        # a step queued for blocks that have all stopped since
         return stepped
+
+    def _submit(self, ids: np.ndarray, passes: list[np.ndarray]) -> Traced[torch.Tensor]:
+        """Queue the launch of a step's passes: jobs (block, pass) pass-major."""
+        jobs = np.concatenate([np.stack([ids, own], axis=1) for own in passes])
+        return self.br.submit_passes(jobs, np.concatenate([self.loop.pass_spp[own] for own in passes]),
+                                     self.spec.seed)
+
+    def _queue_next(self, ids: np.ndarray, passes: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray],
+                                                                               Traced[torch.Tensor]] | None:
+        """The step `plan` would give after this one if none of its blocks stopped, queued
+        (None when there is none): this step's blocks still active (it is not judged yet)
+        with passes left, each at its next pass, grown by their count."""
+        loop = self.loop
+        after = passes[-1] + 1
+        go = loop.active[ids] & (after < len(loop.schedule))
+        if not go.any():
+            return None
+        nxt = ids[go]
+        k = grown_passes(self.br.n_units, len(nxt), len(loop.schedule) - int(after[go].max()), self.grow)
+        ahead = [after[go] + j for j in range(k)]
+        return nxt, ahead, self._submit(nxt, ahead)
+
     # -- what survives a crash ---------------------------------------------------------
 
     def counts(self) -> dict[str, int]:

@@ -15,10 +15,16 @@
    error > 2.5 tau, 0.05 at tau 0.02: issue 33's yardstick): in all, in the worst stopped block, and how many
    blocks hold more of them adaptive than uniform.
 
-The default scene is the held-out ``spot_stage`` (never used to train or calibrate): a
-dark stage lit by one spot, where the blocks need from 32 to 2048 spp, so where the
-samples go matters most. Its 8192-spp reference ships with the package
-(`renderer/references/spot_stage.exr`, the held-out stack's, in half floats); a scene
+The default scene is the held-out ``studio_preview`` (never used to train or calibrate):
+three spheres (rough plastic, rough aluminium, matte) on a floor under a studio light.
+Its tiles stop anywhere from 64 spp (the sky above the floor) to 4096 (the metal sphere's
+highlights), so where the samples go matters, and to max 4096 spp a hard tile can get
+what it needs. The per-tile criterion had no early tile on it in the held-out evaluation
+(BENCHMARKS "Decisions per tile"). ``spot_stage`` (a dark
+stage under one spot) shows the other side: its dark tiles stop early and leave more
+blocks above tau than uniform at equal time (README "make run"). Each scene's 8192-spp
+reference ships with the package in half floats (`renderer/references/`, made by
+`make_reference`: ``python -m renderer.showcase --scene NAME --make-reference``); a scene
 without one gets no error figures.
 """
 from __future__ import annotations
@@ -40,8 +46,11 @@ from noisefeat.extras import require
 
 logger = logging.getLogger(__name__)
 
-SCENE = "spot_stage"
-SETTINGS: dict[str, Any] = {"resolution": 256, "block": 64, "step": 32, "min_spp": 32, "max_spp": 2048}
+SCENE = "studio_preview"
+SETTINGS: dict[str, Any] = {"resolution": 256, "block": 64, "step": 32, "min_spp": 32, "max_spp": 4096}
+#: the shipped references: samples per pixel, and the first of the seeds of their 1024-spp
+#: mi.render calls (far from any render's: a reference shares no samples with what it judges)
+REFERENCE_SPP, REFERENCE_SEED = 8192, 900001
 EQUAL_TIME = "equal_time.png"
 REFERENCES = Path(__file__).parent / "references"
 
@@ -52,6 +61,27 @@ def shipped_reference(scene: str) -> np.ndarray | None:
 
     path = REFERENCES / f"{scene}.exr"
     return read_exr(path) if path.is_file() else None
+
+
+def make_reference(scene: str, resolution: int = SETTINGS["resolution"]) -> Path:
+    """Render `scene`'s reference (REFERENCE_SPP spp with Mitsuba's own sampler, 1024 at a
+    time) and write it where `shipped_reference` reads it, in half floats (about 150-270 KB
+    at 256x256). Minutes on a CPU: run once per scene, then commit the file."""
+    from learning.data.exr import write_exr
+    from learning.data.variant import select_variant
+
+    from .scenes import load_scene
+
+    select_variant()
+    mi = require("mitsuba")
+    loaded = load_scene(scene, resolution)
+    total = np.zeros((0,))
+    for k in range(REFERENCE_SPP // 1024):
+        img = np.asarray(mi.render(loaded, spp=1024, seed=REFERENCE_SEED + k), np.float64)[..., :3]
+        total = img if not total.size else total + img
+    path = REFERENCES / f"{scene}.exr"
+    write_exr(path, (total / (REFERENCE_SPP // 1024)).astype(np.float32), half=True)
+    return path
 
 
 def block_errors_vs(image: np.ndarray, reference: np.ndarray, report: dict[str, Any], tau: float) -> np.ndarray:
@@ -111,7 +141,7 @@ def equal_time_png(adaptive: np.ndarray, uniform: np.ndarray, a: dict[str, Any],
               (uniform, f"uniform, same time: {u['mean_spp']:.0f} spp, {u['wall_s']:.0f} s", "uniform",
                int(u["blocks"][hard["id"]]["spp"]))]
     if reference is not None:
-        panels.append((reference, "reference (8192 spp)", None, None))
+        panels.append((reference, f"reference ({REFERENCE_SPP} spp)", None, None))
     cols = len(panels)
     dpi, col_w, pad, title = 100, 500, 20, 30           # pixels: the layout is fixed, never squeezed
     img_h = int(round((col_w - 2 * pad) * h / w))
@@ -230,9 +260,14 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m renderer.showcase", description=__doc__.splitlines()[0])
     p.add_argument("--scene", default=SCENE)
     p.add_argument("--out", default="out")
+    p.add_argument("--make-reference", action="store_true",
+                   help=f"render the scene's {REFERENCE_SPP}-spp reference into renderer/references/ and stop")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
+        if args.make_reference:
+            print(make_reference(args.scene))
+            return 0
         result = showcase(args.scene, args.out)
     except (ValueError, OSError) as exc:
         print(f"showcase: error: {exc}", file=sys.stderr)

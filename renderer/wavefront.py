@@ -33,13 +33,15 @@ its pass traced alone.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 import torch
 
 from noisefeat.extras import require
+
+T = TypeVar("T")
 
 #: lanes per kernel launch: larger pixel sets are traced in chunks (same kernel)
 MAX_LANES = 1 << 24
@@ -163,7 +165,7 @@ class WavefrontTracer:
         """The requested pixel mask [H, W] grown by the guard band (clipped to the frame)."""
         m = self._mask(mask)
         g = self.guard
-        if g == 0:
+        if g == 0 or bool(m.all()):
             return m
         grown = torch.nn.functional.max_pool2d(m[None, None].to(torch.float32), 2 * g + 1, stride=1, padding=g)
         return grown[0, 0] > 0
@@ -186,47 +188,67 @@ class WavefrontTracer:
         box filter each pixel's samples are summed on their own; a wider filter splats
         each job into its own frame (one ImageBlock per job, one kernel for all).
         """
+        return self.submit_jobs(jobs, spp).result()
+
+    def submit_jobs(self, jobs: Sequence[tuple[Any, int]], spp: int) -> Traced[list[torch.Tensor]]:
+        """`trace_jobs` without waiting: the launches are queued on Dr.Jit's device (its
+        LLVM thread pool or CUDA stream) and the caller's thread goes on; `result()`
+        waits for them and returns what `trace_jobs` would. What the live loop judges one
+        step by while the next traces (`renderer.session`)."""
         if isinstance(spp, bool) or not isinstance(spp, (int, np.integer)) or spp < 1:
             raise ValueError(f"spp must be a positive integer, got {spp!r}")
         masks = [self._mask(m) for m, _ in jobs]
         keys = [int(k) & 0xFFFFFFFF for _, k in jobs]
-        hw = self.height * self.width
-        outs = [torch.zeros((hw, 3), dtype=torch.float32, device=self.device) for _ in masks]
+        frame = (self.height, self.width, 3)
         grown = masks if self.box else [self.traced_pixels(m) for m in masks]
         pixels = [torch.nonzero(m.flatten()).flatten() for m in grown]
         counts = [int(p.numel()) for p in pixels]
         total = sum(counts)
         if total == 0:
-            return [o.view(self.height, self.width, 3) for o in outs]
+            return Traced(lambda: [torch.zeros(frame, dtype=torch.float32, device=self.device) for _ in masks])
         all_pixels = torch.cat(pixels).to(torch.int32)
         job_of = torch.repeat_interleave(torch.arange(len(masks)), torch.tensor(counts)).to(self.device)
         all_keys = as_int32_bits(torch.tensor(keys, dtype=torch.int64, device=self.device)[job_of])
         self.samples += total * int(spp)
         per_launch = max(1, MAX_LANES // int(spp))
         if self.box:
-            values = torch.cat([self._launch_box(all_pixels[i:i + per_launch], int(spp), all_keys[i:i + per_launch])
-                                for i in range(0, total, per_launch)])
-            for out, pix, part in zip(outs, pixels, torch.split(values, counts)):
-                out[pix] = part
-            return [o.view(self.height, self.width, 3) for o in outs]
+            chunks = [self._submit_box(all_pixels[i:i + per_launch], int(spp), all_keys[i:i + per_launch])
+                      for i in range(0, total, per_launch)]
+
+            def box_result() -> list[torch.Tensor]:
+                values = torch.cat([finish() for finish in chunks])
+                outs = []
+                for pix, part in zip(pixels, torch.split(values, counts)):
+                    out = torch.zeros((self.height * self.width, 3), dtype=torch.float32, device=self.device)
+                    out[pix] = part
+                    outs.append(out.view(frame))
+                return outs
+            return Traced(box_result)
         # a wide filter: every job splats into its own frame, up to 8 jobs per launch
-        acc = torch.zeros((len(masks), self.height * self.width, 4), dtype=torch.float64, device=self.device)
         ends = np.cumsum([0, *counts])
         widest = SPLAT_WIDTHS[-1]
+        launches = []                              # (first job, jobs, [finish per chunk])
         for g0 in range(0, len(masks), widest):     # groups of jobs (one in a plain pass)
             g1 = min(len(masks), g0 + widest)
             width = next(w for w in SPLAT_WIDTHS if w >= g1 - g0)
             lo, hi = int(ends[g0]), int(ends[g1])
-            for i in range(lo, hi, per_launch):
-                j = min(hi, i + per_launch)
-                acc[g0:g1] += self._launch_splat(all_pixels[i:j], int(spp), all_keys[i:j],
-                                                 (job_of[i:j] - g0).to(torch.int32), width)[:g1 - g0]
-        for out, mask, frame in zip(outs, masks, acc):
-            want = mask.flatten()
-            w = frame[:, 3:]
-            value = torch.where(w > 0, frame[:, :3] / torch.where(w > 0, w, 1.0), 0.0)
-            out[want] = value[want].to(torch.float32)
-        return [o.view(self.height, self.width, 3) for o in outs]
+            launches.append((g0, g1 - g0, [
+                self._submit_splat(all_pixels[i:min(hi, i + per_launch)], int(spp), all_keys[i:min(hi, i + per_launch)],
+                                   (job_of[i:min(hi, i + per_launch)] - g0).to(torch.int32), width)
+                for i in range(lo, hi, per_launch)]))
+
+        def splat_result() -> list[torch.Tensor]:
+            outs = []
+            for g0, n, chunks in launches:
+                frames = chunks[0]()[:n]           # sums and weights [n, H * W, 4], float64
+                for finish in chunks[1:]:
+                    frames = frames + finish()[:n]
+                for mask, sums in zip(masks[g0:g0 + n], frames):
+                    w = sums[:, 3:]
+                    value = torch.where(w > 0, sums[:, :3] / torch.where(w > 0, w, 1.0), 0.0).to(torch.float32)
+                    outs.append(torch.where(mask.reshape(-1, 1), value, 0.0).view(frame))
+            return outs
+        return Traced(splat_result)
 
     # -- one launch ---------------------------------------------------------------
 
@@ -268,25 +290,33 @@ class WavefrontTracer:
             torch.cuda.synchronize(self.device)
             self._dr.sync_thread()
 
-    def _launch_box(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor) -> torch.Tensor:
-        """Box filter: the mean of each pixel's own samples, float32 [n, 3] on the device."""
+    def _queued(self, pixels: torch.Tensor, spp: int) -> None:
+        self.launches += 1
+        self.lanes += int(pixels.numel()) * spp
+
+    def _submit_box(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor) -> Callable[[], torch.Tensor]:
+        """Box filter: queue one launch; its finish gives the mean of each pixel's own
+        samples, float32 [n, 3] on the device."""
         self._sync()
         _, rgb = self._samples(pixels, spp, keys)
         self._dr.eval(rgb)
-        self._sync()
-        self.launches += 1
-        self.lanes += int(pixels.numel()) * spp
-        # lanes are pixel-major: each pixel's spp samples are consecutive; summed in
-        # float64 by torch where the lanes live (channel by channel through DLPack: a
-        # Color3f converted at once would compile a copy kernel per wavefront size)
+        self._queued(pixels, spp)
         n = int(pixels.numel())
-        values = torch.stack([rgb[c].torch() for c in range(3)], dim=1).view(n, spp, 3)
-        return values.sum(dim=1, dtype=torch.float64).to(torch.float32) / np.float32(spp)
 
-    def _launch_splat(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor, jobs: torch.Tensor,
-                      n_jobs: int) -> torch.Tensor:
-        """Any filter: weighted sums and weights [n_jobs, H * W, 4], each lane splatted into
-        its job's frame (one ImageBlock per job, all filled by the one kernel)."""
+        def finish() -> torch.Tensor:
+            self._sync()
+            # lanes are pixel-major: each pixel's spp samples are consecutive; summed in
+            # float64 by torch where the lanes live (channel by channel through DLPack: a
+            # Color3f converted at once would compile a copy kernel per wavefront size)
+            values = torch.stack([rgb[c].torch() for c in range(3)], dim=1).view(n, spp, 3)
+            return values.sum(dim=1, dtype=torch.float64).to(torch.float32) / np.float32(spp)
+        return finish
+
+    def _submit_splat(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor, jobs: torch.Tensor,
+                      n_jobs: int) -> Callable[[], torch.Tensor]:
+        """Any filter: queue one launch, each lane splatted into its job's frame (one
+        ImageBlock per job, all filled by the one kernel); its finish gives the weighted
+        sums and weights [n_jobs, H * W, 4], float64 on the device."""
         mi, dr = self._mi, self._dr
         self._sync()
         pos, rgb = self._samples(pixels, spp, keys)
@@ -299,7 +329,24 @@ class WavefrontTracer:
             block.put(pos, [rgb[0], rgb[1], rgb[2], mi.Float(1.0)], active=(lane_job == j) if n_jobs > 1 else True)
             blocks.append(block.tensor())
         dr.eval(*blocks)
-        self._sync()
-        self.launches += 1
-        self.lanes += int(pixels.numel()) * spp
-        return torch.stack([t.torch().reshape(-1, 4) for t in blocks]).to(torch.float64)
+        self._queued(pixels, spp)
+
+        def finish() -> torch.Tensor:
+            self._sync()
+            return torch.stack([t.torch().reshape(-1, 4) for t in blocks]).to(torch.float64)
+        return finish
+
+
+class Traced(Generic[T]):
+    """Work queued on Dr.Jit's device and not yet read (`WavefrontTracer.submit_jobs`,
+    `BlockRenderer.submit_passes`): `result()` waits for it once and returns what the
+    waiting call (`trace_jobs`, `render_passes`) would have."""
+
+    def __init__(self, finish: Callable[[], T]) -> None:
+        self._finish: Callable[[], T] | None = finish
+        self._value: T | None = None
+
+    def result(self) -> T:
+        if self._finish is not None:
+            self._value, self._finish = self._finish(), None
+        return self._value  # type: ignore[return-value]

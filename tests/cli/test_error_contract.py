@@ -108,7 +108,7 @@ def _unwritable_dir(tmp_path: Path) -> Path:
 def test_read_only_output_folder_is_refused_before_the_first_pass(capsys, tmp_path, monkeypatch):
     from renderer.blocks import BlockRenderer
     rendered = []
-    monkeypatch.setattr(BlockRenderer, "render_passes", lambda *a, **k: rendered.append(1))
+    monkeypatch.setattr(BlockRenderer, "submit_passes", lambda *a, **k: rendered.append(1))
     rc, err = run(capsys, *RENDER, "--out", str(_unwritable_dir(tmp_path)))
     assert_one_line_error(rc, err)
     assert rendered == []

@@ -77,8 +77,8 @@ def test_resume_gives_the_uninterrupted_result(tmp_path, monkeypatch, model, kin
     with np.load(tmp_path / "b" / CHECKPOINT, allow_pickle=False) as z:
         assert int(z["pass_index"]) == 2 and not bool(z["done"])
     passes = []
-    real = BlockRenderer.render_passes
-    monkeypatch.setattr(BlockRenderer, "render_passes",
+    real = BlockRenderer.submit_passes
+    monkeypatch.setattr(BlockRenderer, "submit_passes",
                         lambda self, jobs, spp, seed: passes.extend(sorted({p for _, p in jobs})) or
                         real(self, jobs, spp, seed))
     resumed = adaptive_render("cornell", tmp_path / "b", make(), resume=True, **TINY, grow=False)
@@ -117,14 +117,14 @@ def test_only_active_blocks_are_rendered_and_asked(tmp_path, model, monkeypatch)
 
     monkeypatch.setattr(BlockRenderer, "quick_image", counting_quick)
     rendered = []
-    real_passes = BlockRenderer.render_passes
+    real_passes = BlockRenderer.submit_passes
 
     def counting_passes(self, jobs, spp, seed):
         (pass_index,) = {p for _, p in jobs}             # one pass per launch without grow
         rendered.append(([b for b, _ in jobs], pass_index))
         return real_passes(self, jobs, spp, seed)
 
-    monkeypatch.setattr(BlockRenderer, "render_passes", counting_passes)
+    monkeypatch.setattr(BlockRenderer, "submit_passes", counting_passes)
     r = adaptive_render("cornell", tmp_path / "m", ModelCriterion(model), **{**TINY, "min_spp": 8}, grow=False)
     assert len(calls) == 1                                        # quick image: once, model needs it
     per_pass = r["counters"]["blocks_rendered_per_pass"]

@@ -189,13 +189,13 @@ def test_render_command_takes_a_budget(tmp_path, capsys) -> None:
 def rendered_jobs(monkeypatch, run) -> tuple[dict, list[tuple[int, int]]]:
     """What `run()` returns, and the (block, pass index) jobs it rendered, in order."""
     jobs: list[tuple[int, int]] = []
-    real = BlockRenderer.render_passes
+    real = BlockRenderer.submit_passes
 
     def counting(self, js, spp, seed):
         jobs.extend((int(b), int(p)) for b, p in js)
         return real(self, js, spp, seed)
     with monkeypatch.context() as m:
-        m.setattr(BlockRenderer, "render_passes", counting)
+        m.setattr(BlockRenderer, "submit_passes", counting)
         return run(), jobs
 
 

@@ -105,17 +105,24 @@ def test_the_margin_check_names_a_case_that_sits_on_its_threshold() -> None:
 
 
 def test_grown_passes_keep_the_result_and_save_launches(variant) -> None:
-    """Once few blocks are active, a launch traces several passes: fewer launches, the
-    same stops and image. A control: without growth the launches are one per pass."""
+    """Once few blocks are active, a launch traces several passes, and the next step is
+    queued while this one is judged (`RenderSession.step`): fewer launches, the same stops,
+    history and image; the passes queued for blocks that then stopped are traced and
+    dropped, and counted. A control: without growth the launches are one per pass, and
+    nothing is traced that is not kept."""
     kw = {"resolution": 64, "block": 16, "step": 4, "min_spp": 8, "max_spp": 96, "progress": False}
     runs = {g: run_adaptive("cornell", "flip", tau=golden.NO_DOTS, threshold=0.2, grow=g, **kw)
             for g in (True, False)}
     grown, fixed = runs[True].report, runs[False].report
     assert [b["spp"] for b in grown["blocks"]] == [b["spp"] for b in fixed["blocks"]]
+    assert [b["history"] for b in grown["blocks"]] == [b["history"] for b in fixed["blocks"]]
     np.testing.assert_array_equal(runs[True].image, runs[False].image)
     assert fixed["render_calls"]["kernel_launches"] == fixed["passes"]
     assert grown["render_calls"]["kernel_launches"] < fixed["render_calls"]["kernel_launches"]
     assert grown["passes"] == fixed["passes"]
+    spent = fixed["samples_spent"]
+    assert fixed["render_calls"]["samples_traced"] == spent == grown["samples_spent"]
+    assert grown["render_calls"]["samples_traced"] > spent        # queued for blocks that stopped
 
 
 def test_the_growth_rule() -> None:

@@ -7,6 +7,7 @@ import torch
 from learning.inputs.halves import recover_passes
 from noisefeat import split_blocks
 from renderer import adaptive
+from renderer.wavefront import Traced
 
 
 class StackRenderer:
@@ -62,6 +63,10 @@ class StackRenderer:
             self.calls.append([b for b, q in jobs if q == p])
         self.samples_traced += len(jobs) * self.block_h * self.block_w * self.step
         return np.stack([self.passes[p][b] for b, p in jobs])
+
+    def submit_passes(self, jobs, spp, seed):
+        images = self.render_passes(jobs, spp, seed)
+        return Traced(lambda: images)
 
     def quick_image(self, spp=16, seed=0, kind="albedo"):
         return self.stack.quick(kind)

@@ -14,7 +14,7 @@ from types import ModuleType
 
 #: top-level import name -> the extra that installs it (None: the core install)
 EXTRA_OF: dict[str, str | None] = {
-    "mitsuba": "render", "drjit": "render", "matplotlib": "render",
+    "mitsuba": "render", "drjit": "render", "matplotlib": "render", "cmap": "render",
     "fastapi": "serve", "starlette": "serve", "anyio": "serve", "uvicorn": "serve", "h11": "serve",
     "prometheus_fastapi_instrumentator": "serve", "prometheus_client": "serve",
     "flip_evaluator": "data", "dask": "data", "distributed": "data",
@@ -23,7 +23,7 @@ EXTRA_OF: dict[str, str | None] = {
 }
 #: extra -> the import names it brings (the first of each pair of aliases)
 PACKAGES_OF: dict[str, tuple[str, ...]] = {
-    "render": ("mitsuba", "drjit", "matplotlib"),
+    "render": ("mitsuba", "drjit", "matplotlib", "cmap"),
     "serve": ("fastapi", "uvicorn", "h11", "prometheus_fastapi_instrumentator"),
     "data": ("flip_evaluator", "dask", "distributed"),
     "transfer": ("torchvision",),

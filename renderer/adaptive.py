@@ -36,7 +36,7 @@ from learning.data.stack import Stack
 
 from .blocks import BlockRenderer
 from .checkpoint import CHECKPOINT
-from .outputs import prepare_output_dir, warm_plotting
+from .outputs import prepare_output_dir
 from .report import render_result
 from .result import RenderResult
 from .session import RenderSession, run_settings
@@ -182,10 +182,6 @@ def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion:
     every attempt. `kwargs`: `run_adaptive`'s (the render spec's settings, `reference`,
     `progress`, `source`).
     """
-    from learning.data.variant import select_variant
-
-    if select_variant().startswith("cuda"):
-        warm_plotting()                    # the CPU waits on the GPU's passes meanwhile
     result = run_adaptive(scene, criterion, checkpoints=Checkpoints(out, resume, checkpoint_every), **kwargs)
     result.save(out)
     report = result.report

@@ -4,8 +4,8 @@ and with a reference, compare.png (final next to reference, per-block FLIP again
 
 Every file is written atomically (temporary name, fsync, rename: `learning.data.exr`), so an
 interrupted run never leaves a truncated image that looks finished. The spp map is drawn
-with matplotlib's object API on an Agg canvas (no pyplot global state: safe in Dask
-worker threads).
+with Pillow (no global state: safe in Dask worker threads); compare.png with matplotlib's
+object API on an Agg canvas (no pyplot).
 """
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ import io
 import json
 import os
 import tempfile
-import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -67,25 +66,9 @@ def write_report(path: str | os.PathLike, report: dict[str, Any]) -> Path:
     return path
 
 
-def warm_plotting() -> threading.Thread:
-    """Import matplotlib and load its font in a daemon thread: the spp map is drawn once
-    the render ends, and a cold matplotlib costs about 0.5 s there (issue 43: what a user
-    times is the whole command). Worth it while a GPU traces and the CPU waits; on a CPU
-    the render's own cores would pay for it (measured: no gain there). Harmless if the map
-    is never drawn."""
-    def warm() -> None:
-        try:
-            from matplotlib.backends.backend_agg import FigureCanvasAgg
-            from matplotlib.figure import Figure
-
-            fig = Figure(figsize=(1, 1), dpi=10)
-            fig.text(0.5, 0.5, "0")
-            FigureCanvasAgg(fig).draw()
-        except Exception:       # a missing or broken matplotlib is reported where it is used
-            pass
-    thread = threading.Thread(target=warm, name="noisestop-warm-plotting", daemon=True)
-    thread.start()
-    return thread
+#: the spp map's layout, in pixels: the map is scaled to about this size (whole factors up,
+#: nearest-neighbour down), with a colour bar at its right and a legend under it
+MAP_SIZE, BAR_W, BAR_GAP, MARGIN = 512, 18, 14, 12
 
 
 def spp_map_png(spp: np.ndarray, windows: Sequence[Sequence[int]], block_spp: Sequence[int],
@@ -93,62 +76,72 @@ def spp_map_png(spp: np.ndarray, windows: Sequence[Sequence[int]], block_spp: Se
                 above_target: Sequence[int] = ()) -> bytes:
     """PNG bytes: a heat map of the samples per pixel, with a colour bar and a legend.
 
-    Log2 colour scale from `min_spp` to `max_spp` (Cycles' debug sample count, LuxCore's
-    convergence pass); block windows outlined, blocks that ran to max spp without the
-    criterion stopping them outlined in red, blocks a budget left above the noise target
-    (`above_target`, block ids) outlined in orange; each block's spp written on it when
-    the blocks are large enough to read.
+    Log2 colour scale (viridis) from `min_spp` to `max_spp` (Cycles' debug sample count,
+    LuxCore's convergence pass); block windows outlined, blocks that ran to max spp without
+    the criterion stopping them outlined in red, blocks a budget left above the noise
+    target (`above_target`, block ids) outlined in orange; each block's spp written on it
+    when there are at most 64 blocks. Drawn with Pillow and cmap's viridis: matplotlib
+    cost every render 0.5 s to import and draw (issue 43: what a user times is the whole
+    command).
     """
-    require("matplotlib")
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.collections import LineCollection
-    from matplotlib.colors import LogNorm, to_rgba
-    from matplotlib.figure import Figure
-    from matplotlib.lines import Line2D
+    from cmap import Colormap
+    from PIL import Image, ImageDraw, ImageFont
 
     spp = np.asarray(spp, np.float64)
     h, w = spp.shape
     lo, hi = max(1, int(min_spp)), max(int(max_spp), int(min_spp) + 1)
-    inches = max(5.0, min(12.0, w / 80.0))
-    fig = Figure(figsize=(inches + 1.6, inches * h / w + 0.9), dpi=100)
-    FigureCanvasAgg(fig)
-    ax = fig.add_axes((0.02, 0.12, 0.78, 0.86))
-    im = ax.imshow(np.clip(spp, lo, hi), cmap="viridis", norm=LogNorm(lo, hi), interpolation="nearest")
-    ax.set_axis_off()
-    ticks = [t for t in (2 ** np.arange(0, 31)) if lo <= t <= hi]
-    bar = fig.colorbar(im, ax=ax, fraction=0.05, pad=0.02)
-    bar.ax.minorticks_off()                       # log axes label 2x10^1-style minor ticks otherwise
-    bar.set_ticks(ticks, labels=[str(int(t)) for t in ticks])
-    bar.set_label("samples per pixel")
-    label_size = max(5.0, min(11.0, 0.25 * 72.0 * inches * (windows[0][2] / w))) if windows else 8.0
+    lut = np.rint(Colormap("viridis").lut(256)[:, :3] * 255).astype(np.uint8)
+    span = np.log2(hi) - np.log2(lo)
+    level = (np.log2(np.clip(spp, lo, hi)) - np.log2(lo)) / span
+    heat = Image.fromarray(lut[np.clip(np.rint(level * 255), 0, 255).astype(np.intp)])
+    scale = MAP_SIZE / max(h, w)
+    scale = float(max(1, int(scale))) if scale >= 1 else scale
+    mw, mh = max(1, round(w * scale)), max(1, round(h * scale))
+    heat = heat.resize((mw, mh), Image.NEAREST).convert("RGBA")
+    font = ImageFont.load_default(size=12)
+    legend_h = 3 * 18
+    canvas = Image.new("RGBA", (MARGIN + mw + BAR_GAP + BAR_W + 80, MARGIN + mh + 10 + legend_h), "white")
+    canvas.paste(heat, (MARGIN, MARGIN))
+    overlay = Image.new("RGBA", canvas.size, (0, 0, 0, 0))
+    draw = ImageDraw.Draw(overlay)
     left = {int(b) for b in above_target}
-    outlines, colours, widths = [], [], []
+    colours = {"red": (220, 30, 30, 230), "orange": (255, 160, 0, 230), "white": (255, 255, 255, 90)}
     for b, ((x, y, bw, bh), s, ok) in enumerate(zip(windows, block_spp, converged)):
         ran_out = not ok and s >= max_spp
         short = b in left and not ran_out
-        x0, y0, x1, y1 = x - 0.5, y - 0.5, x + bw - 0.5, y + bh - 0.5
-        outlines.append([(x0, y0), (x1, y0), (x1, y1), (x0, y1), (x0, y0)])
-        colours.append(to_rgba("red" if ran_out else "orange" if short else "white",
-                               0.9 if ran_out or short else 0.35))
-        widths.append(1.6 if ran_out or short else 0.5)
+        x0, y0 = MARGIN + round(x * scale), MARGIN + round(y * scale)
+        x1, y1 = MARGIN + round((x + bw) * scale) - 1, MARGIN + round((y + bh) * scale) - 1
+        draw.rectangle((x0, y0, x1, y1), outline=colours["red" if ran_out else "orange" if short else "white"],
+                       width=2 if ran_out or short else 1)
         if len(windows) <= 64:
-            ax.text(x + bw / 2 - 0.5, y + bh / 2 - 0.5, f"{int(s)}", ha="center", va="center",
-                    fontsize=label_size, color="white",
-                    bbox={"facecolor": "black", "alpha": 0.45, "pad": 1.0, "lw": 0})
-    # one artist for every outline (a patch each costs about 0.5 ms: 0.15 s for 256 tiles)
-    ax.add_collection(LineCollection(outlines, colors=colours, linewidths=widths), autolim=False)
+            text = f"{int(s)}"
+            tx0, ty0, tx1, ty1 = draw.textbbox(((x0 + x1) / 2, (y0 + y1) / 2), text, font=font, anchor="mm")
+            draw.rectangle((tx0 - 2, ty0 - 2, tx1 + 2, ty1 + 2), fill=(0, 0, 0, 115))
+            draw.text(((x0 + x1) / 2, (y0 + y1) / 2), text, font=font, anchor="mm", fill=(255, 255, 255, 255))
+    canvas = Image.alpha_composite(canvas, overlay)
+    draw = ImageDraw.Draw(canvas)
+    bx = MARGIN + mw + BAR_GAP                     # the colour bar: the same log2 scale
+    ramp = lut[np.rint(np.linspace(255, 0, mh)).astype(np.intp)]
+    canvas.paste(Image.fromarray(np.repeat(ramp[:, None], BAR_W, axis=1)), (bx, MARGIN))
+    draw.rectangle((bx, MARGIN, bx + BAR_W - 1, MARGIN + mh - 1), outline="black")
+    for t in (int(2 ** e) for e in range(31) if lo <= 2 ** e <= hi):
+        ty = MARGIN + round((1 - (np.log2(t) - np.log2(lo)) / span) * (mh - 1))
+        draw.line((bx + BAR_W, ty, bx + BAR_W + 3, ty), fill="black")
+        draw.text((bx + BAR_W + 5, ty), str(t), font=font, anchor="lm", fill="black")
+    draw.text((bx, MARGIN + mh + 4), "spp", font=font, anchor="lt", fill="black")
     stopped = int(sum(bool(c) for c in converged))
-    handles = [Line2D([], [], color="grey", lw=0.8, label=f"stopped by the criterion ({stopped})"),
-               Line2D([], [], color="red", lw=1.6, label=f"ran to max spp {max_spp} "
-                      f"({sum(1 for s, c in zip(block_spp, converged) if not c and s >= max_spp)})")]
+    entries = [((128, 128, 128), f"stopped by the criterion ({stopped})"),
+               ((220, 30, 30), f"ran to max spp {max_spp} "
+                f"({sum(1 for s, c in zip(block_spp, converged) if not c and s >= max_spp)})")]
     short = sum(1 for b in left if b < len(block_spp) and block_spp[b] < max_spp)
     if short:
-        handles.append(Line2D([], [], color="orange", lw=1.6, label=f"above target when the budget ended ({short})"))
-    ax.legend(handles=handles,
-              loc="upper center", bbox_to_anchor=(0.5, -0.01), ncol=min(2, len(handles)), fontsize=8, frameon=False,
-              facecolor="none", labelcolor="black")
+        entries.append(((255, 160, 0), f"above target when the budget ended ({short})"))
+    for i, (colour, label) in enumerate(entries):
+        ly = MARGIN + mh + 10 + 18 * i + 6
+        draw.line((MARGIN, ly, MARGIN + 22, ly), fill=colour, width=2)
+        draw.text((MARGIN + 28, ly), label, font=font, anchor="lm", fill="black")
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
+    canvas.convert("RGB").save(buf, format="PNG")
     return buf.getvalue()
 
 

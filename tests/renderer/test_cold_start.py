@@ -26,18 +26,35 @@ def test_a_render_shorter_than_the_checkpoint_period_writes_no_checkpoint(tmp_pa
     np.testing.assert_array_equal(read_exr(tmp_path / "a" / "final.exr"), read_exr(tmp_path / "b" / "final.exr"))
 
 
-def test_warming_matplotlib_in_the_background_imports_it() -> None:
-    """`warm_plotting` (started while a GPU render traces) imports matplotlib's Agg canvas
-    in a daemon thread and ends; drawing the spp map afterwards needs no import."""
+def test_the_spp_map_is_drawn_without_matplotlib() -> None:
+    """The spp map every render writes costs no matplotlib import (0.5 s of every command,
+    issue 43), and it is a picture of the samples: viridis, log2 from min to max spp (the
+    block at min spp dark purple, the one at max spp yellow), a red outline round a block
+    that ran to max spp."""
+    import io
+    import subprocess
     import sys
 
-    from renderer.outputs import warm_plotting
+    from PIL import Image
 
-    thread = warm_plotting()
-    assert thread.daemon
-    thread.join(60)
-    assert not thread.is_alive()
-    assert "matplotlib.backends.backend_agg" in sys.modules and "matplotlib.figure" in sys.modules
+    code = ("import sys, numpy as np\n"
+            "from renderer.outputs import spp_map_png\n"
+            "spp = np.array([[16] * 32 + [1024] * 32] * 64, float)\n"
+            "png = spp_map_png(spp, [[0, 0, 32, 64], [32, 0, 32, 64]], [16, 1024], [True, False], 16, 1024)\n"
+            "sys.stdout.buffer.write(png)\n"
+            "assert 'matplotlib' not in sys.modules, sorted(m for m in sys.modules if 'matplotlib' in m)[:3]\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=120)
+    assert out.returncode == 0, out.stderr.decode()[-400:]
+    img = np.asarray(Image.open(io.BytesIO(out.stdout)).convert("RGB")).astype(int)
+    assert img.shape[0] >= 400 and img.std() > 10
+    from renderer.outputs import MAP_SIZE, MARGIN
+    scale = MAP_SIZE // 64
+    low = img[MARGIN + 10 * scale, MARGIN + 5 * scale]            # inside the 16-spp block
+    high = img[MARGIN + 10 * scale, MARGIN + 60 * scale]          # inside the 1024-spp block
+    assert low[2] > low[1] and low[0] > low[1]                    # viridis' dark purple
+    assert high[0] > 200 and high[1] > 200 and high[2] < 80       # viridis' yellow
+    edge = img[MARGIN + 32 * scale, MARGIN + 64 * scale - 1]      # the 1024 block's right edge: ran to max
+    assert edge[0] > 180 and edge[1] < 80
 
 
 def test_the_executable_exits_with_mains_status(tmp_path) -> None:

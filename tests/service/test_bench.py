@@ -237,3 +237,14 @@ def test_the_cold_rows_xml_is_mitsubas_cornell_box() -> None:
     a = np.asarray(mi.render(mi.load_string(cbox_xml(32)), spp=4, seed=3))
     b = np.asarray(mi.render(mi.load_dict(d), spp=4, seed=3))
     assert a.shape == (32, 32, 3) and np.allclose(a, b, atol=1e-5) and a.mean() > 0.05
+
+
+def test_the_per_sample_split_times_each_row_against_one_mi_render() -> None:
+    """benchmarks.bench_per_sample at a tiny size: every row timed, each ratio to one
+    mi.render (the first row 1.0 by definition), medians of the runs kept."""
+    from benchmarks.bench_per_sample import ROWS, per_sample
+
+    r = per_sample(size=16, spp=8, step=4, repeats=1)
+    assert set(r["median_s"]) == set(ROWS) and r["ratio"]["mi_render_once"] == 1.0
+    assert all(v > 0 and np.isfinite(v) for v in r["ratio"].values())
+    assert all(len(w) == 1 for w in r["walls"].values())

@@ -84,8 +84,9 @@ def spp_map_png(spp: np.ndarray, windows: Sequence[Sequence[int]], block_spp: Se
     cost every render 0.5 s to import and draw (issue 43: what a user times is the whole
     command).
     """
-    from cmap import Colormap
     from PIL import Image, ImageDraw, ImageFont
+
+    Colormap = require("cmap").Colormap        # a missing [render] extra: one line naming it
 
     spp = np.asarray(spp, np.float64)
     h, w = spp.shape

@@ -17,14 +17,15 @@
 
 The default scene is the held-out ``studio_preview`` (never used to train or calibrate):
 three spheres (rough plastic, rough aluminium, matte) on a floor under a studio light.
-Its tiles stop anywhere from 64 spp (the sky above the floor) to 4096 (the metal sphere's
+Its tiles stop anywhere from 64 spp (the backdrop) to 4096 (the metal sphere's
 highlights), so where the samples go matters, and to max 4096 spp a hard tile can get
 what it needs. The per-tile criterion had no early tile on it in the held-out evaluation
 (BENCHMARKS "Decisions per tile"). ``spot_stage`` (a dark
 stage under one spot) shows the other side: its dark tiles stop early and leave more
-blocks above tau than uniform at equal time (README "make run"). Each scene's 8192-spp
-reference ships with the package in half floats (`renderer/references/`, made by
-`make_reference`: ``python -m renderer.showcase --scene NAME --make-reference``); a scene
+blocks above tau than uniform at equal time (README "make run"). Both scenes' 8192-spp
+references ship with the package in half floats (`renderer/references/`: studio_preview's
+made by `make_reference`, ``python -m renderer.showcase --scene NAME --make-reference``;
+spot_stage's is its held-out stack's); a scene
 without one gets no error figures.
 """
 from __future__ import annotations
@@ -75,12 +76,11 @@ def make_reference(scene: str, resolution: int = SETTINGS["resolution"]) -> Path
     select_variant()
     mi = require("mitsuba")
     loaded = load_scene(scene, resolution)
-    total = np.zeros((0,))
-    for k in range(REFERENCE_SPP // 1024):
-        img = np.asarray(mi.render(loaded, spp=1024, seed=REFERENCE_SEED + k), np.float64)[..., :3]
-        total = img if not total.size else total + img
+    calls = REFERENCE_SPP // 1024
+    total = sum(np.asarray(mi.render(loaded, spp=1024, seed=REFERENCE_SEED + k), np.float64)[..., :3]
+                for k in range(calls))
     path = REFERENCES / f"{scene}.exr"
-    write_exr(path, (total / (REFERENCE_SPP // 1024)).astype(np.float32), half=True)
+    write_exr(path, (total / calls).astype(np.float32), half=True)
     return path
 
 

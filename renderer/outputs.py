@@ -68,7 +68,7 @@ def write_report(path: str | os.PathLike, report: dict[str, Any]) -> Path:
 
 #: the spp map's layout, in pixels: the map is scaled to about this size (whole factors up,
 #: nearest-neighbour down), with a colour bar at its right and a legend under it
-MAP_SIZE, BAR_W, BAR_GAP, MARGIN = 512, 18, 14, 12
+MAP_SIZE, BAR_W, BAR_GAP, MARGIN, LEGEND_ROW = 512, 18, 14, 12, 18
 
 
 def spp_map_png(spp: np.ndarray, windows: Sequence[Sequence[int]], block_spp: Sequence[int],
@@ -100,8 +100,7 @@ def spp_map_png(spp: np.ndarray, windows: Sequence[Sequence[int]], block_spp: Se
     mw, mh = max(1, round(w * scale)), max(1, round(h * scale))
     heat = heat.resize((mw, mh), Image.NEAREST).convert("RGBA")
     font = ImageFont.load_default(size=12)
-    legend_h = 3 * 18
-    canvas = Image.new("RGBA", (MARGIN + mw + BAR_GAP + BAR_W + 80, MARGIN + mh + 10 + legend_h), "white")
+    canvas = Image.new("RGBA", (MARGIN + mw + BAR_GAP + BAR_W + 80, MARGIN + mh + 10 + 3 * LEGEND_ROW), "white")
     canvas.paste(heat, (MARGIN, MARGIN))
     overlay = Image.new("RGBA", canvas.size, (0, 0, 0, 0))
     draw = ImageDraw.Draw(overlay)
@@ -138,7 +137,7 @@ def spp_map_png(spp: np.ndarray, windows: Sequence[Sequence[int]], block_spp: Se
     if short:
         entries.append(((255, 160, 0), f"above target when the budget ended ({short})"))
     for i, (colour, label) in enumerate(entries):
-        ly = MARGIN + mh + 10 + 18 * i + 6
+        ly = MARGIN + mh + 10 + LEGEND_ROW * i + LEGEND_ROW // 3
         draw.line((MARGIN, ly, MARGIN + 22, ly), fill=colour, width=2)
         draw.text((MARGIN + 28, ly), label, font=font, anchor="lm", fill="black")
     buf = io.BytesIO()

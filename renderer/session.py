@@ -138,12 +138,17 @@ class RenderSession:
         own_all = loop.acc.passes_all()
         if self.budget is None:
             ids = np.flatnonzero(loop.pending())
-            k = grown_passes(self.br.n_units, len(ids), len(loop.schedule) - int(own_all[ids].max()), self.grow) \
-                if ids.size else 0
-        else:
-            ids = np.asarray(self.budget.select(loop, time.perf_counter() - self.t_start), np.int64)
-            k = 1
-        return ids, [own_all[ids] + j for j in range(k if ids.size else 0)]
+            return ids, self._grown(ids, own_all[ids])
+        ids = np.asarray(self.budget.select(loop, time.perf_counter() - self.t_start), np.int64)
+        return ids, [own_all[ids]] if ids.size else []
+
+    def _grown(self, ids: np.ndarray, own: np.ndarray) -> list[np.ndarray]:
+        """The passes of blocks `ids`, at their own pass counts `own`, in one launch: as many
+        as `grown_passes` gives for that many pending blocks ([] for none)."""
+        if not ids.size:
+            return []
+        k = grown_passes(self.br.n_units, len(ids), len(self.loop.schedule) - int(own.max()), self.grow)
+        return [own + j for j in range(k)]
 
     def step(self) -> int:
         """One step (`renderer.passloop`); returns the passes it added (0: done).
@@ -201,14 +206,11 @@ class RenderSession:
         """The step `plan` would give after this one if none of its blocks stopped, queued
         (None when there is none): this step's blocks still active (it is not judged yet)
         with passes left, each at its next pass, grown by their count."""
-        loop = self.loop
         after = passes[-1] + 1
-        go = loop.active[ids] & (after < len(loop.schedule))
+        go = self.loop.active[ids] & (after < len(self.loop.schedule))
         if not go.any():
             return None
-        nxt = ids[go]
-        k = grown_passes(self.br.n_units, len(nxt), len(loop.schedule) - int(after[go].max()), self.grow)
-        ahead = [after[go] + j for j in range(k)]
+        nxt, ahead = ids[go], self._grown(ids[go], after[go])
         return nxt, ahead, self._submit(nxt, ahead)
 
     # -- what survives a crash ---------------------------------------------------------

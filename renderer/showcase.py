@@ -49,8 +49,8 @@ logger = logging.getLogger(__name__)
 
 SCENE = "studio_preview"
 SETTINGS: dict[str, Any] = {"resolution": 256, "block": 64, "step": 32, "min_spp": 32, "max_spp": 4096}
-#: the shipped references: samples per pixel, and the first of the seeds of their 1024-spp
-#: mi.render calls (far from any render's: a reference shares no samples with what it judges)
+#: the shipped references: samples per pixel, and their seed (far from any render's: a
+#: reference shares no samples with what it judges)
 REFERENCE_SPP, REFERENCE_SEED = 8192, 900001
 EQUAL_TIME = "equal_time.png"
 REFERENCES = Path(__file__).parent / "references"
@@ -65,22 +65,24 @@ def shipped_reference(scene: str) -> np.ndarray | None:
 
 
 def make_reference(scene: str, resolution: int = SETTINGS["resolution"]) -> Path:
-    """Render `scene`'s reference (REFERENCE_SPP spp with Mitsuba's own sampler, 1024 at a
-    time) and write it where `shipped_reference` reads it, in half floats (about 150-270 KB
-    at 256x256). Minutes on a CPU: run once per scene, then commit the file."""
+    """Render `scene`'s reference as the dataset builder renders a stack's
+    (`renderer.stackbuild.render_mean`: REFERENCE_SPP full-frame samples of the keyed
+    tracer, seed REFERENCE_SEED, which no render of the showcase uses) and write it where
+    `shipped_reference` reads it, in half floats (about 150-270 KB at 256x256). Minutes on
+    a CPU: run once per scene, then commit the file."""
     from learning.data.exr import write_exr
     from learning.data.variant import select_variant
 
+    from .blocks import BlockRenderer
     from .scenes import load_scene
+    from .stackbuild import BuildSettings, render_mean
 
     select_variant()
-    mi = require("mitsuba")
-    loaded = load_scene(scene, resolution)
-    calls = REFERENCE_SPP // 1024
-    total = sum(np.asarray(mi.render(loaded, spp=1024, seed=REFERENCE_SEED + k), np.float64)[..., :3]
-                for k in range(calls))
+    build = BuildSettings()
+    with BlockRenderer(load_scene(scene, resolution), grid=tuple(build.grid)) as br:
+        image = render_mean(br, REFERENCE_SPP, REFERENCE_SEED, 0, build.max_lanes)
     path = REFERENCES / f"{scene}.exr"
-    write_exr(path, (total / calls).astype(np.float32), half=True)
+    write_exr(path, image.astype(np.float32), half=True)
     return path
 
 

@@ -232,10 +232,12 @@ class WavefrontTracer:
             g1 = min(len(masks), g0 + widest)
             width = next(w for w in SPLAT_WIDTHS if w >= g1 - g0)
             lo, hi = int(ends[g0]), int(ends[g1])
-            launches.append((g0, g1 - g0, [
-                self._submit_splat(all_pixels[i:min(hi, i + per_launch)], int(spp), all_keys[i:min(hi, i + per_launch)],
-                                   (job_of[i:min(hi, i + per_launch)] - g0).to(torch.int32), width)
-                for i in range(lo, hi, per_launch)]))
+            chunks = []
+            for i in range(lo, hi, per_launch):
+                j = min(hi, i + per_launch)
+                chunks.append(self._submit_splat(all_pixels[i:j], int(spp), all_keys[i:j],
+                                                 (job_of[i:j] - g0).to(torch.int32), width))
+            launches.append((g0, g1 - g0, chunks))
 
         def splat_result() -> list[torch.Tensor]:
             outs = []

@@ -109,3 +109,25 @@ def test_the_summary_leads_with_blocks_above_tau_and_the_worst_block():
     mean = line.index("mean block error 0.0163 adaptive, 0.0278 uniform")
     assert above < worst < samples < mean
     assert summary_line(a, u).startswith("s: adaptive used 50%")           # no reference: cost alone
+
+
+def test_make_reference_writes_the_stack_builders_mean_in_half_floats(tmp_path, monkeypatch):
+    """`make_reference` renders as a stack's reference is rendered (`render_mean`, its own
+    seed) and writes it where `shipped_reference` reads it: the same image to half-float
+    rounding, finite and lit."""
+    from learning.data.variant import select_variant
+    from renderer import showcase
+    from renderer.blocks import BlockRenderer
+    from renderer.scenes import load_scene
+    from renderer.stackbuild import BuildSettings, render_mean
+
+    select_variant()
+    monkeypatch.setattr(showcase, "REFERENCES", tmp_path)
+    monkeypatch.setattr(showcase, "REFERENCE_SPP", 8)
+    path = showcase.make_reference("cornell", resolution=32)
+    assert path == tmp_path / "cornell.exr"
+    got = showcase.shipped_reference("cornell")
+    with BlockRenderer(load_scene("cornell", 32), grid=(4, 4)) as br:
+        want = render_mean(br, 8, showcase.REFERENCE_SEED, 0, BuildSettings().max_lanes)
+    assert got.shape == (32, 32, 3) and np.isfinite(got).all() and got.mean() > 0.01
+    np.testing.assert_allclose(got, want, rtol=1e-3, atol=1e-4)

@@ -17,8 +17,9 @@ a stack's recovered passes in `renderer.simulate`). `PassLoop.step` then:
    at or past min_spp are judged in one batched `Criterion.decide`, and those it calls
    converged leave the active set for good: never traced, featured or asked again.
 
-The loop owns what a render accumulates: the counters and timers of its decisions and each
-block's last ratio to its target (`BlockRatios`, what a budget spends by). A criterion is
+The loop owns what a render accumulates: the counters and timers of its decisions, each
+block's last ratio to its target (`BlockRatios`, what a budget spends by) and each unit's
+decision history for a criterion that decides from it (`learning.inputs.history.Evidence`). A criterion is
 configuration only. Everything per block is an array; only verdicts and numbers cross to
 the host.
 """
@@ -30,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from learning.data.accumulator import BlockAccumulator
+from learning.inputs.history import Evidence
 from learning.stoprule import decide_active
 
 from .criteria import COUNTER_NAMES, TIMER_NAMES, BlockBatch, Criterion, Decision
@@ -94,6 +96,7 @@ class PassLoop:
         self.counters = {k: 0 for k in COUNTER_NAMES}
         self.timers = {k: 0.0 for k in TIMER_NAMES}
         self.ratios = BlockRatios(n)
+        self.evidence = Evidence(n)
         self.quick = None
         if quick is not None:
             self.quick, made = criterion.prepare(quick)
@@ -144,8 +147,11 @@ class PassLoop:
         kept; the active set is `step`'s to change (a resumed budget render asks blocks
         judged before the interruption again: same state, same answer)."""
         idx = np.asarray(ids, np.int64).reshape(-1)
-        d: Decision = self.criterion.decide(idx, BlockBatch.from_accumulator(self.acc, idx, self.quick, self.tiling))
+        d: Decision = self.criterion.decide(idx, BlockBatch.from_accumulator(self.acc, idx, self.quick, self.tiling,
+                                                                            self.evidence.sums))
         self.ratios.put(idx, d.ratio)
+        if d.evidence is not None:
+            self.evidence.add(idx, d.evidence)
         self._count(d.counts, d.timers)
         return d.verdict
 
@@ -165,7 +171,8 @@ class PassLoop:
     def state(self) -> dict[str, Any]:
         return {"acc": self.acc.state(), "active": self.active, "stop_spp": self.stop_spp,
                 "history": self.history, "history_spp": self.history_spp,
-                "history_block_spp": self.history_block_spp, "rendered": self.rendered}
+                "history_block_spp": self.history_block_spp, "rendered": self.rendered,
+                "evidence": self.evidence.sums}
 
     def restore(self, state: dict[str, Any]) -> None:
         """Continue from a validated checkpoint's state (`renderer.checkpoint`)."""
@@ -178,5 +185,6 @@ class PassLoop:
         self.history_spp = np.asarray(state["history_spp"], np.int64)
         self.rendered = np.asarray(state["rendered"], np.int64)
         self.history_block_spp = np.asarray(state["history_block_spp"], np.int64).reshape(self.history.shape)
+        self.evidence.restore(state["evidence"])
         self.counters.update({k: int(v) for k, v in state.get("counters", {}).items() if k in COUNTER_NAMES})
         self.timers.update({k: float(v) for k, v in state.get("timers", {}).items() if k in TIMER_NAMES})

@@ -278,9 +278,11 @@ class VirtualObserver:
     def labeler(self) -> dict:
         """The meta.json `labeler` entry describing this observer (version 3 also records its
         dot level and density, so labels of other dot settings are relabelled, never read)."""
+        from .tile_truth import TILE_TRUTH
+
         dots = OBSERVER_DOTS if self.pooling == DOTS else {}
         return {"name": "flip", "tau": self.tau, "ppd": self.ppd, "display": "clip+srgb",
-                "exposure": self.exposure, "pooling": self.pooling, **dots}
+                "exposure": self.exposure, "pooling": self.pooling, **dots, "tile_truth": TILE_TRUTH}
 
     def errors(self, reference: np.ndarray, levels: np.ndarray | Iterable[np.ndarray],
                grid: Sequence[int] = (4, 4)) -> np.ndarray:
@@ -299,8 +301,19 @@ class VirtualObserver:
         return thresholds_from_errors(self.stack_errors(stack), stack.spp, self.tau)
 
     def label_tiles(self, stack: Stack, tile: int = TILE) -> list[int | None]:
-        """The tile truth: each tile converged from the first level at which its FLIP mean is
-        at most tau with at most one outlier pixel, at that level and every later one."""
+        """The tile truth on the frame a render ends with (`learning.data.tile_truth`, issue
+        49): the fewest samples at which a tile may stop when every other tile stops at its
+        own threshold, the finished frame still at or below tau in every block."""
+        from .tile_truth import final_frame_tile_errors
+
+        same = stack_tile_errors(stack, tile, self.ppd, self.exposure)
+        e = final_frame_tile_errors(stack, tile, self.tau, self.ppd, self.exposure, same)
+        return thresholds_from_errors(e, stack.spp, self.tau)
+
+    def label_tiles_same_samples(self, stack: Stack, tile: int = TILE) -> list[int | None]:
+        """The first tile truth (issue 41), kept for comparison: each tile converged from the
+        first level at which its FLIP mean is at most tau with at most one outlier pixel, at
+        that level and every later one, on a frame where every tile has the same samples."""
         return thresholds_from_errors(stack_tile_errors(stack, tile, self.ppd, self.exposure), stack.spp, self.tau)
 
 
@@ -405,12 +418,21 @@ def observed(stack: Stack, tau: float | None = DEFAULT_TAU, pooling: str = DEFAU
 def with_tile_truth(stack: Stack, tile: int = TILE) -> Stack:
     """The stack with its tile truth (issue 41) by the observer of its labels: as stored when
     meta.json holds it for this observer and tile, else computed (cached per stack)."""
-    if stack.tile == tile and stack.tile_thresholds is not None:
+    if stack.tile == tile and stack.tile_thresholds is not None and _current_tile_truth(stack.labeler):
         return stack
     if not is_virtual(stack.labeler):
         raise ValueError(f"{stack.path}: labels of labeler {(stack.labeler or {}).get('name')!r} have no tile "
                          "truth (only the virtual observer's can be computed)")
-    return dataclasses.replace(stack, tile=tile, tile_thresholds=observer_for(stack).label_tiles(stack, tile))
+    obs = observer_for(stack)
+    return dataclasses.replace(stack, tile=tile, tile_thresholds=obs.label_tiles(stack, tile),
+                               labeler={**stack.labeler, "tile_truth": obs.labeler["tile_truth"]})  # type: ignore[dict-item]
+
+
+def _current_tile_truth(labeler: Mapping | None) -> bool:
+    """Whether stored tile thresholds are this version's (`learning.data.tile_truth`)."""
+    from .tile_truth import TILE_TRUTH
+
+    return isinstance(labeler, Mapping) and labeler.get("tile_truth") == TILE_TRUTH
 
 
 def read_observed(root: str, tau: float | None = DEFAULT_TAU, pooling: str = DEFAULT_POOLING) -> list[Stack]:
@@ -429,6 +451,7 @@ def relabel_if_stale(stack: Stack, pooling: str = DEFAULT_POOLING,
     if not is_virtual(stack.labeler):
         return stack, False
     obs = observer_for(stack, tau, pooling)
-    if labeler_matches(stack.labeler, obs) and stack.tile == TILE and stack.tile_thresholds is not None:
+    if labeler_matches(stack.labeler, obs) and stack.tile == TILE and stack.tile_thresholds is not None \
+            and _current_tile_truth(stack.labeler):
         return stack, False
     return update_labels(stack, obs.label_stack(stack), obs.labeler, TILE, obs.label_tiles(stack)), True

@@ -25,6 +25,8 @@ from ..data.observer import DEFAULT_TAU, label_tau, observed, with_tile_truth
 from ..data.stack import Stack
 from ..inputs.halves import flip_offset, guarded_flip_scores, guarded_tile_flip_scores
 from ..inputs.halves import stack_flat
+from ..inputs.history import STATISTIC
+from ..data.tile_truth import TILE_TRUTH
 from ..inputs.table import SubImageTable
 from ..stoprule import StopRule
 from .evaluate import evaluate_scores
@@ -265,6 +267,7 @@ def calibrate_flip_curve(stacks: Sequence[Stack], max_early_stop: float = 0.05, 
     at_default = [p for p in points if abs(p["tau"] - DEFAULT_TAU) < 1e-12]
     return {"format": "noisestop-flip-curve", "pooling": pooling, "observer_pooling": DEFAULT_POOLING,
             "unit": "block" if tile is None else f"tile{tile}",
+            **({} if tile is None else {"statistic": STATISTIC, "tile_truth": TILE_TRUTH}),
             "observer_dots": OBSERVER_DOTS,
             "target_early_stop_rate": max_early_stop,
             "curve": [{k: v for k, v in p.items() if v is not None} for p in points],

@@ -234,10 +234,13 @@ def stack_tile_terms(stack: Stack, tile: int, exposure: float = 0.0, ppd: float 
 
 def guarded_tile_flip_scores(stack: Stack, tile: int, exposure: float = 0.0,
                              progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """(scores [K, n_tiles], flat [K, n_tiles]) of the flip criterion at tile grain: -e, NaN
-    where the tile's dot guard holds it at the stack's tau; flat where the tile is."""
+    """(scores [K, n_tiles], flat [K, n_tiles]) of the flip criterion at tile grain: -e of
+    the tile's history (`learning.inputs.history.running`, issue 49), NaN where the tile's
+    dot guard holds it at the stack's tau; flat where the tile is."""
+    from .history import running
+
     terms = stack_tile_terms(stack, tile, exposure, progress=progress)
-    return guard_dots(-terms[0], terms[1], label_tau(stack)), terms[2] > 0.5
+    return guard_dots(-running(terms[0], stack.spp), terms[1], label_tau(stack)), terms[2] > 0.5
 
 
 # ----------------------------------------------------------------------------- the shipped c
@@ -293,7 +296,8 @@ def _check_curve(curve: Any) -> None:
 
 def unit_calibration(cal: dict[str, Any], tile: int | None) -> dict[str, Any]:
     """The part of a calibration for one grain: the block curve, or with `tile` the curve
-    calibrated per tile against the tile truth (``tiles`` in flip.json, issue 41); a file
+    calibrated per tile against the tile truth (``tiles`` in flip.json, issue 41) on the
+    history's statistic (issue 49: a tile curve of another statistic is refused); a file
     without it gives the block curve, with a warning (`noisestop calibrate` makes both)."""
     if tile is None:
         return {**cal, "unit": cal.get("unit", "block")}
@@ -302,6 +306,12 @@ def unit_calibration(cal: dict[str, Any], tile: int | None) -> dict[str, Any]:
         log.warning("%s has no c(tau) for %d-pixel tiles: the block curve is used (recalibrate with "
                     "`noisestop calibrate`)", cal.get("source", "flip.json"), tile)
         return {**cal, "unit": "block"}
+    from .history import STATISTIC
+
+    if part.get("statistic") != STATISTIC:     # c of one level's score is not c of the history's
+        raise ValueError(f"{cal.get('source', 'flip.json')}: its c(tau) for {int(tile)}-pixel tiles was calibrated "
+                         f"on {part.get('statistic', 'one level')!r} scores, this noisestop decides tiles from "
+                         f"{STATISTIC!r}; recalibrate with `noisestop calibrate --tile {int(tile)}`")
     return {**part, "source": cal.get("source"), "unit": f"tile{int(tile)}"}
 
 

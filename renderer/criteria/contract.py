@@ -73,16 +73,19 @@ class BlockBatch:
     computed on first use (a criterion that does not read them costs nothing); `spp`
     int64 [k], `half_spp` int64 [k, 2] and `nonfinite` int64 [k] are host arrays; `quick`
     is what the criterion's `prepare` made of the quick image's blocks [k, ...] (the
-    blocks themselves unless it prepares them), or None. `tiling` (the renderer's
+    blocks themselves unless it prepares them), or None. `evidence` float64 [k, 2]: each
+    unit's earlier decisions as the loop keeps them (`learning.inputs.history.Evidence`),
+    or None (no history: a criterion that reads it treats every unit as new). `tiling` (the renderer's
     `BlockWindows`, when the units are tiles of blocks): `block_halves` puts the asked
     tiles' blocks back together, for a criterion that judges a tile in its context.
     """
 
     def __init__(self, spp: np.ndarray, *, mean: Any = None, halves: Any = None,
                  half_spp: np.ndarray | None = None, nonfinite: Any = None, quick: np.ndarray | None = None,
-                 source: Any = None, tiling: Any = None) -> None:
+                 source: Any = None, tiling: Any = None, evidence: np.ndarray | None = None) -> None:
         self.spp = np.asarray(spp, np.int64).reshape(-1)
         self.tiling = tiling
+        self.evidence = evidence
         self.half_spp = None if half_spp is None else np.asarray(half_spp, np.int64).reshape(-1, 2)
         self.quick = quick
         self._mean, self._halves, self._nonfinite, self._source = mean, halves, nonfinite, source
@@ -90,13 +93,15 @@ class BlockBatch:
 
     @classmethod
     def from_accumulator(cls, acc: Any, ids: Sequence[int], quick: np.ndarray | None = None,
-                         tiling: Any = None) -> BlockBatch:
+                         tiling: Any = None, evidence: np.ndarray | None = None) -> BlockBatch:
         """The units `ids` of a `BlockAccumulator`, read lazily from its device tensors.
-        `quick` is per block: with `tiling`, a tile's row is its block's."""
+        `quick` is per block: with `tiling`, a tile's row is its block's. `evidence`: every
+        unit's history sums [n, 2] (the loop's), or None."""
         ids_a = np.asarray(ids, np.int64)
         rows = ids_a if tiling is None else ids_a // tiling.tiles_per_block
         return cls(acc.spp_all()[ids_a], half_spp=acc.half_spp_all()[ids_a],
-                   quick=None if quick is None else quick[rows], source=(acc, ids_a), tiling=tiling)
+                   quick=None if quick is None else quick[rows], source=(acc, ids_a), tiling=tiling,
+                   evidence=None if evidence is None else evidence[ids_a])
 
     @classmethod
     def from_views(cls, views: Sequence[BlockView]) -> BlockBatch:
@@ -187,11 +192,13 @@ class BlockBatch:
 class Decision:
     """One `decide` call's answer: `verdict` int8 [k] (+1 converged, -1 noisy), `ratio`
     float64 [k] (each block's distance to the target as a ratio, > 1 above it, 0 flat, NaN
-    no estimate yet), and what the call cost (`counts` over COUNTER_NAMES, `timers` over
-    TIMER_NAMES), for the loop to add up."""
+    no estimate yet), `evidence` float64 [k] (what this decision adds to each unit's
+    history, `learning.inputs.history`; None for a criterion without one), and what the
+    call cost (`counts` over COUNTER_NAMES, `timers` over TIMER_NAMES), for the loop to add up."""
 
     verdict: np.ndarray
     ratio: np.ndarray
+    evidence: np.ndarray | None = None
     counts: Mapping[str, int] = field(default_factory=dict)
     timers: Mapping[str, float] = field(default_factory=dict)
 
@@ -254,8 +261,11 @@ class Criterion(ABC):
         if self.needs_halves and batch.half_spp is None:
             raise ValueError(f"{self.name} criterion needs half buffers, the batch has none")
         t0 = time.perf_counter()
-        verdict, ratio = self._decide(ids, batch, tally)
+        verdict, ratio, *rest = self._decide(ids, batch, tally)
         verdict, ratio = np.asarray(verdict), np.asarray(ratio, np.float64)
+        evidence = np.asarray(rest[0], np.float64).reshape(-1) if rest and rest[0] is not None else None
+        if evidence is not None and evidence.shape != (len(ids),):
+            raise RuntimeError(f"{self.name} criterion returned {evidence.shape} evidence for {len(ids)} blocks")
         if verdict.shape != (len(ids),) or ratio.shape != (len(ids),):
             raise RuntimeError(f"{self.name} criterion returned shapes {verdict.shape}, {ratio.shape} "
                                f"for {len(ids)} blocks")
@@ -268,7 +278,7 @@ class Criterion(ABC):
                   "nonfinite_blocks": int((batch.nonfinite > 0).sum()), **tally}
         timers = {"features_s": features_s,
                   "decisions_s": max(0.0, time.perf_counter() - t0 - features_s)}
-        return Decision(verdict, ratio, counts, timers)
+        return Decision(verdict, ratio, evidence, counts, timers)
 
     def _batch_of_views(self, ids: list[int], views: list[BlockView], tally: Tally) -> BlockBatch:
         if len(ids) != len(views):
@@ -290,8 +300,10 @@ class Criterion(ABC):
         return batch
 
     @abstractmethod
-    def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
-        """(verdict [k], ratio [k]) for validated, non-empty input; counts go into `tally`."""
+    def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, ...]:
+        """(verdict [k], ratio [k]) for validated, non-empty input, and for a criterion that
+        decides from the history a third, the decision's evidence [k] (`Decision`); counts
+        go into `tally`."""
 
     @staticmethod
     def _flat(batch: BlockBatch, exposure: float, tally: Tally) -> np.ndarray:

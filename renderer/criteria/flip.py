@@ -6,6 +6,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from learning.inputs.history import LAST, STATISTIC, combine
 from learning.names import DEFAULT_TAU
 from learning.stoprule import StopRule
 from noisefeat.pooling import CRITERION_POOLING
@@ -28,6 +29,11 @@ class FlipCriterion(Criterion):
     is flat. FLIP runs on the active, non-flat blocks only, where the half buffers live (the
     GPU with cuda_ad_rgb); its time is the decision cost. The ratio is e / c, or the dot
     term where that is larger.
+
+    At tile grain a tile decides from its history (issue 49): e is the mean of its
+    decisions' e_j sqrt(spp_j) brought to the current spp (`learning.inputs.history`), which
+    the loop keeps per unit; one level's score is noisy, the history's is not. The tile curve
+    of c(tau) is calibrated on the same statistic (`statistic` in its record and in `describe`).
     """
 
     name = "flip"
@@ -48,10 +54,12 @@ class FlipCriterion(Criterion):
             self.c, self.source = ROW["threshold"].check(c), "argument"
         self.rule = StopRule(flip_offset(self.c))
         self.exposure = float(exposure)
+        #: what e is: one level's score ("last") or the unit's history ("history-mean")
+        self.statistic = LAST if tile is None else STATISTIC
 
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "threshold": self.c, "tau": self.tau, "pooling": CRITERION_POOLING,
-                "source": self.source, "unit": self.unit}
+                "source": self.source, "unit": self.unit, "statistic": self.statistic}
 
     def _flip(self, batch: BlockBatch, ask: np.ndarray) -> np.ndarray:
         """e of the asked units: of a block, its pooled FLIP between the halves; of a tile,
@@ -73,8 +81,12 @@ class FlipCriterion(Criterion):
         if ask.size:
             score[ask] = -self._flip(batch, ask)
             tally.add("blocks_featured", int(ask.size))
+        evidence = None
+        if self.statistic == STATISTIC:
+            e_hist, evidence = combine(batch.evidence, -score, batch.spp)
+            score = -e_hist
         dots = self._dots(batch, ask, self.exposure, self.tau, tally)
         with np.errstate(invalid="ignore"):
             ratio = np.fmax(-score / self.c if self.c > 0 else np.inf, dots)
         ratio = np.where(flat, 0.0, np.where(np.isnan(score), np.nan, ratio))
-        return self.rule.verdict(np.where(dots > 1, np.nan, score), flat), ratio
+        return self.rule.verdict(np.where(dots > 1, np.nan, score), flat), ratio, evidence

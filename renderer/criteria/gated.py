@@ -38,10 +38,11 @@ class GatedCriterion(Criterion):
     def prepare(self, quick: np.ndarray) -> tuple[np.ndarray, Tally]:
         return self.gate.prepare(quick)
 
-    def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
-        verdict, ratio = self.tiles._decide(ids, batch, tally)
+    def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, ...]:
+        verdict, ratio, evidence = self.tiles._decide(ids, batch, tally)     # the tiles' history is flip's
         whole, block_ids, row = batch.whole_blocks()
-        gate, gate_ratio = self.gate._decide(block_ids.tolist(), whole, tally)
+        gate, gate_ratio, *_ = self.gate._decide(block_ids.tolist(), whole, tally)
         both = (np.asarray(verdict) > 0) & (np.asarray(gate)[row] > 0)
         tally.add("gated_tiles", int(((np.asarray(verdict) > 0) & ~both).sum()))
-        return np.where(both, CONVERGED, NOISY).astype(np.int8), np.fmax(ratio, np.asarray(gate_ratio)[row])
+        return (np.where(both, CONVERGED, NOISY).astype(np.int8), np.fmax(ratio, np.asarray(gate_ratio)[row]),
+                evidence)

@@ -178,3 +178,67 @@ def test_the_shipped_calibration_holds_a_checked_tile_curve(tmp_path) -> None:
     (tmp_path / "flip.json").write_text(json.dumps(bad))
     with pytest.raises(ValueError, match="unreadable flip calibration .taus must be finite and increasing"):
         load_flip_calibration(tmp_path / "flip.json")
+
+
+# ----------------------------------------------------------------------------- on the final frame (issue 49)
+
+def _leaky(residual: float = 0.01) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """A checkerboard of early and late tiles whose residual noise halves every level after
+    their stop: a tile stopped early keeps more noise than the same-samples frame shows its
+    late neighbour, and FLIP's filters carry it across."""
+    from learning.data.tile_truth import unit_windows
+
+    spp = [8, 16, 24, 32, 40, 48]
+    conv = np.array([0, 3, 0, 3, 3, 0, 3, 0] * 2)
+    rng = np.random.default_rng(0)
+    ref = np.full((64, 64, 3), 0.3, np.float32)
+    levels = []
+    for k in range(len(spp)):
+        img = ref.copy()
+        for t, (x, y, w, h) in enumerate(unit_windows(64, 64, (1, 1), 16)):
+            a = 0.1 if k < conv[t] else residual * 0.5 ** (k - conv[t])
+            img[y:y + h, x:x + w] += a * rng.standard_normal((h, w, 3)).astype(np.float32)
+        levels.append(img)
+    return ref, np.stack(levels), spp
+
+
+def test_the_final_frame_truth_holds_where_the_same_samples_truth_leaks() -> None:
+    from learning.data.tile_truth import compose_levels, fixed_point, frame_errors, unit_windows
+
+    ref, levels, spp = _leaky()
+    th = thresholds_from_errors(tile_errors(tile_terms(ref, levels, (1, 1), 16)), spp, 0.02)
+    start = np.array([spp.index(t) if t is not None else len(spp) for t in th])
+    win = unit_windows(64, 64, (1, 1), 16)
+    before, _ = frame_errors(ref, compose_levels(levels, start, win), (1, 1), 16, 67.0, 0.0)
+    assert before[0] > 0.02                       # control: every tile at its same-samples truth leaks
+    at, rounds = fixed_point(levels, ref, start, (1, 1), 16, 0.02)
+    after, _ = frame_errors(ref, compose_levels(levels, at, win), (1, 1), 16, 67.0, 0.0)
+    assert after[0] <= 0.02 and rounds > 1
+    assert (at >= start).all() and (at > start).sum() >= 1        # only ever later, and only where needed
+
+
+def test_a_tile_noisy_at_the_last_level_is_censored_and_holds_no_neighbour() -> None:
+    from learning.data.tile_truth import fixed_point
+
+    ref, levels, spp = _leaky()
+    levels[:, 20:28, 20:28] += 0.5                 # tile 5 never converges, at any level
+    th = thresholds_from_errors(tile_errors(tile_terms(ref, levels, (1, 1), 16)), spp, 0.02)
+    start = np.array([spp.index(t) if t is not None else len(spp) for t in th])
+    assert start[5] == len(spp)
+    at, _ = fixed_point(levels, ref, start, (1, 1), 16, 0.02)
+    assert at[5] == len(spp)                       # no threshold
+    assert (at[[0, 2, 7, 8, 10, 13, 15]] <= start[[0, 2, 7, 8, 10, 13, 15]] + 1).all()   # not driven to the cap
+
+
+def test_stored_tile_truth_of_the_first_version_is_recomputed(tmp_path) -> None:
+    ref, levels = _levels()
+    obs = VirtualObserver()
+    st = write_stack(tmp_path / "s", scene="s", levels=levels, spp=SPP, reference=ref, quick=None,
+                     reference_spp=256, grid=(1, 1), labeler=obs.labeler,
+                     thresholds=obs.thresholds(ref, levels, SPP, (1, 1)))
+    old = {k: v for k, v in obs.labeler.items() if k != "tile_truth"}   # as issue 41's relabel wrote it
+    update_labels(st.path, st.thresholds, old, 16, [8] * 16)
+    assert relabel_if_stale(read_stack(st.path))[1]                 # stale: rewritten
+    again = read_stack(st.path)
+    assert again.labeler["tile_truth"] == "final-frame" and again.tile_thresholds == [SPP[c] for c in CONV]
+    assert with_tile_truth(read_stack(st.path)) is not None and not relabel_if_stale(again)[1]

@@ -1,0 +1,150 @@
+"""The tile truth on the frame a render ends with (issue 49; DESIGN "Decision grain").
+
+The first tile truth (issue 41) judged each 16x16 tile on a level where every tile has the
+same samples. A render ends with each tile at its own stop, and a noisier neighbour reaches
+a tile through FLIP's filters (about 10 px at 67 ppd): stopping every tile at that truth
+left 27 blocks above tau where the block oracle left 14. This truth is measured on the
+frame the render ends with instead, as a fixed point on the stack:
+
+1. start from the same-samples truth (each tile's first level from which its FLIP mean is
+   at most tau with at most one outlier pixel, at every later level too);
+2. put the frame together with every tile at its current level (each pixel from the tile
+   holding it with the most samples, as the renderer composes it) and judge it by the
+   version-3 observer, per block and per tile;
+3. in every block above tau, move each tile whose own error there is above tau one level
+   on (where none is, the block's worst tiles: the block's dot term failed); a tile that is
+   at the last level already can only be helped by its context, so its neighbours (the
+   tiles that touch it, across block edges too) move one level on instead, unless the
+   tile has no same-samples threshold either (noisy of itself: no context would help);
+4. repeat until no tile moves.
+
+Tiles only ever move later, so it ends, after at most as many rounds as levels. Every block
+whose tiles did not reach the last level ends at or below tau by construction; a tile that
+is still above tau at the last level has no threshold (censored), as in the first truth.
+What a tile's threshold means: the fewest samples at which it may stop given that every
+other tile stops at its own threshold; its neighbours are its context.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from noisefeat.dots import DOT_LEVEL, rank_pool
+from noisefeat.pooling import TILE, TILE_MAX, pool_blocks, tile_windows
+
+from ..names import DEFAULT_TAU
+from .cache import cached_array
+from .stack import Stack, block_shape
+
+#: names the tile truth a stack's labeler record carries (`VirtualObserver.labeler`): tile
+#: thresholds of another version are recomputed, never read as this one's
+TILE_TRUTH = "final-frame"
+
+
+def unit_windows(width: int, height: int, grid: Sequence[int], tile: int) -> list[tuple[int, int, int, int]]:
+    """(x, y, w, h) in the frame of every tile of every block of `grid`, block-major (the
+    renderer's and `tile_terms`' numbering)."""
+    bh, bw = block_shape(height, width, grid)
+    inner = tile_windows(bh, bw, tile)
+    return [(bx * bw + x, by * bh + y, w, h) for by in range(int(grid[0])) for bx in range(int(grid[1]))
+            for x, y, w, h in inner]
+
+
+def compose_levels(levels: np.ndarray, at: np.ndarray, windows: Sequence[tuple[int, int, int, int]]) -> np.ndarray:
+    """The frame [H, W, 3] with tile u taken from level `at[u]` of `levels` [K, H, W, 3]; a
+    pixel two tiles share comes from the one at the later level (most samples win)."""
+    frame = np.empty(levels.shape[1:], levels.dtype)
+    for u in np.argsort(at, kind="stable"):
+        x, y, w, h = windows[u]
+        frame[y:y + h, x:x + w] = levels[at[u], y:y + h, x:x + w]
+    return frame
+
+
+def frame_errors(reference: np.ndarray, frame: np.ndarray, grid: Sequence[int], tile: int,
+                 ppd: float, exposure: float) -> tuple[np.ndarray, np.ndarray]:
+    """(block errors [n_blocks], tile errors [n_tiles]) of one frame by the version-3
+    observer, from one FLIP map: a block's error is its largest 16x16 tile mean or its dot
+    term; a tile's, its FLIP mean or its own dot term (at most one outlier pixel)."""
+    import torch
+
+    from .observer import _block_dots, _level_maps
+
+    (ref_t, lev_t, emap), = list(_level_maps(reference, [frame], ppd, exposure))
+    g = (int(grid[0]), int(grid[1]))
+    blocks = np.maximum(pool_blocks(emap, g, TILE_MAX), _block_dots(ref_t, lev_t, g))
+    from noisefeat.dots import display_error
+
+    err = display_error(lev_t, ref_t)
+    windows = unit_windows(frame.shape[1], frame.shape[0], grid, tile)
+    emap64 = np.asarray(emap, np.float64)
+    means = np.array([emap64[y:y + h, x:x + w].mean() for x, y, w, h in windows])
+    dots = rank_pool(torch.stack([err[y:y + h, x:x + w] for x, y, w, h in windows])).numpy()
+    return blocks, np.maximum(means, dots)
+
+
+def touching(windows: Sequence[tuple[int, int, int, int]]) -> np.ndarray:
+    """bool [n, n]: which windows touch or overlap another (diagonal neighbours included)."""
+    x, y, w, h = (np.array([win[i] for win in windows])[:, None] for i in range(4))
+    near = (x <= (x + w).T) & (x.T <= x + w) & (y <= (y + h).T) & (y.T <= y + h)
+    np.fill_diagonal(near, False)
+    return near
+
+
+def fixed_point(levels: np.ndarray, reference: np.ndarray, start: Sequence[int], grid: Sequence[int],
+                tile: int = TILE, tau: float = DEFAULT_TAU, ppd: float = 67.0,
+                exposure: float = 0.0) -> tuple[np.ndarray, int]:
+    """(level index of each tile [n_tiles], rounds) of the fixed point (module docstring),
+    from the level indices `start` (the same-samples truth; len(levels) where it has none:
+    such a tile is noisy of itself, and its neighbours are not held for it). A tile still
+    above tau at the last level gets len(levels): no threshold."""
+    last = len(levels) - 1
+    hopeless = np.asarray(start, np.int64) > last
+    at = np.minimum(np.asarray(start, np.int64), last)
+    h, w = reference.shape[:2]
+    windows = unit_windows(w, h, grid, tile)
+    per_block = len(windows) // (int(grid[0]) * int(grid[1]))
+    near = touching(windows)
+    rounds = 0
+    while True:
+        rounds += 1
+        block_e, tile_e = frame_errors(reference, compose_levels(levels, at, windows), grid, tile, ppd, exposure)
+        move = np.zeros(len(at), bool)
+        for b in np.flatnonzero(~(block_e <= tau)):
+            own = slice(b * per_block, (b + 1) * per_block)
+            bad = ~(tile_e[own] <= tau)
+            if not bad.any():          # the block's dot term: its worst tiles carry it
+                bad = tile_e[own] >= np.nanmax(tile_e[own]) if np.isfinite(tile_e[own]).any() else ~bad
+            move[own] |= bad
+        bad, capped = move, move & (at >= last) & ~hopeless
+        move = (bad | (near[capped].any(axis=0) if capped.any() else False)) & (at < last)
+        if not move.any():
+            at[bad] = len(levels)          # above tau at the last level (all that can move has): censored
+            return at, rounds
+        at[move] += 1
+
+
+def final_frame_tile_errors(stack: Stack, tile: int, tau: float, ppd: float, exposure: float,
+                            same_samples: np.ndarray) -> np.ndarray:
+    """e [K, n_tiles] whose thresholds at `tau` are the final-frame truth: a tile's
+    same-samples errors `same_samples` [K, n_tiles] (from `stack_tile_errors`), raised to
+    above tau before the level the fixed point moved it to. Cached next to the stack per
+    tau (one fixed point costs a FLIP of the frame a round)."""
+    from .observer import thresholds_from_errors
+
+    spp = list(stack.spp)
+
+    def compute() -> np.ndarray:
+        th = thresholds_from_errors(same_samples, spp, tau)
+        start = np.array([spp.index(t) if t is not None else len(spp) for t in th], np.int64)
+        levels = np.stack([np.asarray(x, np.float32) for x in stack.iter_levels()])
+        at, _ = fixed_point(levels, np.asarray(stack.reference(), np.float32), start, stack.grid, tile, tau,
+                            ppd, exposure)
+        return at.astype(np.float64)
+    at = cached_array(stack, f"tile{tile}-final-frame-t{tau:g}-e{exposure:g}-ppd{ppd:g}-l{DOT_LEVEL:g}",
+                      (same_samples.shape[1],), compute).astype(np.int64)
+    e = np.array(same_samples, np.float64, copy=True)
+    k = np.arange(len(spp))[:, None]
+    # before the fixed point's level: not converged there (above tau); from it on: as measured
+    e[(k < at[None, :]) & (e <= tau)] = np.nextafter(tau, np.inf)
+    return e

@@ -1,0 +1,57 @@
+"""A unit's noise estimate from its decision history (issue 49): one formula in two forms
+(the calibration's matrix, the live loop's running sums), stable at the extremes."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from learning.inputs.history import ALPHA, Evidence, combine, running
+
+SPP = np.array([32, 64, 96, 128, 160, 192], np.float64)
+
+
+def _incremental(e: np.ndarray) -> np.ndarray:
+    """What the live loop computes, a decision at a time."""
+    ev, out = Evidence(e.shape[1]), []
+    ids = np.arange(e.shape[1])
+    for k in range(len(e)):
+        hist, x = combine(ev.sums[ids], e[k], np.full(e.shape[1], SPP[k]))
+        ev.add(ids, x)
+        out.append(hist)
+    return np.array(out)
+
+
+def test_the_live_form_is_the_calibration_form() -> None:
+    rng = np.random.default_rng(0)
+    e = rng.uniform(0.005, 0.2, (len(SPP), 9))
+    e[rng.random(e.shape) < 0.2] = np.nan          # levels without a decision
+    assert np.allclose(_incremental(e), running(e, SPP), equal_nan=True)
+    assert np.array_equal(np.isnan(running(e, SPP)), np.isnan(e))
+
+
+def test_an_exact_monte_carlo_decay_is_its_own_estimate_and_noise_averages_out() -> None:
+    exact = 0.3 / SPP[:, None] ** ALPHA * np.ones((1, 4))
+    assert np.allclose(running(exact, SPP), exact)
+    # one level's score scatters about the decay; the history's much less
+    rng = np.random.default_rng(1)
+    noisy = exact[:, :1] * rng.lognormal(0.0, 0.3, (len(SPP), 2000))
+    spread = lambda m: np.std(np.log(m[-1] / exact[-1, 0]))   # noqa: E731
+    assert spread(running(noisy, SPP)) < 0.6 * spread(noisy)
+
+
+@pytest.mark.parametrize("value", [0.0, 1e-30, 1e-6, 0.5, 1e30])
+def test_black_tiny_constant_and_huge_scores_stay_finite(value: float) -> None:
+    e = np.full((len(SPP), 3), value)
+    out = running(e, SPP)
+    assert np.isfinite(out).all()
+    assert (out >= 0).all() and np.allclose(out[0], value)
+
+
+def test_non_finite_scores_are_no_decision_and_add_nothing() -> None:
+    e = np.array([[np.nan, 0.1, np.inf, -np.inf]] * 2)
+    out = running(e, SPP[:2])
+    assert np.isnan(out[:, [0, 2, 3]]).all() and np.isfinite(out[:, 1]).all()
+    ev = Evidence(4)
+    _, x = combine(None, e[0], SPP[:4])
+    ev.add(np.arange(4), x)
+    assert np.array_equal(ev.sums[:, 1], [0, 1, 0, 0]) and np.isfinite(ev.sums).all()

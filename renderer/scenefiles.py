@@ -172,7 +172,7 @@ def _found(name: str, resolver: Sequence[str], kind: str, named_by: str) -> str:
     the folders searched."""
     path = _resolve(name, resolver)
     if not os.path.isabs(name) and not os.path.lexists(path):
-        raise FileNotFoundError(f"{name}: {kind} not found in {', '.join(resolver)}{named_by}")
+        raise FileNotFoundError(f"{name}: {kind} not found in {', '.join(dict.fromkeys(resolver))}{named_by}")
     return path
 
 

@@ -14,7 +14,9 @@ trusts it), every `checkpoint_every` seconds, at the end (unless the render ende
 first period), at the time limit and on
 SIGINT/SIGTERM (`renderer.signals`): a step is never half-saved. Because samples depend
 only on (seed, pixel, pass), ``resume=True`` after a crash gives the very image and report
-(timings aside) of an uninterrupted run. `renderer.render` and the ``noisestop`` Mitsuba
+(timings aside) of an uninterrupted run. A render with checkpoints removes the results an
+earlier render left in its folder once it is under way (`_clear_previous`), so a killed one
+never leaves them beside its own checkpoint. `renderer.render` and the ``noisestop`` Mitsuba
 plugin run without checkpoints.
 """
 from __future__ import annotations

@@ -14,7 +14,8 @@ Three sources, each counted as it ran, nothing typed by hand:
 4. the hardening scenarios (`bench_hardening`, also the section `hardening` on its own):
    peak RSS of the worst JSON and binary shapes with and without the address-space cap,
    normal latency beside slow uploaders, every way of starting `serve` without a token,
-   SIGHUP with a request in flight, a protocol error, a key twice.
+   SIGHUP with a request in flight, a protocol error, a key twice; the hostile files of each
+   round, scene-named ones included (`bench_scene_files`, issue 51).
 """
 from __future__ import annotations
 
@@ -241,7 +242,59 @@ def bench_hardening() -> dict[str, Any]:
         bundle = str(make_demo_bundle(Path(tmp) / "demo", name="demo"))
         return {"shapes": _shape_peaks(bundle), "slow": _slow_uploaders(bundle),
                 "auth": _auth_paths(bundle), "sighup": _sighup(bundle), "protocol": _protocol(bundle),
-                "round3": bench_round3(bundle), "round4": bench_round4(bundle), "round4_files": _round4_files(bundle)}
+                "round3": bench_round3(bundle), "round4": bench_round4(bundle), "round4_files": _round4_files(bundle),
+                "round5_scene_files": bench_scene_files()}
+
+
+# ----------------------------------------------------------------------------- issue 51
+
+#: an element of a scene XML naming the file NAME, by the kind of file it names
+SCENE_NAMING = {
+    "mesh (ply)": '<shape type="ply"><string name="filename" value="{name}"/></shape>',
+    "include": '<include filename="{name}"/>',
+    "bitmap texture": ('<shape type="sphere"><bsdf type="diffuse"><texture type="bitmap" name="reflectance">'
+                       '<string name="filename" value="{name}"/></texture></bsdf></shape>'),
+    "environment map": '<emitter type="envmap"><string name="filename" value="{name}"/></emitter>',
+}
+
+
+def bench_scene_files() -> list[dict[str, Any]]:
+    """Issue 51's scene-named files: each kind a scene XML names (mesh, include, bitmap,
+    environment map) as /dev/zero, a FIFO, a 3 GB sparse file and a missing file, against
+    `render --scene FILE.xml` (goal: exit 2, one line naming the file, at most 5 s and 500 MiB)."""
+    sensor = ('<sensor type="perspective"><film type="hdrfilm"><integer name="width" value="16"/>'
+              '<integer name="height" value="16"/></film></sensor>')
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, (element, naming) in enumerate(SCENE_NAMING.items()):
+            for j, kind in enumerate(("/dev/zero", "FIFO", "3 GB sparse", "missing")):
+                d = Path(tmp) / f"s{i}{j}"
+                d.mkdir()
+                target = d / "named.dat"
+                if kind == "/dev/zero":
+                    target.symlink_to("/dev/zero")
+                elif kind == "FIFO":
+                    os.mkfifo(target)
+                elif kind == "3 GB sparse":
+                    with open(target, "wb") as f:
+                        f.truncate(3 << 30)               # sparse: no disk used
+                xml = d / "scene.xml"
+                xml.write_text(f'<scene version="3.0.0">{naming.format(name=target.name)}{sensor}</scene>')
+                r = _run_cli(["render", "--scene", str(xml), "--max-spp", "16", "--criterion", "uniform",
+                              "--out", str(d / "out")])
+                rows.append({"case": f"{element} as {kind}: render", "names_file": str(target.name) in r["message"],
+                             **r})
+    return rows
+
+
+def md_scene_files(rows: list[dict[str, Any]]) -> str:
+    lines = ["| scene names | exit | seconds | stderr lines | peak RSS | names the file | message |",
+             "|---|---|---|---|---|---|---|"]
+    for f in rows:
+        lines.append(f"| {f['case']} | {f['exit']} | {f['seconds']:.1f} | {f['lines']} | "
+                     f"{f['peak_rss_kib'] / 1024:.0f} MiB | {'yes' if f['names_file'] else 'NO'} | "
+                     f"{f['message'].replace('|', '/')} |")
+    return "\n".join(lines)
 
 
 # ----------------------------------------------------------------------------- issue 42
@@ -615,4 +668,6 @@ def md_hardening(r: dict[str, Any]) -> str:
                   f"--no-auth): {silent}."]
     if "round3" in r:
         lines += ["", md_round3(r["round3"])]
+    if "round5_scene_files" in r:
+        lines += ["", md_scene_files(r["round5_scene_files"])]
     return "\n".join(lines)

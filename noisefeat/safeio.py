@@ -20,7 +20,12 @@ CAPS: dict[str, int] = {
     "meta.json": 16 << 20,        # a stack's metadata: thresholds of ~100k blocks at most
     "flip.json": 1 << 20,         # the criterion's calibrated curve
     "token file": 64 << 10,       # a bearer token
-    "scene": 64 << 20,            # a scene's XML (Mitsuba reads its meshes and textures itself)
+    "scene": 64 << 20,            # a scene's XML
+    "included scene": 64 << 20,   # an XML file a scene <include>s
+    "mesh": 2 << 30,              # a ply, obj or serialized mesh a scene names (renderer.scenefiles)
+    "texture": 2 << 30,           # a bitmap texture a scene names (an EXR's cap)
+    "environment map": 2 << 30,   # an envmap's image (a 16k x 8k float RGB EXR: 1.5 GiB)
+    "spectrum": 16 << 20,         # a spectrum's text file (wavelength, value lines)
     "EXR": 2 << 30,               # a level, reference or final image (a 16k x 8k float RGB: 1.5 GiB)
     "EXR header": 1 << 20,        # the header of an EXR (attributes before the offset table)
     "JSON": 16 << 20,             # other small JSON records (reports, bundles' manifests)

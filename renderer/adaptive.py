@@ -14,7 +14,9 @@ trusts it), every `checkpoint_every` seconds, at the end (unless the render ende
 first period), at the time limit and on
 SIGINT/SIGTERM (`renderer.signals`): a step is never half-saved. Because samples depend
 only on (seed, pixel, pass), ``resume=True`` after a crash gives the very image and report
-(timings aside) of an uninterrupted run. `renderer.render` and the ``noisestop`` Mitsuba
+(timings aside) of an uninterrupted run. A render with checkpoints removes the results an
+earlier render left in its folder once it is under way (`_clear_previous`), so a killed one
+never leaves them beside its own checkpoint. `renderer.render` and the ``noisestop`` Mitsuba
 plugin run without checkpoints.
 """
 from __future__ import annotations
@@ -33,10 +35,11 @@ import numpy as np
 from tqdm import tqdm
 
 from learning.data.stack import Stack
+from noisefeat.safeio import check_regular
 
 from .blocks import BlockRenderer
 from .checkpoint import CHECKPOINT
-from .outputs import prepare_output_dir
+from .outputs import clear_results, prepare_output_dir
 from .report import render_result
 from .result import RenderResult
 from .session import RenderSession, run_settings
@@ -142,6 +145,21 @@ def _check_scene_arg(scene: Any, resolution: Any, defines: Mapping[str, str] | N
     return True, _scene_object_label(scene)
 
 
+def _clear_previous(out: Path, resumed: bool) -> None:
+    """Remove the results an earlier render left in `out`, once this one is under way (its
+    scene loaded, its checkpoint accepted: a refused resume leaves the folder as it was).
+
+    Why: a render killed after its first checkpoint left the earlier render's final.exr and
+    report.json beside its own checkpoint. On a resume the results go too: results are
+    written only when a render ends, so those beside an unfinished checkpoint are an earlier
+    render's, and those beside a finished one are this render's own, written again at once.
+    The checkpoint itself is the session's: a fresh render replaces it at its first one."""
+    removed = clear_results(out)
+    if removed:
+        logger.info("%s: removed the previous render's %s (%s)", out, ", ".join(removed),
+                    "this render writes its own when it ends" if not resumed else "the resumed render writes them")
+
+
 def load_reference(reference: Stack | str | os.PathLike[str] | np.ndarray,
                    label: str) -> tuple[Stack | None, np.ndarray | None]:
     """(stack, None) for a stack or dataset directory (not yet labelled: the observer's tau
@@ -156,11 +174,12 @@ def load_reference(reference: Stack | str | os.PathLike[str] | np.ndarray,
         if img.ndim != 3 or img.shape[2] != 3:
             raise ValueError(f"a reference image must be float [H, W, 3] linear RGB, got shape {img.shape}")
     elif isinstance(reference, (str, os.PathLike)) and (os.fspath(reference).lower().endswith(".exr")
-                                                        or Path(reference).is_file()):
+                                                        or (os.path.exists(reference) and not os.path.isdir(reference))):
         from learning.data.exr import read_exr
 
-        if not Path(reference).is_file():
+        if not os.path.lexists(reference):
             raise FileNotFoundError(f"{os.fspath(reference)}: reference image not found")
+        check_regular(reference, "reference image")     # a device, a FIFO, a folder: one line saying which
         img = read_exr(reference)
     if img is None:
         return find_stack(reference, label), None
@@ -254,6 +273,8 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
                                     os.fspath(scene) if not loaded else label)
         session = RenderSession(br, crit, spec, settings_run, label=label, ckpt_path=ckpt_path,
                                 resume=checkpoints is not None and checkpoints.resume, grow=grow, t_start=t_start)
+        if ckpt_path is not None:        # the folder's earlier results go before this render's first pass
+            _clear_previous(ckpt_path.parent, resumed="acc" in session.state)
         time_limit_reached = _run_steps(session, progress, spec.time_limit, checkpoints)
         return render_result(session, time_limit_reached=time_limit_reached, ref_stack=ref_stack,
                              ref_image=ref_image, reference=reference)

@@ -30,6 +30,44 @@ FINAL_PNG = "final.png"
 SPP_MAP = "spp_map.png"
 REPORT = "report.json"
 COMPARE = "compare.png"
+#: every file a render leaves in its folder (`write_outputs`): what a new render removes first
+RESULTS = (FINAL_EXR, FINAL_PNG, SPP_MAP, REPORT, COMPARE)
+
+
+def check_output_path(path: str | os.PathLike) -> None:
+    """Refuse, in one line, an output folder that is empty or the root folder.
+
+    Why: `--out ""` wrote into the current folder without the out-folder lock (two renders
+    there raced), and `--out /` wrote into `/`. An empty string is checked as given
+    (`Path("")` is the current folder); the root by where the path leads (`//`, `/..` and a
+    link to `/` are the root too)."""
+    text = os.fspath(path)
+    if not text:
+        raise ValueError("the output folder is an empty name: name a folder (e.g. --out out)")
+    if os.path.realpath(text) == os.path.realpath(os.sep):
+        raise ValueError(f"{text}: the output folder cannot be the root folder; name a folder of its own")
+
+
+def clear_results(out: str | os.PathLike) -> list[str]:
+    """Remove the previous render's results (`RESULTS`) from folder `out`; the names removed.
+
+    Why: a render killed after its first checkpoint left the earlier render's final.exr and
+    report.json beside its own checkpoint, and a render without a reference left the earlier
+    one's compare.png beside its own results. A render removes them when it starts (under
+    the out-folder lock, `renderer.outlock`) and writes its own when it ends. A result that
+    cannot be removed (a folder in its place, a read-only entry) is one line, before any pass."""
+    removed = []
+    for name in RESULTS:
+        path = Path(out) / name
+        try:
+            path.unlink()
+            removed.append(name)
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            raise PermissionError(f"{path}: cannot remove the previous render's result ({exc.strerror or exc}); "
+                                  "remove it or choose another output folder") from None
+    return removed
 
 
 def prepare_output_dir(path: str | os.PathLike) -> Path:
@@ -38,7 +76,9 @@ def prepare_output_dir(path: str | os.PathLike) -> Path:
     Why: otherwise `--out` naming a file ends in a FileExistsError traceback, and a
     read-only folder fails only after the first pass has been rendered. Writability is
     probed by creating and removing a file, which is what counts (permission bits do not
-    bind root, a read-only mount binds everyone)."""
+    bind root, a read-only mount binds everyone). An empty name and the root folder are
+    refused (`check_output_path`)."""
+    check_output_path(path)
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise NotADirectoryError(f"{p}: exists and is not a directory (the output must be a folder)")

@@ -48,7 +48,7 @@ def render_many(scenes: Sequence[str | os.PathLike], out: str | os.PathLike, *,
     dupes = sorted({x for x in labels if labels.count(x) > 1})
     if dupes:
         raise ValueError(f"scenes would share output directories: {', '.join(dupes)}")
-    root = prepare_output_dir(Path(out).resolve())
+    root = prepare_output_dir(out).resolve()
     t0 = time.perf_counter()
     reports: dict[str, Any] = {}
     failed: dict[str, str] = {}

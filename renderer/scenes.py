@@ -40,10 +40,10 @@ from . import heldout
 from . import training_scenes as training
 from .procedural import procedural_scene, procedural_seed
 from .scene_kit import SceneDict
+from .scenefiles import check_scene_files, mitsuba_search_paths
 from .setting_row import parse_resolution
 from learning.data.variant import select_variant
 from noisefeat.extras import require
-from noisefeat.safeio import check_regular
 
 logger = logging.getLogger(__name__)
 
@@ -255,7 +255,8 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | st
     path = os.path.abspath(name_or_path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"{name_or_path}: scene file not found")
-    check_regular(path, "scene")        # Mitsuba reads it: a FIFO or a device is refused first
+    # Mitsuba reads it and every file it names: a FIFO, a device, a file over its cap is refused first
+    check_scene_files(path, defines, mitsuba_search_paths())
     try:
         scene = mi.load_file(path, **dict(defines or {}))
     except Exception as exc:  # Mitsuba raises RuntimeError with its parser message

@@ -28,6 +28,26 @@ MAX_SIDE = 65536
 API, CLI, XML = "api", "cli", "plugin"
 ALL_DOORS = frozenset({API, CLI, XML})
 _DEFINE_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+#: a number as a user types it: ASCII digits only (Python's int and float also take `１６`,
+#: `٢` and `1_024`, which no one means on a command line; issue 51), spaces around it
+_ASCII_INT = re.compile(r"[ \t]*[+-]?[0-9]+[ \t]*")
+_ASCII_FLOAT = re.compile(r"[ \t]*[+-]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|inf|infinity|nan)[ \t]*",
+                          re.IGNORECASE)
+
+
+def ascii_int(text: str) -> int:
+    """`int(text)` for ASCII digits only; ValueError otherwise."""
+    if not isinstance(text, str) or not _ASCII_INT.fullmatch(text):
+        raise ValueError(f"not a whole number in ASCII digits: {text!r}")
+    return int(text)
+
+
+def ascii_float(text: str) -> float:
+    """`float(text)` for ASCII digits only (inf and nan are spelled out, for the range
+    checks to refuse in their own words); ValueError otherwise."""
+    if not isinstance(text, str) or not _ASCII_FLOAT.fullmatch(text):
+        raise ValueError(f"not a number in ASCII digits: {text!r}")
+    return float(text)
 
 
 def _shown(value: Any) -> str:
@@ -50,7 +70,7 @@ def parse_resolution(text: Any) -> int | tuple[int, int]:
         value = int(text)
     elif isinstance(text, str):
         try:
-            nums = [int(p) for p in text.lower().replace("×", "x").split("x")]
+            nums = [ascii_int(p) for p in text.lower().replace("×", "x").split("x")]
         except ValueError:
             nums = []
         value = None if len(nums) not in (1, 2) else nums[0] if len(nums) == 1 else (nums[0], nums[1])
@@ -142,7 +162,7 @@ class Row:
         try:
             if self.kind in ("int", "float"):
                 try:
-                    value = (int if self.kind == "int" else float)(text)
+                    value = (ascii_int if self.kind == "int" else ascii_float)(text)
                 except ValueError:
                     pass                    # `check` refuses the text in the row's own words
             elif self.kind == "defines":

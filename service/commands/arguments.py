@@ -12,16 +12,18 @@ import math
 from collections.abc import Callable
 
 from learning.names import QUICK_MODES
+from renderer.setting_row import ascii_float, ascii_int
 from renderer.spec import MAX_SIDE, MAX_SPP, ROW
 
 from ..console import UsageError
 
 
 def int_in(low: int, high: int | None = None) -> Callable[[str], int]:
-    """argparse type: a whole number in [low, high] (high None: no upper bound)."""
+    """argparse type: a whole number in [low, high] (high None: no upper bound), in ASCII
+    digits (`ascii_int`: `１６` and `1_024` are refused)."""
     def parse(text: str) -> int:
         try:
-            value = int(text)
+            value = ascii_int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a whole number, got {text[:40]!r}") from None
         if value < low or (high is not None and value > high):
@@ -34,10 +36,11 @@ def int_in(low: int, high: int | None = None) -> Callable[[str], int]:
 
 
 def float_in(low: float, high: float, *, open_low: bool = False) -> Callable[[str], float]:
-    """argparse type: a finite number in [low, high] ((low, high] with open_low)."""
+    """argparse type: a finite number in [low, high] ((low, high] with open_low), in ASCII
+    digits (`ascii_float`)."""
     def parse(text: str) -> float:
         try:
-            value = float(text)
+            value = ascii_float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a number, got {text[:40]!r}") from None
         if not math.isfinite(value):

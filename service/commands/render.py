@@ -6,10 +6,10 @@ A thin layer on the in-memory loop (`renderer.adaptive.run_adaptive`, which
 from __future__ import annotations
 
 import argparse
-import contextlib
 from typing import Any
 
 from renderer.names import CRITERIA
+from renderer.setting_row import ascii_int
 from renderer.spec import CLI, ROWS
 
 from ..console import UsageError, emit_json, log
@@ -43,10 +43,13 @@ def cmd_render(args: argparse.Namespace) -> int:
     from renderer.render_many import render_command
     from renderer.scenes import DEFAULT_SCENE
 
+    if args.scene is not None and not args.scene.strip(" ,"):
+        raise UsageError(f"--scene is empty ({args.scene!r}): name a built-in scene or an XML file "
+                         f"(left out, it is {DEFAULT_SCENE})")
     try:       # --out is locked for the render's lifetime (renderer.outlock)
-        lock = locked_output(args.out) if args.out else contextlib.nullcontext()
-        with lock:
-            result = render_command(args.scene or DEFAULT_SCENE, args.out, given_from_args(args),
+        with locked_output(args.out):       # an empty --out or / is refused there, in one line
+            scenes = DEFAULT_SCENE if args.scene is None else args.scene
+            result = render_command(scenes, args.out, given_from_args(args),
                                     reference=args.reference, workers=args.workers, scheduler=args.scheduler,
                                     resume=args.resume, checkpoint_every=args.checkpoint_every)
     except ConnectionError as exc:      # verdict server unreachable or failing
@@ -92,7 +95,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _grid_side(text: str) -> int:
     try:
-        return int(text)
+        return ascii_int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"grid must be two whole numbers, got {repr(text[:40])}") from None
 

@@ -16,7 +16,7 @@ ALLOWED = {
     ("learning/data/npz.py", "ZipFile"): "a file object from safeio.open_input",
     ("learning/models/bundle_check.py", "ZipFile"): "bytes from safeio.read_input, or an archive being written",
     ("learning/models/transfer.py", "torch.load"): "bytes from safeio.read_input",
-    ("renderer/scenes.py", "load_file"): "Mitsuba reads the XML after safeio.check_regular",
+    ("renderer/scenes.py", "load_file"): "Mitsuba reads the XML and what it names after renderer.scenefiles checked them",
 }
 
 

@@ -242,7 +242,7 @@ def bench_hardening() -> dict[str, Any]:
         return {"shapes": _shape_peaks(bundle), "slow": _slow_uploaders(bundle),
                 "auth": _auth_paths(bundle), "sighup": _sighup(bundle), "protocol": _protocol(bundle),
                 "round3": bench_round3(bundle), "round4": bench_round4(bundle), "round4_files": _round4_files(bundle),
-                "round5_nonfinite": bench_nonfinite_scenes()}
+                "round5_nonfinite": bench_nonfinite_scenes(), "round5_inline_json": bench_inline_json(bundle)}
 
 
 # ----------------------------------------------------------------------------- issue 42
@@ -262,6 +262,38 @@ def bench_round4(bundle: str, seconds: float = 10.0) -> list[dict[str, Any]]:
                 r["tracebacks"] = s.log().count("Traceback")
             rows.append({"body": name, "clients": clients, **r})
     return rows
+
+
+def bench_inline_json(bundle: str, seconds: float = 8.0, clients: tuple[int, ...] = (1, 4)) -> list[dict[str, Any]]:
+    """Issue 51's bodies at the parse pool's threshold (16 KiB) looped against a fresh server:
+    16.3 kB nested 11 deep (was parsed on the server's own thread), the same at 16.5 kB
+    (in the pool before too) and a valid 16 kB halves request, by 1 and by 4 clients; normal
+    p99 against alone and health p95 (goals: at most 2x, at most 100 ms)."""
+    from functools import partial
+
+    from . import attack
+    from .loadtest import LocalServer, make_request
+    rows = []
+    halves = partial(make_request, blocks=16, size=128, binary=True, inputs="halves")
+    for name, body, models, normal in (
+            ("16.3 kB nested 11 deep", partial(attack.nested_json, 16_300), {"demo": bundle}, None),
+            ("16.5 kB nested 11 deep", partial(attack.nested_json, 16_500), {"demo": bundle}, None),
+            ("valid 16 kB halves", partial(attack.valid_halves_json, 16_000), {"bundled": None}, halves)):
+        for n in clients:           # the halves body, and the normal requests beside it, to the bundled model
+            with LocalServer(models) as s:
+                r = attack.costly_json_loop(s.url, s.token, seconds=seconds, attack=body, attackers=n, make=normal)
+                r["tracebacks"] = s.log().count("Traceback")
+            rows.append({"body": name, "clients": n, **r})
+    return rows
+
+
+def md_inline_json(rows: list[dict[str, Any]]) -> str:
+    lines = ["| body | clients | answered | normal p99 alone -> loaded | ratio | health p95 |", "|---|---|---|---|---|---|"]
+    for x in rows:
+        lines.append(f"| {x['body']} ({x['body_bytes']} B) | {x['clients']} | {', '.join(x['attacker_statuses'])} | "
+                     f"{x['alone_p99_ms']:.0f} -> {x['loaded_p99_ms']:.0f} ms | {x['p99_ratio']:.2f}x | "
+                     f"{x['health_p95_ms']:.0f} ms |")
+    return "\n".join(lines)
 
 
 def _round4_files(bundle: str) -> list[dict[str, Any]]:
@@ -667,4 +699,6 @@ def md_hardening(r: dict[str, Any]) -> str:
         lines += ["", md_round3(r["round3"])]
     if "round5_nonfinite" in r:
         lines += ["", md_nonfinite(r["round5_nonfinite"])]
+    if "round5_inline_json" in r:
+        lines += ["", md_inline_json(r["round5_inline_json"])]
     return "\n".join(lines)

@@ -267,7 +267,8 @@ def bench_round4(bundle: str, seconds: float = 10.0) -> list[dict[str, Any]]:
 def bench_inline_json(bundle: str, seconds: float = 8.0, clients: tuple[int, ...] = (1, 4)) -> list[dict[str, Any]]:
     """Issue 51's bodies at the parse pool's threshold (16 KiB) looped against a fresh server:
     16.3 kB nested 11 deep (was parsed on the server's own thread), the same at 16.5 kB
-    (in the pool before too) and a valid 16 kB halves request, by 1 and by 4 clients; normal
+    (in the pool before too), the costliest body still parsed inline (`attack.bound_json`)
+    and a valid 16 kB halves request, by 1 and by 4 clients; normal
     p99 against alone and health p95 (goals: at most 2x, at most 100 ms)."""
     from functools import partial
 
@@ -278,6 +279,7 @@ def bench_inline_json(bundle: str, seconds: float = 8.0, clients: tuple[int, ...
     for name, body, models, normal in (
             ("16.3 kB nested 11 deep", partial(attack.nested_json, 16_300), {"demo": bundle}, None),
             ("16.5 kB nested 11 deep", partial(attack.nested_json, 16_500), {"demo": bundle}, None),
+            ("16 kB at the inline bound (253 lists)", partial(attack.bound_json, 16_300), {"demo": bundle}, None),
             ("valid 16 kB halves", partial(attack.valid_halves_json, 16_000), {"bundled": None}, halves)):
         for n in clients:           # the halves body, and the normal requests beside it, to the bundled model
             with LocalServer(models) as s:

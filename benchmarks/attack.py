@@ -530,6 +530,39 @@ def nested_json_255k(depth: int = 7) -> tuple[bytes, dict[str, str]]:
             + b",".join([unit] * n) + b"]}]}", {"Content-Type": "application/json"})
 
 
+def nested_json(size: int, depth: int = 7) -> tuple[bytes, dict[str, str]]:
+    """Issue 42's nested body at about `size` bytes (issue 51: 16.3 kB, just under the
+    parse pool's threshold, was parsed on the server's own thread)."""
+    unit = b"[" * depth + b"0" + b"]" * depth
+    n = (size - 100) // (len(unit) + 1)
+    return (b'{"inputs":[{"name":"features","shape":[%d%s],"datatype":"FP32","data":[' % (n, b",1" * depth)
+            + b",".join([unit] * n) + b"]}]}", {"Content-Type": "application/json"})
+
+
+def bound_json(size: int, units: int = 35, depth: int = 7) -> tuple[bytes, dict[str, str]]:
+    """The costliest body still parsed on the server's own thread (issue 51): `units`
+    values nested `depth` deep (253 lists and objects with the envelope, under
+    `parsepool.INLINE_CONTAINERS`), padded with a flat list of zeros to about `size` bytes."""
+    unit = b"[" * depth + b"0" + b"]" * depth
+    head = (b'{"inputs":[{"name":"features","shape":[%d%s],"datatype":"FP32","data":[' % (units, b",1" * depth)
+            + b",".join([unit] * units) + b']},{"name":"pad","shape":[%d],"datatype":"FP32","data":[')
+    n = max(1, (size - len(head) - 20) // 2)
+    return head % n + b",".join([b"0"] * n) + b"]}]}", {"Content-Type": "application/json"}
+
+
+def valid_halves_json(size: int) -> tuple[bytes, dict[str, str]]:
+    """The largest valid halves request (`even` and `odd`, [k, 8, 8, 3] of 0.5, for the
+    bundled model) of at most `size` bytes: issue 51's valid 16 kB body."""
+    def body(k: int) -> bytes:
+        values = b"[" + b",".join([b"0.5"] * (k * 8 * 8 * 3)) + b"]"
+        return (b'{"inputs":[{"name":"even","shape":[%d,8,8,3],"datatype":"FP32","data":' % k + values +
+                b'},{"name":"odd","shape":[%d,8,8,3],"datatype":"FP32","data":' % k + values + b"}]}")
+    k = 1
+    while len(body(k + 1)) <= size:
+        k += 1
+    return body(k), {"Content-Type": "application/json"}
+
+
 def valid_json_255k() -> tuple[bytes, dict[str, str]]:
     """Issue 42's other body: a fully valid JSON request (184 kB), 8x8 blocks as the demo
     model takes them (120 blocks and their 120 quick images: 240 of [8, 8, 3])."""

@@ -160,6 +160,32 @@ def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int
     return out
 
 
+def nonfinite_totals(acc: BlockAccumulator, windows: Sequence[Sequence[int]],
+                     frame: tuple[int, int]) -> dict[str, int]:
+    """report.json's `nonfinite`: `dropped` (pixel, pass) values the accumulator dropped as
+    NaN/Inf; `pixels` of the final image with no finite sample at all (shown as 0, not an
+    estimate; counted on the frame as composed); `units` never converged for want of a
+    finite estimate (`renderer.criteria.contract`). A farm reads `pixels` (exit status 3)."""
+    n = acc.n_blocks
+    empty, _, _ = compose(acc.unsampled(np.arange(n))[..., None].astype(np.float64), windows,
+                          acc.spp_all(), frame)
+    return {"dropped": int(acc.nonfinite_all().sum()), "pixels": int((empty[..., 0] > 0).sum()),
+            "units": int((acc.unestimated(np.arange(n)) > 0).sum())}
+
+
+def nonfinite_line(report: dict[str, Any]) -> str | None:
+    """The one line a render that dropped non-finite samples ends with (stderr and the
+    command line's summary), or None when it dropped none."""
+    nf = report.get("nonfinite") or {}
+    if not nf.get("dropped"):
+        return None
+    head = f"non-finite samples: {nf['dropped']} (pixel, pass) value(s) of scene {report['scene']} were NaN/Inf"
+    if nf.get("pixels"):
+        return (f"{head}; {nf['pixels']} pixel(s) have no finite sample (black in the image, not an "
+                f"estimate) and {nf['units']} unit(s) never converged for want of one")
+    return f"{head} and were dropped; every pixel still has a finite estimate"
+
+
 def render_result(session: Any, *, time_limit_reached: bool, ref_stack: Stack | None,
                   ref_image: np.ndarray | None, reference: Any) -> RenderResult:
     """A finished `renderer.session.RenderSession` as the image, per-pixel spp and stops,
@@ -179,6 +205,9 @@ def render_result(session: Any, *, time_limit_reached: bool, ref_stack: Stack | 
     windows = [br.unit_window(u) for u in range(n)]
     image, spp_px, owner = compose(acc.means(np.arange(n)).cpu().numpy(), windows, acc.spp_all(),
                                    (br.height, br.width))
+    report["nonfinite"] = nonfinite_totals(acc, windows, (br.height, br.width))
+    if report["nonfinite"]["dropped"]:
+        logger.warning("%s", nonfinite_line(report))
     block_done = (~loop.active).reshape(br.n_blocks, br.tiles_per_block).all(axis=1)
     image = image.astype(np.float32)
     ref_img = ref_image

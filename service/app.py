@@ -45,7 +45,7 @@ from .oip import (BINARY_EXTENSION, HEADER_LENGTH, ApiError, ErrorResponse, Infe
                   InferenceResponse, LiveResponse, ModelMetadata, ModelReadyResponse, ReadyResponse,
                   RepositoryModel, RequestOutput, ResponseOutput, ServerMetadata, decode_tensors,
                   encode_response, may_hold_bools, number_param, param, parse_request, split_body)
-from .parsepool import DEFAULT_PARSE_SECONDS, INLINE_BYTES, ParsePool, ParseRules
+from .parsepool import DEFAULT_PARSE_SECONDS, INLINE_BYTES, ParsePool, ParseRules, parse_inline
 from .registry import DEFAULT, OUTPUTS, ModelRegistry, ServedModel
 
 log = logging.getLogger(__name__)
@@ -261,8 +261,10 @@ async def _infer(request: Request, served: ServedModel, header_length: str | Non
     try:
         parsed = None
         head_size = len(body[0]) if length is None else min(length, len(body[0]))
-        if head_size > INLINE_BYTES:      # off the event loop and out of the GIL, with a time budget
-            parsed = await state.parse_pool.parse(body[0] if length is None else memoryview(body[0])[:head_size])
+        head = body[0] if length is None else memoryview(body[0])[:head_size]
+        if not parse_inline(head, INLINE_BYTES):   # off the event loop and out of the GIL, with a time budget
+            parsed = await state.parse_pool.parse(head)
+        del head
         content, json_length = await anyio.to_thread.run_sync(
             _infer_sync, served, body, length, state.limits, state.metrics, parsed, limiter=state.limiter)
     finally:

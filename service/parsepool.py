@@ -6,11 +6,19 @@ event loop (health probes included) and every other request for as long as it ru
 the transfer of the text and of the decoded arrays, and a parse that runs past `seconds`
 is ended (the worker is killed and replaced) and answered 413.
 
-Headers up to `INLINE_BYTES` (every binary-tensor request's, tiny JSON ones) are parsed in
-the server's own thread: their worst case, capped in depth by `oip.MAX_JSON_DEPTH`, is a
-couple of milliseconds. A 255 kB body nested 11 deep, parsed there, moved other requests'
-p99 13x (issue 42). Writing into a worker and reading its answer share one deadline, and
-idle workers that die are reaped at once.
+Headers up to `INLINE_BYTES` that open at most `INLINE_CONTAINERS` lists and objects (every
+binary-tensor request's, small JSON ones: `parse_inline`) are parsed in the server's own
+thread. A 255 kB body nested 11 deep, parsed there, moved other requests' p99 13x (issue
+42). Why containers and not bytes or depth (issue 51): a 16.3 kB body nested 11 deep parses
+in about 1 ms, but it allocates some 7,600 lists, and a JSON parse's lists and dicts are
+what Python's cyclic garbage collector counts: past about 700 live ones a collection runs,
+and every few requests a full one walks the server's whole heap (300,000 objects with
+torch: 150-330 ms holding the GIL, measured). A body under 700 containers triggers none
+however it loops (measured: 0 collections in 3,000 parses of 264 containers; 3 full ones of
+up to 158 ms for 1,272). Numbers and strings are not tracked, so a flat 16 kB tensor stays
+inline. The count is of the bytes `[` and `{`, strings included: an upper bound, one C
+scan. Writing into a worker and reading its answer share one deadline, and idle workers
+that die are reaped at once.
 
 Wire: the server writes an 8-byte length and the JSON text to the worker's stdin; the
 worker answers an 8-byte length and a message: an 8-byte length, a small JSON document
@@ -45,12 +53,24 @@ log = logging.getLogger(__name__)
 #: (nested lists, or valid tensor data) decodes in about 2 ms holding the GIL (measured,
 #: BENCHMARKS "Hardening, fourth round"); a binary request's header is far smaller
 INLINE_BYTES = 16 * 1024
+#: ... and opening at most this many lists and objects (the module docstring: well under the
+#: garbage collector's 700, so that a parse on the server's thread never sets off a collection)
+INLINE_CONTAINERS = 256
 #: how often idle workers are checked for death (and reaped)
 REAP_SECONDS = 0.5
 #: default seconds a worker may spend on one request (serve: NOISESTOP_PARSE_SECONDS)
 DEFAULT_PARSE_SECONDS = 10.0
 ENV_PARSE_SECONDS = "NOISESTOP_PARSE_SECONDS"
 _LEN = struct.Struct("<Q")
+
+
+def parse_inline(head: bytes | bytearray | memoryview, inline_bytes: int = INLINE_BYTES) -> bool:
+    """Whether a JSON header is cheap enough for the server's own thread: at most
+    `inline_bytes`, and at most INLINE_CONTAINERS `[` and `{` (counted only when small)."""
+    if len(head) > inline_bytes:
+        return False
+    text = head if isinstance(head, (bytes, bytearray)) else bytes(head)
+    return text.count(b"[") + text.count(b"{") <= INLINE_CONTAINERS
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,9 @@ class BlockAccumulator:
     the pixel's sum nor to its sample weight, so the pixel's mean stays an average of
     finite passes instead of being dragged to 0 or poisoned. The block's `spp` still
     counts the samples spent (it is a cost), and `nonfinite` counts the dropped
-    (pixel, pass) pairs. A pixel with no finite pass has mean 0.
+    (pixel, pass) pairs. A pixel with no finite pass has mean 0, which is no estimate:
+    `unestimated` counts such pixels per block (in either half buffer that holds a pass),
+    and a criterion never calls a block with one converged (`renderer.criteria.contract`).
     """
 
     STATE_VERSION = 1
@@ -176,6 +178,24 @@ class BlockAccumulator:
     def nonfinite_all(self) -> np.ndarray:
         """int64 [n_blocks]: dropped (pixel, pass) values of every block (one device read)."""
         return self._nonfinite_t.cpu().numpy()
+
+    def unestimated(self, block_ids: Sequence[int] | np.ndarray) -> np.ndarray:
+        """int64 [k] (host): the pixels of each block that have no finite value in a half
+        buffer holding a pass (every value there was dropped): no estimate of the pixel, so
+        neither a mean to judge nor halves to compare (issue 51)."""
+        ids = self._check_ids(block_ids)
+        if not ids.size:
+            return np.zeros(0, np.int64)
+        held = torch.from_numpy(self._spp[ids].T > 0).to(self.device)          # [2, k]: half holds a pass
+        empty = (self._weight[:, torch.from_numpy(ids).to(self.device)] == 0) & held[:, :, None, None]
+        return empty.any(dim=0).flatten(1).sum(dim=1).cpu().numpy().astype(np.int64)
+
+    def unsampled(self, block_ids: Sequence[int] | np.ndarray) -> np.ndarray:
+        """bool [k, bh, bw] (host): pixels of sampled blocks with no finite value at all:
+        their mean is 0, not an estimate (what a finished render warns about)."""
+        ids = self._check_ids(block_ids)
+        total = self._weight[:, torch.from_numpy(ids).to(self.device)].sum(dim=0).cpu().numpy()
+        return (total == 0) & (self._spp[ids].sum(axis=1) > 0)[:, None, None]
 
     def image(self) -> np.ndarray:
         """All cumulative block means assembled into the frame, float64 [H, W, C]."""

@@ -18,6 +18,19 @@ The model and flip criteria decide by the one stop rule (`learning.stoprule`): a
 converged when its score exceeds the offset, or at once when it is flat (its display image
 within one 8-bit level: no noise to see). The loop adds the rest of the rule: no decision
 before min spp, and a stop is held.
+
+Non-finite samples (issue 51): a unit with no finite estimate is never converged, whatever
+the criterion (`Criterion.decide` holds it noisy, ratio NaN, after the criterion's own
+verdict; uniform never stops anyway), so it renders to max spp. "No finite estimate"
+(`BlockBatch.unestimated`): some pixel of the unit has no finite value in a half buffer
+that holds a pass, that is, every (pixel, pass) value the accumulator put there was
+dropped as non-finite (`learning.data.accumulator`); from views, a non-finite pixel in the
+mean or in a half that holds a pass. A pixel with some finite passes has an estimate (the
+mean of those) and is judged as usual: one NaN pass among many does not hold a unit. This
+is the served halves route's rule (`learning.stoprule.flat_halves`: non-finite halves are
+never flat, and the service answers -1), seen through the accumulator, which drops what
+the route would receive as NaN: without it a unit whose samples were all dropped had a
+black, flat mean and stopped at once.
 """
 from __future__ import annotations
 
@@ -31,7 +44,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from learning.stoprule import flat_blocks, flat_halves
+from learning.stoprule import NOISY, flat_blocks, flat_halves
 
 # decide_calls: calls to decide; blocks_asked: verdicts given; blocks_featured: blocks whose
 # current image went through the feature extractor or FLIP (here or on a server);
@@ -54,6 +67,8 @@ class BlockView:
     `BlockAccumulator` convention), or None when the caller does not track them.
     `half_spp` = samples in A and in B. `quick` is the block of the quick noise-free image
     (None if not rendered). `nonfinite` counts (pixel, pass) values the accumulator dropped.
+    A non-finite pixel in `mean`, or in a half whose `half_spp` is positive, is one with no
+    finite estimate: the block is never converged (the module docstring).
     """
 
     mean: np.ndarray
@@ -78,17 +93,20 @@ class BlockBatch:
     or None (no history: a criterion that reads it treats every unit as new). `tiling` (the renderer's
     `BlockWindows`, when the units are tiles of blocks): `block_halves` puts the asked
     tiles' blocks back together, for a criterion that judges a tile in its context.
+    `unestimated` int64 [k] (host): pixels with no finite estimate (the module docstring).
     """
 
     def __init__(self, spp: np.ndarray, *, mean: Any = None, halves: Any = None,
                  half_spp: np.ndarray | None = None, nonfinite: Any = None, quick: np.ndarray | None = None,
-                 source: Any = None, tiling: Any = None, evidence: np.ndarray | None = None) -> None:
+                 source: Any = None, tiling: Any = None, evidence: np.ndarray | None = None,
+                 unestimated: Any = None) -> None:
         self.spp = np.asarray(spp, np.int64).reshape(-1)
         self.tiling = tiling
         self.evidence = evidence
         self.half_spp = None if half_spp is None else np.asarray(half_spp, np.int64).reshape(-1, 2)
         self.quick = quick
         self._mean, self._halves, self._nonfinite, self._source = mean, halves, nonfinite, source
+        self._unestimated = unestimated
         self._blocks: Any = None           # the tiles' whole blocks, assembled once (`_assembled`)
 
     @classmethod
@@ -119,7 +137,8 @@ class BlockBatch:
         mean = torch.from_numpy(np.stack([np.asarray(v.mean, np.float64) for v in views]))
         return cls(np.array([v.spp for v in views], np.int64), mean=mean, halves=halves, half_spp=half_spp,
                    nonfinite=np.array([v.nonfinite if np.isfinite(v.mean).all() else max(v.nonfinite, 1)
-                                       for v in views], np.int64), quick=quick)
+                                       for v in views], np.int64), quick=quick,
+                   unestimated=np.array([_unestimated_view(v) for v in views], np.int64))
 
     def __len__(self) -> int:
         return len(self.spp)
@@ -177,6 +196,7 @@ class BlockBatch:
                            mean=self.tiling.assemble(mean.reshape(*per_block, *mean.shape[1:])), halves=halves,
                            half_spp=acc.half_spp_all()[every].reshape(*per_block, 2).min(axis=1),
                            nonfinite=acc.nonfinite_all()[every].reshape(per_block).sum(axis=1),
+                           unestimated=acc.unestimated(every).reshape(per_block).sum(axis=1),
                            quick=None if self.quick is None else self.quick[first])
         return batch, blocks, row
 
@@ -186,6 +206,25 @@ class BlockBatch:
             acc, ids = self._source
             self._nonfinite = acc.nonfinite_all()[ids]
         return np.asarray(self._nonfinite, np.int64)
+
+    @property
+    def unestimated(self) -> np.ndarray:
+        if self._unestimated is None:
+            if self._source is None:
+                return np.zeros(len(self.spp), np.int64)
+            acc, ids = self._source
+            self._unestimated = acc.unestimated(ids)
+        return np.asarray(self._unestimated, np.int64)
+
+
+def _unestimated_view(v: BlockView) -> int:
+    """A view's pixels with no finite estimate: non-finite in its mean, or in a half that
+    holds a pass (a half of unknown spp counts when given)."""
+    bad = ~np.isfinite(np.asarray(v.mean, np.float64)).all(axis=-1)
+    for j, half in enumerate(v.halves or ()):
+        if v.half_spp is None or v.half_spp[j] > 0:
+            bad |= ~np.isfinite(np.asarray(half, np.float64)).all(axis=-1)
+    return int(bad.sum())
 
 
 @dataclass(frozen=True)
@@ -273,6 +312,9 @@ class Criterion(ABC):
             raise RuntimeError(f"{self.name} criterion returned values other than -1/+1: "
                                f"{np.unique(verdict)[:5].tolist()}")
         verdict = verdict.astype(np.int8)
+        blind = batch.unestimated > 0          # no finite estimate: never converged (module docstring)
+        if blind.any():
+            verdict, ratio = np.where(blind, NOISY, verdict).astype(np.int8), np.where(blind, np.nan, ratio)
         features_s = float(tally.pop("features_s", 0.0))
         counts = {"decide_calls": 1, "blocks_asked": len(ids), "converged": int((verdict > 0).sum()),
                   "nonfinite_blocks": int((batch.nonfinite > 0).sum()), **tally}

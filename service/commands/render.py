@@ -57,20 +57,29 @@ def cmd_render(args: argparse.Namespace) -> int:
     return _print_result(args, result, format_report)
 
 
+#: exit status of a render that finished but whose image holds pixels with no finite
+#: sample (report.json nonfinite.pixels > 0): distinct, so a farm can tell it apart
+NONFINITE_EXIT = 3
+
+
 def _print_result(args: argparse.Namespace, result: dict[str, Any], format_report: Any) -> int:
+    from renderer.report import nonfinite_line
+
     single = "blocks" in result         # one scene: its report; several: a summary
+    reports = [result] if single else list(result["scenes"].values())
     if args.json:
         emit_json(result)
-    elif single:
-        print(format_report(result, args.out))
     else:
-        for name, rep in result["scenes"].items():
-            print(format_report(rep, f"{result['out']}/{name}"), end="\n\n")
+        outs = [args.out] if single else [f"{result['out']}/{name}" for name in result["scenes"]]
+        for rep, out in zip(reports, outs):
+            line = nonfinite_line(rep)   # the summary says it too (the renderer warned on stderr)
+            print(format_report(rep, out) + (f"\n{line}" if line else ""), end="\n" if single else "\n\n")
     if not single:
         for scene, err in result["failed"].items():
             log.error("scene %s failed: %s", scene, err)
-        return 1 if result["failed"] else 0
-    return 0
+        if result["failed"]:
+            return 1
+    return NONFINITE_EXIT if any((r.get("nonfinite") or {}).get("pixels") for r in reports) else 0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

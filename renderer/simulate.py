@@ -191,27 +191,14 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
 def end_of_render(stack: Stack, verdicts: np.ndarray, tile: int | None, tau: float) -> dict[str, float]:
     """What the version-3 block observer says of the image the simulated render ends with:
     each unit (block, or tile) at the level it stopped at (the last if never), put
-    together into the frame and judged against the reference. ``above_tau``: blocks whose
-    error exceeds tau (what a user sees as noise left); ``worst``: the largest error.
-    At tile grain this is the honest block count: a tile that stopped early shows in its
-    block whatever the tile truth's thresholds say."""
-    from learning.data.observer import block_errors
+    together into the frame and judged against the reference (`learning.data.tile_truth.
+    FinalFrame`). ``above_tau``: blocks whose error exceeds tau (what a user sees as noise
+    left); ``early``: those of them whose block truth converges in the stack; ``worst``: the
+    largest error. At tile grain this is the honest block count: a tile that stopped early
+    shows in its block whatever the tile truth's thresholds say."""
+    from learning.data.tile_truth import FinalFrame
 
-    from .block_windows import BlockWindows, compose
-
-    tiling = BlockWindows(stack.width, stack.height, grid=tuple(stack.grid), tile=tile)
-    stopped = np.asarray(verdicts) > 0
-    level = np.where(stopped.any(axis=0), stopped.argmax(axis=0), len(stopped) - 1)
-    windows = [tiling.unit_window(u) for u in range(tiling.n_units)]
-    means: list[np.ndarray] = [np.empty(0)] * tiling.n_units
-    for k, image in enumerate(stack.iter_levels()):
-        for u in np.flatnonzero(level == k).tolist():
-            x, y, w, h = windows[u]
-            means[u] = np.asarray(image, np.float32)[y:y + h, x:x + w]
-    # as the renderer puts its frame together: each pixel from the unit holding it with the most samples
-    frame, _, _ = compose(means, windows, np.asarray(stack.spp)[level], (stack.height, stack.width))
-    e = block_errors(stack.reference(), frame.astype(np.float32)[None], stack.grid)[0]
-    return {"above_tau": int((~(e <= tau)).sum()), "blocks": int(e.size), "worst": float(np.nanmax(e))}
+    return FinalFrame(stack, tile, tau).judge(verdicts)
 
 
 def _against_block_oracle(out: dict[str, Any]) -> None:

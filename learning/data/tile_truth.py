@@ -148,3 +148,44 @@ def final_frame_tile_errors(stack: Stack, tile: int, tau: float, ppd: float, exp
     # before the fixed point's level: not converged there (above tau); from it on: as measured
     e[(k < at[None, :]) & (e <= tau)] = np.nextafter(tau, np.inf)
     return e
+
+
+class FinalFrame:
+    """The frame a simulated render of `stack` ends with, judged by the version-3 block
+    observer: each unit (a tile of `tile` pixels, or a whole block when None) at the level it
+    stopped at, put together as the renderer composes it. The judge of every stop
+    (DESIGN "The judge of every stop is the final frame"): `renderer.simulate.end_of_render`
+    and the calibration against blocks above tau at the end. Levels are read once."""
+
+    def __init__(self, stack: Stack, tile: int | None, tau: float = DEFAULT_TAU) -> None:
+        from .observer import observer_for
+
+        obs = observer_for(stack, tau)
+        self.stack, self.tau, self.ppd, self.exposure = stack, obs.tau, obs.ppd, obs.exposure
+        self.tile = max(stack.block) if tile is None else int(tile)
+        self.windows = unit_windows(stack.width, stack.height, stack.grid, self.tile)
+        self.levels = np.stack([np.asarray(x, np.float32) for x in stack.iter_levels()])
+        self.reference = np.asarray(stack.reference(), np.float32)
+        self._seen: dict[bytes, np.ndarray] = {}
+
+    def block_errors(self, at: np.ndarray) -> np.ndarray:
+        """e [n_blocks] of the frame with unit u at level `at[u]` (the last where at[u] is
+        past it); the same stops are judged once."""
+        at = np.minimum(np.asarray(at, np.int64), len(self.levels) - 1)
+        key = at.tobytes()
+        if key not in self._seen:
+            self._seen[key], _ = frame_errors(self.reference, compose_levels(self.levels, at, self.windows),
+                                              self.stack.grid, self.tile, self.ppd, self.exposure)
+        return self._seen[key]
+
+    def judge(self, verdicts: np.ndarray) -> dict[str, float]:
+        """``above_tau`` (blocks above tau), ``early`` (of those, blocks whose own truth
+        converges in the stack: noise left that the observer says could be gone),
+        ``converging`` (such blocks), ``blocks`` and ``worst`` of the frame verdicts V
+        [K, n_units] end with (each unit at its first +1 level, the last if none)."""
+        stopped = np.asarray(verdicts) > 0
+        e = self.block_errors(np.where(stopped.any(axis=0), stopped.argmax(axis=0), len(stopped) - 1))
+        above = ~(e <= self.tau)
+        conv = np.array([t is not None for t in (self.stack.thresholds or [None] * len(e))])
+        return {"above_tau": int(above.sum()), "early": int((above & conv).sum()), "converging": int(conv.sum()),
+                "blocks": int(e.size), "worst": float(np.nanmax(e))}

@@ -26,12 +26,12 @@ from ..data.stack import Stack
 from ..inputs.halves import flip_offset, guarded_flip_scores, guarded_tile_flip_scores
 from ..inputs.halves import stack_flat
 from ..inputs.history import STATISTIC
-from ..data.tile_truth import TILE_TRUTH
+from ..data.tile_truth import TILE_TRUTH, FinalFrame
 from ..inputs.table import SubImageTable
 from ..stoprule import StopRule
 from .evaluate import evaluate_scores
 from .generalisation import scene_groups
-from .metrics import evaluate_verdicts, metrics_from_counts, pool_counts
+from .metrics import add_end_counts, evaluate_verdicts, metrics_from_counts, pool_counts
 
 log = logging.getLogger(__name__)
 
@@ -96,15 +96,16 @@ def sweep(scores: np.ndarray, table: SubImageTable, offsets: Sequence[float] = D
             for off in offsets]
 
 
-def _pick(curve: list[dict], max_early_stop: float, key: str, larger_is_safer: bool) -> dict | None:
-    ok = [r for r in curve if r["early_stop_rate"] <= max_early_stop + 1e-12]
+def _pick(curve: list[dict], max_early_stop: float, key: str, larger_is_safer: bool,
+          rate: str = "early_stop_rate") -> dict | None:
+    ok = [r for r in curve if r[rate] <= max_early_stop + 1e-12]
     if not ok:
         return None
     return min(ok, key=lambda r: r[key]) if larger_is_safer else max(ok, key=lambda r: r[key])
 
 
 def choose_out_of_fold(curve: list[dict], max_early_stop: float = 0.05, *, key: str = "threshold",
-                       larger_is_safer: bool = True, step: float = 0.0025) -> dict:
+                       larger_is_safer: bool = True, step: float = 0.0025, rate: str = "early_stop_rate") -> dict:
     """A setting whose early-stop rate on scenes it was *not* chosen on meets the target.
 
     Picking the least safe setting that meets the target on the training scenes lands on
@@ -115,8 +116,10 @@ def choose_out_of_fold(curve: list[dict], max_early_stop: float = 0.05, *, key: 
     `step`) until that out-of-fold rate meets `max_early_stop`, and the setting is then
     chosen on every training scene at the internal target.
 
-    `curve` rows need `key` and `per_scene` with `counts` (`learning.evaluation.metrics`). Returns the
-    chosen row plus ``internal_target`` and ``out_of_fold`` (pooled metrics).
+    `curve` rows need `key` and `per_scene` with `counts` (`learning.evaluation.metrics`);
+    `rate` names the early rate the target is on (early stops; at tile grain the final
+    frame's early blocks, ``end_early_rate``). Returns the chosen row plus
+    ``internal_target`` and ``out_of_fold`` (pooled metrics).
     """
     scenes = sorted(curve[0]["per_scene"])
 
@@ -125,10 +128,10 @@ def choose_out_of_fold(curve: list[dict], max_early_stop: float = 0.05, *, key: 
                 for r in curve]
 
     def safest(rows: list[dict]) -> dict:
-        return min(rows, key=lambda r: (r["early_stop_rate"], r["spp_ratio_vs_oracle"]))
+        return min(rows, key=lambda r: (r[rate], r["spp_ratio_vs_oracle"]))
 
     def pick(rows: list[dict], t: float) -> dict:
-        return _pick(rows, t, key, larger_is_safer) or safest(rows)
+        return _pick(rows, t, key, larger_is_safer, rate) or safest(rows)
 
     by_setting = {r[key]: r for r in curve}
     folds = {s: pooled([x for x in scenes if x != s]) for s in scenes} if len(scenes) > 1 else {}
@@ -136,13 +139,13 @@ def choose_out_of_fold(curve: list[dict], max_early_stop: float = 0.05, *, key: 
     while folds:
         counts = [by_setting[pick(rows, t)[key]]["per_scene"][s]["counts"] for s, rows in folds.items()]
         oof = metrics_from_counts(pool_counts(counts))
-        if oof["early_stop_rate"] <= max_early_stop + 1e-12 or t <= 0:
+        if oof[rate] <= max_early_stop + 1e-12 or t <= 0:
             break
         t = max(0.0, round(t - step, 6))
     chosen = by_setting[pick(pooled(scenes), t)[key]]
-    if chosen["early_stop_rate"] > max_early_stop + 1e-12:
-        log.warning("no %s reaches early_stop_rate <= %.3f on the training scenes; the safest (%.3f at %g) "
-                    "is used", key, max_early_stop, chosen["early_stop_rate"], chosen[key])
+    if chosen[rate] > max_early_stop + 1e-12:
+        log.warning("no %s reaches %s <= %.3f on the training scenes; the safest (%.3f at %g) "
+                    "is used", key, rate, max_early_stop, chosen[rate], chosen[key])
     return {**chosen, "internal_target": t, "out_of_fold": oof}
 
 
@@ -218,13 +221,17 @@ def flip_sweep(stacks: Sequence[Stack], candidates: Sequence[float] = FLIP_CANDI
         scores, flats = {k: v[0] for k, v in both.items()}, {k: v[1] for k, v in both.items()}
         truth = {s.scene: (s.tile_labels(), s.tile_thresholds) for s in stacks}
     per_block = None if tile is None else {s.scene: len(s.tile_thresholds) // s.n_blocks for s in stacks}
+    frames = {} if tile is None else {s.scene: FinalFrame(s, tile, label_tau(s)) for s in stacks}
     groups = scene_groups(stacks)
     curve = []
-    for c in sorted(candidates):
+    for c in tqdm(sorted(candidates), desc="c", disable=not progress or tile is None, leave=False):
         rule = StopRule(flip_offset(c), min_spp)
         per = {s.scene: (rule.stops(scores[s.scene], s.spp, flats[s.scene]), *truth[s.scene], s.spp)
                for s in stacks}
-        curve.append({"threshold": float(c), **evaluate_verdicts(per, groups, per_block)})
+        result = evaluate_verdicts(per, groups, per_block)
+        if frames:       # at tile grain, what each final frame shows (`add_end_counts`)
+            add_end_counts(result, {k: f.judge(per[k][0]) for k, f in frames.items()})
+        curve.append({"threshold": float(c), **result})
     return curve
 
 
@@ -234,9 +241,11 @@ def calibrate_flip(stacks: Sequence[Stack], max_early_stop: float = 0.05, *, min
     """c for the `flip` criterion on labelled `stacks` (training scenes, never the held-out
     ones): the largest c (fewest samples) whose early-stop rate stays within
     `max_early_stop` on scenes it was not chosen on (`choose_out_of_fold`); per block, or
-    per tile of `tile` pixels against the tile truth."""
+    per tile of `tile` pixels, where the rate is the final frame's: of the blocks whose
+    truth converges, those the frame the render ends with leaves above tau (issue 49)."""
     curve = flip_sweep(stacks, candidates, min_spp=min_spp, progress=progress, pooling=pooling, tile=tile)
-    chosen = choose_out_of_fold(curve, max_early_stop, larger_is_safer=False)
+    chosen = choose_out_of_fold(curve, max_early_stop, larger_is_safer=False,
+                                rate="early_stop_rate" if tile is None else "end_early_rate")
     return {"c": chosen["threshold"], "target_early_stop_rate": max_early_stop, "chosen": _record(chosen),
             "per_scene": {s: {k: v for k, v in m.items() if k != "counts"} for s, m in chosen["per_scene"].items()},
             "curve": [_record(r) for r in curve],

@@ -75,7 +75,24 @@ def metrics_from_counts(c: Mapping[str, float]) -> dict[str, float]:
         "saved_vs_uniform": 1.0 - c["spent"] / c["uniform"] if c["uniform"] else float("nan"),
         **({"early_block_rate": c["blocks_with_early"] / c["whole_blocks"] if c["whole_blocks"] else float("nan")}
            if "whole_blocks" in c else {}),
+        # the final frame's blocks above tau whose own truth converges (`add_end_counts`)
+        **({"end_early_rate": c["end_early"] / c["end_blocks"] if c["end_blocks"] else 0.0}
+           if "end_blocks" in c else {}),
     }
+
+
+def add_end_counts(result: dict[str, Any], ends: Mapping[str, Mapping[str, float]]) -> dict[str, Any]:
+    """`evaluate_verdicts`' result with what each scene's final frame shows (`ends`: scene ->
+    `learning.data.tile_truth.FinalFrame.judge`) in its counts: ``end_blocks`` (blocks
+    whose truth converges in the stack) and ``end_early`` (those the frame leaves above tau),
+    and their rate ``end_early_rate``, per scene and pooled: the rate a tile-grain c is
+    calibrated to (issue 49: what the user judges, not early tiles)."""
+    for scene, end in ends.items():
+        entry = result["per_scene"][scene]
+        entry["counts"].update(end_blocks=int(end["converging"]), end_early=int(end["early"]))
+        entry.update(metrics_from_counts(entry["counts"]))
+    result.update(metrics_from_counts(pool_counts(e["counts"] for e in result["per_scene"].values())))
+    return result
 
 
 def evaluate_verdicts(per_scene: Mapping[str, tuple[np.ndarray, np.ndarray, Sequence[int | None],

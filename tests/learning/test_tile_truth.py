@@ -127,7 +127,9 @@ def test_the_end_of_a_simulated_render_is_judged_by_the_block_observer(tmp_path)
         by_hand[r * 16:(r + 1) * 16, c * 16:(c + 1) * 16] = levels[k][r * 16:(r + 1) * 16, c * 16:(c + 1) * 16]
     assert got["above_tau"] == 1 and got["worst"] == pytest.approx(float(block_errors(ref, by_hand[None], (1, 1))[0, 0]))
     never = end_of_render(st, np.full((len(SPP), 1), -1, np.int8), None, 0.02)   # whole block, last level
-    assert never == {"above_tau": 0, "blocks": 1, "worst": pytest.approx(float(block_errors(ref, levels[-1][None], (1, 1))[0, 0]))}
+    assert never == {"above_tau": 0, "early": 0, "converging": 1, "blocks": 1,
+                     "worst": pytest.approx(float(block_errors(ref, levels[-1][None], (1, 1))[0, 0]))}
+    assert got["early"] == 1 and got["converging"] == 1       # the block above tau could be clean
 
 
 def _noisy_stack(path, scene: str, seed: int):

@@ -41,7 +41,7 @@ from .report import render_result
 from .result import RenderResult
 from .session import RenderSession, run_settings
 from .signals import DeferredStop
-from .spec import ARGUMENT, DEFAULT, fit_frame, resolve
+from .spec import ARGUMENT, DEFAULT, file_load_settings, fit_frame, resolve
 
 logger = logging.getLogger(__name__)
 
@@ -114,6 +114,15 @@ def is_scene_object(scene: Any) -> bool:
     from noisefeat.extras import require
 
     return isinstance(scene, require("mitsuba").Scene)
+
+
+def is_builtin(scene: str | os.PathLike) -> bool:
+    """Whether `scene` names a built-in scene (the library's or a procedural one), not a file."""
+    from .procedural import procedural_seed
+    from .scenes import SCENES
+
+    name = os.fspath(scene)
+    return name in SCENES or procedural_seed(name) is not None
 
 
 def _scene_object_label(scene: Any) -> str:
@@ -213,6 +222,7 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
     from learning.data.variant import current_variant, select_variant
 
     from .criteria import make_criterion
+    from .plugin import scene_plugin_settings
     from .scenes import load_scene
 
     t_start = time.perf_counter()
@@ -220,15 +230,26 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
         raise ValueError(f"checkpoint interval must be 0 or more seconds, got {checkpoints.every!r}")
     loaded, label = _check_scene_arg(scene, settings.get("resolution"), settings.get("defines"))
     ref_stack, ref_image = load_reference(reference, label) if reference is not None else (None, None)
-    spec = resolve({"criterion": criterion, **settings}, source=source, plugin=plugin, reference=ref_stack)
-    if ref_stack is not None:
-        ref_stack = observed(ref_stack, spec.tau)
+    given = {"criterion": criterion, **settings}
+    from_file = not loaded and not is_builtin(scene)
+    if from_file:      # its noisestop integrator's settings are known once it is loaded: resolved then
+        resolution, defines = file_load_settings(given, ref_stack)
+    else:
+        if loaded and plugin is None:
+            plugin = scene_plugin_settings(scene)
+        spec = resolve(given, source=source, plugin=plugin, reference=ref_stack)
+        resolution, defines = spec.resolution, spec.defines
     ckpt_path = None
     if checkpoints is not None:
         ckpt_path = prepare_output_dir(checkpoints.out) / CHECKPOINT  # writable: before any pass
 
     variant = select_variant()
-    scene_obj = scene if loaded else load_scene(scene, spec.resolution, defines=spec.defines)
+    scene_obj = scene if loaded else load_scene(scene, resolution, defines=defines)
+    if from_file:      # given > the file's noisestop integrator > reference > default, as for an mi.Scene
+        spec = resolve(given, source=source, plugin={**scene_plugin_settings(scene_obj), **(plugin or {})},
+                       reference=ref_stack)
+    if ref_stack is not None:
+        ref_stack = observed(ref_stack, spec.tau)
     if loaded and sensor is None and not scene_obj.sensors():
         raise ValueError(f"{label}: the scene has no sensor (camera) to render from; add one")
     if spec.sources["block"] == DEFAULT:     # the default block, no larger than the frame

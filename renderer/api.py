@@ -66,12 +66,11 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
         ``report`` (the report.json dict); ``save(dir)`` writes the files.
     """
     from .adaptive import run_adaptive
-    from .plugin import register, scene_plugin_settings
+    from .plugin import register
 
-    register()
+    register()          # also before a scene file loads: its integrator may be `noisestop`
     given = {k: v for k, v in locals().items() if k in ROW}
-    return run_adaptive(scene, progress=progress, reference=reference, source=ARGUMENT,
-                        plugin=scene_plugin_settings(scene), **given)
+    return run_adaptive(scene, progress=progress, reference=reference, source=ARGUMENT, **given)
 
 
 

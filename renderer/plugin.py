@@ -24,7 +24,8 @@ exposure, block, min_spp, max_spp, step, seed, time_limit, spp_budget, quick_spp
 ``mi.render(scene, seed=k)`` for k = 0, 1, ... gives independent renders, and
 ``mi.render(scene)`` equals ``renderer.render(scene, ...)`` with the same settings, and
 ``renderer.render(scene)`` on such a scene takes these properties for the arguments it is
-not given.
+not given, as do ``renderer.render("FILE.xml")`` and ``noisestop render --scene FILE.xml``
+on such a file (`renderer.adaptive.run_adaptive` reads them once the file is loaded).
 
 A bad property (a wrong type, out of range, a block too small, min_spp above max_spp, two
 nested integrators) does not fail the scene's loading, where Mitsuba would wrap the error
@@ -120,8 +121,8 @@ def _integrator_class() -> type:
                 s["max_spp"] = int(spp)
             if _as_int(seed):
                 s["seed"] = s.get("seed", 0) + _as_int(seed)
-            result = run_adaptive(scene, source=FROM_PLUGIN, progress=self.progress, sensor=sensor,
-                                  integrator=self.nested, **s)
+            result = run_adaptive(scene, source=FROM_PLUGIN, plugin={}, progress=self.progress, sensor=sensor,
+                                  integrator=self.nested, **s)      # its settings, not the scene's integrator's
             self.result = result
             data = np.concatenate([result.image, result.spp[..., None].astype(np.float32),
                                    result.converged[..., None].astype(np.float32)], axis=-1)

@@ -208,7 +208,8 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
 
     `criterion` and `settings`: the render spec's rows (`renderer.spec.ROWS`; None: not
     given), given by `source` ("argument", "command line" or "scene plugin"); `plugin`: a
-    scene's ``noisestop`` integrator's properties, under them. `reference`: a labelled
+    scene's ``noisestop`` integrator's properties, under them (None: the scene's own, of a
+    loaded ``mi.Scene``, or of a scene file once it is loaded). `reference`: a labelled
     stack or dataset directory of this scene (its grid and levels become the defaults;
     early-stop metrics, oracle thresholds, final_vs_reference), or a reference image (EXR
     path or float [H, W, 3] array: final_vs_reference only). `scene`: a built-in name, an

@@ -83,14 +83,16 @@ def _integrator_class() -> type:
             #: the properties set (the render spec's rows, as given), resolved at each render
             self.settings: dict[str, Any] = {}
             self.progress = False
+            # every property is read before anything is checked: Mitsuba refuses to load an
+            # integrator that left one unread, with a message naming it instead of the cause
+            self.settings = {k: props[k] for k in PROPERTIES if k in props and k != "progress"}
+            progress = props["progress"] if "progress" in props else False
             try:
                 if len(nested) > 1:
                     raise ValueError(f"the noisestop integrator wraps one integrator, got {len(nested)} nested ones")
-                self.settings = {k: props[k] for k in PROPERTIES if k in props and k != "progress"}
-                if "progress" in props:
-                    if not isinstance(props["progress"], bool):
-                        raise ValueError(f"progress must be a boolean, got {props['progress']!r}")
-                    self.progress = props["progress"]
+                if not isinstance(progress, bool):
+                    raise ValueError(f"progress must be a boolean, got {progress!r}")
+                self.progress = progress
                 resolve(self.settings, source=FROM_PLUGIN)      # a bad property: known now, raised when used
             except ValueError as exc:
                 self.property_error = f"noisestop integrator: {exc}".replace(

@@ -125,6 +125,18 @@ def is_builtin(scene: str | os.PathLike) -> bool:
     return name in SCENES or procedural_seed(name) is not None
 
 
+def scene_plugin_settings(scene: Any) -> dict[str, Any]:
+    """The properties set on a loaded scene's ``noisestop`` integrator ({} for a scene with
+    another integrator, or none): what every door honours under the settings it is given.
+    Known by duck type (its `property_error`, as `renderer.blocks` knows it): importing
+    `renderer.plugin` here would close an import circle."""
+    integrator = scene.integrator()
+    if not hasattr(integrator, "property_error") or not hasattr(integrator, "settings"):
+        return {}
+    integrator.check()            # a bad property: its one line, here
+    return dict(integrator.settings)
+
+
 def _scene_object_label(scene: Any) -> str:
     """A loaded scene's name in reports: its id when the file or dict gave one, else 'scene'."""
     try:
@@ -223,7 +235,6 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
     from learning.data.variant import current_variant, select_variant
 
     from .criteria import make_criterion
-    from .plugin import scene_plugin_settings
     from .scenes import load_scene
 
     t_start = time.perf_counter()

@@ -141,22 +141,6 @@ def _integrator_class() -> type:
     return NoisestopIntegrator
 
 
-def scene_plugin_settings(scene: Any) -> dict[str, Any]:
-    """The properties set on a loaded scene's ``noisestop`` integrator ({} for anything
-    else: a path, a scene with another integrator): what `renderer.render` honours when it
-    is handed such a scene."""
-    if isinstance(scene, (str, bytes)) or not hasattr(scene, "integrator"):
-        return {}
-    try:
-        integrator = scene.integrator()
-    except Exception:        # not a Mitsuba scene: renderer.render's own checks say so
-        return {}
-    if not _classes or not isinstance(integrator, tuple(_classes.values())):
-        return {}
-    integrator.check()
-    return dict(integrator.settings)
-
-
 def _as_int(seed: Any) -> int:
     """mi.render's seed (an int, or a one-element Dr.Jit array on JIT variants) as an int."""
     try:

@@ -44,7 +44,7 @@ from .report import render_result
 from .result import RenderResult
 from .session import RenderSession, run_settings
 from .signals import DeferredStop
-from .spec import ARGUMENT, DEFAULT, fit_frame, resolve
+from .spec import ARGUMENT, DEFAULT, file_load_settings, fit_frame, resolve
 
 logger = logging.getLogger(__name__)
 
@@ -117,6 +117,27 @@ def is_scene_object(scene: Any) -> bool:
     from noisefeat.extras import require
 
     return isinstance(scene, require("mitsuba").Scene)
+
+
+def is_builtin(scene: str | os.PathLike) -> bool:
+    """Whether `scene` names a built-in scene (the library's or a procedural one), not a file."""
+    from .procedural import procedural_seed
+    from .scenes import SCENES
+
+    name = os.fspath(scene)
+    return name in SCENES or procedural_seed(name) is not None
+
+
+def scene_plugin_settings(scene: Any) -> dict[str, Any]:
+    """The properties set on a loaded scene's ``noisestop`` integrator ({} for a scene with
+    another integrator, or none): what every door honours under the settings it is given.
+    Known by duck type (its `property_error`, as `renderer.blocks` knows it): importing
+    `renderer.plugin` here would close an import circle."""
+    integrator = scene.integrator()
+    if not hasattr(integrator, "property_error") or not hasattr(integrator, "settings"):
+        return {}
+    integrator.check()            # a bad property: its one line, here
+    return dict(integrator.settings)
 
 
 def _scene_object_label(scene: Any) -> str:
@@ -218,7 +239,8 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
 
     `criterion` and `settings`: the render spec's rows (`renderer.spec.ROWS`; None: not
     given), given by `source` ("argument", "command line" or "scene plugin"); `plugin`: a
-    scene's ``noisestop`` integrator's properties, under them. `reference`: a labelled
+    scene's ``noisestop`` integrator's properties, under them (None: the scene's own, of a
+    loaded ``mi.Scene``, or of a scene file once it is loaded). `reference`: a labelled
     stack or dataset directory of this scene (its grid and levels become the defaults;
     early-stop metrics, oracle thresholds, final_vs_reference), or a reference image (EXR
     path or float [H, W, 3] array: final_vs_reference only). `scene`: a built-in name, an
@@ -239,15 +261,26 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
         raise ValueError(f"checkpoint interval must be 0 or more seconds, got {checkpoints.every!r}")
     loaded, label = _check_scene_arg(scene, settings.get("resolution"), settings.get("defines"))
     ref_stack, ref_image = load_reference(reference, label) if reference is not None else (None, None)
-    spec = resolve({"criterion": criterion, **settings}, source=source, plugin=plugin, reference=ref_stack)
-    if ref_stack is not None:
-        ref_stack = observed(ref_stack, spec.tau)
+    given = {"criterion": criterion, **settings}
+    from_file = not loaded and not is_builtin(scene)
+    if from_file:      # its noisestop integrator's settings are known once it is loaded: resolved then
+        resolution, defines = file_load_settings(given, ref_stack)
+    else:
+        if loaded and plugin is None:
+            plugin = scene_plugin_settings(scene)
+        spec = resolve(given, source=source, plugin=plugin, reference=ref_stack)
+        resolution, defines = spec.resolution, spec.defines
     ckpt_path = None
     if checkpoints is not None:
         ckpt_path = prepare_output_dir(checkpoints.out) / CHECKPOINT  # writable: before any pass
 
     variant = select_variant()
-    scene_obj = scene if loaded else load_scene(scene, spec.resolution, defines=spec.defines)
+    scene_obj = scene if loaded else load_scene(scene, resolution, defines=defines)
+    if from_file:      # given > the file's noisestop integrator > reference > default, as for an mi.Scene
+        spec = resolve(given, source=source, plugin={**scene_plugin_settings(scene_obj), **(plugin or {})},
+                       reference=ref_stack)
+    if ref_stack is not None:
+        ref_stack = observed(ref_stack, spec.tau)
     if loaded and sensor is None and not scene_obj.sensors():
         raise ValueError(f"{label}: the scene has no sensor (camera) to render from; add one")
     if spec.sources["block"] == DEFAULT:     # the default block, no larger than the frame

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .errors import InputNotFound, ServerUnavailable
 from .result import RenderResult
 from .spec import API, ARGUMENT, ROW, ROWS
 
@@ -41,7 +42,10 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
 
     Also registers the ``noisestop`` Mitsuba integrator for the current variant (as
     `renderer.register` does). Bad arguments raise ValueError with a one-line message
-    naming the argument. Every setting is a row of the render spec (`renderer.spec.ROWS`);
+    naming the argument: a missing model, scene file or reference raises
+    `renderer.errors.InputNotFound` and an unreachable or failing verdict server
+    `renderer.errors.ServerUnavailable`, ValueErrors that are also FileNotFoundError and
+    ConnectionError. Every setting is a row of the render spec (`renderer.spec.ROWS`);
     None means not given: the scene's ``noisestop`` integrator's property, else what the
     reference stack implies, else the default (report.json ``settings_source`` says which).
 
@@ -66,12 +70,18 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
         ``report`` (the report.json dict); ``save(dir)`` writes the files.
     """
     from .adaptive import run_adaptive
-    from .plugin import register, scene_plugin_settings
+    from .plugin import register
 
-    register()
+    register()          # also before a scene file loads: its integrator may be `noisestop`
     given = {k: v for k, v in locals().items() if k in ROW}
-    return run_adaptive(scene, progress=progress, reference=reference, source=ARGUMENT,
-                        plugin=scene_plugin_settings(scene), **given)
+    try:
+        return run_adaptive(scene, progress=progress, reference=reference, source=ARGUMENT, **given)
+    except (InputNotFound, ServerUnavailable):
+        raise
+    except FileNotFoundError as exc:       # a model, scene or reference that is not there
+        raise InputNotFound(str(exc)) from exc
+    except ConnectionError as exc:         # the verdict server
+        raise ServerUnavailable(str(exc)) from exc
 
 
 

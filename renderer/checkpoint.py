@@ -14,10 +14,16 @@ made with the same settings, and holds a state that the loop could have produced
   history criterion's sums) finite, >= 0, of at most one estimate per decision it had;
 * every block holds exactly the samples of its passes; a stopped one stopped where its
   history says +1, at its stop spp;
+* counters are whole numbers in [0, 2**53] and timers seconds in [0, a century] (a forged
+  huge counter overflowed at the end of the resumed render; a forged timer was reported);
 * a plain render's active blocks are all at the last pass (its rows are the cumulative pass
   sizes); a budget render's blocks may be at different passes (its rounds are rows), and
   its budget's state (prioritised rounds, ended, seconds and samples spent) is kept, so a
   resume continues from the last round written, not from the first prioritised one.
+
+What the file alone cannot vouch for, its radiance (sums scaled by 1e30, digest recomputed,
+resumed with every block "converged"), the session checks against the scene: its first
+pass traced again (`renderer.session.check_radiance`).
 
 Anything else is a ValueError naming the file and what is wrong; `--resume` never
 continues from a state it cannot vouch for.
@@ -143,6 +149,11 @@ def _validated(path: Path, data: dict[str, np.ndarray], settings: dict[str, Any]
 
 #: the largest radiance one pass of a pixel can hold (Mitsuba's images are float32)
 PASS_MAX = float(np.finfo(np.float32).max)
+#: the largest counter a checkpoint may hold: far past any render (2**53 samples), and far
+#: enough below int64's end that a run's own counts added to it cannot overflow
+MAX_COUNTER = 1 << 53
+#: the longest timer, seconds: a century (a forged 1e308 used to be reported as wall_s)
+MAX_TIMER_S = 100 * 365 * 24 * 3600.0
 
 
 def _check_meaning(acc: dict[str, np.ndarray], nonnegative: bool) -> None:
@@ -206,9 +217,9 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
     values = _get(data, "counter_values", "int64", names.shape)
     tnames = _get(data, "timer_names", "U")
     tvalues = _get(data, "timer_values", "float64", tnames.shape)
-    if names.ndim != 1 or tnames.ndim != 1 or (values < 0).any() or not np.isfinite(tvalues).all() \
-            or (tvalues < 0).any():
-        raise ValueError("counters must be whole numbers >= 0 and timers finite seconds >= 0")
+    if names.ndim != 1 or tnames.ndim != 1 or (values < 0).any() or (values > MAX_COUNTER).any() \
+            or not np.isfinite(tvalues).all() or (tvalues < 0).any() or (tvalues > MAX_TIMER_S).any():
+        raise ValueError(f"counters must be whole numbers in [0, 2**53] and timers seconds in [0, {MAX_TIMER_S:.3g}]")
     quick = _get(data, "quick", "float32")
     if quick.shape not in ((0, 0, 3), (frame[0], frame[1], 3)):
         raise ValueError(f"quick image of shape {list(quick.shape)}, the frame is {frame[1]}x{frame[0]}")

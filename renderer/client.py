@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from .oip_codec import DATATYPES, HEADER_LENGTH, WireError, join_body, read_tensor, split_body, tensor_bytes
-from .token import resolve_token
+from .token import check_token, resolve_token
 
 logger = logging.getLogger(__name__)
 
@@ -69,6 +69,8 @@ class RemoteModel:
         self.url = url.rstrip("/")
         self.model = model
         self.tau = tau          # the noise target sent with every request (None: the server's)
+        if token is not None:
+            check_token(token, "the server token (token argument)")
         self.token = token if token is not None else default_token()
         self.binary, self.timeout = bool(binary), float(timeout)
         self.retries, self.backoff, self.batch_size = int(retries), float(backoff), int(batch_size)
@@ -109,6 +111,7 @@ class RemoteModel:
             attempt += 1
             self.requests += 1
             req = urllib.request.Request(url, data=body, method=method, headers=hdrs)
+            unsendable = False
             try:
                 with self._opener.open(req, timeout=self.timeout) as resp:
                     return resp.status, {k.lower(): v for k, v in resp.headers.items()}, resp.read()
@@ -141,6 +144,11 @@ class RemoteModel:
                 logger.warning("%s %s failed (%s); retry %d/%d in %.2f s", method, url, reason, attempt,
                                self.retries, delay)
                 time.sleep(delay)
+            except ValueError:      # http.client refusing a header: its message quotes it, token and all
+                unsendable = True
+            if unsendable:          # raised here, outside the handler: not even as the context
+                raise ValueError(f"{method} {url}: the request could not be sent (refused by http.client; its "
+                                 "headers, which hold the token, are not shown)")
 
     @staticmethod
     def _error_text(body: bytes) -> str:

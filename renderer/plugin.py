@@ -24,7 +24,8 @@ exposure, block, min_spp, max_spp, step, seed, time_limit, spp_budget, quick_spp
 ``mi.render(scene, seed=k)`` for k = 0, 1, ... gives independent renders, and
 ``mi.render(scene)`` equals ``renderer.render(scene, ...)`` with the same settings, and
 ``renderer.render(scene)`` on such a scene takes these properties for the arguments it is
-not given.
+not given, as do ``renderer.render("FILE.xml")`` and ``noisestop render --scene FILE.xml``
+on such a file (`renderer.adaptive.run_adaptive` reads them once the file is loaded).
 
 A bad property (a wrong type, out of range, a block too small, min_spp above max_spp, two
 nested integrators) does not fail the scene's loading, where Mitsuba would wrap the error
@@ -82,14 +83,16 @@ def _integrator_class() -> type:
             #: the properties set (the render spec's rows, as given), resolved at each render
             self.settings: dict[str, Any] = {}
             self.progress = False
+            # every property is read before anything is checked: Mitsuba refuses to load an
+            # integrator that left one unread, with a message naming it instead of the cause
+            self.settings = {k: props[k] for k in PROPERTIES if k in props and k != "progress"}
+            progress = props["progress"] if "progress" in props else False
             try:
                 if len(nested) > 1:
                     raise ValueError(f"the noisestop integrator wraps one integrator, got {len(nested)} nested ones")
-                self.settings = {k: props[k] for k in PROPERTIES if k in props and k != "progress"}
-                if "progress" in props:
-                    if not isinstance(props["progress"], bool):
-                        raise ValueError(f"progress must be a boolean, got {props['progress']!r}")
-                    self.progress = props["progress"]
+                if not isinstance(progress, bool):
+                    raise ValueError(f"progress must be a boolean, got {progress!r}")
+                self.progress = progress
                 resolve(self.settings, source=FROM_PLUGIN)      # a bad property: known now, raised when used
             except ValueError as exc:
                 self.property_error = f"noisestop integrator: {exc}".replace(
@@ -120,8 +123,8 @@ def _integrator_class() -> type:
                 s["max_spp"] = int(spp)
             if _as_int(seed):
                 s["seed"] = s.get("seed", 0) + _as_int(seed)
-            result = run_adaptive(scene, source=FROM_PLUGIN, progress=self.progress, sensor=sensor,
-                                  integrator=self.nested, **s)
+            result = run_adaptive(scene, source=FROM_PLUGIN, plugin={}, progress=self.progress, sensor=sensor,
+                                  integrator=self.nested, **s)      # its settings, not the scene's integrator's
             self.result = result
             data = np.concatenate([result.image, result.spp[..., None].astype(np.float32),
                                    result.converged[..., None].astype(np.float32)], axis=-1)
@@ -136,22 +139,6 @@ def _integrator_class() -> type:
 
     _classes[variant] = NoisestopIntegrator
     return NoisestopIntegrator
-
-
-def scene_plugin_settings(scene: Any) -> dict[str, Any]:
-    """The properties set on a loaded scene's ``noisestop`` integrator ({} for anything
-    else: a path, a scene with another integrator): what `renderer.render` honours when it
-    is handed such a scene."""
-    if isinstance(scene, (str, bytes)) or not hasattr(scene, "integrator"):
-        return {}
-    try:
-        integrator = scene.integrator()
-    except Exception:        # not a Mitsuba scene: renderer.render's own checks say so
-        return {}
-    if not _classes or not isinstance(integrator, tuple(_classes.values())):
-        return {}
-    integrator.check()
-    return dict(integrator.settings)
 
 
 def _as_int(seed: Any) -> int:

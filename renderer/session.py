@@ -66,6 +66,31 @@ def run_settings(spec: Any, br: BlockRenderer, crit: Criterion, variant: str, sc
             **({} if spec.spp_budget is None else {"spp_budget": float(spec.spp_budget)})}
 
 
+#: how far a resumed checkpoint's mean radiance may lie from its first pass traced again
+RADIANCE_RATIO = 1e6
+
+
+def check_radiance(path: Path, acc: Any, br: BlockRenderer, first_spp: int, seed: int) -> None:
+    """ValueError unless a checkpoint's radiance is what its scene renders: a forged file
+    whose sums were scaled (x1e30: every block then "converged") passes every check the file
+    alone allows, its digest recomputed. The first pass depends only on (seed, pixel, pass),
+    so it is traced again over the frame (`render_full`: one pass, not counted as the
+    render's) and the mean radiance held must be within a factor RADIANCE_RATIO of its
+    mean: both estimate the frame's mean, so a true checkpoint is within noise of it. A
+    black first pass proves nothing (light found later) and is not held against the file."""
+    units = np.flatnonzero(acc.passes_all() > 0)
+    if not units.size:
+        return
+    again = np.nan_to_num(br.render_full(int(first_spp), seed, 0).astype(np.float64), nan=0.0, posinf=0.0,
+                          neginf=0.0)
+    traced = float(np.abs(again).mean())
+    held = float(acc.means(units).abs().mean().cpu())
+    if traced > 0 and not traced / RADIANCE_RATIO <= held <= traced * RADIANCE_RATIO:
+        raise ValueError(f"{path}: inconsistent checkpoint: its mean radiance is {held / traced:.3g} times what "
+                         "its first pass traces again (forged or damaged); delete it (or rerun without "
+                         "--resume) to start over")
+
+
 class RenderSession:
     """The state of one render between its set-up and its result (see the module docstring).
 
@@ -111,6 +136,7 @@ class RenderSession:
         if path is not None and resume and path.exists():
             state = load_checkpoint(path, self.settings, pass_spp=pass_spp, grid=(br.n_blocks, br.tiles_per_block),
                                     block=br.tile_shape, frame=(br.height, br.width), nonnegative=br.nonnegative)
+            check_radiance(path, state["acc"], self.br, pass_spp[0], self.spec.seed)
             logger.info("%s: resuming after pass %d (%d active blocks)", path, state["pass_index"],
                         int(state["active"].sum()))
             return state

@@ -52,7 +52,10 @@ def ascii_float(text: str) -> float:
 
 def _shown(value: Any) -> str:
     if isinstance(value, (int, np.integer)) and not isinstance(value, bool) and abs(int(value)) >= 10**15:
-        return f"a {len(str(abs(int(value))))}-digit number"
+        try:
+            return f"a {len(str(abs(int(value))))}-digit number"
+        except ValueError:          # str() refuses past 4300 digits
+            return f"a number of about {int(abs(int(value)).bit_length() * math.log10(2)) + 1} digits"
     text = repr(value)
     return text if len(text) <= 60 else text[:57] + "..."
 
@@ -120,7 +123,10 @@ class Row:
         elif kind == "float":
             ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
             if ok:
-                v = float(value)
+                try:
+                    v = float(value)
+                except OverflowError:       # an int past float's range (10**400): out of range, not a bug
+                    v = math.inf
                 ok = math.isfinite(v) and self.low <= v <= self.high and not (self.open_low and v == self.low)  # type: ignore[operator]
             if not ok:
                 raise ValueError(f"{name} must be a finite number in {self.range_text()}, got {_shown(value)}")

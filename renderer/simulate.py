@@ -19,6 +19,7 @@ import logging
 import os
 from collections.abc import Callable, Iterable
 from pathlib import Path
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -228,9 +229,11 @@ def criterion_factory(kind: str, *, model: str | None = None, server: str | None
                       tile: int | None = None) -> Callable[[Stack], Criterion]:
     """The criterion of each stack for `evaluate_criterion`, from command-line style options
     (None: not given), resolved and checked by the render spec and built by the one
-    factory (`renderer.criteria.make_criterion`): one criterion for every stack, or the
-    oracle with each stack's own thresholds (its tiles' with `tile`)."""
+    factory (`renderer.criteria.make_criterion`): one criterion for every stack of a block
+    size (a `tile` as large as the stack's block is block grain, as in the live render), or
+    the oracle with each stack's own thresholds (its tiles' with `tile`)."""
     from .criteria import make_criterion
+    from .criteria.gated import GatedCriterion
     from .setting_row import MAX_SIDE
     from .spec import COMMAND_LINE, resolve
 
@@ -245,8 +248,18 @@ def criterion_factory(kind: str, *, model: str | None = None, server: str | None
                 raise ValueError(f"{st.path}: stack has no thresholds; the oracle needs them")
             return make_criterion(spec, truth)
         return oracle
-    crit = make_criterion(spec)
-    return lambda st: crit
+    first = make_criterion(spec)           # a model is loaded now: a bad one fails before any stack is read
+    built: dict[bool, Criterion] = {spec.tile_grain() is None: first}
+
+    def per_block(st: Stack) -> Criterion:
+        """The criterion at the stack's block: a tile as large as the block is the whole
+        block (block grain: the model alone, as the live render's fit_frame makes it)."""
+        fitted = replace(spec, block=max(int(b) for b in st.block), grid=None)
+        whole = fitted.tile_grain() is None
+        if whole not in built:
+            built[whole] = first.gate if whole and isinstance(first, GatedCriterion) else make_criterion(fitted)
+        return built[whole]
+    return per_block
 
 
 def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list[str] | None = None, *,

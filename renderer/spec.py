@@ -168,6 +168,26 @@ def reference_settings(stack: Any) -> dict[str, Any]:
     return out
 
 
+def file_load_settings(given: Mapping[str, Any], reference: Any = None) -> tuple[Any, Any]:
+    """(resolution, defines) to load a scene file with, every given row checked first (a bad
+    setting fails before the file loads): what loading needs before the file's own
+    ``noisestop`` integrator's properties are known; `resolve` takes them after, and checks
+    the combination then. Neither row is a plugin property, so neither changes after."""
+    _check_known(given)
+    checked = {name: ROW[name].check(value) for name, value in given.items() if value is not None}
+    resolution = checked.get("resolution")
+    if resolution is None and reference is not None:
+        resolution = reference_settings(reference)["resolution"]
+    return resolution, checked.get("defines")
+
+
+def _check_known(*layers: Mapping[str, Any] | None) -> None:
+    """One-line ValueError for a setting that is no row."""
+    unknown = [name for layer in layers for name in sorted(set(layer or {}) - set(ROW))]
+    if unknown:
+        raise ValueError(f"unknown render setting {unknown[0]!r}; the settings are {', '.join(ROW)}")
+
+
 def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping[str, Any] | None = None,
             reference: Any = None, thresholds_known: bool | None = None) -> Any:
     """The `RenderSpec` of a render: each row from `given` (None: not given), else the scene
@@ -175,9 +195,7 @@ def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping
     each checked once, then the combination. `thresholds_known`: the oracle's true
     thresholds will be there (default: a reference stack is given).
     ValueError (one line, naming the setting) for anything wrong."""
-    unknown = sorted(set(given) - set(ROW)) + sorted(set(plugin or {}) - set(ROW))
-    if unknown:
-        raise ValueError(f"unknown render setting {unknown[0]!r}; the settings are {', '.join(ROW)}")
+    _check_known(given, plugin)
     ref_source = f"reference {getattr(reference, 'path', '')}".rstrip()
     layers = [(given, source), (plugin or {}, PLUGIN)]
     implied = reference_settings(reference) if reference is not None else {}

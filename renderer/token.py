@@ -8,6 +8,13 @@ taken for "no token": a variable that is set but empty (`NOISESTOP_TOKEN=`, or
 `NOISESTOP_TOKEN_FILE=`), a token of spaces and an empty token file are all refused. Only
 variables that are not set at all mean "no token" (which `noisestop serve` then accepts
 only with `--no-auth`, on loopback).
+
+A token is one line of visible ASCII characters (``!`` to ``~``: what an HTTP header can
+carry): a token file may end with one newline, nothing else; a variable's or argument's
+surrounding spaces are dropped. Anything else (a second line, a control, space or
+non-ASCII character) is refused in one line naming where the token came from and never
+showing it: before, a two-line file reached the HTTP layer, whose error printed the whole
+``Authorization`` header, and a server took it and then answered every request 401.
 """
 from __future__ import annotations
 
@@ -15,7 +22,7 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
-from noisefeat.safeio import InputFileError, read_text
+from noisefeat.safeio import InputFileError, read_input
 
 ENV_TOKEN = "NOISESTOP_TOKEN"
 ENV_TOKEN_FILE = "NOISESTOP_TOKEN_FILE"
@@ -34,18 +41,34 @@ def resolve_token(token: str | None = None, token_file: str | os.PathLike | None
     if token_file is not None:
         path = Path(token_file)
         try:
-            token = read_text(path, "token file").strip()
+            raw = read_input(path, "token file")
         except FileNotFoundError:
             raise FileNotFoundError(f"{path}: token file ({ENV_TOKEN_FILE}) does not exist") from None
         except InputFileError as exc:
             raise ValueError(f"{exc} ({ENV_TOKEN_FILE})") from None
         except OSError as exc:
             raise ValueError(f"{path}: token file is unreadable ({exc})") from None
-        if not token:
+        if not raw.strip():
             raise ValueError(f"{path}: token file is empty")
+        line = raw[:-2] if raw.endswith(b"\r\n") else raw[:-1] if raw.endswith(b"\n") else raw
+        check_token(line, f"{path}: token file ({ENV_TOKEN_FILE})")
+        token = line.decode("ascii")
     elif token is not None:
         token = token.strip()
         if not token:
             raise ValueError(f"{ENV_TOKEN} is set but empty (a token of spaces is no token): set it, "
                              "or unset it")
+        check_token(token, f"the token ({ENV_TOKEN} or the token argument)")
     return token
+
+
+def check_token(token: str | bytes, where: str) -> None:
+    """One-line ValueError, naming `where` and never showing the token, unless `token` is
+    one line of visible ASCII characters (what an HTTP ``Authorization`` header carries)."""
+    data = token.encode("utf-8", "replace") if isinstance(token, str) else token
+    if not data or all(0x21 <= b <= 0x7E for b in data):
+        return
+    lines = data.count(b"\n") + 1
+    what = f"it has {lines} lines" if lines > 1 else "it holds a space, a control or a non-ASCII character"
+    raise ValueError(f"{where} must be one line of visible ASCII characters (a trailing newline "
+                     f"allowed); {what} (the token is not shown)")

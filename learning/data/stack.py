@@ -536,7 +536,8 @@ def list_stacks(root: str | os.PathLike, include_incomplete: bool = False) -> li
     """Every stack directory under `root` (root itself included), sorted.
 
     A directory is a stack if it holds meta.json (or, with `include_incomplete`,
-    meta.partial.json); stacks are not searched for nested stacks.
+    meta.partial.json); stacks are not searched for nested stacks. A meta.json that is a
+    directory is a broken stack: one-line ValueError (it used to be skipped silently).
     """
     root = Path(root)
     if not root.is_dir():
@@ -544,6 +545,9 @@ def list_stacks(root: str | os.PathLike, include_incomplete: bool = False) -> li
     names = {META, PARTIAL} if include_incomplete else {META}
     found = []
     for dirpath, dirnames, filenames in os.walk(root):
+        odd = sorted(names & set(dirnames))
+        if odd:      # a stack whose meta.json is no file: refused, not skipped as no stack
+            raise ValueError(f"{Path(dirpath) / odd[0]}: a stack's {odd[0]} must be a file, this is a directory")
         if names & set(filenames):
             found.append(Path(dirpath))
             dirnames[:] = []

@@ -4,13 +4,16 @@ estimator's fitted arrays, and the model file's hash.
 Why: without these checks, crafted bundles load and then fail at the first verdict, or
 never do and answer wrong. A manifest nested 100,000 deep raised RecursionError; `"input":
 "Features"` (capitalised) skipped the feature-base check; a replaced fitted attribute
-raised AttributeError mid-request; a NaN offset loaded and the model never converged.
+raised AttributeError mid-request; a NaN offset loaded and the model never converged; an
+88 MB schema of nodes loaded in 1.1 GB, and an attribute no estimator of ours has was
+kept as it came (the schema is now bounded before skops reads it, and attributes are known).
 libsvm reads the support vectors through the counts it is given, so inconsistent arrays
 would read out of bounds rather than raise. Everything here raises ValueError with the
 file and the field, before the estimator answers anything.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import io
 import json
@@ -33,6 +36,11 @@ from ..stoprule import OFFSET_LIMIT
 MAX_MODEL_BYTES = CAPS["model"]
 MAX_FEATURES = 1 << 24                        # a 4096x4096 raw block
 MAX_SUPPORT_VECTORS = 1 << 22
+#: a model.skops's schema.json (its object tree; the arrays are members of their own): the
+#: X
+#: and 6x of room while an 88 MB schema of nodes (1.1 GB to load) is refused unread
+MAX_SCHEMA_BYTES = 1 << 20
+MAX_SCHEMA_NODES = 5_000
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
 
 
@@ -150,22 +158,34 @@ def model_bytes(path: Path, manifest: dict[str, Any]) -> bytes:
     with zf:
         _check_unpacked(path, zf)
         try:
+            size = zf.getinfo("schema.json").file_size
+            if size > MAX_SCHEMA_BYTES:
+                raise ValueError(f"{path}: its schema is {size} bytes, more than a model's ({MAX_SCHEMA_BYTES}); "
+                                 "refused before reading it")
             schema = zf.read("schema.json")
-            if not any(f'"{old}"'.encode() in schema for old in MOVED_MODULES):
-                return data
-            members = [(info, zf.read(info)) for info in zf.infolist()]
             tree = json.loads(schema)
-        except (zipfile.BadZipFile, KeyError, OSError, ValueError, RecursionError) as exc:
+            moved = any(f'"{old}"'.encode() in schema for old in MOVED_MODULES)
+            members = [(info, zf.read(info)) for info in zf.infolist()] if moved else []
+        except (zipfile.BadZipFile, KeyError, OSError, RecursionError) as exc:
             raise ValueError(f"{path}: unreadable skops file ({type(exc).__name__}: {exc})") from None
-    todo = [tree]
+        except ValueError as exc:
+            raise ValueError(str(exc) if str(exc).startswith(f"{path}:")
+                             else f"{path}: unreadable skops file ({type(exc).__name__}: {exc})") from None
+    todo, nodes = [tree], 0
     while todo:                                   # iterative: a crafted schema may nest deep
         node = todo.pop()
+        nodes += 1
+        if nodes > MAX_SCHEMA_NODES:
+            raise ValueError(f"{path}: its schema has more than {MAX_SCHEMA_NODES} nodes (a model's has about "
+                             "800); refused before loading it")
         if isinstance(node, dict):
             if node.get("__module__") in MOVED_MODULES:
                 node["__module__"] = MOVED_MODULES[node["__module__"]]
             todo.extend(node.values())
         elif isinstance(node, list):
             todo.extend(node)
+    if not moved:
+        return data
     out = io.BytesIO()
     with zipfile.ZipFile(out, "w") as zf:
         for info, raw in members:
@@ -209,6 +229,30 @@ def _number(where: str, value: Any, low: float, high: float, integer: bool = Fal
     return float(value)
 
 
+#: the fitted attributes (beyond the constructor's parameters) each object of a model may
+#: hold; anything else in a bundle was not written by noisestop's training and is refused
+#: (`offset`: bundles from before offset_ was fitted; `feature_names_in_`: sklearn's own)
+ESTIMATOR_FITTED = frozenset({"n_features_in_", "classes_", "offset_", "range_", "scaler_", "svc_", "constant_",
+                              "offset", "feature_names_in_"})
+SCALER_FITTED = frozenset({"mean_", "var_", "scale_", "n_samples_seen_", "n_features_in_", "feature_names_in_"})
+
+
+@functools.cache
+def _svc_fitted() -> frozenset[str]:
+    """What this sklearn's fitted SVC holds (its private arrays move between releases)."""
+    from sklearn.svm import SVC
+
+    return frozenset(vars(SVC().fit(np.array([[0.0], [1.0]]), np.array([-1, 1])))) | {"feature_names_in_"}
+
+
+def _known_attributes(owner: str, obj: Any, fitted: frozenset[str]) -> None:
+    """ValueError naming the first attribute of `obj` that is neither a parameter of its
+    class nor one of its `fitted` attributes."""
+    unknown = sorted(set(vars(obj)) - set(obj.get_params(deep=False)) - fitted)
+    if unknown:
+        raise ValueError(f"{owner} has unknown attribute {unknown[0]!r} (not one noisestop's training writes)")
+
+
 def check_estimator(est: Any, expected_features: int | None = None) -> None:
     """Every fitted attribute an `RBFSVM` reads when it answers, by exact type, dtype and shape."""
     from sklearn.preprocessing import StandardScaler
@@ -218,6 +262,7 @@ def check_estimator(est: Any, expected_features: int | None = None) -> None:
 
     if type(est) not in (RBFSVM, DSVM, SVM):
         raise ValueError(f"holds a {type(est).__name__}, not a noisestop SVM")
+    _known_attributes("estimator", est, ESTIMATOR_FITTED)
     d = int(_number("n_features_in_", getattr(est, "n_features_in_", None), 1, MAX_FEATURES, integer=True))
     if expected_features is not None and d != expected_features:
         raise ValueError(f"n_features_in_ is {d}, the manifest says {expected_features}")
@@ -234,6 +279,7 @@ def check_estimator(est: Any, expected_features: int | None = None) -> None:
     if scaler is not None:
         if type(scaler) is not StandardScaler:
             raise ValueError(f"scaler_ must be a StandardScaler, got {type(scaler).__name__}")
+        _known_attributes("scaler_", scaler, SCALER_FITTED)
         for flag in ("with_mean", "with_std"):
             if not isinstance(getattr(scaler, flag, None), bool):
                 raise ValueError(f"scaler_.{flag} must be true or false")
@@ -256,6 +302,7 @@ def check_estimator(est: Any, expected_features: int | None = None) -> None:
         raise ValueError("constant_ must be None when svc_ is fitted")
     if type(svc) is not SVC:
         raise ValueError(f"svc_ must be an sklearn SVC, got {type(svc).__name__}")
+    _known_attributes("svc_", svc, _svc_fitted())
     _check_svc(svc, d)
 
 

@@ -1,0 +1,43 @@
+"""A ``noisestop`` integrator with two nested integrators and a property (issue 51): it used
+to fail to load with Mitsuba's "unreferenced property" (the property was never read once
+the nesting was refused); the error now names the real cause, one line, on every door."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+import renderer
+from tests.support.errors import assert_one_line_error, run
+
+pytestmark = pytest.mark.slow
+
+XML = """<scene version="3.0.0">
+  <integrator type="noisestop">
+    <float name="tau" value="0.05"/>
+    <integer name="max_spp" value="16"/>
+    <integrator type="path"/>
+    <integrator type="direct"/>
+  </integrator>
+  <sensor type="perspective">
+    <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+  </sensor>
+  <shape type="sphere"/>
+</scene>
+"""
+CAUSE = "wraps one integrator, got 2 nested ones"
+
+
+def test_two_nested_integrators_name_the_real_cause(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    renderer.register()
+    import mitsuba as mi
+
+    scene = mi.load_string(XML)             # loads: the error is raised where the integrator is used
+    with pytest.raises(ValueError, match=CAUSE):
+        renderer.render(scene, progress=False)
+    with pytest.raises(RuntimeError) as err:
+        mi.render(scene)
+    assert CAUSE in str(err.value.__cause__)
+    (tmp_path / "two.xml").write_text(XML)
+    rc, stderr = run(capsys, "render", "--scene", str(tmp_path / "two.xml"), "--out", str(tmp_path / "out"))
+    assert_one_line_error(rc, stderr, CAUSE)

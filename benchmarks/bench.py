@@ -22,6 +22,7 @@ from .bench_models import (bench_ablation, bench_dataset, bench_inputs, bench_kn
                            md_cost_accuracy, md_dataset, md_inputs, md_knobs, md_models, saved_comparisons)
 from .bench_budget import bench_budget, md_budget
 from .bench_observer import bench_observer, bench_tau, md_observer, md_tau
+from .bench_tile_stop import bench_tile_stop, md_tile_stop
 from .bench_passes import bench_render, md_render
 
 
@@ -48,6 +49,7 @@ DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "inputs": (bench_inp
                     "tradeoff": (bench_tradeoff, md_tradeoff), "ablation": (bench_ablation, md_ablation),
                     "step": (bench_step, md_step), "knobs": (bench_knobs, md_knobs),
                     "observer": (bench_observer, md_observer), "tau": (bench_tau, md_tau),
+                    "tilestop": (bench_tile_stop, md_tile_stop),
                     "budget": (bench_budget, md_budget)}
 
 

@@ -133,7 +133,7 @@ def scene_plugin_settings(scene: Any) -> dict[str, Any]:
     another integrator, or none): what every door honours under the settings it is given.
     Known by duck type (its `property_error`, as `renderer.blocks` knows it): importing
     `renderer.plugin` here would close an import circle."""
-    integrator = scene.integrator()
+    integrator = scene.integrator() if hasattr(scene, "integrator") else None     # a stand-in scene: none
     if not hasattr(integrator, "property_error") or not hasattr(integrator, "settings"):
         return {}
     integrator.check()            # a bad property: its one line, here

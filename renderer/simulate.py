@@ -197,9 +197,10 @@ def end_of_render(stack: Stack, verdicts: np.ndarray, tile: int | None, tau: flo
     left); ``early``: those of them whose block truth converges in the stack; ``worst``: the
     largest error. At tile grain this is the honest block count: a tile that stopped early
     shows in its block whatever the tile truth's thresholds say."""
+    from learning.data.observer import observer_for
     from learning.data.tile_truth import FinalFrame
 
-    return FinalFrame(stack, tile, tau).judge(verdicts)
+    return FinalFrame(stack, tile, observer_for(stack, tau)).judge(verdicts)
 
 
 def _against_block_oracle(out: dict[str, Any]) -> None:

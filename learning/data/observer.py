@@ -45,6 +45,7 @@ from noisefeat.pooling import (DEFAULT_POOLING, DOTS, FLIP_POOLINGS, MEAN, POOLI
 from ..names import DEFAULT_TAU
 from .cache import cached_array
 from .stack import Stack, block_shape, list_stacks, read_stack, update_labels
+from .tile_truth import TILE_TRUTH, final_frame_levels, unit_windows
 from noisefeat.extras import require
 
 log = logging.getLogger(__name__)
@@ -278,8 +279,6 @@ class VirtualObserver:
     def labeler(self) -> dict:
         """The meta.json `labeler` entry describing this observer (version 3 also records its
         dot level and density, so labels of other dot settings are relabelled, never read)."""
-        from .tile_truth import TILE_TRUTH
-
         dots = OBSERVER_DOTS if self.pooling == DOTS else {}
         return {"name": "flip", "tau": self.tau, "ppd": self.ppd, "display": "clip+srgb",
                 "exposure": self.exposure, "pooling": self.pooling, **dots, "tile_truth": TILE_TRUTH}
@@ -304,11 +303,27 @@ class VirtualObserver:
         """The tile truth on the frame a render ends with (`learning.data.tile_truth`, issue
         49): the fewest samples at which a tile may stop when every other tile stops at its
         own threshold, the finished frame still at or below tau in every block."""
-        from .tile_truth import final_frame_tile_errors
+        spp = list(stack.spp)
+        start = np.array([len(spp) if t is None else spp.index(t) for t in self.label_tiles_same_samples(stack, tile)],
+                         np.int64)
+        at = final_frame_levels(stack, tile, self, start)
+        return [None if k >= len(spp) else spp[k] for k in at.tolist()]
 
-        same = stack_tile_errors(stack, tile, self.ppd, self.exposure)
-        e = final_frame_tile_errors(stack, tile, self.tau, self.ppd, self.exposure, same)
-        return thresholds_from_errors(e, stack.spp, self.tau)
+    def frame_errors(self, reference: np.ndarray, frame: np.ndarray, grid: Sequence[int],
+                     tile: int) -> tuple[np.ndarray, np.ndarray]:
+        """(block errors [n_blocks], tile errors [n_tiles]) of one frame, from one FLIP map: a
+        block's error is this observer's version 3 (its largest 16x16 tile mean or its dot
+        term); a tile's, its FLIP mean or its own dot term (at most one outlier pixel), as
+        `tile_terms` has them. Tiles block-major (`learning.data.tile_truth.unit_windows`)."""
+        (ref_t, lev_t, emap), = list(_level_maps(np.asarray(reference), [frame], self.ppd, self.exposure))
+        g = (int(grid[0]), int(grid[1]))
+        blocks = np.maximum(pool_blocks(emap, g, TILE_MAX), _block_dots(ref_t, lev_t, g))
+        err = display_error(lev_t, ref_t)
+        windows = unit_windows(frame.shape[1], frame.shape[0], grid, tile)
+        emap64 = np.asarray(emap, np.float64)
+        means = np.array([emap64[y:y + h, x:x + w].mean() for x, y, w, h in windows])
+        dots = rank_pool(torch.stack([err[y:y + h, x:x + w] for x, y, w, h in windows])).numpy()
+        return blocks, np.maximum(means, dots)
 
     def label_tiles_same_samples(self, stack: Stack, tile: int = TILE) -> list[int | None]:
         """The first tile truth (issue 41), kept for comparison: each tile converged from the
@@ -430,8 +445,6 @@ def with_tile_truth(stack: Stack, tile: int = TILE) -> Stack:
 
 def _current_tile_truth(labeler: Mapping | None) -> bool:
     """Whether stored tile thresholds are this version's (`learning.data.tile_truth`)."""
-    from .tile_truth import TILE_TRUTH
-
     return isinstance(labeler, Mapping) and labeler.get("tile_truth") == TILE_TRUTH
 
 

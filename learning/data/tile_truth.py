@@ -26,20 +26,34 @@ other tile stops at its own threshold; its neighbours are its context.
 """
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Sequence
+from typing import Protocol
 
 import numpy as np
 
-from noisefeat.dots import DOT_LEVEL, rank_pool
-from noisefeat.pooling import TILE, TILE_MAX, pool_blocks, tile_windows
+from noisefeat.dots import DOT_LEVEL
+from noisefeat.pooling import tile_windows
 
-from ..names import DEFAULT_TAU
 from .cache import cached_array
 from .stack import Stack, block_shape
 
 #: names the tile truth a stack's labeler record carries (`VirtualObserver.labeler`): tile
 #: thresholds of another version are recomputed, never read as this one's
 TILE_TRUTH = "final-frame"
+
+
+class FrameJudge(Protocol):
+    """What judges a frame here: the virtual observer (`learning.data.observer.
+    VirtualObserver`), passed in so that this module and the observer's do not import each
+    other."""
+
+    tau: float
+    ppd: float
+    exposure: float
+
+    def frame_errors(self, reference: np.ndarray, frame: np.ndarray, grid: Sequence[int],
+                     tile: int) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 def unit_windows(width: int, height: int, grid: Sequence[int], tile: int) -> list[tuple[int, int, int, int]]:
@@ -61,28 +75,6 @@ def compose_levels(levels: np.ndarray, at: np.ndarray, windows: Sequence[tuple[i
     return frame
 
 
-def frame_errors(reference: np.ndarray, frame: np.ndarray, grid: Sequence[int], tile: int,
-                 ppd: float, exposure: float) -> tuple[np.ndarray, np.ndarray]:
-    """(block errors [n_blocks], tile errors [n_tiles]) of one frame by the version-3
-    observer, from one FLIP map: a block's error is its largest 16x16 tile mean or its dot
-    term; a tile's, its FLIP mean or its own dot term (at most one outlier pixel)."""
-    import torch
-
-    from .observer import _block_dots, _level_maps
-
-    (ref_t, lev_t, emap), = list(_level_maps(reference, [frame], ppd, exposure))
-    g = (int(grid[0]), int(grid[1]))
-    blocks = np.maximum(pool_blocks(emap, g, TILE_MAX), _block_dots(ref_t, lev_t, g))
-    from noisefeat.dots import display_error
-
-    err = display_error(lev_t, ref_t)
-    windows = unit_windows(frame.shape[1], frame.shape[0], grid, tile)
-    emap64 = np.asarray(emap, np.float64)
-    means = np.array([emap64[y:y + h, x:x + w].mean() for x, y, w, h in windows])
-    dots = rank_pool(torch.stack([err[y:y + h, x:x + w] for x, y, w, h in windows])).numpy()
-    return blocks, np.maximum(means, dots)
-
-
 def touching(windows: Sequence[tuple[int, int, int, int]]) -> np.ndarray:
     """bool [n, n]: which windows touch or overlap another (diagonal neighbours included)."""
     x, y, w, h = (np.array([win[i] for win in windows])[:, None] for i in range(4))
@@ -92,12 +84,13 @@ def touching(windows: Sequence[tuple[int, int, int, int]]) -> np.ndarray:
 
 
 def fixed_point(levels: np.ndarray, reference: np.ndarray, start: Sequence[int], grid: Sequence[int],
-                tile: int = TILE, tau: float = DEFAULT_TAU, ppd: float = 67.0,
-                exposure: float = 0.0) -> tuple[np.ndarray, int]:
+                tile: int, observer: FrameJudge) -> tuple[np.ndarray, int]:
     """(level index of each tile [n_tiles], rounds) of the fixed point (module docstring),
     from the level indices `start` (the same-samples truth; len(levels) where it has none:
     such a tile is noisy of itself, and its neighbours are not held for it). A tile still
-    above tau at the last level gets len(levels): no threshold."""
+    above tau at the last level gets len(levels): no threshold. `observer` judges each
+    composed frame (`VirtualObserver`: its tau and `frame_errors`)."""
+    tau = observer.tau
     last = len(levels) - 1
     hopeless = np.asarray(start, np.int64) > last
     at = np.minimum(np.asarray(start, np.int64), last)
@@ -108,7 +101,7 @@ def fixed_point(levels: np.ndarray, reference: np.ndarray, start: Sequence[int],
     rounds = 0
     while True:
         rounds += 1
-        block_e, tile_e = frame_errors(reference, compose_levels(levels, at, windows), grid, tile, ppd, exposure)
+        block_e, tile_e = observer.frame_errors(reference, compose_levels(levels, at, windows), grid, tile)
         move = np.zeros(len(at), bool)
         for b in np.flatnonzero(~(block_e <= tau)):
             own = slice(b * per_block, (b + 1) * per_block)
@@ -124,30 +117,17 @@ def fixed_point(levels: np.ndarray, reference: np.ndarray, start: Sequence[int],
         at[move] += 1
 
 
-def final_frame_tile_errors(stack: Stack, tile: int, tau: float, ppd: float, exposure: float,
-                            same_samples: np.ndarray) -> np.ndarray:
-    """e [K, n_tiles] whose thresholds at `tau` are the final-frame truth: a tile's
-    same-samples errors `same_samples` [K, n_tiles] (from `stack_tile_errors`), raised to
-    above tau before the level the fixed point moved it to. Cached next to the stack per
-    tau (one fixed point costs a FLIP of the frame a round)."""
-    from .observer import thresholds_from_errors
-
-    spp = list(stack.spp)
-
+def final_frame_levels(stack: Stack, tile: int, observer: FrameJudge, start: np.ndarray) -> np.ndarray:
+    """The fixed point's level of every tile of `stack` (len(levels): none), from the
+    same-samples truth's level indices `start`; cached next to the stack per observer (one
+    fixed point costs a FLIP of the frame a round)."""
     def compute() -> np.ndarray:
-        th = thresholds_from_errors(same_samples, spp, tau)
-        start = np.array([spp.index(t) if t is not None else len(spp) for t in th], np.int64)
         levels = np.stack([np.asarray(x, np.float32) for x in stack.iter_levels()])
-        at, _ = fixed_point(levels, np.asarray(stack.reference(), np.float32), start, stack.grid, tile, tau,
-                            ppd, exposure)
+        at, _ = fixed_point(levels, np.asarray(stack.reference(), np.float32), start, stack.grid, tile, observer)
         return at.astype(np.float64)
-    at = cached_array(stack, f"tile{tile}-final-frame-t{tau:g}-e{exposure:g}-ppd{ppd:g}-l{DOT_LEVEL:g}",
-                      (same_samples.shape[1],), compute).astype(np.int64)
-    e = np.array(same_samples, np.float64, copy=True)
-    k = np.arange(len(spp))[:, None]
-    # before the fixed point's level: not converged there (above tau); from it on: as measured
-    e[(k < at[None, :]) & (e <= tau)] = np.nextafter(tau, np.inf)
-    return e
+    name = (f"tile{tile}-final-frame-t{observer.tau:g}-e{observer.exposure:g}-ppd{observer.ppd:g}-l{DOT_LEVEL:g}"
+            f"-{hashlib.sha256(np.asarray(start, np.int64).tobytes()).hexdigest()[:12]}")
+    return cached_array(stack, name, (len(start),), compute).astype(np.int64)
 
 
 class FinalFrame:
@@ -155,13 +135,11 @@ class FinalFrame:
     observer: each unit (a tile of `tile` pixels, or a whole block when None) at the level it
     stopped at, put together as the renderer composes it. The judge of every stop
     (DESIGN "The judge of every stop is the final frame"): `renderer.simulate.end_of_render`
-    and the calibration against blocks above tau at the end. Levels are read once."""
+    and the calibration against blocks above tau at the end. `observer`: the stack's at the
+    noise target (`learning.data.observer.observer_for`). Levels are read once."""
 
-    def __init__(self, stack: Stack, tile: int | None, tau: float = DEFAULT_TAU) -> None:
-        from .observer import observer_for
-
-        obs = observer_for(stack, tau)
-        self.stack, self.tau, self.ppd, self.exposure = stack, obs.tau, obs.ppd, obs.exposure
+    def __init__(self, stack: Stack, tile: int | None, observer: FrameJudge) -> None:
+        self.stack, self.observer, self.tau = stack, observer, observer.tau
         self.tile = max(stack.block) if tile is None else int(tile)
         self.windows = unit_windows(stack.width, stack.height, stack.grid, self.tile)
         self.levels = np.stack([np.asarray(x, np.float32) for x in stack.iter_levels()])
@@ -174,8 +152,8 @@ class FinalFrame:
         at = np.minimum(np.asarray(at, np.int64), len(self.levels) - 1)
         key = at.tobytes()
         if key not in self._seen:
-            self._seen[key], _ = frame_errors(self.reference, compose_levels(self.levels, at, self.windows),
-                                              self.stack.grid, self.tile, self.ppd, self.exposure)
+            self._seen[key], _ = self.observer.frame_errors(
+                self.reference, compose_levels(self.levels, at, self.windows), self.stack.grid, self.tile)
         return self._seen[key]
 
     def judge(self, verdicts: np.ndarray) -> dict[str, float]:

@@ -21,7 +21,7 @@ from tqdm import tqdm
 from noisefeat.dots import OBSERVER_DOTS
 from noisefeat.pooling import CRITERION_POOLING, DEFAULT_POOLING
 
-from ..data.observer import DEFAULT_TAU, label_tau, observed, with_tile_truth
+from ..data.observer import DEFAULT_TAU, label_tau, observed, observer_for, with_tile_truth
 from ..data.stack import Stack
 from ..inputs.halves import flip_offset, guarded_flip_scores, guarded_tile_flip_scores
 from ..inputs.halves import stack_flat
@@ -221,7 +221,7 @@ def flip_sweep(stacks: Sequence[Stack], candidates: Sequence[float] = FLIP_CANDI
         scores, flats = {k: v[0] for k, v in both.items()}, {k: v[1] for k, v in both.items()}
         truth = {s.scene: (s.tile_labels(), s.tile_thresholds) for s in stacks}
     per_block = None if tile is None else {s.scene: len(s.tile_thresholds) // s.n_blocks for s in stacks}
-    frames = {} if tile is None else {s.scene: FinalFrame(s, tile, label_tau(s)) for s in stacks}
+    frames = {} if tile is None else {s.scene: FinalFrame(s, tile, observer_for(s)) for s in stacks}
     groups = scene_groups(stacks)
     curve = []
     for c in tqdm(sorted(candidates), desc="c", disable=not progress or tile is None, leave=False):
@@ -276,7 +276,7 @@ def calibrate_flip_curve(stacks: Sequence[Stack], max_early_stop: float = 0.05, 
     at_default = [p for p in points if abs(p["tau"] - DEFAULT_TAU) < 1e-12]
     return {"format": "noisestop-flip-curve", "pooling": pooling, "observer_pooling": DEFAULT_POOLING,
             "unit": "block" if tile is None else f"tile{tile}",
-            **({} if tile is None else {"statistic": STATISTIC, "tile_truth": TILE_TRUTH}),
+            **({} if tile is None else {"statistic": STATISTIC, "tile_truth": TILE_TRUTH, "rate": "end_early_rate"}),
             "observer_dots": OBSERVER_DOTS,
             "target_early_stop_rate": max_early_stop,
             "curve": [{k: v for k, v in p.items() if v is not None} for p in points],

@@ -224,7 +224,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.tile:                # the same, per tile against the tile truth (the live loop's default grain)
         part = calibrate_flip_curve(stacks, args.max_early_stop, min_spp=args.min_spp, tile=args.tile)
         cal["tiles"] = {str(args.tile): {k: part[k] for k in ("unit", "curve", "c", "target_early_stop_rate",
-                                                              "statistic", "tile_truth")}}
+                                                              "statistic", "tile_truth", "rate")}}
     cal.update(criterion="flip", data=str(args.data), fingerprint=dataset_fingerprint(args.data),
                observer={"ppd": 67, "display": "clip+srgb", "pooling": cal["pooling"]},
                calibrated=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))

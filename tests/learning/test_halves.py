@@ -74,7 +74,7 @@ def test_flip_criterion_decisions():
     assert d.verdict.tolist() == [1, -1, 1, -1]          # one pass: no noise estimate yet, unless flat
     assert d.counts["flat_blocks"] == 1 and d.counts["blocks_featured"] == 2
     assert crit.describe() == {"name": "flip", "threshold": 0.02, "tau": 0.02, "pooling": "tile8-max",
-                               "source": "argument", "unit": "block"}
+                               "source": "argument", "unit": "block", "statistic": "last"}
     with pytest.raises(ValueError, match="half buffers"):
         crit.decide([0], [BlockView(mean=quiet[0], spp=8)]).verdict
     def flip(**given):

@@ -188,7 +188,7 @@ def test_label_stack_matches_stored_thresholds(tmp_path):
 def test_virtual_observer_settings():
     obs = VirtualObserver(tau=0.03, ppd=40)
     assert obs.labeler == {"name": "flip", "tau": 0.03, "ppd": 40, "display": "clip+srgb",
-                           "exposure": 0.0, "pooling": "tile16-max+dots", **OBSERVER_DOTS}
+                           "exposure": 0.0, "pooling": "tile16-max+dots", **OBSERVER_DOTS, "tile_truth": "final-frame"}
     assert VirtualObserver(pooling="mean").labeler["pooling"] == "mean"
     assert VirtualObserver(pooling="tile16-max").labeler["pooling"] == "tile16-max"
     for bad in (-1, 0, float("nan"), float("inf"), "x"):
@@ -291,14 +291,15 @@ def test_the_dot_level_follows_tau():
 
 def test_a_version_2_stack_is_relabelled_by_its_dot_term_alone(tmp_path, monkeypatch):
     """Stacks labelled before version 3 keep their cached FLIP errors: relabelling reads the
-    levels for the dot term only, never FLIP (the tile truth's FLIP terms, issue 41, are
-    cached apart, made once)."""
-    from learning.data.observer import stack_tile_errors
+    levels for the dot term only, never FLIP (the tile truth's FLIP terms, issue 41, and its
+    final-frame fixed point, issue 49, are cached apart, made once)."""
+    from learning.data.observer import observer_for, stack_tile_errors
 
     st = make_synthetic_stack(tmp_path / "s", size=128, grid=(2, 2), spp=[16, 64, 256, 1024])
     st = update_labels(st, label_stack(st, pooling="tile16-max"), {**st.labeler, "pooling": "tile16-max"})
     stack_observer_errors(st)
     stack_tile_errors(st)
+    observer_for(st).label_tiles(st)
     for f in (st.path / ".cache").glob("observer-dots-*"):
         f.unlink()
     import learning.data.observer as obs_mod

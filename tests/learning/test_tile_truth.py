@@ -149,9 +149,10 @@ def _noisy_stack(path, scene: str, seed: int):
 
 
 def test_c_is_calibrated_per_tile_against_the_tile_truth(tmp_path) -> None:
-    """`noisestop calibrate` makes the tile curve too: chosen on tiles against the tile
-    truth, out of fold, and recorded with its unit; the flip criterion at tile grain reads
-    it, a file without it falls back to the block curve."""
+    """`noisestop calibrate` makes the tile curve too: chosen out of fold against the final
+    frame's early blocks (issue 49), on the history's statistic, and recorded with its unit;
+    the flip criterion at tile grain reads it, a file without it falls back to the block
+    curve, and a tile curve of another statistic is refused."""
     from learning.evaluation.calibrate import calibrate_flip_curve
     from learning.inputs.halves import unit_calibration
 
@@ -159,12 +160,18 @@ def test_c_is_calibrated_per_tile_against_the_tile_truth(tmp_path) -> None:
     tiles = calibrate_flip_curve(stacks, 0.05, taus=(0.02,), progress=False, tile=16)
     assert tiles["unit"] == "tile16" and len(tiles["curve"]) == 1
     point = tiles["curve"][0]
-    assert point["c"] > 0 and point["chosen"]["early_stop_rate"] <= 0.25
+    assert point["c"] > 0 and point["chosen"]["end_early_rate"] <= 0.05
+    assert tiles["statistic"] == "history-mean" and tiles["rate"] == "end_early_rate"
+    assert tiles["tile_truth"] == "final-frame"
     blocks = calibrate_flip_curve(stacks, 0.05, taus=(0.02,), progress=False)
-    assert blocks["unit"] == "block"
-    cal = {**blocks, "tiles": {"16": {k: tiles[k] for k in ("unit", "curve", "c", "target_early_stop_rate")}}}
+    assert blocks["unit"] == "block" and "end_early_rate" not in blocks["curve"][0]["chosen"]
+    part = {k: tiles[k] for k in ("unit", "curve", "c", "target_early_stop_rate", "statistic")}
+    cal = {**blocks, "tiles": {"16": part}}
     assert unit_calibration(cal, 16)["curve"] == tiles["curve"] and unit_calibration(cal, 16)["unit"] == "tile16"
     assert unit_calibration(blocks, 16)["curve"] == blocks["curve"]          # no tile curve: the block one
+    older = {**blocks, "tiles": {"16": {k: v for k, v in part.items() if k != "statistic"}}}   # issue 41's
+    with pytest.raises(ValueError, match="recalibrate"):
+        unit_calibration(older, 16)
 
 
 def test_the_shipped_calibration_holds_a_checked_tile_curve(tmp_path) -> None:
@@ -205,16 +212,17 @@ def _leaky(residual: float = 0.01) -> tuple[np.ndarray, np.ndarray, list[int]]:
 
 
 def test_the_final_frame_truth_holds_where_the_same_samples_truth_leaks() -> None:
-    from learning.data.tile_truth import compose_levels, fixed_point, frame_errors, unit_windows
+    from learning.data.tile_truth import compose_levels, fixed_point, unit_windows
 
     ref, levels, spp = _leaky()
     th = thresholds_from_errors(tile_errors(tile_terms(ref, levels, (1, 1), 16)), spp, 0.02)
     start = np.array([spp.index(t) if t is not None else len(spp) for t in th])
     win = unit_windows(64, 64, (1, 1), 16)
-    before, _ = frame_errors(ref, compose_levels(levels, start, win), (1, 1), 16, 67.0, 0.0)
+    obs = VirtualObserver()
+    before, _ = obs.frame_errors(ref, compose_levels(levels, start, win), (1, 1), 16)
     assert before[0] > 0.02                       # control: every tile at its same-samples truth leaks
-    at, rounds = fixed_point(levels, ref, start, (1, 1), 16, 0.02)
-    after, _ = frame_errors(ref, compose_levels(levels, at, win), (1, 1), 16, 67.0, 0.0)
+    at, rounds = fixed_point(levels, ref, start, (1, 1), 16, obs)
+    after, _ = obs.frame_errors(ref, compose_levels(levels, at, win), (1, 1), 16)
     assert after[0] <= 0.02 and rounds > 1
     assert (at >= start).all() and (at > start).sum() >= 1        # only ever later, and only where needed
 
@@ -227,7 +235,7 @@ def test_a_tile_noisy_at_the_last_level_is_censored_and_holds_no_neighbour() -> 
     th = thresholds_from_errors(tile_errors(tile_terms(ref, levels, (1, 1), 16)), spp, 0.02)
     start = np.array([spp.index(t) if t is not None else len(spp) for t in th])
     assert start[5] == len(spp)
-    at, _ = fixed_point(levels, ref, start, (1, 1), 16, 0.02)
+    at, _ = fixed_point(levels, ref, start, (1, 1), 16, VirtualObserver())
     assert at[5] == len(spp)                       # no threshold
     assert (at[[0, 2, 7, 8, 10, 13, 15]] <= start[[0, 2, 7, 8, 10, 13, 15]] + 1).all()   # not driven to the cap
 

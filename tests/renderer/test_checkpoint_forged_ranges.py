@@ -51,8 +51,15 @@ def _scale_sums(arrays: dict[str, np.ndarray]) -> None:
     arrays["acc_sum"] = arrays["acc_sum"] * 1e30
 
 
+def _more_estimates_than_decisions(arrays: dict[str, np.ndarray]) -> None:
+    arrays["evidence"] = np.tile([[1.0, 1e6]], (len(arrays["evidence"]), 1))
+
+
 FORGERIES = {"huge counters": _set("counter_values", 2**62), "a timer of 1e308": _set("timer_values", 1e308),
-             "sums x1e30": _scale_sums}
+             "sums x1e30": _scale_sums,
+             # the decision history's evidence (issue 49): what a history criterion decides from
+             "negative evidence": _set("evidence", -1.0), "NaN evidence": _set("evidence", np.nan),
+             "more estimates than decisions": _more_estimates_than_decisions}
 
 
 @pytest.mark.parametrize("case", FORGERIES)

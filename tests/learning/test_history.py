@@ -55,3 +55,28 @@ def test_non_finite_scores_are_no_decision_and_add_nothing() -> None:
     _, x = combine(None, e[0], SPP[:4])
     ev.add(np.arange(4), x)
     assert np.array_equal(ev.sums[:, 1], [0, 1, 0, 0]) and np.isfinite(ev.sums).all()
+
+
+def test_flip_at_tile_grain_stops_on_the_history_and_at_block_grain_on_one_level() -> None:
+    """A unit whose first estimate was loud and whose current level looks quiet stays noisy
+    when its history says so; the same level alone (block grain) stops it. The evidence it
+    returns is what the loop adds (`renderer.passloop.PassLoop`)."""
+    from renderer.criteria import BlockBatch, BlockView, FlipCriterion
+
+    def batch_of(noise: float, seed: int, spp: int, sums=None) -> BlockBatch:
+        rng = np.random.default_rng(seed)
+        a, b = (0.3 + noise * rng.standard_normal((16, 16, 3)) for _ in range(2))
+        batch = BlockBatch.from_views([BlockView(mean=(a + b) / 2, spp=spp, halves=(a, b), half_spp=(spp // 2,) * 2)])
+        batch.evidence = sums
+        return batch
+    tile, block = FlipCriterion(0.02, tile=16), FlipCriterion(0.02)
+    assert (tile.statistic, block.statistic) == ("history-mean", "last")
+    first = tile.decide([0], batch_of(0.2, 0, 16))
+    assert first.verdict.tolist() == [-1] and np.isfinite(first.evidence).all()
+    sums = np.array([[first.evidence[0], 1.0]])
+    quiet = batch_of(0.002, 1, 64)
+    assert block.decide([0], quiet).verdict.tolist() == [1] and block.decide([0], quiet).evidence is None
+    quiet.evidence = sums
+    later = tile.decide([0], quiet)
+    assert later.verdict.tolist() == [-1] and later.ratio[0] > 1          # the history remembers
+    assert tile.decide([0], batch_of(0.002, 1, 64)).verdict.tolist() == [1]   # a unit without history: its level

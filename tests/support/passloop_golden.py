@@ -184,7 +184,9 @@ def render_case(case: str, grow: bool = True, log: DecisionLog | None = None):
     from renderer.spec import resolve
 
     _, scene, kw = next(c for c in CASES if c[0] == case)
-    crit = make_criterion(resolve({k: kw.get(k) for k in ("criterion", "tau", "threshold")}))
+    # built for the case's grain (its block and tile), as the render builds it
+    crit = make_criterion(resolve({k: kw.get(k) for k in ("criterion", "tau", "threshold", "block", "tile",
+                                                          "resolution")}))
     undo = log.attach(crit, Budget) if log is not None else None
     try:
         return run_adaptive(load(scene), crit, progress=False, grow=grow,

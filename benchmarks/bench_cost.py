@@ -207,22 +207,27 @@ def measure_case(name: str, rfilter: str, size: int, max_spp: int, repeats: int,
                  block: int = BLOCK, step: int = STEP) -> dict[str, Any]:
     """Every figure of one scene with one filter (module docstring)."""
     scene = scene_with_filter(name, size, rfilter)
+    phase_s: dict[str, float] = {}
     with MachineLoad() as load:
+        t0 = time.perf_counter()
         timed_render(scene, min(max_spp, 2 * step), None)        # compile the tracer, FLIP and the loop
         timed_render(scene, min(max_spp, 2 * step), "uniform")
         runs: dict[str, list[dict[str, Any]]] = {"adaptive": [], "uniform": []}
         for _ in range(max(1, int(repeats))):                     # interleaved: the same load for both
             runs["adaptive"].append(timed_render(scene, max_spp, None))
             runs["uniform"].append(timed_render(scene, max_spp, "uniform"))
+        t1 = time.perf_counter()
         sel = selection(scene, size, min(block, size), crop_spp, repeats)
+        t2 = time.perf_counter()
         sparse = sparse_trace(scene, step, repeats)
+        phase_s = {"renders": t1 - t0, "selection": t2 - t1, "sparse": time.perf_counter() - t2}
     ada, uni = median_run(runs["adaptive"]), median_run(runs["uniform"])
     spp_map = runs["adaptive"][0]["spp_map"]                      # the same stops in every run
     sel["adaptive"] = weighted_selection(sel, spp_map)
     sel["uniform"] = weighted_selection(sel, runs["uniform"][0]["spp_map"])
     parts = ratios(ada, uni)
     return {"scene": name, "filter": rfilter, "size": size, "max_spp": max_spp, "repeats": repeats,
-            "others_cpu_share": load.share, "adaptive": ada, "uniform": uni, "selection": sel, "sparse": sparse,
+            "others_cpu_share": load.share, "phase_s": phase_s, "adaptive": ada, "uniform": uni, "selection": sel, "sparse": sparse,
             "ratios": parts, "headline": {"raw": parts["wall_per_kept"],
                                           "selection_divided_out": parts["wall_per_kept"] / sel["adaptive"]}}
 
@@ -275,8 +280,8 @@ def md_case(c: dict[str, Any]) -> list[str]:
              f"| {_x(q['wall_over_render'])} |",
              f"| x render time per lane | {ns * a['render_s'] / a['lanes']:.1f} ns "
              f"| {ns * u['render_s'] / u['lanes']:.1f} ns | {_x(q['render_per_lane'])} |",
-             f"| x lanes per kept sample (samples traced / kept) | {a['lanes'] / a['samples_kept']:.3f} | {u['lanes'] / u['samples_kept']:.3f} "
-             f"| {_x(q['lanes_per_kept'])} |",
+             f"| x lanes per kept sample (samples traced / kept) | {a['lanes'] / a['samples_kept']:.3f} "
+             f"| {u['lanes'] / u['samples_kept']:.3f} | {_x(q['lanes_per_kept'])} |",
              f"| selection: dense cost of the kept samples (`mi.render` per {sel['block']}-px block crop, "
              f"{sel['spp']} spp; blocks from {min(sel['relative']):.2f}x to {max(sel['relative']):.2f}x the mean) "
              f"| {_x(sel['adaptive'])} | {_x(sel['uniform'])} | {_x(sel['adaptive'] / sel['uniform'])} |",
@@ -286,10 +291,10 @@ def md_case(c: dict[str, Any]) -> list[str]:
     for r in sp["rows"]:
         if r is dense:
             continue
-        how = "one pass a launch" if r["mode"] == "one" else f"{r['passes_per_launch']} passes a launch (grown)"
+        how = "1 pass" if r["mode"] == "one" else f"grown, {r['passes_per_launch']} passes"
         lines.append(f"| trace per lane, {100 * r['fraction']:g} % of tiles a launch ({r['tiles']} of "
-                     f"{sp['n_tiles']}, random; every tile once in {r['groups']} groups), {how} "
-                     f"| {ns * r['s_per_lane']:.1f} ns | {ns * dense['s_per_lane']:.1f} ns (100 %) | {_x(r['vs_dense'])} |")
+                     f"{sp['n_tiles']} at random, {r['launches']} launches), {how} | {ns * r['s_per_lane']:.1f} ns "
+                     f"| {ns * dense['s_per_lane']:.1f} ns (100 %) | {_x(r['vs_dense'])} |")
     lines += [f"| decisions (criterion + features), share of wall | {_pct(a['decisions_s'], a['wall_s'])} "
               f"| {_pct(u['decisions_s'], u['wall_s'])} | |",
               f"| render (waiting for the tracer), share of wall | {_pct(a['render_s'], a['wall_s'])} "

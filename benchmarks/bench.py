@@ -2,7 +2,8 @@
 
 Every figure is a median over repeats after a warm-up call; the accuracy cost of each
 speed choice is reported beside it. The sections live in bench_features, bench_flip,
-bench_models, bench_passes (renders and passes), bench_decisions, bench_service,
+bench_models, bench_passes (renders and passes), bench_native and bench_cost (against
+`mi.render` and the uniform loop), bench_decisions, bench_service,
 stability and reliability.
 """
 from __future__ import annotations
@@ -53,8 +54,8 @@ DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "inputs": (bench_inp
                     "budget": (bench_budget, md_budget)}
 
 
-SECTIONS = ("features", "crop", "flip", "models", "render", "passes", "native", "oracle", "service", "capacity",
-            "stability",
+SECTIONS = ("features", "crop", "flip", "models", "render", "passes", "native", "cost", "oracle", "service",
+            "capacity", "stability",
             "reliability", "hardening", *DATASET_SECTIONS)
 
 
@@ -117,6 +118,10 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
         from .bench_native import bench_native, md_native
         # the figures are the device's: a GPU run fills a section of its own
         measure("native_gpu" if variant.startswith("cuda") else "native", bench_native, md_native)
+    if "cost" in only:
+        from .bench_cost import bench_cost, md_cost
+        # the cost per kept sample, in parts (issue 50); a GPU run fills a section of its own
+        measure("cost_gpu" if variant.startswith("cuda") else "cost", bench_cost, md_cost)
     if "oracle" in only:
         from .bench_passes import bench_oracle, md_oracle
         measure("oracle", lambda: bench_oracle(max(1, min(repeats, 3))), md_oracle)

@@ -336,6 +336,31 @@ class BlockRenderer(BlockWindows):
 # ----------------------------------------------------------------------------- benchmark
 
 
+def time_crop_renders(r: BlockRenderer, groups: Sequence[Sequence[int]], spp: int, repeats: int = 3,
+                      seed: int = 1) -> dict[str, Any]:
+    """Wall seconds of `r` rendering the full frame and each group of blocks alone (the crop
+    engine: one ``mi.render`` of each block's crop; the wavefront engine: one trace of the
+    group's pixels), `spp` samples per pixel, both warm: the first call of each (which
+    compiles) is timed apart, then `repeats` rounds, the full frame and every group in turn
+    (interleaved: each sees the same load), medians kept. Returns ``full_s``,
+    ``groups_s`` [len(groups)], and the first calls' ``first_full_s``, ``first_groups_s``."""
+    def timed(run: Any) -> float:
+        t0 = time.perf_counter()
+        run()
+        return time.perf_counter() - t0
+
+    first_full = timed(lambda: r.render_full(spp, seed=0))
+    first_groups = [timed(lambda g=g: r.render_blocks(list(g), spp, seed=0)) for g in groups]
+    full_t: list[float] = []
+    groups_t: list[list[float]] = [[] for _ in groups]
+    for k in range(max(1, int(repeats))):
+        full_t.append(timed(lambda k=k: r.render_full(spp, seed=seed, pass_index=k)))
+        for g, out in zip(groups, groups_t):
+            out.append(timed(lambda g=g, k=k: r.render_blocks(list(g), spp, seed=seed, pass_index=k)))
+    return {"full_s": statistics.median(full_t), "groups_s": [statistics.median(t) for t in groups_t],
+            "first_full_s": first_full, "first_groups_s": first_groups}
+
+
 def measure_crop_cost(
     scene_name: str = "cornell",
     resolution: int = 256,
@@ -356,23 +381,9 @@ def measure_crop_cost(
     scene = load_scene(scene_name, resolution)
     r = BlockRenderer(scene, grid=grid)
     ids = list(block_ids)
-
-    t0 = time.perf_counter()
-    r.render_full(spp, seed=0)
-    first_full = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    r.render_blocks(ids, spp, seed=0)
-    first_blocks = time.perf_counter() - t0
-
-    full_t, blocks_t = [], []
-    for k in range(max(1, int(repeats))):
-        t0 = time.perf_counter()
-        r.render_full(spp, seed=1, pass_index=k)
-        full_t.append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        r.render_blocks(ids, spp, seed=1, pass_index=k)
-        blocks_t.append(time.perf_counter() - t0)
-    full_s, blocks_s = statistics.median(full_t), statistics.median(blocks_t)
+    t = time_crop_renders(r, [ids], spp, repeats)
+    full_s, blocks_s = t["full_s"], t["groups_s"][0]
+    first_full, first_blocks = t["first_full_s"], t["first_groups_s"][0]
     result = {
         "variant": current_variant(),
         "scene": scene_name,

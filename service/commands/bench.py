@@ -24,8 +24,8 @@ from . import arguments as arg
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="measure the figures of BENCHMARKS.md")
     p.add_argument("what", nargs="*", default=["features", "crop"],
-                   help="sections: features, crop, flip, models, render, passes, native, oracle, service, capacity, "
-                        "stability, reliability, hardening, dataset, inputs, criteria, tradeoff, ablation, step, "
+                   help="sections: features, crop, flip, models, render, passes, native, cost, oracle, service, "
+                        "capacity, stability, reliability, hardening, dataset, inputs, criteria, tradeoff, ablation, step, "
                         "knobs, observer, tau, tilestop, budget "
                         "(default: features crop)")
     p.add_argument("--data", default=None, help="labelled dataset of training scenes")

@@ -252,3 +252,27 @@ def test_stored_tile_truth_of_the_first_version_is_recomputed(tmp_path) -> None:
     again = read_stack(st.path)
     assert again.labeler["tile_truth"] == "final-frame" and again.tile_thresholds == [SPP[c] for c in CONV]
     assert with_tile_truth(read_stack(st.path)) is not None and not relabel_if_stale(again)[1]
+
+
+@pytest.mark.parametrize("case", ["black", "constant", "firefly", "nan", "tiny"])
+def test_the_fixed_point_ends_on_extreme_frames(case: str) -> None:
+    """Black, constant, fireflies of 1e30, NaN pixels and tiny values: the fixed point ends,
+    tiles only move later, and a block it cannot bring under tau is censored, never a
+    traceback or a stop inside noise."""
+    from learning.data.tile_truth import fixed_point
+
+    spp = [8, 16, 24]
+    value = {"black": 0.0, "constant": 0.4, "firefly": 0.4, "nan": 0.4, "tiny": 1e-30}[case]
+    ref = np.full((32, 32, 3), value, np.float32)
+    levels = np.repeat(ref[None], len(spp), axis=0)
+    if case == "firefly":                     # more outliers than a tile lets through
+        levels[:, 3:6, 3:6] = 1e30
+    if case == "nan":
+        levels[:, 4:8, 20:24] = np.nan
+    start = np.zeros(4, np.int64)
+    at, rounds = fixed_point(levels, ref, start, (1, 1), 16, VirtualObserver())
+    assert (at >= start).all() and rounds <= len(start) * len(spp) + 1     # every round moves a tile
+    if case in ("black", "constant", "tiny"):
+        assert at.tolist() == [0, 0, 0, 0] and rounds == 1          # nothing to see: nothing moves
+    else:                                                           # what never clears is censored
+        assert at[0 if case == "firefly" else 1] == len(spp)

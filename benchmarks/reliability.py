@@ -263,22 +263,17 @@ def bench_scene_files() -> list[dict[str, Any]]:
     """Issue 51's scene-named files: each kind a scene XML names (mesh, include, bitmap,
     environment map) as /dev/zero, a FIFO, a 3 GB sparse file and a missing file, against
     `render --scene FILE.xml` (goal: exit 2, one line naming the file, at most 5 s and 500 MiB)."""
+    from tests.support.bad_files import BAD_KINDS, bad_file
+
     sensor = ('<sensor type="perspective"><film type="hdrfilm"><integer name="width" value="16"/>'
               '<integer name="height" value="16"/></film></sensor>')
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for i, (element, naming) in enumerate(SCENE_NAMING.items()):
-            for j, kind in enumerate(("/dev/zero", "FIFO", "3 GB sparse", "missing")):
+            for j, kind in enumerate(BAD_KINDS):
                 d = Path(tmp) / f"s{i}{j}"
                 d.mkdir()
-                target = d / "named.dat"
-                if kind == "/dev/zero":
-                    target.symlink_to("/dev/zero")
-                elif kind == "FIFO":
-                    os.mkfifo(target)
-                elif kind == "3 GB sparse":
-                    with open(target, "wb") as f:
-                        f.truncate(3 << 30)               # sparse: no disk used
+                target = bad_file(d / "named.dat", kind)
                 xml = d / "scene.xml"
                 xml.write_text(f'<scene version="3.0.0">{naming.format(name=target.name)}{sensor}</scene>')
                 r = _run_cli(["render", "--scene", str(xml), "--max-spp", "16", "--criterion", "uniform",

@@ -53,12 +53,17 @@ def test_two_outlier_pixels_keep_a_tile_noisy_and_one_does_not() -> None:
     assert thresholds_from_errors(tile_errors(tile_terms(ref, one, (1, 1), 16)), SPP, 0.02)[6] == 8
 
 
-def test_relabel_writes_block_and_tile_truth(tmp_path) -> None:
+def _written(tmp_path):
+    """The stack of `_levels`, labelled by the block observer only (no tile truth stored)."""
     ref, levels = _levels()
     obs = VirtualObserver()
-    st = write_stack(tmp_path / "s", scene="s", levels=levels, spp=SPP, reference=ref, quick=None,
-                     reference_spp=256, grid=(1, 1), labeler=obs.labeler,
-                     thresholds=obs.thresholds(ref, levels, SPP, (1, 1)))
+    return obs, write_stack(tmp_path / "s", scene="s", levels=levels, spp=SPP, reference=ref, quick=None,
+                            reference_spp=256, grid=(1, 1), labeler=obs.labeler,
+                            thresholds=obs.thresholds(ref, levels, SPP, (1, 1)))
+
+
+def test_relabel_writes_block_and_tile_truth(tmp_path) -> None:
+    obs, st = _written(tmp_path)
     assert st.tile_thresholds is None
     assert with_tile_truth(st).tile_thresholds == [SPP[c] for c in CONV]      # in memory
     after, changed = relabel_if_stale(read_stack(st.path))
@@ -241,11 +246,7 @@ def test_a_tile_noisy_at_the_last_level_is_censored_and_holds_no_neighbour() -> 
 
 
 def test_stored_tile_truth_of_the_first_version_is_recomputed(tmp_path) -> None:
-    ref, levels = _levels()
-    obs = VirtualObserver()
-    st = write_stack(tmp_path / "s", scene="s", levels=levels, spp=SPP, reference=ref, quick=None,
-                     reference_spp=256, grid=(1, 1), labeler=obs.labeler,
-                     thresholds=obs.thresholds(ref, levels, SPP, (1, 1)))
+    obs, st = _written(tmp_path)
     old = {k: v for k, v in obs.labeler.items() if k != "tile_truth"}   # as issue 41's relabel wrote it
     update_labels(st.path, st.thresholds, old, 16, [8] * 16)
     assert relabel_if_stale(read_stack(st.path))[1]                 # stale: rewritten

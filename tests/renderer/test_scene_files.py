@@ -15,6 +15,7 @@ import pytest
 
 from renderer.scenes import load_scene
 from renderer.scenefiles import MAX_DEPTH, check_scene_files
+from tests.support.bad_files import bad_file as make_bad_file
 from tests.support.errors import assert_one_line_error, run
 
 SENSOR = ('<sensor type="perspective"><film type="hdrfilm"><integer name="width" value="8"/>'
@@ -39,15 +40,7 @@ def scene(tmp: Path, body: str, name: str = "scene.xml") -> Path:
 
 
 def bad_file(tmp: Path, kind: str) -> Path:
-    path = tmp / "bad.dat"
-    if kind == "/dev/zero":
-        path.symlink_to("/dev/zero")
-    elif kind == "FIFO":
-        os.mkfifo(path)
-    elif kind == "3 GB sparse":
-        with open(path, "wb") as f:
-            f.truncate(3 << 30)           # sparse: no disk used
-    return path
+    return make_bad_file(tmp / "bad.dat", kind)
 
 
 @pytest.mark.parametrize("bad", BAD)

@@ -69,8 +69,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--min-spp", type=arg.spp, default=None,
                    help="no decision below this many spp (default: from the first level)")
     p.add_argument("--tile", type=arg.int_in(0, 4096), default=DEFAULT_TILE, metavar="PX",
-                   help=f"also calibrate c(tau) per tile of PX pixels against the tile truth (default "
-                        f"{DEFAULT_TILE}, the render's; 0: blocks only)")
+                   help=f"also calibrate c(tau) per tile of PX pixels, on the tiles' history, against the "
+                        f"blocks the final frame leaves above tau (default {DEFAULT_TILE}, the render's; 0: blocks only)")
     _destination(p, "calibration file to write (default: flip.json in the user data directory, which the "
                     "flip criterion then reads instead of the shipped one)", "learning/flip.json")
     p.add_argument("--json", action="store_true")

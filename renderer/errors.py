@@ -7,10 +7,9 @@ subclass both, so code catching either keeps working.
 """
 from __future__ import annotations
 
+from noisefeat.errors import InputNotFound
 
-class InputNotFound(ValueError, FileNotFoundError):
-    """A file or directory an argument names (model bundle, scene file, reference, token
-    file) is not there."""
+__all__ = ["InputNotFound", "ServerUnavailable"]
 
 
 class ServerUnavailable(ValueError, ConnectionError):

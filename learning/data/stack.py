@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from noisefeat.errors import InputNotFound
 from noisefeat.safeio import open_input, read_input, read_text
 
 from noisefeat import split_blocks
@@ -343,7 +344,7 @@ class Stack:
         if kind in EXTRA_QUICK:
             path = self.path / EXTRA_QUICK[kind]
             if not path.exists():
-                raise FileNotFoundError(f"{self.path}: no {kind} quick image ({path.name}); rerun "
+                raise InputNotFound(f"{self.path}: no {kind} quick image ({path.name}); rerun "
                                         f"`noisestop dataset build` with the same settings to add it")
             return self._read(path)
         if kind not in (None, "albedo"):
@@ -410,7 +411,7 @@ def file_digest(path: Path) -> str:
     try:
         st = path.stat()
     except FileNotFoundError:
-        raise FileNotFoundError(f"{path}: missing") from None
+        raise InputNotFound(f"{path}: missing") from None
     sig = (os.fspath(path), st.st_ino, st.st_size, st.st_mtime_ns)
     digest = _DIGESTS.get(sig)
     if digest is None:
@@ -471,8 +472,9 @@ def read_stack(path: str | os.PathLike) -> Stack:
 
     Raises
     ------
-    FileNotFoundError
-        If there is no meta.json (the message says whether a build was interrupted).
+    noisefeat.errors.InputNotFound
+        If there is no meta.json (the message says whether a build was interrupted; a
+        ValueError and a FileNotFoundError).
     ValueError
         If meta.json is not valid JSON or breaks the format.
     """
@@ -480,9 +482,9 @@ def read_stack(path: str | os.PathLike) -> Stack:
     meta_path = d / META
     if not meta_path.is_file():
         if (d / PARTIAL).is_file():
-            raise FileNotFoundError(f"{meta_path}: missing: incomplete build ({PARTIAL} "
+            raise InputNotFound(f"{meta_path}: missing: incomplete build ({PARTIAL} "
                                     "present); rerun the build to finish it")
-        raise FileNotFoundError(f"{meta_path}: missing: {d} is not a noisestop stack")
+        raise InputNotFound(f"{meta_path}: missing: {d} is not a noisestop stack")
     meta = load_json(meta_path)
     errs = validate_meta(meta)
     if errs:
@@ -541,7 +543,7 @@ def list_stacks(root: str | os.PathLike, include_incomplete: bool = False) -> li
     """
     root = Path(root)
     if not root.is_dir():
-        raise FileNotFoundError(f"{root}: no such dataset directory")
+        raise InputNotFound(f"{root}: no such dataset directory")
     names = {META, PARTIAL} if include_incomplete else {META}
     found = []
     for dirpath, dirnames, filenames in os.walk(root):

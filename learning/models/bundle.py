@@ -17,6 +17,7 @@ from typing import Any
 
 import skops.io as sio
 
+from noisefeat.errors import InputNotFound
 from noisefeat import FeatureBase, default_base
 from noisefeat.atomic import atomic_path, atomic_write
 from noisefeat.jsonout import json_default
@@ -93,8 +94,9 @@ def load_model(path: str | os.PathLike | None = None, base: FeatureBase | None =
 
     Raises
     ------
-    FileNotFoundError
-        If `path` holds no bundle or a file of it is missing.
+    noisefeat.errors.InputNotFound
+        If `path` holds no bundle or a file of it is missing (a ValueError and a
+        FileNotFoundError).
     ValueError
         On any damaged, inconsistent or foreign bundle, naming the file.
     """
@@ -102,14 +104,14 @@ def load_model(path: str | os.PathLike | None = None, base: FeatureBase | None =
     if path.is_file() and path.name == MANIFEST:
         path = path.parent
     if not (path / MANIFEST).exists():           # a FIFO or a device there is read_manifest's to name
-        raise FileNotFoundError(f"{path}: not a noisestop model bundle (no {MANIFEST})")
+        raise InputNotFound(f"{path}: not a noisestop model bundle (no {MANIFEST})")
     manifest = read_manifest(path / MANIFEST)
     if manifest["input"] == "image":        # a transfer baseline: torchvision, loaded only here
         from .transfer_bundle import load_transfer_model
         return load_transfer_model(path, manifest)
     model_file = path / MODEL_FILE
     if not model_file.exists():
-        raise FileNotFoundError(f"{model_file}: missing")
+        raise InputNotFound(f"{model_file}: missing")
     data = model_bytes(model_file, manifest)
     try:
         untrusted = sio.get_untrusted_types(data=data)

@@ -54,8 +54,8 @@ test-fast: setup
 # Time: BENCHMARKS.md "make bench". The sections live in benchmarks/ (this checkout only: not
 # installed, not in the image); `noisestop bench` loads them from here.
 bench: dataset heldout
-	$(NOISESTOP) bench features crop flip render passes native service stability reliability --update BENCHMARKS.md
-	$(NOISESTOP) bench dataset inputs models criteria tradeoff ablation step knobs --data $(DATA) \
+	$(NOISESTOP) bench features crop flip render passes native cost service stability reliability --update BENCHMARKS.md
+	$(NOISESTOP) bench dataset inputs models criteria tradeoff ablation step knobs tilestop --data $(DATA) \
 		--heldout $(HELDOUT) --input halves,albedo --update BENCHMARKS.md
 
 # The training dataset (README "Datasets"): PROCEDURAL seeded procedural scenes

@@ -1,6 +1,8 @@
 """Cutting images into the grid of sub-images the method decides on, and back."""
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 
@@ -58,3 +60,27 @@ def merge_blocks(blocks: np.ndarray, grid: tuple[int, int] = (4, 4)) -> np.ndarr
     tail = b.shape[3:]
     out = b.reshape(gh, gw, bh, bw, *tail).swapaxes(1, 2)
     return np.ascontiguousarray(out.reshape(gh * bh, gw * bw, *tail))
+
+
+def compose(means: Sequence[np.ndarray], windows: Sequence[tuple[int, int, int, int]],
+            spp: Sequence[int], frame: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(image [H, W, C], spp per pixel [H, W], owner block per pixel [H, W]) of a frame
+    whose (x, y, w, h) `windows` hold `means` at `spp` samples.
+
+    Each pixel comes from the window holding it with the most samples (with keyed random
+    numbers that window's samples include every other window's for the pixel). The one rule
+    for the frame a render ends with: the renderer's (`renderer.block_windows`) and the
+    simulation's on stored stacks (`learning.data.tile_truth`).
+    """
+    h, w = frame
+    image = np.zeros((h, w, np.asarray(means[0]).shape[-1]), np.float64)
+    best = np.full((h, w), -1, np.int64)
+    owner = np.full((h, w), -1, np.int64)
+    for b in np.argsort(np.asarray(spp), kind="stable"):     # most samples written last
+        x, y, bw, bh = windows[b]
+        image[y:y + bh, x:x + bw] = means[b]
+        best[y:y + bh, x:x + bw] = spp[b]
+        owner[y:y + bh, x:x + bw] = b
+    if (owner < 0).any():
+        raise ValueError("the block windows do not cover the frame")
+    return image, best, owner

@@ -11,7 +11,8 @@ together with its neighbour's pixels: every window the criterion sees is a full
 ``block x block`` window of one sample count, the size the model and the flip threshold
 were calibrated on. Overlapping pixels are traced once per pass and shared by the
 windows that hold them (`renderer.wavefront`); the final image takes each pixel from the
-covering window with the most samples (`compose`).
+covering window with the most samples (`compose`, `noisefeat.blocks`: the one rule, which
+the simulation on stacks puts its final frames together by too).
 
 Tiles: each block window is cut into tiles of `tile` pixels by the same rule (every
 `tile` pixels, the last flush with the block's edge), the same layout in every block. The
@@ -27,7 +28,10 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from noisefeat.blocks import compose
 from noisefeat.pooling import tile_windows
+
+__all__ = ["BlockWindows", "compose", "tile_starts"]
 
 
 def tile_starts(size: int, block: int) -> list[int]:
@@ -38,27 +42,6 @@ def tile_starts(size: int, block: int) -> list[int]:
     if starts[-1] + block < size:
         starts.append(size - block)
     return starts
-
-
-def compose(means: Sequence[np.ndarray], windows: Sequence[tuple[int, int, int, int]],
-            spp: Sequence[int], frame: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(image [H, W, C], spp per pixel [H, W], owner block per pixel [H, W]) of a frame.
-
-    Each pixel comes from the window holding it with the most samples (with keyed random
-    numbers that window's samples include every other window's for the pixel).
-    """
-    h, w = frame
-    image = np.zeros((h, w, np.asarray(means[0]).shape[-1]), np.float64)
-    best = np.full((h, w), -1, np.int64)
-    owner = np.full((h, w), -1, np.int64)
-    for b in np.argsort(np.asarray(spp), kind="stable"):     # most samples written last
-        x, y, bw, bh = windows[b]
-        image[y:y + bh, x:x + bw] = means[b]
-        best[y:y + bh, x:x + bw] = spp[b]
-        owner[y:y + bh, x:x + bw] = b
-    if (owner < 0).any():
-        raise ValueError("the block windows do not cover the frame")
-    return image, best, owner
 
 
 class BlockWindows:

@@ -184,11 +184,16 @@ class BlockAccumulator:
         buffer holding a pass (every value there was dropped): no estimate of the pixel, so
         neither a mean to judge nor halves to compare (issue 51)."""
         ids = self._check_ids(block_ids)
-        if not ids.size:
-            return np.zeros(0, np.int64)
+        out = np.zeros(len(ids), np.int64)
+        # only a block that dropped values can hold such a pixel: the others cost no pass over their weights
+        some = np.flatnonzero(self.nonfinite_all()[ids] > 0)
+        if not some.size:
+            return out
+        ids = ids[some]
         held = torch.from_numpy(self._spp[ids].T > 0).to(self.device)          # [2, k]: half holds a pass
         empty = (self._weight[:, torch.from_numpy(ids).to(self.device)] == 0) & held[:, :, None, None]
-        return empty.any(dim=0).flatten(1).sum(dim=1).cpu().numpy().astype(np.int64)
+        out[some] = empty.any(dim=0).flatten(1).sum(dim=1).cpu().numpy()
+        return out
 
     def unsampled(self, block_ids: Sequence[int] | np.ndarray) -> np.ndarray:
         """bool [k, bh, bw] (host): pixels of sampled blocks with no finite value at all:

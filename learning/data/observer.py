@@ -45,7 +45,7 @@ from noisefeat.pooling import (DEFAULT_POOLING, DOTS, FLIP_POOLINGS, MEAN, POOLI
 from ..names import DEFAULT_TAU
 from .cache import cached_array
 from .stack import Stack, block_shape, list_stacks, read_stack, update_labels
-from .tile_truth import TILE_TRUTH, final_frame_levels, unit_windows
+from .tile_truth import TILE_TRUTH, final_frame_levels
 from noisefeat.extras import require
 
 log = logging.getLogger(__name__)
@@ -162,23 +162,30 @@ def tile_terms(reference_rgb: np.ndarray, levels_rgb: np.ndarray | Iterable[np.n
     ref = np.asarray(reference_rgb)
     if ref.ndim != 3 or ref.shape[2] != 3:
         raise ValueError(f"reference must be linear RGB [H, W, 3], got shape {ref.shape}")
-    bh, bw = block_shape(ref.shape[0], ref.shape[1], grid)
+    block_shape(ref.shape[0], ref.shape[1], grid)
+    rows = [_tile_row(ref_t, lev_t, frame_map, grid, tile)
+            for ref_t, lev_t, frame_map in _level_maps(ref, levels_rgb, ppd, exposure)]
+    if not rows:
+        raise ValueError("no levels given")
+    return np.asarray(rows, np.float64).transpose(1, 0, 2)
+
+
+def _tile_row(ref_display: torch.Tensor, level_display: torch.Tensor, frame_map: np.ndarray, grid: Sequence[int],
+              tile: int) -> tuple[np.ndarray, np.ndarray]:
+    """(FLIP means [n_tiles], dot terms [n_tiles]) of one frame's tiles, block-major: the
+    per-tile terms of `tile_terms` and of `VirtualObserver.frame_errors`."""
     gh, gw = int(grid[0]), int(grid[1])
+    bh, bw = frame_map.shape[0] // gh, frame_map.shape[1] // gw
     windows = tile_windows(bh, bw, tile)
 
     def blocks(m: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
         return m.reshape(gh, bh, gw, bw).transpose(1, 2).reshape(gh * gw, bh, bw) if isinstance(m, torch.Tensor) \
             else m.reshape(gh, bh, gw, bw).transpose(0, 2, 1, 3).reshape(gh * gw, bh, bw)
-    rows = []
-    for ref_t, lev_t, frame_map in _level_maps(ref, levels_rgb, ppd, exposure):
-        emap = blocks(frame_map.astype(np.float64))
-        derr = blocks(display_error(lev_t, ref_t))
-        flip_mean = np.stack([emap[:, y:y + h, x:x + w].mean(axis=(1, 2)) for x, y, w, h in windows], axis=1)
-        dots = torch.stack([rank_pool(derr[:, y:y + h, x:x + w]) for x, y, w, h in windows], dim=1).numpy()
-        rows.append([flip_mean.reshape(-1), dots.reshape(-1)])
-    if not rows:
-        raise ValueError("no levels given")
-    return np.asarray(rows, np.float64).transpose(1, 0, 2)
+    emap = blocks(np.asarray(frame_map).astype(np.float64))
+    derr = blocks(display_error(level_display, ref_display))
+    flip_mean = np.stack([emap[:, y:y + h, x:x + w].mean(axis=(1, 2)) for x, y, w, h in windows], axis=1)
+    dots = torch.stack([rank_pool(derr[:, y:y + h, x:x + w]) for x, y, w, h in windows], dim=1).numpy()
+    return flip_mean.reshape(-1), dots.reshape(-1)
 
 
 def tile_errors(terms: np.ndarray) -> np.ndarray:
@@ -314,16 +321,11 @@ class VirtualObserver:
         """(block errors [n_blocks], tile errors [n_tiles]) of one frame, from one FLIP map: a
         block's error is this observer's version 3 (its largest 16x16 tile mean or its dot
         term); a tile's, its FLIP mean or its own dot term (at most one outlier pixel), as
-        `tile_terms` has them. Tiles block-major (`learning.data.tile_truth.unit_windows`)."""
+        `tile_terms` has them (`_tile_row`). Tiles block-major."""
         (ref_t, lev_t, emap), = list(_level_maps(np.asarray(reference), [frame], self.ppd, self.exposure))
         g = (int(grid[0]), int(grid[1]))
         blocks = np.maximum(pool_blocks(emap, g, TILE_MAX), _block_dots(ref_t, lev_t, g))
-        err = display_error(lev_t, ref_t)
-        windows = unit_windows(frame.shape[1], frame.shape[0], grid, tile)
-        emap64 = np.asarray(emap, np.float64)
-        means = np.array([emap64[y:y + h, x:x + w].mean() for x, y, w, h in windows])
-        dots = rank_pool(torch.stack([err[y:y + h, x:x + w] for x, y, w, h in windows])).numpy()
-        return blocks, np.maximum(means, dots)
+        return blocks, np.maximum(*_tile_row(ref_t, lev_t, emap, g, tile))
 
     def label_tiles_same_samples(self, stack: Stack, tile: int = TILE) -> list[int | None]:
         """The first tile truth (issue 41), kept for comparison: each tile converged from the

@@ -32,6 +32,7 @@ from typing import Protocol
 
 import numpy as np
 
+from noisefeat.blocks import compose
 from noisefeat.dots import DOT_LEVEL
 from noisefeat.pooling import tile_windows
 
@@ -67,12 +68,10 @@ def unit_windows(width: int, height: int, grid: Sequence[int], tile: int) -> lis
 
 def compose_levels(levels: np.ndarray, at: np.ndarray, windows: Sequence[tuple[int, int, int, int]]) -> np.ndarray:
     """The frame [H, W, 3] with tile u taken from level `at[u]` of `levels` [K, H, W, 3]; a
-    pixel two tiles share comes from the one at the later level (most samples win)."""
-    frame = np.empty(levels.shape[1:], levels.dtype)
-    for u in np.argsort(at, kind="stable"):
-        x, y, w, h = windows[u]
-        frame[y:y + h, x:x + w] = levels[at[u], y:y + h, x:x + w]
-    return frame
+    pixel two tiles share comes from the one at the later level (most samples win: the
+    renderer's `noisefeat.blocks.compose`)."""
+    means = [levels[k, y:y + h, x:x + w] for k, (x, y, w, h) in zip(np.asarray(at).tolist(), windows)]
+    return compose(means, windows, at, levels.shape[1:3])[0].astype(levels.dtype)
 
 
 def touching(windows: Sequence[tuple[int, int, int, int]]) -> np.ndarray:
@@ -144,6 +143,8 @@ class FinalFrame:
         self.windows = unit_windows(stack.width, stack.height, stack.grid, self.tile)
         self.levels = np.stack([np.asarray(x, np.float32) for x in stack.iter_levels()])
         self.reference = np.asarray(stack.reference(), np.float32)
+        #: bool [n_blocks]: the blocks whose truth converges in the stack
+        self.converging = np.array([t is not None for t in (stack.thresholds or [None] * stack.n_blocks)])
         self._seen: dict[bytes, np.ndarray] = {}
 
     def block_errors(self, at: np.ndarray) -> np.ndarray:
@@ -164,6 +165,6 @@ class FinalFrame:
         stopped = np.asarray(verdicts) > 0
         e = self.block_errors(np.where(stopped.any(axis=0), stopped.argmax(axis=0), len(stopped) - 1))
         above = ~(e <= self.tau)
-        conv = np.array([t is not None for t in (self.stack.thresholds or [None] * len(e))])
+        conv = self.converging
         return {"above_tau": int(above.sum()), "early": int((above & conv).sum()), "converging": int(conv.sum()),
                 "blocks": int(e.size), "worst": float(np.nanmax(e))}

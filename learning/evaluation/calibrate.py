@@ -23,10 +23,10 @@ from noisefeat.pooling import CRITERION_POOLING, DEFAULT_POOLING
 
 from ..data.observer import DEFAULT_TAU, label_tau, observed, observer_for, with_tile_truth
 from ..data.stack import Stack
+from ..data.tile_truth import TILE_TRUTH, FinalFrame
 from ..inputs.halves import flip_offset, guarded_flip_scores, guarded_tile_flip_scores
 from ..inputs.halves import stack_flat
 from ..inputs.history import STATISTIC
-from ..data.tile_truth import TILE_TRUTH, FinalFrame
 from ..inputs.table import SubImageTable
 from ..stoprule import StopRule
 from .evaluate import evaluate_scores

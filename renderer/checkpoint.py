@@ -11,7 +11,8 @@ made with the same settings, and holds a state that the loop could have produced
 * 0 <= p <= the passes of the settings, `done` only at the end or with no block active;
 * history is -1/0/+1, each row's per-block spp never decreasing and ending at what the
   accumulator holds; each row rendered 1..n blocks; each unit's decision evidence (the
-  history criterion's sums) finite, >= 0, of at most one estimate per decision it had;
+  history criterion's sums) finite, >= 0, weighing whole samples and at most those the
+  unit had at its last decision; each unit's next decision at or after its last one;
 * every block holds exactly the samples of its passes; a stopped one stopped where its
   history says +1, at its stop spp;
 * counters are whole numbers in [0, 2**53] and timers seconds in [0, a century] (a forged
@@ -42,9 +43,11 @@ from learning.data.npz import check_digest, read_npz, savez_bytes
 
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_FORMAT = "noisestop-adaptive-checkpoint"
-CHECKPOINT_VERSION = 5          # 2: content digest and validated state; 3: per-block spp history, budget state;
+CHECKPOINT_VERSION = 6          # 2: content digest and validated state; 3: per-block spp history, budget state;
                                 # 4: per-tile state (units: every block's tiles, issue 41);
-                                # 5: each unit's decision evidence (the history criterion, issue 49)
+                                # 5: each unit's decision evidence (the history criterion, issue 49);
+                                # 6: that evidence weighted by the samples each decision stands for, and
+                                #    each unit's next decision (issue 50)
 
 
 def _str_array(text: str) -> np.ndarray:
@@ -64,6 +67,7 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
         "history_block_spp": np.asarray(state["history_block_spp"], np.int64).reshape(-1, len(state["active"])),
         "rendered": np.asarray(state["rendered"], np.int64),
         "evidence": np.asarray(state["evidence"], np.float64).reshape(-1, 2),
+        "next_spp": np.asarray(state["next_spp"], np.int64),
         "pass_index": np.int64(state["pass_index"]),
         "done": np.bool_(state["done"]),
         "counter_names": np.array(list(state["counters"]), dtype="<U64"),
@@ -190,12 +194,18 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
     block_spp = _get(data, "history_block_spp", "int64", (p, n))
     rendered = _get(data, "rendered", "int64", (p,))
     evidence = _get(data, "evidence", "float64", (n, 2))
+    next_spp = _get(data, "next_spp", "int64", (n,))
     done = bool(_get(data, "done", "bool", ()))
     cum = np.concatenate([[0], np.cumsum(pass_spp, dtype=np.int64)])   # [0, *schedule]
-    decided = (history != 0).sum(axis=0)
+    asked = history != 0
+    last_row = np.where(asked.any(axis=0), p - 1 - np.argmax(asked[::-1], axis=0), -1) if p else np.full(n, -1)
+    decided_spp = np.where(last_row >= 0, block_spp[np.maximum(last_row, 0), np.arange(n)] if p else 0, 0)
     if not np.isfinite(evidence).all() or (evidence < 0).any() or (evidence[:, 1] != np.round(evidence[:, 1])).any() \
-            or (evidence[:, 1] > decided).any() or ((evidence[:, 1] == 0) & (evidence[:, 0] != 0)).any():
-        raise ValueError("the decision history's evidence is not finite sums >= 0 of at most one estimate a decision")
+            or (evidence[:, 1] > decided_spp).any() or ((evidence[:, 1] == 0) & (evidence[:, 0] != 0)).any():
+        raise ValueError("the decision history's evidence is not finite sums >= 0 weighing at most the samples "
+                         "of the unit's decisions")
+    if (next_spp < decided_spp).any() or (next_spp > (decided_spp << 20)).any():
+        raise ValueError("a unit's next decision is before its last one or past what any ratio asks")
     if not np.isin(history, (-1, 0, 1)).all():
         raise ValueError("history holds values other than -1, 0, +1")
     if ((rendered < 1) | (rendered > n)).any():
@@ -251,7 +261,7 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
     state = {
         "acc": acc, "active": active.copy(), "stop_spp": stop_spp.copy(), "history": history.copy(),
         "history_spp": history_spp.copy(), "history_block_spp": block_spp.copy(), "rendered": rendered.copy(),
-        "evidence": evidence.copy(),
+        "evidence": evidence.copy(), "next_spp": next_spp.copy(),
         "pass_index": p, "done": done,
         "counters": dict(zip(names.tolist(), values.tolist())),
         "timers": dict(zip(tnames.tolist(), tvalues.tolist())),

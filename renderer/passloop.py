@@ -14,7 +14,7 @@ a stack's recovered passes in `renderer.simulate`). `PassLoop.step` then:
 1. adds each pass to the `BlockAccumulator` (exact means, even/odd half buffers, tensors on
    the accumulator's device); each pass is one row of the verdict history;
 2. applies the stop rule's gate (`learning.stoprule.decide_active`): the blocks of the step
-   at or past min_spp are judged in one batched `Criterion.decide`, and those it calls
+   at or past min_spp and at their next decision (`next_decision`; always at the last pass) are judged in one batched `Criterion.decide`, and those it calls
    converged leave the active set for good: never traced, featured or asked again.
 
 The loop owns what a render accumulates: the counters and timers of its decisions, each
@@ -40,6 +40,18 @@ from .criteria import COUNTER_NAMES, TIMER_NAMES, BlockBatch, Criterion, Decisio
 def schedule(step: int, max_spp: int) -> np.ndarray:
     """The spp at the end of each pass up to max_spp, int64 (the last pass may be shorter)."""
     return np.minimum(np.arange(1, -(-int(max_spp) // int(step)) + 1, dtype=np.int64) * int(step), int(max_spp))
+
+
+def next_decision(spp: np.ndarray, ratio: np.ndarray, skip: float) -> np.ndarray:
+    """int64 [k]: the spp at which units just judged at `spp` with ratio to target `ratio`
+    are judged next. Monte Carlo noise falls as 1/sqrt(spp), so a unit r times above its
+    target is predicted to reach it at spp r^2; it is judged again at spp (skip r)^2, a
+    factor skip^2 before that prediction, and after the next pass where that is no later
+    (r <= 1/skip, no estimate, or skip 0: every pass). Why: a decision costs the same
+    whether or not the unit can stop, and far from its target it cannot (issue 50)."""
+    r = np.asarray(ratio, np.float64)
+    grow = np.where(np.isfinite(r), np.clip((skip * r) ** 2, 1.0, float(1 << 20)), 1.0)
+    return np.floor(np.asarray(spp, np.float64) * grow).astype(np.int64)
 
 
 def block_events(history: np.ndarray, block_spp: np.ndarray) -> dict[int, list[tuple[int, int]]]:
@@ -78,7 +90,9 @@ class PassLoop:
     Its units are a live render's tiles (`grid` = (blocks, tiles a block), `block` the tile's
     shape; `tiling`, the renderer's `BlockWindows`, puts them back into blocks for a
     criterion that judges a tile in its block's context), or blocks. `schedule`: the spp at
-    the end of each pass; `min_spp`: no decision below it (None: from the first pass).
+    the end of each pass; `min_spp`: no decision below it (None: from the first pass);
+    `decide_skip`: how far a unit's decisions skip towards its predicted stop
+    (`next_decision`; 0: every pass).
     `quick`: the quick image's blocks [n, bh, bw, 3] when the criterion reads them
     (prepared once here). `device`: where the accumulator's tensors live (the renderer's).
     `state()` / `restore` is what the live render checkpoints.
@@ -86,8 +100,10 @@ class PassLoop:
 
     def __init__(self, criterion: Criterion, grid: tuple[int, int], block: tuple[int, int],
                  schedule: Sequence[int], min_spp: int | None, quick: np.ndarray | None = None,
-                 device: Any = None, tiling: Any = None) -> None:
+                 device: Any = None, tiling: Any = None, decide_skip: float = 0.0) -> None:
         self.criterion, self.min_spp, self.device = criterion, min_spp, device
+        #: the skip of `next_decision`, for a criterion whose ratio it can predict from
+        self.decide_skip = decide_skip if criterion.noise_ratio else 0.0
         self.tiling = tiling if tiling is not None and tiling.tiles_per_block > 1 else None
         self.schedule = np.asarray(schedule, np.int64)
         self.pass_spp = np.diff(self.schedule, prepend=0)
@@ -103,6 +119,7 @@ class PassLoop:
             self._count(made, {"features_s": float(made.pop("features_s", 0.0))})
         self.active = np.ones(n, bool)
         self.stop_spp = np.zeros(n, np.int64)
+        self.next_spp = np.zeros(n, np.int64)          # each unit's next decision (`next_decision`)
         self.history = np.zeros((0, n), np.int8)
         self.history_spp = np.zeros(0, np.int64)
         self.history_block_spp = np.zeros((0, n), np.int64)   # every block's spp after each row
@@ -131,7 +148,9 @@ class PassLoop:
         for images, pass_spp in passes:
             self.acc.add_batch(idx, images, pass_spp)
             rows_spp.append(self.acc.spp_all())
-        row = decide_active(self.active, rows_spp[-1], self.min_spp, self.judge, among=idx)
+        due = idx[(rows_spp[-1][idx] >= self.next_spp[idx]) | (self.acc.passes_all()[idx] == len(self.schedule))]
+        row = decide_active(self.active, rows_spp[-1], self.min_spp, self.judge, among=due) if due.size \
+            else np.zeros(len(self.active), np.int8)
         stopped = row > 0
         self.stop_spp[stopped] = rows_spp[-1][stopped]
         rows = np.zeros((len(passes), len(self.active)), np.int8)
@@ -148,10 +167,11 @@ class PassLoop:
         judged before the interruption again: same state, same answer)."""
         idx = np.asarray(ids, np.int64).reshape(-1)
         d: Decision = self.criterion.decide(idx, BlockBatch.from_accumulator(self.acc, idx, self.quick, self.tiling,
-                                                                            self.evidence.sums))
+                                                                            self.evidence))
         self.ratios.put(idx, d.ratio)
+        self.next_spp[idx] = next_decision(self.acc.spp_all()[idx], d.ratio, self.decide_skip)
         if d.evidence is not None:
-            self.evidence.add(idx, d.evidence)
+            self.evidence.add(idx, d.evidence, self.acc.spp_all()[idx])
         self._count(d.counts, d.timers)
         return d.verdict
 
@@ -172,7 +192,7 @@ class PassLoop:
         return {"acc": self.acc.state(), "active": self.active, "stop_spp": self.stop_spp,
                 "history": self.history, "history_spp": self.history_spp,
                 "history_block_spp": self.history_block_spp, "rendered": self.rendered,
-                "evidence": self.evidence.sums}
+                "evidence": self.evidence.sums, "next_spp": self.next_spp}
 
     def restore(self, state: dict[str, Any]) -> None:
         """Continue from a validated checkpoint's state (`renderer.checkpoint`)."""
@@ -185,6 +205,10 @@ class PassLoop:
         self.history_spp = np.asarray(state["history_spp"], np.int64)
         self.rendered = np.asarray(state["rendered"], np.int64)
         self.history_block_spp = np.asarray(state["history_block_spp"], np.int64).reshape(self.history.shape)
-        self.evidence.restore(state["evidence"])
+        asked = self.history != 0                      # each unit's last decision, what its next weight counts from
+        last_row = np.where(asked.any(axis=0), len(asked) - 1 - np.argmax(asked[::-1], axis=0), -1)
+        self.evidence.restore(state["evidence"], np.where(
+            last_row >= 0, self.history_block_spp[np.maximum(last_row, 0), np.arange(len(self.active))], 0))
+        self.next_spp = np.asarray(state["next_spp"], np.int64).copy()
         self.counters.update({k: int(v) for k, v in state.get("counters", {}).items() if k in COUNTER_NAMES})
         self.timers.update({k: float(v) for k, v in state.get("timers", {}).items() if k in TIMER_NAMES})

@@ -100,6 +100,11 @@ ROWS: tuple[Row, ...] = (
         "else 1024)", default=1024, **_SPP),
     Row("step", doc="samples per pixel a pass adds to each active block (default: the reference's "
         "level step, else 16)", default=16, **_SPP),
+    Row("decide_skip", "float", 0.5,
+        "how far a unit's decisions skip towards its predicted stop: a unit r times above its target "
+        "is judged again only at (skip r)^2 times its spp (Monte Carlo decay), or the next pass if "
+        "that is sooner; 0 judges every pass; flip and variance only, not with a budget (BENCHMARKS, "
+        "decisions skipped)", low=0.0, high=1.0),
     Row("seed", "int", 0, "base seed: the samples of (pixel, pass) depend only on it", low=0,
         high=MAX_SEED),
     Row("time_limit", "float", None,

@@ -88,7 +88,7 @@ class BlockBatch:
     computed on first use (a criterion that does not read them costs nothing); `spp`
     int64 [k], `half_spp` int64 [k, 2] and `nonfinite` int64 [k] are host arrays; `quick`
     is what the criterion's `prepare` made of the quick image's blocks [k, ...] (the
-    blocks themselves unless it prepares them), or None. `evidence` float64 [k, 2]: each
+    blocks themselves unless it prepares them), or None. `evidence` float64 [k, 3]: each
     unit's earlier decisions as the loop keeps them (`learning.inputs.history.Evidence`),
     or None (no history: a criterion that reads it treats every unit as new). `tiling` (the renderer's
     `BlockWindows`, when the units are tiles of blocks): `block_halves` puts the asked
@@ -113,13 +113,13 @@ class BlockBatch:
     def from_accumulator(cls, acc: Any, ids: Sequence[int], quick: np.ndarray | None = None,
                          tiling: Any = None, evidence: np.ndarray | None = None) -> BlockBatch:
         """The units `ids` of a `BlockAccumulator`, read lazily from its device tensors.
-        `quick` is per block: with `tiling`, a tile's row is its block's. `evidence`: every
-        unit's history sums [n, 2] (the loop's), or None."""
+        `quick` is per block: with `tiling`, a tile's row is its block's. `evidence`: the
+        loop's `learning.inputs.history.Evidence`, or None."""
         ids_a = np.asarray(ids, np.int64)
         rows = ids_a if tiling is None else ids_a // tiling.tiles_per_block
         return cls(acc.spp_all()[ids_a], half_spp=acc.half_spp_all()[ids_a],
                    quick=None if quick is None else quick[rows], source=(acc, ids_a), tiling=tiling,
-                   evidence=None if evidence is None else evidence[ids_a])
+                   evidence=None if evidence is None else evidence.rows(ids_a))
 
     @classmethod
     def from_views(cls, views: Sequence[BlockView]) -> BlockBatch:
@@ -265,6 +265,7 @@ class Criterion(ABC):
     quick image is rendered (and half buffers recovered) only when some criterion uses
     them; `quick_kind` says which quick image ('albedo' or 'direct'). `per_tile`: whether it
     judges the tiles of blocks (the render spec gives the others whole blocks).
+    `noise_ratio`: whether the loop may skip decisions from its ratio (below).
     """
 
     name: str = "criterion"
@@ -273,6 +274,10 @@ class Criterion(ABC):
     needs_quick: bool = False
     quick_kind: str = "albedo"
     needs_halves: bool = False
+    #: its ratio is a noise level over the target, falling as 1/sqrt(spp) as Monte Carlo
+    #: noise does, so the loop may predict when a unit can stop and skip its decisions
+    #: before then (`renderer.passloop.next_decision`); else every pass is judged
+    noise_ratio: bool = False
 
     def describe(self) -> dict[str, Any]:
         """Name and parameters, for reports."""

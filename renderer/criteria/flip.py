@@ -38,6 +38,7 @@ class FlipCriterion(Criterion):
 
     name = "flip"
     needs_halves = True
+    noise_ratio = True
 
     def __init__(self, c: float | None = None, exposure: float = 0.0, tau: float = DEFAULT_TAU,
                  tile: int | None = None) -> None:

@@ -44,6 +44,7 @@ class VarianceCriterion(Criterion):
 
     name = "variance"
     needs_halves = True
+    noise_ratio = True
 
     def __init__(self, threshold: float = 0.01, quantile: float = 1.0, scale: float = 1.0,
                  flat_shortcut: bool = True, exposure: float = 0.0) -> None:

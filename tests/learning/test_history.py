@@ -15,8 +15,9 @@ def _incremental(e: np.ndarray) -> np.ndarray:
     ev, out = Evidence(e.shape[1]), []
     ids = np.arange(e.shape[1])
     for k in range(len(e)):
-        hist, x = combine(ev.sums[ids], e[k], np.full(e.shape[1], SPP[k]))
-        ev.add(ids, x)
+        spp = np.full(e.shape[1], SPP[k])
+        hist, x = combine(ev.rows(ids), e[k], spp)
+        ev.add(ids, x, spp)
         out.append(hist)
     return np.array(out)
 
@@ -27,6 +28,34 @@ def test_the_live_form_is_the_calibration_form() -> None:
     e[rng.random(e.shape) < 0.2] = np.nan          # levels without a decision
     assert np.allclose(_incremental(e), running(e, SPP), equal_nan=True)
     assert np.array_equal(np.isnan(running(e, SPP)), np.isnan(e))
+
+
+def test_with_a_constant_step_the_history_is_the_plain_mean_bit_for_bit() -> None:
+    """Decided after every pass, every weight is the step: the statistic the tile curve of
+    c(tau) was calibrated on (issue 49), to the last bit for a power-of-two step."""
+    rng = np.random.default_rng(2)
+    e = rng.uniform(0.005, 0.2, (len(SPP), 7))
+    x = e * SPP[:, None] ** ALPHA
+    plain = np.cumsum(x, axis=0) / np.arange(1, len(SPP) + 1)[:, None] / SPP[:, None] ** ALPHA
+    assert np.array_equal(running(e, SPP), plain)
+
+
+def test_sparse_decisions_weigh_each_estimate_by_the_samples_it_stands_for() -> None:
+    """Decided at some levels only (a geometric decision schedule, issue 50), each estimate
+    weighs the spp since the unit's decision before it, so the history is the step
+    schedule's mean sampled more sparsely, not one tilted towards the early levels."""
+    rng = np.random.default_rng(3)
+    e = rng.uniform(0.005, 0.2, (len(SPP), 5))
+    at = [0, 1, 3, 5]                                   # the levels decided
+    ev, ids = Evidence(5), np.arange(5)
+    for k in at:
+        spp = np.full(5, SPP[k])
+        hist, x = combine(ev.rows(ids), e[k], spp)
+        ev.add(ids, x, spp)
+    w = np.diff(SPP[at], prepend=0.0)
+    expect = (w[:, None] * e[at] * SPP[at, None] ** ALPHA).sum(axis=0) / w.sum() / SPP[-1] ** ALPHA
+    assert np.allclose(hist, expect, rtol=1e-12)
+    assert np.array_equal(ev.sums[:, 1], np.full(5, SPP[-1]))
 
 
 def test_an_exact_monte_carlo_decay_is_its_own_estimate_and_noise_averages_out() -> None:
@@ -53,8 +82,9 @@ def test_non_finite_scores_are_no_decision_and_add_nothing() -> None:
     assert np.isnan(out[:, [0, 2, 3]]).all() and np.isfinite(out[:, 1]).all()
     ev = Evidence(4)
     _, x = combine(None, e[0], SPP[:4])
-    ev.add(np.arange(4), x)
-    assert np.array_equal(ev.sums[:, 1], [0, 1, 0, 0]) and np.isfinite(ev.sums).all()
+    ev.add(np.arange(4), x, SPP[:4])
+    assert np.array_equal(ev.sums[:, 1], [0, 64, 0, 0]) and np.isfinite(ev.sums).all()
+    assert np.array_equal(ev.last, SPP[:4])            # a decision without a score is still the last one
 
 
 def test_flip_at_tile_grain_stops_on_the_history_and_at_block_grain_on_one_level() -> None:
@@ -73,7 +103,7 @@ def test_flip_at_tile_grain_stops_on_the_history_and_at_block_grain_on_one_level
     assert (tile.statistic, block.statistic) == ("history-mean", "last")
     first = tile.decide([0], batch_of(0.2, 0, 16))
     assert first.verdict.tolist() == [-1] and np.isfinite(first.evidence).all()
-    sums = np.array([[first.evidence[0], 1.0]])
+    sums = np.array([[16 * first.evidence[0], 16.0, 16.0]])
     quiet = batch_of(0.002, 1, 64)
     assert block.decide([0], quiet).verdict.tolist() == [1] and block.decide([0], quiet).evidence is None
     quiet.evidence = sums

@@ -43,7 +43,7 @@ class Crash(RuntimeError):
 
 
 class CrashOnThirdDecision:
-    """Mixin: dies on the third decision, i.e. after two passes were checkpointed."""
+    """Mixin: dies on the third decision, i.e. after at least two passes were checkpointed."""
 
     def _decide(self, ids, batch, tally):
         self.calls = getattr(self, "calls", 0) + 1       # the test's own count: a criterion keeps none
@@ -75,14 +75,15 @@ def test_resume_gives_the_uninterrupted_result(tmp_path, monkeypatch, model, kin
         adaptive_render("cornell", tmp_path / "b", make(crash=True), **TINY)
     assert not (tmp_path / "b" / "report.json").exists()
     with np.load(tmp_path / "b" / CHECKPOINT, allow_pickle=False) as z:
-        assert int(z["pass_index"]) == 2 and not bool(z["done"])
+        crashed_at = int(z["pass_index"])           # the passes before the third decision (skipped ones too)
+        assert 2 <= crashed_at < ref["passes"] and not bool(z["done"])
     passes = []
     real = BlockRenderer.submit_passes
     monkeypatch.setattr(BlockRenderer, "submit_passes",
                         lambda self, jobs, spp, seed: passes.extend(sorted({p for _, p in jobs})) or
                         real(self, jobs, spp, seed))
     resumed = adaptive_render("cornell", tmp_path / "b", make(), resume=True, **TINY, grow=False)
-    assert passes == list(range(2, ref["passes"]))   # continued, did not start over
+    assert passes == list(range(crashed_at, ref["passes"]))   # continued, did not start over
     assert without_timing(resumed) == without_timing(ref)
     np.testing.assert_array_equal(read_exr(tmp_path / "b" / "final.exr"), read_exr(tmp_path / "a" / "final.exr"))
     on_disk = json.loads((tmp_path / "b" / "report.json").read_text())

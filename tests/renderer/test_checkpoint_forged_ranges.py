@@ -51,7 +51,7 @@ def _scale_sums(arrays: dict[str, np.ndarray]) -> None:
     arrays["acc_sum"] = arrays["acc_sum"] * 1e30
 
 
-def _more_estimates_than_decisions(arrays: dict[str, np.ndarray]) -> None:
+def _more_samples_weighed_than_decided(arrays: dict[str, np.ndarray]) -> None:
     arrays["evidence"] = np.tile([[1.0, 1e6]], (len(arrays["evidence"]), 1))
 
 
@@ -59,7 +59,9 @@ FORGERIES = {"huge counters": _set("counter_values", 2**62), "a timer of 1e308":
              "sums x1e30": _scale_sums,
              # the decision history's evidence (issue 49): what a history criterion decides from
              "negative evidence": _set("evidence", -1.0), "NaN evidence": _set("evidence", np.nan),
-             "more estimates than decisions": _more_estimates_than_decisions}
+             "more samples weighed than decided": _more_samples_weighed_than_decided,
+             # each unit's next decision (issue 50): never before its last one
+             "a next decision in the past": _set("next_spp", -1)}
 
 
 @pytest.mark.parametrize("case", FORGERIES)

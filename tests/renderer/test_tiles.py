@@ -124,7 +124,7 @@ def test_a_render_at_tile_grain_resumes_bit_for_bit(tmp_path) -> None:
         data = {k: z[k] for k in z.files}
     data["version"] = np.int64(3)
     np.savez(tmp_path / "b" / CHECKPOINT, **data)
-    with pytest.raises(ValueError, match="checkpoint version 3, this noisestop reads version 5"):
+    with pytest.raises(ValueError, match="checkpoint version 3, this noisestop reads version 6"):
         adaptive_render("cornell", tmp_path / "b", VarianceCriterion(0.2), resume=True, **kw)
 
 

@@ -190,7 +190,8 @@ def _valid_checkpoint(path: Path) -> None:
                            "history": np.stack(history), "history_spp": np.array([4, 8]),
                            "history_block_spp": np.array([[4] * 4, [8] * 4]), "rendered": np.array(rendered), "pass_index": 2, "done": False,
                            "counters": {"decide_calls": 2}, "timers": {"wall_s": 0.5}, "quick": None,
-                           "acc": acc.state(), "evidence": np.tile([[0.3, 2.0]], (4, 1))})   # two decisions each
+                           "acc": acc.state(), "evidence": np.tile([[2.4, 8.0]], (4, 1)),
+                           "next_spp": np.full(4, 8)})   # weights: the 8 spp decided
 
 
 def _load(path: Path) -> dict:

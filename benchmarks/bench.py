@@ -3,8 +3,9 @@
 Every figure is a median over repeats after a warm-up call; the accuracy cost of each
 speed choice is reported beside it. The sections live in bench_features, bench_flip,
 bench_models, bench_passes (renders and passes), bench_native and bench_cost (against
-`mi.render` and the uniform loop), bench_decisions, bench_service,
-stability and reliability.
+`mi.render` and the uniform loop), bench_criteria, bench_tradeoff and bench_step (the
+stopping decisions), bench_service, stability and reliability; marked_sections rewrites
+the marked parts.
 """
 from __future__ import annotations
 
@@ -14,9 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from noisefeat.atomic import atomic_write
-
-from .bench_decisions import bench_criteria, bench_step, bench_tradeoff, md_criteria, md_step, md_tradeoff
+from .bench_criteria import bench_criteria, md_criteria
 from .bench_features import bench_crop, bench_features, md_crop, md_features
 from .bench_flip import bench_flip, md_flip
 from .bench_models import (bench_ablation, bench_dataset, bench_inputs, bench_knobs, bench_models, md_ablation,
@@ -25,23 +24,12 @@ from .bench_budget import bench_budget, md_budget
 from .bench_observer import bench_observer, bench_tau, md_observer, md_tau
 from .bench_tile_stop import bench_tile_stop, md_tile_stop
 from .bench_passes import bench_render, md_render
+from .bench_step import bench_step, md_step
+from .bench_tradeoff import bench_tradeoff, md_tradeoff
+from .marked_sections import update_markdown  # noqa: F401 - the door (service/commands/bench.py) writes with it
 
 
 log = logging.getLogger(__name__)
-
-
-def update_markdown(path: Path, sections: dict[str, str]) -> None:
-    """Replace the text between <!-- bench:NAME --> and <!-- /bench:NAME --> markers."""
-    text = path.read_text() if path.exists() else ""
-    for name, body in sections.items():
-        start, end = f"<!-- bench:{name} -->", f"<!-- /bench:{name} -->"
-        block = f"{start}\n{body}\n{end}"
-        if start in text and end in text:
-            i, j = text.index(start), text.index(end) + len(end)
-            text = text[:i] + block + text[j:]
-        else:
-            text += f"\n{block}\n"
-    atomic_write(path, text)
 
 
 # sections that need only the datasets: name -> (measure(data, heldout), markdown(result))
@@ -138,14 +126,15 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
         from .bench_capacity import bench_capacity, md_capacity
         measure("capacity", bench_capacity, md_capacity)
     if "reliability" in only:
-        from .reliability import bench_reliability, md_hardening, md_reliability
+        from .hardening import md_hardening
+        from .reliability import bench_reliability, md_reliability
         measure("reliability", bench_reliability, md_reliability)
         if "reliability" in results:                     # its issue-26 part: a section of its own
             markdown["hardening"] = md_hardening(results["reliability"]["hardening"])
             if on_section is not None:
                 on_section("hardening", markdown["hardening"])
     if "hardening" in only and "reliability" not in only:     # reliability includes it
-        from .reliability import bench_hardening, md_hardening
+        from .hardening import bench_hardening, md_hardening
         measure("hardening", bench_hardening, md_hardening)
     results["markdown"] = markdown
     return results

@@ -8,7 +8,7 @@ For each scene and reconstruction filter (the film's rfilter swapped in the scen
   the uniform loop (``criterion="uniform"``) at the same frame and max spp, interleaved
   `repeats` times (medians); each timed as a user times the call;
 * **selection**: what the adaptive render's samples would cost traced densely.
-  ``mi.render`` over each block's crop (`renderer.blocks.time_crop_renders`, the crop
+  ``mi.render`` over each block's crop (`benchmarks.crop_cost.time_crop_renders`, the crop
   engine) gives each block's seconds per sample, as a ratio to the frame's mean (the
   blocks' total over their samples, so that uniform sampling is 1.00 by definition);
   weighted by the samples the adaptive render kept in each block (its per-pixel spp), that
@@ -118,7 +118,9 @@ def block_windows(size: int, block: int) -> list[tuple[int, int, int, int]]:
 def selection(scene: Any, size: int, block: int, spp: int, repeats: int) -> dict[str, Any]:
     """Each block's dense cost per sample as a ratio to the frame's mean (module docstring):
     ``mi.render`` over each block's crop, warm, interleaved with the full frame."""
-    from renderer.blocks import BlockRenderer, time_crop_renders
+    from renderer.blocks import BlockRenderer
+
+    from .crop_cost import time_crop_renders
 
     with BlockRenderer(scene, block=block, engine="crop") as r:
         n = r.n_blocks
@@ -352,7 +354,7 @@ def main(argv: list[str] | None = None) -> int:
         if a.update:
             from pathlib import Path
 
-            from .bench import update_markdown
+            from .marked_sections import update_markdown
 
             update_markdown(Path(a.update), {"cost_gpu" if r["variant"].startswith("cuda") else "cost": md_cost(r)})
 

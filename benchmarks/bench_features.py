@@ -93,7 +93,7 @@ def md_features(f: dict[str, Any], variant: str) -> str:
 
 
 def bench_crop(repeats: int = 3) -> dict[str, Any]:
-    from renderer.blocks import measure_crop_cost
+    from .crop_cost import measure_crop_cost
     return measure_crop_cost(repeats=repeats)
 
 

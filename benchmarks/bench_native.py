@@ -374,7 +374,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.update:
             from pathlib import Path
 
-            from .bench import update_markdown
+            from .marked_sections import update_markdown
 
             update_markdown(Path(args.update), {"native_gpu" if r["variant"].startswith("cuda") else "native":
                                                 md_native(r)})

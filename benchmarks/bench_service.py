@@ -51,7 +51,7 @@ def _stage_times(model: str | None, repeats: int) -> dict[str, Any]:
     from learning.inputs.halves import halves_flip
     from noisefeat import fused
     from noisefeat.extract import analyse_many
-    from service.app import _infer_sync
+    from service.infer import infer_sync
     from service.limits import Limits
     from tests.support.demo import make_request
     from service.metrics import ServiceMetrics
@@ -96,7 +96,7 @@ def _stage_times(model: str | None, repeats: int) -> dict[str, Any]:
         return encode_response(resp, arrays, set(OUTPUTS))
     out["encode_ms"] = _median_ms(encode, repeats)
     metrics = ServiceMetrics()
-    out["in_process_ms"] = _median_ms(lambda: _infer_sync(served, [bytearray(body)], length, limits, metrics),
+    out["in_process_ms"] = _median_ms(lambda: infer_sync(served, [bytearray(body)], length, limits, metrics),
                                       max(3, repeats // 2) if halves else repeats)
     out["request_mb"] = len(body) / 1e6
     return out

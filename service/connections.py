@@ -13,7 +13,7 @@ ones included, and then answers 503 to every route, health probes too.
 * `InFlightLimitMiddleware`: at most `limit` requests in flight (`serve
   --limit-concurrency`); over it, 503 with Retry-After and an {"error"} body. Health probes
   and /metrics are never counted nor refused, so a liveness probe does not kill a busy pod.
-* `BodyLimitMiddleware` (service.limits) adds the body's own limits: a body that stalls
+* `BodyLimitMiddleware` (service.body_limit) adds the body's own limits: a body that stalls
   for `body_timeout` seconds, is not complete within the whole-body deadline, or arrives
   slower than the minimum rate after the grace period is answered 408.
 * A request h11 cannot parse is answered 400 with the {"error"} JSON body every other
@@ -137,7 +137,7 @@ class HealthFastPath:
     """GET /v2/health/live and /v2/health/ready answered here, outside every other layer
     (limits, metrics, routing, the token): a probe is never queued behind a request.
 
-    The routes in service.app stay, for the OpenAPI document; this answers the same."""
+    The routes in service.routes stay, for the OpenAPI document; this answers the same."""
 
     def __init__(self, app: Any, ready: Any) -> None:
         self.app = app

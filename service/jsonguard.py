@@ -16,7 +16,7 @@ import numpy as np
 #: most (512 KB), whatever the body's size; 8 KiB slices scan 60 MiB in ~0.7 s
 CHUNK = 1 << 13
 #: the scan's working arrays per byte of a slice, measured with tracemalloc: ~16 for plain
-#: JSON, ~58 where strings are full of backslashes (int64 positions); `limits.json_cost`
+#: JSON, ~58 where strings are full of backslashes (int64 positions); `memory_cost.json_cost`
 #: counts this much
 SCAN_BYTES_PER_BYTE = 64
 

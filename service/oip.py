@@ -267,7 +267,7 @@ def decode_tensors(req: InferenceRequest, binary: bytes | memoryview, max_batch:
     """Input tensors by name, shaped as declared; checks the batch limit before any copy.
 
     Binary tensors are numpy views of `binary` (no copy) when it is writable and they are
-    aligned (service.app._read_body places them so); otherwise copies.
+    aligned (service.body.read_body places them so); otherwise copies.
 
     `scan_bools=False` skips looking for JSON true/false among numbers (callers that know
     the JSON text holds no such literal: `may_hold_bools`)."""

@@ -276,7 +276,7 @@ def decode_answer(blob: bytearray) -> tuple[Any, ...]:
 # ------------------------------------------------------------------------- the worker side
 
 def parse_in_worker(head: bytes, rules: ParseRules) -> tuple[Any, ...]:
-    """What the server's own thread does with a small header (service.app._decode_sync),
+    """What the server's own thread does with a small header (service.infer._decode_sync),
     up to the tensors: parse (depth first), parameters, shapes, batch, JSON data as arrays."""
     from .limits import Limits
     from .oip import _json_values, check_batch, may_hold_bools, number_param, parse_request
@@ -307,7 +307,7 @@ WORKER_NICE = 10
 
 
 def _main() -> None:
-    from .limits import release_memory
+    from .heap import release_memory
     try:
         os.nice(WORKER_NICE)
     except OSError:

@@ -11,10 +11,10 @@ Connection settings (service.connections): request headers must arrive within
 `header_timeout` seconds of a connection opening (or of its previous response), a body may
 stall for `body_timeout` seconds, must be complete within `body_deadline` seconds and
 arrive at `min_body_rate` bytes a second after `body_grace` seconds
-(service.limits.UploadPolicy), an idle kept-alive connection is closed after
+(service.upload_policy.UploadPolicy), an idle kept-alive connection is closed after
 `keep_alive` seconds; at most `limit_concurrency` requests are in flight (health probes
 and /metrics exempt), together within `memory_budget` bytes of working memory
-(service.limits.MemoryBudget), and at most `max_connections` connections are open.
+(service.memory_budget.MemoryBudget), and at most `max_connections` connections are open.
 """
 from __future__ import annotations
 
@@ -35,10 +35,11 @@ import uvicorn  # noqa: E402
 from .app import create_app
 from .auth import check_bind, resolve_token
 from .connections import guarded_protocol
-from .limits import Limits, UploadPolicy
+from .limits import Limits
 from .parsepool import DEFAULT_PARSE_SECONDS, ENV_PARSE_SECONDS
 from .registry import ModelRegistry, parse_model_specs
 from .startup import guard_start_up
+from .upload_policy import UploadPolicy
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,8 @@
 learning <- renderer <- service <- benchmarks, DESIGN.md, and inside learning its
 sub-packages in the order of their jobs), in every import statement of a module, inside
 functions too (a function-level import only hides an upward edge or a circle until the
-function runs), and no modules import each other around a circle."""
+function runs), and no modules import each other around a circle, among the packages and
+among the benchmarks."""
 from __future__ import annotations
 
 import ast
@@ -132,6 +133,39 @@ def test_no_import_circle_through_function_level_imports() -> None:
     graph = _graph(anywhere=True)
     assert sum(map(len, graph.values())) > sum(map(len, _graph().values()))   # it sees more than load time
     assert find_cycles(graph) == []
+
+
+def test_no_import_circle_among_the_benchmarks() -> None:
+    """The benchmarks too, every import statement anywhere in their modules: they import
+    each other mostly inside functions, which hid bench -> bench_native -> bench (and
+    bench -> bench_cost -> bench) until the helper both need moved to marked_sections."""
+    graph = _graph(anywhere=True, packages=PACKAGES + (BENCHMARKS,))
+    ours = {m for m in graph if m.split(".")[0] == BENCHMARKS}
+    assert len(ours) >= 18 and any(graph[m] & ours for m in ours)     # their edges among themselves are seen
+    assert find_cycles(graph) == []
+
+
+def test_the_checker_sees_a_circle_among_the_benchmarks(tmp_path) -> None:
+    """Control: a planted benchmarks folder where bench imports a section at load time and
+    the section imports bench back inside a function (the circle bench and bench_native
+    had) is found; with the shared helper in a module both import, it is not."""
+    for pkg in (*PACKAGES, BENCHMARKS):
+        (tmp_path / pkg).mkdir()
+        (tmp_path / pkg / "__init__.py").write_text("")
+    bench = tmp_path / BENCHMARKS
+    (bench / "bench.py").write_text("from .bench_native import md_native\n\n\ndef update_markdown(path, sections):\n"
+                                    "    return None\n")
+    (bench / "bench_native.py").write_text("def md_native(r):\n    return ''\n\n\ndef main():\n"
+                                           "    from .bench import update_markdown\n    return update_markdown\n")
+    packages = (*PACKAGES, BENCHMARKS)
+    assert find_cycles(_graph(anywhere=True, root=tmp_path, packages=packages)) == [
+        ["benchmarks.bench", "benchmarks.bench_native", "benchmarks.bench"]]
+    assert find_cycles(_graph(root=tmp_path, packages=packages)) == []           # load time alone misses it
+    (bench / "marked_sections.py").write_text("def update_markdown(path, sections):\n    return None\n")
+    (bench / "bench.py").write_text("from .bench_native import md_native\nfrom .marked_sections import update_markdown\n")
+    (bench / "bench_native.py").write_text("def md_native(r):\n    return ''\n\n\ndef main():\n"
+                                           "    from .marked_sections import update_markdown\n    return update_markdown\n")
+    assert find_cycles(_graph(anywhere=True, root=tmp_path, packages=packages)) == []
 
 
 def test_the_checker_sees_a_circle(tmp_path) -> None:

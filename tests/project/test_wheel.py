@@ -18,8 +18,9 @@ from tests.support import ROOT
 PACKAGES = ("noisefeat", "learning", "renderer", "service")
 #: what a checkout holds and no install may: the benchmarks, the tests, the old lab
 NOT_SHIPPED = ("benchmarks/", "tests/", "service/lab/")
-#: file names of the load generators and attack drivers, wherever they would land
-BENCH_FILES = re.compile(r"(^|/)(attack|loadtest|openloop|reliability|bench_\w+)\.py$")
+#: file names of the load generators, attack drivers and hardening harnesses (and the attack
+#: package's folder), wherever they would land
+BENCH_FILES = re.compile(r"(^|/)((attack|loadtest|openloop|reliability|hardening\w*|bench_\w+)\.py$|attack/)")
 #: what the Dockerfile may copy into the serving image
 IMAGE_SOURCES = {"pyproject.toml", "README.md", *PACKAGES}
 
@@ -39,7 +40,7 @@ def wheel(tmp_path_factory) -> Path:
     """The wheel `pip wheel` builds from a copy of the checkout, benchmarks/ and tests/ included."""
     tmp = tmp_path_factory.mktemp("wheel")
     src = _copy_source(tmp / "src")
-    assert (src / "benchmarks" / "attack.py").is_file()            # there to be left out
+    assert (src / "benchmarks" / "attack" / "wire.py").is_file()   # there to be left out
     out = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation",
                           "--no-index", "-w", str(tmp / "dist"), str(src)],
                          capture_output=True, text=True, timeout=600)
@@ -68,7 +69,8 @@ def test_the_checker_sees_benchmarks_in_a_listing() -> None:
     """Control: a listing with the old lab, the benchmarks, the tests or an attack driver
     moved into a package is caught; the real packages' files are not."""
     listing = ["service/app.py", "service/commands/bench.py", "learning/models/bundle.py", "service/lab/attack.py",
-               "benchmarks/bench.py", "tests/support/demo.py", "service/loadtest.py", "renderer/bench_passes.py"]
+               "benchmarks/bench.py", "tests/support/demo.py", "service/loadtest.py", "renderer/bench_passes.py",
+               "service/attack/wire.py", "learning/hardening_round5.py"]
     assert shipped_benchmarks(listing) == listing[3:]
 
 

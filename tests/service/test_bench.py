@@ -11,8 +11,8 @@ from learning.models.bundle import save_model
 from learning.inputs.table import load_table
 from learning.training.train import train_model
 from learning.training.knobs import measure_knobs
-from benchmarks.bench import update_markdown
-from benchmarks.bench_decisions import bench_tradeoff, md_tradeoff
+from benchmarks.marked_sections import update_markdown
+from benchmarks.bench_tradeoff import bench_tradeoff, md_tradeoff
 from benchmarks.bench_models import bench_models
 from tests.support import FIXTURE_DATASET as FIXTURE
 
@@ -86,7 +86,7 @@ def test_tradeoff_draws_every_criterion_and_the_saved_comparison(tmp_path, split
 
 @pytest.mark.slow
 def test_criteria_section_simulates_every_criterion_on_held_out_scenes(tmp_path, split):
-    from benchmarks.bench_decisions import bench_criteria, md_criteria
+    from benchmarks.bench_criteria import bench_criteria, md_criteria
     train, heldout = split
     r = bench_criteria(train, heldout, model=str(fixture_model(tmp_path, train, [])), thresholds=(0.01, 0.2))
     assert r["test_scenes"] == ["cornell"] and set(r["rows"]) == {"model", "flip", "variance", "oracle", "uniform"}
@@ -114,7 +114,7 @@ def test_step_sizes_thin_the_decisions(tmp_path, split):
     from learning.models.bundle import load_model
     from learning.evaluation.evaluate import evaluate_model
     from learning.evaluation.generalisation import split_tables
-    from benchmarks.bench_decisions import bench_step, md_step
+    from benchmarks.bench_step import bench_step, md_step
     model = fixture_model(tmp_path, split[0], [], quick="halves")     # the shipped kind of input
     r = bench_step(*split, multiples=(1, 2), scene="cornell", model=str(model),
                    resolution=32, max_spp=192, out_png=str(tmp_path / "s.png"))

@@ -93,7 +93,7 @@ def test_json_cost_estimate_covers_what_decoding_takes(depth, kind, count, space
     whatever the shape: nesting, number kinds, objects in place of numbers, whitespace."""
     import tracemalloc
 
-    from service.limits import json_cost
+    from service.memory_cost import json_cost
     value = {"small int": b"7", "int": b"123457", "float": b"0.123456789", "short float": b"1e5",
              "object": b'{"a":1}'}[kind]
     sep = b"," + b" " * spaces

@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient
 from service.app import create_app
 from service.jsonguard import max_depth
 from tests.support.demo import make_demo_bundle, make_request
-from service.limits import MemoryBudget
+from service.memory_budget import MemoryBudget
 from service.oip import MAX_JSON_DEPTH, ApiError, parse_request
 from service.registry import ModelRegistry
 
@@ -65,7 +65,7 @@ def test_a_large_json_request_is_answered_the_same_through_the_worker(bundle, mo
     assert len(body) > 4096
     answers = []
     for inline in (1 << 30, 4096):               # in the server's thread, then in a worker
-        monkeypatch.setattr("service.app.INLINE_BYTES", inline)
+        monkeypatch.setattr("service.infer.INLINE_BYTES", inline)
         app = create_app(ModelRegistry({"demo": bundle}))
         with TestClient(app) as c:
             r = c.post("/v2/models/default/infer", content=body, headers=headers)
@@ -75,7 +75,7 @@ def test_a_large_json_request_is_answered_the_same_through_the_worker(bundle, mo
 
 
 def test_a_parse_over_its_time_budget_is_413_and_the_worker_replaced(bundle, monkeypatch):
-    monkeypatch.setattr("service.app.INLINE_BYTES", 1024)
+    monkeypatch.setattr("service.infer.INLINE_BYTES", 1024)
     app = create_app(ModelRegistry({"demo": bundle}), parse_seconds=0.001)
     body, headers = make_request(blocks=4, size=64, binary=False)
     with TestClient(app) as c:

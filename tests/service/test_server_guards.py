@@ -75,7 +75,7 @@ def test_memory_ceiling_under_the_worst_shapes(bundle):
         rows = attack.run_worst_shapes(s.url, s.token, 64 << 20, concurrent=3, memory=s.memory)
         nested = attack.nested_over_budget(s.url, s.token)
         assert s.process.poll() is None, s.log()
-        assert attack._get("127.0.0.1", s.port, "/v2/health/ready")[0] == 200
+        assert attack.timed_get("127.0.0.1", s.port, "/v2/health/ready")[0] == 200
         peak = s.memory()["peak_rss"]
     statuses = [st for r in rows for st in r.get("statuses", [r["status"]])]
     assert all(st in (200, 413) for st in statuses), rows

@@ -14,13 +14,15 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from service import app as app_mod
+from service import infer as infer_mod
 from service.app import create_app
 from service.connections import guarded_protocol
 from benchmarks import attack
 from tests.support.demo import make_demo_bundle, make_request
 from tests.support.local_server import LocalServer
-from service.limits import Limits, UploadPolicy, decode_cost, json_cost, request_cost
+from service.limits import Limits
+from service.memory_cost import decode_cost, json_cost, request_cost
+from service.upload_policy import UploadPolicy
 from service.registry import ModelRegistry
 from tests.support.live_server import threaded_server
 
@@ -56,7 +58,7 @@ def test_nested_json_over_the_budget_is_413_without_being_parsed(client, monkeyp
     """The issue's shape (every value in 20 nested lists), scaled to this server's budget:
     its cost estimate (a byte count) is over the budget, so it is refused unparsed."""
     parsed = []
-    monkeypatch.setattr(app_mod, "parse_request", lambda head: parsed.append(1))
+    monkeypatch.setattr(infer_mod, "parse_request", lambda head: parsed.append(1))
     budget = client.app.state.memory_budget.total
     unit = b"[" * 20 + b"1" + b"]" * 20
     n = (MAX_BODY - 200) // (len(unit) + 1)
@@ -146,7 +148,7 @@ def test_out_of_memory_is_503_logged_and_the_server_serves_on(client, monkeypatc
 def test_out_of_memory_while_a_body_arrives_is_503_too(client, monkeypatch, caplog):
     def exhausted(*a, **k):
         raise MemoryError()
-    monkeypatch.setattr(app_mod, "_read_body", exhausted)
+    monkeypatch.setattr(infer_mod, "read_body", exhausted)
     r = _post(client, json.dumps({"inputs": [_features()]}))
     assert r.status_code == 503 and "out of memory" in r.json()["error"], r.text
     assert not any("Traceback" in (rec.exc_text or "") for rec in caplog.records)
@@ -208,7 +210,7 @@ def test_the_whole_body_deadline_holds_against_a_steady_dribble(socket_server):
                 got = s.recv(4096)
             except TimeoutError:
                 pass
-        got += attack._closed(s, time.monotonic() + 5)[1]
+        got += attack.wait_closed(s, time.monotonic() + 5)[1]
     finally:
         s.close()
     assert got.startswith(b"HTTP/1.1 408") and b"not complete after 4 s" in got, got[:300]
@@ -271,7 +273,7 @@ def test_sighup_drains_like_sigterm_and_says_so(bundle):
         time.sleep(0.5)
         assert s.process.poll() is None, s.log()           # not killed: draining
         sock.sendall(body[100:])
-        answer = attack._closed(sock, time.monotonic() + 30)[1]
+        answer = attack.wait_closed(sock, time.monotonic() + 30)[1]
         sock.close()
         s.process.wait(30)
         log = s.log()

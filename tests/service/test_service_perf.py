@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-import service.app as app_module
+import service.body as body_module
+import service.infer as infer_module
 from learning.models.bundle import load_model
 from noisefeat.extract import analyse_blocks
-from service import limits
+from service import heap
 from service.connections import H11_PIECE, guarded_protocol
 from benchmarks.loadtest import run_load
 from tests.support.demo import make_demo_bundle, make_request
@@ -42,13 +43,13 @@ def _binary_request(blocks: np.ndarray, quick: np.ndarray, pad: int) -> tuple[by
 
 def test_binary_tensors_are_views_of_the_body_whatever_the_header_length(bundle, monkeypatch):
     seen = []
-    decode = app_module.decode_tensors
+    decode = infer_module.decode_tensors
 
     def spy(req, binary, *args, **kwargs):
         tensors = decode(req, binary, *args, **kwargs)
         seen.append((np.frombuffer(binary, np.uint8), tensors))
         return tensors
-    monkeypatch.setattr(app_module, "decode_tensors", spy)
+    monkeypatch.setattr(infer_module, "decode_tensors", spy)
     rng = np.random.default_rng(0)
     blocks = rng.random((3, 16, 16, 3), dtype=np.float32)
     quick = (0.5 * blocks + 0.2).astype(np.float32)
@@ -66,7 +67,7 @@ def test_binary_tensors_are_views_of_the_body_whatever_the_header_length(bundle,
             assert np.shares_memory(arr, raw), name            # no copy: a view of the body
             assert arr.flags.writeable and arr.ctypes.data % 4 == 0
             np.testing.assert_array_equal(arr, want)
-        assert tensors["blocks"].ctypes.data % app_module.TENSOR_ALIGNMENT == 0
+        assert tensors["blocks"].ctypes.data % body_module.TENSOR_ALIGNMENT == 0
 
 
 def test_one_fused_call_per_request_for_blocks_and_quick(bundle, monkeypatch):
@@ -142,15 +143,15 @@ def test_heap_is_trimmed_only_when_much_of_it_is_free(monkeypatch):
     class Info:
         fordblks = 0
 
-    monkeypatch.setattr(limits, "_libc", lambda: (trimmed.append, lambda: Info))
-    Info.fordblks = limits.RELEASE_ABOVE // 2
-    assert limits.release_memory() is False and trimmed == []
-    Info.fordblks = limits.RELEASE_ABOVE * 2
-    assert limits.release_memory() is True and trimmed == [0]
-    monkeypatch.setattr(limits, "_libc", lambda: (trimmed.append, None))     # no mallinfo2: as before
-    assert limits.release_memory() is True and trimmed == [0, 0]
-    monkeypatch.setattr(limits, "_libc", lambda: (None, None))               # not glibc
-    assert limits.release_memory() is False
+    monkeypatch.setattr(heap, "_libc", lambda: (trimmed.append, lambda: Info))
+    Info.fordblks = heap.RELEASE_ABOVE // 2
+    assert heap.release_memory() is False and trimmed == []
+    Info.fordblks = heap.RELEASE_ABOVE * 2
+    assert heap.release_memory() is True and trimmed == [0]
+    monkeypatch.setattr(heap, "_libc", lambda: (trimmed.append, None))     # no mallinfo2: as before
+    assert heap.release_memory() is True and trimmed == [0, 0]
+    monkeypatch.setattr(heap, "_libc", lambda: (None, None))               # not glibc
+    assert heap.release_memory() is False
 
 
 def test_service_bench_merges_rounds_and_writes_every_figure(bundle):

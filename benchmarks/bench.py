@@ -23,6 +23,7 @@ from .bench_models import (bench_ablation, bench_dataset, bench_inputs, bench_kn
 from .bench_budget import bench_budget, md_budget
 from .bench_observer import bench_observer, bench_tau, md_observer, md_tau
 from .bench_tile_stop import bench_tile_stop, md_tile_stop
+from .bench_skip import bench_skip, md_skip
 from .bench_passes import bench_render, md_render
 from .bench_step import bench_step, md_step
 from .bench_tradeoff import bench_tradeoff, md_tradeoff
@@ -38,9 +39,12 @@ DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "inputs": (bench_inp
                     "tradeoff": (bench_tradeoff, md_tradeoff), "ablation": (bench_ablation, md_ablation),
                     "step": (bench_step, md_step), "knobs": (bench_knobs, md_knobs),
                     "observer": (bench_observer, md_observer), "tau": (bench_tau, md_tau),
-                    "tilestop": (bench_tile_stop, md_tile_stop),
+                    "tilestop": (bench_tile_stop, md_tile_stop), "skip": (bench_skip, md_skip),
                     "budget": (bench_budget, md_budget)}
 
+
+#: dataset sections measured on the held-out stacks alone (no training data read)
+HELDOUT_ONLY = {"tilestop", "skip"}
 
 SECTIONS = ("features", "crop", "flip", "models", "render", "passes", "native", "cost", "oracle", "service",
             "capacity", "stability",
@@ -62,7 +66,7 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
     variant = select_variant()
     results: dict[str, Any] = {"variant": variant, "seconds": {}, "failed": {}}
     markdown: dict[str, str] = {}
-    needs_data = {"models", *DATASET_SECTIONS} & set(only)
+    needs_data = ({"models", *DATASET_SECTIONS} - HELDOUT_ONLY) & set(only)
     if needs_data and not data:
         raise ValueError(f"bench {', '.join(sorted(needs_data))} needs --data DIR (a labelled dataset)")
 

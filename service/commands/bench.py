@@ -26,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("what", nargs="*", default=["features", "crop"],
                    help="sections: features, crop, flip, models, render, passes, native, cost, oracle, service, "
                         "capacity, stability, reliability, hardening, dataset, inputs, criteria, tradeoff, ablation, step, "
-                        "knobs, observer, tau, tilestop, budget "
+                        "knobs, observer, tau, tilestop, skip, budget "
                         "(default: features crop)")
     p.add_argument("--data", default=None, help="labelled dataset of training scenes")
     p.add_argument("--heldout", default=None,

@@ -19,7 +19,8 @@ UNIFORM_SPP = 512
 
 def bench_budget(data: str | None, heldout: str | None = None, spp: int = UNIFORM_SPP,
                  tau: float = DEFAULT_TAU) -> dict[str, Any]:
-    from learning.data.observer import observer_for, read_observed
+    from learning.data.observer import observer_for
+    from learning.data.relabel import read_observed
     from learning.evaluation.generalisation import scene_groups
     from renderer.simulate import simulate_budget
     from renderer.criteria import FlipCriterion

@@ -46,13 +46,14 @@ def flip_agreement(root: str) -> dict[str, Any]:
     decision does, at every candidate c of the flip criterion and for the bundled model at
     its offset (only blocks flip would be asked about: not flat, level >= 1). Reads the
     stacks, writes nothing (no cache)."""
-    from learning.models.bundle import load_model
+    from learning.data.dataset_dir import list_stacks
+    from learning.data.stack import read_stack
     from learning.evaluation.calibrate import FLIP_CANDIDATES
     from learning.inputs.halves import halves_flip, halves_flip_evaluator
-    from learning.inputs.noise_input import compose
-    from learning.data.stack import list_stacks, read_stack
-    from learning.stoprule import flat_blocks
     from learning.inputs.halves import iter_stack_halves
+    from learning.inputs.noise_input import compose
+    from learning.models.bundle import load_model
+    from learning.stoprule import flat_blocks
 
     old, new = [], []
     for path in list_stacks(root):

@@ -34,7 +34,7 @@ def bench_models(data: str, out_dir: Path, arches: tuple[str, ...] | None = None
 
 
 def _fingerprints(data: str, heldout: str | None) -> str:
-    from learning.data.stack import dataset_fingerprint
+    from learning.data.dataset_dir import dataset_fingerprint
     return dataset_fingerprint(data) + ("" if heldout is None else "+" + dataset_fingerprint(heldout))
 
 

@@ -34,8 +34,9 @@ def bench_observer(data: str, heldout: str | None = None, out_png: str = "docs/o
                    tau: float = 0.02, most: int = 12) -> dict[str, Any]:
     """Blocks converged and oracle samples under each observer version, per held-out scene;
     the picture of the blocks version 2 calls converged and version 3 does not."""
-    from learning.data.observer import observed
-    from learning.data.stack import list_stacks, read_stack
+    from learning.data.dataset_dir import list_stacks
+    from learning.data.relabel import observed
+    from learning.data.stack import read_stack
 
     if heldout is None:
         raise ValueError("bench observer needs --heldout DIR (the scenes no knob was set on)")
@@ -143,7 +144,7 @@ def bench_tau(data: str, heldout: str | None = None, taus: tuple[float, ...] = T
     cal = load_flip_calibration()
     bundled = load_model(model)
     out: dict[str, Any] = {"taus": list(taus), "runs": [name for name, _, _ in TAU_RUNS]}
-    from learning.data.observer import read_observed
+    from learning.data.relabel import read_observed
     for tau in taus:
         groups = scene_groups(read_observed(heldout, tau))
         for name, kind, tile in TAU_RUNS:

@@ -41,7 +41,7 @@ def golden() -> list[str]:
 def flip_on_device() -> list[str]:
     import torch
 
-    from learning.data.stack import read_stacks
+    from learning.data.dataset_dir import read_stacks
     from learning.inputs.halves import halves_flip_evaluator, iter_stack_halves
     from noisefeat.flip import flip_halves_tensor
 

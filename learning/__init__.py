@@ -15,8 +15,8 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-_HOMES = {**dict.fromkeys(("Stack", "read_stack", "list_stacks", "update_labels"), "data.stack"),
-          **dict.fromkeys(("StackWriter", "write_stack", "make_plan"), "data.stack_write"),
+_HOMES = {**dict.fromkeys(("Stack", "read_stack"), "data.stack"), "list_stacks": "data.dataset_dir",
+          **dict.fromkeys(("StackWriter", "write_stack", "make_plan", "update_labels"), "data.stack_write"),
           "VirtualObserver": "data.observer", "label_stack": "data.observer",
           "check_dataset": "data.check", "Problem": "data.check", "import_lisic": "data.lisic",
           "make_synthetic_stack": "data.synthetic", "load_model": "models.bundle"}

@@ -7,7 +7,7 @@ nothing, so the parser is built without torch or Mitsuba and never keeps a copy.
 QUICK_MODES = ("halves", "albedo", "direct", "none")
 #: the SVM kinds `train --model` trains (the paper's models, learning.training.train)
 SVM_KINDS = ("svm", "dsvm", "svm_al", "dsvm_al", "svm_as", "dsvm_as")
-#: the transfer-learning baselines `train --model` trains (learning.models.transfer.ARCHS:
+#: the transfer-learning baselines `train --model` trains (learning.models.transfer_archs.ARCHS:
 #: an ImageNet conv base + the paper's head; learning.training.train_transfer)
 TRANSFER_KINDS = ("vgg19", "mobilenet_v2", "inception_v3", "resnet50", "densenet201")
 #: every kind `train --model` accepts

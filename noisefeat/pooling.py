@@ -75,7 +75,7 @@ def pool_maps(maps: np.ndarray, pooling: str = TILE_MAX) -> np.ndarray:
     p = check_pooling(pooling)
     if p == DOTS:
         raise ValueError(f"{DOTS!r} needs the display images as well as the FLIP map: "
-                         "learning.data.observer computes it")
+                         "learning.data.block_terms computes it")
     m = np.asarray(maps, np.float64)
     if m.ndim != 3:
         raise ValueError(f"maps must be [N, H, W], got shape {m.shape}")

@@ -28,6 +28,7 @@ CAPS: dict[str, int] = {
     "spectrum": 16 << 20,         # a spectrum's text file (wavelength, value lines)
     "EXR": 2 << 30,               # a level, reference or final image (a 16k x 8k float RGB: 1.5 GiB)
     "EXR header": 1 << 20,        # the header of an EXR (attributes before the offset table)
+    "PNG": 1 << 30,               # an 8-bit image an import reads (LISIC levels; 16k x 16k RGBA raw: 1 GiB)
     "JSON": 16 << 20,             # other small JSON records (reports, bundles' manifests)
     "bundle": 2 << 30,            # a model bundle's other files
     "manifest": 16 << 20,         # a model bundle's manifest.json

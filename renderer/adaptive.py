@@ -250,7 +250,7 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
     `checkpoints`: None renders without any file. `grow`: trace several passes per launch
     as blocks stop (`renderer.session.grown_passes`; same result, fewer launches).
     """
-    from learning.data.observer import observed
+    from learning.data.relabel import observed
     from learning.data.variant import current_variant, select_variant
 
     from .criteria import make_criterion

@@ -135,7 +135,8 @@ def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int
     `windows` (x, y, w, h) per block: pool each window of the FLIP map instead of cutting
     the frame into `grid` (block windows that overlap at the frame's edge do not tile it).
     """
-    from learning.data.observer import VirtualObserver, window_errors
+    from learning.data.block_terms import window_errors
+    from learning.data.observer import VirtualObserver
     from noisefeat.dots import REPORT_LEVEL, dot_rank
 
     obs = VirtualObserver(tau=tau, exposure=exposure)

@@ -89,7 +89,8 @@ def make_reference(scene: str, resolution: int = SETTINGS["resolution"]) -> Path
 def block_errors_vs(image: np.ndarray, reference: np.ndarray, report: dict[str, Any], tau: float) -> np.ndarray:
     """Per block of `report`, the observer's error of `image` against `reference` (DESIGN's
     pooling), each block judged on its own window."""
-    from learning.data.observer import VirtualObserver, window_errors
+    from learning.data.block_terms import window_errors
+    from learning.data.observer import VirtualObserver
 
     obs = VirtualObserver(tau=tau, exposure=float(report.get("exposure", 0.0)))
     return window_errors(reference, image, [b["window"] for b in report["blocks"]], obs.ppd, obs.exposure,

@@ -25,11 +25,12 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from learning.data.dataset_dir import list_stacks, read_stacks
+from learning.data.relabel import observed, read_observed, with_tile_truth
+from learning.data.stack import Stack, read_stack
 from learning.evaluation.generalisation import scene_groups
-from learning.inputs.halves import check_constant_step, recover_passes
 from learning.evaluation.metrics import evaluate_verdicts
-from learning.data.observer import observed, read_observed, with_tile_truth
-from learning.data.stack import Stack, list_stacks, read_stack, read_stacks
+from learning.inputs.halves import check_constant_step, recover_passes
 from learning.names import DEFAULT_TAU
 
 from .criteria import Criterion
@@ -125,7 +126,7 @@ def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int 
 def _as_stacks(stacks: Stack | str | os.PathLike | Iterable[Stack | str | os.PathLike],
                tau: float = DEFAULT_TAU) -> list[Stack]:
     """Stacks as given (already labelled as the caller wants), or read from directories
-    and labelled by the observer at `tau` (`learning.data.observer.observed`)."""
+    and labelled by the observer at `tau` (`learning.data.relabel.observed`)."""
     if isinstance(stacks, Stack):
         return [stacks]
     if isinstance(stacks, (str, os.PathLike)):
@@ -148,7 +149,7 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
     directories are labelled by the observer at `tau`. The result is `evaluate_verdicts`'
     dict plus ``criterion`` (its description) and ``counters`` (summed counters and
     timers). With `tile`, the criterion decides per tile and is scored against the tile
-    truth (`learning.data.observer.with_tile_truth`); ``blocks`` then holds the same
+    truth (`learning.data.relabel.with_tile_truth`); ``blocks`` then holds the same
     metrics per block (a block stops when all its tiles have), against the block truth.
     """
     todo = _as_stacks(stacks, tau)

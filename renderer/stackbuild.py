@@ -1,7 +1,7 @@
 """Build one labelled stack (dataset format v1) from a scene: levels, reference, quick.
 
-The extra quick images of `learning.data.stack.EXTRA_QUICK` (direct lighting) are rendered too,
-also into stacks that are already complete, so rerunning a build adds them.
+The extra quick images of `learning.data.stack_format.EXTRA_QUICK` (direct lighting) are
+rendered too, also into stacks that are already complete, so rerunning a build adds them.
 
 Levels are cumulative means at spp = step, 2*step, ...; each level adds one independent
 pass of `step` samples (Mitsuba seed derived from (seed, pass)). The reference uses its
@@ -31,10 +31,12 @@ from tqdm import tqdm
 
 from learning.data.exr import read_exr
 from learning.data.npz import read_npz
-from learning.data.observer import (VirtualObserver, observer_terms, poolings, relabel_if_stale,
-                                    stack_observer_errors, thresholds_from_errors)
+from learning.data.block_terms import observer_terms, poolings, stack_observer_errors
+from learning.data.observer import VirtualObserver, thresholds_from_errors
+from learning.data.relabel import relabel_if_stale
 from noisefeat.atomic import atomic_write
-from learning.data.stack import EXTRA_QUICK, REFERENCE, level_name, read_stack
+from learning.data.stack import read_stack
+from learning.data.stack_format import EXTRA_QUICK, REFERENCE, level_name
 from learning.data.stack_write import StackWriter, make_plan
 from noisefeat.pooling import POOLINGS
 

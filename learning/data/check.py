@@ -23,8 +23,8 @@ from noisefeat.safeio import InputFileError, check_regular, read_text
 from noisefeat.atomic import is_temporary
 
 from .exr import read_exr
-from .stack import (EXTRA_QUICK, LEVELS_DIR, META, PARTIAL, QUICK, QUICK_NONE, REFERENCE, level_name,
-                    validate_meta)
+from .stack_format import EXTRA_QUICK, LEVELS_DIR, META, PARTIAL, QUICK, QUICK_NONE, REFERENCE, level_name
+from .stack_validate import validate_meta
 
 #: what a stack directory may hold besides its images (learning.inputs.table's cache, a build's
 #: checkpoint directory); anything else is a stray file

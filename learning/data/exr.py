@@ -1,7 +1,9 @@
 """Image files of the dataset: EXR (linear RGB) and PNG (8-bit sRGB), read and written safely.
 
 EXR goes through the OpenEXR project's own Python bindings (`OpenEXR`), PNG through Pillow:
-neither needs Mitsuba, so the dataset format reads and writes with the core install.
+neither needs Mitsuba, so the dataset format reads and writes with the core install. Both
+decode bytes that `noisefeat.safeio` read (regular files only, a size cap per kind); neither
+library opens a path itself.
 Files written here use the layout Mitsuba writes (scanlines, PIZ compression, channels
 R, G, B plus any named extras), and files Mitsuba wrote read back bit for bit as
 `mitsuba.Bitmap` read them (tests/learning/test_exr_io.py checks both ways when Mitsuba is there).
@@ -221,14 +223,16 @@ def read_png(path: str | os.PathLike) -> np.ndarray:
     value v is v / 255 in float32, a 16-bit grey one v / 65535.
 
     Grey PNGs are expanded to RGB, alpha is dropped, palettes are looked up. 16-bit colour
-    PNGs are refused (Pillow would read them as 8-bit).
+    PNGs are refused (Pillow would read them as 8-bit). The bytes are read through
+    `noisefeat.safeio` (a regular file within the PNG cap) and decoded from memory.
     """
     path = Path(path)
-    if not path.is_file():
+    if not (path.exists() or path.is_symlink()):
         raise FileNotFoundError(f"{path}: no such PNG file")
+    data = read_input(path, "PNG")
     image = _pil_image()
     try:
-        with image.open(path, formats=["PNG"]) as im:
+        with image.open(io.BytesIO(data), formats=["PNG"]) as im:
             colour16 = im.mode in ("RGB", "RGBA") and any(";16" in str(t[3]) for t in im.tile)
             if im.mode in ("I;16", "I;16B", "I"):
                 scale, arr = 65535.0, np.asarray(im, dtype=np.float64)

@@ -19,7 +19,7 @@ What the import writes (and why):
   display-referred (values never exceed 1, quantised to 8 bits): meta says so in
   `"import"`; the display transform gives the PNG back exactly.
 * reference: the highest-spp image (it is also the last level); `reference_spp` = its spp.
-* quick: none exists; meta `"quick": "none"`, no quick.exr (see `learning.data.stack`).
+* quick: none exists; meta `"quick": "none"`, no quick.exr (see `learning.data.stack_format`).
   Writing a copy of the reference instead would leak the answer into the model input.
 * thresholds: the human integers in zone order, unchanged (they need not be level spp);
   labeler `{"name": "human", "source": "LISIC"}`.
@@ -40,8 +40,8 @@ import numpy as np
 from noisefeat.safeio import read_input
 
 from .exr import read_png
-from .observer import srgb_decode
-from .stack import QUICK_NONE, block_shape
+from .frame_flip import srgb_decode
+from .stack_format import QUICK_NONE, block_shape
 from .stack_write import StackWriter, make_plan
 
 log = logging.getLogger(__name__)

@@ -1,34 +1,9 @@
-"""Dataset format v1 (DESIGN "Dataset format v1"): one directory per scene.
+"""Reading a stack (dataset format v1, `stack_format`): `read_stack` opens its meta.json,
+`Stack` reads its images on demand and says what is cached next to it is valid for.
 
-```
-<scene>/meta.json                 # written last: its presence means "complete"
-<scene>/meta.partial.json         # only while a build is in progress: the plan
-<scene>/levels/000032.exr ...     # cumulative-mean linear RGB, named by spp (%06d)
-<scene>/reference.exr             # high-spp linear RGB
-<scene>/quick.exr                 # the quick noise-free image (absent if meta "quick" == "none")
-<scene>/quick_direct.exr          # optional, beyond format v1: direct-lighting quick image
-```
-
-Extra quick images (`EXTRA_QUICK`, only for the quick-image ablation) are not part of
-format v1: readers that do not know them ignore them, a stack is complete without them,
-and adding one to a complete stack leaves it complete (`write_extra_quick`).
-
-Reading and validating here; writing, resumable, in `stack_write` (`StackWriter`, `write_stack`).
-
-Resume rule (used by `StackWriter`, hence by `dataset build` and `import-lisic`):
-
-* a directory with `meta.json` is a complete stack;
-* a directory with `meta.partial.json` (and no `meta.json`) is a build in progress. The
-  partial file holds the *plan*: every meta.json key except `labeler` and `thresholds`.
-  Every image file in it is complete (all writes are atomic), so a writer reopened with an
-  identical plan keeps them and only writes what is missing; a different plan is refused
-  (ValueError) rather than mixing two builds in one directory;
-* writing into a complete stack first removes its `meta.json` (back to "in progress").
-
-`quick == "none"` (e.g. LISIC imports, which have no noise-free image): no quick.exr is
-written and `Stack.quick()` returns a flat mid-grey image (sRGB 0.5) of the right size, so
-that `features(quick) - features(current)` stays defined and carries no information
-beyond `features(current)`. `Stack.has_quick` tells callers that want to know.
+Why reading alone: writing, resumable, is `stack_write` (`StackWriter`, `write_stack`,
+`update_labels`); the meta.json rules are `stack_validate`; the stacks of a dataset
+directory are `dataset_dir`.
 """
 from __future__ import annotations
 
@@ -43,170 +18,18 @@ from typing import Any
 
 import numpy as np
 
-from noisefeat.errors import InputNotFound
-from noisefeat.safeio import open_input, read_input, read_text
-
 from noisefeat import split_blocks
 from noisefeat.atomic import atomic_write
-from noisefeat.pooling import MEAN, POOLINGS, tile_windows
+from noisefeat.errors import InputNotFound
+from noisefeat.safeio import open_input, read_text
 
 from .exr import read_exr
+from .stack_format import (EXTRA_QUICK, FORMAT, KNOWN_KEYS, META, MID_GREY_LINEAR, OPTIONAL_KEYS, PARTIAL, QUICK,
+                           QUICK_NONE, REFERENCE, VERSION, file_kind, level_name)
+from .stack_validate import validate_meta
 
 log = logging.getLogger(__name__)
 
-FORMAT = "noisestop-stack"
-VERSION = 1
-META = "meta.json"
-PARTIAL = "meta.partial.json"
-LEVELS_DIR = "levels"
-REFERENCE = "reference.exr"
-QUICK = "quick.exr"
-#: optional extra quick images by kind (see module doc)
-EXTRA_QUICK = {"direct": "quick_direct.exr"}
-QUICK_NONE = "none"
-#: linear value whose sRGB encoding is 0.5: the stand-in quick image when there is none
-MID_GREY_LINEAR = 0.21404114
-
-REQUIRED_KEYS = ("format", "version", "scene", "width", "height", "grid", "block", "spp",
-                 "reference_spp", "quick", "renderer")
-OPTIONAL_KEYS = ("labeler", "thresholds", "tile", "tile_thresholds")
-KNOWN_KEYS = REQUIRED_KEYS + OPTIONAL_KEYS
-
-
-def level_name(spp: int) -> str:
-    """File name of the level with `spp` samples per pixel, relative to the stack dir."""
-    return f"{LEVELS_DIR}/{int(spp):06d}.exr"
-
-
-def block_shape(height: int, width: int, grid: Sequence[int] = (4, 4)) -> tuple[int, int]:
-    """(bh, bw) of a `grid` cut; the image must divide exactly (as noisefeat.split_blocks)."""
-    gh, gw = (int(g) for g in grid)
-    if gh < 1 or gw < 1:
-        raise ValueError(f"grid must be two positive integers, got {list(grid)}")
-    if height % gh or width % gw:
-        raise ValueError(f"a {width}x{height} image cannot be cut into a {gh}x{gw} grid "
-                         f"of equal blocks (height % {gh} = {height % gh}, width % {gw} = "
-                         f"{width % gw})")
-    return height // gh, width // gw
-
-
-# ----------------------------------------------------------------------------- validation
-
-def _is_int(x: Any) -> bool:
-    return isinstance(x, int) and not isinstance(x, bool)
-
-
-def is_pos_int(x: Any) -> bool:
-    return _is_int(x) and x > 0
-
-
-def _pair(x: Any) -> bool:
-    return isinstance(x, (list, tuple)) and len(x) == 2 and all(is_pos_int(v) for v in x)
-
-
-def validate_meta(meta: Any) -> list[str]:
-    """Every problem of a meta.json dict (empty list if none). Never raises."""
-    if not isinstance(meta, Mapping):
-        return [f"meta must be a JSON object, got {type(meta).__name__}"]
-    errs: list[str] = []
-    missing = [k for k in REQUIRED_KEYS if k not in meta]
-    if missing:
-        errs.append(f"missing required keys: {', '.join(missing)}")
-    if "format" in meta and meta["format"] != FORMAT:
-        errs.append(f"format is {meta['format']!r}, expected {FORMAT!r}")
-    if "version" in meta and not (_is_int(meta["version"]) and meta["version"] == VERSION):
-        errs.append(f"version is {meta['version']!r}, only version {VERSION} is supported")
-    if "scene" in meta:
-        s = meta["scene"]
-        if not isinstance(s, str) or not s or "/" in s or "\\" in s:
-            errs.append(f"scene must be a non-empty name without path separators, got {s!r}")
-    for key in ("width", "height"):
-        if key in meta and not is_pos_int(meta[key]):
-            errs.append(f"{key} must be a positive integer, got {meta[key]!r}")
-    for key in ("grid", "block"):
-        if key in meta and not _pair(meta[key]):
-            errs.append(f"{key} must be two positive integers, got {meta[key]!r}")
-    if all(is_pos_int(meta.get(k)) for k in ("width", "height")) and _pair(meta.get("grid")):
-        w, h, grid = meta["width"], meta["height"], meta["grid"]
-        try:
-            expected = list(block_shape(h, w, grid))
-        except ValueError as exc:
-            errs.append(f"block size does not match grid: {exc}")
-        else:
-            if _pair(meta.get("block")) and list(meta["block"]) != expected:
-                errs.append(f"block size {list(meta['block'])} does not match grid "
-                            f"{list(grid)} for a {w}x{h} image (expected {expected})")
-    spp_ok = False
-    if "spp" in meta:
-        spp = meta["spp"]
-        if not isinstance(spp, list) or not spp:
-            errs.append(f"spp must be a non-empty list of positive integers, got {spp!r}")
-        elif not all(is_pos_int(v) for v in spp):
-            bad = [v for v in spp if not is_pos_int(v)]
-            errs.append(f"spp must hold positive integers only, got {bad[:5]!r}")
-        else:
-            bad_at = [i for i in range(1, len(spp)) if spp[i] <= spp[i - 1]]
-            if bad_at:
-                i = bad_at[0]
-                errs.append(f"spp is not strictly increasing: spp[{i - 1}] = {spp[i - 1]} "
-                            f">= spp[{i}] = {spp[i]} ({len(bad_at)} such place(s))")
-            else:
-                spp_ok = True
-    if "reference_spp" in meta:
-        r = meta["reference_spp"]
-        if not is_pos_int(r):
-            errs.append(f"reference_spp must be a positive integer, got {r!r}")
-        elif spp_ok and r < meta["spp"][-1]:
-            errs.append(f"reference_spp {r} is below the last level's spp {meta['spp'][-1]}")
-    for key in ("quick", "renderer"):
-        if key in meta and not isinstance(meta[key], str):
-            errs.append(f"{key} must be a string, got {meta[key]!r}")
-    lab = meta.get("labeler")
-    if lab is not None and not isinstance(lab, Mapping):
-        errs.append(f"labeler must be an object or null, got {lab!r}")
-    elif isinstance(lab, Mapping) and lab.get("pooling", MEAN) not in POOLINGS:
-        errs.append(f"labeler pooling {lab.get('pooling')!r} is unknown (known: {', '.join(POOLINGS)}); "
-                    "its labels cannot be read as any observer's")
-    th = meta.get("thresholds")
-    if th is not None:
-        if not isinstance(th, list):
-            errs.append(f"thresholds must be a list or null, got {type(th).__name__}")
-        else:
-            if _pair(meta.get("grid")):
-                n = meta["grid"][0] * meta["grid"][1]
-                if len(th) != n:
-                    errs.append(f"thresholds has {len(th)} entries, the {meta['grid'][0]}x"
-                                f"{meta['grid'][1]} grid has {n} blocks")
-            bad = [(i, t) for i, t in enumerate(th) if t is not None and not is_pos_int(t)]
-            if bad:
-                errs.append("thresholds must be positive integers (spp) or null; bad: "
-                            + ", ".join(f"block {i}: {t!r}" for i, t in bad[:5]))
-    errs += _tile_errors(meta)
-    return errs
-
-
-def _tile_errors(meta: Mapping) -> list[str]:
-    """The tile truth's keys (issue 41): `tile` (pixels) and `tile_thresholds`, one per tile
-    of every block (`noisefeat.pooling.tile_windows`, block-major), given together."""
-    tile, th = meta.get("tile"), meta.get("tile_thresholds")
-    if tile is None and th is None:
-        return []
-    if not is_pos_int(tile) or not isinstance(th, list):
-        return [f"tile (a positive integer) and tile_thresholds (a list) go together, got {tile!r} and "
-                f"{type(th).__name__}"]
-    errs = []
-    if _pair(meta.get("grid")) and _pair(meta.get("block")):
-        n = meta["grid"][0] * meta["grid"][1] * len(tile_windows(meta["block"][0], meta["block"][1], tile))
-        if len(th) != n:
-            errs.append(f"tile_thresholds has {len(th)} entries, the blocks' {tile}-pixel tiles are {n}")
-    bad = [(i, t) for i, t in enumerate(th) if t is not None and not is_pos_int(t)]
-    if bad:
-        errs.append("tile_thresholds must be positive integers (spp) or null; bad: "
-                    + ", ".join(f"tile {i}: {t!r}" for i, t in bad[:5]))
-    return errs
-
-
-# ----------------------------------------------------------------------------- the stack
 
 @dataclass
 class Stack:
@@ -395,17 +218,6 @@ VALIDATED_MARKER = ".cache/validated"
 _VALIDATED: set[str] = set()
 
 
-def read_stacks(root: str | os.PathLike, scenes: Sequence[str] | None = None) -> list[Stack]:
-    """The stacks below `root` (only `scenes`, if given), every file of each validated
-    (`Stack.validate`): what commands that read a dataset open it with."""
-    stacks = [read_stack(p) for p in list_stacks(root)]
-    if scenes is not None:
-        stacks = [st for st in stacks if st.scene in scenes]
-    for st in stacks:
-        st.validate()
-    return stacks
-
-
 def file_digest(path: Path) -> str:
     """SHA-256 of a file's bytes, remembered per (path, inode, size, mtime) for this process."""
     try:
@@ -416,7 +228,7 @@ def file_digest(path: Path) -> str:
     digest = _DIGESTS.get(sig)
     if digest is None:
         h = hashlib.sha256()
-        with open_input(path, _kind(path)) as f:
+        with open_input(path, file_kind(path)) as f:
             for chunk in iter(lambda: f.read(1 << 20), b""):
                 h.update(chunk)
         digest = _DIGESTS[sig] = h.hexdigest()
@@ -425,26 +237,16 @@ def file_digest(path: Path) -> str:
     return digest
 
 
-def _kind(path: Path) -> str:
-    return "meta.json" if path.name == META else "EXR" if path.suffix == ".exr" else "file"
-
-
 def load_json(path: Path) -> Any:
+    """A stack's JSON file (meta.json, the plan) parsed; one line naming it if it is not JSON."""
     try:
-        return json.loads(read_text(path, _kind(path)))
+        return json.loads(read_text(path, file_kind(path)))
     except RecursionError:
         raise ValueError(f"{path}: not a stack description (JSON nested too deeply)") from None
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: not valid JSON: {exc}") from exc
     except UnicodeDecodeError as exc:
         raise ValueError(f"{path}: not UTF-8 text: {exc}") from exc
-
-
-def dump_json(path: Path, obj: Mapping) -> None:
-    """One top-level key per line (diff- and grep-friendly), known keys first."""
-    keys = [k for k in KNOWN_KEYS if k in obj] + [k for k in obj if k not in KNOWN_KEYS]
-    body = ",\n".join(f" {json.dumps(k)}: {json.dumps(obj[k])}" for k in keys)
-    atomic_write(path, ("{\n" + body + "\n}\n").encode("utf-8"))
 
 
 def _stack_dir(path: str | os.PathLike) -> Path:
@@ -493,6 +295,7 @@ def read_stack(path: str | os.PathLike) -> Stack:
 
 
 def from_meta(meta: Mapping, d: Path) -> Stack:
+    """The `Stack` of directory `d` whose meta.json is `meta` (already validated)."""
     th = meta.get("thresholds")
     return Stack(scene=meta["scene"], width=meta["width"], height=meta["height"],
                  grid=(meta["grid"][0], meta["grid"][1]),
@@ -510,58 +313,3 @@ def _labels(spp: Sequence[int], thresholds: Sequence[int | None]) -> np.ndarray:
     never = np.iinfo(np.int64).max
     t = np.array([never if v is None else v for v in thresholds], np.int64)[None, :]
     return np.where(s >= t, 1, -1).astype(np.int8)
-
-
-def update_labels(stack: Stack | str | os.PathLike, thresholds: Sequence[int | None] | None,
-                  labeler: Mapping | None, tile: int | None = None,
-                  tile_thresholds: Sequence[int | None] | None = None) -> Stack:
-    """Replace a complete stack's thresholds/labeler (e.g. relabel with another tau), and
-    with `tile` its tile truth (else the tile truth is dropped: it was the old labeler's)."""
-    st = stack if isinstance(stack, Stack) else read_stack(stack)
-    meta = st.meta()
-    meta["thresholds"] = None if thresholds is None else [None if t is None else int(t)
-                                                          for t in thresholds]
-    meta["labeler"] = None if labeler is None else dict(labeler)
-    meta.pop("tile", None)
-    meta.pop("tile_thresholds", None)
-    if tile is not None:
-        meta["tile"] = int(tile)
-        meta["tile_thresholds"] = [None if t is None else int(t) for t in tile_thresholds or []]
-    errs = validate_meta(meta)
-    if errs:
-        raise ValueError(f"{st.path / META}: refusing to write: " + "; ".join(errs))
-    dump_json(st.path / META, meta)
-    return from_meta(meta, st.path)
-
-
-def list_stacks(root: str | os.PathLike, include_incomplete: bool = False) -> list[Path]:
-    """Every stack directory under `root` (root itself included), sorted.
-
-    A directory is a stack if it holds meta.json (or, with `include_incomplete`,
-    meta.partial.json); stacks are not searched for nested stacks. A meta.json that is a
-    directory is a broken stack: one-line ValueError (it used to be skipped silently).
-    """
-    root = Path(root)
-    if not root.is_dir():
-        raise InputNotFound(f"{root}: no such dataset directory")
-    names = {META, PARTIAL} if include_incomplete else {META}
-    found = []
-    for dirpath, dirnames, filenames in os.walk(root):
-        odd = sorted(names & set(dirnames))
-        if odd:      # a stack whose meta.json is no file: refused, not skipped as no stack
-            raise ValueError(f"{Path(dirpath) / odd[0]}: a stack's {odd[0]} must be a file, this is a directory")
-        if names & set(filenames):
-            found.append(Path(dirpath))
-            dirnames[:] = []
-        else:
-            dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
-    return sorted(found)
-
-
-def dataset_fingerprint(root: str | os.PathLike) -> str:
-    """A short hash of every stack's meta.json under `root`: results computed on a dataset
-    (e.g. a saved model comparison) are only reused on the very same one."""
-    h = hashlib.sha256()
-    for p in list_stacks(root):
-        h.update(p.name.encode() + b"\0" + read_input(p / META, "meta.json"))
-    return h.hexdigest()[:16]

@@ -1,7 +1,8 @@
 """Writing a stack (dataset format v1), atomically and resumably: `make_plan` says what a
 stack will hold, `StackWriter` writes its images one by one (a rerun with the same plan
-keeps what is there, a different plan is refused), `finish` writes meta.json last. The
-resume rule is in `stack`'s module docstring."""
+keeps what is there, a different plan is refused), `finish` writes meta.json last;
+`update_labels` rewrites a complete stack's labels. The resume rule is in `stack_format`'s
+module docstring."""
 from __future__ import annotations
 
 import json
@@ -13,10 +14,13 @@ from typing import Any
 
 import numpy as np
 
+from noisefeat.atomic import atomic_write
+
 from .exr import read_exr, write_exr
-from .stack import (EXTRA_QUICK, FORMAT, LEVELS_DIR, META, OPTIONAL_KEYS, PARTIAL, QUICK, QUICK_NONE, REFERENCE,
-                    VERSION, Stack, block_shape, dump_json, from_meta, is_pos_int, level_name, load_json,
-                    validate_meta)
+from .stack import Stack, from_meta, load_json, read_stack
+from .stack_format import (EXTRA_QUICK, FORMAT, KNOWN_KEYS, LEVELS_DIR, META, OPTIONAL_KEYS, PARTIAL, QUICK,
+                           QUICK_NONE, REFERENCE, VERSION, block_shape, level_name)
+from .stack_validate import is_pos_int, validate_meta
 
 log = logging.getLogger(__name__)
 
@@ -276,3 +280,32 @@ def write_stack(path: str | os.PathLike, *, scene: str,
     if quick is not None:
         w.write_quick(quick)
     return w.finish(thresholds, labeler)
+
+
+def dump_json(path: Path, obj: Mapping) -> None:
+    """One top-level key per line (diff- and grep-friendly), known keys first."""
+    keys = [k for k in KNOWN_KEYS if k in obj] + [k for k in obj if k not in KNOWN_KEYS]
+    body = ",\n".join(f" {json.dumps(k)}: {json.dumps(obj[k])}" for k in keys)
+    atomic_write(path, ("{\n" + body + "\n}\n").encode("utf-8"))
+
+
+def update_labels(stack: Stack | str | os.PathLike, thresholds: Sequence[int | None] | None,
+                  labeler: Mapping | None, tile: int | None = None,
+                  tile_thresholds: Sequence[int | None] | None = None) -> Stack:
+    """Replace a complete stack's thresholds/labeler (e.g. relabel with another tau), and
+    with `tile` its tile truth (else the tile truth is dropped: it was the old labeler's)."""
+    st = stack if isinstance(stack, Stack) else read_stack(stack)
+    meta = st.meta()
+    meta["thresholds"] = None if thresholds is None else [None if t is None else int(t)
+                                                          for t in thresholds]
+    meta["labeler"] = None if labeler is None else dict(labeler)
+    meta.pop("tile", None)
+    meta.pop("tile_thresholds", None)
+    if tile is not None:
+        meta["tile"] = int(tile)
+        meta["tile_thresholds"] = [None if t is None else int(t) for t in tile_thresholds or []]
+    errs = validate_meta(meta)
+    if errs:
+        raise ValueError(f"{st.path / META}: refusing to write: " + "; ".join(errs))
+    dump_json(st.path / META, meta)
+    return from_meta(meta, st.path)

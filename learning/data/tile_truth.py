@@ -37,7 +37,8 @@ from noisefeat.dots import DOT_LEVEL
 from noisefeat.pooling import tile_windows
 
 from .cache import cached_array
-from .stack import Stack, block_shape
+from .stack import Stack
+from .stack_format import block_shape
 
 #: names the tile truth a stack's labeler record carries (`VirtualObserver.labeler`): tile
 #: thresholds of another version are recomputed, never read as this one's

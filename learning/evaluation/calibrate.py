@@ -21,13 +21,15 @@ from tqdm import tqdm
 from noisefeat.dots import OBSERVER_DOTS
 from noisefeat.pooling import CRITERION_POOLING, DEFAULT_POOLING
 
-from ..data.observer import DEFAULT_TAU, label_tau, observed, observer_for, with_tile_truth
+from ..data.observer import label_tau, observer_for
+from ..data.relabel import observed, with_tile_truth
 from ..data.stack import Stack
 from ..data.tile_truth import TILE_TRUTH, FinalFrame
 from ..inputs.halves import flip_offset, guarded_flip_scores, guarded_tile_flip_scores
 from ..inputs.halves import stack_flat
 from ..inputs.history import STATISTIC
 from ..inputs.table import SubImageTable
+from ..names import DEFAULT_TAU
 from ..stoprule import StopRule
 from .evaluate import evaluate_scores
 from .generalisation import scene_groups

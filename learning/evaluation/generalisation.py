@@ -64,8 +64,8 @@ def split_stacks(data: str, heldout: str | None = None, tau: float = DEFAULT_TAU
     training scene. Without it, the older in-dataset split (every 4th scene by name held
     out) is used, with a warning: such scenes are alike and often never converge.
     """
-    from ..data.observer import observed
-    from ..data.stack import read_stacks
+    from ..data.dataset_dir import read_stacks
+    from ..data.relabel import observed
 
     stacks = [observed(s, tau) for s in read_stacks(data)]
     if not stacks:

@@ -29,16 +29,18 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from noisefeat.safeio import InputFileError, read_json
 from noisefeat.display import check_exposure
 from noisefeat.dots import DOT_DENSITY, DOT_LEVEL, OBSERVER_DOTS, halves_dots
-from noisefeat.flip import flip_halves, flip_maps_tensor, pool_tiles
+from noisefeat.flip import flip_halves, pool_tiles
+from noisefeat.flip_maps import flip_maps_tensor
 from noisefeat.pooling import CRITERION_POOLING, DEFAULT_POOLING, pool_maps, tile_windows
+from noisefeat.safeio import InputFileError, read_json
 from noisefeat.userdata import find as find_user_file
 
 from ..data.accumulator import BlockAccumulator
 from ..data.cache import cached_array
-from ..data.observer import DEFAULT_PPD, display, flip_map, label_tau
+from ..data.frame_flip import DEFAULT_PPD, display, flip_map
+from ..data.observer import label_tau
 from ..data.stack import Stack
 from ..stoprule import FLAT_TOLERANCE, flat_blocks
 

@@ -22,8 +22,9 @@ from noisefeat import FeatureBase, default_base, extract_features
 from noisefeat.display import lightness
 
 from ..data.cache import cached_array
-from ..data.observer import observed
-from ..data.stack import Stack, list_stacks, read_stack
+from ..data.dataset_dir import list_stacks
+from ..data.relabel import observed
+from ..data.stack import Stack, read_stack
 from ..names import DEFAULT_TAU
 from ..names import QUICK_MODES
 from .halves import iter_stack_halves, stack_flat, stack_flip_errors, stack_halves_dots
@@ -192,7 +193,7 @@ def load_table(root: str | os.PathLike, *, raw: bool = False, base: FeatureBase 
                quick: str = "albedo", composition: str = HALVES, image: bool = False,
                tau: float = DEFAULT_TAU) -> SubImageTable:
     """All labelled stacks under root as one table, labelled by the observer at `tau`
-    (`learning.data.observer.observed`: a stack of another observer is relabelled in
+    (`learning.data.relabel.observed`: a stack of another observer is relabelled in
     memory, human labels are kept as they are): model inputs of `quick` (a `halves`
     table in `composition`); raw L* blocks instead of features if `raw` (with quick
     'halves': the raw noise image; any other quick: the block itself); with `image`, the

@@ -25,7 +25,9 @@ from ..names import DEFAULT_TAU, OFFSET_LIMIT, TRANSFER_INPUTS, TRANSFER_KINDS
 from ..stoprule import flat_halves
 from .bundle_check import file_sha256
 from .model import FORMAT, MANIFEST, VERSION, Model, hold_dotted, nonfinite_counts, versions
-from .transfer import ARCHS, STATE_FILE, TENSOR_FILE, TransferClassifier, import_torchvision
+from .transfer import TransferClassifier
+from .transfer_archs import ARCHS, import_torchvision
+from .transfer_state import STATE_FILE, TENSOR_FILE
 
 #: `input` of an image classifier's manifest
 IMAGE = "image"

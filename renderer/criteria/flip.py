@@ -65,7 +65,8 @@ class FlipCriterion(Criterion):
     def _flip(self, batch: BlockBatch, ask: np.ndarray) -> np.ndarray:
         """e of the asked units: of a block, its pooled FLIP between the halves; of a tile,
         the FLIP map of its whole block (its neighbours are context) pooled over the tile."""
-        from noisefeat.flip import flip_halves_tensor, flip_maps_tensor, pool_tiles
+        from noisefeat.flip import flip_halves_tensor, pool_tiles
+        from noisefeat.flip_maps import flip_maps_tensor
 
         if batch.tiling is None:
             a, b = batch.halves     # type: ignore[misc]

@@ -117,8 +117,9 @@ def cmd_import_lisic(args: argparse.Namespace) -> int:
 def cmd_dataset_relabel(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from learning.data.observer import relabel_if_stale
-    from learning.data.stack import list_stacks, read_stack
+    from learning.data.dataset_dir import list_stacks
+    from learning.data.relabel import relabel_if_stale
+    from learning.data.stack import read_stack
 
     paths = list_stacks(args.dir)
     if not paths:

@@ -112,9 +112,9 @@ def _composition(args: argparse.Namespace, raw: bool) -> dict[str, str]:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from learning.models.bundle import BUNDLED_DIR, Model, save_model
     from learning.evaluation.evaluate import evaluate_model
     from learning.inputs.table import load_table
+    from learning.models.bundle import BUNDLED_DIR, Model, save_model
     from learning.training.train import train_model
 
     if not 0 < args.label_budget <= 1:
@@ -210,7 +210,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     import datetime
     import json
 
-    from learning.data.stack import dataset_fingerprint, read_stacks
+    from learning.data.dataset_dir import dataset_fingerprint, read_stacks
     from learning.evaluation.calibrate import calibrate_flip_curve
     from learning.inputs.halves import FLIP_CALIBRATION, FLIP_USER_FILE
 
@@ -247,7 +247,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def cmd_pretrain(args: argparse.Namespace) -> int:
     from learning.models.pretrain import pretrain_base
-    from learning.data.stack import read_stacks
+    from learning.data.dataset_dir import read_stacks
     from learning.evaluation.generalisation import default_test_scenes
     from noisefeat.weights import PRETRAINED_FILE, PRETRAINED_USER_FILE, save_kernels
 

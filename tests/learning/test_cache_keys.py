@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from learning import make_synthetic_stack
+from learning.data.cache import CACHE_DIR, _atomic_savez, cached_array
 from learning.data.exr import read_exr, write_exr
 from learning.data.stack import read_stack
-from learning.data.cache import CACHE_DIR, _atomic_savez, cached_array
 
 
 @pytest.fixture()
@@ -66,7 +66,7 @@ def test_a_missing_or_all_nan_level_is_refused_not_served_from_cache(stack):
 
 
 def test_relabelling_keeps_the_caches_and_a_changed_plan_does_not(stack):
-    from learning.data.stack import update_labels
+    from learning.data.stack_write import update_labels
     calls = []
     key = stack.content_key()
     _cached(stack, calls)

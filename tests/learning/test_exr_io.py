@@ -205,6 +205,22 @@ def test_png_values_modes_and_damage(tmp_path):
         read_png(tmp_path / "junk.png")
 
 
+def test_png_is_read_through_safeio(tmp_path, monkeypatch):
+    """A PNG is opened as safeio opens inputs: a FIFO is refused at once (Pillow would
+    block on it), a file over the PNG cap before a byte is decoded; both one line naming it."""
+    from noisefeat import safeio
+
+    os.mkfifo(tmp_path / "fifo.png")
+    with pytest.raises(safeio.InputFileError, match="fifo.png: PNG is a FIFO"):
+        read_png(tmp_path / "fifo.png")
+    write_png(tmp_path / "big.png", np.zeros((8, 8, 3), np.uint8))
+    monkeypatch.setitem(safeio.CAPS, "PNG", 16)
+    with pytest.raises(safeio.InputFileError, match="big.png: PNG is .* over the limit"):
+        read_png(tmp_path / "big.png")
+    with pytest.raises(FileNotFoundError, match="no such PNG file"):
+        read_png(tmp_path / "absent.png")
+
+
 def test_png_16_bit_colour_is_refused_not_silently_reduced(tmp_path):
     import struct
     import zlib

@@ -21,7 +21,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from learning.data.observer import VirtualObserver, observed, pooled_errors
+from learning.data.block_terms import pooled_errors
+from learning.data.observer import VirtualObserver
+from learning.data.relabel import observed
 from learning.data.stack_write import write_stack
 from learning.inputs.halves import flip_c, load_flip_calibration
 from renderer.criteria import FlipCriterion

@@ -9,8 +9,8 @@ import pytest
 
 from learning.data.check import ERROR, check_dataset
 from learning.data.exr import write_png
+from learning.data.frame_flip import display
 from learning.data.lisic import import_lisic, read_config, scan_scene
-from learning.data.observer import display
 from learning.data.stack import read_stack
 
 SPP = [20, 40, 60, 80, 100]

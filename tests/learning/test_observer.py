@@ -4,10 +4,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from learning.data.observer import (VirtualObserver, block_errors, display, flip_map, label_stack,
-                                    observed, pooled_errors, read_observed, relabel_if_stale,
-                                    srgb_decode, stack_observer_errors, thresholds_from_errors)
-from learning.data.stack import read_stack, update_labels
+from learning.data.block_terms import block_errors, pooled_errors, stack_observer_errors
+from learning.data.frame_flip import display, flip_map, srgb_decode
+from learning.data.observer import VirtualObserver, label_stack, thresholds_from_errors
+from learning.data.relabel import observed, read_observed, relabel_if_stale
+from learning.data.stack import read_stack
+from learning.data.stack_write import update_labels
 from noisefeat.dots import OBSERVER_DOTS
 from noisefeat.pooling import POOLINGS, pool_blocks
 from learning.data.synthetic import make_synthetic_stack, synthetic_images
@@ -225,8 +227,8 @@ def test_relabelling_reads_cached_errors_and_never_renders(tmp_path, monkeypatch
     st = _mean_labelled(tmp_path)
     e = stack_observer_errors(st)                                  # computed once, cached
     assert e.shape == (len(POOLINGS), 5, 4)
-    import learning.data.observer as obs_mod
-    monkeypatch.setattr(obs_mod, "flip_map", lambda *a, **k: (_ for _ in ()).throw(AssertionError("FLIP ran")))
+    import learning.data.frame_flip as flip_mod
+    monkeypatch.setattr(flip_mod, "flip_map", lambda *a, **k: (_ for _ in ()).throw(AssertionError("FLIP ran")))
     for tau in (0.01, 0.02, 0.04):
         observed(st, tau)
     np.testing.assert_array_equal(stack_observer_errors(st), e)
@@ -293,7 +295,8 @@ def test_a_version_2_stack_is_relabelled_by_its_dot_term_alone(tmp_path, monkeyp
     """Stacks labelled before version 3 keep their cached FLIP errors: relabelling reads the
     levels for the dot term only, never FLIP (the tile truth's FLIP terms, issue 41, and its
     final-frame fixed point, issue 49, are cached apart, made once)."""
-    from learning.data.observer import observer_for, stack_tile_errors
+    from learning.data.observer import observer_for
+    from learning.data.tile_terms import stack_tile_errors
 
     st = make_synthetic_stack(tmp_path / "s", size=128, grid=(2, 2), spp=[16, 64, 256, 1024])
     st = update_labels(st, label_stack(st, pooling="tile16-max"), {**st.labeler, "pooling": "tile16-max"})
@@ -302,8 +305,8 @@ def test_a_version_2_stack_is_relabelled_by_its_dot_term_alone(tmp_path, monkeyp
     observer_for(st).label_tiles(st)
     for f in (st.path / ".cache").glob("observer-dots-*"):
         f.unlink()
-    import learning.data.observer as obs_mod
-    monkeypatch.setattr(obs_mod, "flip_map", lambda *a, **k: (_ for _ in ()).throw(AssertionError("FLIP ran")))
+    import learning.data.frame_flip as flip_mod
+    monkeypatch.setattr(flip_mod, "flip_map", lambda *a, **k: (_ for _ in ()).throw(AssertionError("FLIP ran")))
     new, relabelled = relabel_if_stale(read_stack(st.path))
     assert relabelled and new.labeler["pooling"] == "tile16-max+dots"
     assert list(st.path.joinpath(".cache").glob("observer-dots-*"))

@@ -11,8 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from learning.data.dataset_dir import list_stacks
 from learning.data.exr import read_exr, read_png, write_exr, write_png
-from learning.data.stack import MID_GREY_LINEAR, list_stacks, read_stack, update_labels, validate_meta
+from learning.data.stack import read_stack
+from learning.data.stack_format import MID_GREY_LINEAR
+from learning.data.stack_validate import validate_meta
+from learning.data.stack_write import update_labels
 from learning.data.stack_write import StackWriter, make_plan, write_stack
 from learning.data.synthetic import make_synthetic_stack, synthetic_images
 

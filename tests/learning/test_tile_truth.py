@@ -8,9 +8,12 @@ import numpy as np
 import pytest
 
 from learning import write_stack
-from learning.data.observer import (VirtualObserver, relabel_if_stale, thresholds_from_errors, tile_errors,
-                                    tile_terms, with_tile_truth)
-from learning.data.stack import read_stack, update_labels, validate_meta
+from learning.data.observer import VirtualObserver, thresholds_from_errors
+from learning.data.relabel import relabel_if_stale, with_tile_truth
+from learning.data.stack import read_stack
+from learning.data.stack_validate import validate_meta
+from learning.data.stack_write import update_labels
+from learning.data.tile_terms import tile_errors, tile_terms
 
 SPP = [8, 16, 24, 32]
 #: tile t of the 4x4 tiles of a 64x64 block is noisy up to level CONV[t]: its truth is SPP[CONV[t]]
@@ -114,7 +117,7 @@ def test_the_end_of_a_simulated_render_is_judged_by_the_block_observer(tmp_path)
     the frame and judges it with the version-3 block observer: tiles stopped at their truth
     leave a clean block; the same stops one level early leave it above tau. Control: the
     composed frame is the one built here by hand."""
-    from learning.data.observer import block_errors
+    from learning.data.block_terms import block_errors
     from renderer.simulate import end_of_render
 
     ref, levels = _levels()

@@ -14,7 +14,9 @@ import pytest
 import torch
 from sklearn.base import clone
 
-from learning.models import transfer as T
+from learning.models import transfer_archs as A
+from learning.models import transfer_state as S
+from learning.models import transfer_weights as W
 from learning.models.transfer import TransferClassifier
 
 ARCH = "mobilenet_v2"  # the smallest base: tests stay fast
@@ -54,7 +56,7 @@ def _fit(**kw) -> TransferClassifier:
 def _state_dict_file(path, arch: str = ARCH, seed: int = 1):
     """A torchvision-format state_dict (random weights: no real ImageNet file is available)."""
     torch.manual_seed(seed)
-    model = getattr(T.import_torchvision().models, arch)(weights=None)
+    model = getattr(A.import_torchvision().models, arch)(weights=None)
     torch.save(model.state_dict(), path)
     return path
 
@@ -103,7 +105,7 @@ def test_precomputed_features_match_blocks():
     X, y = _data()
     m = TransferClassifier(arch=ARCH, epochs=5, batch_size=16).prepare_base(X)
     F = m.transform(X)
-    assert F.shape == (len(X), T.ARCHS[ARCH].n_features) and F.dtype == np.float32
+    assert F.shape == (len(X), A.ARCHS[ARCH].n_features) and F.dtype == np.float32
     assert F.std(axis=0).mean() > 1e-3        # calibrated BatchNorm: the random features live
     on_features = m.fit(F, y).decision_function(X)
     on_blocks = TransferClassifier(arch=ARCH, epochs=5, batch_size=16).fit(X, y).decision_function(X)
@@ -165,40 +167,40 @@ def test_hub_cache_lookup_and_imagenet_label(tmp_path, monkeypatch):
     sha = hashlib.sha256(tmp.read_bytes()).hexdigest()
     name = f"{ARCH}-{sha[:8]}.pth"
     tmp.rename(cache / name)
-    monkeypatch.setattr(T, "checkpoint_names", lambda arch: ["absent.pth", name])
+    monkeypatch.setattr(W, "checkpoint_names", lambda arch: ["absent.pth", name])
     X, y = _data(n=8)
     m = TransferClassifier(arch=ARCH, epochs=1).fit(X, y)
     assert m.base_pretrained_ is True and m.report_label() == f"{ARCH} (ImageNet)"
     assert m.base_weights_ == str(cache / name)
     forged = f"{ARCH}-00000000.pth"             # a right name with the wrong content
     (cache / name).rename(cache / forged)
-    monkeypatch.setattr(T, "checkpoint_names", lambda arch: [forged])
+    monkeypatch.setattr(W, "checkpoint_names", lambda arch: [forged])
     m = TransferClassifier(arch=ARCH, epochs=1).fit(X, y)
     assert m.report_label() == f"{ARCH} (weights {forged})"
 
 
 def test_checkpoint_names_are_torchvisions():
-    names = T.checkpoint_names("vgg19")
+    names = W.checkpoint_names("vgg19")
     assert names[0].startswith("vgg19-") and names[0].endswith(".pth")
-    assert len(T.checkpoint_names("resnet50")) >= 2     # V2 (default) and V1
+    assert len(W.checkpoint_names("resnet50")) >= 2     # V2 (default) and V1
 
 
 def test_densenet_old_keys_are_renamed(tmp_path):
     t = torch.zeros(2)
     torch.save({"features.denseblock1.denselayer1.norm.1.weight": t, "features.conv0.weight": t},
                tmp_path / "d.pth")
-    keys = set(T._read_state_dict(tmp_path / "d.pth"))
+    keys = set(W.read_state_dict(tmp_path / "d.pth"))
     assert keys == {"features.denseblock1.denselayer1.norm1.weight", "features.conv0.weight"}
 
 
-@pytest.mark.parametrize("arch", list(T.ARCHS))
+@pytest.mark.parametrize("arch", list(A.ARCHS))
 def test_every_arch_gives_pooled_features(arch):
     """All five bases build from torchvision and accept 32x32 blocks (inception: resized to 75)."""
     X, _ = _data(n=2)
     m = TransferClassifier(arch=arch, batch_size=2).prepare_base(X)
     F = m.transform(X)
-    assert F.shape == (2, T.ARCHS[arch].n_features) and np.isfinite(F).all()
-    assert m._images(X).shape[-1] == T.ARCHS[arch].min_size
+    assert F.shape == (2, A.ARCHS[arch].n_features) and np.isfinite(F).all()
+    assert m._images(X).shape[-1] == A.ARCHS[arch].min_size
 
 
 def test_input_size_resizes():
@@ -230,9 +232,9 @@ def test_save_load_roundtrip(tmp_path, freeze):
 def test_load_refuses_a_different_base(tmp_path):
     m = _fit(epochs=1)
     m.save(tmp_path / "m")
-    state = json.loads((tmp_path / "m" / T.STATE_FILE).read_text())
+    state = json.loads((tmp_path / "m" / S.STATE_FILE).read_text())
     state["params"]["random_state"] = 99     # rebuilds another random base
-    (tmp_path / "m" / T.STATE_FILE).write_text(json.dumps(state))
+    (tmp_path / "m" / S.STATE_FILE).write_text(json.dumps(state))
     with pytest.raises(ValueError, match="differs from the one it was trained on"):
         TransferClassifier.load(tmp_path / "m")
     with pytest.raises(FileNotFoundError, match="transfer.json"):
@@ -242,12 +244,12 @@ def test_load_refuses_a_different_base(tmp_path):
 def test_missing_torchvision_names_the_arches(monkeypatch):
     monkeypatch.setitem(sys.modules, "torchvision", None)
     with pytest.raises(ImportError, match="vgg19.*densenet201.*torchvision"):
-        T.import_torchvision()
+        A.import_torchvision()
 
 
 def test_torchvision_shim_only_when_needed():
     """In a fresh interpreter: schemas are defined iff torchvision's C extension did not load."""
-    code = ("import learning.models.transfer as T, torch; tv = T.import_torchvision();"
+    code = ("import learning.models.transfer_archs as T, torch; tv = T.import_torchvision();"
             "import torchvision.extension as E; m = tv.models.mobilenet_v2(weights=None);"
             "print(E._has_ops(), T._shim_lib is not None, hasattr(torch.ops.torchvision, 'nms'))")
     out = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True,

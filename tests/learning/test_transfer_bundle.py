@@ -19,7 +19,7 @@ from learning.evaluation.metrics import stop_thresholds
 from learning.inputs.pictures import noise_picture
 from learning.inputs.table import rgb_blocks
 from learning.inputs.table import load_table
-from learning.models import transfer as T
+from learning.models import transfer_archs as T
 from learning.models.bundle import load_model
 from learning.models.transfer_bundle import TransferModel, save_transfer_model
 from learning.names import MODEL_KINDS, TRANSFER_KINDS

@@ -1,7 +1,8 @@
-"""The batched torch LDR-FLIP (noisefeat.flip) against NVIDIA's flip-evaluator, the
-reference: the same maps and block means to float32 rounding on realistic noisy blocks,
-on every extreme input, at block sizes from 1 to 512 pixels, square or not, and at other
-viewing distances; FLIP's own filter constants; exact zeros where FLIP gives them."""
+"""The batched torch LDR-FLIP (noisefeat.flip, flip_maps, flip_kernels) against NVIDIA's
+flip-evaluator, the reference: the same maps and block means to float32 rounding on
+realistic noisy blocks, on every extreme input, at block sizes from 1 to 512 pixels, square
+or not, and at other viewing distances; FLIP's own filter constants; exact zeros where FLIP
+gives them."""
 from __future__ import annotations
 
 import numpy as np
@@ -10,8 +11,10 @@ import torch
 
 from tests.support.extremes import CASES, extreme_halves
 from learning.inputs.halves import halves_flip, halves_flip_evaluator
-from learning.data.observer import display, flip_map
+from learning.data.frame_flip import display, flip_map
 from noisefeat import flip as F
+from noisefeat import flip_kernels as K
+from noisefeat import flip_maps as M
 
 RNG = np.random.default_rng(16)
 #: agreement asked of the block means (relative) and of the maps (absolute, FLIP in [0, 1])
@@ -55,7 +58,7 @@ def test_block_means_and_maps_match_flip_evaluator(shape, noise):
     got = halves_flip(a, b)
     assert (ref > 1e-3).all()                      # something to see, so relative error means something
     np.testing.assert_allclose(got, ref, rtol=MEAN_RTOL, atol=0)
-    maps = F.ldr_flip(display(a), display(b)).numpy()
+    maps = M.ldr_flip(display(a), display(b)).numpy()
     np.testing.assert_allclose(maps, reference_maps(a, b), rtol=0, atol=MAP_ATOL)
 
 
@@ -65,7 +68,7 @@ def test_the_observers_pairs_match_too():
     ref = display(content(3, 48, 72))
     test = np.roll(ref, 2, axis=2) * np.array([1.0, 0.9, 1.1], np.float32)
     test = np.clip((test + np.roll(test, 1, axis=1)) / 2, 0, 1).astype(np.float32)
-    maps = F.ldr_flip(ref, test).numpy()
+    maps = M.ldr_flip(ref, test).numpy()
     want = np.stack([flip_map(r, t) for r, t in zip(ref, test)])
     assert want.mean() > 0.05
     np.testing.assert_allclose(maps, want, rtol=0, atol=MAP_ATOL)
@@ -85,7 +88,7 @@ def test_a_large_block_and_tiny_ones():
     for shape in [(1, 1), (1, 5), (3, 2), (2, 40)]:    # smaller than the filters: all clamped
         x, y = (display(RNG.random((2, *shape, 3)).astype(np.float32)) for _ in range(2))
         want = np.stack([flip_map(p, q) for p, q in zip(x, y)])
-        np.testing.assert_allclose(F.ldr_flip(x, y).numpy(), want, rtol=0, atol=MAP_ATOL)
+        np.testing.assert_allclose(M.ldr_flip(x, y).numpy(), want, rtol=0, atol=MAP_ATOL)
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -113,7 +116,7 @@ def test_partly_equal_halves_keep_their_exact_zeros():
     and so is FLIP; batching must not leave rounding noise there."""
     a, b = noisy_halves(2, 64, 64, 0.05)
     b[:, :, :32] = a[:, :, :32]
-    maps = F.ldr_flip(display(a), display(b)).numpy()
+    maps = M.ldr_flip(display(a), display(b)).numpy()
     assert (maps[:, :, :10] == 0).all() and (reference_maps(a, b)[:, :, :10] == 0).all()
 
 
@@ -121,7 +124,7 @@ def test_batching_and_chunking_do_not_change_a_block(monkeypatch):
     a, b = noisy_halves(5, 24, 24, 0.05)
     together = halves_flip(a, b)
     alone = np.array([halves_flip(a[i:i + 1], b[i:i + 1])[0] for i in range(5)])
-    monkeypatch.setattr(F, "CHUNK_PIXELS", 24 * 24 * 2)       # two blocks a chunk
+    monkeypatch.setattr(M, "CHUNK_PIXELS", 24 * 24 * 2)       # two blocks a chunk
     chunked = halves_flip(a, b)
     np.testing.assert_allclose(alone, together, rtol=1e-6, atol=0)
     np.testing.assert_allclose(chunked, together, rtol=1e-6, atol=0)
@@ -131,7 +134,7 @@ def test_filters_are_flips():
     """Radii and normalisation of FLIP.h at 67 ppd: colour filters of radius 10 (Y, Cx sum
     to 1; the two separated Cz Gaussians make a 2D filter of sum 1), feature filters of
     radius ceil(3 x 0.5 x 0.082 x 67) = 9 (Gaussian sum 1, derivative lobes +1 and -1)."""
-    c, f = F.colour_kernels(67.0), F.feature_kernels(67.0)
+    c, f = K.colour_kernels(67.0), K.feature_kernels(67.0)
     assert c.shape == (4, 21) and f.shape == (3, 19)
     np.testing.assert_allclose(c[:2].sum(axis=1), 1.0, rtol=1e-12)
     assert abs(c[2].sum() ** 2 + c[3].sum() ** 2 - 1.0) < 1e-12
@@ -139,13 +142,13 @@ def test_filters_are_flips():
     for k in f[1:]:
         assert abs(k[k > 0].sum() - 1) < 1e-12 and abs(k[k < 0].sum() + 1) < 1e-12
     assert np.allclose(f[1], -f[1][::-1]) and np.allclose(f[2], f[2][::-1])
-    assert len(F.filter_bank(67.0)["Y"]) < 21          # far taps below float32 precision, trimmed
-    assert F.spatial_radius(20.0) == 3 and F.spatial_radius(120.0) == 17
+    assert len(K.filter_bank(67.0)["Y"]) < 21          # far taps below float32 precision, trimmed
+    assert K.spatial_radius(20.0) == 3 and K.spatial_radius(120.0) == 17
 
 
 def test_empty_batches_and_bad_arguments():
     assert halves_flip(np.zeros((0, 8, 8, 3)), np.zeros((0, 8, 8, 3))).shape == (0,)
-    assert F.ldr_flip(np.zeros((0, 8, 8, 3), np.float32), np.zeros((0, 8, 8, 3), np.float32)).shape == (0, 8, 8)
+    assert M.ldr_flip(np.zeros((0, 8, 8, 3), np.float32), np.zeros((0, 8, 8, 3), np.float32)).shape == (0, 8, 8)
     with pytest.raises(ValueError, match="one shape"):
         F.flip_halves(np.zeros((1, 8, 8, 3)), np.zeros((1, 8, 9, 3)))
     with pytest.raises(ValueError, match="floating point"):

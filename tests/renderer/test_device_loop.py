@@ -138,7 +138,7 @@ def test_flip_on_the_accumulators_device_matches_flip_evaluator() -> None:
     """The flip criterion's FLIP runs on the half buffers' device (`flip_halves_tensor`);
     on the fixture dataset's stacks it is within 1e-3 of flip-evaluator (to float32
     rounding in fact), and it returns a tensor where its inputs live."""
-    from learning.data.stack import read_stacks
+    from learning.data.dataset_dir import read_stacks
     from learning.inputs.halves import halves_flip_evaluator, iter_stack_halves
     from noisefeat.flip import flip_halves_tensor
 

@@ -1,0 +1,62 @@
+"""A dataset directory: the stacks under a root, read and validated, and its fingerprint.
+
+Why apart from `stack`: commands open a whole dataset (`read_stacks`), find its stacks
+(`list_stacks`, incomplete builds too), and key results computed on it
+(`dataset_fingerprint`); a single stack is `stack`'s.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+from noisefeat.errors import InputNotFound
+from noisefeat.safeio import read_input
+
+from .stack import Stack, read_stack
+from .stack_format import META, PARTIAL
+
+
+def read_stacks(root: str | os.PathLike, scenes: Sequence[str] | None = None) -> list[Stack]:
+    """The stacks below `root` (only `scenes`, if given), every file of each validated
+    (`Stack.validate`): what commands that read a dataset open it with."""
+    stacks = [read_stack(p) for p in list_stacks(root)]
+    if scenes is not None:
+        stacks = [st for st in stacks if st.scene in scenes]
+    for st in stacks:
+        st.validate()
+    return stacks
+
+
+def list_stacks(root: str | os.PathLike, include_incomplete: bool = False) -> list[Path]:
+    """Every stack directory under `root` (root itself included), sorted.
+
+    A directory is a stack if it holds meta.json (or, with `include_incomplete`,
+    meta.partial.json); stacks are not searched for nested stacks. A meta.json that is a
+    directory is a broken stack: one-line ValueError (it used to be skipped silently).
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise InputNotFound(f"{root}: no such dataset directory")
+    names = {META, PARTIAL} if include_incomplete else {META}
+    found = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        odd = sorted(names & set(dirnames))
+        if odd:      # a stack whose meta.json is no file: refused, not skipped as no stack
+            raise ValueError(f"{Path(dirpath) / odd[0]}: a stack's {odd[0]} must be a file, this is a directory")
+        if names & set(filenames):
+            found.append(Path(dirpath))
+            dirnames[:] = []
+        else:
+            dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
+    return sorted(found)
+
+
+def dataset_fingerprint(root: str | os.PathLike) -> str:
+    """A short hash of every stack's meta.json under `root`: results computed on a dataset
+    (e.g. a saved model comparison) are only reused on the very same one."""
+    h = hashlib.sha256()
+    for p in list_stacks(root):
+        h.update(p.name.encode() + b"\0" + read_input(p / META, "meta.json"))
+    return h.hexdigest()[:16]

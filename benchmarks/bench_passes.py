@@ -37,11 +37,11 @@ def pass_cost(repeats: int = 3) -> dict[str, Any]:
         rng = np.random.default_rng(0)
         order = rng.permutation(n).tolist()
         counts = sorted({1, 2, n // 8, n // 4, n // 2, n})
-        br.render_blocks(order, spp, seed=0)                       # compile once (crop: every window)
+        br.render_units(order, spp, seed=0)                       # compile once (crop: every window)
         rows = []
         for k in counts:
             ids = sorted(order[:k])
-            s = median_s(lambda ids=ids: br.render_blocks(ids, spp, seed=1, pass_index=k), repeats,
+            s = median_s(lambda ids=ids: br.render_units(ids, spp, seed=1, pass_index=k), repeats,
                           warm=False)
             rows.append({"blocks": k, "pixels": k * block * block, "seconds": s})
         x = np.array([r["pixels"] for r in rows], float)
@@ -75,14 +75,14 @@ def sample_cost(repeats: int = 3, steps: tuple[int, ...] = STEPS_PER_LAUNCH) -> 
     scene, res, grid, spp = COST_SCENE
     br = BlockRenderer(load_scene(scene, res), grid=grid)
     n = br.n_blocks
-    br.render_blocks(list(range(n)), spp, seed=0)                       # compile
+    br.render_units(list(range(n)), spp, seed=0)                       # compile
     clocks = {"wall": time.perf_counter, "cpu": time.process_time}   # cpu: every thread of this process
     full = {c: [] for c in clocks}
     alone = {(c, k): np.zeros((repeats, n)) for c in clocks for k in steps}
     p = 1
     for r in range(repeats):
         t0 = {c: f() for c, f in clocks.items()}
-        br.render_blocks(list(range(n)), spp, seed=1, pass_index=p)
+        br.render_units(list(range(n)), spp, seed=1, pass_index=p)
         for c, f in clocks.items():
             full[c].append(f() - t0[c])
         p += 1
@@ -134,8 +134,8 @@ def block_costs(scene: str, resolution: Any, block: int | None = None, spp: int 
     from renderer.scenes import load_scene
 
     br = BlockRenderer(load_scene(scene, resolution), block=block, grid=grid)
-    br.render_blocks([0], spp, seed=0)
-    return np.array([median_s(lambda b=b: br.render_blocks([b], spp, seed=1, pass_index=b), repeats, warm=False)
+    br.render_units([0], spp, seed=0)
+    return np.array([median_s(lambda b=b: br.render_units([b], spp, seed=1, pass_index=b), repeats, warm=False)
                      / spp for b in range(br.n_blocks)])
 
 

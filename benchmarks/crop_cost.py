@@ -31,13 +31,13 @@ def time_crop_renders(r: BlockRenderer, groups: Sequence[Sequence[int]], spp: in
         return time.perf_counter() - t0
 
     first_full = timed(lambda: r.render_full(spp, seed=0))
-    first_groups = [timed(lambda g=g: r.render_blocks(list(g), spp, seed=0)) for g in groups]
+    first_groups = [timed(lambda g=g: r.render_units(list(g), spp, seed=0)) for g in groups]
     full_t: list[float] = []
     groups_t: list[list[float]] = [[] for _ in groups]
     for k in range(max(1, int(repeats))):
         full_t.append(timed(lambda k=k: r.render_full(spp, seed=seed, pass_index=k)))
         for g, out in zip(groups, groups_t):
-            out.append(timed(lambda g=g, k=k: r.render_blocks(list(g), spp, seed=seed, pass_index=k)))
+            out.append(timed(lambda g=g, k=k: r.render_units(list(g), spp, seed=seed, pass_index=k)))
     return {"full_s": statistics.median(full_t), "groups_s": [statistics.median(t) for t in groups_t],
             "first_full_s": first_full, "first_groups_s": first_groups}
 

@@ -2,17 +2,18 @@
 
 `run_adaptive` is the loop, in memory: it resolves the render spec (`renderer.spec`: every
 setting defaulted and checked there, once), builds the criterion (`make_criterion`), loads
-the scene (a built-in name, an XML path or an already-loaded ``mi.Scene``), steps a
-`renderer.session.RenderSession` until it is done (a step: `renderer.passloop`) and returns
-a `RenderResult`. It stops when no block is active or max_spp is reached.
+the scene (a built-in name, an XML path or an already-loaded ``mi.Scene``), advances a
+`renderer.session.RenderSession` launch by launch until it is done (`_run_session`; the
+loop's words and a round: `renderer.passloop`) and returns a `RenderResult`. It stops when
+no unit is active or max_spp is reached.
 
 Checkpoints are taken only when it is given a `Checkpoints` (the command line's resumable
 render, `adaptive_render`): the whole state (accumulator, active set, verdict history,
-counters, timers, pass index, quick image), atomically into out/checkpoint.npz
-(`renderer.checkpoint`: digest-checked and validated against the settings before a resume
-trusts it), every `checkpoint_every` seconds, at the end (unless the render ended within its
-first period), at the time limit and on
-SIGINT/SIGTERM (`renderer.signals`): a step is never half-saved. Because samples depend
+the ledger's counters and timers, history rows, quick image), atomically into
+out/checkpoint.npz (`renderer.checkpoint`: digest-checked and validated against the
+settings before a resume trusts it), every `checkpoint_every` seconds, at the end (unless
+the render ended within its first period), at the time limit and on SIGINT/SIGTERM
+(`renderer.signals`), between launches: a launch is never half-saved. Because samples depend
 only on (seed, pixel, pass), ``resume=True`` after a crash gives the very image and report
 (timings aside) of an uninterrupted run. A render with checkpoints removes the results an
 earlier render left in its folder once it is under way (`_clear_previous`), so a killed one
@@ -34,6 +35,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from learning.data.dataset_dir import find_stack
 from learning.data.stack import Stack
 from noisefeat.safeio import check_regular
 
@@ -59,37 +61,37 @@ def scene_label(scene: str | os.PathLike) -> str:
 # ----------------------------------------------------------------------------- the loop
 
 
-def _run_steps(session: RenderSession, progress: bool, time_limit: float | None,
-               checkpoints: Checkpoints | None) -> bool:
-    """Step the session until it is done, checkpointing on time, at the end, at the time
-    limit and on a signal (the first SIGINT/SIGTERM finishes the step, checkpoints and
-    raises KeyboardInterrupt). A render that ends within its first period writes none (a
+def _run_session(session: RenderSession, progress: bool, time_limit: float | None,
+                 checkpoints: Checkpoints | None) -> bool:
+    """Advance the session launch by launch until it is done, checkpointing on time, at the
+    end, at the time limit and on a signal (the first SIGINT/SIGTERM finishes the launch,
+    checkpoints and raises KeyboardInterrupt). A render that ends within its first period writes none (a
     1024x1024 checkpoint costs about half a second; resuming a render that short is
     rendering it again). Returns whether the time limit ended the render."""
     every = checkpoints.every if checkpoints is not None else math.inf
     last_saved = time.perf_counter()
-    bar = tqdm(total=len(session.loop.schedule), initial=session.pass_index, desc=f"{session.label} passes", unit="pass",
+    bar = tqdm(total=len(session.loop.schedule), initial=session.rows, desc=f"{session.label} passes", unit="pass",
                disable=not progress, leave=False)
     stop = DeferredStop() if checkpoints is not None else None
     with stop if stop is not None else nullcontext(), bar:
         while not session.done:
-            stepped = session.step()
+            added = session.advance()
             bar.set_postfix(active=int(session.loop.active.sum()), refresh=False)
-            bar.update(stepped)
+            bar.update(added)
             now = time.perf_counter()
             reached = time_limit is not None and not session.done and now - session.t_start >= time_limit
             requested = stop is not None and stop.requested
-            if session.done and session.counts()["checkpoints"] == 0 and now - session.t_start < every:
+            if session.done and session.ledger.counters["checkpoints"] == 0 and now - session.t_start < every:
                 session.drop_checkpoint()     # shorter than the period: nothing worth resuming (issue 43)
             elif session.done or reached or requested or now - last_saved >= every:
                 session.checkpoint()
                 last_saved = time.perf_counter()
             if requested and not session.done:
-                raise KeyboardInterrupt(f"{stop.requested} after pass {session.pass_index}: checkpoint written to "
+                raise KeyboardInterrupt(f"{stop.requested} after pass {session.rows}: checkpoint written to "
                                         f"{session.ckpt_path}, --resume continues")
             if reached:
-                logger.info("%s: time limit of %gs reached after pass %d (%d blocks still active)%s",
-                            session.label, time_limit, session.pass_index, int(session.loop.active.sum()),
+                logger.info("%s: time limit of %gs reached after pass %d (%d units still active)%s",
+                            session.label, time_limit, session.rows, int(session.loop.active.sum()),
                             "; --resume continues" if session.ckpt_path is not None else "")
                 return True
     return False
@@ -187,7 +189,6 @@ def load_reference(reference: Stack | str | os.PathLike[str] | np.ndarray,
     is the spec's); (None, image) for a reference image: an EXR file or a float [H, W, 3]
     array. An image gives the final-vs-reference check only: it has no per-level errors,
     so no oracle thresholds."""
-    from .simulate import find_stack
 
     img = None
     if isinstance(reference, np.ndarray):
@@ -248,7 +249,7 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
     `sensor` / `integrator`: render from this sensor with this integrator instead of the
     scene's first sensor and own integrator (the plugin passes its nested one).
     `checkpoints`: None renders without any file. `grow`: trace several passes per launch
-    as blocks stop (`renderer.session.grown_passes`; same result, fewer launches).
+    as units stop (`renderer.session.grown_passes`; same result, fewer launches).
     """
     from learning.data.relabel import observed
     from learning.data.variant import current_variant, select_variant
@@ -308,7 +309,7 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
                                 resume=checkpoints is not None and checkpoints.resume, grow=grow, t_start=t_start)
         if ckpt_path is not None:        # the folder's earlier results go before this render's first pass
             _clear_previous(ckpt_path.parent, resumed="acc" in session.state)
-        time_limit_reached = _run_steps(session, progress, spec.time_limit, checkpoints)
+        time_limit_reached = _run_session(session, progress, spec.time_limit, checkpoints)
         return render_result(session, time_limit_reached=time_limit_reached, ref_stack=ref_stack,
                              ref_image=ref_image, reference=reference)
     finally:

@@ -23,7 +23,6 @@ with tile = block) a block is its one tile.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -150,11 +149,6 @@ class BlockWindows:
         """(x, y, width, height) of the block within the frame."""
         x, y = self.block_origin(block_id)
         return x, y, self.block_w, self.block_h
-
-    def block_slices(self, block_id: int) -> tuple[slice, slice]:
-        """(rows, columns) slices that cut the block out of a [H, W, ...] frame."""
-        x0, y0 = self.block_origin(block_id)
-        return slice(y0, y0 + self.block_h), slice(x0, x0 + self.block_w)
 
     def cut_blocks(self, frame: np.ndarray) -> np.ndarray:
         """Every block's window of a host frame [H, W, C]: [n, bh, bw, C] (one gather)."""

@@ -1,23 +1,26 @@
-"""Block rendering: samples for any subset of a frame's blocks, the full-frame estimator.
+"""Block rendering: samples for any subset of a frame's units, the full-frame estimator.
 
 The paper cuts every image into blocks and keeps sampling only the blocks a human would
-still find noisy, so the renderer must spend samples on any subset of blocks, and a block
-rendered alone must be the very estimator of that block cut out of a full-frame render.
+still find noisy, so the renderer must spend samples on any subset of the loop's units
+(the blocks' tiles, or the blocks themselves at block grain: `renderer.passloop` has the
+words), and a unit rendered alone must be the very estimator of that unit cut out of a
+full-frame render.
 
 Geometry. Blocks are a grid that divides the frame or windows of a given size in pixels,
-the last row and column flush with the frame's edge (`renderer.block_windows`, which also
-composes the final image from overlapping windows).
+the last row and column flush with the frame's edge, and each is cut into tiles
+(`renderer.block_windows`, which also composes the final image from overlapping windows).
 
 Engines. On vectorised variants (llvm, cuda) `renderer.wavefront.WavefrontTracer` traces
-the pixels of all requested blocks in one kernel launch, its random numbers keyed per
+the pixels of all requested units in one kernel launch, its random numbers keyed per
 pixel, so any subset equals the full-frame trace bit for bit with a box filter, and up to
 float rounding (splat order) with a wide one such as the Gaussian of published scenes.
-On scalar variants each block is one ``mi.render`` of the film's crop window grown by the
+On scalar variants each unit is one ``mi.render`` of the film's crop window grown by the
 filter's guard band and cut back: the same estimator in distribution (Mitsuba seeds lanes
-by position, so not the same random numbers). ``mitsuba_calls``, ``kernel_launches`` and
-``kernel_compiles`` count what a render cost.
+by position, so not the same random numbers). What a render cost (``mitsuba_calls``,
+``kernel_launches``, ``kernel_lanes``, ``kernel_compiles``, ``samples_traced``) goes to
+the renderer's `ledger` (`renderer.ledger`: the render's, which its session hands it).
 
-`learning.data.accumulator.BlockAccumulator` keeps the float64 running sums so cumulative means
+`learning.data.accumulator.UnitAccumulator` keeps the float64 running sums so cumulative means
 are exact, plus two half buffers (even and odd passes) for the half-buffer criteria.
 """
 
@@ -33,26 +36,28 @@ import numpy as np
 import torch
 
 from learning.data.variant import select_variant
-from .block_windows import BlockWindows
-from .wavefront import Traced, WavefrontTracer, filter_guard, filter_nonnegative, torch_device
 from noisefeat.extras import require
+
+from .block_windows import BlockWindows
+from .ledger import Ledger
+from .wavefront import Traced, WavefrontTracer, filter_guard, filter_nonnegative, torch_device
 
 logger = logging.getLogger(__name__)
 
-#: the block id that keys the seeds of passes traced over the whole frame: full-frame renders,
-#: quick images and every wavefront pass (keyed per pixel, a pass of some blocks is the
-#: frame's pass cut down); -1, no block's id
+#: the unit id that keys the seeds of passes traced over the whole frame: full-frame renders,
+#: quick images and every wavefront pass (keyed per pixel, a pass of some units is the
+#: frame's pass cut down); -1, no unit's id
 FRAME_SEED_KEY = -1
 
 
-def derive_seed(seed: int, block_id: int, pass_index: int) -> int:
-    """Deterministic 32-bit Mitsuba seed for (base seed, block, pass).
+def derive_seed(seed: int, unit: int, pass_index: int) -> int:
+    """Deterministic 32-bit Mitsuba seed for (base seed, unit, pass index).
 
-    Hashing (rather than e.g. ``seed + block_id``) keeps the streams of different
-    blocks and passes apart even when callers pick consecutive base seeds, and makes any
+    Hashing (rather than e.g. ``seed + unit``) keeps the streams of different
+    units and passes apart even when callers pick consecutive base seeds, and makes any
     pass reproducible on its own, which is what resuming an interrupted build needs.
     """
-    data = struct.pack("<qqq", int(seed), int(block_id), int(pass_index))
+    data = struct.pack("<qqq", int(seed), int(unit), int(pass_index))
     return int.from_bytes(hashlib.blake2b(data, digest_size=4).digest(), "little")
 
 
@@ -80,10 +85,12 @@ class BlockRenderer(BlockWindows):
 
     Blocks are numbered row-major, block 0 top-left: a `grid` (rows, columns) that must
     divide the frame, or windows of `block` pixels (`BlockWindows`). If the film has a
-    crop window (possible in XML files), that window is the frame. `engine`
+    crop window (possible in XML files), that window is the frame. Each block is cut into
+    tiles of `tile` pixels (one tile: the block): the units it renders. `engine`
     'wavefront' or 'crop' overrides the choice by variant (tests). `sensor` and
     `integrator` default to the scene's first sensor and its own integrator; a scene whose
     integrator is the ``noisestop`` plugin is traced with the plugin's nested integrator.
+    What it costs goes to `ledger` (one of its own until a session hands it the render's).
     """
 
     def __init__(self, scene: Any, grid: tuple[int, int] | None = None, block: int | None = None,
@@ -117,12 +124,10 @@ class BlockRenderer(BlockWindows):
         # where passes live: the variant's device for the wavefront engine; the crop engine's
         # mi.render calls return host images (scalar variants)
         self.device = torch_device(variant) if engine == "wavefront" else torch.device("cpu")
-        self._tracer = WavefrontTracer(scene, self.sensor, self._integrator, self.device) \
+        self._ledger = Ledger()
+        self._tracer = WavefrontTracer(scene, self.sensor, self._integrator, self.device, self._ledger) \
             if engine == "wavefront" else None
         self._unit_idx = self._unit_idx.to(self.device)       # the units' pixels, where passes live
-        self.mitsuba_calls = 0    # render calls: one per mi.render or per wavefront trace (of any launches)
-        self._compiles = 0
-        self._crop_samples = 0
         # a JIT variant: Dr.Jit's kernel history can count its compilations (kernel_compiles)
         self._counts_kernels = variant.split("_")[0] in ("llvm", "cuda")
         self._history_flag_before: bool | None = None
@@ -141,7 +146,7 @@ class BlockRenderer(BlockWindows):
         launch for whoever renders next in the process)."""
         if self._counts_kernels and self._history_flag_before is not None:
             dr = require("drjit")
-            self._count_kernels()
+            self.count_kernels()
             dr.set_flag(dr.JitFlag.KernelHistory, self._history_flag_before)
             self._history_flag_before = None
 
@@ -165,20 +170,32 @@ class BlockRenderer(BlockWindows):
         self._params.update()
         self._crop = crop
 
-    def _count_kernels(self) -> None:
-        """Add the compilations in Dr.Jit's kernel history since the last count. Reading
-        the history waits for every queued kernel: only a count asked for does it, never a
-        pass (`kernel_compiles`), so a queued step traces while the loop judges the last."""
+    @property
+    def ledger(self) -> Ledger:
+        """Where this renderer's costs go; a session sets the render's (`renderer.ledger`)."""
+        return self._ledger
+
+    @ledger.setter
+    def ledger(self, ledger: Ledger) -> None:
+        self._ledger = ledger
+        if self._tracer is not None:
+            self._tracer.ledger = ledger
+
+    def count_kernels(self) -> None:
+        """Add the compilations in Dr.Jit's kernel history since the last count to the
+        ledger. Reading the history waits for every queued kernel: only a count asked for
+        does it (`kernel_compiles`, a session's `counts`), never a pass, so a queued launch
+        traces while the loop judges the last."""
         if self._counts_kernels:
             dr = require("drjit")
-            self._compiles += sum(1 for k in dr.kernel_history()
-                                  if k.get("type") == dr.KernelType.JIT and not k.get("cache_hit"))
+            self._ledger.count("kernel_compiles", sum(1 for k in dr.kernel_history()
+                                                      if k.get("type") == dr.KernelType.JIT and not k.get("cache_hit")))
 
     @property
     def kernel_compiles(self) -> int:
-        """Kernels compiled (not found in Dr.Jit's cache) since this renderer was made."""
-        self._count_kernels()
-        return self._compiles
+        """Kernels compiled (not found in Dr.Jit's cache), in the ledger."""
+        self.count_kernels()
+        return self._ledger.get("kernel_compiles")
 
     def _render(self, spp: int, mitsuba_seed: int, integrator: Any = None, where: str = "render") -> np.ndarray:
         if not isinstance(spp, (int, np.integer)) or spp < 1:
@@ -186,33 +203,40 @@ class BlockRenderer(BlockWindows):
         img = self._mi.render(self.scene, sensor=self.sensor,
                               integrator=self._integrator if integrator is None else integrator,
                               spp=int(spp), seed=int(mitsuba_seed))
-        self.mitsuba_calls += 1
-        self._count_kernels()
+        self._ledger.count("mitsuba_calls")
+        if self._tracer is None:                  # the crop engine's launches are its Mitsuba calls
+            self._ledger.count("kernel_launches")
+        self.count_kernels()
         return _to_rgb(img, where)
 
     @property
+    def mitsuba_calls(self) -> int:
+        """Render calls: one per mi.render or per wavefront trace (of any launches)."""
+        return self._ledger.get("mitsuba_calls")
+
+    @property
     def kernel_launches(self) -> int:
-        """Kernel launches of the block passes (wavefront) or Mitsuba render calls (crop)."""
-        return self._tracer.launches if self._tracer is not None else self.mitsuba_calls
+        """Kernel launches of the unit passes (wavefront) or Mitsuba render calls (crop)."""
+        return self._ledger.get("kernel_launches")
 
     @property
     def kernel_lanes(self) -> int:
-        """Lanes of every block-pass launch (wavefront: one per sample traced; crop: the
+        """Lanes of every unit-pass launch (wavefront: one per sample traced; crop: the
         samples of its Mitsuba calls)."""
-        return self._tracer.lanes if self._tracer is not None else self._crop_samples
+        return self._ledger.get("kernel_lanes")
 
     @property
     def samples_traced(self) -> int:
-        """Samples of the block passes, guard bands and shared window pixels included."""
-        return self._tracer.samples if self._tracer is not None else self._crop_samples
+        """Samples of the unit passes, guard bands and shared window pixels included."""
+        return self._ledger.get("samples_traced")
 
-    def render_blocks(self, block_ids: Sequence[int], spp: int, seed: int, pass_index: int = 0) -> torch.Tensor:
-        """`spp` new samples for each listed block: float32 [len(ids), bh, bw, 3] on `device`.
+    def render_units(self, units: Sequence[int], spp: int, seed: int, pass_index: int = 0) -> torch.Tensor:
+        """`spp` new samples for each listed unit: float32 [len(units), th, tw, 3] on `device`.
 
         Pass (seed, pass_index) always draws the same samples for a pixel: call again
-        with a new `pass_index` (or `seed`) for an independent pass of the same blocks.
+        with a new `pass_index` (or `seed`) for an independent pass of the same units.
         """
-        ids = np.asarray(block_ids).reshape(-1)        # its dtype checked with the jobs'
+        ids = np.asarray(units).reshape(-1)        # its dtype checked with the jobs'
         return self.render_passes(np.stack([ids, np.full_like(ids, int(pass_index))], axis=1), spp, seed)
 
     def _check_jobs(self, jobs: Sequence[tuple[int, int]] | np.ndarray, spp: int | Sequence[int]) -> tuple[np.ndarray, np.ndarray,
@@ -222,10 +246,10 @@ class BlockRenderer(BlockWindows):
         if arr.size and (arr.dtype == bool or not np.issubdtype(arr.dtype, np.integer)):
             raise ValueError(f"block ids and pass indices must be whole numbers, got {jobs!r:.80}")
         arr = arr.astype(np.int64).reshape(-1, 2)
-        blocks, passes = arr[:, 0], arr[:, 1]
-        if blocks.size and (blocks.min() < 0 or blocks.max() >= self.n_units):
+        units, pass_ids = arr[:, 0], arr[:, 1]
+        if units.size and (units.min() < 0 or units.max() >= self.n_units):
             unit = "block" if self.tiles_per_block == 1 else "tile"
-            raise ValueError(f"{unit} id {int(blocks[(blocks < 0) | (blocks >= self.n_units)][0])!r} out of range "
+            raise ValueError(f"{unit} id {int(units[(units < 0) | (units >= self.n_units)][0])!r} out of range "
                              f"0..{self.n_units - 1}")
         if len(np.unique(arr, axis=0)) != len(arr):
             raise ValueError(f"duplicate block ids or (block, pass) jobs in {arr.tolist()[:8]}: one call renders "
@@ -233,39 +257,40 @@ class BlockRenderer(BlockWindows):
         given = np.asarray(spp)
         if isinstance(spp, bool) or given.dtype == bool or not np.issubdtype(given.dtype, np.integer):
             raise ValueError(f"spp must be a positive integer, got {spp!r:.80}")
-        sizes = np.broadcast_to(given, blocks.shape).astype(np.int64) if given.ndim == 0 else given.astype(np.int64)
-        if sizes.shape != blocks.shape:
-            raise ValueError(f"{len(blocks)} jobs but {sizes.size} pass sizes")
+        sizes = np.broadcast_to(given, units.shape).astype(np.int64) if given.ndim == 0 else given.astype(np.int64)
+        if sizes.shape != units.shape:
+            raise ValueError(f"{len(units)} jobs but {sizes.size} pass sizes")
         if sizes.size and sizes.min() < 1:
             raise ValueError(f"spp must be a positive integer, got {spp!r:.80}")
-        return blocks, passes, sizes
+        return units, pass_ids, sizes
 
     def render_passes(self, jobs: Sequence[tuple[int, int]] | np.ndarray, spp: int | Sequence[int], seed: int) -> torch.Tensor:
         """One pass per (unit, pass index) job, all in as few launches as the engine allows:
-        float32 [len(jobs), th, tw, 3] on `device`. A unit is a block, or one of its tiles
-        when the renderer cuts blocks into tiles (`tile`).
+        float32 [len(jobs), th, tw, 3] on `device`: `submit_passes`, waited for. A unit is a
+        block, or one of its tiles when the renderer cuts blocks into tiles (`tile`).
 
-        Job (b, p) is exactly ``render_blocks([b], spp, seed, pass_index=p)``: blocks at
-        different pass counts (a budget render spends passes unevenly), or several steps
-        of the same block, share one wavefront. `spp`: one size for all, or per job (jobs
-        of the same size share a launch). The wavefront engine gathers every block of a
-        pass from the traced frame on the device in one indexing step.
+        Job (u, p) is exactly ``render_units([u], spp, seed, pass_index=p)``: units at
+        different pass counts (a budget render spends passes unevenly), or several passes
+        of the same unit, share one wavefront. `spp`: one size for all, or per job (jobs
+        of the same size share a launch). The wavefront engine gathers every unit of a
+        pass from the traced frame on the device in one indexing operation.
         """
         return self.submit_passes(jobs, spp, seed).result()
 
     def submit_passes(self, jobs: Sequence[tuple[int, int]] | np.ndarray, spp: int | Sequence[int],
                       seed: int) -> Traced[torch.Tensor]:
-        """`render_passes` without waiting for the wavefront engine's launches: `result()`
-        gives the tensor `render_passes` returns (`WavefrontTracer.submit_jobs`; the crop
-        engine renders at once)."""
-        blocks, passes, sizes = self._check_jobs(jobs, spp)
-        out = torch.empty((len(blocks), self.tile_h, self.tile_w, 3), dtype=torch.float32, device=self.device)
-        if not len(blocks):
+        """`render_passes` without waiting for the wavefront engine's launches (what the
+        live loop calls: `renderer.session.RenderSession.advance`): `result()` gives the
+        tensor `render_passes` returns (`WavefrontTracer.submit_jobs`; the crop engine
+        renders at once)."""
+        units, pass_ids, sizes = self._check_jobs(jobs, spp)
+        out = torch.empty((len(units), self.tile_h, self.tile_w, 3), dtype=torch.float32, device=self.device)
+        if not len(units):
             return Traced(lambda: out)
-        if self._tracer is None:                  # scalar variants: one mi.render per block
+        if self._tracer is None:                  # scalar variants: one mi.render per unit
             try:
-                for i, (b, p, s) in enumerate(zip(blocks.tolist(), passes.tolist(), sizes.tolist())):
-                    out[i] = torch.from_numpy(self._render_crop(b, s, seed, p))
+                for i, (u, p, s) in enumerate(zip(units.tolist(), pass_ids.tolist(), sizes.tolist())):
+                    out[i] = torch.from_numpy(self._render_crop(u, s, seed, p))
             finally:
                 self._set_crop(0, 0, self.width, self.height)  # leave the scene as we found it
             return Traced(lambda: out)
@@ -273,33 +298,35 @@ class BlockRenderer(BlockWindows):
         for size in np.unique(sizes).tolist():
             same = sizes == size
             masks = []
-            for p in np.unique(passes[same]).tolist():   # the distinct pass indices: one in a plain pass
-                rows = np.flatnonzero(same & (passes == p))
+            for p in np.unique(pass_ids[same]).tolist():   # the distinct pass indices: one in a plain pass
+                rows = np.flatnonzero(same & (pass_ids == p))
                 mask = torch.zeros(self.height * self.width, dtype=torch.bool, device=self.device)
-                mask[self._unit_idx[torch.from_numpy(blocks[rows]).to(self.device)].flatten()] = True
+                mask[self._unit_idx[torch.from_numpy(units[rows]).to(self.device)].flatten()] = True
                 masks.append((mask.view(self.height, self.width), derive_seed(seed, FRAME_SEED_KEY, p), rows))
             launched.append((self._tracer.submit_jobs([(m, k) for m, k, _ in masks], int(size)), masks))
-            self.mitsuba_calls += 1
+            self._ledger.count("mitsuba_calls")
 
         def gather() -> torch.Tensor:
             for traced, masks in launched:
                 for frame, (_, _, rows) in zip(traced.result(), masks):
-                    idx = self._unit_idx[torch.from_numpy(blocks[rows]).to(self.device)]
+                    idx = self._unit_idx[torch.from_numpy(units[rows]).to(self.device)]
                     out[torch.from_numpy(rows).to(self.device)] = frame.view(-1, 3)[idx].view(
                         len(rows), self.tile_h, self.tile_w, 3)
             return out
         return Traced(gather)
 
-    def _render_crop(self, b: int, spp: int, seed: int, pass_index: int) -> np.ndarray:
-        """The crop engine: unit `b` (a block, or a tile) as one mi.render of its window grown
+    def _render_crop(self, u: int, spp: int, seed: int, pass_index: int) -> np.ndarray:
+        """The crop engine: unit `u` (a block, or a tile) as one mi.render of its window grown
         by the guard band (the caller puts the crop back)."""
         g = self.guard
-        x0, y0, w, h = self.unit_window(b)
+        x0, y0, w, h = self.unit_window(u)
         gx, gy = min(g, x0), min(g, y0)          # the guard band, clipped to the frame
         x1, y1 = min(self.width, x0 + w + g), min(self.height, y0 + h + g)
         self._set_crop(x0 - gx, y0 - gy, x1 - x0 + gx, y1 - y0 + gy)
-        img = self._render(spp, derive_seed(seed, b, pass_index), where=f"block {b}")
-        self._crop_samples += int(spp) * img.shape[0] * img.shape[1]
+        img = self._render(spp, derive_seed(seed, u, pass_index), where=f"unit {u}")
+        traced = int(spp) * img.shape[0] * img.shape[1]
+        self._ledger.count("kernel_lanes", traced)
+        self._ledger.count("samples_traced", traced)
         return img[gy:gy + h, gx:gx + w]
 
     def render_full(self, spp: int, seed: int, pass_index: int = 0) -> np.ndarray:
@@ -307,8 +334,8 @@ class BlockRenderer(BlockWindows):
         if self._tracer is not None:
             image = self._tracer.trace(torch.ones((self.height, self.width), dtype=torch.bool), spp,
                                        derive_seed(seed, FRAME_SEED_KEY, pass_index))
-            self.mitsuba_calls += 1
-            self._count_kernels()
+            self._ledger.count("mitsuba_calls")
+            self.count_kernels()
             return image.cpu().numpy()
         self._set_crop(0, 0, self.width, self.height)
         return self._render(spp, derive_seed(seed, FRAME_SEED_KEY, pass_index), where="full frame")

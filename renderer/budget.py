@@ -1,31 +1,34 @@
 """A budget render: spend a limited number of samples (or seconds) where the noise is.
 
-Without a budget every pass renders every active block. Users with a deadline want the
-best image by that time instead (Cycles, Arnold and LuxCore pair a noise target with a
-time limit), so with ``--spp-budget N`` (samples per pixel averaged over the blocks) or
-``--time-limit S`` each round renders the active blocks farthest from their target:
+Without a budget every pass renders every active unit (the words: `renderer.passloop`).
+Users with a deadline want the best image by that time instead (Cycles, Arnold and
+LuxCore pair a noise target with a time limit), so with ``--spp-budget N`` (samples per
+pixel averaged over the units) or ``--time-limit S`` each round renders the active units
+farthest from their target, one pass each:
 
-* The loop's `ratios` (`renderer.passloop.BlockRatios`) hold, per block, its last score
+* The loop's `ratios` (`renderer.passloop.UnitRatios`) hold, per unit, its last score
   relative to the criterion's threshold (flip: the half-buffer FLIP over c(tau); > 1 is
-  above the target). Blocks with no estimate yet (before their first decision) come
+  above the target). Units with no estimate yet (before their first decision) come
   first, all together.
-* Priority = ratio / sqrt(spp). Noise falls as 1/sqrt(spp), so a block's ratio is about
-  a_b / sqrt(spp_b) with a_b its noise per sample; levelling the priority gives each block
-  samples in proportion to a_b. Against uniform sampling with the same samples that
-  lowers both the worst block's error (the noisiest block gets more than its share) and
-  the mean error (Cauchy-Schwarz: sum sqrt(a_b) <= sqrt(B sum a_b)); levelling the ratio
-  itself (``per_sample=False``: samples in proportion to a_b^2, every block to the same
-  error) helps the worst block most but measured worse on the mean.
-* A round renders the blocks whose priority is at least `band` times the largest: the
-  worst alone at first, then, as it comes down, every block within the band (water
+* Priority = ratio / sqrt(spp). Noise falls as 1/sqrt(spp), so a unit's ratio is about
+  a_u / sqrt(spp_u) with a_u its noise per sample; levelling the priority gives each unit
+  samples in proportion to a_u. Against uniform sampling with the same samples that
+  lowers both the worst unit's error (the noisiest unit gets more than its share) and
+  the mean error (Cauchy-Schwarz: sum sqrt(a_u) <= sqrt(U sum a_u)); levelling the ratio
+  itself (``per_sample=False``: samples in proportion to a_u^2, every unit to the same
+  error) helps the worst unit most but measured worse on the mean.
+* A round renders the units whose priority is at least `band` times the largest: the
+  worst alone at first, then, as it comes down, every unit within the band (water
   filling, in rounds large enough to trace well).
-* While the budget left covers every active block to max spp, rounds render all of them:
+* While the budget left covers every active unit to max spp, rounds render all of them:
   a roomy budget renders exactly what the unbudgeted loop renders, pass for pass.
 
-A block's j-th pass always draws the samples of pass j (`BlockRenderer.render_passes`; a
-round is a step, `renderer.passloop`), so a block ends with the very image the unbudgeted
-loop gives it at the same spp; blocks that reach the target stop as always. When the
-budget ends, the blocks still above the target are listed with their ratios
+A unit's j-th pass always draws the samples of pass index j (`BlockRenderer.submit_passes`
+traces units at different pass counts in one launch; a round is the loop's,
+`PassLoop.run_round`), so a unit ends with the very image the unbudgeted loop gives it at
+the same spp; units that reach the target stop as always. What the rounds cost (seconds
+and unit-spp: the time limit's rate) is in the render's ledger (`renderer.ledger`). When
+the budget ends, the units still above the target are listed with their ratios
 (`above_target`).
 """
 from __future__ import annotations
@@ -36,19 +39,21 @@ from typing import Any
 
 import numpy as np
 
+from .ledger import Ledger
 from .passloop import PassLoop
 
-#: a round renders the active blocks whose priority is at least this share of the largest
+#: a round renders the active units whose priority is at least this share of the largest
 BAND = 0.8
 
 
 @dataclass
 class Budget:
-    """What a budget render may still spend, and which blocks a round renders.
+    """What a budget render may still spend, and which units a round renders.
 
-    `spp_budget`: samples per pixel averaged over the blocks (None: no sample budget);
+    `spp_budget`: samples per pixel averaged over the units (None: no sample budget);
     `time_limit`: seconds (None: none). `band`: see the module docstring. The limits are
-    the render spec's (`renderer.spec`), checked there.
+    the render spec's (`renderer.spec`), checked there. `ledger`: where the rounds' cost
+    goes (the render's; by default one of its own).
     """
 
     spp_budget: float | None = None
@@ -57,53 +62,58 @@ class Budget:
     per_sample: bool = True
     ended: bool = False
     prioritised_rounds: int = 0
-    _cost: list[float] = field(default_factory=lambda: [0.0, 0.0])   # render seconds, block-spp rendered
+    ledger: Ledger = field(default_factory=Ledger)
 
     def __post_init__(self) -> None:
         if not 0.0 < self.band <= 1.0:
             raise ValueError(f"band must be in (0, 1], got {self.band!r}")
 
     @classmethod
-    def for_spec(cls, spec: Any) -> Budget | None:
-        """The budget a render spec asks for (None: neither an spp budget nor a time limit)."""
+    def for_spec(cls, spec: Any, ledger: Ledger) -> Budget | None:
+        """The budget a render spec asks for (None: neither an spp budget nor a time limit),
+        reporting to the render's `ledger`."""
         if spec.spp_budget is None and spec.time_limit is None:
             return None
-        return cls(spec.spp_budget, spec.time_limit)
+        return cls(spec.spp_budget, spec.time_limit, ledger=ledger)
 
     def state(self) -> dict[str, Any]:
         """What a checkpoint keeps of the budget, so a resumed budget render goes on as the
-        interrupted one would have (`renderer.checkpoint`)."""
-        return {"prioritised_rounds": self.prioritised_rounds, "ended": self.ended, "cost": list(self._cost)}
+        interrupted one would have (`renderer.checkpoint`; "cost": the ledger's)."""
+        return {"prioritised_rounds": self.prioritised_rounds, "ended": self.ended,
+                "cost": list(self.ledger.budget_cost)}
 
     def restore(self, state: dict[str, Any]) -> None:
         self.prioritised_rounds = int(state["prioritised_rounds"])
         self.ended = bool(state["ended"])
-        self._cost = [float(c) for c in state["cost"]]
+        self.ledger.budget_cost = [float(c) for c in state["cost"]]
 
-    def record(self, seconds: float, block_spp: int) -> None:
-        """Seconds of a round and the block-samples it traced (the time budget's rate)."""
-        self._cost[0] += float(seconds)
-        self._cost[1] += float(block_spp)
+    def record(self, seconds: float, unit_spp: int) -> None:
+        """Seconds of a round and the unit-samples it traced, into the ledger (the time
+        budget's rate)."""
+        cost = self.ledger.budget_cost
+        cost[0] += float(seconds)
+        cost[1] += float(unit_spp)
 
     def _left(self, spp: np.ndarray, elapsed: float) -> float:
-        """Block-spp the budget still allows (inf: no bound known yet)."""
+        """Unit-spp the budget still allows (inf: no bound known yet)."""
         left = math.inf
+        seconds, traced = self.ledger.budget_cost
         if self.spp_budget is not None:
             left = self.spp_budget * len(spp) - float(spp.sum())
-        if self.time_limit is not None and self._cost[1] > 0:
-            rate = self._cost[0] / self._cost[1]
+        if self.time_limit is not None and traced > 0:
+            rate = seconds / traced
             left = min(left, max(0.0, self.time_limit - elapsed) / rate if rate > 0 else math.inf)
         return left
 
     def select(self, loop: PassLoop, elapsed: float = 0.0) -> list[int]:
-        """The blocks of the next round, in block order ([]: the budget or the blocks ran out)."""
+        """The units of the next round, in unit order ([]: the budget or the units ran out)."""
         acc = loop.acc
-        n = acc.n_blocks
-        spp, passes = acc.spp_all(), acc.passes_all()
+        n = acc.n_units
+        spp, counts = acc.spp_all(), acc.pass_counts()
         ids = np.flatnonzero(loop.pending())
         if not ids.size:
             return []
-        next_spp = loop.pass_spp[passes[ids]]           # what each block's next pass costs
+        next_spp = loop.pass_spp[counts[ids]]           # what each unit's next pass costs
         left = self._left(spp, elapsed)
         if left >= float((int(loop.schedule[-1]) - spp[ids]).sum()):
             return ids.tolist()                            # enough for everything: as unbudgeted
@@ -117,7 +127,7 @@ class Budget:
         if self.spp_budget is not None:                    # what fits, worst first
             order = np.flatnonzero(chosen)[np.argsort(-ratio[chosen], kind="stable")]
             room = self.spp_budget * n - float(spp.sum())
-            fit = []                 # greedy: a block that does not fit leaves its room to the next
+            fit = []                 # greedy: a unit that does not fit leaves its room to the next
             for i, need in zip(order.tolist(), next_spp[order].tolist()):
                 if need <= room:
                     fit.append(i)
@@ -129,11 +139,11 @@ class Budget:
         if not picked.size:
             self.ended = True
         elif picked.size < ids.size:
-            self.prioritised_rounds += 1                   # blocks now out of step
+            self.prioritised_rounds += 1                   # units now at different pass counts
         return picked.tolist()
 
     def priority(self, loop: PassLoop, ids: np.ndarray) -> np.ndarray:
-        """The priority `select` ranks blocks `ids` by: each one's last ratio to its target
+        """The priority `select` ranks units `ids` by: each one's last ratio to its target
         (inf: no estimate yet, so first), over sqrt(spp) with `per_sample`."""
         _, ratio = loop.ratios.take(ids)
         ratio = np.where(np.isnan(ratio), np.inf, ratio)
@@ -142,7 +152,7 @@ class Budget:
         return ratio
 
     def finished(self, loop: PassLoop) -> bool:
-        """Whether the render is over: no block is pending, or the sample budget cannot pay
+        """Whether the render is over: no unit is pending, or the sample budget cannot pay
         for another pass of any of them (the budget ended)."""
         acc = loop.acc
         left = loop.pending()
@@ -150,13 +160,13 @@ class Budget:
             return True
         if self.spp_budget is None:
             return False
-        next_spp = loop.pass_spp[acc.passes_all()[left]]
-        if int(next_spp.min()) > self.spp_budget * acc.n_blocks - float(acc.spp_all().sum()):
+        next_spp = loop.pass_spp[acc.pass_counts()[left]]
+        if int(next_spp.min()) > self.spp_budget * acc.n_units - float(acc.spp_all().sum()):
             self.ended = True
         return self.ended
 
     def describe(self, loop: PassLoop, time_limit_reached: bool = False) -> dict[str, Any]:
-        """report.json "budget": the limits, whether they ended the render, and the blocks
+        """report.json "budget": the limits, whether they ended the render, and the units
         still above their target (worst first) with their last ratio to it."""
         ended = bool(self.ended or time_limit_reached)
         spp = loop.acc.spp_all()

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from learning.data.accumulator import BlockAccumulator
+from learning.data.accumulator import UnitAccumulator
 from noisefeat.atomic import atomic_write
 from learning.data.npz import check_digest, read_npz, savez_bytes
 
@@ -87,25 +87,25 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     atomic_write(path, savez_bytes(arrays, with_digest=True))
 
 
-def expected_bytes(frame: tuple[int, int], n_blocks: int, passes: int, block: tuple[int, int] | None = None) -> int:
+def expected_bytes(frame: tuple[int, int], n_units: int, n_passes: int, unit_shape: tuple[int, int] | None = None) -> int:
     """An upper bound on a valid checkpoint's size: accumulator (float64 sums and int64
     weights of two halves, of every block window: overlapping windows hold more than the
     frame), quick image, the history (a row per pass, or per budget round: verdicts and
     per-block spp), plus slack for names."""
     h, w = frame
-    held = max(h * w, n_blocks * block[0] * block[1]) if block is not None else h * w
-    rows = passes * n_blocks          # a budget render's rounds: one block's pass each, at worst
-    return 2 * held * (3 * 8 + 8) + h * w * 3 * 4 + rows * (9 * n_blocks + 24) + 32 * n_blocks + (1 << 20)
+    held = max(h * w, n_units * unit_shape[0] * unit_shape[1]) if unit_shape is not None else h * w
+    rows = n_passes * n_units          # a budget render's rounds: one block's pass each, at worst
+    return 2 * held * (3 * 8 + 8) + h * w * 3 * 4 + rows * (9 * n_units + 24) + 32 * n_units + (1 << 20)
 
 
 def load_checkpoint(path: Path, settings: dict[str, Any], *, pass_spp: list[int], grid: tuple[int, int],
-                    block: tuple[int, int], frame: tuple[int, int], nonnegative: bool = True) -> dict[str, Any]:
+                    unit_shape: tuple[int, int], frame: tuple[int, int], nonnegative: bool = True) -> dict[str, Any]:
     """The state a checkpoint written by `save_checkpoint` for these settings holds, or
     ValueError. `nonnegative`: the film's filter has no negative lobe (radiance sums >= 0)."""
     n = grid[0] * grid[1]
     try:
-        data = read_npz(path, max_bytes=expected_bytes(frame, n, len(pass_spp), block), kind="checkpoint")
-        return _validated(path, data, settings, pass_spp, grid, block, frame, nonnegative)
+        data = read_npz(path, max_bytes=expected_bytes(frame, n, len(pass_spp), unit_shape), kind="checkpoint")
+        return _validated(path, data, settings, pass_spp, grid, unit_shape, frame, nonnegative)
     except ValueError as exc:
         if "start over" in str(exc):
             raise
@@ -125,7 +125,7 @@ def _get(data: dict[str, np.ndarray], key: str, dtype: str, shape: tuple[int, ..
 
 
 def _validated(path: Path, data: dict[str, np.ndarray], settings: dict[str, Any], pass_spp: list[int],
-               grid: tuple[int, int], block: tuple[int, int], frame: tuple[int, int],
+               grid: tuple[int, int], unit_shape: tuple[int, int], frame: tuple[int, int],
                nonnegative: bool) -> dict[str, Any]:
     fmt, version = data.get("format"), data.get("version")
     if fmt is None or fmt.shape != () or str(fmt) != CHECKPOINT_FORMAT:
@@ -146,7 +146,7 @@ def _validated(path: Path, data: dict[str, np.ndarray], settings: dict[str, Any]
         raise ValueError(f"{path}: checkpoint was made with other settings ({'; '.join(diff)}); "
                          "rerun with the same options or without --resume to start over")
     try:
-        return _state(data, pass_spp, grid, block, frame, nonnegative)
+        return _state(data, pass_spp, grid, unit_shape, frame, nonnegative)
     except ValueError as exc:
         raise ValueError(f"{path}: inconsistent checkpoint: {exc}") from None
 
@@ -163,7 +163,7 @@ MAX_TIMER_S = 100 * 365 * 24 * 3600.0
 def _check_meaning(acc: dict[str, np.ndarray], nonnegative: bool) -> None:
     """What the accumulator's arrays mean, beyond their shapes and types: each pixel's
     weight is the samples of its half's passes that were finite, all of them in a block that
-    dropped nothing (`BlockAccumulator.add_batch`); a sum is at most weight x the largest
+    dropped nothing (`UnitAccumulator.add_batch`); a sum is at most weight x the largest
     float32 radiance, and not negative when the film's filter has no negative lobe. A digest
     recomputed over forged values passes; these do not."""
     total, weight, spp, dropped = acc["sum"], acc["weight"], acc["spp"], acc["nonfinite"]
@@ -180,7 +180,7 @@ def _check_meaning(acc: dict[str, np.ndarray], nonnegative: bool) -> None:
                          "(a scene with negative emitters or textures cannot resume)")
 
 
-def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, int], block: tuple[int, int],
+def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, int], unit_shape: tuple[int, int],
            frame: tuple[int, int], nonnegative: bool = True) -> dict[str, Any]:
     n = grid[0] * grid[1]
     budget = "budget_cost" in data
@@ -191,7 +191,7 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
     stop_spp = _get(data, "stop_spp", "int64", (n,))
     history = _get(data, "history", "int8", (p, n))
     history_spp = _get(data, "history_spp", "int64", (p,))
-    block_spp = _get(data, "history_block_spp", "int64", (p, n))
+    unit_spp = _get(data, "history_block_spp", "int64", (p, n))
     rendered = _get(data, "rendered", "int64", (p,))
     evidence = _get(data, "evidence", "float64", (n, 2))
     next_spp = _get(data, "next_spp", "int64", (n,))
@@ -199,7 +199,7 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
     cum = np.concatenate([[0], np.cumsum(pass_spp, dtype=np.int64)])   # [0, *schedule]
     asked = history != 0
     last_row = np.where(asked.any(axis=0), p - 1 - np.argmax(asked[::-1], axis=0), -1) if p else np.full(n, -1)
-    decided_spp = np.where(last_row >= 0, block_spp[np.maximum(last_row, 0), np.arange(n)] if p else 0, 0)
+    decided_spp = np.where(last_row >= 0, unit_spp[np.maximum(last_row, 0), np.arange(n)] if p else 0, 0)
     if not np.isfinite(evidence).all() or (evidence < 0).any() or (evidence[:, 1] != np.round(evidence[:, 1])).any() \
             or (evidence[:, 1] > decided_spp).any() or ((evidence[:, 1] == 0) & (evidence[:, 0] != 0)).any():
         raise ValueError("the decision history's evidence is not finite sums >= 0 weighing at most the samples "
@@ -210,12 +210,12 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
         raise ValueError("history holds values other than -1, 0, +1")
     if ((rendered < 1) | (rendered > n)).any():
         raise ValueError(f"a pass rendered a number of blocks outside 1..{n}")
-    if (block_spp < 0).any() or (block_spp > cum[-1]).any() or (p > 1 and (np.diff(block_spp, axis=0) < 0).any()):
+    if (unit_spp < 0).any() or (unit_spp > cum[-1]).any() or (p > 1 and (np.diff(unit_spp, axis=0) < 0).any()):
         raise ValueError("the per-block spp history is out of range or decreases")
     if not np.array_equal(~active, (history > 0).any(axis=0)):
         raise ValueError("stopped blocks disagree with the verdict history")
     first = np.argmax(history > 0, axis=0)
-    stopped_at = np.where(~active, block_spp[first, np.arange(n)] if p else 0, 0)
+    stopped_at = np.where(~active, unit_spp[first, np.arange(n)] if p else 0, 0)
     if not np.array_equal(stop_spp, stopped_at):
         raise ValueError("stopped blocks and their stop spp disagree with the verdict history")
     if not budget:
@@ -234,14 +234,14 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
     if quick.shape not in ((0, 0, 3), (frame[0], frame[1], 3)):
         raise ValueError(f"quick image of shape {list(quick.shape)}, the frame is {frame[1]}x{frame[0]}")
     acc_state = {k[4:]: v for k, v in data.items() if k.startswith("acc_")}
-    for key, want in (("grid", grid), ("block", block)):
+    for key, want in (("grid", grid), ("block", unit_shape)):
         got = acc_state.get(key)
         if got is None or got.shape != (2,) or got.dtype.kind != "i" or tuple(int(v) for v in got) != tuple(want):
             raise ValueError(f"accumulator {key} {None if got is None else got.tolist()} is not the render's {list(want)}")
-    bh, bw = block
-    if int(_get(acc_state, "version", "int64", ())) != BlockAccumulator.STATE_VERSION:
+    bh, bw = unit_shape
+    if int(_get(acc_state, "version", "int64", ())) != UnitAccumulator.STATE_VERSION:
         raise ValueError(f"accumulator state version {acc_state['version']}, this code reads "
-                         f"{BlockAccumulator.STATE_VERSION}")
+                         f"{UnitAccumulator.STATE_VERSION}")
     for key, dtype, shape in (("sum", "float64", (2, n, bh, bw, 3)), ("weight", "int64", (2, n, bh, bw)),
                               ("spp", "int64", (n, 2)), ("passes", "int64", (n,)), ("nonfinite", "int64", (n,))):
         arr = _get(acc_state, key, dtype, shape)
@@ -251,16 +251,16 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
         if arr.dtype.kind == "i" and ((arr < 0).any() or (most is not None and (arr > most).any())):
             raise ValueError(f"accumulator {key!r} out of range")
     _check_meaning(acc_state, nonnegative)
-    acc = BlockAccumulator.from_state(acc_state)
-    spp, passes = acc.spp_all(), acc.passes_all()
-    if not np.array_equal(spp, cum[passes]) or (p and not np.array_equal(block_spp[-1], spp)) \
+    acc = UnitAccumulator.from_state(acc_state)
+    spp, pass_counts = acc.spp_all(), acc.pass_counts()
+    if not np.array_equal(spp, cum[pass_counts]) or (p and not np.array_equal(unit_spp[-1], spp)) \
             or (not p and spp.any()):
         raise ValueError("the accumulated samples disagree with the passes and stops")
-    if not budget and not (passes[active] == p).all():
+    if not budget and not (pass_counts[active] == p).all():
         raise ValueError("the accumulated samples disagree with the passes and stops")
     state = {
         "acc": acc, "active": active.copy(), "stop_spp": stop_spp.copy(), "history": history.copy(),
-        "history_spp": history_spp.copy(), "history_block_spp": block_spp.copy(), "rendered": rendered.copy(),
+        "history_spp": history_spp.copy(), "history_block_spp": unit_spp.copy(), "rendered": rendered.copy(),
         "evidence": evidence.copy(), "next_spp": next_spp.copy(),
         "pass_index": p, "done": done,
         "counters": dict(zip(names.tolist(), values.tolist())),
@@ -279,7 +279,7 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
             raise ValueError("budget state out of range (a ratio is NaN or finite and >= 0)")
         if cost[1] != float(spp.sum()):
             raise ValueError(f"the budget counts {cost[1]:g} block-spp rendered, the accumulator holds {int(spp.sum())}")
-        left = active & (passes < len(pass_spp))
+        left = active & (pass_counts < len(pass_spp))
         if done != (not left.any() or ended):
             raise ValueError(f"done is {done} with {int(left.sum())} blocks able to take a pass")
         state["budget"] = {"prioritised_rounds": rounds, "ended": ended, "cost": cost.tolist(),

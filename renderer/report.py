@@ -1,6 +1,8 @@
-"""The adaptive render's report.json: per block window, spp and verdict history; totals;
-and, against a labelled reference stack, DESIGN's early-stop metrics and what a person
-would see flipping between final.png and the reference."""
+"""The adaptive render's report.json: per block window (and per tile: the loop's units,
+`renderer.passloop`), spp and verdict history; totals, the counters and timers of the
+render's ledger (`renderer.ledger`); and, against a labelled reference stack, DESIGN's
+early-stop metrics and what a person would see flipping between final.png and the
+reference."""
 from __future__ import annotations
 
 import logging
@@ -10,29 +12,30 @@ from typing import Any
 
 import numpy as np
 
-from learning.data.accumulator import BlockAccumulator
+from learning.data.accumulator import UnitAccumulator
 from learning.data.stack import Stack
 
 from .block_windows import compose
 from .blocks import BlockRenderer
 from .criteria import COUNTER_NAMES, Criterion
-from .passloop import block_events, schedule
+from .passloop import schedule, unit_events
 from .result import RenderResult
 
 logger = logging.getLogger(__name__)
 
 
 def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit: Criterion, state: dict[str, Any],
-                  acc: BlockAccumulator, counters: dict[str, int], timers: dict[str, float], variant: str | None,
+                  acc: UnitAccumulator, counters: dict[str, int], timers: dict[str, float], variant: str | None,
                   ref: Stack | None) -> dict[str, Any]:
     """report.json of a render: its settings (`renderer.session.run_settings`), the loop's
-    state, counters and timers, per block window, and against `ref` the early-stop metrics."""
+    state, the ledger's counters and timers, per block window (and per unit), and against
+    `ref` the early-stop metrics."""
     n, T = br.n_blocks, br.tiles_per_block
     max_spp = settings["max_spp"]
     spp = acc.spp_all()                       # per unit: a block, or one of its T tiles
     nonfinite = acc.nonfinite_all()
     converged = ~state["active"]
-    events = block_events(state["history"], state["history_block_spp"])
+    events = unit_events(state["history"], state["history_block_spp"])
     units = []
     for u in range(n * T):
         own = [[s, v] for s, v in events.get(u, [])]
@@ -161,13 +164,13 @@ def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int
     return out
 
 
-def nonfinite_totals(acc: BlockAccumulator, windows: Sequence[Sequence[int]],
+def nonfinite_totals(acc: UnitAccumulator, windows: Sequence[Sequence[int]],
                      frame: tuple[int, int]) -> dict[str, int]:
     """report.json's `nonfinite`: `dropped` (pixel, pass) values the accumulator dropped as
     NaN/Inf; `pixels` of the final image with no finite sample at all (shown as 0, not an
     estimate; counted on the frame as composed); `units` never converged for want of a
     finite estimate (`renderer.criteria.contract`). A farm reads `pixels` (exit status 3)."""
-    n = acc.n_blocks
+    n = acc.n_units
     empty, _, _ = compose(acc.unsampled(np.arange(n))[..., None].astype(np.float64), windows,
                           acc.spp_all(), frame)
     return {"dropped": int(acc.nonfinite_all().sum()), "pixels": int((empty[..., 0] > 0).sum()),
@@ -193,8 +196,8 @@ def render_result(session: Any, *, time_limit_reached: bool, ref_stack: Stack | 
     and the report (report.json)."""
     br, loop, acc, n, spec = session.br, session.loop, session.loop.acc, session.br.n_units, session.spec
     final = session.snapshot()
-    report = render_report(session.label, br, session.settings, session.crit, {**session.state, **loop.state()},
-                           acc, loop.counters, final["timers"], session.settings["variant"], ref_stack)
+    report = render_report(session.label, br, session.settings, session.crit, final, acc, final["counters"],
+                           final["timers"], session.settings["variant"], ref_stack)
     report["settings_source"] = spec.settings_source()
     if spec.defines:
         report["defines"] = dict(spec.defines)

@@ -3,7 +3,7 @@ signal stops at once.
 
 The checkpoint is written on a time interval, not after every pass (cheaper), so an
 interrupt must not simply kill the loop: the passes since the last checkpoint would be
-lost, and an interrupt inside `BlockAccumulator.add_many` would leave a half-added pass.
+lost, and an interrupt inside `UnitAccumulator.add_batch` would leave a half-added pass.
 `DeferredStop` turns the first SIGINT/SIGTERM into a request the loop reads between
 passes. A second one stops the process at once with one line and exit status 130, even
 while a render pass runs in native code (Mitsuba), where Python signal handlers wait for

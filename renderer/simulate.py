@@ -2,14 +2,14 @@
 
 Level k of a stack is the cumulative mean of spp[k] samples; the passes between levels
 come back exactly (`learning.inputs.halves.recover_passes`), and feeding them to a
-`BlockAccumulator` gives the very half buffers the live loop keeps (A = even passes,
+`UnitAccumulator` gives the very half buffers the live loop keeps (A = even passes,
 B = odd passes). With a constant step every pass has the same size and A and B hold
 equal sample counts, as in the live loop; with a varying step (e.g. doubling spp) halves
 are unbalanced and a warning says so.
 
-`simulate_stack` then runs the live loop's own pass step (`renderer.passloop.PassLoop`):
-once spp >= min_spp, after each level, only the still-active blocks are asked, and a block
-once converged stays converged and is never asked again. The verdict matrix V [K, B] therefore holds -1 up to
+`simulate_stack` then runs the live loop's own rounds (`renderer.passloop.PassLoop`), one
+a level: once spp >= min_spp, only the still-active units (the stack's blocks, or their
+tiles) are asked, and a unit once converged stays converged and is never asked again. The verdict matrix V [K, B] therefore holds -1 up to
 the level where the loop would have stopped the block and +1 from there on, which is what
 `learning.evaluation.metrics.evaluate_verdicts` scores.
 """
@@ -18,16 +18,15 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Callable, Iterable
-from pathlib import Path
 from dataclasses import replace
 from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
-from learning.data.dataset_dir import list_stacks, read_stacks
+from learning.data.dataset_dir import read_stacks
 from learning.data.relabel import observed, read_observed, with_tile_truth
-from learning.data.stack import Stack, read_stack
+from learning.data.stack import Stack
 from learning.evaluation.generalisation import scene_groups
 from learning.evaluation.metrics import evaluate_verdicts
 from learning.inputs.halves import check_constant_step, recover_passes
@@ -44,7 +43,7 @@ def simulate_loop(stack: Stack, criterion: Criterion, min_spp: int | None = None
                   progress: bool = False, tile: int | None = None,
                   decide_skip: float = ROW["decide_skip"].default) -> tuple[np.ndarray, PassLoop]:
     """Verdicts V int8 [K, n_units] the live loop would produce on this stack, and the loop
-    (its decision counters and timers). Units: the stack's blocks, or with `tile` (smaller
+    (its `ledger`: the decisions' counters and timers). Units: the stack's blocks, or with `tile` (smaller
     than a block) each block's tiles, numbered as the live render numbers them.
 
     `min_spp` (None: no minimum; else checked by the render spec's row): no decision
@@ -75,7 +74,7 @@ def simulate_loop(stack: Stack, criterion: Criterion, min_spp: int | None = None
         if not ids.size:
             V[k:] = 1
             break
-        loop.step(ids, [(cut(pass_img)[ids], pass_spp)])   # stopped units get no more samples
+        loop.run_round(ids, [(cut(pass_img)[ids], pass_spp)])   # stopped units get no more samples
         V[k, ~loop.active] = 1
     bar.close()
     return V, loop
@@ -91,7 +90,7 @@ def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int 
                     band: float | None = None) -> dict[str, Any]:
     """The budget render on a stored stack: block b's j-th pass is the stack's pass j
     (`learning.inputs.halves.recover_passes`), as the live render's keyed samples make it,
-    so the loop (`Budget.select`, `PassLoop.step`) sees what it would see live.
+    so the loop (`Budget.select`, `PassLoop.run_round`) sees what it would see live.
     `spp_budget` is checked by the render spec's row.
 
     Returns each block's final spp, whether it stopped, the budget's report part and the
@@ -114,8 +113,9 @@ def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int 
         ids = budget.select(loop)
         if not ids:
             break
-        own = loop.acc.passes_all()[ids]
-        loop.step(ids, [(np.stack([passes[p][b] for b, p in zip(ids, own.tolist())]), loop.pass_spp[own])])
+        index = loop.acc.pass_counts()[ids]                 # each block's next pass
+        images = np.stack([passes[p][b] for b, p in zip(ids, index.tolist())])
+        loop.run_round(ids, [(images, loop.pass_spp[index])])
         rounds += 1
         if not loop.active.any() or budget.finished(loop):
             break
@@ -176,7 +176,7 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
             blocks = V.reshape(len(V), st.n_blocks, -1).min(axis=2)          # +1 once every tile is
             per_block[st.scene] = (blocks, st.labels(), st.thresholds, st.spp)
         end[st.scene] = end_of_render(st, V, tile, tau)
-        for k, v in {**loop.counters, **loop.timers}.items():
+        for k, v in {**loop.ledger.counters, **loop.ledger.timers}.items():
             counters[k] = counters.get(k, 0) + v
         description = crit.describe()
         if description.get("name") == "oracle":
@@ -296,24 +296,3 @@ def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list
     out = evaluate_criterion(stacks, factory, min_spp=min_spp, progress=progress, tau=tau, tile=tile,
                              decide_skip=decide_skip)
     return {**out, "tau": float(tau)}
-
-
-def find_stack(reference: Stack | str | os.PathLike, scene: str) -> Stack:
-    """The stack of `scene` in a dataset directory (or that stack itself), not yet labelled."""
-    if isinstance(reference, Stack):
-        return reference
-    root = Path(reference)
-    stacks = [read_stack(p) for p in list_stacks(root)]
-    match = [s for s in stacks if s.scene == scene]
-    if len(stacks) == 1 and not match:
-        raise ValueError(f"{root}: the stack there is scene {stacks[0].scene!r}, not {scene!r}")
-    if not match:
-        raise ValueError(f"{root}: no stack of scene {scene!r} (found: "
-                         f"{', '.join(s.scene for s in stacks[:10]) or 'none'})")
-    return match[0]
-
-
-def find_reference(reference: Stack | str | os.PathLike, scene: str, tau: float = DEFAULT_TAU) -> Stack:
-    """The stack of `scene` in a dataset directory (or that stack itself), labelled by the
-    observer at `tau`."""
-    return observed(find_stack(reference, scene), tau)

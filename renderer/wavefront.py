@@ -1,9 +1,10 @@
 """One kernel launch per pass for any set of pixels: the live loop's Mitsuba calls.
 
 `mi.render` traces a whole film (or its crop window). An adaptive render wants samples
-only for the pixels of its active blocks, which may be any set; a crop window per block
-costs one Mitsuba call and, the first time, one kernel compilation per block (the crop is
-baked into the kernel, mitsuba3 #908). `WavefrontTracer` instead does what Mitsuba's
+only for the pixels of its active units (`renderer.passloop`: tiles, or blocks), which may
+be any set; a crop window per unit costs one Mitsuba call and, the first time, one kernel
+compilation per unit (the crop is baked into the kernel, mitsuba3 #908).
+`WavefrontTracer` instead does what Mitsuba's
 ``SamplingIntegrator.render`` does per sample, for a wavefront of exactly the requested
 pixels: a film position per sample, ``sensor.sample_ray_differential``, the scene's own
 integrator's ``sample``, and the film's reconstruction filter. Every value that changes
@@ -13,10 +14,10 @@ kernel once, whatever the active set.
 Random numbers are keyed per sample, not per lane: sample j of pixel p in a pass with key
 k draws from a PCG32 stream seeded by TEA(p, k) and TEA(j, .) (`KeyedSampler`). A pixel
 therefore gets the same samples whichever other pixels are traced with it, and any set of
-blocks is bit for bit the same estimator as those blocks cut out of a full-frame trace:
+units is bit for bit the same estimator as those units cut out of a full-frame trace:
 
 * box filter (radius 1/2): each sample is summed into its own pixel (the pixel's
-  consecutive lanes), so blocks are independent;
+  consecutive lanes), so units are independent;
 * wider filters (the Gaussian of most published scenes): samples are splatted with the
   film's filter into a frame-sized ``mi.ImageBlock``, and the traced set is the requested
   pixels grown by a guard band of ``floor(radius + 1/2)`` pixels, every pixel whose samples
@@ -26,9 +27,10 @@ Pixels on the frame's edge get no samples from outside it, as in a full-frame re
 without ``sample_border``.
 
 Keys are per lane, so one launch can also trace several passes (`trace_jobs`: a pixel set
-and a key per job): the blocks of a budget round at different pass counts, or k steps of
-few active blocks as one k times larger wavefront, each job's values exactly those of
-its pass traced alone.
+and a key per job): the units of a budget round at different pass counts, or k passes of
+few active units as one k times larger wavefront, each job's values exactly those of
+its pass traced alone. Launches, lanes and samples traced go to the tracer's `ledger`
+(`renderer.ledger`: its renderer's).
 """
 from __future__ import annotations
 
@@ -40,6 +42,8 @@ import numpy as np
 import torch
 
 from noisefeat.extras import require
+
+from .ledger import Ledger
 
 T = TypeVar("T")
 
@@ -133,10 +137,13 @@ class WavefrontTracer:
     `frame` is the film's crop window (the whole film unless an XML file sets a crop):
     pixel indices are row-major within it. Needs a vectorised (JIT) Mitsuba variant.
     Pixel sets come in and frames go out as torch tensors on `device`, shared with Dr.Jit
-    through DLPack: on a GPU no pass ever crosses to the host.
+    through DLPack: on a GPU no pass ever crosses to the host. `ledger`: where its launches
+    ("kernel_launches"), their lanes ("kernel_lanes", one a sample) and the samples traced,
+    guard band included ("samples_traced"), are counted (None: a ledger of its own).
     """
 
-    def __init__(self, scene: Any, sensor: Any, integrator: Any, device: torch.device | None = None) -> None:
+    def __init__(self, scene: Any, sensor: Any, integrator: Any, device: torch.device | None = None,
+                 ledger: Ledger | None = None) -> None:
         dr = require("drjit")
         mi = require("mitsuba")
 
@@ -151,9 +158,7 @@ class WavefrontTracer:
         self.box = bool(self.rfilter.is_box_filter())
         self.guard = filter_guard(self.rfilter)
         self._sampler = _keyed_sampler_class()()
-        self.launches = 0
-        self.lanes = 0            # lanes launched (one per sample), over every launch
-        self.samples = 0          # samples traced, guard band included
+        self.ledger = Ledger() if ledger is None else ledger
 
     def _mask(self, mask: Any) -> torch.Tensor:
         m = torch.as_tensor(np.asarray(mask, bool) if not isinstance(mask, torch.Tensor) else mask)
@@ -183,8 +188,8 @@ class WavefrontTracer:
 
         Each job is exactly what `trace(mask, spp, key)` returns (random numbers are keyed
         per (pixel, sample, key), and every job's pixels are summed on their own), so
-        passes of different blocks at different pass indices, or several steps of the same
-        blocks, share one launch: a larger wavefront when few pixels are active. With a
+        passes of different units at different pass indices, or several passes of the same
+        units, share one launch: a larger wavefront when few pixels are active. With a
         box filter each pixel's samples are summed on their own; a wider filter splats
         each job into its own frame (one ImageBlock per job, one kernel for all).
         """
@@ -194,7 +199,7 @@ class WavefrontTracer:
         """`trace_jobs` without waiting: the launches are queued on Dr.Jit's device (its
         LLVM thread pool or CUDA stream) and the caller's thread goes on; `result()`
         waits for them and returns what `trace_jobs` would. What the live loop judges one
-        step by while the next traces (`renderer.session`)."""
+        launch by while the next traces (`renderer.session`)."""
         if isinstance(spp, bool) or not isinstance(spp, (int, np.integer)) or spp < 1:
             raise ValueError(f"spp must be a positive integer, got {spp!r}")
         masks = [self._mask(m) for m, _ in jobs]
@@ -209,7 +214,7 @@ class WavefrontTracer:
         all_pixels = torch.cat(pixels).to(torch.int32)
         job_of = torch.repeat_interleave(torch.arange(len(masks)), torch.tensor(counts)).to(self.device)
         all_keys = as_int32_bits(torch.tensor(keys, dtype=torch.int64, device=self.device)[job_of])
-        self.samples += total * int(spp)
+        self.ledger.count("samples_traced", total * int(spp))
         per_launch = max(1, MAX_LANES // int(spp))
         if self.box:
             chunks = [self._submit_box(all_pixels[i:i + per_launch], int(spp), all_keys[i:i + per_launch])
@@ -293,8 +298,8 @@ class WavefrontTracer:
             self._dr.sync_thread()
 
     def _queued(self, pixels: torch.Tensor, spp: int) -> None:
-        self.launches += 1
-        self.lanes += int(pixels.numel()) * spp
+        self.ledger.count("kernel_launches")
+        self.ledger.count("kernel_lanes", int(pixels.numel()) * spp)
 
     def _submit_box(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor) -> Callable[[], torch.Tensor]:
         """Box filter: queue one launch; its finish gives the mean of each pixel's own

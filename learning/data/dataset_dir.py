@@ -1,8 +1,8 @@
 """A dataset directory: the stacks under a root, read and validated, and its fingerprint.
 
 Why apart from `stack`: commands open a whole dataset (`read_stacks`), find its stacks
-(`list_stacks`, incomplete builds too), and key results computed on it
-(`dataset_fingerprint`); a single stack is `stack`'s.
+(`list_stacks`, incomplete builds too, and one scene's: `find_stack`), and key results
+computed on it (`dataset_fingerprint`); a single stack is `stack`'s.
 """
 from __future__ import annotations
 
@@ -51,6 +51,22 @@ def list_stacks(root: str | os.PathLike, include_incomplete: bool = False) -> li
         else:
             dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
     return sorted(found)
+
+
+def find_stack(reference: Stack | str | os.PathLike, scene: str) -> Stack:
+    """The stack of `scene` in a dataset directory (or that stack itself), not yet labelled
+    (a render's `--reference`, a simulation's stack)."""
+    if isinstance(reference, Stack):
+        return reference
+    root = Path(reference)
+    stacks = [read_stack(p) for p in list_stacks(root)]
+    match = [s for s in stacks if s.scene == scene]
+    if len(stacks) == 1 and not match:
+        raise ValueError(f"{root}: the stack there is scene {stacks[0].scene!r}, not {scene!r}")
+    if not match:
+        raise ValueError(f"{root}: no stack of scene {scene!r} (found: "
+                         f"{', '.join(s.scene for s in stacks[:10]) or 'none'})")
+    return match[0]
 
 
 def dataset_fingerprint(root: str | os.PathLike) -> str:

@@ -13,7 +13,7 @@ curve c(tau) calibrated on training scenes (`calibrate_flip_curve`, shipped in
 directory, which readers prefer: `noisefeat.userdata`).
 
 On a stored stack the passes come back exactly from consecutive cumulative levels
-(`recover_passes`), and a `BlockAccumulator` fed with them holds the very half buffers the
+(`recover_passes`), and a `UnitAccumulator` fed with them holds the very half buffers the
 live loop keeps, so `stack_flip_errors` scores every (level, block) as the render would.
 """
 from __future__ import annotations
@@ -37,7 +37,7 @@ from noisefeat.pooling import CRITERION_POOLING, DEFAULT_POOLING, pool_maps, til
 from noisefeat.safeio import InputFileError, read_json
 from noisefeat.userdata import find as find_user_file
 
-from ..data.accumulator import BlockAccumulator
+from ..data.accumulator import UnitAccumulator
 from ..data.cache import cached_array
 from ..data.frame_flip import DEFAULT_PPD, display, flip_map
 from ..data.observer import label_tau
@@ -131,10 +131,10 @@ def flip_offset(c: float) -> float:
 
 def iter_stack_halves(stack: Stack, progress: bool = False) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
     """(k, even [n_blocks, bh, bw, 3], odd [...]) for every level k >= 1: the half buffers a
-    `BlockAccumulator` fed with the stack's recovered passes holds (the live loop's
+    `UnitAccumulator` fed with the stack's recovered passes holds (the live loop's
     buffers, bit for bit). Level 0 has none: B is still empty there."""
     check_constant_step(stack)
-    acc = BlockAccumulator(stack.grid, stack.block)
+    acc = UnitAccumulator(stack.grid, stack.block)
     ids = list(range(stack.n_blocks))
     for k, _, n, pass_img in tqdm(recover_passes(stack), total=stack.n_levels, disable=not progress,
                                   desc=f"{stack.scene} halves", leave=False):

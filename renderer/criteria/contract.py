@@ -64,7 +64,7 @@ class BlockView:
 
     `mean` is the cumulative mean of every sample so far, [bh, bw, 3] linear RGB.
     `halves` = (A, B): means of the even-numbered and odd-numbered passes (the
-    `BlockAccumulator` convention), or None when the caller does not track them.
+    `UnitAccumulator` convention), or None when the caller does not track them.
     `half_spp` = samples in A and in B. `quick` is the block of the quick noise-free image
     (None if not rendered). `nonfinite` counts (pixel, pass) values the accumulator dropped.
     A non-finite pixel in `mean`, or in a half whose `half_spp` is positive, is one with no
@@ -112,7 +112,7 @@ class BlockBatch:
     @classmethod
     def from_accumulator(cls, acc: Any, ids: Sequence[int], quick: np.ndarray | None = None,
                          tiling: Any = None, evidence: np.ndarray | None = None) -> BlockBatch:
-        """The units `ids` of a `BlockAccumulator`, read lazily from its device tensors.
+        """The units `ids` of a `UnitAccumulator`, read lazily from its device tensors.
         `quick` is per block: with `tiling`, a tile's row is its block's. `evidence`: the
         loop's `learning.inputs.history.Evidence`, or None."""
         ids_a = np.asarray(ids, np.int64)

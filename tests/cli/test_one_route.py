@@ -14,7 +14,7 @@ import pytest
 from learning import read_stack, write_stack
 from learning.models.bundle import load_model, save_model
 from learning.evaluation.evaluate import evaluate_model, stops_by_scene
-from learning.data.accumulator import BlockAccumulator
+from learning.data.accumulator import UnitAccumulator
 from learning.inputs.halves import flip_offset, guarded_flip_scores, recover_passes, stack_flip_errors
 from learning.evaluation.metrics import stop_thresholds
 from learning.stoprule import StopRule, decide_active
@@ -107,7 +107,7 @@ def test_model_stops_agree_on_every_route(data, model, server, monkeypatch, tmp_
     # 2. the simulation on the stack (the criterion code the live loop runs)
     V_sim, sim = simulate_loop(stack, ModelCriterion(model, offset=off), min_spp=MIN_SPP)
     assert stop_spp(V_sim, stack.spp) == truth
-    assert sim.counters["flat_blocks"] >= 1
+    assert sim.ledger.counters["flat_blocks"] >= 1
     # 3. the live loop, fed the stack's passes
     report, _ = live(monkeypatch, tmp_path, stack, ModelCriterion(model, offset=off), MIN_SPP)
     assert spp_from_report(report) == truth and report["offset"] == off
@@ -116,7 +116,7 @@ def test_model_stops_agree_on_every_route(data, model, server, monkeypatch, tmp_
     remote = RemoteModel(server.url, model="m", token=server.token)
     assert remote.needs_halves == model.needs_halves
     active, stops = np.ones(stack.n_blocks, bool), [-1] * stack.n_blocks
-    acc = BlockAccumulator(stack.grid, stack.block)
+    acc = UnitAccumulator(stack.grid, stack.block)
     for k, _, n, pass_img in recover_passes(stack):
         s, means = stack.spp[k], stack.blocks(k)
         acc.add_many(list(range(stack.n_blocks)), stack.split(pass_img), n)
@@ -177,7 +177,7 @@ def test_flip_stops_agree_on_every_route(data, monkeypatch, tmp_path):
     assert 2 <= sum(t > 0 for t in truth) <= 14
     V_sim, sim = simulate_loop(stack, FlipCriterion(c))
     assert stop_spp(V_sim, stack.spp) == truth
-    assert sim.timers["decisions_s"] > 0 and sim.counters["blocks_featured"] > 0
+    assert sim.ledger.timers["decisions_s"] > 0 and sim.ledger.counters["blocks_featured"] > 0
     report, renderer = live(monkeypatch, tmp_path, stack, FlipCriterion(c), int(stack.spp[0]))
     assert spp_from_report(report) == truth and report["threshold"] == c
     # converged blocks were never rendered again

@@ -11,11 +11,11 @@ from learning.models.bundle import load_model, save_model
 from learning.models.estimators import DSVM
 from learning.inputs.table import stack_features
 from noisefeat import split_blocks
-from learning.data.accumulator import BlockAccumulator
+from learning.data.accumulator import UnitAccumulator
 from renderer.criteria import ModelCriterion, OracleCriterion, UniformCriterion, VarianceCriterion
 from learning.inputs.halves import recover_passes
-from renderer.simulate import (criterion_factory, evaluate_criterion, evaluate_criterion_cli, find_reference,
-                               simulate_loop, simulate_stack)
+from learning.data.dataset_dir import find_stack
+from renderer.simulate import criterion_factory, evaluate_criterion, evaluate_criterion_cli, simulate_loop, simulate_stack
 from tests.support.stack_renderer import live
 
 GRID = (4, 4)
@@ -57,7 +57,7 @@ def feed(acc, passes, step=STEP):
     levels = []
     for p in passes:
         blocks = split_blocks(p, acc.grid)
-        for b in range(acc.n_blocks):
+        for b in range(acc.n_units):
             acc.add(b, blocks[b], step)
         levels.append(acc.image())
     return np.stack(levels)
@@ -65,14 +65,14 @@ def feed(acc, passes, step=STEP):
 
 def test_half_buffers_recovered_exactly_from_float64_levels():
     passes = random_passes()
-    truth = BlockAccumulator(GRID, (4, 4))
+    truth = UnitAccumulator(GRID, (4, 4))
     levels = feed(truth, passes)
     stack = MemStack(levels, SPP[:len(passes)])
     got = [p for _, _, n, p in recover_passes(stack)]
     assert all(n == STEP for _, _, n, _ in recover_passes(stack))
     for p, q in zip(got, passes):
         np.testing.assert_allclose(p, q, rtol=0, atol=1e-13)
-    replay = BlockAccumulator(GRID, (4, 4))
+    replay = UnitAccumulator(GRID, (4, 4))
     feed(replay, got)
     for b in range(16):
         for h_true, h_got in zip(truth.half_buffer(b), replay.half_buffer(b)):
@@ -82,11 +82,11 @@ def test_half_buffers_recovered_exactly_from_float64_levels():
 
 def test_half_buffers_from_a_float32_stack_on_disk(tmp_path):
     passes = random_passes(5, seed=1)
-    truth = BlockAccumulator(GRID, (4, 4))
+    truth = UnitAccumulator(GRID, (4, 4))
     levels = feed(truth, passes)
     st = write_stack(tmp_path / "s", scene="s", levels=list(levels.astype(np.float32)), spp=SPP[:5],
                      reference=levels[-1].astype(np.float32), quick=None, reference_spp=400)
-    replay = BlockAccumulator(GRID, (4, 4))
+    replay = UnitAccumulator(GRID, (4, 4))
     feed(replay, [p for _, _, _, p in recover_passes(st)])
     for b in range(16):
         a_true, b_true = truth.half_buffer(b)
@@ -110,12 +110,12 @@ def test_oracle_simulation_reproduces_the_labels(synth):
 
 def test_converged_blocks_stay_converged_and_are_not_asked_again(synth):
     crit = VarianceCriterion(0.08)
-    V, loop = simulate_loop(synth, crit, min_spp=16)
+    V, loop = simulate_loop(synth, crit, min_spp=16, decide_skip=0.0)   # every pass judged: none skipped
     assert V.dtype == np.int8 and set(np.unique(V)) <= {-1, 1}
     assert (np.diff(V, axis=0) >= 0).all()              # monotone per block
     active_before = [(V[k - 1] < 0).sum() if k else 16 for k in range(len(SPP))]
     asked = sum(a for k, a in enumerate(active_before) if SPP[k] >= 16)
-    assert loop.counters["blocks_asked"] == asked
+    assert loop.ledger.counters["blocks_asked"] == asked
     assert 0 < (V[-1] > 0).sum() < 16                   # the test is informative on this stack
 
 
@@ -148,9 +148,9 @@ def test_simulation_and_live_loop_agree(monkeypatch, tmp_path, synth, kind):
     active = [np.flatnonzero(V[k - 1] < 0).tolist() if k else list(range(16)) for k in range(len(SPP))]
     assert renderer.calls == active[:len(renderer.calls)]
     assert report["counters"]["blocks_rendered_per_pass"] == [len(c) for c in renderer.calls]
-    assert report["counters"]["decisions"] == sim.counters["blocks_asked"]
+    assert report["counters"]["decisions"] == sim.ledger.counters["blocks_asked"]
     if kind == "model":
-        assert report["counters"]["blocks_featured"] == sim.counters["blocks_featured"] > 0
+        assert report["counters"]["blocks_featured"] == sim.ledger.counters["blocks_featured"] > 0
 
 
 def test_evaluate_criterion_metrics(tmp_path, synth):
@@ -169,20 +169,21 @@ def test_evaluate_criterion_metrics(tmp_path, synth):
 
 def test_nonfinite_levels_give_defined_verdicts(tmp_path):
     passes = random_passes(6, seed=2)
-    acc = BlockAccumulator(GRID, (4, 4))
+    acc = UnitAccumulator(GRID, (4, 4))
     levels = feed(acc, passes).astype(np.float32)
     levels[2, 0, 0] = [np.nan, np.inf, 1.0]                 # one broken pixel in level 2
     st = write_stack(tmp_path / "nan", scene="nan", levels=list(levels), spp=SPP[:6],
                      reference=levels[-1], quick=None, reference_spp=400)
     V, loop = simulate_loop(st, VarianceCriterion(0.5))
     assert set(np.unique(V)) <= {-1, 1}
-    assert loop.counters["nonfinite_blocks"] >= 1
+    assert loop.ledger.counters["nonfinite_blocks"] >= 1
 
 
-def test_find_reference(tmp_path, synth):
-    assert find_reference(synth.path.parent, "synthetic").scene == "synthetic"
+def test_find_stack(tmp_path, synth):
+    assert find_stack(synth.path.parent, "synthetic").scene == "synthetic"
+    assert find_stack(synth, "any") is synth
     with pytest.raises(ValueError, match="not 'cornell'"):
-        find_reference(synth.path.parent, "cornell")
+        find_stack(synth.path.parent, "cornell")
 
 
 def test_criterion_factory_for_the_evaluate_command(synth):

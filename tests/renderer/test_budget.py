@@ -29,11 +29,11 @@ THRESHOLDS = [4, 8, 24, 12, None, 4, 16, 8, 20, 4, 8, 12, 24, 16, 8, None]
 @pytest.mark.parametrize("rfilter", ["box", "gaussian"])
 def test_passes_in_one_launch_are_the_passes_traced_apart(rfilter) -> None:
     r = BlockRenderer(_scene("cornell", 32, rfilter), grid=(4, 4))
-    jobs = [(5, 0), (5, 1), (5, 2), (6, 3), (9, 1)]        # steps of one block, other blocks at other passes
+    jobs = [(5, 0), (5, 1), (5, 2), (6, 3), (9, 1)]        # passes of one block, other blocks at other passes
     together = r.render_passes(jobs, 4, seed=7)
     launches = r.kernel_launches
     for (b, p), img in zip(jobs, together):
-        apart = r.render_blocks([b], 4, seed=7, pass_index=p)[0]
+        apart = r.render_units([b], 4, seed=7, pass_index=p)[0]
         if rfilter == "box":
             np.testing.assert_array_equal(img, apart)
         else:                           # the same samples; splats summed in another order
@@ -41,7 +41,7 @@ def test_passes_in_one_launch_are_the_passes_traced_apart(rfilter) -> None:
     assert launches == 1                         # every pass index in one launch, whatever the filter
     assert r.kernel_lanes == r.samples_traced and r.kernel_lanes > 0
     sizes = r.render_passes([(5, 0), (6, 1)], [4, 2], seed=7)   # a short last pass: its own launch
-    short = r.render_blocks([6], 2, seed=7, pass_index=1)[0]
+    short = r.render_units([6], 2, seed=7, pass_index=1)[0]
     if rfilter == "box":
         np.testing.assert_array_equal(sizes[1], short)
     else:                               # splats summed in an order that varies run to run
@@ -51,7 +51,7 @@ def test_passes_in_one_launch_are_the_passes_traced_apart(rfilter) -> None:
 
 
 def test_a_budget_round_is_the_plain_pass_when_every_block_is_at_the_same_pass() -> None:
-    """One step, two callers: a plain pass (one size for all) and a budget round (a size per
+    """One round, two callers: a plain pass (one size for all) and a budget round (a size per
     block) over the same blocks give the same verdicts, state and sums."""
     rng = np.random.default_rng(0)
     loops = [PassLoop(VarianceCriterion(0.5), (2, 2), (4, 4), SCHEDULE, 8) for _ in range(2)]
@@ -59,8 +59,8 @@ def test_a_budget_round_is_the_plain_pass_when_every_block_is_at_the_same_pass()
         ids = np.flatnonzero(loops[0].active).tolist()
         noise = np.array([0.0, 0.002, 0.5, 0.5])[ids, None, None, None]   # a flat, a quiet and two noisy blocks
         images = 0.5 + noise * rng.standard_normal((len(ids), 4, 4, 3))
-        row0 = loops[0].step(ids, [(images, 4)])
-        row1 = loops[1].step(ids, [(images, np.full(len(ids), 4))])
+        row0 = loops[0].run_round(ids, [(images, 4)])
+        row1 = loops[1].run_round(ids, [(images, np.full(len(ids), 4))])
         np.testing.assert_array_equal(row0, row1)
     assert loops[0].active.tolist() == [False, False, True, True]
     for key in ("active", "stop_spp", "history", "history_spp", "rendered"):
@@ -69,25 +69,25 @@ def test_a_budget_round_is_the_plain_pass_when_every_block_is_at_the_same_pass()
     np.testing.assert_array_equal(loops[0].acc.state()["sum"], loops[1].acc.state()["sum"])
 
 
-def test_several_passes_in_one_step_are_history_rows_judged_once() -> None:
-    """A grown step: each pass is a history row (the checkpoint's invariant), the verdicts
+def test_several_passes_in_one_round_are_history_rows_judged_once() -> None:
+    """A round of several passes: each pass is a history row (the checkpoint's invariant), the verdicts
     go in the last one, and the sums are those of the passes added one by one."""
     rng = np.random.default_rng(1)
     images = [0.5 + 0.1 * rng.standard_normal((4, 4, 4, 3)) for _ in range(3)]
     one = PassLoop(UniformCriterion(), (2, 2), (4, 4), SCHEDULE, None)
     for img in images:
-        one.step([0, 1, 2, 3], [(img, 4)])
+        one.run_round([0, 1, 2, 3], [(img, 4)])
     grown = PassLoop(UniformCriterion(), (2, 2), (4, 4), SCHEDULE, None)
-    row = grown.step([0, 1, 2, 3], [(img, 4) for img in images])
+    row = grown.run_round([0, 1, 2, 3], [(img, 4) for img in images])
     assert row.tolist() == [-1] * 4
     assert grown.history.tolist() == [[0] * 4, [0] * 4, [-1] * 4]
     assert grown.history_spp.tolist() == [4, 8, 12] == one.history_spp.tolist()
-    assert grown.counters["decide_calls"] == 1 and one.counters["decide_calls"] == 3
+    assert grown.ledger.counters["decide_calls"] == 1 and one.ledger.counters["decide_calls"] == 3
     np.testing.assert_array_equal(grown.acc.state()["sum"], one.acc.state()["sum"])
     with pytest.raises(ValueError, match="stopped"):
         stopped = PassLoop(OracleCriterion([4, None, None, None]), (2, 2), (4, 4), SCHEDULE, None)
-        stopped.step([0, 1, 2, 3], [(images[0], 4)])
-        stopped.step([0, 1], [(images[1][:2], 4)])
+        stopped.run_round([0, 1, 2, 3], [(images[0], 4)])
+        stopped.run_round([0, 1], [(images[1][:2], 4)])
 
 
 def _same(a, b, ra, rb) -> None:
@@ -226,7 +226,7 @@ class CrashingVariance(VarianceCriterion):
 
 
 def test_a_budget_render_resumes_to_the_same_image(tmp_path, monkeypatch) -> None:
-    """Killed while it prioritises (blocks out of step), a budget render resumes from its
+    """Killed while it prioritises (blocks at different pass counts), a budget render resumes from its
     last round's checkpoint: the fresh run's image and report, and only the passes the
     checkpoint lacks are rendered. Controls: the checkpoint was written during prioritised
     rounds (the old loop stopped writing them there), and a 'resume' that restarts gives
@@ -280,7 +280,7 @@ def test_the_budget_simulated_on_a_stack(tmp_path) -> None:
 
 def test_a_time_budget_prioritises_once_the_time_left_will_not_cover_every_block() -> None:
     loop = PassLoop(OracleCriterion([8, 64, None, 16]), (2, 2), (4, 4), schedule(4, 64), 4)   # 16 passes
-    loop.step([0, 1, 2, 3], [(np.full((4, 4, 4, 3), 0.5), [4] * 4)])       # ratios T/spp: 2, 16, inf, 4
+    loop.run_round([0, 1, 2, 3], [(np.full((4, 4, 4, 3), 0.5), [4] * 4)])       # ratios T/spp: 2, 16, inf, 4
     budget = Budget(time_limit=100.0)
     assert budget.select(loop, elapsed=90.0) == [0, 1, 2, 3]         # no rate known yet
     budget.record(1.0, 16)                                                  # 1/16 s per block-spp

@@ -231,9 +231,9 @@ def test_a_criterion_is_configuration_only_and_the_loop_keeps_the_render(model_a
         second, again = simulate_loop(st, crit, min_spp=8)
         assert repr(sorted(vars(crit).items())) == before, crit.name
         np.testing.assert_array_equal(first, second)
-        assert loop.counters == again.counters and loop.counters["blocks_asked"] > 0
+        assert loop.ledger.counters == again.ledger.counters and loop.ledger.counters["blocks_asked"] > 0
         assert not hasattr(crit, "counters") and not hasattr(crit, "ratios")
         if crit.name == "model":
-            assert loop.counters["feature_rows"] == st.n_blocks + loop.counters["blocks_featured"]
+            assert loop.ledger.counters["feature_rows"] == st.n_blocks + loop.ledger.counters["blocks_featured"]
         asked, ratio = loop.ratios.take(np.arange(st.n_blocks))
         assert asked.all() and not np.isnan(ratio[asked & np.isfinite(ratio)]).any()

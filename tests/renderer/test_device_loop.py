@@ -71,20 +71,20 @@ def test_a_loop_that_adds_a_pass_twice_or_drops_one_fails_the_golden_check(varia
     the image leaves the float32 bound (the stops change too)."""
     if variant != "llvm_ad_rgb":
         pytest.skip(f"recorded on llvm_ad_rgb; {variant} traces other samples")
-    from learning.data.accumulator import BlockAccumulator
+    from learning.data.accumulator import UnitAccumulator
 
-    add, calls = BlockAccumulator.add_batch, []
+    add, calls = UnitAccumulator.add_batch, []
 
     def faulty(self, ids, images, spp):
         calls.append(1)
         if len(calls) == 5:
             if fault == "dropped":
-                self._passes[np.asarray(ids, np.int64)] += 1       # the loop moves on without them
+                self._pass_counts[np.asarray(ids, np.int64)] += 1   # the loop moves on without them
                 return torch.zeros(len(ids), dtype=torch.int64)
             add(self, ids, images, spp)
         return add(self, ids, images, spp)
 
-    monkeypatch.setattr(BlockAccumulator, "add_batch", faulty)
+    monkeypatch.setattr(UnitAccumulator, "add_batch", faulty)
     log = golden.DecisionLog()
     r = golden.render_case("cornell_flip", False, log)
     failures = golden_failures("cornell_flip", r, log)
@@ -105,8 +105,8 @@ def test_the_margin_check_names_a_case_that_sits_on_its_threshold() -> None:
 
 
 def test_grown_passes_keep_the_result_and_save_launches(variant) -> None:
-    """Once few blocks are active, a launch traces several passes, and the next step is
-    queued while this one is judged (`RenderSession.step`): fewer launches, the same stops,
+    """Once few blocks are active, a launch traces several passes, and the next launch is
+    queued while this one is judged (`RenderSession.advance`): fewer launches, the same stops,
     history and image; the passes queued for blocks that then stopped are traced and
     dropped, and counted. A control: without growth the launches are one per pass, and
     nothing is traced that is not kept."""
@@ -157,10 +157,10 @@ def test_flip_on_the_accumulators_device_matches_flip_evaluator() -> None:
 def test_the_flip_criterion_judges_a_batch_without_host_blocks() -> None:
     """A batch read lazily from an accumulator: the criterion asks for the half buffers
     only; verdicts and ratios come back per block."""
-    from learning.data.accumulator import BlockAccumulator
+    from learning.data.accumulator import UnitAccumulator
 
     rng = np.random.default_rng(0)
-    acc = BlockAccumulator((1, 3), (16, 16))
+    acc = UnitAccumulator((1, 3), (16, 16))
     for _ in range(2):
         acc.add_batch([0, 1, 2], np.stack([np.full((16, 16, 3), 0.5),                 # flat
                                            0.5 + 0.01 * rng.standard_normal((16, 16, 3)),    # quiet
@@ -198,7 +198,7 @@ def test_block_renderer_puts_the_kernel_history_flag_back(variant) -> None:
     dr.set_flag(dr.JitFlag.KernelHistory, False)
     with BlockRenderer(load_scene("cornell", 32), grid=(2, 2)) as br:
         assert dr.flag(dr.JitFlag.KernelHistory)          # on while it counts compilations
-        br.render_blocks([0, 3], 4, seed=0)
+        br.render_units([0, 3], 4, seed=0)
     assert not dr.flag(dr.JitFlag.KernelHistory)
     run_adaptive("cornell", "uniform", resolution=32, grid=(2, 2), step=4, min_spp=4, max_spp=8, progress=False)
     assert not dr.flag(dr.JitFlag.KernelHistory)          # and after a whole render

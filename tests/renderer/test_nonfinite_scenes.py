@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from learning.data.accumulator import BlockAccumulator
+from learning.data.accumulator import UnitAccumulator
 from renderer.criteria import BlockBatch, BlockView, FlipCriterion, UniformCriterion, VarianceCriterion
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -50,7 +50,7 @@ def sphere_scene(tmp_path: Path) -> Path:
 
 
 def _loop_batch(passes: list[np.ndarray]) -> BlockBatch:
-    acc = BlockAccumulator((1, 1), (8, 8))
+    acc = UnitAccumulator((1, 1), (8, 8))
     for p in passes:
         acc.add(0, p, 4)
     return BlockBatch.from_accumulator(acc, [0])

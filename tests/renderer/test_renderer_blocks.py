@@ -6,9 +6,10 @@ import numpy as np
 import torch
 import pytest
 
-from learning.data.accumulator import BlockAccumulator
+from learning.data.accumulator import UnitAccumulator
 from renderer.blocks import BlockRenderer, derive_seed
 from renderer.scenes import load_scene
+from tests.support.windows import block_slices
 
 
 @pytest.fixture(scope="module")
@@ -37,26 +38,26 @@ def test_geometry_is_row_major(cornell32: BlockRenderer) -> None:
     assert cornell32.block_origin(0) == (0, 0)
     assert cornell32.block_origin(1) == (8, 0)
     assert cornell32.block_origin(4) == (0, 8)
-    assert cornell32.block_slices(15) == (slice(24, 32), slice(24, 32))
+    assert block_slices(cornell32, 15) == (slice(24, 32), slice(24, 32))
 
 
 @pytest.mark.slow
 def test_crop_shape_reproducibility_and_bad_ids(cornell32: BlockRenderer) -> None:
-    a = cornell32.render_blocks([0, 7], spp=4, seed=3)
+    a = cornell32.render_units([0, 7], spp=4, seed=3)
     assert isinstance(a, torch.Tensor) and a.device == cornell32.device    # a pass stays where it was traced
     a = a.numpy()
     assert a.shape == (2, 8, 8, 3) and a.dtype == np.float32
     assert np.isfinite(a).all() and (a >= 0).all()
-    np.testing.assert_array_equal(a, cornell32.render_blocks([0, 7], spp=4, seed=3))
-    b = cornell32.render_blocks([0, 7], spp=4, seed=3, pass_index=1)
+    np.testing.assert_array_equal(a, cornell32.render_units([0, 7], spp=4, seed=3))
+    b = cornell32.render_units([0, 7], spp=4, seed=3, pass_index=1)
     assert not np.array_equal(a, b)
     # the scene is left with its full film afterwards
     assert cornell32.render_full(spp=1, seed=0).shape == (32, 32, 3)
     for bad in ([16], [-1], [1, 1]):
         with pytest.raises(ValueError):
-            cornell32.render_blocks(bad, spp=1, seed=0)
+            cornell32.render_units(bad, spp=1, seed=0)
     with pytest.raises(ValueError, match="spp"):
-        cornell32.render_blocks([0], spp=0, seed=0)
+        cornell32.render_units([0], spp=0, seed=0)
 
 
 @pytest.mark.slow
@@ -104,7 +105,7 @@ def _mixed_ratio(r: BlockRenderer, a: np.ndarray, b: np.ndarray, fa: np.ndarray,
     ratios = []
     a, b = np.asarray(a), np.asarray(b)
     for i, blk in enumerate(ids):
-        ys, xs = r.block_slices(blk)
+        ys, xs = block_slices(r, blk)
         xs = slice(xs.start - shift, xs.stop - shift)
         crop, full = (a[i].astype(np.float64) + b[i]) / 2, (fa[ys, xs].astype(np.float64) + fb[ys, xs]) / 2
         expected = _noise_var(a[i], b[i]).mean() + _noise_var(fa[ys, xs], fb[ys, xs]).mean()
@@ -117,12 +118,12 @@ def test_blocks_are_the_full_frame_bit_for_bit_with_a_box_filter() -> None:
     assert r.engine == "wavefront" and r.guard == 0
     full = r.render_full(8, seed=11, pass_index=3)
     ids = [5, 6, 9, 3]
-    blocks = r.render_blocks(ids, 8, seed=11, pass_index=3)
+    blocks = r.render_units(ids, 8, seed=11, pass_index=3)
     for i, b in enumerate(ids):
-        np.testing.assert_array_equal(blocks[i], full[r.block_slices(b)])
+        np.testing.assert_array_equal(blocks[i], full[block_slices(r, b)])
     # one block alone, too: its samples do not depend on what else is traced
-    np.testing.assert_array_equal(r.render_blocks([6], 8, seed=11, pass_index=3)[0], blocks[1])
-    other = r.render_blocks(ids, 8, seed=11, pass_index=4)
+    np.testing.assert_array_equal(r.render_units([6], 8, seed=11, pass_index=3)[0], blocks[1])
+    other = r.render_units(ids, 8, seed=11, pass_index=4)
     assert not np.array_equal(other, blocks)      # a new pass draws new samples
 
 
@@ -132,15 +133,15 @@ def test_blocks_equal_the_full_frame_with_a_gaussian_filter() -> None:
     assert r.guard == 2
     full = r.render_full(8, seed=2)
     ids = [5, 10, 15]
-    blocks = r.render_blocks(ids, 8, seed=2)
+    blocks = r.render_units(ids, 8, seed=2)
     for i, b in enumerate(ids):
-        np.testing.assert_allclose(blocks[i], full[r.block_slices(b)], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(blocks[i], full[block_slices(r, b)], rtol=1e-5, atol=1e-6)
     # control: without the guard band the block's edge pixels miss their neighbours' samples
     r._tracer.guard = 0
-    bare = r.render_blocks([5], 8, seed=2)[0]
+    bare = r.render_units([5], 8, seed=2)[0]
     inner = (slice(2, -2), slice(2, -2))
-    assert np.abs(bare - full[r.block_slices(5)]).max() > 1e-3
-    np.testing.assert_allclose(bare[inner], full[r.block_slices(5)][inner], rtol=1e-5, atol=1e-6)
+    assert np.abs(bare - full[block_slices(r, 5)]).max() > 1e-3
+    np.testing.assert_allclose(bare[inner], full[block_slices(r, 5)][inner], rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.slow
@@ -152,8 +153,8 @@ def test_wavefront_is_mitsubas_estimator() -> None:
         scene = _scene("checker", 32, rfilter)
         r = BlockRenderer(scene, grid=(4, 4))
         ids = list(range(16))
-        a = r.render_blocks(ids, 256, seed=1, pass_index=0)
-        b = r.render_blocks(ids, 256, seed=1, pass_index=1)
+        a = r.render_units(ids, 256, seed=1, pass_index=0)
+        b = r.render_units(ids, 256, seed=1, pass_index=1)
         fa, fb = (np.asarray(mi.render(scene, spp=256, seed=s), np.float32)[..., :3] for s in (7, 8))
         assert 0.5 < _mixed_ratio(r, a, b, fa, fb, ids) < 2.0, rfilter
         assert _mixed_ratio(r, a, b, fa, fb, [5, 6, 9, 10], shift=1) > 3.0   # the test can fail
@@ -165,7 +166,7 @@ def test_crop_engine_with_guard_band_matches_full_frame_up_to_noise() -> None:
     r = BlockRenderer(_scene("checker", 32, "gaussian"), grid=(4, 4), engine="crop")
     assert r.engine == "crop" and r.guard == 2
     ids = [5, 6, 9, 10, 3]
-    a, b = (r.render_blocks(ids, 256, seed=11, pass_index=p) for p in (0, 1))
+    a, b = (r.render_units(ids, 256, seed=11, pass_index=p) for p in (0, 1))
     fa, fb = (r.render_full(256, seed=11, pass_index=p) for p in (0, 1))
     assert 0.5 < _mixed_ratio(r, a, b, fa, fb, ids) < 2.0
     assert _mixed_ratio(r, a, b, fa, fb, [5, 6, 9, 10], shift=1) > 3.0
@@ -182,7 +183,7 @@ for rfilter in ("box", "gaussian"):
     r = BlockRenderer(_scene("cornell", 32, rfilter), grid=(4, 4))
     counts = []
     for p, ids in enumerate((list(range(16)), [0, 1, 2], [7], [3, 12, 15], list(range(0, 16, 2)))):
-        r.render_blocks(ids, 4 + p, seed=0, pass_index=p)   # other blocks, other spp, other pass
+        r.render_units(ids, 4 + p, seed=0, pass_index=p)   # other blocks, other spp, other pass
         counts.append(r.kernel_compiles)
     r.render_passes([(0, 5), (0, 6), (3, 7)], 4, seed=0)    # several passes in one wavefront
     counts.append(r.kernel_compiles)
@@ -245,14 +246,14 @@ def test_compose_takes_each_pixel_from_the_window_with_most_samples() -> None:
 
 def test_accumulator_means_are_exact() -> None:
     rng = np.random.default_rng(0)
-    acc = BlockAccumulator(grid=(2, 2), block=(3, 4))
+    acc = UnitAccumulator(grid=(2, 2), unit_shape=(3, 4))
     passes = [(rng.random((3, 4, 3)).astype(np.float32), spp) for spp in (5, 7, 5, 1, 9)]
     for img, spp in passes:
         assert acc.add(2, img, spp) == 0
     total = sum(img.astype(np.float64) * spp for img, spp in passes)
     n = sum(spp for _, spp in passes)
     np.testing.assert_allclose(acc.mean(2), total / n, rtol=1e-13)
-    assert acc.spp(2) == n and acc.passes(2) == 5 and acc.spp(0) == 0
+    assert acc.spp(2) == n and acc.pass_count(2) == 5 and acc.spp(0) == 0
     np.testing.assert_array_equal(acc.mean(0), 0.0)
     a, b = acc.half_buffer(2)
     even, odd = passes[0::2], passes[1::2]
@@ -267,7 +268,7 @@ def test_accumulator_means_are_exact() -> None:
 
 
 def test_accumulator_drops_nonfinite_pixels_only() -> None:
-    acc = BlockAccumulator(grid=(1, 1), block=(2, 2))
+    acc = UnitAccumulator(grid=(1, 1), unit_shape=(2, 2))
     acc.add(0, np.full((2, 2, 3), 1.0), 4)
     bad = np.full((2, 2, 3), 3.0)
     bad[0, 0, 1] = np.nan
@@ -283,16 +284,16 @@ def test_accumulator_drops_nonfinite_pixels_only() -> None:
 
 def test_accumulator_state_round_trip(tmp_path) -> None:
     rng = np.random.default_rng(1)
-    acc = BlockAccumulator(grid=(2, 3), block=(2, 2))
+    acc = UnitAccumulator(grid=(2, 3), unit_shape=(2, 2))
     ids = [0, 4, 5]
     acc.add_many(ids, rng.random((3, 2, 2, 3)), 8)
     acc.add_many(ids[:2], rng.random((2, 2, 2, 3)), 8)
     np.savez(tmp_path / "acc.npz", **acc.state())
     with np.load(tmp_path / "acc.npz") as z:
-        back = BlockAccumulator.from_state(dict(z))
+        back = UnitAccumulator.from_state(dict(z))
     for b in range(6):
         np.testing.assert_array_equal(back.mean(b), acc.mean(b))
-        assert back.spp(b) == acc.spp(b) and back.passes(b) == acc.passes(b)
+        assert back.spp(b) == acc.spp(b) and back.pass_count(b) == acc.pass_count(b)
         for x, y in zip(back.half_buffer(b), acc.half_buffer(b)):
             np.testing.assert_array_equal(x, y)
     # resuming continues the even/odd alternation
@@ -303,13 +304,13 @@ def test_accumulator_state_round_trip(tmp_path) -> None:
     state = acc.state()
     state["weight"] = state["weight"][:, :3]
     with pytest.raises(ValueError, match="weight"):
-        BlockAccumulator.from_state(state)
+        UnitAccumulator.from_state(state)
     with pytest.raises(ValueError, match="lacks"):
-        BlockAccumulator.from_state({"grid": np.array([1, 1])})
+        UnitAccumulator.from_state({"grid": np.array([1, 1])})
 
 
 def test_accumulator_rejects_bad_input() -> None:
-    acc = BlockAccumulator(grid=(2, 2), block=(4, 4))
+    acc = UnitAccumulator(grid=(2, 2), unit_shape=(4, 4))
     with pytest.raises(ValueError, match="shape"):
         acc.add(0, np.zeros((4, 5, 3)), 1)
     with pytest.raises(ValueError, match="out of range"):

@@ -16,15 +16,15 @@ from renderer.criteria import FlipCriterion, VarianceCriterion
 from renderer.passloop import PassLoop, schedule
 
 
-def _one_noisy_tile(tiling: BlockWindows | None, steps: int = 4) -> tuple[PassLoop, list[np.ndarray]]:
+def _one_noisy_tile(tiling: BlockWindows | None, n_passes: int = 4) -> tuple[PassLoop, list[np.ndarray]]:
     """A 64x64 block of 16x16 tiles, all a quiet grey but tile 5 (loud noise): the loop at
-    the tiling's grain, fed `steps` passes."""
+    the tiling's grain, fed `n_passes` passes."""
     rng = np.random.default_rng(0)
     t = 1 if tiling is None else tiling.tiles_per_block
     shape = (16, 16) if tiling is not None else (64, 64)
     loop = PassLoop(FlipCriterion(0.05, tau=0.02), (1, t), shape, schedule(8, 64), 8, tiling=tiling)
     rows = []
-    for _ in range(steps):
+    for _ in range(n_passes):
         frame = 0.4 + 0.002 * rng.standard_normal((64, 64, 3))
         frame[16:32, 16:32] += 0.3 * rng.standard_normal((16, 16, 3))        # tile 5: row 1, column 1
         ids = np.flatnonzero(loop.active)
@@ -32,7 +32,7 @@ def _one_noisy_tile(tiling: BlockWindows | None, steps: int = 4) -> tuple[PassLo
             break
         units = frame.reshape(4, 16, 4, 16, 3).transpose(0, 2, 1, 3, 4).reshape(16, 16, 16, 3) \
             if tiling is not None else frame[None]
-        rows.append(loop.step(ids, [(units[ids], 8)]))
+        rows.append(loop.run_round(ids, [(units[ids], 8)]))
     return loop, rows
 
 
@@ -59,7 +59,7 @@ def test_a_tile_is_judged_in_its_blocks_context() -> None:
     """A tile's FLIP comes from the map of its whole block: the same tile judged alone (its
     own 16x16 window, no neighbours) scores differently, so the context is really used."""
     tiling = BlockWindows(64, 64, block=64, tile=16)
-    loop, _ = _one_noisy_tile(tiling, steps=2)
+    loop, _ = _one_noisy_tile(tiling, n_passes=2)
     from renderer.criteria import BlockBatch
 
     batch = BlockBatch.from_accumulator(loop.acc, [4, 5, 6], tiling=tiling)
@@ -166,7 +166,7 @@ def test_the_models_block_verdict_gates_the_tiles(gate: int) -> None:
     from renderer.criteria import GatedCriterion, ModelCriterion
 
     tiling = BlockWindows(64, 64, block=64, tile=16)
-    flip_only, _ = _one_noisy_tile(tiling, steps=2)
+    flip_only, _ = _one_noisy_tile(tiling, n_passes=2)
     model = _Gate(gate)
     crit = GatedCriterion(ModelCriterion(model, tau=0.02), FlipCriterion(0.05, tau=0.02))
     loop = PassLoop(crit, (1, 16), (16, 16), schedule(8, 64), 8, tiling=tiling)
@@ -176,9 +176,9 @@ def test_the_models_block_verdict_gates_the_tiles(gate: int) -> None:
         frame[16:32, 16:32] += 0.3 * rng.standard_normal((16, 16, 3))
         units = frame.reshape(4, 16, 4, 16, 3).transpose(0, 2, 1, 3, 4).reshape(16, 16, 16, 3)
         ids = np.flatnonzero(loop.active)
-        loop.step(ids, [(units[ids], 8)])
+        loop.run_round(ids, [(units[ids], 8)])
     assert model.seen and all(shape == (1, 64, 64, 3) for shape in model.seen)
     if gate > 0:
-        assert loop.active.tolist() == flip_only.active.tolist() and loop.counters["gated_tiles"] == 0
+        assert loop.active.tolist() == flip_only.active.tolist() and loop.ledger.counters["gated_tiles"] == 0
     else:
-        assert loop.active.all() and loop.counters["gated_tiles"] == (~flip_only.active).sum()
+        assert loop.active.all() and loop.ledger.counters["gated_tiles"] == (~flip_only.active).sum()

@@ -16,7 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from learning.data.accumulator import BlockAccumulator
+from learning.data.accumulator import UnitAccumulator
 from learning.models.bundle_check import read_manifest
 from learning.data.npz import read_npz, savez_bytes
 from renderer.checkpoint import load_checkpoint, save_checkpoint
@@ -173,7 +173,7 @@ SETTINGS = {"scene": "fuzz", "grid": list(GRID), "step": 4, "max_spp": 16}
 
 def _valid_checkpoint(path: Path) -> None:
     """Two passes of a 2x2 grid, block 0 stopped at the second: what the loop would save."""
-    acc = BlockAccumulator(GRID, BLOCK)
+    acc = UnitAccumulator(GRID, BLOCK)
     rng = np.random.default_rng(0)
     active = np.ones(4, bool)
     history, stop_spp, rendered = [], np.zeros(4, np.int64), []
@@ -195,7 +195,7 @@ def _valid_checkpoint(path: Path) -> None:
 
 
 def _load(path: Path) -> dict:
-    return load_checkpoint(path, SETTINGS, pass_spp=SIZES, grid=GRID, block=BLOCK, frame=FRAME)
+    return load_checkpoint(path, SETTINGS, pass_spp=SIZES, grid=GRID, unit_shape=BLOCK, frame=FRAME)
 
 
 @pytest.fixture(scope="module")

@@ -7,12 +7,14 @@ import torch
 from learning.inputs.halves import recover_passes
 from noisefeat import split_blocks
 from renderer import adaptive
+from renderer.ledger import Ledger
 from renderer.wavefront import Traced
 
 
 class StackRenderer:
     """Stand-in for BlockRenderer that serves a stack's recovered passes: the live loop
-    then sees exactly the samples the simulation sees."""
+    then sees exactly the samples the simulation sees. Its calls go to `ledger`, as the
+    renderer's do (one Mitsuba call and launch per pass traced)."""
 
     def __init__(self, stack, grid):
         self.stack, self.grid = stack, tuple(grid)
@@ -25,7 +27,7 @@ class StackRenderer:
         self.tiles_per_block, self.tile_shape = 1, self.block_shape     # block grain: a block is its tile
         self.tile_h, self.tile_w = self.block_shape
         self.calls = []
-        self.kernel_compiles = self.samples_traced = self.kernel_lanes = 0
+        self.ledger = Ledger()
         self.device = torch.device("cpu")
 
     def close(self):
@@ -34,11 +36,14 @@ class StackRenderer:
     def cut_blocks(self, frame):
         return split_blocks(frame, self.grid)
 
-    @property
-    def mitsuba_calls(self):
-        return len(self.calls)
+    def count_kernels(self):
+        """No kernels: nothing to count."""
 
-    kernel_launches = mitsuba_calls
+    def _called(self, ids, spp):
+        self.calls.append(list(ids))
+        self.ledger.count("mitsuba_calls")
+        self.ledger.count("kernel_launches")
+        self.ledger.count("samples_traced", len(ids) * self.block_h * self.block_w * spp)
 
     def block_slices(self, b):
         r, c = divmod(b, self.grid[1])
@@ -50,18 +55,16 @@ class StackRenderer:
 
     unit_window = window
 
-    def render_blocks(self, ids, spp, seed, pass_index=0):
+    def render_units(self, ids, spp, seed, pass_index=0):
         assert spp == self.step
-        self.calls.append(list(ids))
-        self.samples_traced += len(ids) * self.block_h * self.block_w * spp
+        self._called(ids, spp)
         return np.stack([self.passes[pass_index][b] for b in ids])
 
     def render_passes(self, jobs, spp, seed):
         sizes = [spp] * len(jobs) if isinstance(spp, int) else list(spp)
         assert all(s == self.step for s in sizes)
         for p in sorted({p for _, p in jobs}):          # one entry per pass traced
-            self.calls.append([b for b, q in jobs if q == p])
-        self.samples_traced += len(jobs) * self.block_h * self.block_w * self.step
+            self._called([b for b, q in jobs if q == p], self.step)
         return np.stack([self.passes[p][b] for b, p in jobs])
 
     def submit_passes(self, jobs, spp, seed):

@@ -148,7 +148,7 @@ def test_scaled_film_shows_the_same_view(tmp_path: Path) -> None:
     down = big.reshape(24, 2, 48, 2).mean(axis=(1, 3)) > 0.5
     assert (down != small).mean() < 0.02
     # control: a stretched view (96x24, horizontal field kept) is not the same picture
-    wide = sphere("96x24").reshape(24, 48, 2).mean(axis=2) > 0.5
+    wide = sphere((96, 24)).reshape(24, 48, 2).mean(axis=2) > 0.5
     assert (wide != small).mean() > 0.04
 
 

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from .passloop import PassLoop
+from .spec import RenderSpec
 
 #: a round renders the active blocks whose priority is at least this share of the largest
 BAND = 0.8
@@ -64,7 +65,7 @@ class Budget:
             raise ValueError(f"band must be in (0, 1], got {self.band!r}")
 
     @classmethod
-    def for_spec(cls, spec: Any) -> Budget | None:
+    def for_spec(cls, spec: RenderSpec) -> Budget | None:
         """The budget a render spec asks for (None: neither an spp budget nor a time limit)."""
         if spec.spp_budget is None and spec.time_limit is None:
             return None

@@ -26,6 +26,7 @@ from .budget import Budget
 from .checkpoint import load_checkpoint, save_checkpoint
 from .criteria import Criterion
 from .passloop import PassLoop, schedule
+from .spec import RenderSpec
 from .wavefront import Traced
 
 #: what a render cost in Mitsuba, over every attempt (report.json "render_calls"); like the
@@ -53,7 +54,7 @@ def grown_passes(n_blocks: int, n_pending: int, passes_left: int, grow: bool = T
     return max(1, min(k, passes_left))
 
 
-def run_settings(spec: Any, br: BlockRenderer, crit: Criterion, variant: str, scene: str) -> dict[str, Any]:
+def run_settings(spec: RenderSpec, br: BlockRenderer, crit: Criterion, variant: str, scene: str) -> dict[str, Any]:
     """What a resume must match and the report repeats: the spec as rendered (the frame's
     blocks, the criterion as built, the variant)."""
     gh, gw = br.grid
@@ -99,7 +100,7 @@ class RenderSession:
     `loop.state()`); `settings` (`run_settings`) are what a resume must match.
     """
 
-    def __init__(self, br: BlockRenderer, crit: Criterion, spec: Any, settings: dict[str, Any], *,
+    def __init__(self, br: BlockRenderer, crit: Criterion, spec: RenderSpec, settings: dict[str, Any], *,
                  label: str, ckpt_path: Path | None, resume: bool, grow: bool, t_start: float) -> None:
         self.br, self.crit, self.spec, self.settings = br, crit, spec, settings
         self.label, self.ckpt_path, self.grow, self.t_start = label, ckpt_path, grow, t_start

@@ -37,8 +37,8 @@ DEFAULT_CRITERION = "flip"
 _SPP = dict(kind="int", low=1, high=MAX_SPP)
 #: every setting of a render, in the order renderer.render lists them
 ROWS: tuple[Row, ...] = (
-    Row("criterion", "criterion", DEFAULT_CRITERION, "when a unit has converged (the criteria are their "
-        "own declarations, `renderer.criteria.registry`)"),
+    # the criteria are their own declarations (`renderer.criteria.registry`): the help lists them
+    Row("criterion", "criterion", DEFAULT_CRITERION, "when a unit has converged"),
     Row("tau", "float", DEFAULT_TAU,
         "noise target: the largest 16x16-tile mean FLIP against the reference a converged block may "
         "show (smaller is stricter); picks flip's c(tau) or the model's offset", low=0.0, high=1.0,

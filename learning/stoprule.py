@@ -10,7 +10,12 @@ Who uses it: training's offset calibration and `evaluate` (`StopRule.stops` on s
 score matrices), the simulation on stacks and the live render loop (`decide_active`,
 the gate `renderer.passloop.PassLoop.run_round` calls, with a criterion's `StopRule.verdict`), and the HTTP service
 (`StopRule.verdict` on the blocks of one request). A NaN score is no decision: the block
-stays noisy.
+stays noisy. The dot guard (`dots_ratio`, `hold_dotted`) is the observer's sparse-outlier
+term seen through the half buffers: the live loop's criteria and the served `halves` route
+hold a dotted block noisy by it.
+
+Nothing here imports torch at load time (the display transform and the dots are imported
+where they run): the command line lists the criteria, which read this rule, without it.
 """
 from __future__ import annotations
 
@@ -19,8 +24,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
-from noisefeat.display import display_range
 
 from .names import OFFSET_LIMIT
 
@@ -42,6 +45,8 @@ def check_offset(offset: float) -> float:
 def flat_blocks(blocks: np.ndarray, exposure: float = 0.0) -> np.ndarray:
     """bool [N]: linear RGB blocks [N, h, w, 3] whose display image varies by at most one
     8-bit level in every channel (non-finite pixels follow the display rule)."""
+    from noisefeat.display import display_range
+
     return display_range(blocks, exposure) <= FLAT_TOLERANCE
 
 
@@ -53,12 +58,37 @@ def flat_halves(even: Any, odd: Any, exposure: float = 0.0) -> np.ndarray:
     block whose halves disagree is noisy, never flat (issue 42)."""
     import torch
 
+    from noisefeat.display import display_range
+
     e, o = torch.as_tensor(even), torch.as_tensor(odd)
     both = torch.cat([e, o], dim=1)
     if not len(both):
         return np.zeros(0, bool)
     finite = torch.isfinite(both).flatten(1).all(dim=1).cpu().numpy()
     return finite & (display_range(both, exposure) <= FLAT_TOLERANCE)
+
+
+def dots_ratio(even: Any, odd: Any, exposure: float, tau: float) -> np.ndarray:
+    """[N]: each block's dot term from its half buffers [N, h, w, 3] relative to the
+    noise target (`noisefeat.dots.halves_dots` / tau), computed where the buffers live (a
+    device tensor stays there; only the numbers cross to the host). Above 1 a block still
+    holds more isolated outlier pixels than the observer at tau lets through: the
+    observer's version-3 rule seen through the halves (issue 33)."""
+    import torch
+
+    from noisefeat.dots import halves_dots
+
+    if not len(even):
+        return np.zeros(0)
+    dots = halves_dots(torch.as_tensor(even), torch.as_tensor(odd), exposure)
+    return dots.cpu().numpy() / tau
+
+
+def hold_dotted(verdict: np.ndarray, dots: np.ndarray, flat: np.ndarray) -> np.ndarray:
+    """int8 `verdict` with NOISY where a block is dotted (`dots_ratio` above 1) and not flat:
+    the one dot guard of every route (a flat block has no dots to see)."""
+    dotted = np.asarray(dots) > 1
+    return np.where(dotted & ~np.asarray(flat, bool), NOISY, np.asarray(verdict)).astype(np.int8)
 
 
 def decide_active(active: np.ndarray, spp: int | np.ndarray, min_spp: int | None,

@@ -1,6 +1,6 @@
 """renderer: Mitsuba scene library, block rendering, stack building, the adaptive loop, farm.
 
-Names are loaded on first use (PEP 562), so `renderer.names` and the command-line parser
+Names are loaded on first use (PEP 562), so `renderer.spec` and the command-line parser
 do not import Mitsuba. The Python entry to the main job is `render` (a scene in, a
 `RenderResult` out); `register` adds the ``noisestop`` Mitsuba integrator (importing
 `renderer` does not: that would import Mitsuba and choose its variant).

@@ -19,7 +19,8 @@ import numpy as np
 
 from .errors import InputNotFound, ServerUnavailable
 from .result import RenderResult
-from .spec import API, ARGUMENT, ROW, ROWS
+from .setting_row import help_text
+from .spec import API, ARGUMENT, ROWS
 
 if TYPE_CHECKING:
     from learning.data.stack import Stack
@@ -74,9 +75,13 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
     from .plugin import register
 
     register()          # also before a scene file loads: its integrator may be `noisestop`
-    given = {k: v for k, v in locals().items() if k in ROW}
     try:
-        return run_adaptive(scene, progress=progress, reference=reference, source=ARGUMENT, **given)
+        return run_adaptive(scene, criterion, tau=tau, threshold=threshold, offset=offset, quantile=quantile,
+                            model=model, server=server, exposure=exposure, resolution=resolution, grid=grid,
+                            block=block, tile=tile, min_spp=min_spp, max_spp=max_spp, step=step,
+                            decide_skip=decide_skip, seed=seed, time_limit=time_limit, spp_budget=spp_budget,
+                            quick_spp=quick_spp, defines=defines, progress=progress, reference=reference,
+                            source=ARGUMENT)
     except (InputNotFound, ServerUnavailable):
         raise
     except FileNotFoundError as exc:       # a model, scene or reference that is not there
@@ -94,9 +99,8 @@ def _numpydoc_rows(door: str = API) -> str:
     out = []
     for row in ROWS:
         if door in row.doors:
-            shown = "" if row.default is None or "default" in row.doc else f" (default {row.default})"
             out.append(f"    {row.name} : {kinds[row.kind]} or None\n"
-                       + textwrap.fill(f"{row.doc}{shown}.", 92, initial_indent=" " * 8, subsequent_indent=" " * 8))
+                       + textwrap.fill(f"{help_text(row)}.", 92, initial_indent=" " * 8, subsequent_indent=" " * 8))
     return "\n".join(out)
 
 

@@ -53,9 +53,7 @@ class BlockWindows:
         self.width, self.height = width, height
         if (grid is None) == (block is None):
             raise ValueError("give the blocks either as a grid (rows, columns) or as a size in pixels")
-        if block is not None:
-            if isinstance(block, bool) or not isinstance(block, (int, np.integer)) or block < 1:
-                raise ValueError(f"block must be a positive number of pixels, got {block!r}")
+        if block is not None:          # its range is the render spec's (the block row); the frame's is here
             if block > min(self.width, self.height):
                 raise ValueError(f"block of {block} px is larger than the {self.width}x{self.height} frame: "
                                  f"take --block {min(self.width, self.height)} or less")
@@ -63,8 +61,6 @@ class BlockWindows:
             self._xs, self._ys = tile_starts(self.width, int(block)), tile_starts(self.height, int(block))
         else:
             gh, gw = (int(g) for g in grid)  # type: ignore[union-attr]
-            if gh < 1 or gw < 1:
-                raise ValueError(f"grid must be two positive integers (rows, columns), got {grid!r}")
             if self.width % gw or self.height % gh:
                 raise ValueError(
                     f"image {self.width}x{self.height} (WxH) cannot be cut into a {gh}x{gw} grid of equal "

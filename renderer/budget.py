@@ -41,6 +41,7 @@ import numpy as np
 
 from .ledger import Ledger
 from .passloop import PassLoop
+from .spec import RenderSpec
 
 #: a round renders the active units whose priority is at least this share of the largest
 BAND = 0.8
@@ -69,7 +70,7 @@ class Budget:
             raise ValueError(f"band must be in (0, 1], got {self.band!r}")
 
     @classmethod
-    def for_spec(cls, spec: Any, ledger: Ledger) -> Budget | None:
+    def for_spec(cls, spec: RenderSpec, ledger: Ledger) -> Budget | None:
         """The budget a render spec asks for (None: neither an spp budget nor a time limit),
         reporting to the render's `ledger`."""
         if spec.spp_budget is None and spec.time_limit is None:

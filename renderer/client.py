@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from .oip_codec import DATATYPES, HEADER_LENGTH, WireError, join_body, read_tensor, split_body, tensor_bytes
+from .spec_rows import ROW
 from .token import check_token, resolve_token
 
 logger = logging.getLogger(__name__)
@@ -289,7 +290,7 @@ class RemoteModel:
             raise ValueError(f"POST {url}: answer lacks output(s) {missing}")
         return result
 
-    def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None, exposure: float = 0.0,
+    def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None, exposure: float = ROW["exposure"].default,
                      offset: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(verdict int8 [N], score float64 [N]) for linear RGB blocks [N, H, W, 3]: the
         server's stop rule at display `exposure` and at `offset` (None: the model's own)."""
@@ -301,7 +302,7 @@ class RemoteModel:
         return self._score({"blocks": b, **({} if quick is None else {"quick": np.asarray(quick)})},
                            exposure, offset)
 
-    def score_halves(self, even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
+    def score_halves(self, even: np.ndarray, odd: np.ndarray, exposure: float = ROW["exposure"].default,
                      offset: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """`score_blocks` for a `halves` model: the half-buffer means of N blocks, [N, H, W, 3] each."""
         a, b = np.asarray(even), np.asarray(odd)

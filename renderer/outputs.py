@@ -228,7 +228,7 @@ def write_outputs(out: str | os.PathLike, image: np.ndarray, report: dict[str, A
     if np.shape(spp) != img.shape[:2] or np.shape(converged) != img.shape[:2]:
         raise ValueError(f"per-pixel spp {np.shape(spp)} / converged {np.shape(converged)} do not match "
                          f"the image {img.shape[:2]}")
-    srgb8 = to_srgb8(img, report.get("exposure", 0.0))
+    srgb8 = to_srgb8(img, report["exposure"])
     blocks = report["blocks"]
     block_spp = [b["spp"] for b in blocks]
     windows = [b["window"] for b in blocks]
@@ -244,7 +244,7 @@ def write_outputs(out: str | os.PathLike, image: np.ndarray, report: dict[str, A
     names = [FINAL_EXR, FINAL_PNG, SPP_MAP, REPORT]
     check = report.get("final_vs_reference")
     if reference is not None and check is not None:
-        atomic_write(out / COMPARE, compare_png(srgb8, to_srgb8(reference, report.get("exposure", 0.0)),
+        atomic_write(out / COMPARE, compare_png(srgb8, to_srgb8(reference, report["exposure"]),
                                                       windows, block_spp, check["errors"], check["tau"]))
         names.append(COMPARE)
     write_report(out / REPORT, report)

@@ -16,26 +16,32 @@ channels. The last render's `RenderResult` (report included) is kept as
 ``integrator.result``.
 
 Properties (all optional): the render spec's rows the plugin offers
-(`renderer.spec.PLUGIN_ROWS`: criterion, tau, threshold, offset, quantile, model,
-exposure, block, min_spp, max_spp, step, seed, time_limit, spp_budget, quick_spp), plus
-``progress`` (boolean); they are resolved and checked by the same resolver as
-`renderer.render`'s arguments (source "scene plugin"), and unset ones take its defaults. ``mi.render``'s own arguments add to them: a nonzero
-``spp`` is the render's max_spp, and ``seed`` is added to the property's seed, so
-``mi.render(scene, seed=k)`` for k = 0, 1, ... gives independent renders, and
-``mi.render(scene)`` equals ``renderer.render(scene, ...)`` with the same settings, and
-``renderer.render(scene)`` on such a scene takes these properties for the arguments it is
-not given, as do ``renderer.render("FILE.xml")`` and ``noisestop render --scene FILE.xml``
-on such a file (`renderer.adaptive.run_adaptive` reads them once the file is loaded).
+(`renderer.spec.PLUGIN_ROWS`: every row but server, resolution, grid and defines, which
+name things outside the scene), plus ``progress`` (boolean). They are read once, in the
+constructor, and resolved and checked there by the same resolver as `renderer.render`'s
+arguments (source "scene plugin"; unset ones take its defaults). ``mi.render``'s own
+arguments add to them: a nonzero ``spp`` is the render's max_spp, and ``seed`` is added to
+the resolved seed, so ``mi.render(scene, seed=k)`` for k = 0, 1, ... gives independent
+renders, and ``mi.render(scene)`` equals ``renderer.render(scene, ...)`` with the same
+settings, and ``renderer.render(scene)`` on such a scene takes these properties for the
+arguments it is not given, as do ``renderer.render("FILE.xml")`` and ``noisestop render
+--scene FILE.xml`` on such a file (`renderer.adaptive.run_adaptive` reads them once the
+file is loaded).
 
 A bad property (a wrong type, out of range, a block too small, min_spp above max_spp, two
 nested integrators) does not fail the scene's loading, where Mitsuba would wrap the error
 in a Python traceback: it is one ValueError line wherever the integrator is used
 (`renderer.render`, `noisestop render`, and as the cause of ``mi.render``'s RuntimeError).
 
-Registering needs a Mitsuba variant, so ``import renderer`` does not do it (it would
-import Mitsuba). `register` (idempotent, per variant) does; importing this module and
-calling `renderer.render` also do. Python plugins are registered for the variant that is
-set: after ``mi.set_variant`` to another one, call `register` again.
+The class: `NoisestopIntegrator`, here at module level. Mitsuba's base classes are per
+variant and its bindings take one base class only, so `integrator_class` binds its methods
+to the variant's ``mi.SamplingIntegrator`` (one class per variant, made once).
+
+Registering is an explicit call, `register` (idempotent, per variant; also
+`renderer.register`): it needs a Mitsuba variant, so neither ``import renderer`` nor
+importing this module does it. `renderer.render` and ``noisestop render`` call it before
+they load a scene. Python plugins are registered for the variant that is set: after
+``mi.set_variant`` to another one, call `register` again.
 """
 from __future__ import annotations
 
@@ -56,89 +62,106 @@ _registered: set[str] = set()
 _classes: dict[str, type] = {}
 
 
-def _integrator_class() -> type:
-    """The plugin class for the variant that is set (Mitsuba's base classes are per variant)."""
+class NoisestopIntegrator:
+    """Adaptive sampling around a nested integrator (see `renderer.plugin`): the methods of
+    the Mitsuba integrator `integrator_class` makes for the variant that is set."""
+
+    #: the variant's ``mi.SamplingIntegrator`` (set on the class `integrator_class` makes)
+    base: Any = None
+
+    def __init__(self, props: Any) -> None:
+        from noisefeat.extras import require
+
+        mi = require("mitsuba")
+        self.base.__init__(self, props)
+        nested = [props[k] for k in props.keys()
+                  if props.type(k) == mi.Properties.Type.Object and isinstance(props[k], mi.Integrator)]
+        #: the integrator the samples come from (Mitsuba's path tracer if none is nested)
+        self.nested = nested[0] if nested else mi.load_dict({"type": "path"})
+        #: the last render's RenderResult (image, spp, converged, report)
+        self.result = None
+        #: a bad property's one-line message, raised when the integrator is used: Mitsuba's
+        #: loader would print a Python traceback around an error raised here
+        self.property_error: str | None = None
+        #: the properties set (the render spec's rows, as given)
+        self.settings: dict[str, Any] = {}
+        #: the seed they resolve to, which ``mi.render``'s seed adds to (an int: Dr.Jit
+        #: traverses an integrator's attributes, so the resolved spec itself is not kept)
+        self.base_seed = 0
+        self.progress = False
+        # every property is read before anything is checked: Mitsuba refuses to load an
+        # integrator that left one unread, with a message naming it instead of the cause
+        self.settings = {k: props[k] for k in PROPERTIES if k in props and k != "progress"}
+        progress = props["progress"] if "progress" in props else False
+        try:
+            if len(nested) > 1:
+                raise ValueError(f"the noisestop integrator wraps one integrator, got {len(nested)} nested ones")
+            if not isinstance(progress, bool):
+                raise ValueError(f"progress must be a boolean, got {progress!r}")
+            self.progress = progress
+            self.base_seed = resolve(self.settings, source=FROM_PLUGIN).seed   # a bad property: known now, raised when used
+        except ValueError as exc:
+            self.property_error = f"noisestop integrator: {exc}".replace(
+                "noisestop integrator: noisestop integrator: ", "noisestop integrator: ")
+
+    def check(self) -> None:
+        """ValueError (one line) if a property was bad: raised where the integrator is used
+        (mi.render, renderer.render, the render loop), not while Mitsuba loads it."""
+        if self.property_error is not None:
+            raise ValueError(self.property_error)
+
+    def aov_names(self) -> list[str]:
+        return list(AOVS)
+
+    def render(self, scene: Any, sensor: Any = 0, seed: Any = 0, spp: int = 0, develop: bool = True,
+               evaluate: bool = True) -> Any:
+        """The adaptive render of `scene` from `sensor` as [H, W, 5] (R, G, B, spp, converged)."""
+        from noisefeat.extras import require
+
+        from .adaptive import run_adaptive
+
+        self.check()
+        if not develop:
+            raise ValueError("the noisestop integrator returns its developed image: call it with "
+                             "develop=True (as mi.render does)")
+        if isinstance(sensor, (int, np.integer)):
+            sensor = scene.sensors()[int(sensor)]
+        s = dict(self.settings)
+        if int(spp) > 0:
+            s["max_spp"] = int(spp)
+        if _as_int(seed):
+            s["seed"] = self.base_seed + _as_int(seed)
+        result = run_adaptive(scene, source=FROM_PLUGIN, plugin={}, progress=self.progress, sensor=sensor,
+                              integrator=self.nested, **s)      # its settings, not the scene's integrator's
+        self.result = result
+        data = np.concatenate([result.image, result.spp[..., None].astype(np.float32),
+                               result.converged[..., None].astype(np.float32)], axis=-1)
+        return require("mitsuba").TensorXf(np.ascontiguousarray(data))
+
+    def traverse(self, callback: Any) -> None:
+        from noisefeat.extras import require
+
+        callback.put("nested", self.nested, require("mitsuba").ParamFlags.NonDifferentiable)
+
+    def to_string(self) -> str:
+        inner = "\n".join("  " + line for line in str(self.nested).splitlines())
+        return f"NoisestopIntegrator[\n  settings = {self.settings},\n  nested =\n{inner}\n]"
+
+
+def integrator_class() -> type:
+    """`NoisestopIntegrator` as a Mitsuba integrator of the variant that is set (choosing one
+    first, as `learning.data.variant.select_variant` does, if none is): its methods on the
+    variant's ``mi.SamplingIntegrator``, made once per variant."""
     from learning.data.variant import select_variant
     from noisefeat.extras import require
 
     variant = select_variant()
-    if variant in _classes:
-        return _classes[variant]
-    mi = require("mitsuba")
-
-    class NoisestopIntegrator(mi.SamplingIntegrator):
-        """Adaptive sampling around a nested integrator (see `renderer.plugin`)."""
-
-        def __init__(self, props: Any) -> None:
-            super().__init__(props)
-            nested = [props[k] for k in props.keys()
-                      if props.type(k) == mi.Properties.Type.Object and isinstance(props[k], mi.Integrator)]
-            #: the integrator the samples come from (Mitsuba's path tracer if none is nested)
-            self.nested = nested[0] if nested else mi.load_dict({"type": "path"})
-            #: the last render's RenderResult (image, spp, converged, report)
-            self.result = None
-            #: a bad property's one-line message, raised when the integrator is used: Mitsuba's
-            #: loader would print a Python traceback around an error raised here
-            self.property_error: str | None = None
-            #: the properties set (the render spec's rows, as given), resolved at each render
-            self.settings: dict[str, Any] = {}
-            self.progress = False
-            # every property is read before anything is checked: Mitsuba refuses to load an
-            # integrator that left one unread, with a message naming it instead of the cause
-            self.settings = {k: props[k] for k in PROPERTIES if k in props and k != "progress"}
-            progress = props["progress"] if "progress" in props else False
-            try:
-                if len(nested) > 1:
-                    raise ValueError(f"the noisestop integrator wraps one integrator, got {len(nested)} nested ones")
-                if not isinstance(progress, bool):
-                    raise ValueError(f"progress must be a boolean, got {progress!r}")
-                self.progress = progress
-                resolve(self.settings, source=FROM_PLUGIN)      # a bad property: known now, raised when used
-            except ValueError as exc:
-                self.property_error = f"noisestop integrator: {exc}".replace(
-                    "noisestop integrator: noisestop integrator: ", "noisestop integrator: ")
-
-        def check(self) -> None:
-            """ValueError (one line) if a property was bad: raised where the integrator is used
-            (mi.render, renderer.render, the render loop), not while Mitsuba loads it."""
-            if self.property_error is not None:
-                raise ValueError(self.property_error)
-
-        def aov_names(self) -> list[str]:
-            return list(AOVS)
-
-        def render(self, scene: Any, sensor: Any = 0, seed: Any = 0, spp: int = 0, develop: bool = True,
-                   evaluate: bool = True) -> Any:
-            """The adaptive render of `scene` from `sensor` as [H, W, 5] (R, G, B, spp, converged)."""
-            from .adaptive import run_adaptive
-
-            self.check()
-            if not develop:
-                raise ValueError("the noisestop integrator returns its developed image: call it with "
-                                 "develop=True (as mi.render does)")
-            if isinstance(sensor, (int, np.integer)):
-                sensor = scene.sensors()[int(sensor)]
-            s = dict(self.settings)
-            if int(spp) > 0:
-                s["max_spp"] = int(spp)
-            if _as_int(seed):
-                s["seed"] = s.get("seed", 0) + _as_int(seed)
-            result = run_adaptive(scene, source=FROM_PLUGIN, plugin={}, progress=self.progress, sensor=sensor,
-                                  integrator=self.nested, **s)      # its settings, not the scene's integrator's
-            self.result = result
-            data = np.concatenate([result.image, result.spp[..., None].astype(np.float32),
-                                   result.converged[..., None].astype(np.float32)], axis=-1)
-            return mi.TensorXf(np.ascontiguousarray(data))
-
-        def traverse(self, callback: Any) -> None:
-            callback.put("nested", self.nested, mi.ParamFlags.NonDifferentiable)
-
-        def to_string(self) -> str:
-            inner = "\n".join("  " + line for line in str(self.nested).splitlines())
-            return f"NoisestopIntegrator[\n  settings = {self.settings},\n  nested =\n{inner}\n]"
-
-    _classes[variant] = NoisestopIntegrator
-    return NoisestopIntegrator
+    if variant not in _classes:
+        mi = require("mitsuba")
+        methods = {k: v for k, v in vars(NoisestopIntegrator).items() if k not in ("__dict__", "__weakref__")}
+        _classes[variant] = type("NoisestopIntegrator", (mi.SamplingIntegrator,),
+                                 {**methods, "base": mi.SamplingIntegrator})
+    return _classes[variant]
 
 
 def _as_int(seed: Any) -> int:
@@ -160,12 +183,9 @@ def register() -> str:
     """
     from noisefeat.extras import require
 
-    cls = _integrator_class()
+    cls = integrator_class()
     variant = require("mitsuba").variant()
     if variant not in _registered:
         require("mitsuba").register_integrator(PLUGIN, lambda props: cls(props))
         _registered.add(variant)
     return variant
-
-
-register()

@@ -41,7 +41,6 @@ from . import training_scenes as training
 from .procedural import procedural_scene, procedural_seed
 from .scene_kit import SceneDict
 from .scenefiles import check_scene_files, mitsuba_search_paths
-from .setting_row import parse_resolution
 from learning.data.variant import select_variant
 from noisefeat.extras import require
 
@@ -226,19 +225,19 @@ def _dict_sensor_props(d: SceneDict) -> Any:
     return props
 
 
-def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | str | None = None,
+def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | None = None,
                defines: Mapping[str, str] | None = None) -> Any:
     """Load a built-in scene by name, or any Mitsuba 3 XML file, as an ``mi.Scene``.
 
     `resolution` None keeps the film's own size (built-ins: 256x256); N scales the long
-    side to N keeping the aspect ratio; (W, H) or 'WxH' sets both (`resize_film`), framed
+    side to N keeping the aspect ratio; (W, H) sets both (`resize_film`), framed
     as Mitsuba frames a film of that size under the sensor's ``fov_axis`` (`framing_fov`).
     `defines` are the file's `<default>` parameters set as `mitsuba -D key=value` sets them.
     """
     select_variant()
     mi = require("mitsuba")
 
-    size = None if resolution is None else parse_resolution(resolution)
+    size = resolution      # checked by the render spec's row (`renderer.spec.ROW["resolution"]`)
     name_or_path = os.fspath(name_or_path)
     if name_or_path in SCENES or procedural_seed(name_or_path) is not None:
         if defines:

@@ -31,6 +31,7 @@ from .checkpoint import load_checkpoint, save_checkpoint
 from .criteria import COUNTER_NAMES, TIMER_NAMES, Criterion
 from .ledger import RENDER_COUNTERS, RENDER_TIMERS, Ledger
 from .passloop import PassLoop, schedule
+from .spec import RenderSpec
 from .wavefront import Traced
 
 logger = logging.getLogger(__name__)
@@ -55,7 +56,7 @@ def grown_passes(n_units: int, n_pending: int, passes_left: int, grow: bool = Tr
     return max(1, min(k, passes_left))
 
 
-def run_settings(spec: Any, br: BlockRenderer, crit: Criterion, variant: str, scene: str) -> dict[str, Any]:
+def run_settings(spec: RenderSpec, br: BlockRenderer, crit: Criterion, variant: str, scene: str) -> dict[str, Any]:
     """What a resume must match and the report repeats: the spec as rendered (the frame's
     blocks, the criterion as built, the variant)."""
     gh, gw = br.grid
@@ -103,7 +104,7 @@ class RenderSession:
     must match; `ledger` holds the render's counters and timers.
     """
 
-    def __init__(self, br: BlockRenderer, crit: Criterion, spec: Any, settings: dict[str, Any], *,
+    def __init__(self, br: BlockRenderer, crit: Criterion, spec: RenderSpec, settings: dict[str, Any], *,
                  label: str, ckpt_path: Path | None, resume: bool, grow: bool, t_start: float) -> None:
         self.br, self.crit, self.spec, self.settings = br, crit, spec, settings
         self.label, self.ckpt_path, self.grow, self.t_start = label, ckpt_path, grow, t_start

@@ -1,5 +1,6 @@
 """One setting's row of the render spec (`renderer.spec.ROWS`): its kind, default, range,
-documentation and doors, and the one check and the one command-line parse of a value.
+documentation and doors, the one check and the one command-line parse of a value, and its
+help (`help_text`: the row's documentation with what each criterion declares of it).
 
 Kept apart from the table and the resolver (`renderer.spec`): this is how any row checks a
 value; that is which rows there are and how a render's are combined. Nothing heavy is
@@ -19,7 +20,8 @@ import numpy as np
 
 from noisefeat.bounds import SizeBounds
 
-from .names import CRITERIA
+from .criteria.registry import TILE, declared
+from .criteria.registry import names as criterion_names
 
 #: the largest frame side and grid count a setting may name (the frame bounds of
 #: noisefeat.bounds then cap the pixels)
@@ -134,8 +136,8 @@ class Row:
         elif kind == "criterion":
             if not isinstance(value, str) and hasattr(value, "decide") and hasattr(value, "describe"):
                 return value                    # a Criterion object (renderer.render only)
-            if value not in CRITERIA:
-                raise ValueError(f"criterion must be one of {', '.join(CRITERIA)} or a Criterion, "
+            if not isinstance(value, str) or value not in criterion_names():      # the declared ones
+                raise ValueError(f"criterion must be one of {', '.join(criterion_names())} or a Criterion, "
                                  f"got {_shown(value)}")
         elif kind == "str":
             if not isinstance(value, (str, os.PathLike)) or not os.fspath(value):
@@ -193,3 +195,33 @@ def frame_bounds(resolution: int | tuple[int, int]) -> None:
     bounds = SizeBounds.from_env()
     if w * h > bounds.max_frame_pixels:
         bounds.check_frame(h, w, (1, 1))     # its one-line message names the bound
+
+
+def help_text(row: Row) -> str:
+    """A row's help (the command line's, renderer.render's docstring): its documentation,
+    what each criterion that takes it says of it, and its default."""
+    text = row.doc
+    if row.kind == "criterion":
+        text += ": " + "; ".join(f"{name} ({cls.summary})" if cls.summary else name
+                                 for name, cls in declared().items())
+        selects = {name: [k for k, s in cls.settings.items() if s.selects] for name, cls in declared().items()}
+        text += "".join(f"; {name} when {' or '.join(keys)} is given without a criterion"
+                        for name, keys in selects.items() if keys)
+    elif row.name == "tile":
+        blocks = [name for name, cls in declared().items() if cls.grain != TILE]
+        text += f" (the default of the {', '.join(blocks)} criteria)" if blocks else ""
+    users = {name: cls.settings[row.name] for name, cls in declared().items() if row.name in cls.settings}
+    if users:
+        text = f"{'/'.join(users)}: {text}"
+        for name, setting in users.items():
+            said = [setting.doc] if setting.doc else []
+            if setting.default is not None:
+                said.append(f"default {_default(setting.default)}")
+            text += f"; {name}: {', '.join(said)}" if said else ""
+    if row.default is not None and "default" not in text:
+        text += f" (default {_default(row.default)})"
+    return text
+
+
+def _default(value: Any) -> str:
+    return f"{value:g}" if isinstance(value, float) else str(value)

@@ -40,8 +40,8 @@ from typing import Any
 import numpy as np
 
 from .adaptive import adaptive_render
-from .names import DEFAULT_CRITERION
 from .outputs import prepare_output_dir, to_srgb8
+from .spec import DEFAULT_CRITERION
 from noisefeat.dots import REPORT_LEVEL
 from noisefeat.extras import require
 
@@ -92,7 +92,7 @@ def block_errors_vs(image: np.ndarray, reference: np.ndarray, report: dict[str, 
     from learning.data.block_terms import window_errors
     from learning.data.observer import VirtualObserver
 
-    obs = VirtualObserver(tau=tau, exposure=float(report.get("exposure", 0.0)))
+    obs = VirtualObserver(tau=tau, exposure=float(report["exposure"]))
     return window_errors(reference, image, [b["window"] for b in report["blocks"]], obs.ppd, obs.exposure,
                          obs.pooling)
 
@@ -103,7 +103,7 @@ def block_outliers_vs(image: np.ndarray, reference: np.ndarray, report: dict[str
     from .report import window_dots
 
     return window_dots(image, reference, [b["window"] for b in report["blocks"]], tau,
-                       float(report.get("exposure", 0.0)))
+                       float(report["exposure"]))
 
 
 def darkest_stopped(a: dict[str, Any], image: np.ndarray) -> dict[str, Any] | None:
@@ -252,8 +252,8 @@ def showcase(scene: str = SCENE, out: str | Path = "out", **settings: Any) -> di
     errors = None if reference is None else {
         **{d: block_errors_vs(img, reference, a, float(a["tau"])) for d, img in linear.items()},
         **{f"outliers_{d}": block_outliers_vs(img, reference, a, float(a["tau"])) for d, img in linear.items()}}
-    show = [to_srgb8(linear[d], a.get("exposure", 0.0)) for d in ("adaptive", "uniform")]
-    ref8 = None if reference is None else to_srgb8(reference, a.get("exposure", 0.0))
+    show = [to_srgb8(linear[d], a["exposure"]) for d in ("adaptive", "uniform")]
+    ref8 = None if reference is None else to_srgb8(reference, a["exposure"])
     atomic_write(root / EQUAL_TIME, equal_time_png(show[0], show[1], a, u, ref8, errors))
     return {"adaptive": a, "uniform": u, "errors": errors, "summary": summary_line(a, u, errors),
             "image": str(root / EQUAL_TIME)}

@@ -1,5 +1,6 @@
-"""The render spec: every setting of a render is one row of `ROWS`, and `resolve` is the
-one place a setting is defaulted and checked (DESIGN "Render spec").
+"""The render spec: every setting of a render is one row of `ROWS` (`renderer.spec_rows`,
+re-exported here), and `resolve` is the one place a render's settings are defaulted and
+checked (DESIGN "Render spec"), into a typed, frozen `RenderSpec`.
 
 Why one table: settings used to be defaulted and range-checked in five layers (the API,
 the command line's types, the plugin, `run_adaptive`, the budget), and the copies drifted
@@ -11,40 +12,29 @@ plugin``, also under `renderer.render`'s arguments for a scene that has one).
 
 `resolve` takes, for each row, the value given, else the scene plugin's, else what the
 reference stack implies, else the row's default, checks it (one-line ValueError naming the
-setting), then the combination; `RenderSpec` records where each value came from. This
-module imports nothing heavy: the command line builds its parser from it.
+setting), then the combination; `RenderSpec` records where each value came from.
+
+What a criterion takes is its own declaration (`renderer.criteria.registry`): which rows it
+reads, with its own defaults and ranges where the row's do not do (`declared_row`), its
+grain, whether it needs true thresholds, and which given settings choose it. `resolve` and
+the criteria's constructors (`declared_values`) read those; no table here names a
+criterion. This module imports nothing heavy: the command line builds its parser from it.
 """
 from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import field, make_dataclass, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
-from learning.names import DEFAULT_TAU, OFFSET_LIMIT
-from noisefeat.bounds import EXPOSURE_RANGE, SizeBounds
+from noisefeat.bounds import SizeBounds
 
-from .names import DEFAULT_CRITERION
-from .setting_row import API, CLI, MAX_SIDE, XML, Row, block_bounds, frame_bounds
+from .criteria.registry import BLOCK_ONLY, TILE, Declared, criterion_class, declared
+from .setting_row import API, CLI, MAX_SIDE, XML
+from .spec_rows import (DEFAULT_BLOCK, DEFAULT_CRITERION, DEFAULT_TILE, MAX_PASSES, MAX_SEED, MAX_SPP,
+                        MAX_TIME_LIMIT, PLUGIN_ROWS, ROW, ROWS, check_known, declared_row, declared_values)
 
 logger = logging.getLogger(__name__)
-
-#: spp settings are whole numbers in [1, MAX_SPP]; a render makes at most MAX_PASSES passes
-#: (each appends a row to the checkpointed history)
-MAX_SPP = 1 << 20
-MAX_PASSES = 10_000
-#: the longest time limit, seconds (a year: anything longer is a typo)
-MAX_TIME_LIMIT = 365 * 24 * 3600.0
-MAX_SEED = 2**32 - 1
-#: the block size the bundled model and flip's c(tau) were trained and calibrated on
-DEFAULT_BLOCK = 64
-#: the observer's tile (its 16x16 tile means): the finest grain its guarantee holds at
-DEFAULT_TILE = 16
-#: the criteria whose unit is the paper's block: whole blocks unless a tile is given; the
-#: model, given one, gates flip's tile verdicts with its block verdict (criteria.gated),
-#: the oracle (a labelled stack's block thresholds) refuses it
-BLOCK_GRAIN = ("model", "oracle")
-BLOCK_ONLY = ("oracle",)
 
 # where a value came from
 ARGUMENT = "argument"
@@ -54,81 +44,41 @@ DEFAULT = "default"
 SCENE = "scene"
 NOT_USED = "not used"
 
-_SPP = dict(kind="int", low=1, high=MAX_SPP)
-#: every setting of a render, in the order renderer.render lists them
-ROWS: tuple[Row, ...] = (
-    Row("criterion", "criterion", None,
-        "when a block has converged: flip (training-free), model (the learned model), variance "
-        "(Cycles' rule), uniform (never: max_spp everywhere) or oracle (a labelled reference stack's "
-        "thresholds); not given: model when a model, server or offset is given, else flip"),
-    Row("tau", "float", DEFAULT_TAU,
-        "noise target: the largest 16x16-tile mean FLIP against the reference a converged block may "
-        "show (smaller is stricter); picks flip's c(tau) or the model's offset", low=0.0, high=1.0,
-        open_low=True),
-    Row("threshold", "float", None,
-        "flip: c, the FLIP between the half buffers a block must reach (default c(tau)); variance: "
-        "Cycles' noise threshold (default 0.01)", low=0.0, high=1000.0, open_low=True),
-    Row("offset", "float", None,
-        "model: the decision offset, the speed/accuracy knob (default: the model's calibrated offset "
-        "at tau; larger stops later)", low=-OFFSET_LIMIT, high=OFFSET_LIMIT),
-    Row("quantile", "float", 1.0, "variance: the fraction of a block's pixels that must pass",
-        low=0.0, high=1.0, open_low=True),
-    Row("model", "str", None, "model: a model bundle directory (default: the bundled model)",
-        metavar="DIR"),
-    Row("server", "str", None,
-        "model: a verdict server URL, e.g. http://host:8000 (token from NOISESTOP_TOKEN)", metavar="URL",
-        doors=frozenset({API, CLI})),
-    Row("exposure", "float", 0.0, "display exposure, in stops, the criteria judge the image at",
-        low=EXPOSURE_RANGE[0], high=EXPOSURE_RANGE[1]),
-    Row("resolution", "resolution", None,
-        "frame size: N scales the film's long side to N keeping its aspect, WxH sets both (default: "
-        "the reference's, else the scene's own)", metavar="N|WxH", doors=frozenset({API, CLI}),
-        extra=frame_bounds),
-    Row("grid", "grid", None, "blocks as a (rows, columns) grid dividing the frame, instead of block "
-        "(default: the reference's)", doors=frozenset({API, CLI})),
-    Row("block", "int", DEFAULT_BLOCK,
-        "block side in pixels (default 64, or the frame's short side if smaller); edge windows move "
-        "flush with the frame's edge", low=1, high=MAX_SIDE, metavar="PX", extra=block_bounds),
-    Row("tile", "int", DEFAULT_TILE,
-        "side in pixels of the tiles each block is cut into, the unit that stops: each tile has its "
-        "own samples and stop, a block is done when all its tiles are; the block's side: whole blocks "
-        "(the default of the model and oracle criteria; given a smaller tile, the model's block "
-        "verdict gates flip's tile verdicts)", low=8, high=MAX_SIDE, metavar="PX"),
-    Row("min_spp", doc="samples per pixel before the first decision (default: the reference's first "
-        "level, else 16); it takes effect at the first pass boundary at or past it", default=16, **_SPP),
-    Row("max_spp", doc="most samples per pixel of any block (default: the reference's last level, "
-        "else 1024)", default=1024, **_SPP),
-    Row("step", doc="samples per pixel a pass adds to each active block (default: the reference's "
-        "level step, else 16)", default=16, **_SPP),
-    Row("decide_skip", "float", 0.5,
-        "how far a unit's decisions skip towards its predicted stop: a unit r times above its target "
-        "is judged again only at (skip r)^2 times its spp (Monte Carlo decay), or the next pass if "
-        "that is sooner; 0 judges every pass; flip and variance only, not with a budget (BENCHMARKS, "
-        "decisions skipped)", low=0.0, high=1.0),
-    Row("seed", "int", 0, "base seed: the samples of (pixel, pass) depend only on it", low=0,
-        high=MAX_SEED),
-    Row("time_limit", "float", None,
-        "Seconds: the pass under way when they run out is finished and the render returns; once "
-        "the time left cannot cover every active block, passes go to the blocks farthest from "
-        "their target", low=0.0, high=MAX_TIME_LIMIT, open_low=True, metavar="S"),
-    Row("spp_budget", "float", None,
-        "samples per pixel, averaged over the frame, the render may spend: passes go to the blocks "
-        "farthest from their target", low=0.0, high=float(MAX_SPP), open_low=True, metavar="N"),
-    Row("quick_spp", doc="samples of the quick image a model criterion reads (rendered once)",
-        default=16, **_SPP),
-    Row("defines", "defines", None, "an XML scene's <default> parameters, as mitsuba -D KEY=VALUE",
-        doors=frozenset({API, CLI}), metavar="KEY=VALUE"),
-)
-ROW = {r.name: r for r in ROWS}
-#: the plugin's properties: the rows it offers, plus `progress` (how a render shows, not
-#: what it renders)
-PLUGIN_ROWS = tuple(r for r in ROWS if XML in r.doors)
+__all__ = ["ARGUMENT", "COMMAND_LINE", "PLUGIN", "DEFAULT", "SCENE", "NOT_USED", "RenderSpec", "FIELDS", "resolve",
+           "fit_frame", "grain_of", "reference_settings", "file_load_settings",
+           # the table's (`renderer.spec_rows`), here too: a render's settings have one address
+           "API", "CLI", "XML", "MAX_SIDE", "DEFAULT_BLOCK", "DEFAULT_CRITERION", "DEFAULT_TILE", "MAX_PASSES",
+           "MAX_SEED", "MAX_SPP", "MAX_TIME_LIMIT", "PLUGIN_ROWS", "ROW", "ROWS", "declared_row", "declared_values"]
 
 
-class _Spec:
-    """Methods of `RenderSpec` (its fields are the rows, made below)."""
+@dataclass(frozen=True)
+class RenderSpec:
+    """A render's settings, resolved and checked (`resolve`): one field per row of ROWS, in
+    their order (tests/renderer/test_render_settings.py holds them equal), plus `sources`
+    (where each came from). Frozen: nothing downstream changes them."""
 
-    sources: Mapping[str, str]
+    criterion: str | Declared           # a criterion's name, or a Criterion object (renderer.render)
+    tau: float
+    threshold: float | None
+    offset: float | None
+    quantile: float
+    model: str | None
+    server: str | None
+    exposure: float
+    resolution: int | tuple[int, int] | None
+    grid: tuple[int, int] | None
+    block: int | None
+    tile: int
+    min_spp: int
+    max_spp: int
+    step: int
+    decide_skip: float
+    seed: int
+    time_limit: float | None
+    spp_budget: float | None
+    quick_spp: int
+    defines: Mapping[str, str] | None
+    sources: Mapping[str, str] = field(compare=False)
 
     def values(self) -> dict[str, Any]:
         return {r.name: getattr(self, r.name) for r in ROWS}
@@ -155,11 +105,12 @@ class _Spec:
                 if getattr(self, r.name) is not None and self.sources[r.name] != NOT_USED}
 
 
-#: a render's settings, resolved and checked (`resolve`); frozen: nothing downstream changes them
-RenderSpec = make_dataclass(
-    "RenderSpec", [(r.name, Any) for r in ROWS] + [("sources", Mapping[str, str], field(compare=False))],
-    bases=(_Spec,), frozen=True, namespace={"__doc__": "A render's settings: one field per row of ROWS, "
-                                            "plus `sources` (where each came from)."})
+FIELDS = tuple(f.name for f in fields(RenderSpec) if f.name != "sources")
+
+
+def grain_of(criterion: str | Declared) -> str:
+    """A criterion's grain (`renderer.criteria.registry`), by name or of an object."""
+    return criterion_class(criterion).grain if isinstance(criterion, str) else getattr(criterion, "grain", TILE)
 
 
 def reference_settings(stack: Any) -> dict[str, Any]:
@@ -178,7 +129,7 @@ def file_load_settings(given: Mapping[str, Any], reference: Any = None) -> tuple
     setting fails before the file loads): what loading needs before the file's own
     ``noisestop`` integrator's properties are known; `resolve` takes them after, and checks
     the combination then. Neither row is a plugin property, so neither changes after."""
-    _check_known(given)
+    check_known(given)
     checked = {name: ROW[name].check(value) for name, value in given.items() if value is not None}
     resolution = checked.get("resolution")
     if resolution is None and reference is not None:
@@ -186,21 +137,15 @@ def file_load_settings(given: Mapping[str, Any], reference: Any = None) -> tuple
     return resolution, checked.get("defines")
 
 
-def _check_known(*layers: Mapping[str, Any] | None) -> None:
-    """One-line ValueError for a setting that is no row."""
-    unknown = [name for layer in layers for name in sorted(set(layer or {}) - set(ROW))]
-    if unknown:
-        raise ValueError(f"unknown render setting {unknown[0]!r}; the settings are {', '.join(ROW)}")
-
-
 def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping[str, Any] | None = None,
-            reference: Any = None, thresholds_known: bool | None = None) -> Any:
+            reference: Any = None, thresholds_known: bool | None = None) -> RenderSpec:
     """The `RenderSpec` of a render: each row from `given` (None: not given), else the scene
-    plugin's properties, else the reference stack's implied settings, else its default;
-    each checked once, then the combination. `thresholds_known`: the oracle's true
-    thresholds will be there (default: a reference stack is given).
+    plugin's properties, else the reference stack's implied settings, else its default
+    (the criterion's declared one for the rows it declares); each checked once, then the
+    combination. `thresholds_known`: true thresholds will be there for a criterion that
+    needs them (default: a reference stack is given).
     ValueError (one line, naming the setting) for anything wrong."""
-    _check_known(given, plugin)
+    check_known(given, plugin)
     ref_source = f"reference {getattr(reference, 'path', '')}".rstrip()
     layers = [(given, source), (plugin or {}, PLUGIN)]
     implied = reference_settings(reference) if reference is not None else {}
@@ -240,28 +185,14 @@ def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping
 
 
 def _combine(values: dict[str, Any], sources: dict[str, str], rank: list[str], thresholds_known: bool) -> None:
-    """The checks no row can make alone, and the criterion a render uses (on every door:
-    a model, server or offset given without a criterion means `model`)."""
+    """The checks no row can make alone, and the criterion a render uses with the settings
+    it declares (`_criterion`)."""
     def level(name: str) -> int:
         return rank.index(sources[name]) if sources[name] in rank else len(rank)
 
-    if values["criterion"] is None:
-        model_options = [k for k in ("model", "server", "offset") if values[k] is not None]
-        values["criterion"] = "model" if model_options else DEFAULT_CRITERION
-        sources["criterion"] = sources[model_options[0]] + f" ({model_options[0]})" if model_options else DEFAULT
     if values["model"] is not None and values["server"] is not None:
         raise ValueError("give a model bundle (model) or a verdict server (server), not both")
-    crit = values["criterion"]
-    if crit == "oracle" and not thresholds_known:
-        raise ValueError("the oracle criterion needs true thresholds: give a labelled dataset or stack of "
-                         "this scene as the reference (not an image)")
-    if isinstance(crit, str):
-        for name, users in (("model", "model"), ("server", "model"), ("offset", "model"),
-                            ("threshold", "flip variance"), ("quantile", "variance")):
-            if values[name] is not None and sources[name] != DEFAULT and crit not in users.split():
-                logger.warning("%s is ignored with the %s criterion", name, crit)
-    if _block_grain(crit) and sources["tile"] == DEFAULT:
-        values["tile"], sources["tile"] = MAX_SIDE, f"{DEFAULT} (whole blocks: the {getattr(crit, 'name', crit)} criterion)"
+    _criterion(values, sources, thresholds_known)
     lo, hi = values["min_spp"], values["max_spp"]
     if lo > hi:
         if level("min_spp") == level("max_spp"):
@@ -278,6 +209,40 @@ def _combine(values: dict[str, Any], sources: dict[str, str], rank: list[str], t
                          "samples per pixel (the step): give a budget of at least the step, or a smaller step")
 
 
+def _criterion(values: dict[str, Any], sources: dict[str, str], thresholds_known: bool) -> None:
+    """The criterion by its declaration (`renderer.criteria.registry`): a setting given
+    without a criterion chooses the one it `selects` (a model, server or offset: the model,
+    on every door); its declared settings take its defaults and ranges, the settings only
+    other criteria take are ignored with a warning; whole blocks by default at block grain."""
+    declarations = declared()
+    if sources["criterion"] == DEFAULT:
+        chosen = [(name, key) for name, cls in declarations.items() for key, setting in cls.settings.items()
+                  if setting.selects and values[key] is not None and sources[key] != DEFAULT]
+        if chosen:
+            values["criterion"], key = chosen[0]
+            sources["criterion"] = f"{sources[key]} ({key})"
+    crit = values["criterion"]
+    if not isinstance(crit, str):           # a Criterion object, configured already
+        label = getattr(crit, "name", type(crit).__name__)
+    else:
+        cls, label = criterion_class(crit), crit
+        if cls.needs_thresholds and not thresholds_known:
+            raise ValueError(f"the {crit} criterion needs true thresholds: give a labelled dataset or stack of "
+                             "this scene as the reference (not an image)")
+        for key in cls.settings:
+            row = declared_row(cls, key)
+            if sources[key] == DEFAULT:
+                values[key] = row.default
+            elif values[key] is not None and row is not ROW[key]:
+                values[key] = row.check(values[key])
+        others = {key for c in declarations.values() for key in c.settings} - set(cls.settings)
+        for key in sorted(others, key=list(ROW).index):
+            if values[key] is not None and sources[key] != DEFAULT:
+                logger.warning("%s is ignored with the %s criterion", key, crit)
+    if grain_of(crit) != TILE and sources["tile"] == DEFAULT:
+        values["tile"], sources["tile"] = MAX_SIDE, f"{DEFAULT} (whole blocks: the {label} criterion)"
+
+
 def _block_side(block: int | None, grid: tuple[int, int] | None, resolution: Any) -> int | None:
     """A block's longer side in pixels: the block size, or a grid's block on a frame of
     (W, H) pixels; None while a grid's frame is not known."""
@@ -288,13 +253,7 @@ def _block_side(block: int | None, grid: tuple[int, int] | None, resolution: Any
     return None
 
 
-def _block_grain(criterion: Any, only: bool = False) -> bool:
-    """Whether a criterion judges whole blocks unless told otherwise (`only`: always)."""
-    return criterion in (BLOCK_ONLY if only else BLOCK_GRAIN) if isinstance(criterion, str) \
-        else not getattr(criterion, "per_tile", True)
-
-
-def fit_frame(spec: Any, width: int, height: int) -> Any:
+def fit_frame(spec: RenderSpec, width: int, height: int) -> RenderSpec:
     """The spec for the loaded frame: its resolution, a default block no larger than the
     frame's short side, and the frame and block bounds (noisefeat.bounds) checked."""
     values, sources = spec.values(), dict(spec.sources)
@@ -304,7 +263,7 @@ def fit_frame(spec: Any, width: int, height: int) -> Any:
         sources["block"] = f"{DEFAULT} (the frame's short side)"
     block = values["block"]
     side = _block_side(block, spec.grid, values["resolution"])
-    if _block_grain(spec.criterion, only=True) and values["tile"] < side:
+    if grain_of(spec.criterion) == BLOCK_ONLY and values["tile"] < side:
         raise ValueError(f"the {getattr(spec.criterion, 'name', spec.criterion)} criterion decides whole blocks: "
                          f"leave tile unset or give the block's side ({side})")
     values["tile"] = min(values["tile"], side)            # a tile is at most its block

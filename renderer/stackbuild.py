@@ -42,6 +42,7 @@ from noisefeat.pooling import POOLINGS
 
 from .blocks import BlockRenderer
 from .scenes import load_scene
+from .spec_rows import ROW
 from learning.data.variant import select_variant
 from noisefeat.extras import require
 
@@ -62,7 +63,7 @@ class BuildSettings:
     grid: tuple[int, int] = (4, 4)
     quick_spp: int = 16
     seed: int = 0
-    tau: float = 0.02
+    tau: float = ROW["tau"].default        # the labels' observer: the render's noise target
     ppd: float = 67.0
     max_lanes: int = 1 << 22
     contact_sheet: bool = True

@@ -21,13 +21,12 @@ import torch
 from noisefeat import FeatureBase, default_base, extract_features
 from noisefeat.base import N_FEATURES
 from noisefeat.display import nonfinite_pixels
-from noisefeat.dots import halves_dots
 from noisefeat.extract import analyse_many
 
 from ..inputs.noise_input import HALVES, halves_input, halves_input_and_stats, noise_lightness
 from ..inputs.table import feature_input, raw_input
 from ..names import DEFAULT_TAU
-from ..stoprule import FLAT_TOLERANCE, NOISY, StopRule, flat_blocks, flat_halves
+from ..stoprule import FLAT_TOLERANCE, StopRule, dots_ratio, flat_blocks, flat_halves, hold_dotted
 from .estimators import RBFSVM
 from .noise_target import offset_at, tau_range
 
@@ -235,7 +234,7 @@ class Model:
         """`score_halves` plus the non-finite pixels per block of both half buffers [N],
         counted in the pass that computes the input (the server's route). A block whose
         halves still disagree on more isolated pixels than the observer at `tau` lets through
-        is noisy whatever its score (`noisefeat.dots.halves_dots`, as in the live loop)."""
+        is noisy whatever its score (`learning.stoprule.hold_dotted`, the live loop's guard too)."""
         if not self.needs_halves:
             raise ValueError(f"this model reads {'raw blocks' if self.input == 'raw' else 'blocks'}"
                              f"{' and their quick images' if self.needs_quick else ''}, not half buffers")
@@ -248,18 +247,7 @@ class Model:
             x, stats = halves_input_and_stats(even, odd, exposure, composition=self.composition or HALVES)
             flat = flat_halves(even, odd, exposure) if len(x) else np.zeros(0, bool)
             (verdict, score), bad = self.score_inputs(x, offset, flat), stats.nonfinite
-        return hold_dotted(verdict, even, odd, flat, exposure, tau), score, bad
-
-
-def hold_dotted(verdict: np.ndarray, even: np.ndarray, odd: np.ndarray, flat: np.ndarray,
-                exposure: float, tau: float) -> np.ndarray:
-    """`verdict` with NOISY where a (non-flat) block's halves still disagree on more isolated
-    pixels than the observer at `tau` lets through (`noisefeat.dots.halves_dots`): the served
-    `halves` route's copy of the live loop's guard (`renderer.criteria.Criterion._dots`)."""
-    if not len(verdict):
-        return verdict
-    dotted = halves_dots(torch.as_tensor(np.asarray(even)), torch.as_tensor(np.asarray(odd)), exposure).numpy() > tau
-    return np.where(dotted & ~np.asarray(flat, bool), NOISY, verdict).astype(np.int8)
+        return hold_dotted(verdict, dots_ratio(even, odd, exposure, tau), flat), score, bad
 
 
 def nonfinite_counts(rgb: np.ndarray) -> np.ndarray:

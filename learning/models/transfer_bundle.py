@@ -22,9 +22,9 @@ from noisefeat.jsonout import json_default
 
 from ..inputs.pictures import image_input, noise_picture
 from ..names import DEFAULT_TAU, OFFSET_LIMIT, TRANSFER_INPUTS, TRANSFER_KINDS
-from ..stoprule import flat_halves
+from ..stoprule import dots_ratio, flat_halves, hold_dotted
 from .bundle_check import file_sha256
-from .model import FORMAT, MANIFEST, VERSION, Model, hold_dotted, nonfinite_counts, versions
+from .model import FORMAT, MANIFEST, VERSION, Model, nonfinite_counts, versions
 from .transfer import TransferClassifier
 from .transfer_archs import ARCHS, import_torchvision
 from .transfer_state import STATE_FILE, TENSOR_FILE
@@ -97,11 +97,12 @@ class TransferModel(Model):
     def assess_halves(self, even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
                       offset: float | None = None, tau: float = DEFAULT_TAU) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(verdict, score, non-finite pixels of both halves [N]); flat: both halves, alike;
-        dotted blocks held noisy at `tau` (`hold_dotted`), as `Model.assess_halves`."""
+        dotted blocks held noisy at `tau` (`learning.stoprule.hold_dotted`), as `Model.assess_halves`."""
         x = self.inputs_from_halves(even, odd, exposure)
         flat = flat_halves(even, odd, exposure) if len(x) else np.zeros(0, bool)
         verdict, score = self.score_inputs(x, offset, flat)
-        return hold_dotted(verdict, even, odd, flat, exposure, tau), score, nonfinite_counts(even) + nonfinite_counts(odd)
+        return (hold_dotted(verdict, dots_ratio(even, odd, exposure, tau), flat), score,
+                nonfinite_counts(even) + nonfinite_counts(odd))
 
 
 def save_transfer_model(clf: TransferClassifier, path: str | os.PathLike, *, quick: str,

@@ -1,5 +1,11 @@
-"""What a stopping criterion is: the `Criterion` contract, the `BlockBatch` it reads, and
-the `Decision` it returns.
+"""What a stopping criterion is: the `Criterion` contract, its declaration, and the
+`Decision` it returns for the `BlockBatch` it reads (`renderer.criteria.batch`).
+
+A criterion declares itself on its class, in its own file (`renderer.criteria.registry`):
+its name, grain, the render settings it takes and how it is built from a resolved
+`renderer.spec.RenderSpec` (`from_spec`). Its constructor checks and defaults what it is
+given by that declaration (`checked`), the rows of the render spec and its own `settings`,
+the one check `renderer.spec.resolve` makes too: no criterion checks a setting its own way.
 
 A criterion sees all the blocks it is asked about at once, as a `BlockBatch` (cumulative
 means and the two half buffers as tensors on the accumulator's device, spp, quick blocks;
@@ -39,12 +45,17 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
-import torch
 
-from learning.stoprule import NOISY, flat_blocks, flat_halves
+from learning.stoprule import NOISY, dots_ratio, flat_blocks, flat_halves
+
+from .batch import BlockBatch, BlockView
+from .registry import TILE, Setting
+
+if TYPE_CHECKING:
+    from ..spec import RenderSpec
 
 # decide_calls: calls to decide; blocks_asked: verdicts given; blocks_featured: blocks whose
 # current image went through the feature extractor or FLIP (here or on a server);
@@ -56,175 +67,6 @@ from learning.stoprule import NOISY, flat_blocks, flat_halves
 COUNTER_NAMES = ("decide_calls", "blocks_asked", "blocks_featured", "feature_rows", "converged",
                  "flat_blocks", "nonfinite_blocks", "dotted_blocks", "gated_tiles")
 TIMER_NAMES = ("features_s", "decisions_s")
-
-
-@dataclass(frozen=True)
-class BlockView:
-    """What a criterion may look at for one block at one moment of the render.
-
-    `mean` is the cumulative mean of every sample so far, [bh, bw, 3] linear RGB.
-    `halves` = (A, B): means of the even-numbered and odd-numbered passes (the
-    `UnitAccumulator` convention), or None when the caller does not track them.
-    `half_spp` = samples in A and in B. `quick` is the block of the quick noise-free image
-    (None if not rendered). `nonfinite` counts (pixel, pass) values the accumulator dropped.
-    A non-finite pixel in `mean`, or in a half whose `half_spp` is positive, is one with no
-    finite estimate: the block is never converged (the module docstring).
-    """
-
-    mean: np.ndarray
-    spp: int
-    halves: tuple[np.ndarray, np.ndarray] | None = None
-    half_spp: tuple[int, int] | None = None
-    quick: np.ndarray | None = None
-    nonfinite: int = 0
-
-
-class BlockBatch:
-    """What a criterion may look at for all the blocks it is asked about, at once.
-
-    Why batched: the live loop keeps its accumulators on the renderer's device, and a
-    criterion that reads whole tensors (flip: FLIP on the device) sends only its verdicts
-    to the host. `mean` and `halves` are float64 tensors [k, bh, bw, 3] on that device,
-    computed on first use (a criterion that does not read them costs nothing); `spp`
-    int64 [k], `half_spp` int64 [k, 2] and `nonfinite` int64 [k] are host arrays; `quick`
-    is what the criterion's `prepare` made of the quick image's blocks [k, ...] (the
-    blocks themselves unless it prepares them), or None. `evidence` float64 [k, 3]: each
-    unit's earlier decisions as the loop keeps them (`learning.inputs.history.Evidence`),
-    or None (no history: a criterion that reads it treats every unit as new). `tiling` (the renderer's
-    `BlockWindows`, when the units are tiles of blocks): `block_halves` puts the asked
-    tiles' blocks back together, for a criterion that judges a tile in its context.
-    `unestimated` int64 [k] (host): pixels with no finite estimate (the module docstring).
-    """
-
-    def __init__(self, spp: np.ndarray, *, mean: Any = None, halves: Any = None,
-                 half_spp: np.ndarray | None = None, nonfinite: Any = None, quick: np.ndarray | None = None,
-                 source: Any = None, tiling: Any = None, evidence: np.ndarray | None = None,
-                 unestimated: Any = None) -> None:
-        self.spp = np.asarray(spp, np.int64).reshape(-1)
-        self.tiling = tiling
-        self.evidence = evidence
-        self.half_spp = None if half_spp is None else np.asarray(half_spp, np.int64).reshape(-1, 2)
-        self.quick = quick
-        self._mean, self._halves, self._nonfinite, self._source = mean, halves, nonfinite, source
-        self._unestimated = unestimated
-        self._blocks: Any = None           # the tiles' whole blocks, assembled once (`_assembled`)
-
-    @classmethod
-    def from_accumulator(cls, acc: Any, ids: Sequence[int], quick: np.ndarray | None = None,
-                         tiling: Any = None, evidence: np.ndarray | None = None) -> BlockBatch:
-        """The units `ids` of a `UnitAccumulator`, read lazily from its device tensors.
-        `quick` is per block: with `tiling`, a tile's row is its block's. `evidence`: the
-        loop's `learning.inputs.history.Evidence`, or None."""
-        ids_a = np.asarray(ids, np.int64)
-        rows = ids_a if tiling is None else ids_a // tiling.tiles_per_block
-        return cls(acc.spp_all()[ids_a], half_spp=acc.half_spp_all()[ids_a],
-                   quick=None if quick is None else quick[rows], source=(acc, ids_a), tiling=tiling,
-                   evidence=None if evidence is None else evidence.rows(ids_a))
-
-    @classmethod
-    def from_views(cls, views: Sequence[BlockView]) -> BlockBatch:
-        """One batch from per-block views (callers outside the live loop, tests)."""
-        shapes = {np.shape(v.mean) for v in views}
-        if len(shapes) != 1:
-            raise ValueError(f"the blocks of one decision must share a shape, got {sorted(shapes)}")
-        halves = None
-        if all(v.halves is not None for v in views):
-            halves = tuple(torch.from_numpy(np.stack([np.asarray(v.halves[j], np.float64) for v in views]))  # type: ignore[index]
-                           for j in (0, 1))
-        half_spp = np.array([v.half_spp for v in views], np.int64) if all(v.half_spp is not None for v in views) \
-            else None
-        quick = np.stack([np.asarray(v.quick) for v in views]) if all(v.quick is not None for v in views) else None
-        mean = torch.from_numpy(np.stack([np.asarray(v.mean, np.float64) for v in views]))
-        return cls(np.array([v.spp for v in views], np.int64), mean=mean, halves=halves, half_spp=half_spp,
-                   nonfinite=np.array([v.nonfinite if np.isfinite(v.mean).all() else max(v.nonfinite, 1)
-                                       for v in views], np.int64), quick=quick,
-                   unestimated=np.array([_unestimated_view(v) for v in views], np.int64))
-
-    def __len__(self) -> int:
-        return len(self.spp)
-
-    @property
-    def mean(self) -> torch.Tensor:
-        if self._mean is None:
-            acc, ids = self._source
-            self._mean = acc.means(ids)
-        return self._mean
-
-    @property
-    def halves(self) -> tuple[torch.Tensor, torch.Tensor] | None:
-        if self._halves is None and self._source is not None:
-            acc, ids = self._source
-            self._halves = acc.halves(ids)
-        return self._halves
-
-    def _assembled(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[torch.Tensor, torch.Tensor]]:
-        """(blocks, first, row, every, (A, B)) of the blocks the batch's tiles lie in, once a
-        batch: their ids, the first of the batch's tiles in each, each tile's block row, the
-        ids of all their tiles, and their half buffers put together from all their tiles
-        (stopped ones as they stopped), [kb, bh, bw, C] on the device."""
-        if self._blocks is None:
-            acc, ids = self._source
-            t = self.tiling.tiles_per_block
-            blocks, first, row = np.unique(ids // t, return_index=True, return_inverse=True)
-            every = (blocks[:, None] * t + np.arange(t)).reshape(-1)
-            a, b = acc.halves(every)
-            shape = (len(blocks), t, *a.shape[1:])
-            self._blocks = (blocks, first, row, every,
-                            (self.tiling.assemble(a.reshape(shape)), self.tiling.assemble(b.reshape(shape))))
-        return self._blocks
-
-    def block_halves(self, among: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
-        """(A, B, row, slot): the half buffers of the blocks the batch's tiles `among` lie in,
-        each block window put together from all its tiles (stopped ones as they stopped),
-        [kb, bh, bw, C] on the device; tile among[i] is tile `slot[i]` of block `row[i]`."""
-        _, _, rows, _, (a, b) = self._assembled()
-        need, row = np.unique(rows[among], return_inverse=True)
-        sel = torch.from_numpy(need).to(a.device)
-        return a[sel], b[sel], row, self._source[1][among] % self.tiling.tiles_per_block
-
-    def whole_blocks(self) -> tuple[BlockBatch, np.ndarray, np.ndarray]:
-        """(batch, blocks, row): the blocks the batch's tiles lie in as one batch of whole
-        blocks (windows put together from all their tiles, stopped ones as they stopped; a
-        block's spp and half spp are its least sampled tile's, its dropped values the sum),
-        their ids, and the row of each asked tile's block: what a block-grain criterion
-        judges a tile's block by."""
-        acc, _ = self._source
-        blocks, first, row, every, halves = self._assembled()
-        per_block = (len(blocks), self.tiling.tiles_per_block)
-        mean = acc.means(every)
-        batch = BlockBatch(acc.spp_all()[every].reshape(per_block).min(axis=1),
-                           mean=self.tiling.assemble(mean.reshape(*per_block, *mean.shape[1:])), halves=halves,
-                           half_spp=acc.half_spp_all()[every].reshape(*per_block, 2).min(axis=1),
-                           nonfinite=acc.nonfinite_all()[every].reshape(per_block).sum(axis=1),
-                           unestimated=acc.unestimated(every).reshape(per_block).sum(axis=1),
-                           quick=None if self.quick is None else self.quick[first])
-        return batch, blocks, row
-
-    @property
-    def nonfinite(self) -> np.ndarray:
-        if self._nonfinite is None:
-            acc, ids = self._source
-            self._nonfinite = acc.nonfinite_all()[ids]
-        return np.asarray(self._nonfinite, np.int64)
-
-    @property
-    def unestimated(self) -> np.ndarray:
-        if self._unestimated is None:
-            if self._source is None:
-                return np.zeros(len(self.spp), np.int64)
-            acc, ids = self._source
-            self._unestimated = acc.unestimated(ids)
-        return np.asarray(self._unestimated, np.int64)
-
-
-def _unestimated_view(v: BlockView) -> int:
-    """A view's pixels with no finite estimate: non-finite in its mean, or in a half that
-    holds a pass (a half of unknown spp counts when given)."""
-    bad = ~np.isfinite(np.asarray(v.mean, np.float64)).all(axis=-1)
-    for j, half in enumerate(v.halves or ()):
-        if v.half_spp is None or v.half_spp[j] > 0:
-            bad |= ~np.isfinite(np.asarray(half, np.float64)).all(axis=-1)
-    return int(bad.sum())
 
 
 @dataclass(frozen=True)
@@ -263,14 +105,25 @@ class Criterion(ABC):
 
     `needs_quick` / `needs_halves` tell the caller what the batches must carry, so the
     quick image is rendered (and half buffers recovered) only when some criterion uses
-    them; `quick_kind` says which quick image ('albedo' or 'direct'). `per_tile`: whether it
-    judges the tiles of blocks (the render spec gives the others whole blocks).
-    `noise_ratio`: whether the loop may skip decisions from its ratio (below).
+    them; `quick_kind` says which quick image ('albedo' or 'direct'). `noise_ratio`: whether
+    the loop may skip decisions from its ratio (below).
+
+    The declaration (`renderer.criteria.registry`, read by the render spec, the command
+    line, the plugin and the factory once the class is `declare`d): `name`, `grain`,
+    `settings`, `needs_thresholds`, `summary` and `from_spec`.
     """
 
     name: str = "criterion"
-    #: judges tiles as well as blocks (DESIGN "Decision grain"); else whole blocks only
-    per_tile: bool = True
+    #: what it judges (DESIGN "Decision grain"): TILE (the tiles of blocks), BLOCK (whole
+    #: blocks unless a tile is given) or BLOCK_ONLY (whole blocks always)
+    grain: str = TILE
+    #: the render spec's rows it takes beyond tau and exposure, with its own defaults and
+    #: ranges where the row's do not do (a row no criterion names is every render's)
+    settings: ClassVar[dict[str, Setting]] = {}
+    #: it needs a labelled reference's true thresholds (the render spec refuses it without)
+    needs_thresholds: bool = False
+    #: one line for the help: what it stops on
+    summary: str = ""
     needs_quick: bool = False
     quick_kind: str = "albedo"
     needs_halves: bool = False
@@ -278,6 +131,21 @@ class Criterion(ABC):
     #: noise does, so the loop may predict when a unit can stop and skip its decisions
     #: before then (`renderer.passloop.next_decision`); else every pass is judged
     noise_ratio: bool = False
+
+    @classmethod
+    def from_spec(cls, spec: RenderSpec, thresholds: Sequence[int | None] | None = None) -> Criterion:
+        """The criterion of a resolved render spec (`thresholds`: a labelled reference's true
+        ones, per unit). By default the class called with its declared settings by name."""
+        return cls(**{name: getattr(spec, name) for name in cls.settings})
+
+    @classmethod
+    def checked(cls, **given: Any) -> dict[str, Any]:
+        """`given` (render settings by row name; None: not given) checked and defaulted by
+        this criterion's declaration (`renderer.spec_rows.declared_values`): what a constructor
+        keeps of its arguments, by the one check the render spec makes."""
+        from ..spec_rows import declared_values
+
+        return declared_values(cls, given)
 
     def describe(self) -> dict[str, Any]:
         """Name and parameters, for reports."""
@@ -305,7 +173,7 @@ class Criterion(ABC):
         if self.needs_halves and batch.half_spp is None:
             raise ValueError(f"{self.name} criterion needs half buffers, the batch has none")
         t0 = time.perf_counter()
-        verdict, ratio, *rest = self._decide(ids, batch, tally)
+        verdict, ratio, *rest = self.assess(ids, batch, tally)
         verdict, ratio = np.asarray(verdict), np.asarray(ratio, np.float64)
         evidence = np.asarray(rest[0], np.float64).reshape(-1) if rest and rest[0] is not None else None
         if evidence is not None and evidence.shape != (len(ids),):
@@ -346,6 +214,12 @@ class Criterion(ABC):
                 tally.add(k, v)
         return batch
 
+    def assess(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, ...]:
+        """The criterion's own answer on a validated, non-empty batch, before `decide` checks
+        it and wraps it into a `Decision`: what a criterion made of others combines (the
+        model at tile grain, `renderer.criteria.gated`). See `_decide`."""
+        return self._decide(ids, batch, tally)
+
     @abstractmethod
     def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, ...]:
         """(verdict [k], ratio [k]) for validated, non-empty input, and for a criterion that
@@ -362,6 +236,8 @@ class Criterion(ABC):
         if batch.half_spp is not None and batch.halves is not None:
             check = np.flatnonzero(flat & (batch.half_spp.min(axis=1) > 0))
             if check.size:
+                import torch
+
                 a, b = batch.halves
                 sel = torch.from_numpy(check).to(a.device)
                 flat[check] = flat_halves(a[sel], b[sel], exposure)
@@ -371,17 +247,16 @@ class Criterion(ABC):
     @staticmethod
     def _dots(batch: BlockBatch, ask: np.ndarray, exposure: float, tau: float, tally: Tally) -> np.ndarray:
         """float64 [len(batch)]: the asked blocks' dot term from their half buffers, relative
-        to tau (`noisefeat.dots.halves_dots` / tau; 0 for the others). Above 1 a block still
+        to tau (`learning.stoprule.dots_ratio`; 0 for the others). Above 1 a block still
         holds more isolated outlier pixels than the observer lets through, so it stays noisy
-        whatever its score: the observer's version-3 rule, seen through the halves (issue 33).
-        Computed where the buffers live; only the numbers cross to the host."""
-        from noisefeat.dots import halves_dots
+        whatever its score (`learning.stoprule.hold_dotted`, the served route's guard too)."""
+        import torch
 
         out = np.zeros(len(batch.spp))
         if ask.size:
             a, b = batch.halves     # type: ignore[misc]
             sel = torch.from_numpy(ask).to(a.device)
-            out[ask] = halves_dots(a[sel], b[sel], exposure).cpu().numpy() / tau
+            out[ask] = dots_ratio(a[sel], b[sel], exposure, tau)
             tally.add("dotted_blocks", int((out[ask] > 1).sum()))
         return out
 

@@ -1,20 +1,24 @@
 """The training-free criterion: FLIP between the two half buffers' display images."""
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from learning.inputs.history import LAST, STATISTIC, combine
-from learning.names import DEFAULT_TAU
-from learning.stoprule import StopRule
+from learning.stoprule import StopRule, hold_dotted
 from noisefeat.pooling import CRITERION_POOLING
 
-from ..spec import ROW
-from .contract import BlockBatch, Criterion, Tally
+from .batch import BlockBatch
+from .contract import Criterion, Tally
+from .registry import TILE, Setting, declare
+
+if TYPE_CHECKING:
+    from ..spec import RenderSpec
 
 
+@declare
 class FlipCriterion(Criterion):
     """Training-free: FLIP between display(A) and display(B), the two half buffers.
 
@@ -37,26 +41,36 @@ class FlipCriterion(Criterion):
     """
 
     name = "flip"
+    summary = "training-free: FLIP between the two half buffers, at most c(tau)"
+    grain = TILE
+    settings = {"threshold": Setting(doc="c, the FLIP between the half buffers (default c(tau), the "
+                                         "shipped calibration)")}
     needs_halves = True
     noise_ratio = True
 
-    def __init__(self, c: float | None = None, exposure: float = 0.0, tau: float = DEFAULT_TAU,
+    def __init__(self, c: float | None = None, exposure: float | None = None, tau: float | None = None,
                  tile: int | None = None) -> None:
+        """`c`: the threshold (None: c(tau)); `exposure`, `tau`: None for the render spec's
+        defaults; `tile`: the tile side when blocks are cut into tiles (None: whole blocks)."""
         from learning.inputs.halves import flip_c, flip_offset, load_flip_calibration, unit_calibration
 
-        self.tau, exposure = ROW["tau"].check(tau), ROW["exposure"].check(exposure)   # their rows' checks
+        given = self.checked(threshold=c, exposure=exposure, tau=tau)
+        self.tau, self.exposure = given["tau"], given["exposure"]
         #: the grain c(tau) is taken at: "block", or "tile16" when blocks are cut into tiles
         self.unit = "block" if tile is None else f"tile{int(tile)}"
-        if c is None:
+        if given["threshold"] is None:
             cal = unit_calibration(load_flip_calibration(), tile)
             self.c, self.source = flip_c(cal, self.tau), str(cal.get("source", "learning/flip.json"))
             self.unit = str(cal.get("unit", "block"))
         else:
-            self.c, self.source = ROW["threshold"].check(c), "argument"
+            self.c, self.source = given["threshold"], "argument"
         self.rule = StopRule(flip_offset(self.c))
-        self.exposure = float(exposure)
         #: what e is: one level's score ("last") or the unit's history ("history-mean")
         self.statistic = LAST if tile is None else STATISTIC
+
+    @classmethod
+    def from_spec(cls, spec: RenderSpec, thresholds: Sequence[int | None] | None = None) -> FlipCriterion:
+        return cls(spec.threshold, exposure=spec.exposure, tau=spec.tau, tile=spec.tile_grain())
 
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "threshold": self.c, "tau": self.tau, "pooling": CRITERION_POOLING,
@@ -65,6 +79,8 @@ class FlipCriterion(Criterion):
     def _flip(self, batch: BlockBatch, ask: np.ndarray) -> np.ndarray:
         """e of the asked units: of a block, its pooled FLIP between the halves; of a tile,
         the FLIP map of its whole block (its neighbours are context) pooled over the tile."""
+        import torch
+
         from noisefeat.flip import flip_halves_tensor, pool_tiles
         from noisefeat.flip_maps import flip_maps_tensor
 
@@ -91,4 +107,4 @@ class FlipCriterion(Criterion):
         with np.errstate(invalid="ignore"):
             ratio = np.fmax(-score / self.c if self.c > 0 else np.inf, dots)
         ratio = np.where(flat, 0.0, np.where(np.isnan(score), np.nan, ratio))
-        return self.rule.verdict(np.where(dots > 1, np.nan, score), flat), ratio, evidence
+        return hold_dotted(self.rule.verdict(score, flat), dots, flat), ratio, evidence

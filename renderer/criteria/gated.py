@@ -8,9 +8,8 @@ import numpy as np
 
 from learning.stoprule import CONVERGED, NOISY
 
-from .contract import BlockBatch, Criterion, Tally
-from .flip import FlipCriterion
-from .model import ModelCriterion
+from .batch import BlockBatch
+from .contract import Criterion, Tally
 
 
 class GatedCriterion(Criterion):
@@ -22,13 +21,15 @@ class GatedCriterion(Criterion):
 
     The block's image is put together from all its tiles as they stand (stopped tiles as
     they stopped), so the model judges what the frame will show. The ratio is the larger
-    of the two (a budget render spends on the farther from the target).
+    of the two (a budget render spends on the farther from the target). Not declared: it
+    is what the model criterion's `from_spec` builds at tile grain.
     """
 
     name = "model"
     needs_halves = True
 
-    def __init__(self, gate: ModelCriterion, tiles: FlipCriterion) -> None:
+    def __init__(self, gate: Criterion, tiles: Criterion) -> None:
+        """`gate`: the block-grain criterion (the model); `tiles`: the tile-grain one (flip)."""
         self.gate, self.tiles = gate, tiles
         self.needs_quick, self.quick_kind = gate.needs_quick, gate.quick_kind
 
@@ -39,9 +40,9 @@ class GatedCriterion(Criterion):
         return self.gate.prepare(quick)
 
     def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, ...]:
-        verdict, ratio, evidence = self.tiles._decide(ids, batch, tally)     # the tiles' history is flip's
+        verdict, ratio, evidence = self.tiles.assess(ids, batch, tally)     # the tiles' history is flip's
         whole, block_ids, row = batch.whole_blocks()
-        gate, gate_ratio, *_ = self.gate._decide(block_ids.tolist(), whole, tally)
+        gate, gate_ratio, *_ = self.gate.assess(block_ids.tolist(), whole, tally)
         both = (np.asarray(verdict) > 0) & (np.asarray(gate)[row] > 0)
         tally.add("gated_tiles", int(((np.asarray(verdict) > 0) & ~both).sum()))
         return (np.where(both, CONVERGED, NOISY).astype(np.int8), np.fmax(ratio, np.asarray(gate_ratio)[row]),

@@ -2,29 +2,35 @@
 adapter per kind of scorer."""
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any, Protocol
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
-import torch
 
-from learning.names import DEFAULT_TAU
-from learning.stoprule import CONVERGED, NOISY, StopRule
+from learning.stoprule import CONVERGED, NOISY, StopRule, hold_dotted
 from noisefeat.runtime import torch_threads
 
-from ..spec import ROW
-from .contract import BlockBatch, Criterion, Tally
+from .batch import BlockBatch
+from .contract import Criterion, Tally
+from .registry import BLOCK, Setting, declare
+
+if TYPE_CHECKING:
+    import torch
+
+    from ..spec import RenderSpec
 
 
 class ScoresBlocks(Protocol):
     """Anything that turns linear RGB blocks into verdicts (local Model or RemoteModel)."""
 
-    def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None, exposure: float = 0.0,
+    def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None, exposure: float = ...,
                      offset: float | None = None) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 def _asked(tensor: torch.Tensor, ask: np.ndarray) -> np.ndarray:
     """The asked blocks of a device tensor, gathered to the host as float32 (the models run there)."""
+    import torch
+
     return tensor[torch.from_numpy(ask).to(tensor.device)].to(torch.float32).cpu().numpy()
 
 
@@ -106,6 +112,7 @@ class RemoteScorer:
         return np.where(verdict > 0, CONVERGED, NOISY), np.full(len(ask), np.nan)
 
 
+@declare
 class ModelCriterion(Criterion):
     """A learned verdict model: a local `learning.models.bundle.Model` or a `RemoteModel`.
 
@@ -118,19 +125,27 @@ class ModelCriterion(Criterion):
     """
 
     name = "model"
-    per_tile = False            # the paper's block is its unit
+    summary = "the learned model: a bundle, or a verdict server"
+    #: the paper's block is its unit; given a smaller tile, its block verdict gates flip's
+    #: tile verdicts (`from_spec`, `renderer.criteria.gated`)
+    grain = BLOCK
+    settings = {"model": Setting(selects=True), "server": Setting(selects=True), "offset": Setting(selects=True)}
 
-    def __init__(self, model: ScoresBlocks, exposure: float = 0.0, offset: float | None = None,
+    def __init__(self, model: ScoresBlocks, exposure: float | None = None, offset: float | None = None,
                  tau: float | None = None) -> None:
+        """`model`: the scorer; `offset`: None for the model's calibrated offset at `tau`, or
+        its own calibrated one when no tau is given either; `exposure`: None for the default."""
         if not hasattr(model, "score_blocks"):
             raise ValueError(f"model must have score_blocks(blocks, quick), got {type(model).__name__}")
         self.model = model
-        self.exposure = ROW["exposure"].check(exposure)           # the settings by their rows' checks
-        self.tau = None if tau is None else ROW["tau"].check(tau)
-        if offset is not None:
-            offset = ROW["offset"].check(offset)
-        elif tau is not None and hasattr(model, "offset_at"):
-            offset = model.offset_at(tau)       # the model's calibrated offset at the noise target
+        given = self.checked(exposure=exposure, offset=offset, tau=tau)
+        self.exposure = given["exposure"]
+        #: the noise target (None: not given; the dot guard then holds at the default's)
+        self.tau = None if tau is None else given["tau"]
+        self._dots_tau = given["tau"]
+        offset = given["offset"]
+        if offset is None and tau is not None and hasattr(model, "offset_at"):
+            offset = model.offset_at(self.tau)      # the model's calibrated offset at the noise target
         self.offset = None if offset is None else float(offset)
         self.needs_halves = bool(getattr(model, "needs_halves", False))
         self.needs_quick = not self.needs_halves and bool(
@@ -138,6 +153,30 @@ class ModelCriterion(Criterion):
         self.quick_kind = str(getattr(model, "quick", "albedo")) if self.needs_quick else "albedo"
         local = hasattr(model, "rule") and hasattr(model, "decision_function")
         self.scorer = LocalScorer(model, self.offset) if local else RemoteScorer(model, self.offset)
+
+    @classmethod
+    def from_spec(cls, spec: RenderSpec, thresholds: Sequence[int | None] | None = None) -> Criterion:
+        """The model of `spec.model` (None: the bundled one) or the verdict server of
+        `spec.server`; at tile grain, gating flip's tile verdicts (`renderer.criteria.gated`)."""
+        if spec.server is not None:
+            from ..client import RemoteModel
+
+            url, _, name = spec.server.partition("#")
+            scorer: Any = RemoteModel(url, model=name or "default", tau=spec.tau)
+            if not scorer.ready():             # unreachable: ConnectionError; refused: ValueError
+                raise ConnectionError(f"{spec.server}: the server answers but model {scorer.model!r} is not ready")
+        else:
+            from learning.models.bundle import load_model
+
+            scorer = load_model(spec.model)
+        model = cls(scorer, exposure=spec.exposure, offset=spec.offset, tau=spec.tau)
+        tile = spec.tile_grain()
+        if tile is None:
+            return model
+        from .flip import FlipCriterion
+        from .gated import GatedCriterion
+
+        return GatedCriterion(model, FlipCriterion(exposure=spec.exposure, tau=spec.tau, tile=tile))
 
     @property
     def rule(self) -> StopRule | None:
@@ -181,8 +220,7 @@ class ModelCriterion(Criterion):
             tally.add("blocks_featured", int(ask.size))
             quick = batch.quick if self.needs_quick else None     # a model without a quick image reads none
             verdict[ask], ratio[ask] = self.scorer.judge(batch, ask, quick, self.exposure, tally)
-        dots = self._dots(batch, ask, self.exposure, self.tau or DEFAULT_TAU, tally) if self.needs_halves \
+        dots = self._dots(batch, ask, self.exposure, self._dots_tau, tally) if self.needs_halves \
             else np.zeros(len(ids))
-        dotted = dots > 1
-        ratio = np.where(flat, 0.0, np.where(dotted, np.fmax(ratio, dots), ratio))
-        return np.where(flat, CONVERGED, np.where(dotted, NOISY, verdict)).astype(np.int8), ratio
+        ratio = np.where(flat, 0.0, np.where(dots > 1, np.fmax(ratio, dots), ratio))
+        return hold_dotted(np.where(flat, CONVERGED, verdict), dots, flat), ratio

@@ -2,15 +2,21 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from learning.stoprule import CONVERGED, NOISY
 
-from .contract import BlockBatch, Criterion, Tally
+from .batch import BlockBatch
+from .contract import Criterion, Tally
+from .registry import BLOCK_ONLY, declare
+
+if TYPE_CHECKING:
+    from ..spec import RenderSpec
 
 
+@declare
 class OracleCriterion(Criterion):
     """Block b is converged iff spp >= T_b; a null threshold (censored) never converges.
 
@@ -19,14 +25,22 @@ class OracleCriterion(Criterion):
     """
 
     name = "oracle"
-    per_tile = False            # its thresholds are per block
+    summary = "a labelled reference stack's true thresholds"
+    grain = BLOCK_ONLY          # its thresholds are per block
+    needs_thresholds = True
 
     def __init__(self, thresholds: Sequence[int | None]) -> None:
+        if thresholds is None or isinstance(thresholds, (str, bytes)):
+            raise ValueError(f"thresholds must be a sequence of positive integers or None, got {thresholds!r}")
         th = list(thresholds)
         for i, t in enumerate(th):
             if t is not None and (isinstance(t, bool) or not isinstance(t, (int, np.integer)) or t < 1):
                 raise ValueError(f"threshold of block {i} must be a positive integer or None, got {t!r}")
         self.thresholds: list[int | None] = [None if t is None else int(t) for t in th]
+
+    @classmethod
+    def from_spec(cls, spec: RenderSpec, thresholds: Sequence[int | None] | None = None) -> OracleCriterion:
+        return cls(thresholds)       # type: ignore[arg-type]   # the render spec saw to them being known
 
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "thresholds": self.thresholds}

@@ -5,13 +5,17 @@ import numpy as np
 
 from learning.stoprule import NOISY
 
-from .contract import BlockBatch, Criterion, Tally
+from .batch import BlockBatch
+from .contract import Criterion, Tally
+from .registry import declare
 
 
+@declare
 class UniformCriterion(Criterion):
     """Never converged: every block is rendered to max spp (the uniform baseline)."""
 
     name = "uniform"
+    summary = "never: max_spp everywhere, the baseline"
 
     def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
         return np.full(len(ids), NOISY, np.int8), np.full(len(ids), np.nan)

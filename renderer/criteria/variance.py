@@ -1,17 +1,24 @@
 """Blender Cycles' adaptive-sampling test as a criterion: every pixel of a block must pass."""
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from learning.stoprule import CONVERGED, NOISY
 
-from ..spec import ROW
-from .contract import BlockBatch, Criterion, Tally
+from .batch import BlockBatch
+from .contract import Criterion, Tally
+from .registry import TILE, Setting, declare
+
+if TYPE_CHECKING:
+    import torch
+
+    from ..spec import RenderSpec
 
 
+@declare
 class VarianceCriterion(Criterion):
     """Blender Cycles' adaptive-sampling test, applied to every pixel of a block.
 
@@ -43,18 +50,27 @@ class VarianceCriterion(Criterion):
     """
 
     name = "variance"
+    summary = "Cycles' half-buffer rule: every pixel's error under the threshold"
+    grain = TILE
+    settings = {"threshold": Setting(0.01, doc="Cycles' noise threshold"),
+                "quantile": Setting()}
     needs_halves = True
     noise_ratio = True
 
-    def __init__(self, threshold: float = 0.01, quantile: float = 1.0, scale: float = 1.0,
-                 flat_shortcut: bool = True, exposure: float = 0.0) -> None:
-        # the render settings by their rows' own checks (`renderer.spec`): one range each
-        threshold, quantile, exposure = (ROW[k].check(v) for k, v in
-                                         (("threshold", threshold), ("quantile", quantile), ("exposure", exposure)))
+    def __init__(self, threshold: float | None = None, quantile: float | None = None, scale: float = 1.0,
+                 flat_shortcut: bool = True, exposure: float | None = None) -> None:
+        """`threshold`, `quantile`, `exposure`: render settings (None: their declared
+        defaults); `scale` multiplies the threshold (below); `flat_shortcut`: a flat unit
+        converges at once."""
+        given = self.checked(threshold=threshold, quantile=quantile, exposure=exposure)
         if not (np.isfinite(scale) and scale > 0):
             raise ValueError(f"scale must be a positive number, got {scale!r}")
-        self.threshold, self.quantile, self.scale = float(threshold), float(quantile), float(scale)
-        self.flat_shortcut, self.exposure = bool(flat_shortcut), float(exposure)
+        self.threshold, self.quantile, self.scale = given["threshold"], given["quantile"], float(scale)
+        self.flat_shortcut, self.exposure = bool(flat_shortcut), given["exposure"]
+
+    @classmethod
+    def from_spec(cls, spec: RenderSpec, thresholds: Sequence[int | None] | None = None) -> VarianceCriterion:
+        return cls(spec.threshold, quantile=spec.quantile, exposure=spec.exposure)
 
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "threshold": self.threshold, "quantile": self.quantile,
@@ -64,10 +80,14 @@ class VarianceCriterion(Criterion):
     def _finite(x: Any) -> torch.Tensor:
         """The display rule's mapping of non-finite values, in linear float64: NaN and -Inf
         -> 0, +Inf -> 1 (so no error is ever NaN)."""
+        import torch
+
         return torch.nan_to_num(torch.as_tensor(x).to(torch.float64), nan=0.0, posinf=1.0, neginf=0.0)
 
     def pixel_error(self, mean: Any, half_a: Any) -> torch.Tensor:
         """Cycles' per-pixel error [..., bh, bw] (finite, >= 0), where the inputs live."""
+        import torch
+
         i = self._finite(mean)
         a = self._finite(half_a)
         diff = (i - a).abs().sum(dim=-1)
@@ -81,6 +101,8 @@ class VarianceCriterion(Criterion):
         ratio = np.full(len(ids), np.nan)
         ask = self._ready(batch, flat)        # one pass only: no noise estimate yet (A equals the mean)
         if ask.size:
+            import torch
+
             sel = torch.from_numpy(ask).to(batch.mean.device)
             err = self.pixel_error(batch.mean[sel], batch.halves[0][sel]).flatten(1)   # type: ignore[index]
             limit = self.scale * self.threshold

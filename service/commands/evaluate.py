@@ -4,7 +4,10 @@ from __future__ import annotations
 import argparse
 
 from learning.names import DEFAULT_TAU
-from renderer.names import CRITERIA
+from renderer.criteria.registry import criterion_class
+from renderer.criteria.registry import names as criterion_names
+from renderer.setting_row import help_text
+from renderer.spec import ROW
 
 from ..console import UsageError, emit_json, log
 from . import arguments as arg
@@ -14,13 +17,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("evaluate", help="metrics on held-out scenes, overall and per scene")
     p.add_argument("--data", required=True)
     p.add_argument("--model", default=None, help="model bundle (default: the bundled model)")
-    p.add_argument("--criterion", default="model", choices=CRITERIA)
-    p.add_argument("--offset", type=arg.offset, default=None,
-                   help="--criterion model: decision offset, the speed/accuracy knob (default: the "
-                        "model's calibrated offset; larger stops later)")
-    p.add_argument("--threshold", type=arg.threshold, default=None,
-                   help="--criterion flip: c (default: the shipped calibration); --criterion "
-                        "variance: the noise threshold (default 0.01)")
+    p.add_argument("--criterion", default="model", choices=criterion_names())
+    p.add_argument("--offset", type=arg.offset, default=None, help=help_text(ROW["offset"]))
+    p.add_argument("--threshold", type=arg.threshold, default=None, help=help_text(ROW["threshold"]))
     p.add_argument("--tau", type=arg.tau, default=DEFAULT_TAU, help=arg.TAU_HELP + "; labels come from the "
                    "observer at this tau")
     p.add_argument("--min-spp", type=arg.spp, default=None,
@@ -41,10 +40,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from learning.evaluation.evaluate import evaluate_model
     from learning.inputs.table import load_table
 
-    if args.criterion != "model" and args.offset is not None:
-        log.warning("--offset is ignored with --criterion %s (it moves the model's decision)", args.criterion)
-    if args.criterion not in ("flip", "variance") and args.threshold is not None:
-        log.warning("--threshold is ignored with --criterion %s", args.criterion)
+    for key in ("offset", "threshold"):      # what the criterion declares it takes
+        if getattr(args, key) is not None and key not in criterion_class(args.criterion).settings:
+            log.warning("--%s is ignored with --criterion %s", key, args.criterion)
     if args.criterion != "model" or args.tile:      # the model per tile: gated, simulated as it renders
         from renderer.simulate import evaluate_criterion_cli
         result = evaluate_criterion_cli(args.data, args.criterion, arg.scene_list(args.scenes),

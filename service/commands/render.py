@@ -8,8 +8,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from renderer.names import CRITERIA
-from renderer.setting_row import ascii_int
+from renderer.criteria.registry import names as criterion_names
+from renderer.setting_row import ascii_int, help_text
 from renderer.spec import CLI, ROWS
 
 from ..console import UsageError, emit_json, log
@@ -84,18 +84,16 @@ def _print_result(args: argparse.Namespace, result: dict[str, Any], format_repor
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The command line's flags for the render spec's rows it offers: help and types from
-    the rows (the combinations, such as grid with block, are `resolve`'s to refuse)."""
+    the rows and the criteria's declarations (the combinations, such as grid with block, are
+    `resolve`'s to refuse)."""
     for row in ROWS:
         if CLI not in row.doors:
             continue
-        shown = f"{row.default:g}" if isinstance(row.default, float) else row.default
-        kw: dict[str, Any] = {"default": None, "type": row.parse, "metavar": row.metavar,
-                              "help": row.doc if row.default is None or "default" in row.doc
-                              else f"{row.doc} (default {shown})"}
+        kw: dict[str, Any] = {"default": None, "type": row.parse, "metavar": row.metavar, "help": help_text(row)}
         if row.kind == "grid":
             kw.update(type=_grid_side, nargs=2, metavar=("ROWS", "COLS"))
         elif row.kind == "criterion":
-            kw["metavar"] = "{" + ",".join(CRITERIA) + "}"
+            kw["metavar"] = "{" + ",".join(criterion_names()) + "}"
         elif row.kind == "defines":
             parser.add_argument("-D", dest=row.name, action="append", **kw)
             continue

@@ -69,8 +69,8 @@ def test_argument_errors_exit_2():
 
 
 def test_the_parser_builds_without_torch_or_mitsuba():
-    """The choices come from their one home (learning.names, renderer.names, ...), and those
-    homes import nothing heavy: the command line starts fast and keeps no copies."""
+    """The choices come from their one home (learning.names, the criteria's declarations in
+    renderer.criteria, ...), and those homes import nothing heavy: the command line starts fast and keeps no copies."""
     code = ("import sys, service.cli as c; c.build_parser(); "
             "print(sorted(m for m in ('torch', 'mitsuba', 'drjit', 'matplotlib') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

@@ -133,7 +133,9 @@ def test_bad_input_is_a_clear_error():
     with pytest.raises(ValueError, match="half buffers"):
         c.decide([0], [BlockView(mean=noisy_block(), spp=4)]).verdict
     with pytest.raises(ValueError, match="oracle criterion needs true thresholds"):
-        make_criterion(resolve({"criterion": "oracle"}, thresholds_known=True))
+        resolve({"criterion": "oracle"})                  # the render spec's check, by the declaration
+    with pytest.raises(ValueError, match="thresholds must be a sequence"):
+        make_criterion(resolve({"criterion": "oracle"}, thresholds_known=True))   # a caller that said so wrongly
     with pytest.raises(ValueError, match="criterion must be one of .* got 'magic'"):
         resolve({"criterion": "magic"})
     with pytest.raises(ValueError, match="threshold"):

@@ -43,7 +43,7 @@ def test_a_resized_film_is_the_view_mitsuba_renders_at_that_size(tmp_path, mi, a
     path = tmp_path / "scene.xml"
     path.write_text(XML.format(w=64, h=64))
     w, h = size
-    ours = render(mi, load_scene(str(path), f"{w}x{h}", defines={"axis": axis}))
+    ours = render(mi, load_scene(str(path), (w, h), defines={"axis": axis}))
     mitsuba_own = render(mi, mi.load_string(XML.format(w=w, h=h), axis=axis))
     assert ours.shape == mitsuba_own.shape == (h, w, 3)
     assert np.array_equal(ours, mitsuba_own)
@@ -65,4 +65,4 @@ def test_smaller_axis_control_keeping_the_horizontal_field_differs(tmp_path, mi)
 def test_built_in_scenes_frame_as_their_dict_at_that_size(mi):
     d = scene_dict("cornell", 64)                         # fov_axis smaller, as Mitsuba's cbox.xml
     d["sensor"]["film"].update(width=64, height=40)
-    assert np.array_equal(render(mi, load_scene("cornell", "64x40")), render(mi, mi.load_dict(d)))
+    assert np.array_equal(render(mi, load_scene("cornell", (64, 40))), render(mi, mi.load_dict(d)))

@@ -206,7 +206,7 @@ def ignoring(mi, monkeypatch, key: str) -> None:
     the class is built from the properties without it."""
     from renderer import plugin
 
-    cls = plugin._integrator_class()
+    cls = plugin.integrator_class()
     init = cls.__init__
 
     def forgetful(self, props):
@@ -278,7 +278,7 @@ def test_register_is_idempotent(mi, monkeypatch):
     from renderer import plugin
 
     cls = type(mi.load_dict(scene_dict(mi, {"type": "noisestop"})).integrator())
-    assert cls is plugin._integrator_class()
+    assert cls is plugin.integrator_class()
     calls, returned = registrations(mi, monkeypatch, renderer.register)
     assert calls == [] and returned == [mi.variant()] * 3
     assert type(mi.load_dict(scene_dict(mi, {"type": "noisestop"})).integrator()) is cls

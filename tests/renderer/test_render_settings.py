@@ -7,7 +7,7 @@ import pytest
 from learning import make_synthetic_stack
 from renderer.adaptive import adaptive_render
 from renderer.criteria import UniformCriterion
-from renderer.spec import ROWS, reference_settings, resolve
+from renderer.spec import FIELDS, ROWS, RenderSpec, reference_settings, resolve
 
 
 @pytest.fixture(scope="module")
@@ -25,6 +25,21 @@ def test_nothing_given_means_scene_resolution_and_documented_defaults():
         if row.name not in ("resolution", "grid", "criterion"):
             assert getattr(spec, row.name) == row.default and spec.sources[row.name] == "default", row.name
     assert spec.criterion == "flip" and spec.sources["criterion"] == "default"
+
+
+def test_the_spec_is_a_typed_frozen_dataclass_of_the_rows():
+    """RenderSpec is declared in code, one typed field per row in the rows' order (so the
+    two cannot drift), frozen, and what `resolve` returns."""
+    import dataclasses
+    import typing
+
+    assert FIELDS == tuple(r.name for r in ROWS)
+    hints = typing.get_type_hints(RenderSpec)
+    assert set(hints) == {*FIELDS, "sources"} and typing.Any not in hints.values()
+    spec = resolve({"tau": 0.05})
+    assert type(spec) is RenderSpec and spec.tau == 0.05
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        spec.tau = 0.1      # type: ignore[misc]
 
 
 def test_command_line_beats_reference_beats_defaults(stack):

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from renderer.scenes import DEFAULT_SCENE, SCENES, list_scenes, load_scene, scene_dict
+from renderer.spec import ROW
 
 
 def _render(scene, spp: int = 4, seed: int = 0) -> np.ndarray:
@@ -112,10 +113,11 @@ def test_xml_film_is_scaled_keeping_its_aspect(tmp_path: Path) -> None:
     path.write_text(XML_FIXED)
     assert _film_size(load_scene(str(path))) == (20, 12)            # its own film by default
     assert _film_size(load_scene(str(path), 32)) == (32, 19)        # long side 32, aspect 5:3 kept
-    assert _film_size(load_scene(str(path), "40x10")) == (40, 10)   # both sides given
-    for bad in ("0", "12x", "axb", "1x2x3", "-4x4"):
+    assert _film_size(load_scene(str(path), (40, 10))) == (40, 10)  # both sides given
+    for bad in ("0", "12x", "axb", "1x2x3", "-4x4"):       # text is the resolution row's to read, once
         with pytest.raises(ValueError, match="resolution"):
-            load_scene(str(path), bad)
+            ROW["resolution"].check(bad)
+    assert ROW["resolution"].check("40x10") == (40, 10)
 
 
 XML_SPHERE = """<scene version="3.0.0">
@@ -146,7 +148,7 @@ def test_scaled_film_shows_the_same_view(tmp_path: Path) -> None:
     down = big.reshape(24, 2, 48, 2).mean(axis=(1, 3)) > 0.5
     assert (down != small).mean() < 0.02
     # control: a stretched view (96x24, horizontal field kept) is not the same picture
-    wide = sphere("96x24").reshape(24, 48, 2).mean(axis=2) > 0.5
+    wide = sphere((96, 24)).reshape(24, 48, 2).mean(axis=2) > 0.5
     assert (wide != small).mean() > 0.04
 
 

@@ -1,0 +1,190 @@
+"""What a criterion reads: the units it is asked about at once (`BlockBatch`), or one
+`BlockView` per block for callers outside the loop.
+
+Kept apart from the contract (`renderer.criteria.contract`): this is how the loop's device
+tensors are read lazily and how tiles are put back together into their blocks; that is
+what a criterion answers. torch is imported where a tensor is made, so the command line,
+which lists the criteria, builds its parser without it.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import torch
+
+@dataclass(frozen=True)
+class BlockView:
+    """What a criterion may look at for one block at one moment of the render.
+
+    `mean` is the cumulative mean of every sample so far, [bh, bw, 3] linear RGB.
+    `halves` = (A, B): means of the even-numbered and odd-numbered passes (the
+    `UnitAccumulator` convention), or None when the caller does not track them.
+    `half_spp` = samples in A and in B. `quick` is the block of the quick noise-free image
+    (None if not rendered). `nonfinite` counts (pixel, pass) values the accumulator dropped.
+    A non-finite pixel in `mean`, or in a half whose `half_spp` is positive, is one with no
+    finite estimate: the block is never converged (the module docstring).
+    """
+
+    mean: np.ndarray
+    spp: int
+    halves: tuple[np.ndarray, np.ndarray] | None = None
+    half_spp: tuple[int, int] | None = None
+    quick: np.ndarray | None = None
+    nonfinite: int = 0
+
+
+class BlockBatch:
+    """What a criterion may look at for all the blocks it is asked about, at once.
+
+    Why batched: the live loop keeps its accumulators on the renderer's device, and a
+    criterion that reads whole tensors (flip: FLIP on the device) sends only its verdicts
+    to the host. `mean` and `halves` are float64 tensors [k, bh, bw, 3] on that device,
+    computed on first use (a criterion that does not read them costs nothing); `spp`
+    int64 [k], `half_spp` int64 [k, 2] and `nonfinite` int64 [k] are host arrays; `quick`
+    is what the criterion's `prepare` made of the quick image's blocks [k, ...] (the
+    blocks themselves unless it prepares them), or None. `evidence` float64 [k, 3]: each
+    unit's earlier decisions as the loop keeps them (`learning.inputs.history.Evidence`),
+    or None (no history: a criterion that reads it treats every unit as new). `tiling` (the renderer's
+    `BlockWindows`, when the units are tiles of blocks): `block_halves` puts the asked
+    tiles' blocks back together, for a criterion that judges a tile in its context.
+    `unestimated` int64 [k] (host): pixels with no finite estimate (the module docstring).
+    """
+
+    def __init__(self, spp: np.ndarray, *, mean: Any = None, halves: Any = None,
+                 half_spp: np.ndarray | None = None, nonfinite: Any = None, quick: np.ndarray | None = None,
+                 source: Any = None, tiling: Any = None, evidence: np.ndarray | None = None,
+                 unestimated: Any = None) -> None:
+        self.spp = np.asarray(spp, np.int64).reshape(-1)
+        self.tiling = tiling
+        self.evidence = evidence
+        self.half_spp = None if half_spp is None else np.asarray(half_spp, np.int64).reshape(-1, 2)
+        self.quick = quick
+        self._mean, self._halves, self._nonfinite, self._source = mean, halves, nonfinite, source
+        self._unestimated = unestimated
+        self._blocks: Any = None           # the tiles' whole blocks, assembled once (`_assembled`)
+
+    @classmethod
+    def from_accumulator(cls, acc: Any, ids: Sequence[int], quick: np.ndarray | None = None,
+                         tiling: Any = None, evidence: np.ndarray | None = None) -> BlockBatch:
+        """The units `ids` of a `UnitAccumulator`, read lazily from its device tensors.
+        `quick` is per block: with `tiling`, a tile's row is its block's. `evidence`: the
+        loop's `learning.inputs.history.Evidence`, or None."""
+        ids_a = np.asarray(ids, np.int64)
+        rows = ids_a if tiling is None else ids_a // tiling.tiles_per_block
+        return cls(acc.spp_all()[ids_a], half_spp=acc.half_spp_all()[ids_a],
+                   quick=None if quick is None else quick[rows], source=(acc, ids_a), tiling=tiling,
+                   evidence=None if evidence is None else evidence.rows(ids_a))
+
+    @classmethod
+    def from_views(cls, views: Sequence[BlockView]) -> BlockBatch:
+        """One batch from per-block views (callers outside the live loop, tests)."""
+        import torch
+
+        shapes = {np.shape(v.mean) for v in views}
+        if len(shapes) != 1:
+            raise ValueError(f"the blocks of one decision must share a shape, got {sorted(shapes)}")
+        halves = None
+        if all(v.halves is not None for v in views):
+            halves = tuple(torch.from_numpy(np.stack([np.asarray(v.halves[j], np.float64) for v in views]))  # type: ignore[index]
+                           for j in (0, 1))
+        half_spp = np.array([v.half_spp for v in views], np.int64) if all(v.half_spp is not None for v in views) \
+            else None
+        quick = np.stack([np.asarray(v.quick) for v in views]) if all(v.quick is not None for v in views) else None
+        mean = torch.from_numpy(np.stack([np.asarray(v.mean, np.float64) for v in views]))
+        return cls(np.array([v.spp for v in views], np.int64), mean=mean, halves=halves, half_spp=half_spp,
+                   nonfinite=np.array([v.nonfinite if np.isfinite(v.mean).all() else max(v.nonfinite, 1)
+                                       for v in views], np.int64), quick=quick,
+                   unestimated=np.array([_unestimated_view(v) for v in views], np.int64))
+
+    def __len__(self) -> int:
+        return len(self.spp)
+
+    @property
+    def mean(self) -> torch.Tensor:
+        if self._mean is None:
+            acc, ids = self._source
+            self._mean = acc.means(ids)
+        return self._mean
+
+    @property
+    def halves(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        if self._halves is None and self._source is not None:
+            acc, ids = self._source
+            self._halves = acc.halves(ids)
+        return self._halves
+
+    def _assembled(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[torch.Tensor, torch.Tensor]]:
+        """(blocks, first, row, every, (A, B)) of the blocks the batch's tiles lie in, once a
+        batch: their ids, the first of the batch's tiles in each, each tile's block row, the
+        ids of all their tiles, and their half buffers put together from all their tiles
+        (stopped ones as they stopped), [kb, bh, bw, C] on the device."""
+        if self._blocks is None:
+            acc, ids = self._source
+            t = self.tiling.tiles_per_block
+            blocks, first, row = np.unique(ids // t, return_index=True, return_inverse=True)
+            every = (blocks[:, None] * t + np.arange(t)).reshape(-1)
+            a, b = acc.halves(every)
+            shape = (len(blocks), t, *a.shape[1:])
+            self._blocks = (blocks, first, row, every,
+                            (self.tiling.assemble(a.reshape(shape)), self.tiling.assemble(b.reshape(shape))))
+        return self._blocks
+
+    def block_halves(self, among: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
+        """(A, B, row, slot): the half buffers of the blocks the batch's tiles `among` lie in,
+        each block window put together from all its tiles (stopped ones as they stopped),
+        [kb, bh, bw, C] on the device; tile among[i] is tile `slot[i]` of block `row[i]`."""
+        import torch
+
+        _, _, rows, _, (a, b) = self._assembled()
+        need, row = np.unique(rows[among], return_inverse=True)
+        sel = torch.from_numpy(need).to(a.device)
+        return a[sel], b[sel], row, self._source[1][among] % self.tiling.tiles_per_block
+
+    def whole_blocks(self) -> tuple[BlockBatch, np.ndarray, np.ndarray]:
+        """(batch, blocks, row): the blocks the batch's tiles lie in as one batch of whole
+        blocks (windows put together from all their tiles, stopped ones as they stopped; a
+        block's spp and half spp are its least sampled tile's, its dropped values the sum),
+        their ids, and the row of each asked tile's block: what a block-grain criterion
+        judges a tile's block by."""
+        acc, _ = self._source
+        blocks, first, row, every, halves = self._assembled()
+        per_block = (len(blocks), self.tiling.tiles_per_block)
+        mean = acc.means(every)
+        batch = BlockBatch(acc.spp_all()[every].reshape(per_block).min(axis=1),
+                           mean=self.tiling.assemble(mean.reshape(*per_block, *mean.shape[1:])), halves=halves,
+                           half_spp=acc.half_spp_all()[every].reshape(*per_block, 2).min(axis=1),
+                           nonfinite=acc.nonfinite_all()[every].reshape(per_block).sum(axis=1),
+                           unestimated=acc.unestimated(every).reshape(per_block).sum(axis=1),
+                           quick=None if self.quick is None else self.quick[first])
+        return batch, blocks, row
+
+    @property
+    def nonfinite(self) -> np.ndarray:
+        if self._nonfinite is None:
+            acc, ids = self._source
+            self._nonfinite = acc.nonfinite_all()[ids]
+        return np.asarray(self._nonfinite, np.int64)
+
+    @property
+    def unestimated(self) -> np.ndarray:
+        if self._unestimated is None:
+            if self._source is None:
+                return np.zeros(len(self.spp), np.int64)
+            acc, ids = self._source
+            self._unestimated = acc.unestimated(ids)
+        return np.asarray(self._unestimated, np.int64)
+
+
+def _unestimated_view(v: BlockView) -> int:
+    """A view's pixels with no finite estimate: non-finite in its mean, or in a half that
+    holds a pass (a half of unknown spp counts when given)."""
+    bad = ~np.isfinite(np.asarray(v.mean, np.float64)).all(axis=-1)
+    for j, half in enumerate(v.halves or ()):
+        if v.half_spp is None or v.half_spp[j] > 0:
+            bad |= ~np.isfinite(np.asarray(half, np.float64)).all(axis=-1)
+    return int(bad.sum())

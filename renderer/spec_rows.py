@@ -1,0 +1,124 @@
+"""The render spec's table: every setting of a render as one `Row` (`ROWS`: name, type,
+default, range, one line of documentation, the doors that offer it), and how a criterion
+takes a row (`declared_row`, `declared_values`: its own default and range where it
+declares them, `renderer.criteria.registry`).
+
+Kept apart from the resolver (`renderer.spec`, which re-exports these names): this is
+which settings there are and what each allows; that is how a render's are combined. A
+criterion's constructor checks what it is given here, without the resolver. Nothing heavy
+is imported: the command line builds its parser from the rows.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import replace
+from typing import Any
+
+from learning.names import DEFAULT_TAU, OFFSET_LIMIT
+from noisefeat.bounds import EXPOSURE_RANGE
+
+from .setting_row import API, CLI, MAX_SIDE, XML, Row, block_bounds, frame_bounds
+
+#: spp settings are whole numbers in [1, MAX_SPP]; a render makes at most MAX_PASSES passes
+#: (each appends a row to the checkpointed history)
+MAX_SPP = 1 << 20
+MAX_PASSES = 10_000
+#: the longest time limit, seconds (a year: anything longer is a typo)
+MAX_TIME_LIMIT = 365 * 24 * 3600.0
+MAX_SEED = 2**32 - 1
+#: the block size the bundled model and flip's c(tau) were trained and calibrated on
+DEFAULT_BLOCK = 64
+#: the observer's tile (its 16x16 tile means): the finest grain its guarantee holds at
+DEFAULT_TILE = 16
+#: what `noisestop render` and `make run` use unless told: the criterion that measured best
+#: on the held-out scenes at <= 5 % early stops (README "Deciding a stop", BENCHMARKS.md)
+DEFAULT_CRITERION = "flip"
+
+_SPP = dict(kind="int", low=1, high=MAX_SPP)
+#: every setting of a render, in the order renderer.render lists them
+ROWS: tuple[Row, ...] = (
+    # the criteria are their own declarations (`renderer.criteria.registry`): the help lists them
+    Row("criterion", "criterion", DEFAULT_CRITERION, "when a unit has converged"),
+    Row("tau", "float", DEFAULT_TAU,
+        "noise target: the largest 16x16-tile mean FLIP against the reference a converged block may "
+        "show (smaller is stricter); picks flip's c(tau) or the model's offset", low=0.0, high=1.0,
+        open_low=True),
+    Row("threshold", "float", None, "the level a unit's noise measure must reach", low=0.0, high=1000.0,
+        open_low=True),
+    Row("offset", "float", None, "the decision offset, the speed/accuracy knob (default: the model's "
+        "calibrated offset at tau; larger stops later)", low=-OFFSET_LIMIT, high=OFFSET_LIMIT),
+    Row("quantile", "float", 1.0, "the fraction of a unit's pixels that must pass", low=0.0, high=1.0,
+        open_low=True),
+    Row("model", "str", None, "a model bundle directory (default: the bundled model)", metavar="DIR"),
+    Row("server", "str", None, "a verdict server URL, e.g. http://host:8000 (token from NOISESTOP_TOKEN)",
+        metavar="URL", doors=frozenset({API, CLI})),
+    Row("exposure", "float", 0.0, "display exposure, in stops, the criteria judge the image at",
+        low=EXPOSURE_RANGE[0], high=EXPOSURE_RANGE[1]),
+    Row("resolution", "resolution", None,
+        "frame size: N scales the film's long side to N keeping its aspect, WxH sets both (default: "
+        "the reference's, else the scene's own)", metavar="N|WxH", doors=frozenset({API, CLI}),
+        extra=frame_bounds),
+    Row("grid", "grid", None, "blocks as a (rows, columns) grid dividing the frame, instead of block "
+        "(default: the reference's)", doors=frozenset({API, CLI})),
+    Row("block", "int", DEFAULT_BLOCK,
+        "block side in pixels (default 64, or the frame's short side if smaller); edge windows move "
+        "flush with the frame's edge", low=1, high=MAX_SIDE, metavar="PX", extra=block_bounds),
+    Row("tile", "int", DEFAULT_TILE,
+        "side in pixels of the tiles each block is cut into, the unit that stops: each tile has its "
+        "own samples and stop, a block is done when all its tiles are; the block's side: whole blocks",
+        low=8, high=MAX_SIDE, metavar="PX"),
+    Row("min_spp", doc="samples per pixel before the first decision (default: the reference's first "
+        "level, else 16); it takes effect at the first pass boundary at or past it", default=16, **_SPP),
+    Row("max_spp", doc="most samples per pixel of any block (default: the reference's last level, "
+        "else 1024)", default=1024, **_SPP),
+    Row("step", doc="samples per pixel a pass adds to each active block (default: the reference's "
+        "level step, else 16)", default=16, **_SPP),
+    Row("decide_skip", "float", 0.5,
+        "how far a unit's decisions skip towards its predicted stop: a unit r times above its target "
+        "is judged again only at (skip r)^2 times its spp (Monte Carlo decay), or the next pass if "
+        "that is sooner; 0 judges every pass; flip and variance only, not with a budget (BENCHMARKS, "
+        "decisions skipped)", low=0.0, high=1.0),
+    Row("seed", "int", 0, "base seed: the samples of (pixel, pass) depend only on it", low=0,
+        high=MAX_SEED),
+    Row("time_limit", "float", None,
+        "Seconds: the pass under way when they run out is finished and the render returns; once "
+        "the time left cannot cover every active block, passes go to the blocks farthest from "
+        "their target", low=0.0, high=MAX_TIME_LIMIT, open_low=True, metavar="S"),
+    Row("spp_budget", "float", None,
+        "samples per pixel, averaged over the frame, the render may spend: passes go to the blocks "
+        "farthest from their target", low=0.0, high=float(MAX_SPP), open_low=True, metavar="N"),
+    Row("quick_spp", doc="samples of the quick image a model criterion reads (rendered once)",
+        default=16, **_SPP),
+    Row("defines", "defines", None, "an XML scene's <default> parameters, as mitsuba -D KEY=VALUE",
+        doors=frozenset({API, CLI}), metavar="KEY=VALUE"),
+)
+ROW = {r.name: r for r in ROWS}
+#: the plugin's properties: the rows it offers, plus `progress` (how a render shows, not
+#: what it renders)
+PLUGIN_ROWS = tuple(r for r in ROWS if XML in r.doors)
+
+
+def declared_row(criterion: type, name: str) -> Row:
+    """Row `name` as `criterion` (a class) takes it: its declared default and range where it
+    declares them (`renderer.criteria.registry.Setting`), else the row's."""
+    row = ROW[name]
+    setting = getattr(criterion, "settings", {}).get(name)
+    if setting is None:
+        return row
+    return replace(row, **{k: v for k, v in (("default", setting.default), ("low", setting.low),
+                                             ("high", setting.high)) if v is not None})
+
+
+def declared_values(criterion: type, given: Mapping[str, Any]) -> dict[str, Any]:
+    """The settings `given` to a criterion's constructor (None: not given) by its
+    declaration: each checked by its `declared_row`, or that row's default."""
+    check_known(given)
+    rows = {name: declared_row(criterion, name) for name in given}
+    return {name: rows[name].default if value is None else rows[name].check(value) for name, value in given.items()}
+
+
+def check_known(*layers: Mapping[str, Any] | None) -> None:
+    """One-line ValueError for a setting that is no row."""
+    unknown = [name for layer in layers for name in sorted(set(layer or {}) - set(ROW))]
+    if unknown:
+        raise ValueError(f"unknown render setting {unknown[0]!r}; the settings are {', '.join(ROW)}")

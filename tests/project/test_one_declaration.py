@@ -52,7 +52,6 @@ ALLOWED: dict[tuple[str, str, str], str] = {
     ("renderer/simulate.py", "_as_stacks", "tau"): _SIMULATE,
     ("renderer/simulate.py", "evaluate_criterion", "tau"): _SIMULATE,
     ("renderer/simulate.py", "evaluate_criterion_cli", "tau"): _SIMULATE,
-    ("renderer/simulate.py", "find_reference", "tau"): _SIMULATE,
     ("renderer/simulate.py", "criterion_factory", "tile"): _SIMULATE + " (None: whole blocks)",
     **{("renderer/stackbuild.py", "BuildSettings", name):
        "the dataset build's own settings (its one table, stored in each stack's meta.json), not a render's"

@@ -59,7 +59,7 @@ bench: dataset heldout
 		--heldout $(HELDOUT) --input halves,albedo --update BENCHMARKS.md
 
 # The training dataset (README "Datasets"): PROCEDURAL seeded procedural scenes
-# (renderer/procedural.py) plus the 14 built-in training scenes, each a 64x64 frame of one
+# (renderer/scenes/procedural.py) plus the 14 built-in training scenes, each a 64x64 frame of one
 # 64x64 block, a level every 32 spp up to 4096 spp and an 8192-spp reference, so that most
 # blocks converge inside their stacks under the tile observer. Resumes if interrupted; on a
 # complete dataset it relabels stacks of an older observer (no rendering). Time: README.
@@ -76,7 +76,7 @@ library: setup
 	$(NOISESTOP) dataset build --out $(LIBRARY) $(LIBRARY_ARGS)
 	$(NOISESTOP) dataset check $(LIBRARY)
 
-# The held-out scenes every figure is measured on (renderer/heldout.py): 8 scenes x 16
+# The held-out scenes every figure is measured on (renderer/scenes/heldout.py): 8 scenes x 16
 # blocks x 64 levels (32..2048 spp), reference 8192 spp, so that most blocks converge
 # inside the stack. Never trained or calibrated on. Resumes if interrupted.
 HELDOUT_ARGS ?= --resolution 256 --step 32 --levels 64 --reference-spp 8192

@@ -2,7 +2,7 @@
 
 For every held-out stack: uniform sampling to `UNIFORM_SPP` against the budget render
 (flip criterion at c(tau)) given the same samples in total (the budget simulated on the
-stack's own passes, `renderer.budget.simulate_budget`: equal spp, not measured time). Each
+stack's own passes, `renderer.live.budget.simulate_budget`: equal spp, not measured time). Each
 side's error per block is the virtual observer's against the 8192-spp reference, at the
 level the block ended at (DESIGN's pooling: the largest 16x16 tile mean of FLIP).
 """
@@ -22,7 +22,7 @@ def bench_budget(data: str | None, heldout: str | None = None, spp: int = UNIFOR
     from learning.data.observer import observer_for
     from learning.data.relabel import read_observed
     from learning.evaluation.generalisation import scene_groups
-    from renderer.simulate import simulate_budget
+    from renderer.simulation.simulate import simulate_budget
     from renderer.criteria import FlipCriterion
 
     root = heldout or data

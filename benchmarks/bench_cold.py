@@ -114,7 +114,7 @@ def _cold_pair(xml: Path, tmp: Path, max_spp: int, variant: str) -> dict[str, An
                              variant], capture_output=True, text=True, check=True)
     mi_wall = time.perf_counter() - t0
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-c", "import renderer.adaptive, service.cli"], check=True)
+    subprocess.run([sys.executable, "-c", "import renderer.live.adaptive, service.cli"], check=True)
     imports = time.perf_counter() - t0
     out = tmp / "ours"
     t0 = time.perf_counter()

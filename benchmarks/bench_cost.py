@@ -17,7 +17,7 @@ For each scene and reconstruction filter (the film's rfilter swapped in the scen
   100, 50, 25, 10 and 5 % of the 16-px tiles a launch, the tiles dealt at random (seeded)
   into groups that together hold every tile once, so that cost does not choose them; one
   pass of `step` spp per launch, and grown passes (as many passes per launch as the loop
-  traces for that many active tiles, `renderer.session.grown_passes`); seconds per traced
+  traces for that many active tiles, `renderer.live.session.grown_passes`); seconds per traced
   lane against 100 %;
 * from the adaptive render's report: lanes traced per kept sample (``samples_traced`` over
   ``samples_spent``), the shares of wall time that are rendering (waiting for the tracer),
@@ -73,7 +73,7 @@ def scene_with_filter(name: str, size: int, rfilter: str) -> Any:
         d = mi.cornell_box()
         d["sensor"]["film"]["width"] = d["sensor"]["film"]["height"] = int(size)
     else:
-        from renderer.scenes import scene_dict
+        from renderer.scenes.catalog import scene_dict
 
         d = scene_dict(name, int(size))
     d["sensor"]["film"]["rfilter"] = {"type": rfilter}
@@ -108,8 +108,8 @@ def median_run(runs: Sequence[dict[str, Any]]) -> dict[str, Any]:
 
 
 def block_windows(size: int, block: int) -> list[tuple[int, int, int, int]]:
-    """(x, y, w, h) of the selection grid's blocks (renderer.block_windows' geometry)."""
-    from renderer.block_windows import BlockWindows
+    """(x, y, w, h) of the selection grid's blocks (renderer.live.block_windows' geometry)."""
+    from renderer.live.block_windows import BlockWindows
 
     bw = BlockWindows(size, size, block=block)
     return [tuple(int(v) for v in bw.window(b)) for b in range(bw.n_blocks)]   # type: ignore[misc]
@@ -118,7 +118,7 @@ def block_windows(size: int, block: int) -> list[tuple[int, int, int, int]]:
 def selection(scene: Any, size: int, block: int, spp: int, repeats: int) -> dict[str, Any]:
     """Each block's dense cost per sample as a ratio to the frame's mean (module docstring):
     ``mi.render`` over each block's crop, warm, interleaved with the full frame."""
-    from renderer.blocks import BlockRenderer
+    from renderer.live.blocks import BlockRenderer
 
     from .crop_cost import time_crop_renders
 
@@ -150,8 +150,8 @@ def sparse_trace(scene: Any, step: int, repeats: int, seed: int = 50,
     launch after another: every tile once, as the dense trace does, but a fraction at a
     time. Per mode and fraction: the median seconds of a round, its lanes and launches,
     seconds per lane and their ratio to 100 % (one pass)."""
-    from renderer.blocks import BlockRenderer
-    from renderer.session import grown_passes
+    from renderer.live.blocks import BlockRenderer
+    from renderer.live.session import grown_passes
 
     size = int(scene.sensors()[0].film().crop_size()[0])
     block = min(BLOCK, size)

@@ -19,7 +19,7 @@ def bench_criteria(data: str, heldout: str | None = None, model: str | None = No
     from learning.inputs.halves import load_flip_calibration
     from renderer.criteria import (FlipCriterion, ModelCriterion, OracleCriterion, UniformCriterion,
                                    VarianceCriterion)
-    from renderer.simulate import evaluate_criterion
+    from renderer.simulation.simulate import evaluate_criterion
 
     train, test = split_stacks(data, heldout)
     m = model_and_check(model, [s.scene for s in test])

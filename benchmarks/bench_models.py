@@ -153,8 +153,8 @@ def wavelet_layer_s(block: tuple[int, int], n: int = 101, repeats: int = 20) -> 
 
 def quick_image_cost() -> dict[str, float]:
     """Wall time of one warm quick image per kind (once per render, full frame)."""
-    from renderer.blocks import QUICK_KINDS, BlockRenderer
-    from renderer.scenes import load_scene
+    from renderer.live.blocks import QUICK_KINDS, BlockRenderer
+    from renderer.scenes.catalog import load_scene
     scene, res, spp = QUICK_COST_SCENE
     br = BlockRenderer(load_scene(scene, res), (4, 4))
     out = {}
@@ -199,7 +199,7 @@ def md_inputs(r: dict[str, Any]) -> str:
 
 def bench_dataset(data: str, heldout: str | None = None) -> dict[str, Any]:
     """The dataset's build time, from its build log: the latest run that rendered anything."""
-    from renderer.dataset import BUILD_LOG, read_build_log
+    from renderer.dataset.build import BUILD_LOG, read_build_log
     out = {}
     for name, where in (("training", data), ("heldout", heldout)):
         if where is None:

@@ -68,7 +68,7 @@ def load_case_scene(case: Case) -> Any:
         d = mi.cornell_box()
         d["sensor"]["film"]["width"] = d["sensor"]["film"]["height"] = case.size
         return mi.load_dict(d)
-    from renderer.scenes import load_scene
+    from renderer.scenes.catalog import load_scene
 
     return load_scene(case.scene, case.size)
 
@@ -101,7 +101,7 @@ def block_errors(image: np.ndarray, reference: np.ndarray, tau: float,
     """DESIGN's observer per 64x64 block of `image` against `reference`: worst, mean, above
     tau; with the blocks a criterion `stopped`, the most dots one of them holds and how many
     hold more than 16 (issue 33: none may)."""
-    from renderer.report import final_vs_reference
+    from renderer.live.report import final_vs_reference
 
     h, w = image.shape[:2]
     grid = (h // BLOCK, w // BLOCK)
@@ -117,7 +117,7 @@ def ours(scene: Any, criterion: str, max_spp: int, tau: float, grow: bool = True
          tile: int | None = None) -> dict[str, Any]:
     """One render by our loop: wall, render time, mean spp, image. `tile`: the grain (None:
     the render's default, 16-pixel tiles; BLOCK: whole blocks, the loop before issue 41)."""
-    from renderer.adaptive import run_adaptive
+    from renderer.live.adaptive import run_adaptive
 
     t0 = time.perf_counter()            # the whole call, as a user times it (report and image included)
     r = run_adaptive(scene, criterion, block=BLOCK, step=STEP, min_spp=MIN_SPP, max_spp=max_spp, progress=False,

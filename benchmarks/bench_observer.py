@@ -81,7 +81,7 @@ def _picture(rows: list[dict[str, Any]], out_png: str, tau: float) -> str:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from renderer.outputs import to_srgb8
+    from renderer.live.outputs import to_srgb8
 
     cols = 4
     lines = (len(rows) + cols - 1) // cols
@@ -137,7 +137,7 @@ def bench_tau(data: str, heldout: str | None = None, taus: tuple[float, ...] = T
     from learning.evaluation.generalisation import scene_groups
     from learning.inputs.halves import flip_c, load_flip_calibration, unit_calibration
     from learning.models.bundle import load_model
-    from renderer.simulate import evaluate_criterion_cli
+    from renderer.simulation.simulate import evaluate_criterion_cli
 
     if heldout is None:
         raise ValueError("bench tau needs --heldout DIR (the scenes no knob was set on)")

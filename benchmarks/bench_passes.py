@@ -3,7 +3,7 @@
 Three measurements, all warm, on this machine:
 
 * wall time of one block pass against the active pixels it traces (one kernel launch for
-  any set of blocks, `renderer.wavefront`), with the crop-window engine (one Mitsuba call
+  any set of blocks, `renderer.live.wavefront`), with the crop-window engine (one Mitsuba call
   per block) beside it: a linear fit gives the constant per pass and the cost per pixel;
 * the flip criterion's decision time against the number of blocks asked at once;
 * adaptive renders (flip) against uniform sampling to the same max spp, at 256x256 and at
@@ -26,8 +26,8 @@ RENDERS = (("env_spheres", 256, 32, 512), ("studio_preview", "1280x720", 32, 102
 
 def pass_cost(repeats: int = 3) -> dict[str, Any]:
     """Seconds per pass against active pixels, per engine, with a least-squares line."""
-    from renderer.blocks import BlockRenderer
-    from renderer.scenes import load_scene
+    from renderer.live.blocks import BlockRenderer
+    from renderer.scenes.catalog import load_scene
 
     scene, res, block, spp = PASS_SCENE
     out: dict[str, Any] = {"scene": scene, "resolution": res, "block": block, "spp": spp, "engines": {}}
@@ -69,8 +69,8 @@ def sample_cost(repeats: int = 3, steps: tuple[int, ...] = STEPS_PER_LAUNCH) -> 
     """
     import time
 
-    from renderer.blocks import BlockRenderer
-    from renderer.scenes import load_scene
+    from renderer.live.blocks import BlockRenderer
+    from renderer.scenes.catalog import load_scene
 
     scene, res, grid, spp = COST_SCENE
     br = BlockRenderer(load_scene(scene, res), grid=grid)
@@ -130,8 +130,8 @@ def block_costs(scene: str, resolution: Any, block: int | None = None, spp: int 
     """Seconds per sample of each block traced alone (warm): samples are not equally dear
     (a sky pixel's ray escapes at once, a glass pixel's bounces), so the samples a render
     saves and the time it saves differ by where it saved them."""
-    from renderer.blocks import BlockRenderer
-    from renderer.scenes import load_scene
+    from renderer.live.blocks import BlockRenderer
+    from renderer.scenes.catalog import load_scene
 
     br = BlockRenderer(load_scene(scene, resolution), block=block, grid=grid)
     br.render_units([0], spp, seed=0)
@@ -155,7 +155,7 @@ def oracle_speedup(repeats: int = 3, runs: tuple = ORACLE_RUNS) -> list[dict[str
     """
     import time
 
-    from renderer.adaptive import adaptive_render
+    from renderer.live.adaptive import adaptive_render
     from renderer.criteria import OracleCriterion, UniformCriterion
 
     order = np.random.default_rng(28).permutation(len(ORACLE_THRESHOLDS))
@@ -199,7 +199,7 @@ def oracle_speedup(repeats: int = 3, runs: tuple = ORACLE_RUNS) -> list[dict[str
 
 def render_scaling(repeats: int = 1) -> list[dict[str, Any]]:
     """Adaptive (flip) against uniform to the same max spp, per frame size."""
-    from renderer.adaptive import adaptive_render
+    from renderer.live.adaptive import adaptive_render
     from renderer.criteria import FlipCriterion, UniformCriterion
     from renderer.spec import DEFAULT_BLOCK
 
@@ -280,7 +280,7 @@ def bench_render(scene: str = "env_spheres", resolution: int = 256, max_spp: int
     import tempfile
 
     from learning.models.bundle import load_model
-    from renderer.adaptive import adaptive_render
+    from renderer.live.adaptive import adaptive_render
     from renderer.criteria import FlipCriterion, ModelCriterion, UniformCriterion
     runs: dict[str, list[dict]] = {"model": [], "flip": [], "uniform": []}
     m = load_model(model)

@@ -28,7 +28,7 @@ def per_sample(size: int = 256, spp: int = 256, step: int = 16, repeats: int = 3
     import renderer
     from learning.data.variant import select_variant
     from noisefeat.extras import require
-    from renderer.wavefront import WavefrontTracer
+    from renderer.live.wavefront import WavefrontTracer
 
     variant = select_variant()
     mi = require("mitsuba")

@@ -1,11 +1,11 @@
 """Decisions skipped towards a unit's predicted stop (issue 50): `noisestop bench skip`.
 
-The speed knob `decide_skip` (`renderer.passloop.next_decision`) judges a unit that is r
+The speed knob `decide_skip` (`renderer.live.passloop.next_decision`) judges a unit that is r
 times above its target again only at (skip r)^2 times its spp. What it saves is decisions
 (FLIP evaluations, the loop's own cost); what it may cost is samples (a stop found a few
 passes late) and accuracy (a unit judged less often could in principle stop on a different
 level). Both are measured here on held-out stacks, per scene, at tile and block grain, with
-the final frame judged by the version-3 observer (`renderer.simulate.end_of_render`).
+the final frame judged by the version-3 observer (`renderer.simulation.simulate.end_of_render`).
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ GRAINS = (("tile", 16), ("block", None))
 def bench_skip(data: str | None, heldout: str | None = None, taus: tuple[float, ...] = TAUS,
                skips: tuple[float, ...] = SKIPS) -> dict[str, Any]:
     """flip with each skip on the held-out stacks, per scene, at each grain and tau."""
-    from renderer.simulate import evaluate_criterion_cli
+    from renderer.simulation.simulate import evaluate_criterion_cli
 
     if heldout is None:
         raise ValueError("bench skip needs --heldout DIR (the scenes no knob was set on)")

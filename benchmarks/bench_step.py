@@ -27,7 +27,7 @@ def bench_step(data: str, heldout: str | None = None, multiples: tuple[int, ...]
     from learning.evaluation.metrics import evaluate_verdicts
     from learning.stoprule import StopRule
     from learning.inputs.halves import stack_flat
-    from renderer.adaptive import adaptive_render
+    from renderer.live.adaptive import adaptive_render
     from renderer.criteria import FlipCriterion, ModelCriterion, UniformCriterion
 
     from . import charts

@@ -23,7 +23,7 @@ TAU_MODEL = 0.02
 def bench_tile_stop(data: str | None, heldout: str | None = None, taus: tuple[float, ...] = TAUS,
                     model: str | None = None) -> dict[str, Any]:
     """Every run of `RUNS` (and `MODEL_RUNS` at TAU_MODEL) on the held-out stacks, per scene."""
-    from renderer.simulate import evaluate_criterion_cli
+    from renderer.simulation.simulate import evaluate_criterion_cli
 
     if heldout is None:
         raise ValueError("bench tilestop needs --heldout DIR (the scenes no knob was set on)")

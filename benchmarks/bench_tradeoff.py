@@ -72,7 +72,7 @@ def bench_tradeoff(data: str, heldout: str | None = None, out_dir: str | Path = 
     from learning.stoprule import StopRule
     from learning.inputs.halves import stack_flat
     from renderer.criteria import VarianceCriterion
-    from renderer.simulate import evaluate_criterion
+    from renderer.simulation.simulate import evaluate_criterion
 
     from . import charts
     from .bench_models import saved_comparisons

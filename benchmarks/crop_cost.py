@@ -1,6 +1,6 @@
 """The crop engine's cost: wall time of rendering some blocks alone against the full frame.
 
-Why here, not in renderer.blocks: it is a measurement of the renderer, not part of it
+Why here, not in renderer.live.blocks: it is a measurement of the renderer, not part of it
 (BENCHMARKS.md "Crop rendering", `bench crop`; `bench cost`'s selection part times every
 block alone with `time_crop_renders`).
 """
@@ -12,7 +12,7 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from renderer.blocks import BlockRenderer
+from renderer.live.blocks import BlockRenderer
 
 logger = logging.getLogger(__name__)
 
@@ -56,7 +56,7 @@ def measure_crop_cost(
     (``compile_*_s`` = first call minus the warm median). The goal is
     ``ratio ~= len(block_ids) / n_blocks`` (a quarter for 4 of 16).
     """
-    from renderer.scenes import load_scene
+    from renderer.scenes.catalog import load_scene
     from learning.data.variant import current_variant
 
     scene = load_scene(scene_name, resolution)

@@ -135,7 +135,7 @@ def other_cells(tmp_dir) -> dict[str, str]:
     from learning.data.synthetic import make_synthetic_stack
     from learning.stoprule import StopRule
     from renderer.criteria import FlipCriterion, OracleCriterion, VarianceCriterion
-    from renderer.simulate import simulate_stack
+    from renderer.simulation.simulate import simulate_stack
 
     def run(fn: Callable[[], Any]) -> str:
         return cell(lambda _: fn(), np.zeros(0))

@@ -8,7 +8,7 @@ business judging such out-of-distribution input.
 
 Who uses it: training's offset calibration and `evaluate` (`StopRule.stops` on stored
 score matrices), the simulation on stacks and the live render loop (`decide_active`,
-the gate `renderer.passloop.PassLoop.run_round` calls, with a criterion's `StopRule.verdict`), and the HTTP service
+the gate `renderer.live.passloop.PassLoop.run_round` calls, with a criterion's `StopRule.verdict`), and the HTTP service
 (`StopRule.verdict` on the blocks of one request). A NaN score is no decision: the block
 stays noisy. The dot guard (`dots_ratio`, `hold_dotted`) is the observer's sparse-outlier
 term seen through the half buffers: the live loop's criteria and the served `halves` route

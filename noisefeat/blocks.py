@@ -69,7 +69,7 @@ def compose(means: Sequence[np.ndarray], windows: Sequence[tuple[int, int, int, 
 
     Each pixel comes from the window holding it with the most samples (with keyed random
     numbers that window's samples include every other window's for the pixel). The one rule
-    for the frame a render ends with: the renderer's (`renderer.block_windows`) and the
+    for the frame a render ends with: the renderer's (`renderer.live.block_windows`) and the
     simulation's on stored stacks (`learning.data.tile_truth`).
     """
     h, w = frame

@@ -22,7 +22,7 @@ CAPS: dict[str, int] = {
     "token file": 64 << 10,       # a bearer token
     "scene": 64 << 20,            # a scene's XML
     "included scene": 64 << 20,   # an XML file a scene <include>s
-    "mesh": 2 << 30,              # a ply, obj or serialized mesh a scene names (renderer.scenefiles)
+    "mesh": 2 << 30,              # a ply, obj or serialized mesh a scene names (renderer.scenes.scenefiles)
     "texture": 2 << 30,           # a bitmap texture a scene names (an EXR's cap)
     "environment map": 2 << 30,   # an envmap's image (a 16k x 8k float RGB EXR: 1.5 GiB)
     "spectrum": 16 << 20,         # a spectrum's text file (wavelength, value lines)
@@ -35,7 +35,7 @@ CAPS: dict[str, int] = {
     "model": 96 << 20,            # a model.skops, packed and unpacked (the bundled one: 44 KB); under 100 MiB
     "transfer head": 256 << 20,   # a transfer bundle's tensors and state
     "weights": 256 << 20,         # safetensors weights (the feature base's: 60 KB; a transfer head's: MBs)
-    "checkpoint": 4 << 30,        # a render's checkpoint.npz (its own bound is the frame's: renderer.checkpoint)
+    "checkpoint": 4 << 30,        # a render's checkpoint.npz (its own bound is the frame's: renderer.live.checkpoint)
     "npz": 4 << 30,               # other .npz files (stack caches; each reader bounds it further)
     "file": 2 << 30,              # anything else
 }

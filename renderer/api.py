@@ -1,7 +1,7 @@
 """`renderer.render`: the adaptive render as a Python call, a scene in and arrays out.
 
 Mitsuba users expect ``mi.render(scene)`` semantics: a scene object in, an image out, no
-files. `render` runs the very loop of `noisestop render` (`renderer.adaptive.run_adaptive`:
+files. `render` runs the very loop of `noisestop render` (`renderer.live.adaptive.run_adaptive`:
 same seeds, same stops, same report) in memory and returns a `RenderResult`; its
 `save` writes the command line's files. Checkpoints and resuming stay command-line
 features (`noisestop render --resume`, `adaptive_render(resume=True)`): an in-memory
@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .errors import InputNotFound, ServerUnavailable
-from .result import RenderResult
+from .live.result import RenderResult
 from .setting_row import help_text
 from .spec import API, ARGUMENT, ROWS
 
@@ -71,7 +71,7 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
         ``image`` float32 [H, W, 3], ``spp`` int [H, W], ``converged`` bool [H, W] and
         ``report`` (the report.json dict); ``save(dir)`` writes the files.
     """
-    from .adaptive import run_adaptive
+    from .live.adaptive import run_adaptive
     from .plugin import register
 
     register()          # also before a scene file loads: its integrator may be `noisestop`

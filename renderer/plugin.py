@@ -8,7 +8,7 @@ It wraps another integrator, as Mitsuba's own ``aov`` and ``moment`` integrators
         <integrator type="path"/>
     </integrator>
 
-``mi.render(scene)`` then runs `renderer.adaptive.run_adaptive` with the nested
+``mi.render(scene)`` then runs `renderer.live.adaptive.run_adaptive` with the nested
 integrator and returns a [H, W, 5] tensor: R, G, B, then the two AOV channels the
 integrator's ``aov_names()`` lists, ``spp`` (samples per pixel) and ``converged`` (1 where
 the criterion stopped the block), the way Mitsuba's ``aov`` integrator appends its
@@ -16,8 +16,11 @@ channels. The last render's `RenderResult` (report included) is kept as
 ``integrator.result``.
 
 Properties (all optional): the render spec's rows the plugin offers
-(`renderer.spec.PLUGIN_ROWS`: every row but server, resolution, grid and defines, which
-name things outside the scene), plus ``progress`` (boolean). They are read once, in the
+(`renderer.spec.PLUGIN_ROWS`: ``criterion``, ``tau``, ``threshold``, ``offset``,
+``quantile``, ``model``, ``exposure``, ``block``, ``tile`` (the unit's side in pixels; the
+block's own side for whole blocks), ``min_spp``, ``max_spp``, ``step``, ``decide_skip``,
+``seed``, ``time_limit``, ``spp_budget``, ``quick_spp``: every row but server, resolution,
+grid and defines, which name things outside the scene), plus ``progress`` (boolean). They are read once, in the
 constructor, and resolved and checked there by the same resolver as `renderer.render`'s
 arguments (source "scene plugin"; unset ones take its defaults). ``mi.render``'s own
 arguments add to them: a nonzero ``spp`` is the render's max_spp, and ``seed`` is added to
@@ -25,7 +28,7 @@ the resolved seed, so ``mi.render(scene, seed=k)`` for k = 0, 1, ... gives indep
 renders, and ``mi.render(scene)`` equals ``renderer.render(scene, ...)`` with the same
 settings, and ``renderer.render(scene)`` on such a scene takes these properties for the
 arguments it is not given, as do ``renderer.render("FILE.xml")`` and ``noisestop render
---scene FILE.xml`` on such a file (`renderer.adaptive.run_adaptive` reads them once the
+--scene FILE.xml`` on such a file (`renderer.live.adaptive.run_adaptive` reads them once the
 file is loaded).
 
 A bad property (a wrong type, out of range, a block too small, min_spp above max_spp, two
@@ -118,7 +121,7 @@ class NoisestopIntegrator:
         """The adaptive render of `scene` from `sensor` as [H, W, 5] (R, G, B, spp, converged)."""
         from noisefeat.extras import require
 
-        from .adaptive import run_adaptive
+        from .live.adaptive import run_adaptive
 
         self.check()
         if not develop:

@@ -12,8 +12,8 @@ from typing import Any
 
 from tqdm import tqdm
 
-from .adaptive import adaptive_render, scene_label
-from .outputs import prepare_output_dir
+from .live.adaptive import adaptive_render, scene_label
+from .live.outputs import prepare_output_dir
 from .spec import COMMAND_LINE
 
 logger = logging.getLogger(__name__)

@@ -39,8 +39,8 @@ from typing import Any
 
 import numpy as np
 
-from .adaptive import adaptive_render
-from .outputs import prepare_output_dir, to_srgb8
+from .live.adaptive import adaptive_render
+from .live.outputs import prepare_output_dir, to_srgb8
 from .spec import DEFAULT_CRITERION
 from noisefeat.dots import REPORT_LEVEL
 from noisefeat.extras import require
@@ -66,16 +66,16 @@ def shipped_reference(scene: str) -> np.ndarray | None:
 
 def make_reference(scene: str, resolution: int = SETTINGS["resolution"]) -> Path:
     """Render `scene`'s reference as the dataset builder renders a stack's
-    (`renderer.stackbuild.render_mean`: REFERENCE_SPP full-frame samples of the keyed
+    (`renderer.dataset.stackbuild.render_mean`: REFERENCE_SPP full-frame samples of the keyed
     tracer, seed REFERENCE_SEED, which no render of the showcase uses) and write it where
     `shipped_reference` reads it, in half floats (about 150-270 KB at 256x256). Minutes on
     a CPU: run once per scene, then commit the file."""
     from learning.data.exr import write_exr
     from learning.data.variant import select_variant
 
-    from .blocks import BlockRenderer
-    from .scenes import load_scene
-    from .stackbuild import BuildSettings, render_mean
+    from .live.blocks import BlockRenderer
+    from .scenes.catalog import load_scene
+    from .dataset.stackbuild import BuildSettings, render_mean
 
     select_variant()
     build = BuildSettings()
@@ -99,8 +99,8 @@ def block_errors_vs(image: np.ndarray, reference: np.ndarray, report: dict[str, 
 
 def block_outliers_vs(image: np.ndarray, reference: np.ndarray, report: dict[str, Any], tau: float) -> np.ndarray:
     """int [blocks]: per block of `report`, the pixels of `image` whose display error against
-    `reference` exceeds the reports' dot level (`renderer.report.window_dots`)."""
-    from .report import window_dots
+    `reference` exceeds the reports' dot level (`renderer.live.report.window_dots`)."""
+    from .live.report import window_dots
 
     return window_dots(image, reference, [b["window"] for b in report["blocks"]], tau,
                        float(report["exposure"]))

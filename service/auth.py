@@ -2,7 +2,7 @@
 asked to (`serve --no-auth`), and then on loopback only.
 
 The token comes from NOISESTOP_TOKEN or from the file NOISESTOP_TOKEN_FILE names (a Docker
-or Kubernetes secret; the rule is `renderer.token`, shared with the client). A wrong or missing token gets the same fixed 401 (no hint of which),
+or Kubernetes secret; the rule is `renderer.client.token`, shared with the client). A wrong or missing token gets the same fixed 401 (no hint of which),
 and tokens are compared in constant time (hmac.compare_digest) so response timing does not
 leak how much of a guess was right.
 """
@@ -15,7 +15,7 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from renderer.token import ENV_TOKEN, ENV_TOKEN_FILE, resolve_token
+from renderer.client.token import ENV_TOKEN, ENV_TOKEN_FILE, resolve_token
 
 from .oip import ApiError
 

@@ -7,7 +7,7 @@ not validated element by element by pydantic: a 16-block request holds ~1.5 M nu
 Binary tensor extension (REFERENCES.md): the body is a JSON header of
 `Inference-Header-Content-Length` bytes followed by raw little-endian row-major tensors in
 input order, each announced by `parameters.binary_data_size`; the bytes go through the codec
-the client uses too (`renderer.oip_codec`).
+the client uses too (`renderer.client.oip_codec`).
 """
 from __future__ import annotations
 
@@ -18,9 +18,9 @@ import numpy as np
 import pydantic_core
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainValidator, ValidationError
 
-from renderer import oip_codec
+from renderer.client import oip_codec
 from service.jsonguard import max_depth
-from renderer.oip_codec import BINARY_EXTENSION, DATATYPES, HEADER_LENGTH, WireError, join_body, read_tensor, tensor_bytes
+from renderer.client.oip_codec import BINARY_EXTENSION, DATATYPES, HEADER_LENGTH, WireError, join_body, read_tensor, tensor_bytes
 
 __all__ = ["BINARY_EXTENSION", "DATATYPES", "HEADER_LENGTH", "ApiError", "decode_tensors", "encode_response",
            "parse_request", "split_body"]

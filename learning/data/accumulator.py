@@ -1,9 +1,9 @@
 """Exact cumulative per-unit means and the even/odd half buffers of a progressive render.
 
 A *unit* is what the loop samples, judges and stops: a live render's tiles (a whole block
-at block grain), a stored stack's blocks. Shared by the live loop (`renderer.passloop`,
+at block grain), a stored stack's blocks. Shared by the live loop (`renderer.live.passloop`,
 fed rendered passes) and everything that replays a stored stack (`learning.inputs.halves`,
-`renderer.simulate`, fed passes recovered from its levels): one arithmetic, so a
+`renderer.simulation.simulate`, fed passes recovered from its levels): one arithmetic, so a
 criterion sees bit-identical buffers either way.
 
 The sums live in torch tensors on the renderer's device (`device`: the GPU with Mitsuba's

@@ -134,7 +134,7 @@ class FinalFrame:
     """The frame a simulated render of `stack` ends with, judged by the version-3 block
     observer: each unit (a tile of `tile` pixels, or a whole block when None) at the level it
     stopped at, put together as the renderer composes it. The judge of every stop
-    (DESIGN "The judge of every stop is the final frame"): `renderer.simulate.end_of_render`
+    (DESIGN "The judge of every stop is the final frame"): `renderer.simulation.simulate.end_of_render`
     and the calibration against blocks above tau at the end. `observer`: the stack's at the
     noise target (`learning.data.observer.observer_for`). Levels are read once."""
 

@@ -3,7 +3,7 @@
 The protocol which every figure of BENCHMARKS.md follows:
 
 * Training and calibration see the training scenes only (the default dataset); the
-  held-out scenes (`renderer.heldout`, `make heldout`) are a separate dataset that no
+  held-out scenes (`renderer.scenes.heldout`, `make heldout`) are a separate dataset that no
   model, offset or threshold is fitted on. `check_disjoint` refuses a scene on both sides.
 * Knobs are calibrated on out-of-fold scores: the model's offset on leave-one-scene-out
   scores of the training scenes (`learning.evaluation.calibrate`), flip's c on the training scenes

@@ -10,13 +10,13 @@ history.
 Each estimate weighs the samples it stands for, w_j = spp_j minus the spp of the unit's
 decision before it (issue 50): decided after every pass of a constant step, every w_j is
 the step and this is the plain mean the tile curve of c(tau) was calibrated on; decided at
-geometric spp steps (`renderer.passloop.decision_passes`), it is the same mean sampled more
+geometric spp steps (`renderer.live.passloop.decision_passes`), it is the same mean sampled more
 sparsely, not one tilted towards the early, noisier levels. So one curve holds for every
 decision schedule.
 
 Two forms of one formula: `running` over a whole score matrix (the calibration on stored
 stacks), and `Evidence`, the sums the live loop keeps per unit between decisions
-(`renderer.passloop.PassLoop`, checkpointed with it) and adds each decision's estimate to.
+(`renderer.live.passloop.PassLoop`, checkpointed with it) and adds each decision's estimate to.
 A decision without a finite score adds nothing (but is the decision the next weight counts
 from); a unit without any finite score has no estimate (NaN: no decision).
 """
@@ -93,7 +93,7 @@ class Evidence:
         self.last[idx] = s
 
     def restore(self, sums: np.ndarray, last: np.ndarray) -> None:
-        """Continue from checkpointed sums (validated by `renderer.checkpoint`) and each
+        """Continue from checkpointed sums (validated by `renderer.live.checkpoint`) and each
         unit's last decided spp (from the verdict history)."""
         self.sums = np.array(sums, np.float64, copy=True).reshape(self.sums.shape)
         self.last = np.array(last, np.int64, copy=True).reshape(self.last.shape)

@@ -13,11 +13,11 @@ means and the two half buffers as tensors on the accumulator's device, spp, quic
 (converged: stop sampling it) or -1 (noisy: keep sampling) with its ratio to the target
 (> 1: above it; what a budget render spends by). The live loop and the simulation on
 stored stacks build the same batches and call the same `decide`
-(`renderer.passloop.PassLoop.judge`), so what is measured offline is what runs online.
+(`renderer.live.passloop.PassLoop.judge`), so what is measured offline is what runs online.
 
 A criterion is configuration only, as a scikit-learn estimator's parameters are: one
 object may judge any number of renders, in any order, in any process. What a render
-accumulates (its counters, timers and ratios) is the loop's (`renderer.passloop`); a
+accumulates (its counters, timers and ratios) is the loop's (`renderer.live.passloop`); a
 `Decision` carries one call's share of it.
 
 The model and flip criteria decide by the one stop rule (`learning.stoprule`): a block is
@@ -129,7 +129,7 @@ class Criterion(ABC):
     needs_halves: bool = False
     #: its ratio is a noise level over the target, falling as 1/sqrt(spp) as Monte Carlo
     #: noise does, so the loop may predict when a unit can stop and skip its decisions
-    #: before then (`renderer.passloop.next_decision`); else every pass is judged
+    #: before then (`renderer.live.passloop.next_decision`); else every pass is judged
     noise_ratio: bool = False
 
     @classmethod

@@ -86,7 +86,7 @@ class LocalScorer:
 
 
 class RemoteScorer:
-    """A verdict server (`renderer.client.RemoteModel`): it applies the stop rule itself at
+    """A verdict server (`renderer.client.remote.RemoteModel`): it applies the stop rule itself at
     its model's offset, or at `offset` when given (sent with every request, as is the
     exposure), so its verdicts are used as they come; it reports no ratio."""
 
@@ -159,7 +159,7 @@ class ModelCriterion(Criterion):
         """The model of `spec.model` (None: the bundled one) or the verdict server of
         `spec.server`; at tile grain, gating flip's tile verdicts (`renderer.criteria.gated`)."""
         if spec.server is not None:
-            from ..client import RemoteModel
+            from ..client.remote import RemoteModel
 
             url, _, name = spec.server.partition("#")
             scorer: Any = RemoteModel(url, model=name or "default", tau=spec.tau)

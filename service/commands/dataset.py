@@ -61,10 +61,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_dataset_build(args: argparse.Namespace) -> int:
-    from renderer.dataset import build_dataset
-    from renderer.procedural import expand_procedural
-    from renderer.scenes import list_scenes
-    from renderer.stackbuild import BuildSettings
+    from renderer.dataset.build import build_dataset
+    from renderer.scenes.procedural import expand_procedural
+    from renderer.scenes.catalog import list_scenes
+    from renderer.dataset.stackbuild import BuildSettings
 
     sets = {"training": False, "heldout": True}   # named sets of built-in scenes
     scenes = []

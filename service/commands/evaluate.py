@@ -44,7 +44,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         if getattr(args, key) is not None and key not in criterion_class(args.criterion).settings:
             log.warning("--%s is ignored with --criterion %s", key, args.criterion)
     if args.criterion != "model" or args.tile:      # the model per tile: gated, simulated as it renders
-        from renderer.simulate import evaluate_criterion_cli
+        from renderer.simulation.simulate import evaluate_criterion_cli
         result = evaluate_criterion_cli(args.data, args.criterion, arg.scene_list(args.scenes),
                                         min_spp=args.min_spp, threshold=args.threshold, tau=args.tau,
                                         tile=args.tile, model=args.model, offset=args.offset)

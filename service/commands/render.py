@@ -1,6 +1,6 @@
 """`noisestop render`: the adaptive progressive render of one scene or many.
 
-A thin layer on the in-memory loop (`renderer.adaptive.run_adaptive`, which
+A thin layer on the in-memory loop (`renderer.live.adaptive.run_adaptive`, which
 `renderer.render` also runs): the command adds the output folder, checkpoints and
 `--resume`, and several scenes on a pool."""
 from __future__ import annotations
@@ -38,15 +38,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from renderer.outlock import locked_output
-    from renderer.outputs import format_report
+    from renderer.live.outlock import locked_output
+    from renderer.live.outputs import format_report
     from renderer.render_many import render_command
-    from renderer.scenes import DEFAULT_SCENE
+    from renderer.scenes.catalog import DEFAULT_SCENE
 
     if args.scene is not None and not args.scene.strip(" ,"):
         raise UsageError(f"--scene is empty ({args.scene!r}): name a built-in scene or an XML file "
                          f"(left out, it is {DEFAULT_SCENE})")
-    try:       # --out is locked for the render's lifetime (renderer.outlock)
+    try:       # --out is locked for the render's lifetime (renderer.live.outlock)
         with locked_output(args.out):       # an empty --out or / is refused there, in one line
             scenes = DEFAULT_SCENE if args.scene is None else args.scene
             result = render_command(scenes, args.out, given_from_args(args),
@@ -63,7 +63,7 @@ NONFINITE_EXIT = 3
 
 
 def _print_result(args: argparse.Namespace, result: dict[str, Any], format_report: Any) -> int:
-    from renderer.report import nonfinite_line
+    from renderer.live.report import nonfinite_line
 
     single = "blocks" in result         # one scene: its report; several: a summary
     reports = [result] if single else list(result["scenes"].values())

@@ -27,7 +27,7 @@ def register_features(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_scenes(args: argparse.Namespace) -> int:
-    from renderer.scenes import list_scenes
+    from renderer.scenes.catalog import list_scenes
     held = {n for n, _ in list_scenes(heldout=True)}
     scenes = list_scenes()
     if args.json:
@@ -43,8 +43,8 @@ def cmd_features(args: argparse.Namespace) -> int:
     import numpy as np
 
     from noisefeat import FEATURE_NAMES, extract_features, split_blocks
-    from renderer.blocks import BlockRenderer
-    from renderer.scenes import DEFAULT_SCENE, load_scene
+    from renderer.live.blocks import BlockRenderer
+    from renderer.scenes.catalog import DEFAULT_SCENE, load_scene
     from learning.data.variant import select_variant
 
     arg.check_frame(args.resolution, args.resolution, tuple(args.grid), "--resolution/--grid")

@@ -199,11 +199,11 @@ def cmd_train(args: argparse.Namespace) -> int:
 def _refuse_heldout(scenes: list[str], what: str) -> None:
     """The built-in held-out scenes take no part in training or calibration."""
     from learning.evaluation.generalisation import check_disjoint
-    from renderer.scenes import list_scenes
+    from renderer.scenes.catalog import list_scenes
     try:
         check_disjoint(scenes, [n for n, _ in list_scenes(heldout=True)])
     except ValueError as exc:
-        raise UsageError(f"{what}: {exc} (renderer/heldout.py)") from None
+        raise UsageError(f"{what}: {exc} (renderer/scenes/heldout.py)") from None
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:

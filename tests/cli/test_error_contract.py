@@ -106,7 +106,7 @@ def _unwritable_dir(tmp_path: Path) -> Path:
 
 
 def test_read_only_output_folder_is_refused_before_the_first_pass(capsys, tmp_path, monkeypatch):
-    from renderer.blocks import BlockRenderer
+    from renderer.live.blocks import BlockRenderer
     rendered = []
     monkeypatch.setattr(BlockRenderer, "submit_passes", lambda *a, **k: rendered.append(1))
     rc, err = run(capsys, *RENDER, "--out", str(_unwritable_dir(tmp_path)))

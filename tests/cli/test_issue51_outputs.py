@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from renderer import adaptive, outputs
-from renderer.session import RenderSession
+from renderer.live import adaptive, outputs
+from renderer.live.session import RenderSession
 from service import cli
 from tests.support.errors import assert_one_line_error, run
 

@@ -21,9 +21,9 @@ from learning.stoprule import StopRule, decide_active
 from learning.inputs.halves import stack_flat
 from learning.inputs.table import load_table
 from learning.training.train import train_model
-from renderer.client import RemoteModel
+from renderer.client.remote import RemoteModel
 from renderer.criteria import FlipCriterion, ModelCriterion
-from renderer.simulate import evaluate_criterion, simulate_loop, simulate_stack
+from renderer.simulation.simulate import evaluate_criterion, simulate_loop, simulate_stack
 from tests.support.local_server import LocalServer
 from tests.support.stack_renderer import live
 from tests.support import FIXTURE_DATASET as FIXTURE

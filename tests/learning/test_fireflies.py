@@ -28,7 +28,7 @@ from learning.data.stack_write import write_stack
 from learning.inputs.halves import flip_c, load_flip_calibration
 from renderer.criteria import FlipCriterion
 from noisefeat.pooling import CRITERION_POOLING, POOLINGS
-from renderer.simulate import simulate_stack
+from renderer.simulation.simulate import simulate_stack
 
 STEP, LEVELS, SIZE = 32, 64, 64
 BG, P, F = 0.02, 2e-5, 12.0          # background, chance of a bright sample, its value

@@ -90,7 +90,7 @@ def test_non_finite_scores_are_no_decision_and_add_nothing() -> None:
 def test_flip_at_tile_grain_stops_on_the_history_and_at_block_grain_on_one_level() -> None:
     """A unit whose first estimate was loud and whose current level looks quiet stays noisy
     when its history says so; the same level alone (block grain) stops it. The evidence it
-    returns is what the loop adds (`renderer.passloop.PassLoop`)."""
+    returns is what the loop adds (`renderer.live.passloop.PassLoop`)."""
     from renderer.criteria import BlockBatch, BlockView, FlipCriterion
 
     def batch_of(noise: float, seed: int, spp: int, sums=None) -> BlockBatch:

@@ -15,7 +15,7 @@ from learning.data.exr import read_exr, write_exr
 from learning.inputs.halves import load_flip_calibration
 from noisefeat import safeio, userdata
 from noisefeat.safeio import InputFileError, read_input, read_json
-from renderer.token import resolve_token
+from renderer.client.token import resolve_token
 
 FIXTURES = Path(__file__).parents[1] / "fixtures" / "dataset"
 

@@ -15,7 +15,7 @@ from learning.data.accumulator import UnitAccumulator
 from renderer.criteria import ModelCriterion, OracleCriterion, UniformCriterion, VarianceCriterion
 from learning.inputs.halves import recover_passes
 from learning.data.dataset_dir import find_stack
-from renderer.simulate import criterion_factory, evaluate_criterion, evaluate_criterion_cli, simulate_loop, simulate_stack
+from renderer.simulation.simulate import criterion_factory, evaluate_criterion, evaluate_criterion_cli, simulate_loop, simulate_stack
 from tests.support.stack_renderer import live
 
 GRID = (4, 4)

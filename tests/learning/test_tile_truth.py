@@ -91,7 +91,7 @@ def test_the_simulation_decides_tiles_and_reports_both_grains(tmp_path) -> None:
     spends the tile oracle's samples: 20 of 32 spp a block here by construction (0.625x the
     block oracle, which waits for the slowest tile). Control: at block grain the same oracle
     saves nothing on this block."""
-    from renderer.simulate import criterion_factory, evaluate_criterion, simulate_loop
+    from renderer.simulation.simulate import criterion_factory, evaluate_criterion, simulate_loop
 
     ref, levels = _levels()
     obs = VirtualObserver()
@@ -118,7 +118,7 @@ def test_the_end_of_a_simulated_render_is_judged_by_the_block_observer(tmp_path)
     leave a clean block; the same stops one level early leave it above tau. Control: the
     composed frame is the one built here by hand."""
     from learning.data.block_terms import block_errors
-    from renderer.simulate import end_of_render
+    from renderer.simulation.simulate import end_of_render
 
     ref, levels = _levels()
     obs = VirtualObserver()

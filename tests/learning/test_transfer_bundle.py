@@ -26,7 +26,7 @@ from learning.names import MODEL_KINDS, TRANSFER_KINDS
 from learning.training import compare
 from learning.training.train_transfer import train_transfer
 from renderer.criteria import ModelCriterion
-from renderer.simulate import simulate_loop
+from renderer.simulation.simulate import simulate_loop
 from service.app import create_app
 from service.cli import main
 from service.registry import ModelRegistry

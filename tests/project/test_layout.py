@@ -15,6 +15,13 @@ PACKAGES = ("noisefeat", "learning", "renderer", "service")
 BENCHMARKS = "benchmarks"
 #: learning's rooms, each importing only from those before it (learning/__init__.py)
 LEARNING = {"names": 0, "stoprule": 0, "data": 1, "inputs": 2, "models": 3, "evaluation": 4, "training": 5}
+#: renderer's rooms (issue 52): a folder per job, each importing only the jobs named here and
+#: the shared modules at the top; the shared modules import no job but the criteria; the
+#: doors at the top (the package, api, plugin, render_many, showcase) may import any room
+RENDERER_JOBS = {"client": set(), "criteria": {"client"}, "scenes": set(), "live": {"criteria", "scenes"},
+                 "simulation": {"criteria", "live"}, "dataset": {"live", "scenes"}}
+RENDERER_SHARED = {"spec", "spec_rows", "setting_row", "errors", "farm"}
+RENDERER_DOORS = {"api", "plugin", "render_many", "showcase"}
 
 
 def _modules(root: Path = ROOT, packages: tuple[str, ...] = PACKAGES) -> dict[str, Path]:
@@ -288,3 +295,46 @@ def test_the_checker_sees_the_service_import_the_benchmarks(tmp_path) -> None:
     (tmp_path / "service" / "registry.py").write_text("import json\n")
     assert benchmark_imports(tmp_path) == [("service/app.py", "benchmarks.loadtest"),
                                            ("service/oip.py", "'benchmarks.attack'")]
+
+
+def renderer_room_breaches(graph: dict[str, set[str]]) -> list[tuple[str, str]]:
+    """(importer, imported) for every import of a renderer module that its room may not make
+    (RENDERER_JOBS: the live loop imports neither the simulation nor dataset building, say)."""
+    def room(mod: str) -> str | None:
+        parts = mod.split(".")
+        return parts[1] if parts[0] == "renderer" and len(parts) > 1 else None
+    out = []
+    for a, deps in graph.items():
+        ra = room(a)
+        if ra is None or ra in RENDERER_DOORS:
+            continue
+        allowed = RENDERER_JOBS.get(ra, {"criteria"}) | RENDERER_SHARED | {ra}
+        out += [(a, b) for b in deps if b.split(".")[0] == "renderer" and (room(b) not in allowed)]
+    return sorted(out)
+
+
+def test_renderer_jobs_point_one_way() -> None:
+    """Each of renderer's five jobs has its folder, and its imports, even inside functions,
+    follow RENDERER_JOBS."""
+    rooms = {p.stem for p in (ROOT / "renderer").iterdir() if p.suffix == ".py" or (p / "__init__.py").is_file()}
+    assert set(RENDERER_JOBS) | RENDERER_SHARED | RENDERER_DOORS | {"__init__"} == rooms
+    assert renderer_room_breaches(_graph(anywhere=True)) == []
+
+
+def test_the_checker_sees_a_job_import_another(tmp_path) -> None:
+    """Control: the live loop importing the simulation inside a function, the scene library
+    importing the live loop and a shared module importing a job are found; the simulation
+    importing the live loop and a door importing anything are not."""
+    for pkg in ("renderer", "renderer/live", "renderer/scenes", "renderer/simulation"):
+        (tmp_path / pkg).mkdir()
+        (tmp_path / pkg / "__init__.py").write_text("")
+    (tmp_path / "renderer" / "live" / "adaptive.py").write_text("def f():\n    from ..simulation import simulate\n")
+    (tmp_path / "renderer" / "scenes" / "catalog.py").write_text("from renderer.live.adaptive import f\n")
+    (tmp_path / "renderer" / "simulation" / "simulate.py").write_text("from ..live import adaptive\n")
+    (tmp_path / "renderer" / "spec.py").write_text("from .scenes import catalog\n")
+    (tmp_path / "renderer" / "api.py").write_text("from .simulation import simulate\nfrom .live import adaptive\n")
+    graph = _graph(anywhere=True, root=tmp_path, packages=("renderer",))
+    assert renderer_room_breaches(graph) == [
+        ("renderer.live.adaptive", "renderer.simulation"), ("renderer.live.adaptive", "renderer.simulation.simulate"),
+        ("renderer.scenes.catalog", "renderer.live.adaptive"), ("renderer.spec", "renderer.scenes"),
+        ("renderer.spec", "renderer.scenes.catalog")]

@@ -32,28 +32,28 @@ _SIMULATE = ("the offline simulation's own door (stored stacks, evaluate): it ta
              "through resolve, and checks them by the rows' own checks")
 #: (module, scope, setting) -> why it may stay
 ALLOWED: dict[tuple[str, str, str], str] = {
-    ("renderer/blocks.py", "BlockRenderer.quick_image", "seed"):
+    ("renderer/live/blocks.py", "BlockRenderer.quick_image", "seed"):
         "a method's own default for callers outside a render (the loop and the dataset build pass theirs)",
-    ("renderer/heldout.py", "marble", "seed"): "a procedural texture's seed, not the sampler's",
-    ("renderer/heldout.py", "wood", "seed"): "a procedural texture's seed, not the sampler's",
-    ("renderer/heldout.py", "studio_environment", "seed"): "a procedural texture's seed, not the sampler's",
-    ("renderer/outputs.py", "to_srgb8", "exposure"): _DISPLAY,
-    ("renderer/report.py", "window_dots", "exposure"): _DISPLAY,
-    ("renderer/report.py", "final_vs_reference", "exposure"): _DISPLAY,
+    ("renderer/scenes/heldout.py", "marble", "seed"): "a procedural texture's seed, not the sampler's",
+    ("renderer/scenes/heldout.py", "wood", "seed"): "a procedural texture's seed, not the sampler's",
+    ("renderer/scenes/heldout.py", "studio_environment", "seed"): "a procedural texture's seed, not the sampler's",
+    ("renderer/live/outputs.py", "to_srgb8", "exposure"): _DISPLAY,
+    ("renderer/live/report.py", "window_dots", "exposure"): _DISPLAY,
+    ("renderer/live/report.py", "final_vs_reference", "exposure"): _DISPLAY,
     ("renderer/plugin.py", "NoisestopIntegrator.render", "seed"):
         "Mitsuba's Integrator.render signature (mi.render's seed, added to the resolved one)",
-    ("renderer/passloop.py", "PassLoop.__init__", "decide_skip"):
+    ("renderer/live/passloop.py", "PassLoop.__init__", "decide_skip"):
         "the loop's own default for callers outside a render (every pass judged); a render passes its spec's",
-    ("renderer/client.py", "RemoteModel.__init__", "model"):
+    ("renderer/client/remote.py", "RemoteModel.__init__", "model"):
         "the name a verdict server serves a model under (DESIGN 'HTTP API': `default`), not a bundle's path",
-    ("renderer/simulate.py", "simulate_loop", "min_spp"): _SIMULATE,
-    ("renderer/simulate.py", "simulate_loop", "decide_skip"): _SIMULATE,
-    ("renderer/simulate.py", "simulate_budget", "spp_budget"): _SIMULATE,
-    ("renderer/simulate.py", "_as_stacks", "tau"): _SIMULATE,
-    ("renderer/simulate.py", "evaluate_criterion", "tau"): _SIMULATE,
-    ("renderer/simulate.py", "evaluate_criterion_cli", "tau"): _SIMULATE,
-    ("renderer/simulate.py", "criterion_factory", "tile"): _SIMULATE + " (None: whole blocks)",
-    **{("renderer/stackbuild.py", "BuildSettings", name):
+    ("renderer/simulation/simulate.py", "simulate_loop", "min_spp"): _SIMULATE,
+    ("renderer/simulation/simulate.py", "simulate_loop", "decide_skip"): _SIMULATE,
+    ("renderer/simulation/simulate.py", "simulate_budget", "spp_budget"): _SIMULATE,
+    ("renderer/simulation/simulate.py", "_as_stacks", "tau"): _SIMULATE,
+    ("renderer/simulation/simulate.py", "evaluate_criterion", "tau"): _SIMULATE,
+    ("renderer/simulation/simulate.py", "evaluate_criterion_cli", "tau"): _SIMULATE,
+    ("renderer/simulation/simulate.py", "criterion_factory", "tile"): _SIMULATE + " (None: whole blocks)",
+    **{("renderer/dataset/stackbuild.py", "BuildSettings", name):
        "the dataset build's own settings (its one table, stored in each stack's meta.json), not a render's"
        for name in ("resolution", "step", "grid", "quick_spp", "seed")},
 }

@@ -33,7 +33,7 @@ ALLOWED = {
     ("learning/data/exr.py", "PIL.Image.open"): "bytes from safeio.read_input",
     ("learning/models/bundle_check.py", "ZipFile"): "bytes from safeio.read_input, or an archive being written",
     ("learning/models/transfer_weights.py", "torch.load"): "bytes from safeio.read_input",
-    ("renderer/scenes.py", "load_file"): "Mitsuba reads the XML and what it names after renderer.scenefiles checked them",
+    ("renderer/scenes/catalog.py", "load_file"): "Mitsuba reads the XML and what it names after renderer.scenes.scenefiles checked them",
 }
 
 

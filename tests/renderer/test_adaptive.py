@@ -11,11 +11,11 @@ from learning.models.bundle import load_model, save_model
 from learning.models.estimators import DSVM
 from learning.data.exr import read_exr
 from learning.inputs.table import stack_features
-from renderer import adaptive
-from renderer.adaptive import CHECKPOINT, adaptive_render
+from renderer.live import adaptive
+from renderer.live.adaptive import CHECKPOINT, adaptive_render
 from renderer.render_many import render_command, render_many
-from renderer.passloop import schedule
-from renderer.blocks import BlockRenderer
+from renderer.live.passloop import schedule
+from renderer.live.blocks import BlockRenderer
 from renderer.criteria import ModelCriterion, OracleCriterion, UniformCriterion, VarianceCriterion
 
 pytestmark = pytest.mark.slow

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from learning.data.exr import read_exr
-from renderer.adaptive import adaptive_render, run_adaptive
-from renderer.blocks import BlockRenderer
-from renderer.budget import Budget
+from renderer.live.adaptive import adaptive_render, run_adaptive
+from renderer.live.blocks import BlockRenderer
+from renderer.live.budget import Budget
 from renderer.criteria import OracleCriterion, UniformCriterion, VarianceCriterion
-from renderer.passloop import PassLoop, schedule
+from renderer.live.passloop import PassLoop, schedule
 from renderer.spec import MAX_SPP
 from tests.support.errors import assert_one_line_error, run
 from tests.renderer.test_renderer_blocks import _scene
@@ -143,7 +143,7 @@ def test_bad_budgets_are_refused_at_each_door_by_one_check(bad) -> None:
     a stack refuse the same budgets, MAX_SPP included (the budget's own check had no upper
     bound, issue 40)."""
     from learning import make_synthetic_stack
-    from renderer.simulate import simulate_budget
+    from renderer.simulation.simulate import simulate_budget
     from renderer.spec import ROW
 
     with pytest.raises(ValueError, match="spp_budget must be a finite number in") as one:
@@ -262,8 +262,8 @@ def test_a_budget_render_resumes_to_the_same_image(tmp_path, monkeypatch) -> Non
 
 def test_the_budget_simulated_on_a_stack(tmp_path) -> None:
     from learning import make_synthetic_stack
-    from renderer.simulate import simulate_budget
-    from renderer.simulate import simulate_stack
+    from renderer.simulation.simulate import simulate_budget
+    from renderer.simulation.simulate import simulate_stack
 
     spp = [32 * (k + 1) for k in range(12)]
     st = make_synthetic_stack(tmp_path / "s", size=64, spp=spp, seed=1, label=False)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from learning.data.npz import DIGEST_KEY, read_npz, savez_bytes
-from renderer.checkpoint import CHECKPOINT
+from renderer.live.checkpoint import CHECKPOINT
 from tests.support.errors import assert_one_line_error, run
 
 pytestmark = pytest.mark.slow

@@ -8,7 +8,7 @@ from http.server import BaseHTTPRequestHandler
 import numpy as np
 import pytest
 
-from renderer.client import HEADER_LENGTH, RemoteModel
+from renderer.client.remote import HEADER_LENGTH, RemoteModel
 from renderer.criteria import BlockView, ModelCriterion
 from tests.support.live_server import handler_server
 

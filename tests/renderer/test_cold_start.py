@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from renderer.adaptive import adaptive_render
-from renderer.checkpoint import CHECKPOINT
+from renderer.live.adaptive import adaptive_render
+from renderer.live.checkpoint import CHECKPOINT
 from renderer.criteria import VarianceCriterion
 
 TINY = {"resolution": 32, "grid": (2, 2), "step": 4, "min_spp": 4, "max_spp": 12, "progress": False}
@@ -38,7 +38,7 @@ def test_the_spp_map_is_drawn_without_matplotlib() -> None:
     from PIL import Image
 
     code = ("import sys, numpy as np\n"
-            "from renderer.outputs import spp_map_png\n"
+            "from renderer.live.outputs import spp_map_png\n"
             "spp = np.array([[16] * 32 + [1024] * 32] * 64, float)\n"
             "png = spp_map_png(spp, [[0, 0, 32, 64], [32, 0, 32, 64]], [16, 1024], [True, False], 16, 1024)\n"
             "sys.stdout.buffer.write(png)\n"
@@ -47,7 +47,7 @@ def test_the_spp_map_is_drawn_without_matplotlib() -> None:
     assert out.returncode == 0, out.stderr.decode()[-400:]
     img = np.asarray(Image.open(io.BytesIO(out.stdout)).convert("RGB")).astype(int)
     assert img.shape[0] >= 400 and img.std() > 10
-    from renderer.outputs import MAP_SIZE, MARGIN
+    from renderer.live.outputs import MAP_SIZE, MARGIN
     scale = MAP_SIZE // 64
     low = img[MARGIN + 10 * scale, MARGIN + 5 * scale]            # inside the 16-spp block
     high = img[MARGIN + 10 * scale, MARGIN + 60 * scale]          # inside the 1024-spp block

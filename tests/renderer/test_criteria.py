@@ -224,7 +224,7 @@ def test_a_criterion_is_configuration_only_and_the_loop_keeps_the_render(model_a
     there), so one object judges any number of renders alike; the loop counts, and prepares
     the quick image's features once per render (16 quick rows, then one row per block asked)."""
     from renderer.criteria import FlipCriterion
-    from renderer.simulate import simulate_loop
+    from renderer.simulation.simulate import simulate_loop
 
     model, st = model_and_stack
     for crit in (ModelCriterion(model), VarianceCriterion(0.08), FlipCriterion(0.05), OracleCriterion(st.thresholds)):

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from learning import check_dataset, read_stack
-from renderer import stackbuild
-from renderer.stackbuild import BuildSettings, build_stack
+from renderer.dataset import stackbuild
+from renderer.dataset.stackbuild import BuildSettings, build_stack
 
 TINY = BuildSettings(resolution=32, step=4, levels=4, reference_spp=128, contact_sheet=False)
 
@@ -58,7 +58,7 @@ def test_interrupted_build_resumes_to_the_same_stack(tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_dask_local_cluster_of_two_workers(tmp_path):
-    from renderer.dataset import build_dataset
+    from renderer.dataset.build import build_dataset
     summary = build_dataset(["cornell", "sky"], tmp_path, TINY, workers=2, progress=False)
     assert summary["failed"] == {}
     assert [r["scene"] for r in summary["scenes"]] == ["cornell", "sky"]
@@ -67,7 +67,7 @@ def test_dask_local_cluster_of_two_workers(tmp_path):
     # a flat sky is converged at the first level everywhere
     assert read_stack(tmp_path / "sky").thresholds == [4] * 16
     # every run is on record; the bench reports the latest run that rendered anything
-    from renderer.dataset import read_build_log
+    from renderer.dataset.build import read_build_log
     from benchmarks.bench_models import bench_dataset, md_dataset
     again = build_dataset(["cornell", "sky"], tmp_path, TINY, workers=1, progress=False)
     assert all(r["already_built"] for r in again["scenes"])
@@ -81,7 +81,7 @@ def test_dask_local_cluster_of_two_workers(tmp_path):
 
 
 def test_dataset_without_a_build_log_is_a_clear_error(tmp_path):
-    from renderer.dataset import BUILD_LOG
+    from renderer.dataset.build import BUILD_LOG
     from benchmarks.bench_models import bench_dataset
     with pytest.raises(ValueError, match="no build run on record"):
         bench_dataset(str(tmp_path))

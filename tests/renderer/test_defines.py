@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from renderer.scenes import load_scene
+from renderer.scenes.catalog import load_scene
 from service import cli
 from tests.support.errors import assert_one_line_error, run   # the one error contract's checks
 
@@ -79,7 +79,7 @@ def test_bad_time_limit_is_a_one_line_usage_error(value, tmp_path, capsys):
 
 
 def test_resume_with_other_d_values_is_refused(xml, tmp_path):
-    from renderer.adaptive import adaptive_render
+    from renderer.live.adaptive import adaptive_render
     from renderer.criteria import UniformCriterion
     kw = dict(grid=(2, 2), step=8, min_spp=8, max_spp=32, progress=False)
     adaptive_render(str(xml), tmp_path / "o", UniformCriterion(), time_limit=1e-6,

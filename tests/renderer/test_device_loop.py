@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from renderer.adaptive import run_adaptive
+from renderer.live.adaptive import run_adaptive
 from renderer.criteria import BlockBatch, FlipCriterion, OracleCriterion
-from renderer.session import grown_passes
+from renderer.live.session import grown_passes
 from tests.support import passloop_golden as golden
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -177,7 +177,7 @@ def test_a_reused_criterion_carries_nothing_into_the_next_render() -> None:
     """simulate_budget twice with one criterion object: the second render is the first
     (ratios of the first render used to reorder the second's rounds)."""
     from learning import make_synthetic_stack
-    from renderer.simulate import simulate_budget
+    from renderer.simulation.simulate import simulate_budget
 
     st = make_synthetic_stack(Path(__import__("tempfile").mkdtemp()) / "s", size=32, spp=tuple(range(8, 200, 8)))
     late = [None if b % 5 == 0 else 8 * (1 + b % 7) for b in range(st.n_blocks)]
@@ -192,8 +192,8 @@ def test_block_renderer_puts_the_kernel_history_flag_back(variant) -> None:
         pytest.skip("the flag exists on JIT variants only")
     import drjit as dr
 
-    from renderer.blocks import BlockRenderer
-    from renderer.scenes import load_scene
+    from renderer.live.blocks import BlockRenderer
+    from renderer.scenes.catalog import load_scene
 
     dr.set_flag(dr.JitFlag.KernelHistory, False)
     with BlockRenderer(load_scene("cornell", 32), grid=(2, 2)) as br:

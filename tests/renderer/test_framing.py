@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from renderer.scenes import load_scene, scene_dict
+from renderer.scenes.catalog import load_scene, scene_dict
 
 XML = """<scene version="3.0.0">
   <default name="axis" value="smaller"/>

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from renderer.spec import resolve
-from renderer.outlock import LOCK_NAME, OutputLocked, locked_output
+from renderer.live.outlock import LOCK_NAME, OutputLocked, locked_output
 
 
 @pytest.mark.parametrize("kwargs, name", [
@@ -30,7 +30,7 @@ def test_each_bad_argument_is_named(kwargs, name):
 
 
 def test_run_adaptive_names_max_spp_not_min_spp():
-    from renderer.adaptive import run_adaptive
+    from renderer.live.adaptive import run_adaptive
     with pytest.raises(ValueError, match="^max_spp must"):
         run_adaptive("cornell", "uniform", max_spp=-1, progress=False)
 
@@ -44,7 +44,7 @@ def test_a_budget_below_one_pass_is_refused():
 @pytest.mark.parametrize("value", [np.nan, np.inf])
 def test_a_non_finite_reference_is_refused(value):
     img = np.full((4, 4, 3), value, np.float32)
-    from renderer.adaptive import load_reference
+    from renderer.live.adaptive import load_reference
 
     with pytest.raises(ValueError, match="non-finite"):
         load_reference(img, "scene")

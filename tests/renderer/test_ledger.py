@@ -1,12 +1,12 @@
-"""A render's counters and timers have one owner, its ledger (`renderer.ledger`, issue 52)."""
+"""A render's counters and timers have one owner, its ledger (`renderer.live.ledger`, issue 52)."""
 from __future__ import annotations
 
 import numpy as np
 
-from renderer.budget import Budget
+from renderer.live.budget import Budget
 from renderer.criteria import COUNTER_NAMES, TIMER_NAMES, UniformCriterion
-from renderer.ledger import RENDER_COUNTERS, RENDER_TIMERS, Ledger
-from renderer.passloop import PassLoop, schedule
+from renderer.live.ledger import RENDER_COUNTERS, RENDER_TIMERS, Ledger
+from renderer.live.passloop import PassLoop, schedule
 
 
 def test_a_resume_adds_the_process_costs_and_replaces_the_decisions() -> None:

@@ -1,4 +1,4 @@
-"""One Open Inference Protocol binary codec (renderer/oip_codec.py) for client and server:
+"""One Open Inference Protocol binary codec (renderer/client/oip_codec.py) for client and server:
 what the client encodes the server decodes, what the server encodes the client decodes,
 and neither end packs or unpacks tensor bytes on its own."""
 from __future__ import annotations
@@ -9,9 +9,9 @@ import json
 import numpy as np
 import pytest
 
-from renderer import oip_codec
-from renderer.client import RemoteModel
-from renderer.oip_codec import WireError, join_body, read_tensor, split_body, tensor_bytes
+from renderer.client import oip_codec
+from renderer.client.remote import RemoteModel
+from renderer.client.oip_codec import WireError, join_body, read_tensor, split_body, tensor_bytes
 from tests.support import ROOT
 
 
@@ -57,7 +57,7 @@ def test_codec_checks_sizes_and_lengths() -> None:
 
 def test_neither_end_has_its_own_codec() -> None:
     """No np.frombuffer / .tobytes() in the client or the server's protocol module."""
-    for rel in ("renderer/client.py", "service/oip.py"):
+    for rel in ("renderer/client/remote.py", "service/oip.py"):
         tree = ast.parse((ROOT / rel).read_text())
         own = [n.lineno for n in ast.walk(tree) if isinstance(n, ast.Attribute) and n.attr in ("frombuffer", "tobytes")]
         assert own == [], f"{rel}: tensor bytes packed by hand at lines {own}"

@@ -164,7 +164,7 @@ def what_the_loop_gets(mi, monkeypatch, route) -> dict:
     """The criterion (its report entry and exposure) and settings the loop gets from what
     `route()` hands to run_adaptive, which is stubbed out after the one resolver and the
     one criterion factory: nothing renders."""
-    import renderer.adaptive
+    import renderer.live.adaptive
     from renderer.criteria import make_criterion
     from renderer.spec import ARGUMENT, resolve
 
@@ -178,7 +178,7 @@ def what_the_loop_gets(mi, monkeypatch, route) -> dict:
                     **{k: getattr(spec, k) for k in LOOP_ARGS if k != "progress"})
         raise _Stop
     with monkeypatch.context() as m:
-        m.setattr(renderer.adaptive, "run_adaptive", stub)
+        m.setattr(renderer.live.adaptive, "run_adaptive", stub)
         with pytest.raises(_Stop):
             route()
     return seen
@@ -289,3 +289,11 @@ def test_register_is_idempotent(mi, monkeypatch):
     monkeypatch.setattr(plugin, "_registered", set(plugin._registered))
     calls, returned = registrations(mi, monkeypatch, reregistering)
     assert calls == ["noisestop"] * 3 and returned == [mi.variant()] * 3     # same strings: the old test passed
+
+
+def test_the_docstring_names_every_property() -> None:
+    """The module docstring names each property the plugin reads (it once left out ``tile``)."""
+    from renderer import plugin
+
+    doc = plugin.__doc__ or ""
+    assert [p for p in plugin.PROPERTIES if f"``{p}``" not in doc] == []

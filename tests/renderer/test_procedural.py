@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from renderer.procedural import (expand_procedural, procedural_name, procedural_scene,
+from renderer.scenes.procedural import (expand_procedural, procedural_name, procedural_scene,
                                  procedural_seed)
-from renderer.scenes import load_scene, scene_dict
+from renderer.scenes.catalog import load_scene, scene_dict
 from learning.data.variant import select_variant
 
 
@@ -73,7 +73,7 @@ def test_bad_seed_is_refused():
 @pytest.mark.slow
 def test_a_procedural_scene_loads_and_renders():
     """A zoomed scene (seed 1: zoom 2) renders its 32x32 window, not the whole frame."""
-    from renderer.blocks import BlockRenderer
+    from renderer.live.blocks import BlockRenderer
 
     assert procedural_scene(1, 32)["sensor"]["film"]["width"] == 64
     br = BlockRenderer(load_scene("proc-0001", resolution=32), grid=(1, 1))

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 
 from learning.data.exr import read_exr, read_exr_channels
-from renderer.adaptive import adaptive_render
-from renderer.passloop import schedule
-from renderer.blocks import BlockRenderer
+from renderer.live.adaptive import adaptive_render
+from renderer.live.passloop import schedule
+from renderer.live.blocks import BlockRenderer
 from renderer.criteria import VarianceCriterion
-from renderer.scenes import load_scene
+from renderer.scenes.catalog import load_scene
 from service import cli
 from tests.support.errors import assert_one_line_error, run
 

@@ -9,7 +9,7 @@ import pytest
 
 import renderer
 from learning.data.exr import read_exr_channels, write_exr
-from renderer.adaptive import adaptive_render
+from renderer.live.adaptive import adaptive_render
 from service import cli
 
 pytestmark = pytest.mark.slow
@@ -95,7 +95,7 @@ def test_render_is_the_command_lines_loop(flip_result, tmp_path):
 def test_a_loaded_scene_renders_as_its_name(flip_result):
     import mitsuba as mi
 
-    from renderer.scenes import scene_dict
+    from renderer.scenes.catalog import scene_dict
 
     scene = mi.load_dict(scene_dict("cornell", 64))
     r = renderer.render(scene, **{k: v for k, v in TINY.items() if k != "resolution"})

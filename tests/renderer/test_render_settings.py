@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from learning import make_synthetic_stack
-from renderer.adaptive import adaptive_render
+from renderer.live.adaptive import adaptive_render
 from renderer.criteria import UniformCriterion
 from renderer.spec import FIELDS, ROWS, RenderSpec, reference_settings, resolve
 

@@ -28,12 +28,12 @@ class Resolved(BaseException):
 
 @pytest.fixture
 def caught(monkeypatch):
-    import renderer.adaptive
+    import renderer.live.adaptive
     from renderer.spec import resolve
 
     def resolved(*args: Any, **kwargs: Any) -> Any:
         raise Resolved(resolve(*args, **kwargs))
-    monkeypatch.setattr(renderer.adaptive, "resolve", resolved)
+    monkeypatch.setattr(renderer.live.adaptive, "resolve", resolved)
 
 
 #: per row: (values that resolve, values refused). A value is (API value, command-line

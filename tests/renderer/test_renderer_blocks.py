@@ -7,8 +7,8 @@ import torch
 import pytest
 
 from learning.data.accumulator import UnitAccumulator
-from renderer.blocks import BlockRenderer, derive_seed
-from renderer.scenes import load_scene
+from renderer.live.blocks import BlockRenderer, derive_seed
+from renderer.scenes.catalog import load_scene
 from tests.support.windows import block_slices
 
 
@@ -89,7 +89,7 @@ def _scene(name: str, size: int, rfilter: str = "box", width: int | None = None)
     mostly use Mitsuba's default, the Gaussian of radius 2 px)."""
     import mitsuba as mi
 
-    from renderer.scenes import scene_dict
+    from renderer.scenes.catalog import scene_dict
 
     d = scene_dict(name, size)
     d["sensor"]["film"]["rfilter"] = {"type": rfilter}
@@ -177,7 +177,7 @@ COMPILES = """
 import json, sys
 sys.path.insert(0, {tests!r})
 from test_renderer_blocks import _scene
-from renderer.blocks import BlockRenderer
+from renderer.live.blocks import BlockRenderer
 out = {{}}
 for rfilter in ("box", "gaussian"):
     r = BlockRenderer(_scene("cornell", 32, rfilter), grid=(4, 4))
@@ -231,7 +231,7 @@ def test_block_windows_cover_any_frame_with_full_size_edge_windows() -> None:
 
 
 def test_compose_takes_each_pixel_from_the_window_with_most_samples() -> None:
-    from renderer.block_windows import compose
+    from renderer.live.block_windows import compose
 
     windows = [(0, 0, 4, 4), (2, 0, 4, 4)]                  # 6x4 frame, columns 2-3 shared
     means = [np.full((4, 4, 3), 1.0), np.full((4, 4, 3), 2.0)]

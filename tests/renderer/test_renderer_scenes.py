@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from renderer.scenes import DEFAULT_SCENE, SCENES, list_scenes, load_scene, scene_dict
+from renderer.scenes.catalog import DEFAULT_SCENE, SCENES, list_scenes, load_scene, scene_dict
 from renderer.spec import ROW
 
 
@@ -173,7 +173,7 @@ def test_held_out_scenes_are_a_separate_set() -> None:
 
 
 def test_procedural_textures_are_seeded_and_in_range() -> None:
-    from renderer.heldout import marble, studio_environment, wood
+    from renderer.scenes.heldout import marble, studio_environment, wood
     for make in (marble, wood, studio_environment):
         a, b = make(), make()
         assert np.array_equal(a, b) and np.isfinite(a).all() and a.min() >= 0 and a.dtype == np.float32

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from renderer.scenes import load_scene
-from renderer.scenefiles import MAX_DEPTH, check_scene_files
+from renderer.scenes.catalog import load_scene
+from renderer.scenes.scenefiles import MAX_DEPTH, check_scene_files
 from tests.support.bad_files import bad_file as make_bad_file
 from tests.support.errors import assert_one_line_error, run
 

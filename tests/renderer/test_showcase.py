@@ -79,7 +79,7 @@ def test_equal_time_png_without_stopped_blocks_has_no_bottom_row():
 def test_the_report_counts_dots_in_stopped_blocks_only():
     """`final_vs_reference` (render --reference, the benchmarks): per block the pixels over
     0.05 at tau 0.02, the most in a stopped block, and the stopped blocks over 16."""
-    from renderer.report import final_vs_reference
+    from renderer.live.report import final_vs_reference
 
     ref = np.zeros((128, 128, 3))
     img = ref.copy()
@@ -117,9 +117,9 @@ def test_make_reference_writes_the_stack_builders_mean_in_half_floats(tmp_path, 
     rounding, finite and lit."""
     from learning.data.variant import select_variant
     from renderer import showcase
-    from renderer.blocks import BlockRenderer
-    from renderer.scenes import load_scene
-    from renderer.stackbuild import BuildSettings, render_mean
+    from renderer.live.blocks import BlockRenderer
+    from renderer.scenes.catalog import load_scene
+    from renderer.dataset.stackbuild import BuildSettings, render_mean
 
     select_variant()
     monkeypatch.setattr(showcase, "REFERENCES", tmp_path)

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from learning.data.exr import read_exr
-from renderer.adaptive import adaptive_render
-from renderer.block_windows import BlockWindows
-from renderer.checkpoint import CHECKPOINT
+from renderer.live.adaptive import adaptive_render
+from renderer.live.block_windows import BlockWindows
+from renderer.live.checkpoint import CHECKPOINT
 from renderer.criteria import FlipCriterion, VarianceCriterion
-from renderer.passloop import PassLoop, schedule
+from renderer.live.passloop import PassLoop, schedule
 
 
 def _one_noisy_tile(tiling: BlockWindows | None, n_passes: int = 4) -> tuple[PassLoop, list[np.ndarray]]:

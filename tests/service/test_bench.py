@@ -145,7 +145,7 @@ def test_cost_accuracy_plot_needs_rows_with_both_axes(tmp_path):
 
 
 def test_run_all_hands_each_section_over_as_it_finishes(tmp_path):
-    from renderer.dataset import append_build_log
+    from renderer.dataset.build import append_build_log
     from benchmarks.bench import run_all
     with pytest.raises(ValueError, match="criteria, models needs --data"):
         run_all(only=("models", "criteria"))

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from learning.data.accumulator import UnitAccumulator
 from learning.models.bundle_check import read_manifest
 from learning.data.npz import read_npz, savez_bytes
-from renderer.checkpoint import load_checkpoint, save_checkpoint
+from renderer.live.checkpoint import load_checkpoint, save_checkpoint
 from service.limits import Limits
 from service.oip import DATATYPES, ApiError, decode_tensors, parse_request, split_body
 

@@ -66,7 +66,7 @@ FORGERIES = {
 @pytest.fixture(scope="module")
 def budget_checkpoint(tmp_path_factory):
     """A finished budget render's folder (its checkpoint kept) and its report."""
-    from renderer.adaptive import adaptive_render
+    from renderer.live.adaptive import adaptive_render
     from renderer.criteria import VarianceCriterion
 
     out = tmp_path_factory.mktemp("forge") / "ok"
@@ -84,8 +84,8 @@ def test_a_forged_checkpoint_with_a_fresh_digest_is_refused(tmp_path, budget_che
     import shutil
 
     from learning.data.npz import read_npz, savez_bytes
-    from renderer.adaptive import adaptive_render
-    from renderer.checkpoint import CHECKPOINT
+    from renderer.live.adaptive import adaptive_render
+    from renderer.live.checkpoint import CHECKPOINT
     from renderer.criteria import VarianceCriterion
 
     src, opts, report = budget_checkpoint
@@ -105,8 +105,8 @@ def test_a_forged_checkpoint_with_a_fresh_digest_is_refused(tmp_path, budget_che
 def test_a_checkpoint_that_is_a_device_or_a_fifo_is_refused_at_once(tmp_path, kind: str) -> None:
     """`--resume` with checkpoint.npz linked to /dev/zero (it grew to 23.5 GB) or a FIFO (it
     waited for ever): one line naming the file, before anything is read."""
-    from renderer.adaptive import adaptive_render
-    from renderer.checkpoint import CHECKPOINT
+    from renderer.live.adaptive import adaptive_render
+    from renderer.live.checkpoint import CHECKPOINT
     from renderer.criteria import VarianceCriterion
 
     out = tmp_path / "run"
@@ -225,7 +225,7 @@ def test_an_npz_bomb_is_refused_before_it_inflates(tmp_path) -> None:
 
 @pytest.mark.parametrize("kind", ["symlink", "FIFO"])
 def test_a_lock_file_that_is_a_link_or_a_fifo_names_itself(tmp_path, kind: str) -> None:
-    from renderer.outlock import LOCK_NAME, locked_output
+    from renderer.live.outlock import LOCK_NAME, locked_output
 
     out = tmp_path / "out"
     out.mkdir()
@@ -355,7 +355,7 @@ def test_an_idle_parse_worker_that_dies_is_reaped_and_replaced_at_once(demo_bund
 def test_a_scene_file_that_is_a_device_or_a_fifo_is_refused(tmp_path, kind: str) -> None:
     """Mitsuba reads the scene XML itself: a FIFO there would hang it, so the path is
     checked through safeio first."""
-    from renderer.scenes import load_scene
+    from renderer.scenes.catalog import load_scene
 
     path = tmp_path / "scene.xml"
     _bad_file(path, kind)

@@ -126,7 +126,7 @@ def test_registry_default_alias(demo):
 
 def test_client_and_server_read_the_token_by_one_rule(tmp_path, monkeypatch):
     """The client used to let NOISESTOP_TOKEN win where the server refused both: now both refuse."""
-    from renderer.client import default_token
+    from renderer.client.remote import default_token
 
     f = tmp_path / "token.txt"
     f.write_text("from-file\n")

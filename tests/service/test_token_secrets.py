@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from renderer.token import resolve_token
+from renderer.client.token import resolve_token
 from tests.support.errors import assert_one_line_error, run
 
 SECRET = "s3cr3t-TOKEN-value"
@@ -84,7 +84,7 @@ def test_a_token_with_control_characters_is_refused_without_showing_it(capsys, t
 
 
 def test_the_client_never_shows_a_token_in_its_exceptions(clean_env) -> None:
-    from renderer.client import RemoteModel
+    from renderer.client.remote import RemoteModel
 
     with pytest.raises(ValueError) as err:              # an explicit token: checked as the file's is
         RemoteModel("http://127.0.0.1:9", token=f"{SECRET}\nx")

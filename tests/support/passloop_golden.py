@@ -178,8 +178,8 @@ def render_case(case: str, grow: bool = True, log: DecisionLog | None = None):
     """One golden case rendered by the current loop (`run_adaptive`, grown passes or a
     fixed step): its `RenderResult`, to hold against the recorded stops and image; with
     `log`, every decision's distance from its threshold is recorded there."""
-    from renderer.adaptive import run_adaptive
-    from renderer.budget import Budget
+    from renderer.live.adaptive import run_adaptive
+    from renderer.live.budget import Budget
     from renderer.criteria import make_criterion
     from renderer.spec import resolve
 

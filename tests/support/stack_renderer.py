@@ -6,9 +6,9 @@ import torch
 
 from learning.inputs.halves import recover_passes
 from noisefeat import split_blocks
-from renderer import adaptive
-from renderer.ledger import Ledger
-from renderer.wavefront import Traced
+from renderer.live import adaptive
+from renderer.live.ledger import Ledger
+from renderer.live.wavefront import Traced
 
 
 class StackRenderer:
@@ -85,7 +85,7 @@ def live(monkeypatch, tmp_path, stack, crit, min_spp, name="live", grow=False):
         return made[-1]
 
     monkeypatch.setattr(adaptive, "BlockRenderer", fake_renderer)
-    monkeypatch.setattr("renderer.scenes.load_scene", lambda scene, resolution, defines=None: scene)
+    monkeypatch.setattr("renderer.scenes.catalog.load_scene", lambda scene, resolution, defines=None: scene)
     report = adaptive.adaptive_render(stack.scene, tmp_path / name, crit, resolution=stack.width,
                                       grid=tuple(stack.grid), tile=max(stack.block), step=int(stack.spp[0]),
                                       min_spp=min_spp,

@@ -1,6 +1,6 @@
 """Where a frame's blocks lie: their windows in pixels, and the image they compose.
 
-Kept apart from the engines that fill the windows (`renderer.blocks`): this is arithmetic
+Kept apart from the engines that fill the windows (`renderer.live.blocks`): this is arithmetic
 on pixel positions only, no Mitsuba, the same for every variant and engine.
 
 Blocks are either a grid that divides the frame (``grid=(rows, cols)``: stacks,
@@ -10,7 +10,7 @@ moved flush with the frame's edge, so an edge block smaller than the size is jud
 together with its neighbour's pixels: every window the criterion sees is a full
 ``block x block`` window of one sample count, the size the model and the flip threshold
 were calibrated on. Overlapping pixels are traced once per pass and shared by the
-windows that hold them (`renderer.wavefront`); the final image takes each pixel from the
+windows that hold them (`renderer.live.wavefront`); the final image takes each pixel from the
 covering window with the most samples (`compose`, `noisefeat.blocks`: the one rule, which
 the simulation on stacks puts its final frames together by too).
 

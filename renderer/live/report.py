@@ -1,6 +1,6 @@
 """The adaptive render's report.json: per block window (and per tile: the loop's units,
-`renderer.passloop`), spp and verdict history; totals, the counters and timers of the
-render's ledger (`renderer.ledger`); and, against a labelled reference stack, DESIGN's
+`renderer.live.passloop`), spp and verdict history; totals, the counters and timers of the
+render's ledger (`renderer.live.ledger`); and, against a labelled reference stack, DESIGN's
 early-stop metrics and what a person would see flipping between final.png and the
 reference."""
 from __future__ import annotations
@@ -15,9 +15,9 @@ import numpy as np
 from learning.data.accumulator import UnitAccumulator
 from learning.data.stack import Stack
 
+from ..criteria import COUNTER_NAMES, Criterion
 from .block_windows import compose
 from .blocks import BlockRenderer
-from .criteria import COUNTER_NAMES, Criterion
 from .passloop import schedule, unit_events
 from .result import RenderResult
 
@@ -27,7 +27,7 @@ logger = logging.getLogger(__name__)
 def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit: Criterion, state: dict[str, Any],
                   acc: UnitAccumulator, counters: dict[str, int], timers: dict[str, float], variant: str | None,
                   ref: Stack | None) -> dict[str, Any]:
-    """report.json of a render: its settings (`renderer.session.run_settings`), the loop's
+    """report.json of a render: its settings (`renderer.live.session.run_settings`), the loop's
     state, the ledger's counters and timers, per block window (and per unit), and against
     `ref` the early-stop metrics."""
     n, T = br.n_blocks, br.tiles_per_block
@@ -192,7 +192,7 @@ def nonfinite_line(report: dict[str, Any]) -> str | None:
 
 def render_result(session: Any, *, time_limit_reached: bool, ref_stack: Stack | None,
                   ref_image: np.ndarray | None, reference: Any) -> RenderResult:
-    """A finished `renderer.session.RenderSession` as the image, per-pixel spp and stops,
+    """A finished `renderer.live.session.RenderSession` as the image, per-pixel spp and stops,
     and the report (report.json)."""
     br, loop, acc, n, spec = session.br, session.loop, session.loop.acc, session.br.n_units, session.spec
     final = session.snapshot()

@@ -1,7 +1,7 @@
 """One kernel launch per pass for any set of pixels: the live loop's Mitsuba calls.
 
 `mi.render` traces a whole film (or its crop window). An adaptive render wants samples
-only for the pixels of its active units (`renderer.passloop`: tiles, or blocks), which may
+only for the pixels of its active units (`renderer.live.passloop`: tiles, or blocks), which may
 be any set; a crop window per unit costs one Mitsuba call and, the first time, one kernel
 compilation per unit (the crop is baked into the kernel, mitsuba3 #908).
 `WavefrontTracer` instead does what Mitsuba's
@@ -30,7 +30,7 @@ Keys are per lane, so one launch can also trace several passes (`trace_jobs`: a 
 and a key per job): the units of a budget round at different pass counts, or k passes of
 few active units as one k times larger wavefront, each job's values exactly those of
 its pass traced alone. Launches, lanes and samples traced go to the tracer's `ledger`
-(`renderer.ledger`: its renderer's).
+(`renderer.live.ledger`: its renderer's).
 """
 from __future__ import annotations
 
@@ -199,7 +199,7 @@ class WavefrontTracer:
         """`trace_jobs` without waiting: the launches are queued on Dr.Jit's device (its
         LLVM thread pool or CUDA stream) and the caller's thread goes on; `result()`
         waits for them and returns what `trace_jobs` would. What the live loop judges one
-        launch by while the next traces (`renderer.session`)."""
+        launch by while the next traces (`renderer.live.session`)."""
         if isinstance(spp, bool) or not isinstance(spp, (int, np.integer)) or spp < 1:
             raise ValueError(f"spp must be a positive integer, got {spp!r}")
         masks = [self._mask(m) for m, _ in jobs]

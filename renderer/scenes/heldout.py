@@ -1,8 +1,8 @@
 """Held-out scenes: eight views no model is trained or calibrated on.
 
 A stopping rule is only worth what it does on scenes it has never seen. These scenes
-share nothing with the training library (`renderer.scenes`) but the renderer settings
-(`renderer.scene_kit`): other rooms, open scenes under a sun and sky, a studio material
+share nothing with the training library (`renderer.scenes.catalog`) but the renderer settings
+(`renderer.scenes.scene_kit`): other rooms, open scenes under a sun and sky, a studio material
 preview under an image-based light, procedural bitmap textures, a spot-lit dark stage,
 a corridor of lights. They are built at a level every 32 spp up to 2048 spp with an
 8192-spp reference (`make heldout`), long enough that most of their blocks converge

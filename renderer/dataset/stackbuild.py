@@ -40,9 +40,9 @@ from learning.data.stack_format import EXTRA_QUICK, REFERENCE, level_name
 from learning.data.stack_write import StackWriter, make_plan
 from noisefeat.pooling import POOLINGS
 
-from .blocks import BlockRenderer
-from .scenes import load_scene
-from .spec_rows import ROW
+from ..live.blocks import BlockRenderer
+from ..scenes.catalog import load_scene
+from ..spec_rows import ROW
 from learning.data.variant import select_variant
 from noisefeat.extras import require
 

@@ -3,17 +3,17 @@
 `run_adaptive` is the loop, in memory: it resolves the render spec (`renderer.spec`: every
 setting defaulted and checked there, once), builds the criterion (`make_criterion`), loads
 the scene (a built-in name, an XML path or an already-loaded ``mi.Scene``), advances a
-`renderer.session.RenderSession` launch by launch until it is done (`_run_session`; the
-loop's words and a round: `renderer.passloop`) and returns a `RenderResult`. It stops when
+`renderer.live.session.RenderSession` launch by launch until it is done (`_run_session`; the
+loop's words and a round: `renderer.live.passloop`) and returns a `RenderResult`. It stops when
 no unit is active or max_spp is reached.
 
 Checkpoints are taken only when it is given a `Checkpoints` (the command line's resumable
 render, `adaptive_render`): the whole state (accumulator, active set, verdict history,
 the ledger's counters and timers, history rows, quick image), atomically into
-out/checkpoint.npz (`renderer.checkpoint`: digest-checked and validated against the
+out/checkpoint.npz (`renderer.live.checkpoint`: digest-checked and validated against the
 settings before a resume trusts it), every `checkpoint_every` seconds, at the end (unless
 the render ended within its first period), at the time limit and on SIGINT/SIGTERM
-(`renderer.signals`), between launches: a launch is never half-saved. Because samples depend
+(`renderer.live.signals`), between launches: a launch is never half-saved. Because samples depend
 only on (seed, pixel, pass), ``resume=True`` after a crash gives the very image and report
 (timings aside) of an uninterrupted run. A render with checkpoints removes the results an
 earlier render left in its folder once it is under way (`_clear_previous`), so a killed one
@@ -39,6 +39,7 @@ from learning.data.dataset_dir import find_stack
 from learning.data.stack import Stack
 from noisefeat.safeio import check_regular
 
+from ..spec import ARGUMENT, DEFAULT, file_load_settings, fit_frame, resolve
 from .blocks import BlockRenderer
 from .checkpoint import CHECKPOINT
 from .outputs import clear_results, prepare_output_dir
@@ -46,7 +47,6 @@ from .report import render_result
 from .result import RenderResult
 from .session import RenderSession, run_settings
 from .signals import DeferredStop
-from .spec import ARGUMENT, DEFAULT, file_load_settings, fit_frame, resolve
 
 logger = logging.getLogger(__name__)
 
@@ -104,7 +104,7 @@ class Checkpoints:
     `out`: the output folder (checked writable before the scene is loaded; the checkpoint
     is out/checkpoint.npz); `resume`: continue from it if it exists; `every`: seconds
     between checkpoints (0: after every pass). With checkpoints the first SIGINT/SIGTERM
-    finishes the pass and checkpoints before stopping (`renderer.signals`).
+    finishes the pass and checkpoints before stopping (`renderer.live.signals`).
     """
 
     out: str | os.PathLike[str]
@@ -123,8 +123,8 @@ def is_scene_object(scene: Any) -> bool:
 
 def is_builtin(scene: str | os.PathLike) -> bool:
     """Whether `scene` names a built-in scene (the library's or a procedural one), not a file."""
-    from .procedural import procedural_seed
-    from .scenes import SCENES
+    from ..scenes.procedural import procedural_seed
+    from ..scenes.catalog import SCENES
 
     name = os.fspath(scene)
     return name in SCENES or procedural_seed(name) is not None
@@ -133,7 +133,7 @@ def is_builtin(scene: str | os.PathLike) -> bool:
 def scene_plugin_settings(scene: Any) -> dict[str, Any]:
     """The properties set on a loaded scene's ``noisestop`` integrator ({} for a scene with
     another integrator, or none): what every door honours under the settings it is given.
-    Known by duck type (its `property_error`, as `renderer.blocks` knows it): importing
+    Known by duck type (its `property_error`, as `renderer.live.blocks` knows it): importing
     `renderer.plugin` here would close an import circle."""
     integrator = scene.integrator() if hasattr(scene, "integrator") else None     # a stand-in scene: none
     if not hasattr(integrator, "property_error") or not hasattr(integrator, "settings"):
@@ -249,13 +249,13 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
     `sensor` / `integrator`: render from this sensor with this integrator instead of the
     scene's first sensor and own integrator (the plugin passes its nested one).
     `checkpoints`: None renders without any file. `grow`: trace several passes per launch
-    as units stop (`renderer.session.grown_passes`; same result, fewer launches).
+    as units stop (`renderer.live.session.grown_passes`; same result, fewer launches).
     """
     from learning.data.relabel import observed
     from learning.data.variant import current_variant, select_variant
 
-    from .criteria import make_criterion
-    from .scenes import load_scene
+    from ..criteria import make_criterion
+    from ..scenes.catalog import load_scene
 
     t_start = time.perf_counter()
     if checkpoints is not None and not (math.isfinite(checkpoints.every) and checkpoints.every >= 0):

@@ -1,8 +1,8 @@
 """Parts every scene description is built from: transforms, colours, materials, the skeleton.
 
-Shared by the training library (`renderer.scenes`) and the held-out set
-(`renderer.heldout`), so that both render with the same integrator, film and sampler
-settings (see `renderer.scenes` for why each setting is what it is).
+Shared by the training library (`renderer.scenes.catalog`) and the held-out set
+(`renderer.scenes.heldout`), so that both render with the same integrator, film and sampler
+settings (see `renderer.scenes.catalog` for why each setting is what it is).
 """
 from __future__ import annotations
 

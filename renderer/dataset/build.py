@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from noisefeat.safeio import read_text
 
-from .farm import configure_worker_threads, executor
+from ..farm import configure_worker_threads, executor
 from .stackbuild import BuildSettings, build_stack
 
 log = logging.getLogger(__name__)

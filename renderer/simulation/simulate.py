@@ -7,7 +7,7 @@ B = odd passes). With a constant step every pass has the same size and A and B h
 equal sample counts, as in the live loop; with a varying step (e.g. doubling spp) halves
 are unbalanced and a warning says so.
 
-`simulate_stack` then runs the live loop's own rounds (`renderer.passloop.PassLoop`), one
+`simulate_stack` then runs the live loop's own rounds (`renderer.live.passloop.PassLoop`), one
 a level: once spp >= min_spp, only the still-active units (the stack's blocks, or their
 tiles) are asked, and a unit once converged stays converged and is never asked again. The verdict matrix V [K, B] therefore holds -1 up to
 the level where the loop would have stopped the block and +1 from there on, which is what
@@ -32,9 +32,9 @@ from learning.evaluation.metrics import evaluate_verdicts
 from learning.inputs.halves import check_constant_step, recover_passes
 from learning.names import DEFAULT_TAU
 
-from .criteria import Criterion
-from .passloop import PassLoop
-from .spec import ROW
+from ..criteria import Criterion
+from ..live.passloop import PassLoop
+from ..spec import ROW
 
 logger = logging.getLogger(__name__)
 
@@ -48,9 +48,9 @@ def simulate_loop(stack: Stack, criterion: Criterion, min_spp: int | None = None
 
     `min_spp` (None: no minimum; else checked by the render spec's row): no decision
     before that many samples. `decide_skip`: how far a unit's decisions skip towards its predicted
-    stop (`renderer.passloop.next_decision`; checked by its row).
+    stop (`renderer.live.passloop.next_decision`; checked by its row).
     """
-    from .block_windows import BlockWindows
+    from ..live.block_windows import BlockWindows
 
     if min_spp is not None:
         ROW["min_spp"].check(min_spp)
@@ -96,7 +96,7 @@ def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int 
     Returns each block's final spp, whether it stopped, the budget's report part and the
     rounds run. The final image of block b is the stack's level at its spp.
     """
-    from .budget import BAND, Budget
+    from ..live.budget import BAND, Budget
 
     ROW["spp_budget"].check(spp_budget)
     if criterion.needs_halves:
@@ -238,10 +238,10 @@ def criterion_factory(kind: str, *, model: str | None = None, server: str | None
     factory (`renderer.criteria.make_criterion`): one criterion for every stack of a block
     size (a `tile` as large as the stack's block is block grain, as in the live render), or
     the oracle with each stack's own thresholds (its tiles' with `tile`)."""
-    from .criteria import make_criterion
-    from .criteria.gated import GatedCriterion
-    from .setting_row import MAX_SIDE
-    from .spec import COMMAND_LINE, resolve
+    from ..criteria import make_criterion
+    from ..criteria.gated import GatedCriterion
+    from ..setting_row import MAX_SIDE
+    from ..spec import COMMAND_LINE, resolve
 
     spec = resolve({"criterion": kind, "model": model, "server": server, "threshold": threshold,
                     "offset": offset, "exposure": exposure, "tau": tau,

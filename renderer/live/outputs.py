@@ -54,7 +54,7 @@ def clear_results(out: str | os.PathLike) -> list[str]:
     Why: a render killed after its first checkpoint left the earlier render's final.exr and
     report.json beside its own checkpoint, and a render without a reference left the earlier
     one's compare.png beside its own results. A render removes them when it starts (under
-    the out-folder lock, `renderer.outlock`) and writes its own when it ends. A result that
+    the out-folder lock, `renderer.live.outlock`) and writes its own when it ends. A result that
     cannot be removed (a folder in its place, a read-only entry) is one line, before any pass."""
     removed = []
     for name in RESULTS:
@@ -220,7 +220,7 @@ def compare_png(final8: np.ndarray, reference8: np.ndarray, windows: Sequence[Se
 def write_outputs(out: str | os.PathLike, image: np.ndarray, report: dict[str, Any], *, spp: np.ndarray,
                   converged: np.ndarray, reference: np.ndarray | None = None) -> dict[str, str]:
     """Write the outputs of a render into `out`; return their paths by name. `spp` and
-    `converged` are per pixel [H, W] (`renderer.block_windows.compose`). With the reference image
+    `converged` are per pixel [H, W] (`renderer.live.block_windows.compose`). With the reference image
     (and `final_vs_reference` in the report) also compare.png."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

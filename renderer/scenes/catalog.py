@@ -90,7 +90,7 @@ SCENES: dict[str, SceneSpec] = {
                   training.allblack, ("degenerate",)),
         SceneSpec("sky", "Constant environment and nothing else: a flat image (degenerate input)", training.sky,
                   ("degenerate", "environment")),
-        # held out: never used to train or calibrate anything (renderer/heldout.py)
+        # held out: never used to train or calibrate anything (renderer/scenes/heldout.py)
         SceneSpec("studio_preview", "Material preview: three spheres on a plane under a studio environment map",
                   heldout.studio_preview, ("heldout", "environment", "glossy")),
         SceneSpec("sunlit_courtyard", "Pillars and blocks under sun and sky casting shadows on paving",

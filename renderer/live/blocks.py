@@ -2,15 +2,15 @@
 
 The paper cuts every image into blocks and keeps sampling only the blocks a human would
 still find noisy, so the renderer must spend samples on any subset of the loop's units
-(the blocks' tiles, or the blocks themselves at block grain: `renderer.passloop` has the
+(the blocks' tiles, or the blocks themselves at block grain: `renderer.live.passloop` has the
 words), and a unit rendered alone must be the very estimator of that unit cut out of a
 full-frame render.
 
 Geometry. Blocks are a grid that divides the frame or windows of a given size in pixels,
 the last row and column flush with the frame's edge, and each is cut into tiles
-(`renderer.block_windows`, which also composes the final image from overlapping windows).
+(`renderer.live.block_windows`, which also composes the final image from overlapping windows).
 
-Engines. On vectorised variants (llvm, cuda) `renderer.wavefront.WavefrontTracer` traces
+Engines. On vectorised variants (llvm, cuda) `renderer.live.wavefront.WavefrontTracer` traces
 the pixels of all requested units in one kernel launch, its random numbers keyed per
 pixel, so any subset equals the full-frame trace bit for bit with a box filter, and up to
 float rounding (splat order) with a wide one such as the Gaussian of published scenes.
@@ -18,7 +18,7 @@ On scalar variants each unit is one ``mi.render`` of the film's crop window grow
 filter's guard band and cut back: the same estimator in distribution (Mitsuba seeds lanes
 by position, so not the same random numbers). What a render cost (``mitsuba_calls``,
 ``kernel_launches``, ``kernel_lanes``, ``kernel_compiles``, ``samples_traced``) goes to
-the renderer's `ledger` (`renderer.ledger`: the render's, which its session hands it).
+the renderer's `ledger` (`renderer.live.ledger`: the render's, which its session hands it).
 
 `learning.data.accumulator.UnitAccumulator` keeps the float64 running sums so cumulative means
 are exact, plus two half buffers (even and odd passes) for the half-buffer criteria.
@@ -172,7 +172,7 @@ class BlockRenderer(BlockWindows):
 
     @property
     def ledger(self) -> Ledger:
-        """Where this renderer's costs go; a session sets the render's (`renderer.ledger`)."""
+        """Where this renderer's costs go; a session sets the render's (`renderer.live.ledger`)."""
         return self._ledger
 
     @ledger.setter
@@ -280,7 +280,7 @@ class BlockRenderer(BlockWindows):
     def submit_passes(self, jobs: Sequence[tuple[int, int]] | np.ndarray, spp: int | Sequence[int],
                       seed: int) -> Traced[torch.Tensor]:
         """`render_passes` without waiting for the wavefront engine's launches (what the
-        live loop calls: `renderer.session.RenderSession.advance`): `result()` gives the
+        live loop calls: `renderer.live.session.RenderSession.advance`): `result()` gives the
         tensor `render_passes` returns (`WavefrontTracer.submit_jobs`; the crop engine
         renders at once)."""
         units, pass_ids, sizes = self._check_jobs(jobs, spp)

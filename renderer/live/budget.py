@@ -1,12 +1,12 @@
 """A budget render: spend a limited number of samples (or seconds) where the noise is.
 
-Without a budget every pass renders every active unit (the words: `renderer.passloop`).
+Without a budget every pass renders every active unit (the words: `renderer.live.passloop`).
 Users with a deadline want the best image by that time instead (Cycles, Arnold and
 LuxCore pair a noise target with a time limit), so with ``--spp-budget N`` (samples per
 pixel averaged over the units) or ``--time-limit S`` each round renders the active units
 farthest from their target, one pass each:
 
-* The loop's `ratios` (`renderer.passloop.UnitRatios`) hold, per unit, its last score
+* The loop's `ratios` (`renderer.live.passloop.UnitRatios`) hold, per unit, its last score
   relative to the criterion's threshold (flip: the half-buffer FLIP over c(tau); > 1 is
   above the target). Units with no estimate yet (before their first decision) come
   first, all together.
@@ -27,7 +27,7 @@ A unit's j-th pass always draws the samples of pass index j (`BlockRenderer.subm
 traces units at different pass counts in one launch; a round is the loop's,
 `PassLoop.run_round`), so a unit ends with the very image the unbudgeted loop gives it at
 the same spp; units that reach the target stop as always. What the rounds cost (seconds
-and unit-spp: the time limit's rate) is in the render's ledger (`renderer.ledger`). When
+and unit-spp: the time limit's rate) is in the render's ledger (`renderer.live.ledger`). When
 the budget ends, the units still above the target are listed with their ratios
 (`above_target`).
 """
@@ -39,9 +39,9 @@ from typing import Any
 
 import numpy as np
 
+from ..spec import RenderSpec
 from .ledger import Ledger
 from .passloop import PassLoop
-from .spec import RenderSpec
 
 #: a round renders the active units whose priority is at least this share of the largest
 BAND = 0.8
@@ -79,7 +79,7 @@ class Budget:
 
     def state(self) -> dict[str, Any]:
         """What a checkpoint keeps of the budget, so a resumed budget render goes on as the
-        interrupted one would have (`renderer.checkpoint`; "cost": the ledger's)."""
+        interrupted one would have (`renderer.live.checkpoint`; "cost": the ledger's)."""
         return {"prioritised_rounds": self.prioritised_rounds, "ended": self.ended,
                 "cost": list(self.ledger.budget_cost)}
 

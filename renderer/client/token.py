@@ -1,5 +1,5 @@
 """Where the bearer token of a verdict server comes from: one rule for the server
-(`service.auth`) and its client (`renderer.client`).
+(`service.auth`) and its client (`renderer.client.remote`).
 
 An explicit token or token file first, else NOISESTOP_TOKEN or the file NOISESTOP_TOKEN_FILE
 names (a Docker or Kubernetes secret). Both set is a mistake, refused on both sides (before,

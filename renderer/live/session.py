@@ -1,17 +1,17 @@
 """One adaptive render in progress: its renderer, loop, budget, ledger, checkpoint and report.
 
-`renderer.adaptive.run_adaptive` resolves the render spec, opens a `RenderSession`, calls
+`renderer.live.adaptive.run_adaptive` resolves the render spec, opens a `RenderSession`, calls
 `advance` until the session is done, and asks it for the result. The words (unit, pass,
-round, launch) and a round are explained once, in `renderer.passloop`; `advance` plans one
+round, launch) and a round are explained once, in `renderer.live.passloop`; `advance` plans one
 launch (`plan`: the units and the passes each gets), queues it
 (`BlockRenderer.submit_passes`), waits for its images and hands each pass to
 `PassLoop.run_round`.
 
-The session owns the render's `renderer.ledger.Ledger` (its counters and timers): it hands
+The session owns the render's `renderer.live.ledger.Ledger` (its counters and timers): it hands
 it to the renderer, the loop and the budget, which report into it. It also keeps what
-survives a crash: `snapshot` is the state the checkpoint holds (`renderer.checkpoint`),
+survives a crash: `snapshot` is the state the checkpoint holds (`renderer.live.checkpoint`),
 `checkpoint` writes it, and `counts` is what every attempt cost in Mitsuba.
-`renderer.report.render_result` turns a finished session into the result.
+`renderer.live.report.render_result` turns a finished session into the result.
 """
 from __future__ import annotations
 
@@ -25,13 +25,13 @@ import torch
 
 from noisefeat.runtime import torch_threads
 
+from ..criteria import COUNTER_NAMES, TIMER_NAMES, Criterion
+from ..spec import RenderSpec
 from .blocks import BlockRenderer
 from .budget import Budget
 from .checkpoint import load_checkpoint, save_checkpoint
-from .criteria import COUNTER_NAMES, TIMER_NAMES, Criterion
 from .ledger import RENDER_COUNTERS, RENDER_TIMERS, Ledger
 from .passloop import PassLoop, schedule
-from .spec import RenderSpec
 from .wavefront import Traced
 
 logger = logging.getLogger(__name__)
@@ -185,7 +185,7 @@ class RenderSession:
 
     def advance(self) -> int:
         """One launch: plan it (`plan`), queue it, wait for its images, then a round
-        (`PassLoop.run_round`, `renderer.passloop`) per pass; returns the passes it added,
+        (`PassLoop.run_round`, `renderer.live.passloop`) per pass; returns the passes it added,
         the history rows (0: done).
 
         Without a budget (and with `grow`) the next launch is queued on the device as soon

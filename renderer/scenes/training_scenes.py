@@ -1,6 +1,6 @@
 """The training library of built-in scenes, each a ``mi.load_dict`` description made from
-the image resolution alone (`renderer.scenes` lists them and says why every scene shares
-its integrator, film and sampler settings; `renderer.heldout` is the held-out set)."""
+the image resolution alone (`renderer.scenes.catalog` lists them and says why every scene shares
+its integrator, film and sampler settings; `renderer.scenes.heldout` is the held-out set)."""
 from __future__ import annotations
 
 from .scene_kit import SceneDict, T, base, checker_texture, diffuse, rgb

@@ -7,7 +7,7 @@ then each input's raw little-endian row-major bytes in input order; the header l
 goes in ``Inference-Header-Content-Length`` and each input announces its byte count in
 ``parameters.binary_data_size``; outputs are asked for with ``parameters.binary_data:
 true``. Responses are parsed whether the server answered in binary or in JSON. The bytes
-go through the codec the server uses too (`renderer.oip_codec`).
+go through the codec the server uses too (`renderer.client.oip_codec`).
 
 Errors are explicit: a 4xx answer raises ValueError and a 5xx answer ConnectionError,
 both quoting the server's ``{"error": ...}`` message; an unreachable server raises
@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from ..spec_rows import ROW
 from .oip_codec import DATATYPES, HEADER_LENGTH, WireError, join_body, read_tensor, split_body, tensor_bytes
-from .spec_rows import ROW
 from .token import check_token, resolve_token
 
 logger = logging.getLogger(__name__)
@@ -41,7 +41,7 @@ logger = logging.getLogger(__name__)
 
 
 def default_token() -> str | None:
-    """The token from the environment, by the server's own rule (`renderer.token`)."""
+    """The token from the environment, by the server's own rule (`renderer.client.token`)."""
     return resolve_token()
 
 

@@ -5,7 +5,7 @@ The words (the one place they are defined; renderer/README.md repeats them):
 
 * a *unit* is what the loop samples, judges and stops: a tile of a block (`tile`), or the
   block itself at block grain; "block" keeps its meaning, the frame's window the model, the
-  observer and the HTTP protocol judge (`renderer.block_windows`: unit u is tile u % T of
+  observer and the HTTP protocol judge (`renderer.live.block_windows`: unit u is tile u % T of
   block u // T);
 * a *pass* adds `pass_spp[j]` samples per pixel to some units; j is its *pass index* (what
   keys its random numbers) and the `schedule` holds the spp at the end of each pass; a
@@ -14,15 +14,15 @@ The words (the one place they are defined; renderer/README.md repeats them):
 * the *step* is the render setting `step`, the spp of a pass (`schedule`), nothing else;
 * a *round* adds one or more passes to some units and then judges those due (`run_round`);
   a live *launch* traces the passes of one or more rounds at once
-  (`renderer.session.RenderSession.advance`).
+  (`renderer.live.session.RenderSession.advance`).
 
 A unit is *pending* while it is active with a pass left (`PassLoop.pending`).
 
 **One round** (the one explanation; other modules point here). The caller picks units and
 their passes (`RenderSession.plan`: every pending unit at its next pass, several passes per
-launch as units stop, or in a budget render the units `renderer.budget.Budget.select`
+launch as units stop, or in a budget render the units `renderer.live.budget.Budget.select`
 picks), traces them (`BlockRenderer.submit_passes`, or a stack's recovered passes in
-`renderer.simulate`) and hands each pass to `PassLoop.run_round`, which:
+`renderer.simulation.simulate`) and hands each pass to `PassLoop.run_round`, which:
 
 1. adds the passes to the `UnitAccumulator` (exact means, even/odd half buffers, tensors on
    the accumulator's device); each pass is one row of the verdict history;
@@ -34,7 +34,7 @@ picks), traces them (`BlockRenderer.submit_passes`, or a stack's recovered passe
 The loop owns what a render accumulates: each unit's last ratio to its target
 (`UnitRatios`, what a budget spends by) and decision history for a criterion that decides
 from it (`learning.inputs.history.Evidence`); what its decisions cost goes to the render's
-`renderer.ledger.Ledger`. A criterion is configuration only. Everything per unit is an
+`renderer.live.ledger.Ledger`. A criterion is configuration only. Everything per unit is an
 array; only verdicts and numbers cross to the host.
 """
 from __future__ import annotations
@@ -48,7 +48,7 @@ from learning.data.accumulator import UnitAccumulator
 from learning.inputs.history import Evidence
 from learning.stoprule import decide_active
 
-from .criteria import COUNTER_NAMES, TIMER_NAMES, BlockBatch, Criterion, Decision
+from ..criteria import COUNTER_NAMES, TIMER_NAMES, BlockBatch, Criterion, Decision
 from .ledger import Ledger
 
 
@@ -208,8 +208,8 @@ class PassLoop:
                 "evidence": self.evidence.sums, "next_spp": self.next_spp}
 
     def restore(self, state: dict[str, Any]) -> None:
-        """Continue from a validated checkpoint's state (`renderer.checkpoint`; its
-        counters and timers go to the ledger: `renderer.ledger.Ledger.restore`)."""
+        """Continue from a validated checkpoint's state (`renderer.live.checkpoint`; its
+        counters and timers go to the ledger: `renderer.live.ledger.Ledger.restore`)."""
         acc = state["acc"]
         self.acc = UnitAccumulator.from_state(acc.state() if isinstance(acc, UnitAccumulator) else acc,
                                                device=self.device)

@@ -15,8 +15,8 @@ window (the film's crop window, at a seeded position) of a frame `zoom` = 1, 2, 
 times larger: the noise and the texture a model learns from come at the scales of
 blocks of frames 1-4x the stack's size, for the render cost of the window alone.
 
-Nothing here is shared with the held-out scenes (`renderer.heldout`) but the renderer
-settings and geometric helpers of `renderer.scene_kit`.
+Nothing here is shared with the held-out scenes (`renderer.scenes.heldout`) but the renderer
+settings and geometric helpers of `renderer.scenes.scene_kit`.
 """
 from __future__ import annotations
 

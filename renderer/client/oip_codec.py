@@ -3,7 +3,7 @@
 Binary tensor extension (REFERENCES.md): a body is a JSON header of
 `Inference-Header-Content-Length` bytes followed by raw little-endian row-major tensors in
 the order the header lists them, each announced by `parameters.binary_data_size`. The
-client (`renderer.client`) encodes requests and decodes answers with it, the server
+client (`renderer.client.remote`) encodes requests and decodes answers with it, the server
 (`service.oip`) decodes requests and encodes answers with it: the two ends cannot drift
 apart. It lives in `renderer` because `service` may import `renderer` and not the
 reverse (DESIGN "Layout"), and it imports neither Mitsuba nor the FastAPI stack.

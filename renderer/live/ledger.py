@@ -1,13 +1,13 @@
 """A render's counters and timers, in one place: its ledger.
 
-One `Ledger` per render. The session makes it (`renderer.session.RenderSession`) and hands
-it to the parts that spend: the loop (`renderer.passloop.PassLoop`: what its decisions
+One `Ledger` per render. The session makes it (`renderer.live.session.RenderSession`) and hands
+it to the parts that spend: the loop (`renderer.live.passloop.PassLoop`: what its decisions
 cost, `renderer.criteria`'s COUNTER_NAMES and TIMER_NAMES), the renderer
-(`renderer.blocks.BlockRenderer` and its `WavefrontTracer`: Mitsuba calls, kernel launches,
-lanes and compilations, samples traced) and the budget (`renderer.budget.Budget`: the
+(`renderer.live.blocks.BlockRenderer` and its `WavefrontTracer`: Mitsuba calls, kernel launches,
+lanes and compilations, samples traced) and the budget (`renderer.live.budget.Budget`: the
 seconds and unit-samples of its rounds, its time limit's rate); the session adds the
 checkpoints it writes and the setup, render and wall seconds. Each reports into it; the
-checkpoint (`RenderSession.snapshot`) and report.json (`renderer.report`) read it, nothing
+checkpoint (`RenderSession.snapshot`) and report.json (`renderer.live.report`) read it, nothing
 else. A part made alone (a `BlockRenderer`, `PassLoop` or `Budget` of a test, a
 simulation or a benchmark) keeps a ledger of its own.
 

@@ -168,12 +168,12 @@ def sparse_trace(scene: Any, step: int, repeats: int, seed: int = 50,
                 p = 1 if mode == "one" else grown_passes(n, len(ids), 1 << 20)
                 jobs.append(np.concatenate([np.stack([ids, np.full_like(ids, k * 64 + j)], axis=1)
                                             for j in range(p)]))
-            lanes0, launches0 = br.kernel_lanes, br.kernel_launches
+            lanes0, launches0 = br.ledger.get("kernel_lanes"), br.ledger.get("kernel_launches")
             t0 = time.perf_counter()
             for j in jobs:
                 br.render_passes(j, int(step), seed)
-            return (time.perf_counter() - t0, br.kernel_lanes - lanes0, br.kernel_launches - launches0,
-                    max(len(g) for g in groups))
+            return (time.perf_counter() - t0, br.ledger.get("kernel_lanes") - lanes0,
+                    br.ledger.get("kernel_launches") - launches0, max(len(g) for g in groups))
 
         for mode, f in cases:            # compile first (one launch of each shape)
             run(mode, f, 1000, warm=True)

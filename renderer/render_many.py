@@ -12,7 +12,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from .live.adaptive import adaptive_render, scene_label
+from .live.adaptive import adaptive_render
 from .live.outputs import prepare_output_dir
 from .spec import COMMAND_LINE
 
@@ -41,6 +41,7 @@ def render_many(scenes: Sequence[str | os.PathLike], out: str | os.PathLike, *,
     keyword arguments (the render spec's settings included).
     """
     from .farm import executor
+    from .scenes.catalog import scene_label
 
     if not scenes:
         raise ValueError("no scenes to render")

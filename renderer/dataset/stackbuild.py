@@ -41,7 +41,7 @@ from learning.data.stack_write import StackWriter, make_plan
 from noisefeat.pooling import POOLINGS
 
 from ..live.blocks import BlockRenderer
-from ..scenes.catalog import load_scene
+from ..scenes.catalog import load_scene, scene_label
 from ..spec_rows import ROW
 from learning.data.variant import select_variant
 from noisefeat.extras import require
@@ -86,11 +86,6 @@ class BuildSettings:
         d = asdict(self)
         d["grid"] = list(self.grid)
         return d
-
-
-def scene_label(scene: str) -> str:
-    """Directory name of a scene: the built-in name, or an XML file's stem."""
-    return Path(scene).stem if scene.lower().endswith(".xml") else scene
 
 
 def _calls(br: BlockRenderer, spp: int, max_lanes: int) -> tuple[int, int]:

@@ -52,12 +52,6 @@ logger = logging.getLogger(__name__)
 
 
 
-def scene_label(scene: str | os.PathLike) -> str:
-    """Directory name of a scene: the built-in name, or an XML file's stem."""
-    s = os.fspath(scene)
-    return Path(s).stem if s.lower().endswith(".xml") else s
-
-
 # ----------------------------------------------------------------------------- the loop
 
 
@@ -155,6 +149,7 @@ def _check_scene_arg(scene: Any, resolution: Any, defines: Mapping[str, str] | N
     """(whether `scene` is a loaded mi.Scene, its label); one-line ValueError for what
     cannot be asked of a loaded scene or for a scene of another type."""
     if isinstance(scene, (str, os.PathLike)):
+        from ..scenes.catalog import scene_label
         return False, scene_label(scene)
     if not is_scene_object(scene):
         raise ValueError(f"scene must be an mi.Scene, an XML file path or a built-in scene name, "
@@ -172,11 +167,10 @@ def _clear_previous(out: Path, resumed: bool) -> None:
     """Remove the results an earlier render left in `out`, once this one is under way (its
     scene loaded, its checkpoint accepted: a refused resume leaves the folder as it was).
 
-    Why: a render killed after its first checkpoint left the earlier render's final.exr and
-    report.json beside its own checkpoint. On a resume the results go too: results are
-    written only when a render ends, so those beside an unfinished checkpoint are an earlier
-    render's, and those beside a finished one are this render's own, written again at once.
-    The checkpoint itself is the session's: a fresh render replaces it at its first one."""
+    Why: `clear_results`. On a resume the results go too: results are written only when a
+    render ends, so those beside an unfinished checkpoint are an earlier render's, and those
+    beside a finished one are this render's own, written again at once. The checkpoint
+    itself is the session's: a fresh render replaces it at its first one."""
     removed = clear_results(out)
     if removed:
         logger.info("%s: removed the previous render's %s (%s)", out, ", ".join(removed),

@@ -11,14 +11,11 @@ the last row and column flush with the frame's edge, and each is cut into tiles
 (`renderer.live.block_windows`, which also composes the final image from overlapping windows).
 
 Engines. On vectorised variants (llvm, cuda) `renderer.live.wavefront.WavefrontTracer` traces
-the pixels of all requested units in one kernel launch, its random numbers keyed per
-pixel, so any subset equals the full-frame trace bit for bit with a box filter, and up to
-float rounding (splat order) with a wide one such as the Gaussian of published scenes.
-On scalar variants each unit is one ``mi.render`` of the film's crop window grown by the
-filter's guard band and cut back: the same estimator in distribution (Mitsuba seeds lanes
-by position, so not the same random numbers). What a render cost (``mitsuba_calls``,
-``kernel_launches``, ``kernel_lanes``, ``kernel_compiles``, ``samples_traced``) goes to
-the renderer's `ledger` (`renderer.live.ledger`: the render's, which its session hands it).
+the pixels of all requested units in one kernel launch (its docstring says why a subset is
+the full frame's estimator). On scalar variants each unit is one ``mi.render`` of the
+film's crop window grown by the filter's guard band and cut back: the same estimator in
+distribution (Mitsuba seeds lanes by position, so not the same random numbers). What a
+render costs goes to the renderer's `ledger` (`renderer.live.ledger`), read there.
 
 `learning.data.accumulator.UnitAccumulator` keeps the float64 running sums so cumulative means
 are exact, plus two half buffers (even and odd passes) for the half-buffer criteria.
@@ -208,27 +205,6 @@ class BlockRenderer(BlockWindows):
             self._ledger.count("kernel_launches")
         self.count_kernels()
         return _to_rgb(img, where)
-
-    @property
-    def mitsuba_calls(self) -> int:
-        """Render calls: one per mi.render or per wavefront trace (of any launches)."""
-        return self._ledger.get("mitsuba_calls")
-
-    @property
-    def kernel_launches(self) -> int:
-        """Kernel launches of the unit passes (wavefront) or Mitsuba render calls (crop)."""
-        return self._ledger.get("kernel_launches")
-
-    @property
-    def kernel_lanes(self) -> int:
-        """Lanes of every unit-pass launch (wavefront: one per sample traced; crop: the
-        samples of its Mitsuba calls)."""
-        return self._ledger.get("kernel_lanes")
-
-    @property
-    def samples_traced(self) -> int:
-        """Samples of the unit passes, guard bands and shared window pixels included."""
-        return self._ledger.get("samples_traced")
 
     def render_units(self, units: Sequence[int], spp: int, seed: int, pass_index: int = 0) -> torch.Tensor:
         """`spp` new samples for each listed unit: float32 [len(units), th, tw, 3] on `device`.

@@ -119,6 +119,12 @@ def list_scenes(heldout: bool | None = None) -> list[tuple[str, str]]:
             if heldout is None or (HELDOUT in s.tags) == heldout]
 
 
+def scene_label(scene: str | os.PathLike) -> str:
+    """Directory name of a scene: the built-in name, or an XML file's stem."""
+    s = os.fspath(scene)
+    return os.path.splitext(os.path.basename(s))[0] if s.lower().endswith(".xml") else s
+
+
 def _unknown(name: str) -> ValueError:
     return ValueError(f"unknown scene {name!r}; built-in scenes: {', '.join(SCENES)}, procedural scenes "
                       "proc-0000, proc-0001, ... (or a Mitsuba 3 .xml file)")

@@ -31,7 +31,7 @@ def test_passes_in_one_launch_are_the_passes_traced_apart(rfilter) -> None:
     r = BlockRenderer(_scene("cornell", 32, rfilter), grid=(4, 4))
     jobs = [(5, 0), (5, 1), (5, 2), (6, 3), (9, 1)]        # passes of one block, other blocks at other passes
     together = r.render_passes(jobs, 4, seed=7)
-    launches = r.kernel_launches
+    launches = r.ledger.get("kernel_launches")
     for (b, p), img in zip(jobs, together):
         apart = r.render_units([b], 4, seed=7, pass_index=p)[0]
         if rfilter == "box":
@@ -39,7 +39,7 @@ def test_passes_in_one_launch_are_the_passes_traced_apart(rfilter) -> None:
         else:                           # the same samples; splats summed in another order
             np.testing.assert_allclose(img, apart, rtol=1e-5, atol=1e-7)
     assert launches == 1                         # every pass index in one launch, whatever the filter
-    assert r.kernel_lanes == r.samples_traced and r.kernel_lanes > 0
+    assert r.ledger.get("kernel_lanes") == r.ledger.get("samples_traced") and r.ledger.get("kernel_lanes") > 0
     sizes = r.render_passes([(5, 0), (6, 1)], [4, 2], seed=7)   # a short last pass: its own launch
     short = r.render_units([6], 2, seed=7, pass_index=1)[0]
     if rfilter == "box":

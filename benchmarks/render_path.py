@@ -1,10 +1,11 @@
 """What one `renderer.render` with flip touches (issue 52's "render path"): the project's
 files in which a function runs during the render, after `import renderer`, with their
-lines. Module bodies run by an import inside the render are not counted (what a reader
-follows is the calls), nor are the benchmarks. `python -m benchmarks.render_path`.
+lines. Module and class bodies run by an import inside the render are not counted (what a
+reader follows is the calls: only functions, `inspect.CO_OPTIMIZED`), nor are the benchmarks. `python -m benchmarks.render_path`.
 """
 from __future__ import annotations
 
+import inspect
 import sys
 import threading
 from pathlib import Path
@@ -23,7 +24,7 @@ def render_path(scene: str = "cornell", resolution: int = 64, max_spp: int = 64)
 
     def profile(frame: Any, event: str, _arg: Any) -> None:
         code = frame.f_code
-        if event == "call" and code.co_name != "<module>" and code.co_filename.startswith(roots):
+        if event == "call" and code.co_flags & inspect.CO_OPTIMIZED and code.co_filename.startswith(roots):
             seen.add(code.co_filename)
     sys.setprofile(profile)
     threading.setprofile(profile)

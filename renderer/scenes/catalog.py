@@ -132,7 +132,7 @@ def _unknown(name: str) -> ValueError:
 
 def scene_dict(name: str, resolution: int) -> SceneDict:
     """The ``mi.load_dict`` description of built-in scene `name` at `resolution`^2 pixels."""
-    seed = procedural_seed(name)
+    seed = None if name in SCENES else procedural_seed(name)
     if name not in SCENES and seed is None:
         raise _unknown(name)
     select_variant()  # transforms need a variant

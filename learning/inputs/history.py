@@ -67,6 +67,18 @@ def combine(prior: np.ndarray | None, scores: np.ndarray, spp: np.ndarray) -> tu
         return np.where(ok, total / weight / s ** ALPHA, np.nan), x
 
 
+def last_decided_spp(verdicts: np.ndarray, unit_spp: np.ndarray) -> np.ndarray:
+    """int64 [n]: each unit's spp at its last decision (0: none yet), from the verdict
+    history [K, n] (nonzero where a unit was judged) and every unit's spp after each row
+    [K, n]: what its next weight counts from, and what its weights may sum to at most."""
+    asked = np.asarray(verdicts) != 0
+    n = asked.shape[1]
+    if not asked.size:
+        return np.zeros(n, np.int64)
+    last = len(asked) - 1 - np.argmax(asked[::-1], axis=0)
+    return np.where(asked.any(axis=0), np.asarray(unit_spp, np.int64)[last, np.arange(n)], 0).astype(np.int64)
+
+
 class Evidence:
     """Per unit, the weighted sum of its decisions' estimates and the sum of their weights
     (float64 [n, 2], what a live render checkpoints), and the spp of its last decision

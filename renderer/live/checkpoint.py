@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from learning.data.accumulator import UnitAccumulator
+from learning.inputs.history import last_decided_spp
 from noisefeat.atomic import atomic_write
 from learning.data.npz import check_digest, read_npz, savez_bytes
 
@@ -197,9 +198,7 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
     next_spp = _get(data, "next_spp", "int64", (n,))
     done = bool(_get(data, "done", "bool", ()))
     cum = np.concatenate([[0], np.cumsum(pass_spp, dtype=np.int64)])   # [0, *schedule]
-    asked = history != 0
-    last_row = np.where(asked.any(axis=0), p - 1 - np.argmax(asked[::-1], axis=0), -1) if p else np.full(n, -1)
-    decided_spp = np.where(last_row >= 0, unit_spp[np.maximum(last_row, 0), np.arange(n)] if p else 0, 0)
+    decided_spp = last_decided_spp(history, unit_spp)
     if not np.isfinite(evidence).all() or (evidence < 0).any() or (evidence[:, 1] != np.round(evidence[:, 1])).any() \
             or (evidence[:, 1] > decided_spp).any() or ((evidence[:, 1] == 0) & (evidence[:, 0] != 0)).any():
         raise ValueError("the decision history's evidence is not finite sums >= 0 weighing at most the samples "

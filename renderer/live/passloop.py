@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from learning.data.accumulator import UnitAccumulator
-from learning.inputs.history import Evidence
+from learning.inputs.history import Evidence, last_decided_spp
 from learning.stoprule import decide_active
 
 from ..criteria import COUNTER_NAMES, TIMER_NAMES, BlockBatch, Criterion, Decision
@@ -186,9 +186,10 @@ class PassLoop:
         d: Decision = self.criterion.decide(idx, BlockBatch.from_accumulator(self.acc, idx, self.quick, self.tiling,
                                                                             self.evidence))
         self.ratios.put(idx, d.ratio)
-        self.next_spp[idx] = next_decision(self.acc.spp_all()[idx], d.ratio, self.decide_skip)
+        spp = self.acc.spp_all()[idx]
+        self.next_spp[idx] = next_decision(spp, d.ratio, self.decide_skip)
         if d.evidence is not None:
-            self.evidence.add(idx, d.evidence, self.acc.spp_all()[idx])
+            self.evidence.add(idx, d.evidence, spp)
         self.ledger.add(d.counts, d.timers)
         return d.verdict
 
@@ -219,8 +220,5 @@ class PassLoop:
         self.history_spp = np.asarray(state["history_spp"], np.int64)
         self.rendered = np.asarray(state["rendered"], np.int64)
         self.history_unit_spp = np.asarray(state["history_block_spp"], np.int64).reshape(self.history.shape)
-        asked = self.history != 0                      # each unit's last decision, what its next weight counts from
-        last_row = np.where(asked.any(axis=0), len(asked) - 1 - np.argmax(asked[::-1], axis=0), -1)
-        self.evidence.restore(state["evidence"], np.where(
-            last_row >= 0, self.history_unit_spp[np.maximum(last_row, 0), np.arange(len(self.active))], 0))
+        self.evidence.restore(state["evidence"], last_decided_spp(self.history, self.history_unit_spp))
         self.next_spp = np.asarray(state["next_spp"], np.int64).copy()

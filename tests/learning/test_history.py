@@ -110,3 +110,14 @@ def test_flip_at_tile_grain_stops_on_the_history_and_at_block_grain_on_one_level
     later = tile.decide([0], quiet)
     assert later.verdict.tolist() == [-1] and later.ratio[0] > 1          # the history remembers
     assert tile.decide([0], batch_of(0.002, 1, 64)).verdict.tolist() == [1]   # a unit without history: its level
+
+
+def test_each_units_last_decided_spp_comes_from_the_verdict_history() -> None:
+    """What a resumed loop's next weight counts from and what a checkpoint's weights may sum
+    to: the unit's spp at its last nonzero verdict, 0 without one (an empty history too)."""
+    from learning.inputs.history import last_decided_spp
+
+    verdicts = np.array([[-1, 0, 0], [0, -1, 0], [1, 0, 0]], np.int8)
+    spp = np.array([[16, 16, 16], [32, 32, 16], [48, 32, 16]])
+    assert last_decided_spp(verdicts, spp).tolist() == [48, 32, 0]
+    assert last_decided_spp(np.zeros((0, 3), np.int8), np.zeros((0, 3), np.int64)).tolist() == [0, 0, 0]

@@ -46,7 +46,7 @@ DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "inputs": (bench_inp
 #: dataset sections measured on the held-out stacks alone (no training data read)
 HELDOUT_ONLY = {"tilestop", "skip"}
 
-SECTIONS = ("features", "crop", "flip", "models", "render", "passes", "native", "cost", "oracle", "service",
+SECTIONS = ("features", "crop", "flip", "models", "render", "passes", "native", "cost", "equaltime", "oracle", "service",
             "capacity", "stability",
             "reliability", "hardening", *DATASET_SECTIONS)
 
@@ -114,6 +114,10 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
         from .bench_cost import bench_cost, md_cost
         # the cost per kept sample, in parts (issue 50); a GPU run fills a section of its own
         measure("cost_gpu" if variant.startswith("cuda") else "cost", bench_cost, md_cost)
+    if "equaltime" in only:
+        from .bench_equal_time import SECTION, bench_equal_time, kind_of, md_equal_time
+        # the default render against mi.render at equal wall time (issue 50), per device
+        measure(SECTION[kind_of(variant)], bench_equal_time, md_equal_time)
     if "oracle" in only:
         from .bench_passes import bench_oracle, md_oracle
         measure("oracle", lambda: bench_oracle(max(1, min(repeats, 3))), md_oracle)

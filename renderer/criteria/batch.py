@@ -67,6 +67,7 @@ class BlockBatch:
         self._mean, self._halves, self._nonfinite, self._source = mean, halves, nonfinite, source
         self._unestimated = unestimated
         self._blocks: Any = None           # the tiles' whole blocks, assembled once (`_assembled`)
+        self._tile_halves: Any = None      # the halves of those blocks' tiles, as read for that
 
     @classmethod
     def from_accumulator(cls, acc: Any, ids: Sequence[int], quick: np.ndarray | None = None,
@@ -118,6 +119,11 @@ class BlockBatch:
             self._halves = acc.halves(ids)
         return self._halves
 
+    @property
+    def has_halves(self) -> bool:
+        """Whether the batch holds half buffers, without reading them."""
+        return self._halves is not None or self._source is not None
+
     def _assembled(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[torch.Tensor, torch.Tensor]]:
         """(blocks, first, row, every, (A, B)) of the blocks the batch's tiles lie in, once a
         batch: their ids, the first of the batch's tiles in each, each tile's block row, the
@@ -130,9 +136,34 @@ class BlockBatch:
             every = (blocks[:, None] * t + np.arange(t)).reshape(-1)
             a, b = acc.halves(every)
             shape = (len(blocks), t, *a.shape[1:])
+            self._tile_halves = (a, b)
             self._blocks = (blocks, first, row, every,
                             (self.tiling.assemble(a.reshape(shape)), self.tiling.assemble(b.reshape(shape))))
         return self._blocks
+
+    def halves_of(self, rows: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """(A, B) of the batch's units `rows` only, [len(rows), uh, uw, C] on the device.
+
+        Why: a tile criterion that reads the halves of a few of its units (the flat units'
+        check, the judged units' dot term) should not read every unit's, and where the
+        tiles' blocks are already put together (`block_halves`) it cuts them from the tiles
+        read for that instead of reading them again: the same values, bit for bit (the same
+        division). Whole blocks read every unit's halves once (`halves`), as each is asked."""
+        import torch
+
+        rows = np.asarray(rows, np.int64)
+        if self._halves is None and self._source is not None and self.tiling is not None:
+            acc, ids = self._source
+            if self._blocks is None:
+                return acc.halves(ids[rows])
+            _, _, block_row, _, _ = self._blocks
+            at = torch.from_numpy(block_row[rows] * self.tiling.tiles_per_block
+                                  + ids[rows] % self.tiling.tiles_per_block)
+            a, b = self._tile_halves
+            return a[at.to(a.device)], b[at.to(b.device)]
+        a, b = self.halves      # type: ignore[misc]
+        sel = torch.from_numpy(rows).to(a.device)
+        return a[sel], b[sel]
 
     def block_halves(self, among: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
         """(A, B, row, slot): the half buffers of the blocks the batch's tiles `among` lie in,

@@ -233,14 +233,10 @@ class Criterion(ABC):
         not enough: the halves must agree within one 8-bit level too (`learning.stoprule.
         flat_halves`, the served route's rule): a mean can be flat over halves that differ."""
         flat = flat_blocks(batch.mean, exposure)
-        if batch.half_spp is not None and batch.halves is not None:
+        if batch.half_spp is not None and batch.has_halves:
             check = np.flatnonzero(flat & (batch.half_spp.min(axis=1) > 0))
             if check.size:
-                import torch
-
-                a, b = batch.halves
-                sel = torch.from_numpy(check).to(a.device)
-                flat[check] = flat_halves(a[sel], b[sel], exposure)
+                flat[check] = flat_halves(*batch.halves_of(check), exposure)
         tally.add("flat_blocks", int(flat.sum()))
         return flat
 
@@ -250,13 +246,9 @@ class Criterion(ABC):
         to tau (`learning.stoprule.dots_ratio`; 0 for the others). Above 1 a block still
         holds more isolated outlier pixels than the observer lets through, so it stays noisy
         whatever its score (`learning.stoprule.hold_dotted`, the served route's guard too)."""
-        import torch
-
         out = np.zeros(len(batch.spp))
         if ask.size:
-            a, b = batch.halves     # type: ignore[misc]
-            sel = torch.from_numpy(ask).to(a.device)
-            out[ask] = dots_ratio(a[sel], b[sel], exposure, tau)
+            out[ask] = dots_ratio(*batch.halves_of(ask), exposure, tau)
             tally.add("dotted_blocks", int((out[ask] > 1).sum()))
         return out
 

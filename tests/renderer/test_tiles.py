@@ -69,6 +69,32 @@ def test_a_tile_is_judged_in_its_blocks_context() -> None:
     assert not np.allclose(in_context, alone)
 
 
+def test_a_tiles_halves_are_read_once_and_the_same_either_way() -> None:
+    """`BlockBatch.halves_of`: a few tiles' halves, read alone before their blocks are put
+    together and cut from the assembled tiles after, are every unit's halves (`halves`)
+    bit for bit, in any order; a frame of two blocks, so a tile's block row matters."""
+    import torch
+
+    from renderer.criteria import BlockBatch
+
+    tiling = BlockWindows(128, 64, block=64, tile=16)
+    rng = np.random.default_rng(3)
+    loop = PassLoop(FlipCriterion(0.05, tau=0.02), (2, 16), (16, 16), schedule(8, 64), 8, tiling=tiling)
+    for _ in range(3):
+        loop.acc.add_batch(np.arange(32), 0.5 + 0.1 * rng.standard_normal((32, 16, 16, 3)), 8)
+    ids, rows = [3, 17, 30, 5], np.array([2, 0, 3])
+    whole = BlockBatch.from_accumulator(loop.acc, ids, tiling=tiling).halves
+    before = BlockBatch.from_accumulator(loop.acc, ids, tiling=tiling)
+    early = before.halves_of(rows)
+    after = BlockBatch.from_accumulator(loop.acc, ids, tiling=tiling)
+    after.block_halves(np.arange(4))                        # the blocks put together first
+    late = after.halves_of(rows)
+    assert after._halves is None                            # no unit's halves read again
+    for j in (0, 1):
+        assert torch.equal(early[j], whole[j][torch.from_numpy(rows)])
+        assert torch.equal(late[j], whole[j][torch.from_numpy(rows)])
+
+
 def test_tiles_fill_their_blocks() -> None:
     """Tiles cut every block alike, flush with the block's edge; put back together they are
     the block's window, overlaps included."""

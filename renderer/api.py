@@ -35,6 +35,7 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
            grid: Sequence[int] | None = None, block: int | None = None, tile: int | None = None,
            min_spp: int | None = None,
            max_spp: int | None = None, step: int | None = None, decide_skip: float | None = None,
+           decide_growth: float | None = None,
            seed: int | None = None,
            time_limit: float | None = None, spp_budget: float | None = None, quick_spp: int | None = None,
            defines: Mapping[str, str] | None = None,
@@ -79,7 +80,7 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
         return run_adaptive(scene, criterion, tau=tau, threshold=threshold, offset=offset, quantile=quantile,
                             model=model, server=server, exposure=exposure, resolution=resolution, grid=grid,
                             block=block, tile=tile, min_spp=min_spp, max_spp=max_spp, step=step,
-                            decide_skip=decide_skip, seed=seed, time_limit=time_limit, spp_budget=spp_budget,
+                            decide_skip=decide_skip, decide_growth=decide_growth, seed=seed, time_limit=time_limit, spp_budget=spp_budget,
                             quick_spp=quick_spp, defines=defines, progress=progress, reference=reference,
                             source=ARGUMENT)
     except (InputNotFound, ServerUnavailable):

@@ -73,6 +73,7 @@ class RenderSpec:
     max_spp: int
     step: int
     decide_skip: float
+    decide_growth: float
     seed: int
     time_limit: float | None
     spp_budget: float | None

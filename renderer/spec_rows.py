@@ -78,6 +78,11 @@ ROWS: tuple[Row, ...] = (
         "is judged again only at (skip r)^2 times its spp (Monte Carlo decay), or the next pass if "
         "that is sooner; 0 judges every pass; flip and variance only, not with a budget (BENCHMARKS, "
         "decisions skipped)", low=0.0, high=1.0),
+    Row("decide_growth", "float", 0.0625,
+        "the least a unit's spp grows between two of its decisions, as a fraction of it: at 1/16 a unit "
+        "judged at 1024 spp is judged next at 1088 at the earliest, so its stop is found at most that "
+        "late; 0 judges every pass; flip and variance only, not with a budget (BENCHMARKS, decisions "
+        "skipped)", low=0.0, high=1.0),
     Row("seed", "int", 0, "base seed: the samples of (pixel, pass) depend only on it", low=0,
         high=MAX_SEED),
     Row("time_limit", "float", None,

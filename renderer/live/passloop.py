@@ -57,15 +57,20 @@ def schedule(step: int, max_spp: int) -> np.ndarray:
     return np.minimum(np.arange(1, -(-int(max_spp) // int(step)) + 1, dtype=np.int64) * int(step), int(max_spp))
 
 
-def next_decision(spp: np.ndarray, ratio: np.ndarray, skip: float) -> np.ndarray:
+def next_decision(spp: np.ndarray, ratio: np.ndarray, skip: float, growth: float = 0.0) -> np.ndarray:
     """int64 [k]: the spp at which units just judged at `spp` with ratio to target `ratio`
     are judged next. Monte Carlo noise falls as 1/sqrt(spp), so a unit r times above its
     target is predicted to reach it at spp r^2; it is judged again at spp (skip r)^2, a
-    factor skip^2 before that prediction, and after the next pass where that is no later
-    (r <= 1/skip, no estimate, or skip 0: every pass). Why: a decision costs the same
-    whether or not the unit can stop, and far from its target it cannot (issue 50)."""
+    factor skip^2 before that prediction, and never before spp (1 + growth): after the next
+    pass where both are no later (r <= 1/skip and growth below a pass, no estimate, or skip
+    and growth 0: every pass). Why: a decision costs the same whether or not the unit can
+    stop, far from its target it cannot, and near it a unit of thousands of spp changes
+    little in one pass of 16 (issue 50). A unit with no estimate is judged at the next pass."""
     r = np.asarray(ratio, np.float64)
-    grow = np.where(np.isfinite(r), np.clip((skip * r) ** 2, 1.0, float(1 << 20)), 1.0)
+    finite = np.isfinite(r)
+    with np.errstate(over="ignore"):              # a huge ratio: the clip's top
+        predicted = np.clip((skip * np.where(finite, r, 0.0)) ** 2, 1.0 + growth, float(1 << 20))
+    grow = np.where(finite, predicted, 1.0)
     return np.floor(np.asarray(spp, np.float64) * grow).astype(np.int64)
 
 
@@ -107,7 +112,8 @@ class PassLoop:
     (the renderer's `BlockWindows`) puts tiles back into their blocks for a criterion that
     judges a tile in its block's context. `schedule`: the spp at the end of each pass;
     `min_spp`: no decision below it (None: from the first pass); `decide_skip`: how far a
-    unit's decisions skip towards its predicted stop (`next_decision`; 0: every pass).
+    unit's decisions skip towards its predicted stop and `decide_growth` the least its spp
+    grows between them (`next_decision`; both 0: every pass).
     `quick`: the quick image's blocks [n, bh, bw, 3] when the criterion reads them
     (prepared once here). `device`: where the accumulator's tensors live (the renderer's).
     `ledger`: where the decisions' counters and timers go (the render's; None: one of its
@@ -116,12 +122,13 @@ class PassLoop:
 
     def __init__(self, criterion: Criterion, grid: tuple[int, int], unit_shape: tuple[int, int],
                  schedule: Sequence[int], min_spp: int | None, quick: np.ndarray | None = None,
-                 device: Any = None, tiling: Any = None, decide_skip: float = 0.0,
+                 device: Any = None, tiling: Any = None, decide_skip: float = 0.0, decide_growth: float = 0.0,
                  ledger: Ledger | None = None) -> None:
         self.criterion, self.min_spp, self.device = criterion, min_spp, device
         self.ledger = Ledger(COUNTER_NAMES, TIMER_NAMES) if ledger is None else ledger
         #: the skip of `next_decision`, for a criterion whose ratio it can predict from
         self.decide_skip = decide_skip if criterion.noise_ratio else 0.0
+        self.decide_growth = decide_growth if criterion.noise_ratio else 0.0
         self.tiling = tiling if tiling is not None and tiling.tiles_per_block > 1 else None
         self.schedule = np.asarray(schedule, np.int64)
         self.pass_spp = np.diff(self.schedule, prepend=0)
@@ -187,7 +194,7 @@ class PassLoop:
                                                                             self.evidence))
         self.ratios.put(idx, d.ratio)
         spp = self.acc.spp_all()[idx]
-        self.next_spp[idx] = next_decision(spp, d.ratio, self.decide_skip)
+        self.next_spp[idx] = next_decision(spp, d.ratio, self.decide_skip, self.decide_growth)
         if d.evidence is not None:
             self.evidence.add(idx, d.evidence, spp)
         self.ledger.add(d.counts, d.timers)

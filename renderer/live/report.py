@@ -68,6 +68,8 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
         "resolution": [br.width, br.height], "grid": list(br.grid), "block": [br.block_h, br.block_w],
         "tile": [br.tile_h, br.tile_w],
         "step": settings["step"], "min_spp": settings["min_spp"], "max_spp": max_spp,
+        # when units are judged (`renderer.live.passloop.next_decision`): where stops can land
+        "decide_skip": settings["decide_skip"], "decide_growth": settings["decide_growth"],
         "seed": settings["seed"], "exposure": settings["exposure"], "quick": settings["quick"],
         "passes": int(state["pass_index"]),
         "samples_spent": int(spp.sum()) * pixels, "mean_spp": float(spp.mean()),

@@ -63,7 +63,8 @@ def run_settings(spec: RenderSpec, br: BlockRenderer, crit: Criterion, variant: 
     return {"scene": scene, "resolution": [br.width, br.height], "grid": [gh, gw], "block": [br.block_h, br.block_w],
             "tile": [br.tile_h, br.tile_w],
             "exposure": float(spec.exposure), "step": int(spec.step), "min_spp": int(spec.min_spp),
-            "max_spp": int(spec.max_spp), "decide_skip": float(spec.decide_skip), "seed": int(spec.seed), "quick_spp": int(spec.quick_spp),
+            "max_spp": int(spec.max_spp), "decide_skip": float(spec.decide_skip),
+            "decide_growth": float(spec.decide_growth), "seed": int(spec.seed), "quick_spp": int(spec.quick_spp),
             "quick": crit.quick_kind if crit.needs_quick else "none", "criterion": crit.describe(),
             "variant": variant, "defines": dict(spec.defines or {}), "tau": float(spec.tau),
             **({} if spec.spp_budget is None else {"spp_budget": float(spec.spp_budget)})}
@@ -124,7 +125,9 @@ class RenderSession:
         # the loop's units: the blocks' tiles (T a block; the blocks themselves when T = 1)
         self.loop = PassLoop(crit, (br.n_blocks, br.tiles_per_block), br.tile_shape, sched, spec.min_spp, quick_blocks,
                              device=br.device, tiling=br, ledger=self.ledger,
-                             decide_skip=spec.decide_skip if self.budget is None else 0.0)   # a budget spends by fresh ratios
+                             # a budget spends by fresh ratios: it judges every unit it renders
+                             decide_skip=spec.decide_skip if self.budget is None else 0.0,
+                             decide_growth=spec.decide_growth if self.budget is None else 0.0)
         if "acc" in self.state:                       # resumed: counters and timers go on from there
             self.loop.restore(self.state)
             self.ledger.restore(self.state["counters"], self.state["timers"])

@@ -41,20 +41,23 @@ logger = logging.getLogger(__name__)
 
 def simulate_loop(stack: Stack, criterion: Criterion, min_spp: int | None = None,
                   progress: bool = False, tile: int | None = None,
-                  decide_skip: float = ROW["decide_skip"].default) -> tuple[np.ndarray, PassLoop]:
+                  decide_skip: float = ROW["decide_skip"].default,
+                  decide_growth: float = ROW["decide_growth"].default) -> tuple[np.ndarray, PassLoop]:
     """Verdicts V int8 [K, n_units] the live loop would produce on this stack, and the loop
     (its `ledger`: the decisions' counters and timers). Units: the stack's blocks, or with `tile` (smaller
     than a block) each block's tiles, numbered as the live render numbers them.
 
     `min_spp` (None: no minimum; else checked by the render spec's row): no decision
     before that many samples. `decide_skip`: how far a unit's decisions skip towards its predicted
-    stop (`renderer.live.passloop.next_decision`; checked by its row).
+    stop, `decide_growth`: the least its spp grows between them (`renderer.live.passloop.
+    next_decision`; each checked by its row).
     """
     from ..live.block_windows import BlockWindows
 
     if min_spp is not None:
         ROW["min_spp"].check(min_spp)
     ROW["decide_skip"].check(decide_skip)
+    ROW["decide_growth"].check(decide_growth)
     if criterion.needs_halves:
         check_constant_step(stack)
     tiling = BlockWindows(stack.width, stack.height, grid=tuple(stack.grid), tile=tile)
@@ -66,7 +69,7 @@ def simulate_loop(stack: Stack, criterion: Criterion, min_spp: int | None = None
     V = np.full((K, tiling.n_units), -1, np.int8)
     quick = stack.split(stack.quick()) if criterion.needs_quick else None
     loop = PassLoop(criterion, (stack.n_blocks, tiling.tiles_per_block), tiling.tile_shape, stack.spp, min_spp,
-                    quick, tiling=tiling, decide_skip=decide_skip)
+                    quick, tiling=tiling, decide_skip=decide_skip, decide_growth=decide_growth)
     bar = tqdm(total=K, desc=f"{stack.scene} simulate", unit="lvl", disable=not progress, leave=False)
     for k, _, pass_spp, pass_img in recover_passes(stack):
         bar.update(1)
@@ -140,7 +143,8 @@ def _as_stacks(stacks: Stack | str | os.PathLike | Iterable[Stack | str | os.Pat
 def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str | os.PathLike],
                        criterion_factory: Callable[[Stack], Criterion], min_spp: int | None = None,
                        progress: bool = False, tau: float = DEFAULT_TAU, tile: int | None = None,
-                       decide_skip: float = ROW["decide_skip"].default) -> dict[str, Any]:
+                       decide_skip: float = ROW["decide_skip"].default,
+                       decide_growth: float = ROW["decide_growth"].default) -> dict[str, Any]:
     """DESIGN metrics of a criterion simulated on labelled stacks, overall and per scene.
 
     `stacks`: a dataset directory, a stack, or a list of either. `criterion_factory(stack)`
@@ -168,7 +172,8 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
         if tile is not None:
             st = with_tile_truth(st, tile)
         crit = criterion_factory(st)
-        V, loop = simulate_loop(st, crit, min_spp=min_spp, progress=progress, tile=tile, decide_skip=decide_skip)
+        V, loop = simulate_loop(st, crit, min_spp=min_spp, progress=progress, tile=tile, decide_skip=decide_skip,
+                                decide_growth=decide_growth)
         if tile is None:
             per_scene[st.scene] = (V, st.labels(), st.thresholds, st.spp)
         else:
@@ -273,7 +278,8 @@ def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list
                            offset: float | None = None, model: str | None = None,
                            server: str | None = None, progress: bool = True,
                            tau: float = DEFAULT_TAU, tile: int | None = None,
-                           decide_skip: float = ROW["decide_skip"].default) -> dict[str, Any]:
+                           decide_skip: float = ROW["decide_skip"].default,
+                           decide_growth: float = ROW["decide_growth"].default) -> dict[str, Any]:
     """What `noisestop evaluate --criterion C` runs for a rule criterion: simulate C on the
     stacks of `data` (only `scenes` if given), labelled by the observer at the noise target
     `tau`, and return the DESIGN metrics, overall and per scene."""
@@ -294,5 +300,5 @@ def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list
     for st in stacks:
         st.validate()
     out = evaluate_criterion(stacks, factory, min_spp=min_spp, progress=progress, tau=tau, tile=tile,
-                             decide_skip=decide_skip)
+                             decide_skip=decide_skip, decide_growth=decide_growth)
     return {**out, "tau": float(tau)}

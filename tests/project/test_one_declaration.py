@@ -44,10 +44,13 @@ ALLOWED: dict[tuple[str, str, str], str] = {
         "Mitsuba's Integrator.render signature (mi.render's seed, added to the resolved one)",
     ("renderer/live/passloop.py", "PassLoop.__init__", "decide_skip"):
         "the loop's own default for callers outside a render (every pass judged); a render passes its spec's",
+    ("renderer/live/passloop.py", "PassLoop.__init__", "decide_growth"):
+        "the loop's own default for callers outside a render (every pass judged); a render passes its spec's",
     ("renderer/client/remote.py", "RemoteModel.__init__", "model"):
         "the name a verdict server serves a model under (DESIGN 'HTTP API': `default`), not a bundle's path",
     ("renderer/simulation/simulate.py", "simulate_loop", "min_spp"): _SIMULATE,
     ("renderer/simulation/simulate.py", "simulate_loop", "decide_skip"): _SIMULATE,
+    ("renderer/simulation/simulate.py", "simulate_loop", "decide_growth"): _SIMULATE,
     ("renderer/simulation/simulate.py", "simulate_budget", "spp_budget"): _SIMULATE,
     ("renderer/simulation/simulate.py", "_as_stacks", "tau"): _SIMULATE,
     ("renderer/simulation/simulate.py", "evaluate_criterion", "tau"): _SIMULATE,

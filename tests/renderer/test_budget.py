@@ -98,7 +98,8 @@ def _same(a, b, ra, rb) -> None:
 def test_a_roomy_budget_renders_what_the_unbudgeted_loop_renders(tmp_path) -> None:
     # a budget render judges every block it renders (its ratios pick where the samples go):
     # the plain loop to match is the one that skips no decision
-    plain = adaptive_render("cornell", tmp_path / "plain", VarianceCriterion(0.3), decide_skip=0.0, **TINY)
+    plain = adaptive_render("cornell", tmp_path / "plain", VarianceCriterion(0.3), decide_skip=0.0,
+                          decide_growth=0.0, **TINY)
     assert "budget" not in plain
     spp = adaptive_render("cornell", tmp_path / "spp", VarianceCriterion(0.3), spp_budget=24, **TINY)
     secs = adaptive_render("cornell", tmp_path / "secs", VarianceCriterion(0.3), time_limit=1e6, **TINY)

@@ -57,6 +57,7 @@ CASES: dict[str, tuple[list, list, dict]] = {
     "max_spp": (*_num(1, MAX_SPP, 0, MAX_SPP + 1), {"step": MAX_SPP}),
     "step": (*_num(1, MAX_SPP, 0, MAX_SPP + 1), {}),
     "decide_skip": (*_num(0.0, 1.0, -0.1, 1.5), {}),
+    "decide_growth": (*_num(0.0, 1.0, -0.1, 1.5), {}),
     "seed": (*_num(0, MAX_SEED, -1, MAX_SEED + 1), {}),
     "time_limit": (*_num(1e-6, MAX_TIME_LIMIT, 0.0, MAX_TIME_LIMIT * 1.01, "5"), {}),
     "spp_budget": (*_num(1.0, float(MAX_SPP), 0.0, MAX_SPP * 2.0, "5"), {"step": 1}),

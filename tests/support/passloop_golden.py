@@ -38,8 +38,10 @@ import renderer
 #: (the guard itself: tests/noisefeat/test_dots.py)
 NO_DOTS = 1.0
 #: (name, scene, keyword arguments of renderer.render)
-#: the recorded cases: block grain (tile = block, issue 41), as when they were recorded
-CASES = (
+#: the recorded cases: block grain (tile = block, issue 41) and every unit near its target
+#: judged at each pass (decide_growth 0: `renderer.live.passloop.next_decision`), as when
+#: they were recorded; the growth floor's own tests: tests/renderer/test_decide_growth.py
+CASES = tuple((name, scene, {**kw, "decide_growth": 0.0}) for name, scene, kw in (
     ("cornell_flip", "cornell", {"criterion": "flip", "tau": NO_DOTS, "threshold": 0.2, "resolution": 64, "block": 16, "step": 4, "min_spp": 8,
                                  "max_spp": 96}),
     ("cornell_variance", "cornell", {"criterion": "variance", "threshold": 0.15, "resolution": 64, "block": 16, "step": 4,
@@ -54,7 +56,7 @@ CASES = (
                                               "min_spp": 8, "max_spp": 64}),
     ("cornell_budget", "cornell", {"criterion": "flip", "tau": NO_DOTS, "threshold": 0.05, "resolution": 64, "block": 16, "step": 4, "min_spp": 8,
                                    "max_spp": 96, "spp_budget": 24}),
-)
+))
 
 #: The image bound, relative per pixel: 4096 float32 ulps (2^-24 each), 2.4e-4. Why this
 #: much: a pixel is a mean of path samples, each the end of a chain of float32 operations

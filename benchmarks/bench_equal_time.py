@@ -52,19 +52,32 @@ def kind_of(variant: str) -> str:
     return "cuda" if variant.startswith("cuda") else "cpu"
 
 
-def tile_errors(image: np.ndarray, reference: np.ndarray, tau: float) -> int:
-    """How many 16-px tiles of `image` are above tau against `reference` (the observer's
-    tile mean FLIP): the grain the render stops at."""
+def tile_errors(image: np.ndarray, reference: np.ndarray, tau: float) -> np.ndarray:
+    """The observer's error of each 16-px tile of `image` against `reference` (its tile mean
+    FLIP), row-major: the grain the render stops at, numbered as its tiles are within a
+    frame of one block row (`tiles_stopped_above_tau` maps them through their windows)."""
     from renderer.live.report import final_vs_reference
 
     h, w = image.shape[:2]
     windows = [(x, y, TILE, TILE) for y in range(0, h - TILE + 1, TILE) for x in range(0, w - TILE + 1, TILE)]
-    return int(final_vs_reference(image, reference, (1, 1), tau, windows=windows)["visible_noise_blocks"])
+    return np.asarray(final_vs_reference(image, reference, (1, 1), tau, windows=windows)["errors"])
 
 
-def judged(image: np.ndarray, reference: np.ndarray, tau: float, stopped: list[bool] | None = None) -> dict[str, Any]:
-    """The observer's figures of one final frame (`bench_native.block_errors`), tiles added."""
-    return {**block_errors(image, reference, tau, stopped), "tiles_above_tau": tile_errors(image, reference, tau)}
+def judged(image: np.ndarray, reference: np.ndarray, tau: float, stopped: list[bool] | None = None,
+           tiles: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """The observer's figures of one final frame (`bench_native.block_errors`), tiles added;
+    with the render's `tiles` (report.json's), the tiles above tau that its criterion stopped
+    (the others ran to max spp), and those of them near black (reference mean under 1e-3)."""
+    e = tile_errors(image, reference, tau)
+    out = {**block_errors(image, reference, tau, stopped), "tiles_above_tau": int((e > tau).sum())}
+    if tiles is not None:
+        w = image.shape[1] // TILE
+        above = [t for t in tiles if t["window"][2:] == [TILE, TILE] and t["converged"]
+                 and e[(t["window"][1] // TILE) * w + t["window"][0] // TILE] > tau]
+        dark = [t for t in above if reference[t["window"][1]:t["window"][1] + TILE,
+                                              t["window"][0]:t["window"][0] + TILE].mean() < 1e-3]
+        out.update(tiles_stopped_above_tau=len(above), dark_tiles_stopped_above_tau=len(dark))
+    return out
 
 
 def reference_for(scene_name: str, scene: Any, size: int, ref_spp: int, ref_dir: Path) -> tuple[np.ndarray, str]:
@@ -93,7 +106,7 @@ def adaptive(scene: Any, max_spp: int, **settings: Any) -> dict[str, Any]:
     r = renderer.render(scene, max_spp=max_spp, progress=False, **settings)
     wall = time.perf_counter() - t0
     return {"wall_s": wall, "mean_spp": float(r.report["mean_spp"]), "image": np.asarray(r.image, np.float32),
-            "stopped": [bool(b["converged"]) for b in r.report["blocks"]],
+            "stopped": [bool(b["converged"]) for b in r.report["blocks"]], "tiles": r.report.get("tiles"),
             "decisions_s": float(r.report["timing"].get("decisions_s", 0.0))}
 
 
@@ -107,7 +120,7 @@ def measure_scene(name: str, size: int, max_spp: int, tau: float, ref_spp: int, 
     img_m, t_m = mi_render(scene, max_spp, seed=1)
     per_spp = t_m / max_spp
     rows = {"adaptive": {"wall_s": a["wall_s"], "mean_spp": a["mean_spp"], "decisions_s": a["decisions_s"],
-                         **judged(a["image"], ref, tau, a["stopped"])},
+                         **judged(a["image"], ref, tau, a["stopped"], a["tiles"])},
             "mi_render_max": {"wall_s": t_m, "spp": max_spp, **judged(img_m, ref, tau)}}
     for k in (1, 2):
         spp = max(1, int(round(k * a["wall_s"] / per_spp)))
@@ -206,6 +219,10 @@ def md_equal_time(r: dict[str, Any]) -> str:
                         f"block {a['worst']:.4f} against {m['worst']:.4f}), goal 0.5x: "
                         f"**{'met' if t <= 0.5 else 'missed'}**" if t is not None else
                         "**not reached** by the adaptive render's end") + ".")
+        if "tiles_stopped_above_tau" in a:
+            lines.append(f"- Of adaptive's {a['tiles_above_tau']} tiles above tau, its criterion stopped "
+                         f"{a['tiles_stopped_above_tau']} ({a['dark_tiles_stopped_above_tau']} of them near black, "
+                         "reference mean under 1e-3); the others ran to max spp.")
         lines.append("")
     if "make_run" in r:
         mr = r["make_run"]

@@ -36,6 +36,7 @@ def test_each_run_is_judged_against_one_reference_and_the_verdicts_follow_the_ro
         assert x["blocks"] == 1 and 0 <= x["above_tau"] <= 1 and 0 <= x["tiles_above_tau"] <= 16
         assert 0 < x["worst"] <= 1 and np.isfinite(x["mean"])
     a, m = rows["adaptive"], rows["mi_render_max"]
+    assert 0 <= a["dark_tiles_stopped_above_tau"] <= a["tiles_stopped_above_tau"] <= a["tiles_above_tau"]
     reached = a["above_tau"] <= m["above_tau"]
     assert (s["time_to_mi_quality"] is not None) == reached
     if reached:
@@ -68,3 +69,21 @@ def test_make_runs_comparison_gives_uniform_its_time_and_twice_it() -> None:
     assert r["settings"]["max_spp"] == 64 and a["blocks"] == u1["blocks"] == u2["blocks"] == 16
     assert u2["mean_spp"] >= u1["mean_spp"] > 0
     assert r["uniform_2x_matches"] == (u2["above_tau"] <= a["above_tau"] and u2["worst"] <= a["worst"])
+
+
+def test_a_stopped_noisy_tile_is_counted_where_its_window_is() -> None:
+    """`judged` maps each tile through its window: a noisy tile the criterion stopped counts,
+    the same noise in a tile that ran to max spp does not; near black where the reference is."""
+    from benchmarks.bench_equal_time import judged
+
+    rng = np.random.default_rng(0)
+    ref = np.full((64, 64, 3), 0.5, np.float32)
+    ref[:, 32:] = 5e-4                                           # the right half near black
+    img = ref.copy()
+    for x, y in ((16, 0), (48, 32), (0, 48)):                    # three noisy tiles
+        img[y:y + 16, x:x + 16] += rng.uniform(0, 1.0, (16, 16, 3)).astype(np.float32)
+    tiles = [{"window": [x, y, 16, 16], "converged": (x, y) in ((16, 0), (48, 32))}
+             for y in range(0, 64, 16) for x in range(0, 64, 16)]
+    r = judged(img, ref, 0.15, tiles=tiles)              # a loud tau: FLIP spreads a little noise
+    assert r["tiles_above_tau"] == 3
+    assert r["tiles_stopped_above_tau"] == 2 and r["dark_tiles_stopped_above_tau"] == 1

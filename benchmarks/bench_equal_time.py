@@ -219,7 +219,7 @@ def md_equal_time(r: dict[str, Any]) -> str:
                         f"block {a['worst']:.4f} against {m['worst']:.4f}), goal 0.5x: "
                         f"**{'met' if t <= 0.5 else 'missed'}**" if t is not None else
                         "**not reached** by the adaptive render's end") + ".")
-        if "tiles_stopped_above_tau" in a:
+        if a.get("tiles_stopped_above_tau"):
             lines.append(f"- Of adaptive's {a['tiles_above_tau']} tiles above tau, its criterion stopped "
                          f"{a['tiles_stopped_above_tau']} ({a['dark_tiles_stopped_above_tau']} of them near black, "
                          "reference mean under 1e-3); the others ran to max spp.")

@@ -80,9 +80,9 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
         return run_adaptive(scene, criterion, tau=tau, threshold=threshold, offset=offset, quantile=quantile,
                             model=model, server=server, exposure=exposure, resolution=resolution, grid=grid,
                             block=block, tile=tile, min_spp=min_spp, max_spp=max_spp, step=step,
-                            decide_skip=decide_skip, decide_growth=decide_growth, seed=seed, time_limit=time_limit, spp_budget=spp_budget,
-                            quick_spp=quick_spp, defines=defines, progress=progress, reference=reference,
-                            source=ARGUMENT)
+                            decide_skip=decide_skip, decide_growth=decide_growth, seed=seed, time_limit=time_limit,
+                            spp_budget=spp_budget, quick_spp=quick_spp, defines=defines, progress=progress,
+                            reference=reference, source=ARGUMENT)
     except (InputNotFound, ServerUnavailable):
         raise
     except FileNotFoundError as exc:       # a model, scene or reference that is not there

@@ -19,8 +19,8 @@ Properties (all optional): the render spec's rows the plugin offers
 (`renderer.spec.PLUGIN_ROWS`: ``criterion``, ``tau``, ``threshold``, ``offset``,
 ``quantile``, ``model``, ``exposure``, ``block``, ``tile`` (the unit's side in pixels; the
 block's own side for whole blocks), ``min_spp``, ``max_spp``, ``step``, ``decide_skip``,
-``decide_growth``, ``seed``, ``time_limit``, ``spp_budget``, ``quick_spp``: every row but server, resolution,
-grid and defines, which name things outside the scene), plus ``progress`` (boolean). They are read once, in the
+``decide_growth``, ``seed``, ``time_limit``, ``spp_budget``, ``quick_spp``: every row but server,
+resolution, grid and defines, which name things outside the scene), plus ``progress`` (boolean). They are read once, in the
 constructor, and resolved and checked there by the same resolver as `renderer.render`'s
 arguments (source "scene plugin"; unset ones take its defaults). ``mi.render``'s own
 arguments add to them: a nonzero ``spp`` is the render's max_spp, and ``seed`` is added to

@@ -114,9 +114,9 @@ def measure_scene(name: str, size: int, max_spp: int, tau: float, ref_spp: int, 
     """Every row of one scene (the module docstring)."""
     scene = load_case_scene(Case(name, size, max_spp, ref_spp, max_spp))
     mi_render(scene, 16, seed=99)                     # warm: both kernels compiled
-    adaptive(scene, 32)
+    adaptive(scene, 32, tau=tau)
     ref, source = reference_for(name, scene, size, ref_spp, ref_dir)
-    a = adaptive(scene, max_spp)
+    a = adaptive(scene, max_spp, tau=tau)                  # judged at the tau it stops at
     img_m, t_m = mi_render(scene, max_spp, seed=1)
     per_spp = t_m / max_spp
     rows = {"adaptive": {"wall_s": a["wall_s"], "mean_spp": a["mean_spp"], "decisions_s": a["decisions_s"],

@@ -49,9 +49,11 @@ def bench_skip(data: str | None, heldout: str | None = None, taus: tuple[float, 
 
 
 def md_skip(r: dict[str, Any]) -> str:
-    """One table per tau and grain: a row per skip, totals over the scenes, then the scenes
-    whose figures moved."""
-    lines = [f"Held-out stacks `{r['heldout']}`, flip, every knob from the training scenes only. Decisions: "
+    """One table per tau and grain: a row per pair of knobs, totals over the scenes, then the
+    scenes whose figures moved."""
+    lines = [f"Held-out stacks `{r['heldout']}`, flip (decide_growth's default chosen on the training stacks; "
+             "decide_skip's, 0.5, after its held-out rows here had been seen, no training set being at hand "
+             "then). Decisions: "
              "units asked (FLIP evaluations in brackets); samples: the sum over scenes of mean spp; blocks above "
              "tau at the end of the render (early ones in brackets) and the worst block.", ""]
     for tau in r["taus"]:

@@ -35,14 +35,13 @@ from typing import Any
 
 import numpy as np
 
-from .bench_native import Case, block_errors, load_case_scene, mi_render
+from .bench_native import Case, block_errors, load_case_scene, mi_render, rendered_reference
 
 log = logging.getLogger(__name__)
 
 SCENES = ("studio_preview", "cornell_box", "spot_stage")
 #: the film side per device kind (the issue's sizes)
 SIZE = {"cpu": 256, "cuda": 1024}
-TILE = 16
 #: BENCHMARKS' marked section per device kind
 SECTION = {"cpu": "equaltime", "cuda": "equaltime_gpu"}
 
@@ -52,15 +51,16 @@ def kind_of(variant: str) -> str:
     return "cuda" if variant.startswith("cuda") else "cpu"
 
 
-def tile_errors(image: np.ndarray, reference: np.ndarray, tau: float) -> np.ndarray:
-    """The observer's error of each 16-px tile of `image` against `reference` (its tile mean
-    FLIP), row-major: the grain the render stops at, numbered as its tiles are within a
-    frame of one block row (`tiles_stopped_above_tau` maps them through their windows)."""
+def tile_errors(image: np.ndarray, reference: np.ndarray, tau: float) -> dict[tuple[int, int, int, int], float]:
+    """The observer's error (its tile mean FLIP) of each tile of `image` against `reference`,
+    by window (x, y, w, h): the tiles are `noisefeat.pooling.tile_windows`', the rule the
+    renderer cuts its units by, so a render's tiles are looked up by their windows."""
+    from noisefeat.pooling import tile_windows
     from renderer.live.report import final_vs_reference
 
-    h, w = image.shape[:2]
-    windows = [(x, y, TILE, TILE) for y in range(0, h - TILE + 1, TILE) for x in range(0, w - TILE + 1, TILE)]
-    return np.asarray(final_vs_reference(image, reference, (1, 1), tau, windows=windows)["errors"])
+    windows = tile_windows(*image.shape[:2])
+    errors = final_vs_reference(image, reference, (1, 1), tau, windows=windows)["errors"]
+    return dict(zip(windows, errors))
 
 
 def judged(image: np.ndarray, reference: np.ndarray, tau: float, stopped: list[bool] | None = None,
@@ -69,33 +69,24 @@ def judged(image: np.ndarray, reference: np.ndarray, tau: float, stopped: list[b
     with the render's `tiles` (report.json's), the tiles above tau that its criterion stopped
     (the others ran to max spp), and those of them near black (reference mean under 1e-3)."""
     e = tile_errors(image, reference, tau)
-    out = {**block_errors(image, reference, tau, stopped), "tiles_above_tau": int((e > tau).sum())}
+    out = {**block_errors(image, reference, tau, stopped), "tiles_above_tau": sum(x > tau for x in e.values())}
     if tiles is not None:
-        w = image.shape[1] // TILE
-        above = [t for t in tiles if t["window"][2:] == [TILE, TILE] and t["converged"]
-                 and e[(t["window"][1] // TILE) * w + t["window"][0] // TILE] > tau]
-        dark = [t for t in above if reference[t["window"][1]:t["window"][1] + TILE,
-                                              t["window"][0]:t["window"][0] + TILE].mean() < 1e-3]
+        above = [t for t in tiles if t["converged"] and e.get(tuple(t["window"]), 0.0) > tau]
+        dark = [t for t in above if reference[t["window"][1]:t["window"][1] + t["window"][3],
+                                              t["window"][0]:t["window"][0] + t["window"][2]].mean() < 1e-3]
         out.update(tiles_stopped_above_tau=len(above), dark_tiles_stopped_above_tau=len(dark))
     return out
 
 
 def reference_for(scene_name: str, scene: Any, size: int, ref_spp: int, ref_dir: Path) -> tuple[np.ndarray, str]:
-    """The shipped reference when it matches the film, else `mi.render` at `ref_spp` (seed
-    1000, no render here uses it), cached in `ref_dir`."""
-    from learning.data.exr import read_exr, write_exr
+    """The shipped reference when it matches the film, else `mi.render` at `ref_spp`
+    (`bench_native.rendered_reference`), kept in `ref_dir`."""
     from renderer.showcase import shipped_reference
 
     ref = shipped_reference(scene_name)
     if ref is not None and ref.shape[:2] == (size, size):
         return ref.astype(np.float32), "shipped (8192 spp)"
-    path = ref_dir / f"{scene_name}_{size}_{ref_spp}.exr"
-    if path.is_file():
-        return read_exr(path).astype(np.float32), f"mi.render {ref_spp} spp (cached {path})"
-    ref, secs = mi_render(scene, ref_spp, seed=1000)
-    ref_dir.mkdir(parents=True, exist_ok=True)
-    write_exr(path, ref)
-    return ref, f"mi.render {ref_spp} spp ({secs:.0f} s)"
+    return rendered_reference(scene, ref_spp, keep=ref_dir / f"{scene_name}_{size}_{ref_spp}.exr")
 
 
 def adaptive(scene: Any, max_spp: int, **settings: Any) -> dict[str, Any]:

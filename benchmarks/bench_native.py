@@ -26,6 +26,7 @@ import logging
 import math
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -141,8 +142,22 @@ def reference_image(case: Case, scene: Any) -> tuple[np.ndarray, str]:
         if ref is None:
             raise ValueError(f"{case.scene}: no shipped reference; give the case a ref_spp")
         return ref.astype(np.float32), "shipped (8192 spp)"
-    ref, secs = mi_render(scene, case.ref_spp, seed=1000)
-    return ref, f"mi.render {case.ref_spp} spp ({secs:.0f} s)"
+    return rendered_reference(scene, case.ref_spp)
+
+
+def rendered_reference(scene: Any, spp: int, keep: Path | None = None) -> tuple[np.ndarray, str]:
+    """(image, where it came from): mi.render at `spp`, seed 1000, which no render it judges
+    uses; with `keep` (an EXR path), read from there when a run before left it, else
+    written there (minutes of rendering saved on the next run)."""
+    from learning.data.exr import read_exr, write_exr
+
+    if keep is not None and keep.is_file():
+        return read_exr(keep).astype(np.float32), f"mi.render {spp} spp (cached {keep})"
+    ref, secs = mi_render(scene, spp, seed=1000)
+    if keep is not None:
+        keep.parent.mkdir(parents=True, exist_ok=True)
+        write_exr(keep, ref)
+    return ref, f"mi.render {spp} spp ({secs:.0f} s)"
 
 
 def measure_case(case: Case, tau: float, repeats: int = 3, walls_only: bool = False) -> dict[str, Any]:
@@ -372,8 +387,6 @@ def main(argv: list[str] | None = None) -> int:
             with open(args.json, "w", encoding="utf-8") as f:
                 json.dump(r, f, indent=1)
         if args.update:
-            from pathlib import Path
-
             from .marked_sections import update_markdown
 
             update_markdown(Path(args.update), {"native_gpu" if r["variant"].startswith("cuda") else "native":

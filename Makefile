@@ -14,7 +14,7 @@ LIBRARY ?= data/default
 HELDOUT ?= data/heldout
 OUT ?= out
 
-.PHONY: setup run test test-fast test-portability bench dataset library heldout fixture model clean
+.PHONY: setup run test test-fast test-portability bench realscenes realscene-refs dataset library heldout fixture model clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -57,6 +57,16 @@ bench: dataset heldout
 	$(NOISESTOP) bench features crop flip render passes native cost service stability reliability --update BENCHMARKS.md
 	$(NOISESTOP) bench dataset inputs models criteria tradeoff ablation step knobs tilestop --data $(DATA) \
 		--heldout $(HELDOUT) --input halves,albedo --update BENCHMARKS.md
+
+# The public real-scene suite (benchmarks/realscenes, its sources and licences in SOURCES.md):
+# the default render against mi.render at equal wall time, to its quality and under a time
+# limit. realscene-refs renders the 8192-spp references once into out/bench/references
+# (outside git; each kept as it finishes, so an interrupted build resumes); it runs happily
+# in the background (`make realscene-refs &`). Fetches nothing: the scenes are in the repo.
+realscene-refs: setup
+	$(PY) -m benchmarks.bench_realscenes --refs-only
+realscenes: realscene-refs
+	$(NOISESTOP) bench realscenes --update BENCHMARKS.md
 
 # The training dataset (README "Datasets"): PROCEDURAL seeded procedural scenes
 # (renderer/scenes/procedural.py) plus the 14 built-in training scenes, each a 64x64 frame of one

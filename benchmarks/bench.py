@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from .bench_criteria import bench_criteria, md_criteria
+from .bench_equal_time import kind_of
 from .bench_features import bench_crop, bench_features, md_crop, md_features
 from .bench_flip import bench_flip, md_flip
 from .bench_models import (bench_ablation, bench_dataset, bench_inputs, bench_knobs, bench_models, md_ablation,
@@ -46,7 +47,7 @@ DATASET_SECTIONS = {"dataset": (bench_dataset, md_dataset), "inputs": (bench_inp
 #: dataset sections measured on the held-out stacks alone (no training data read)
 HELDOUT_ONLY = {"tilestop", "skip"}
 
-SECTIONS = ("features", "crop", "flip", "models", "render", "passes", "native", "cost", "equaltime", "oracle", "service",
+SECTIONS = ("features", "crop", "flip", "models", "render", "passes", "native", "cost", "equaltime", "realscenes", "oracle", "service",
             "capacity", "stability",
             "reliability", "hardening", *DATASET_SECTIONS)
 
@@ -115,9 +116,13 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
         # the cost per kept sample, in parts (issue 50); a GPU run fills a section of its own
         measure("cost_gpu" if variant.startswith("cuda") else "cost", bench_cost, md_cost)
     if "equaltime" in only:
-        from .bench_equal_time import SECTION, bench_equal_time, kind_of, md_equal_time
+        from .bench_equal_time import SECTION, bench_equal_time, md_equal_time
         # the default render against mi.render at equal wall time (issue 50), per device
         measure(SECTION[kind_of(variant)], bench_equal_time, md_equal_time)
+    if "realscenes" in only:
+        from .bench_realscenes import SECTION as REAL, bench_realscenes, md_realscenes
+        # the default render against mi.render on the public real-scene suite, per device
+        measure(REAL[kind_of(variant)], bench_realscenes, md_realscenes)
     if "oracle" in only:
         from .bench_passes import bench_oracle, md_oracle
         measure("oracle", lambda: bench_oracle(max(1, min(repeats, 3))), md_oracle)

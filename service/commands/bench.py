@@ -24,7 +24,7 @@ from . import arguments as arg
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="measure the figures of BENCHMARKS.md")
     p.add_argument("what", nargs="*", default=["features", "crop"],
-                   help="sections: features, crop, flip, models, render, passes, native, cost, equaltime, oracle, service, "
+                   help="sections: features, crop, flip, models, render, passes, native, cost, equaltime, realscenes, oracle, service, "
                         "capacity, stability, reliability, hardening, dataset, inputs, criteria, tradeoff, ablation, step, "
                         "knobs, observer, tau, tilestop, skip, budget "
                         "(default: features crop)")

@@ -28,7 +28,7 @@ from .bench_skip import bench_skip, md_skip
 from .bench_passes import bench_render, md_render
 from .bench_step import bench_step, md_step
 from .bench_tradeoff import bench_tradeoff, md_tradeoff
-from .marked_sections import update_markdown  # noqa: F401 - the door (service/commands/bench.py) writes with it
+from .marked_sections import check_target, update_markdown  # noqa: F401 - the door (service/commands/bench.py) checks and writes with them
 
 
 log = logging.getLogger(__name__)

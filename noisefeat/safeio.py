@@ -9,6 +9,7 @@ naming the file (`InputFileError`, a ValueError).
 """
 from __future__ import annotations
 
+import errno
 import json
 import os
 import stat
@@ -30,6 +31,7 @@ CAPS: dict[str, int] = {
     "EXR header": 1 << 20,        # the header of an EXR (attributes before the offset table)
     "PNG": 1 << 30,               # an 8-bit image an import reads (LISIC levels; 16k x 16k RGBA raw: 1 GiB)
     "JSON": 16 << 20,             # other small JSON records (reports, bundles' manifests)
+    "markdown": 64 << 20,         # a document `bench --update` rewrites (BENCHMARKS.md: 0.2 MB)
     "bundle": 2 << 30,            # a model bundle's other files
     "manifest": 16 << 20,         # a model bundle's manifest.json
     "model": 96 << 20,            # a model.skops, packed and unpacked (the bundled one: 44 KB); under 100 MiB
@@ -47,6 +49,15 @@ class InputFileError(ValueError):
     """An input file that is not a regular file, too large, or malformed: one line."""
 
 
+def present(path: str | os.PathLike) -> bool:
+    """Whether anything is at `path`: a file, or a link even if broken or looping.
+
+    Why: `Path.exists` follows links, so a link to nothing, or to itself, passes for "no
+    file" (a `--resume` whose checkpoint was such a link started over, exit 0); a caller
+    that asks `present` hands such a link to `open_input`, which refuses it in one line."""
+    return os.path.lexists(path)
+
+
 def check_regular(path: str | os.PathLike, kind: str = "file") -> int:
     """The size of `path` if it is a regular file (a link to one included) within the cap
     of `kind`; InputFileError otherwise (FileNotFoundError if it does not exist)."""
@@ -60,10 +71,14 @@ def open_input(path: str | os.PathLike, kind: str = "file") -> BinaryIO:
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
     except FileNotFoundError:
-        raise FileNotFoundError(f"{path}: {kind} does not exist") from None
+        what = "is a link to a missing file" if os.path.islink(path) else "does not exist"
+        raise FileNotFoundError(f"{path}: {kind} {what}") from None
     except IsADirectoryError:
         raise InputFileError(f"{path}: {kind} is a directory, not a file") from None
     except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise InputFileError(f"{path}: {kind} is a loop of symbolic links (it never reaches a file); "
+                                 "refused") from None
         raise InputFileError(f"{path}: {kind} cannot be opened ({exc.strerror or exc})") from None
     try:
         st = os.fstat(fd)

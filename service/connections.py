@@ -17,7 +17,8 @@ ones included, and then answers 503 to every route, health probes too.
   for `body_timeout` seconds, is not complete within the whole-body deadline, or arrives
   slower than the minimum rate after the grace period is answered 408.
 * A request h11 cannot parse is answered 400 with the {"error"} JSON body every other
-  error has, naming what was wrong (`send_400_response`; uvicorn's is plain text).
+  error has, naming what was wrong (`send_400_response`; uvicorn's is plain text) but
+  never quoting the request: no header content goes back (`protocol_problem`).
 
 uvicorn's own `limit_concurrency` stays on as the ceiling of open connections
 (`serve --max-connections`), far above what idle clients can hold for long.
@@ -27,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import re
 from typing import Any
 
 import h11
@@ -47,6 +49,21 @@ _TIMEOUT_408 = (b"HTTP/1.1 408 Request Timeout\r\ncontent-type: application/json
                 b"content-length: " + str(len(_BODY_408)).encode() + b"\r\n\r\n" + _BODY_408)
 
 
+def protocol_problem(exc: Exception) -> str:
+    """What h11 found wrong, without what it quoted of the request: h11 puts the offending
+    bytes in its message (``Illegal header value b'Bearer <token>\\x00'``), and a 400 that
+    echoes a header line hands its token to whoever sent or relays it. The text up to the
+    first quoted bytes is h11's own wording."""
+    text = " ".join(str(exc).split())
+    cut = _QUOTED.search(text)
+    return (text[:cut.start()] if cut else text)[:200].rstrip(" :") or "malformed request"
+
+
+#: where h11 starts quoting the request: a bytes or bytearray repr, or a quote opening a word
+#: (an apostrophe inside one, as in "Can't", is h11's wording)
+_QUOTED = re.compile(r"""(?:^|(?<=[\s(:=]))(?:bytearray\()?b?['"]""")
+
+
 class _HeaderDeadlineProtocol(H11Protocol):
     """H11Protocol with a deadline on reading each request's line and headers."""
 
@@ -61,7 +78,7 @@ class _HeaderDeadlineProtocol(H11Protocol):
             try:
                 return next_event()
             except h11.RemoteProtocolError as exc:
-                self._protocol_problem = " ".join(str(exc).split())[:200]
+                self._protocol_problem = protocol_problem(exc)
                 raise
         self.conn.next_event = remembering_next_event      # type: ignore[method-assign]
         self._header_timer: asyncio.TimerHandle | None = None

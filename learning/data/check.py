@@ -98,6 +98,21 @@ def _stray_entries(d: Path) -> list[Problem]:
     return out
 
 
+def nonfinite_problem(path: Path, img: np.ndarray, what: str, is_ref: bool) -> Problem | None:
+    """The image's NaN/Inf values as a problem, or None if every value is finite.
+
+    None finite is damage; some are an error in the reference (every label is measured
+    against it, so the blocks around them get wrong labels) and a warning in a level or
+    quick image (renderers do emit the odd NaN). `relabel` refuses what this calls an error.
+    """
+    bad = int(np.count_nonzero(~np.isfinite(img)))
+    if bad and bad == img.size:
+        return Problem(path, f"{what} has no finite value (all {bad} are NaN/Inf): damaged")
+    if bad:
+        return Problem(path, f"{what} has {bad} NaN/Inf value(s)", ERROR if is_ref else WARNING)
+    return None
+
+
 def check_stack(d: str | os.PathLike, deep: bool = True) -> list[Problem]:
     """Every problem of one stack directory."""
     d = Path(d)
@@ -164,12 +179,9 @@ def check_stack(d: str | os.PathLike, deep: bool = True) -> list[Problem]:
                                           f"the reference is {ref_shape[1]}x{ref_shape[0]}"))
         if is_ref:
             ref_shape = got
-        bad = int(np.count_nonzero(~np.isfinite(img)))
-        if bad and bad == img.size:
-            problems.append(Problem(path, f"{what} has no finite value (all {bad} are NaN/Inf): damaged"))
-        elif bad:
-            problems.append(Problem(path, f"{what} has {bad} NaN/Inf value(s)",
-                                    ERROR if is_ref else WARNING))
+        nonfinite = nonfinite_problem(path, img, what, is_ref)
+        if nonfinite is not None:
+            problems.append(nonfinite)
 
     listed = {level_name(s).split("/")[1] for s in spp}
     if (d / LEVELS_DIR).is_dir():

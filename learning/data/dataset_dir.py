@@ -60,6 +60,9 @@ def find_stack(reference: Stack | str | os.PathLike, scene: str) -> Stack:
         return reference
     root = Path(reference)
     stacks = [read_stack(p) for p in list_stacks(root)]
+    if not stacks:       # a folder, but no dataset: say so, not "no stack of this scene"
+        raise ValueError(f"{root}: a folder with no stack in it (no {META} in it or below it): not a "
+                         "labelled dataset or a stack (a reference image is a FILE.exr)")
     match = [s for s in stacks if s.scene == scene]
     if len(stacks) == 1 and not match:
         raise ValueError(f"{root}: the stack there is scene {stacks[0].scene!r}, not {scene!r}")

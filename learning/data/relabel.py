@@ -14,6 +14,7 @@ from collections.abc import Mapping
 from noisefeat.pooling import DEFAULT_POOLING, TILE
 
 from ..names import DEFAULT_TAU
+from .check import ERROR, nonfinite_problem
 from .dataset_dir import list_stacks
 from .observer import is_virtual, labeler_matches, observer_for
 from .stack import Stack, read_stack
@@ -67,12 +68,24 @@ def relabel_if_stale(stack: Stack, pooling: str = DEFAULT_POOLING,
     another observer (another pooling, or `tau` when given; None keeps the stack's own).
 
     Labels of any other labeler (human, LISIC, synthetic) are the data itself and are
-    never touched. Returns the stack as it now is and whether it was relabelled.
+    never touched. Returns the stack as it now is and whether it was relabelled. A
+    reference that `noisestop dataset check` calls an error (`check_reference`) is a
+    ValueError, and nothing is written.
     """
     if not is_virtual(stack.labeler):
         return stack, False
+    check_reference(stack)
     obs = observer_for(stack, tau, pooling)
     if labeler_matches(stack.labeler, obs) and stack.tile == TILE and stack.tile_thresholds is not None \
             and _current_tile_truth(stack.labeler):
         return stack, False
     return update_labels(stack, obs.label_stack(stack), obs.labeler, TILE, obs.label_tiles(stack)), True
+
+
+def check_reference(stack: Stack) -> None:
+    """ValueError if the stack's reference is one `noisestop dataset check` calls an error
+    (`check.nonfinite_problem`): labels measured against NaN or Inf pixels are wrong."""
+    problem = nonfinite_problem(stack.reference_path, stack.reference(), "reference", True)
+    if problem is not None and problem.severity == ERROR:
+        raise ValueError(f"{problem.path}: {problem.message}; not relabelled (labels against it would "
+                         "be wrong): re-render the reference (`noisestop dataset check` lists every problem)")

@@ -11,9 +11,11 @@ only with `--no-auth`, on loopback).
 
 A token is one line of visible ASCII characters (``!`` to ``~``: what an HTTP header can
 carry): a token file may end with one newline, nothing else; a variable's or argument's
-surrounding spaces are dropped. Anything else (a second line, a control, space or
-non-ASCII character) is refused in one line naming where the token came from and never
-showing it: before, a two-line file reached the HTTP layer, whose error printed the whole
+spaces are refused like any other (a token of " abc" is not "abc": what a user typed and
+what a client sends must be one token). Anything else (a second line, a control, space or
+non-ASCII character) is refused in one line naming where the token came from (the
+variable, or `--token-file` when the file was given by the flag) and never showing it:
+before, a two-line file reached the HTTP layer, whose error printed the whole
 ``Authorization`` header, and a server took it and then answered every request 401.
 """
 from __future__ import annotations
@@ -31,34 +33,34 @@ ENV_TOKEN_FILE = "NOISESTOP_TOKEN_FILE"
 def resolve_token(token: str | None = None, token_file: str | os.PathLike | None = None,
                   environ: Mapping[str, str] = os.environ) -> str | None:
     """The token to require: explicit arguments first, then the environment; None if none."""
-    if token is None and token_file is None:
+    from_env = token is None and token_file is None
+    if from_env:
         token, token_file = environ.get(ENV_TOKEN), environ.get(ENV_TOKEN_FILE)
+    token_where, file_where = (ENV_TOKEN, ENV_TOKEN_FILE) if from_env else ("the token argument", "--token-file")
     if token is not None and token_file is not None:
-        raise ValueError(f"set either {ENV_TOKEN} or {ENV_TOKEN_FILE}, not both")
+        raise ValueError(f"set either {token_where} or {file_where}, not both")
     if token_file is not None and not str(token_file).strip():
-        raise ValueError(f"{ENV_TOKEN_FILE} (or --token-file) is set but empty: name the token file, "
-                         "or unset it")
+        raise ValueError(f"{file_where} is set but empty: name the token file, or unset it")
     if token_file is not None:
         path = Path(token_file)
         try:
             raw = read_input(path, "token file")
         except FileNotFoundError:
-            raise FileNotFoundError(f"{path}: token file ({ENV_TOKEN_FILE}) does not exist") from None
+            raise FileNotFoundError(f"{path}: token file ({file_where}) does not exist") from None
         except InputFileError as exc:
-            raise ValueError(f"{exc} ({ENV_TOKEN_FILE})") from None
+            raise ValueError(f"{exc} ({file_where})") from None
         except OSError as exc:
-            raise ValueError(f"{path}: token file is unreadable ({exc})") from None
+            raise ValueError(f"{path}: token file ({file_where}) is unreadable ({exc})") from None
         if not raw.strip():
-            raise ValueError(f"{path}: token file is empty")
+            raise ValueError(f"{path}: token file ({file_where}) is empty")
         line = raw[:-2] if raw.endswith(b"\r\n") else raw[:-1] if raw.endswith(b"\n") else raw
-        check_token(line, f"{path}: token file ({ENV_TOKEN_FILE})")
+        check_token(line, f"{path}: token file ({file_where})")
         token = line.decode("ascii")
     elif token is not None:
-        token = token.strip()
-        if not token:
-            raise ValueError(f"{ENV_TOKEN} is set but empty (a token of spaces is no token): set it, "
+        if not token.strip():
+            raise ValueError(f"{token_where} is set but empty (a token of spaces is no token): set it, "
                              "or unset it")
-        check_token(token, f"the token ({ENV_TOKEN} or the token argument)")
+        check_token(token, f"the token ({token_where})")
     return token
 
 

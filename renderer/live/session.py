@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from noisefeat.runtime import torch_threads
+from noisefeat.safeio import present
 
 from ..criteria import COUNTER_NAMES, TIMER_NAMES, Criterion
 from ..spec import RenderSpec
@@ -140,7 +141,7 @@ class RenderSession:
 
     def _initial_state(self, resume: bool, pass_spp: list[int]) -> dict[str, Any]:
         path, br = self.ckpt_path, self.br
-        if path is not None and resume and path.exists():
+        if path is not None and resume and present(path):      # a broken or looping link: refused there
             state = load_checkpoint(path, self.settings, pass_spp=pass_spp, grid=(br.n_blocks, br.tiles_per_block),
                                     unit_shape=br.tile_shape, frame=(br.height, br.width), nonnegative=br.nonnegative)
             check_radiance(path, state["acc"], self.br, pass_spp[0], self.spec.seed)

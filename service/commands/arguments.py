@@ -89,6 +89,20 @@ def quick_modes(text: str) -> tuple[str, ...]:
     return modes
 
 
+def names_from(known: tuple[str, ...], what: str) -> Callable[[str], tuple[str, ...]]:
+    """argparse type: comma-separated names from `known` ('' for none). An unknown name is
+    a one-line usage error listing the known ones, before any work (`bench --kinds zzz`
+    ran for seconds, then failed on something else)."""
+    def parse(text: str) -> tuple[str, ...]:
+        names = tuple(n.strip() for n in text.split(",") if n.strip())
+        bad = [n for n in names if n not in known]
+        if bad:
+            raise argparse.ArgumentTypeError(f"unknown {what} {', '.join(repr(n[:40]) for n in bad[:5])}; "
+                                             f"known: {', '.join(known)}")
+        return names
+    return parse
+
+
 def add_pool_arguments(p: argparse.ArgumentParser, purpose: str) -> None:
     """--workers N | --scheduler ADDRESS: where per-scene tasks run (renderer.farm)."""
     where = p.add_mutually_exclusive_group()

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 from types import ModuleType
 
-from learning.names import QUICK_MODES
+from learning.names import QUICK_MODES, SVM_KINDS, TRANSFER_KINDS
 
 from ..console import UsageError, emit_json, log
 from . import arguments as arg
@@ -33,9 +33,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="labelled dataset of held-out scenes every figure is measured on (make "
                         "heldout); without it a quarter of --data is held out, with a warning")
     p.add_argument("--out", default="out/bench", help="directory for plots")
-    p.add_argument("--arches", default=None,
-                   help="models: comma-separated transfer baselines (default: all five; '' for none)")
-    p.add_argument("--kinds", default=None, help="models: comma-separated SVM kinds (default: all six)")
+    p.add_argument("--arches", type=arg.names_from(TRANSFER_KINDS, "transfer baseline"), default=None,
+                   help=f"models: comma-separated transfer baselines ({', '.join(TRANSFER_KINDS)}; "
+                        "default: all five; '' for none)")
+    p.add_argument("--kinds", type=arg.names_from(SVM_KINDS, "SVM kind"), default=None,
+                   help=f"models: comma-separated SVM kinds ({', '.join(SVM_KINDS)}; default: all six)")
     p.add_argument("--input", "--quick", dest="quick", type=arg.quick_modes, default=("albedo",),
                    help="models: the quick images of the feature models, comma-separated "
                         f"({', '.join(QUICK_MODES)}; default albedo)")
@@ -73,14 +75,17 @@ def cmd_bench(args: argparse.Namespace) -> int:
     unknown = sorted(set(args.what) - set(bench.SECTIONS))
     if unknown:
         raise UsageError(f"unknown bench sections {unknown}; known: {', '.join(bench.SECTIONS)}")
-    arches = None if args.arches is None else tuple(a for a in args.arches.split(",") if a)
-    kinds = None if args.kinds is None else tuple(k for k in args.kinds.split(",") if k)
+    if args.update:        # before measuring: a FILE that cannot be rewritten costs no run
+        try:
+            bench.check_target(Path(args.update))
+        except (ValueError, OSError) as exc:
+            raise UsageError(f"--update {exc}") from None
 
     def update(name: str, markdown: str) -> None:   # section by section: ctrl-c loses nothing done
         bench.update_markdown(Path(args.update), {name: markdown})
         log.info("updated %s: section %s", args.update, name)
     results = bench.run_all(repeats=args.repeats, only=tuple(args.what), data=args.data,
-                            out_dir=args.out, arches=arches, kinds=kinds, quick=args.quick,
+                            out_dir=args.out, arches=args.arches, kinds=args.kinds, quick=args.quick,
                             on_section=update if args.update else None, heldout=args.heldout)
     if args.json:
         emit_json(results)

@@ -77,8 +77,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from noisefeat.extras import require_extra
 
     require_extra("serve")
+    from renderer.client.token import resolve_token
+    # the token before the server's imports (seconds of them): a bad one is one line at once
+    secret = resolve_token(token_file=args.token_file)
     from service.serve import parse_model_specs, run
-    run(parse_model_specs(args.model), args.host, args.port, token_file=args.token_file,
+    run(parse_model_specs(args.model), args.host, args.port, token=secret,
         max_body_bytes=args.max_body_bytes, max_batch=args.max_batch,
         inference_threads=args.threads, graceful_timeout=args.graceful_timeout, offset=args.offset,
         max_block_side=args.max_block_side, max_pixels=args.max_pixels,

@@ -51,7 +51,7 @@ def test_a_named_file_that_is_no_regular_file_is_refused(tmp_path, element, bad)
     t0 = time.perf_counter()
     with pytest.raises((ValueError, FileNotFoundError)) as info:
         load_scene(str(xml), 16)
-    assert time.perf_counter() - t0 < 5
+    assert time.perf_counter() - t0 < 60        # a refusal, not a hang (its speed: bench hardening)
     msg = str(info.value)
     shown = f"not found in {tmp_path}," if bad == "missing" else f"{tmp_path}/bad.dat: "   # missing: where
     assert "\n" not in msg and shown in msg and ELEMENT[element] in msg, msg

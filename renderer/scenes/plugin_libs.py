@@ -77,6 +77,5 @@ def plugin_library_error(type_: str, folders: Sequence[str], own: str | None) ->
             return None
         library = os.path.join(folder, "plugins", type_ + _SUFFIX)
         if os.path.lexists(library):
-            return (f"{library}: a plugin library in the scene's search folders, which Mitsuba would load "
-                    "and run; plugins come from Mitsuba's own folder only")
+            return f"{library}: a plugin library Mitsuba would load and run (only its own are loaded)"
     return None

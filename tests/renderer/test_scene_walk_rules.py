@@ -131,3 +131,18 @@ def test_a_plugin_type_that_is_no_plain_name_is_refused(tmp_path: Path) -> None:
         xml = write(tmp_path / "s.xml", f'<shape type="sphere"><bsdf type="{bad}"/></shape>')
         with pytest.raises(ValueError, match=f'plugin type "{bad}" is not a plain name'):
             check_scene_files(xml)
+
+
+def test_loading_leaves_mitsubas_search_folders_as_they_were(tmp_path: Path) -> None:
+    """A <path> in a scene resized on load was added to Mitsuba's global search folders for
+    good (the field-of-view reparse ran without load_file's own resolver): every later load
+    in the process, plugin libraries included, looked there first."""
+    mi = pytest.importorskip("mitsuba")
+    from renderer.scenes.catalog import load_scene
+
+    (tmp_path / "sub").mkdir()
+    xml = write(tmp_path / "s.xml", '<path value="sub"/><shape type="sphere"/>')
+    load_scene("cornell", 8)
+    before = [str(p) for p in mi.file_resolver()]
+    load_scene(str(xml), (16, 8))         # resized: the sensor's fov is reparsed
+    assert [str(p) for p in mi.file_resolver()] == before

@@ -198,10 +198,11 @@ class _Walk:
                 named = f" (named by <spectrum> in {where()})"
                 spectrum = _found(values["filename"], resolver, "spectrum", named)   # read while parsing
                 _checked(lambda: check_regular(spectrum, "spectrum"), named)
-            elif tag in ("string", "integer") and values.get("name") and values.get("value") is not None:
+            elif tag in ("string", "integer") and values.get("name") in ("filename", "shape_index") \
+                    and values.get("value") is not None:
                 owner = next(((t, ty, p) for t, ty, lv, p in reversed(stack[:-1]) if t in OBJECT_TAGS),
                              ("scene", "", {}))
-                owner[2].setdefault(values["name"], values["value"])
+                owner[2].setdefault(values["name"], values["value"])      # what a header check reads
                 if tag == "string" and values["name"] == "filename":
                     element = f'<{owner[0]} type="{owner[1]}">' if owner[1] else f"<{owner[0]}>"
                     self.plugin_files.append((values["value"], KIND_BY_TAG.get(owner[0], "file"), element, where(),

@@ -168,3 +168,21 @@ def test_a_ply_cut_short_and_an_obj_of_too_many_words_are_refused(tmp_path: Path
     (tmp_path / "m.obj").write_bytes(b"v 0 0 0\nv 1 0 0\nv 0 1 0\n" + (b"f" + b" 1" * 400 + b"\n") * 3)
     with pytest.raises(ValueError, match=r"m.obj: mesh states 1215 elements at most \(its words\), over the limit of 1000"):
         check_scene_files(scene(tmp_path, "obj", "m.obj"))
+
+
+def test_a_serialized_shape_is_read_where_its_shape_index_points(tmp_path: Path) -> None:
+    """A two-shape file (the table of offsets at its end, as Mitsuba writes it): shape 0 is
+    a triangle, shape 1 states two billion elements; only shape_index 1 is refused."""
+    first = serialized(3, 1, TRIANGLE + struct.pack("<3I", 0, 1, 2))
+    second = serialized(10 ** 9, 10 ** 9)
+    (tmp_path / "two.serialized").write_bytes(first + second + struct.pack("<QQI", 0, len(first), 2))
+    shape = ('<shape type="serialized"><string name="filename" value="two.serialized"/>'
+             '<integer name="shape_index" value="{}"/></shape>')
+    xml = tmp_path / "scene.xml"
+    xml.write_text(f'<scene version="3.0.0">{shape.format(0)}{SENSOR}</scene>')
+    check_scene_files(xml)
+    mi = mitsuba()
+    assert mi.load_dict({"type": "serialized", "filename": str(tmp_path / "two.serialized")}).face_count() == 1
+    xml.write_text(f'<scene version="3.0.0">{shape.format(1)}{SENSOR}</scene>')
+    with pytest.raises(ValueError, match="two.serialized: mesh states 2000000000 vertices and faces"):
+        check_scene_files(xml)

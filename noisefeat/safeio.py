@@ -16,7 +16,7 @@ import stat
 from pathlib import Path
 from typing import Any, BinaryIO
 
-#: largest size, in bytes, of each kind of input file
+#: largest size, in bytes, of each kind of input file (and, last, the bounds read from headers)
 CAPS: dict[str, int] = {
     "meta.json": 16 << 20,        # a stack's metadata: thresholds of ~100k blocks at most
     "flip.json": 1 << 20,         # the criterion's calibrated curve
@@ -40,6 +40,9 @@ CAPS: dict[str, int] = {
     "checkpoint": 4 << 30,        # a render's checkpoint.npz (its own bound is the frame's: renderer.live.checkpoint)
     "npz": 4 << 30,               # other .npz files (stack caches; each reader bounds it further)
     "file": 2 << 30,              # anything else
+    # bounds a file's header states (counts, not bytes; renderer.scenes.image_headers, mesh_headers):
+    "image pixels": 1 << 27,      # a texture's or envmap's width x height (16k x 8k; RGBA float: 2 GiB)
+    "mesh elements": 1 << 27,     # a mesh's vertices + faces (a ply's elements, an obj's words)
 }
 #: deepest nesting accepted in an input JSON file (none of ours is deeper than 6)
 MAX_JSON_DEPTH = 32

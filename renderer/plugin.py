@@ -99,6 +99,9 @@ class NoisestopIntegrator:
         try:
             if len(nested) > 1:
                 raise ValueError(f"the noisestop integrator wraps one integrator, got {len(nested)} nested ones")
+            if nested and isinstance(nested[0], tuple(_classes.values())):
+                raise ValueError("the noisestop integrator cannot wrap another noisestop integrator: nest the "
+                                 "integrator that makes the samples (path, volpath, ...) in one noisestop")
             if not isinstance(progress, bool):
                 raise ValueError(f"progress must be a boolean, got {progress!r}")
             self.progress = progress
@@ -128,7 +131,11 @@ class NoisestopIntegrator:
             raise ValueError("the noisestop integrator returns its developed image: call it with "
                              "develop=True (as mi.render does)")
         if isinstance(sensor, (int, np.integer)):
-            sensor = scene.sensors()[int(sensor)]
+            sensors = scene.sensors()
+            if not 0 <= int(sensor) < len(sensors):
+                raise ValueError(f"sensor {int(sensor)} is out of range: the scene has {len(sensors)} sensor(s), "
+                                 f"0 to {len(sensors) - 1}")
+            sensor = sensors[int(sensor)]
         s = dict(self.settings)
         if int(spp) > 0:
             s["max_spp"] = int(spp)
@@ -186,7 +193,10 @@ def register() -> str:
     """
     from noisefeat.extras import require
 
+    from .scenes.plugin_libs import preload
+
     cls = integrator_class()
+    preload()          # Mitsuba's plugin libraries from its own folder (the nested path one included)
     variant = require("mitsuba").variant()
     if variant not in _registered:
         require("mitsuba").register_integrator(PLUGIN, lambda props: cls(props))

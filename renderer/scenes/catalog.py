@@ -40,6 +40,7 @@ from . import heldout
 from . import training_scenes as training
 from .procedural import procedural_scene, procedural_seed
 from .scene_kit import SceneDict
+from .plugin_libs import mitsuba_folder, preload
 from .scenefiles import check_scene_files, mitsuba_search_paths
 from learning.data.variant import select_variant
 from noisefeat.extras import require
@@ -209,12 +210,20 @@ def _xml_sensor_props(path: str, defines: Mapping[str, str] | None) -> Any:
     parser = getattr(mi, "parser", None)
     if parser is None or not hasattr(mi, "parse_fov"):
         return None
+    # the search folders mi.load_file parsed it with (the file's own first); <path> in the file
+    # would otherwise be added to Mitsuba's global ones for good
+    previous = mi.file_resolver()
+    resolver = mi.FileResolver(previous)
+    resolver.prepend(os.path.dirname(path))
+    mi.set_file_resolver(resolver)
     try:
         state = parser.parse_file(parser.ParserConfig(mi.variant()), path, **dict(defines or {}))
     except RuntimeError as exc:       # mi.load_file read it, so this is unexpected: keep the field
         logger.warning("%s: cannot read the sensor's field of view (%s): its horizontal field is kept",
                        path, " ".join(str(exc).split()))
         return None
+    finally:
+        mi.set_file_resolver(previous)
     sensors = [n for n in state.nodes if n.type == mi.ObjectType.Sensor]
     return sensors[0].props if sensors else None
 
@@ -242,6 +251,7 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | No
     """
     select_variant()
     mi = require("mitsuba")
+    preload()          # Mitsuba's plugin libraries from its own folder, before any scene names one
 
     size = resolution      # checked by the render spec's row (`renderer.spec.ROW["resolution"]`)
     name_or_path = os.fspath(name_or_path)
@@ -261,7 +271,7 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | No
     if not os.path.exists(path):
         raise FileNotFoundError(f"{name_or_path}: scene file not found")
     # Mitsuba reads it and every file it names: a FIFO, a device, a file over its cap is refused first
-    check_scene_files(path, defines, mitsuba_search_paths())
+    check_scene_files(path, defines, mitsuba_search_paths(), mitsuba_folder())
     try:
         scene = mi.load_file(path, **dict(defines or {}))
     except Exception as exc:  # Mitsuba raises RuntimeError with its parser message

@@ -25,8 +25,23 @@ What the walk follows, as Mitsuba does:
 
 A name found nowhere is checked where Mitsuba would look last (relative to the current
 folder): a missing file is a one-line FileNotFoundError here, not Mitsuba's later error.
-Entity declarations (a DTD) are refused: Mitsuba's pugixml never expands them, and expanding
-them is how an XML file grows without bound.
+Paths are joined as Mitsuba joins them and resolved by the OS (never normalised: through a
+link, ``L/..`` is not the folder holding L).
+
+What the walk reads as Mitsuba reads it, or refuses:
+
+* the text: in the encoding pugixml reads (`xml_encoding`); a DOCTYPE is refused: pugixml
+  skips it, while expat would apply its entities (how an XML file grows without bound) and
+  attribute declarations (an NMTOKENS attribute's spaces folded: another file name than
+  Mitsuba's);
+* the files a plugin reads, past their size cap: images' pixels (`image_headers`), meshes'
+  and grids' element counts (`mesh_headers`), bounded by ``safeio.CAPS``;
+* plugin types: a plain name, and no ``plugins/<type>.so`` in the folders Mitsuba would
+  load it from (`plugin_libs`);
+* its own cost: objects nest at most `MAX_NESTING` deep, elements `MAX_ELEMENT_DEPTH`,
+  at most `MAX_FILES` include visits and `MAX_XML_BYTES` of XML (repeats counted, as Mitsuba
+  parses each include each time), `MAX_PATHS` <path> folders; an include seen again with the
+  same folders, parameters and nesting is not parsed again.
 """
 from __future__ import annotations
 
@@ -37,28 +52,55 @@ from xml.parsers import expat
 
 from noisefeat.safeio import InputFileError, check_regular, read_input
 
+from .image_headers import check_image
+from .mesh_headers import check_grid, check_obj, check_ply, check_serialized
+from .plugin_libs import plugin_library_error
+from .xml_encoding import declaration_error, pugixml_encoding
+
 T = TypeVar("T")
 
 #: Mitsuba's own include depth bound (ParserConfig.max_include_depth): the top file is depth 0
 MAX_DEPTH = 15
 #: most XML files one scene may read (its includes counted each time they are included)
 MAX_FILES = 4096
+#: most bytes of XML Mitsuba may parse for one scene (includes counted each time)
+MAX_XML_BYTES = 1 << 30
+#: deepest nesting of objects (<scene> is 1): real scenes stay under 8 (scene, shape, a few
+#: wrapping BSDFs, a texture), while Mitsuba's load doubles with each level of twosided BSDFs
+#: (24 levels: 3.5 s; 40: over 30 s and 1.4 GB; 20,000: a crash in its recursive parser); 16
+#: leaves twice the room real scenes take and costs Mitsuba milliseconds at worst
+MAX_NESTING = 16
+#: deepest nesting of any XML element (objects, their properties, transforms)
+MAX_ELEMENT_DEPTH = 64
+#: most <path> folders one scene adds (its includes' counted): each name is looked up in each
+MAX_PATHS = 64
 #: the kind (safeio.CAPS) of a `filename` property by the element it belongs to
 KIND_BY_TAG = {"shape": "mesh", "texture": "texture", "emitter": "environment map", "spectrum": "spectrum",
                "volume": "volume grid", "bsdf": "BSDF data"}
 OBJECT_TAGS = frozenset({"scene", "bsdf", "emitter", "film", "integrator", "medium", "phase", "rfilter",
                          "sampler", "sensor", "shape", "texture", "volume", "spectrum"})
+#: the header check of the file a plugin reads, by (element, type): the rest are size-capped only
+HEADER_CHECKS: dict[tuple[str, str], Callable[..., None]] = {
+    ("shape", "ply"): check_ply, ("shape", "ellipsoids"): check_ply, ("shape", "ellipsoidsmesh"): check_ply,
+    ("shape", "obj"): check_obj, ("shape", "serialized"): check_serialized, ("shape", "sdfgrid"): check_grid,
+    ("volume", "gridvolume"): check_grid, ("texture", "bitmap"): check_image, ("emitter", "envmap"): check_image,
+}
 
 
 class _Walk:
     """One walk over a scene and its includes: parameters, search folders, files read."""
 
-    def __init__(self, defines: Mapping[str, str] | None, search: Sequence[str | os.PathLike]):
+    def __init__(self, defines: Mapping[str, str] | None, search: Sequence[str | os.PathLike], own: str | None):
         self.params: dict[str, str] = {str(k): str(v) for k, v in (defines or {}).items()}
         self.search = [os.fspath(s) for s in search]
+        self.own = own                       # Mitsuba's folder: plugin libraries there are its own
         self.top_resolver: list[str] = []    # the folders plugins' files resolve in (the top file's)
-        self.plugin_files: list[tuple[str, str, str, str]] = []    # (name, kind, element, where)
-        self.files_read = 0
+        #: (name, kind, element, where, tag, type, the element's properties read so far)
+        self.plugin_files: list[tuple[str, str, str, str, str, str, dict[str, str]]] = []
+        self.types: dict[str, str] = {}      # plugin type -> where it is first named
+        self.files_read = self.xml_bytes = self.paths = 0
+        #: includes walked: (path, kind, resolver, parameters, chain, nesting) -> (files, bytes) they read
+        self.walked: dict[tuple[object, ...], tuple[int, int]] = {}
 
     # -- substitution, as parser.cpp's substitute_parameters
     def substitute(self, value: str) -> str | None:
@@ -80,54 +122,96 @@ class _Walk:
             pos += 1
         return value.replace("\\$", "$")
 
+    def _count(self, path: str, files: int, size: int) -> None:
+        """Add one visit's files and XML bytes; refuse past `MAX_FILES` or `MAX_XML_BYTES`."""
+        self.files_read += files
+        self.xml_bytes += size
+        if self.files_read > MAX_FILES:
+            raise ValueError(f"{path}: the scene reads more than {MAX_FILES} XML files (its includes); refused")
+        if self.xml_bytes > MAX_XML_BYTES:
+            raise ValueError(f"{path}: the scene's XML (its includes counted each time) is over {MAX_XML_BYTES} "
+                             "bytes; refused")
+
     # -- one XML file
-    def read(self, path: str, kind: str, chain: tuple[str, ...], resolver: list[str], named_by: str) -> None:
-        """Read and walk one XML file (`chain`: the real paths of the files including it)."""
+    def read(self, path: str, kind: str, chain: tuple[str, ...], resolver: list[str], named_by: str,
+             nesting: int = 0) -> None:
+        """Read and walk one XML file (`chain`: the real paths of the files including it;
+        `nesting`: the object level it is included at)."""
         if len(chain) >= MAX_DEPTH:
             raise ValueError(f"{path}: includes nest deeper than Mitsuba's {MAX_DEPTH} levels{named_by}; refused")
         real = os.path.realpath(path)
         if real in chain:
             raise ValueError(f"{path}: includes itself (an include loop){named_by}; refused")
-        self.files_read += 1
-        if self.files_read > MAX_FILES:
-            raise ValueError(f"{path}: the scene reads more than {MAX_FILES} XML files (its includes); refused")
+        key = (path, kind, tuple(resolver), len(self.params), chain, nesting)   # parameters only grow
+        if key in self.walked:          # walked in this very state: nothing new, its cost counted again
+            self._count(path, *self.walked[key])
+            return
+        before = (self.files_read, self.xml_bytes)
         data = _checked(lambda: read_input(path, kind), named_by)
-        folder = os.path.dirname(os.path.abspath(path))
+        self._count(path, 1, len(data))
+        encoding = pugixml_encoding(data)
+        if encoding is None:
+            raise ValueError(f"{path}: is UTF-16 or UTF-32 text, which this check does not read{named_by}; "
+                             "save it as UTF-8; refused")
+        # the folder as Mitsuba takes it (parent_path: never normalised, the OS resolves L/..)
+        folder = os.path.dirname(path if os.path.isabs(path) else os.path.join(os.getcwd(), path))
         resolver = list(resolver)        # <path> in this file: this file's later includes (and nested ones)
-        stack: list[tuple[str, str]] = []
-        parser = expat.ParserCreate()
+        stack: list[tuple[str, str, int, dict[str, str]]] = []        # (tag, type, object level, properties)
+        parser = expat.ParserCreate(encoding)      # pugixml's encoding, whatever the file declares
         parser.SetParamEntityParsing(expat.XML_PARAM_ENTITY_PARSING_NEVER)
 
         def where() -> str:
             return f"{path}, line {parser.CurrentLineNumber}"
 
-        def entity(*_: object) -> None:
-            raise ValueError(f"{where()}: declares an XML entity (a DTD), which Mitsuba does not read; refused")
+        def declaration(_version: str, declared: str | None, _standalone: int) -> None:
+            if why := declaration_error(declared, encoding, data):
+                raise ValueError(f"{path}: {why}{named_by}; refused")
+
+        def doctype(*_: object) -> None:
+            raise ValueError(f"{where()}: has a DOCTYPE (a DTD: entity and attribute declarations), which "
+                             f"Mitsuba does not read{named_by}; refused")
 
         def start(tag: str, attrs: dict[str, str]) -> None:
             values = {k: self.substitute(v) for k, v in attrs.items()}
-            stack.append((tag, values.get("type") or ""))
+            parent = stack[-1][2] if stack else nesting
+            is_object = tag in OBJECT_TAGS and (tag != "spectrum" or "type" in values) and (
+                bool(stack) or not chain or tag != "scene")          # an included <scene> merges into its parent
+            stack.append((tag, values.get("type") or "", parent + is_object, {}))
+            if len(stack) > MAX_ELEMENT_DEPTH or parent + is_object > MAX_NESTING:
+                what = ("objects", MAX_NESTING) if parent + is_object > MAX_NESTING else ("elements", MAX_ELEMENT_DEPTH)
+                raise ValueError(f"{where()}: {what[0]} nest deeper than {what[1]} levels{named_by}; refused")
+            if is_object and tag != "scene" and values.get("type") is not None:
+                self.types.setdefault(values["type"], f'<{tag} type="{values["type"][:64]}"> in {where()}')
             if tag == "default" and values.get("name") and values.get("value") is not None:
                 self.params.setdefault(values["name"], values["value"])       # -D and earlier ones win
             elif tag == "path" and values.get("value") and len(stack) == 2:
-                self._path(values["value"], folder, resolver, chain)
+                self.paths += 1
+                if self.paths > MAX_PATHS:
+                    raise ValueError(f"{where()}: the scene adds more than {MAX_PATHS} <path> folders; refused")
+                self._path(values["value"], folder, resolver)
             elif tag == "include" and values.get("filename") is not None:
                 named = f' (named by <include> in {where()})'
                 inc_resolver = [folder, *resolver]
                 self.read(_found(values["filename"], inc_resolver, "included scene", named), "included scene",
-                          (*chain, real), inc_resolver, named)
+                          (*chain, real), inc_resolver, named, parent)
             elif tag == "spectrum" and not values.get("type") and values.get("filename"):
                 named = f" (named by <spectrum> in {where()})"
                 spectrum = _found(values["filename"], resolver, "spectrum", named)   # read while parsing
                 _checked(lambda: check_regular(spectrum, "spectrum"), named)
-            elif tag == "string" and values.get("name") == "filename" and values.get("value") is not None:
-                owner = next(((t, ty) for t, ty in reversed(stack[:-1]) if t in OBJECT_TAGS), ("scene", ""))
-                element = f'<{owner[0]} type="{owner[1]}">' if owner[1] else f"<{owner[0]}>"
-                self.plugin_files.append((values["value"], KIND_BY_TAG.get(owner[0], "file"), element, where()))
+            elif tag in ("string", "integer") and values.get("name") in ("filename", "shape_index") \
+                    and values.get("value") is not None:
+                owner = next(((t, ty, p) for t, ty, lv, p in reversed(stack[:-1]) if t in OBJECT_TAGS),
+                             ("scene", "", {}))
+                owner[2].setdefault(values["name"], values["value"])      # what a header check reads
+                if tag == "string" and values["name"] == "filename":
+                    element = f'<{owner[0]} type="{owner[1]}">' if owner[1] else f"<{owner[0]}>"
+                    self.plugin_files.append((values["value"], KIND_BY_TAG.get(owner[0], "file"), element, where(),
+                                              owner[0], owner[1], owner[2]))
 
         parser.StartElementHandler = start
         parser.EndElementHandler = lambda _tag: stack.pop()
-        parser.EntityDeclHandler = entity
+        parser.XmlDeclHandler = declaration
+        parser.StartDoctypeDeclHandler = doctype
         try:
             parser.Parse(data, True)
         except expat.ExpatError as exc:
@@ -135,8 +219,9 @@ class _Walk:
                              f"{named_by}") from None
         if not chain:       # the top file's resolver (its <path>s included) loads every plugin
             self.top_resolver = resolver
+        self.walked[key] = (self.files_read - before[0], self.xml_bytes - before[1])
 
-    def _path(self, value: str, folder: str, resolver: list[str], chain: tuple[str, ...]) -> None:
+    def _path(self, value: str, folder: str, resolver: list[str]) -> None:
         """A <path> folder, resolved as parser.cpp does (the file's folder, then the resolver)."""
         p = value
         if not os.path.isabs(p):
@@ -146,14 +231,33 @@ class _Walk:
         resolver.insert(0, p)
 
     def check_plugin_files(self) -> None:
-        """Each plugin's `filename`, resolved as it will be when the plugin loads."""
-        seen: set[tuple[str, str]] = set()
-        for name, kind, element, where in self.plugin_files:
+        """Each plugin's `filename`, resolved as it will be when the plugin loads: a regular
+        file within its kind's cap, and within the bounds its header check reads."""
+        seen: set[tuple[object, ...]] = set()
+        for name, kind, element, where, tag, type_, props in self.plugin_files:
             named = f" (named by {element} in {where})"
             path = _found(name, self.top_resolver, kind, named)
-            if (path, kind) not in seen:
-                seen.add((path, kind))
+            check = HEADER_CHECKS.get((tag, type_))
+            args = (_integer(props.get("shape_index")),) if check is check_serialized else ()
+            if (path, kind, check, args) not in seen:
+                seen.add((path, kind, check, args))
                 _checked(lambda: check_regular(path, kind), named)
+                if check is not None:
+                    _checked(lambda: check(path, kind, *args), named)
+
+    def check_plugin_types(self) -> None:
+        """No plugin type whose library Mitsuba would look up in the scene's folders."""
+        for type_, where in self.types.items():
+            if why := plugin_library_error(type_, self.top_resolver, self.own):
+                raise ValueError(f"{why} (named by {where}); refused")
+
+
+def _integer(value: str | None) -> int:
+    """An <integer> property as Mitsuba reads it; 0 if absent (or unreadable: Mitsuba refuses it)."""
+    try:
+        return int((value or "0").strip())
+    except ValueError:
+        return 0
 
 
 def _resolve(name: str, resolver: Sequence[str]) -> str:
@@ -187,15 +291,19 @@ def _checked(call: Callable[[], T], named_by: str) -> T:
 
 
 def check_scene_files(path: str | os.PathLike[str], defines: Mapping[str, str] | None = None,
-                      search: Sequence[str | os.PathLike] | None = None) -> None:
-    """Refuse, in one line, a scene XML at `path` (absolute) that names a file which is not
-    a regular file within its kind's cap, or whose includes loop or nest too deep.
+                      search: Sequence[str | os.PathLike] | None = None, own: str | None = None) -> None:
+    """Refuse, in one line, a scene XML at `path` (the path Mitsuba is given) that names a
+    file which is not a regular file within its kind's cap and header bounds, a plugin
+    library in its search folders, or whose includes loop or nest too deep.
 
     `defines`: the -D parameters it is loaded with; `search`: Mitsuba's search folders
-    (``mi.file_resolver()``; None: the current folder)."""
-    path = os.path.abspath(os.fspath(path))
-    walk = _Walk(defines, [os.getcwd()] if search is None else search)
+    (``mi.file_resolver()``; None: the current folder); `own`: Mitsuba's folder, whose
+    plugin libraries are Mitsuba's (None: every folder is looked at)."""
+    path = os.fspath(path)
+    path = path if os.path.isabs(path) else os.path.join(os.getcwd(), path)
+    walk = _Walk(defines, [os.getcwd()] if search is None else search, own)
     walk.read(path, "scene", (), [os.path.dirname(path), *walk.search], "")
+    walk.check_plugin_types()
     walk.check_plugin_files()
 
 

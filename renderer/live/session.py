@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from learning.inputs.history import last_decided_spp
 from noisefeat.runtime import torch_threads
 
 from ..criteria import COUNTER_NAMES, TIMER_NAMES, Criterion
@@ -111,9 +112,9 @@ class RenderSession:
         self.label, self.ckpt_path, self.grow, self.t_start = label, ckpt_path, grow, t_start
         self.ledger = Ledger(COUNTER_NAMES + RENDER_COUNTERS, TIMER_NAMES + RENDER_TIMERS)
         br.ledger = self.ledger                       # the renderer's Mitsuba calls, from now on
-        self.budget = Budget.for_spec(spec, self.ledger)
         sched = schedule(spec.step, spec.max_spp)
         self.state = self._initial_state(resume, np.diff(sched, prepend=0).tolist())
+        self.budget = Budget.for_spec(spec, self.ledger, resumed=self.state.get("budget") is not None)
         self.ledger.time("setup_s", time.perf_counter() - t_start)  # imports, scene load, checkpoint read
         quick_blocks = None
         if crit.needs_quick:
@@ -125,16 +126,18 @@ class RenderSession:
         # the loop's units: the blocks' tiles (T a block; the blocks themselves when T = 1)
         self.loop = PassLoop(crit, (br.n_blocks, br.tiles_per_block), br.tile_shape, sched, spec.min_spp, quick_blocks,
                              device=br.device, tiling=br, ledger=self.ledger,
-                             # a budget spends by fresh ratios: it judges every unit it renders
-                             decide_skip=spec.decide_skip if self.budget is None else 0.0,
-                             decide_growth=spec.decide_growth if self.budget is None else 0.0)
+                             # an spp budget that can bind judges every unit it renders (`Budget.judges_every_unit`)
+                             **({"decide_skip": 0.0, "decide_growth": 0.0}
+                                if self.budget is not None and self.budget.judges_every_unit(spec.max_spp)
+                                else {"decide_skip": spec.decide_skip, "decide_growth": spec.decide_growth}))
         if "acc" in self.state:                       # resumed: counters and timers go on from there
             self.loop.restore(self.state)
             self.ledger.restore(self.state["counters"], self.state["timers"])
             if self.budget is not None and self.state.get("budget") is not None:
                 self.budget.restore(self.state["budget"])
                 asked, ratio = self.state["budget"]["ratio_asked"], self.state["budget"]["ratio"]
-                self.loop.ratios.put(np.flatnonzero(asked), ratio[asked])   # what the rounds are chosen by
+                taken = last_decided_spp(self.loop.history, self.loop.history_unit_spp)   # at the last decision
+                self.loop.ratios.put(np.flatnonzero(asked), ratio[asked], taken[asked])   # what rounds are chosen by
         #: the next launch, queued on the device while this one is judged (`advance`)
         self._ahead: tuple[np.ndarray, list[np.ndarray], Traced[torch.Tensor]] | None = None
 

@@ -31,6 +31,7 @@ from ..spec import RenderSpec
 from .blocks import BlockRenderer
 from .budget import Budget
 from .checkpoint import load_checkpoint, save_checkpoint
+from .evidence_check import check_evidence
 from .ledger import RENDER_COUNTERS, RENDER_TIMERS, Ledger
 from .passloop import PassLoop, schedule
 from .wavefront import Traced
@@ -132,6 +133,7 @@ class RenderSession:
                                 else {"decide_skip": spec.decide_skip, "decide_growth": spec.decide_growth}))
         if "acc" in self.state:                       # resumed: counters and timers go on from there
             self.loop.restore(self.state)
+            check_evidence(self.ckpt_path, self.loop)   # what the file alone cannot vouch for, as check_radiance
             self.ledger.restore(self.state["counters"], self.state["timers"])
             if self.budget is not None and self.state.get("budget") is not None:
                 self.budget.restore(self.state["budget"])

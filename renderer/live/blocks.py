@@ -180,9 +180,12 @@ class BlockRenderer(BlockWindows):
 
     def count_kernels(self) -> None:
         """Add the compilations in Dr.Jit's kernel history since the last count to the
-        ledger. Reading the history waits for every queued kernel: only a count asked for
-        does it (`kernel_compiles`, a session's `counts`), never a pass, so a queued launch
-        traces while the loop judges the last."""
+        ledger, emptying it. Reading the history waits for every queued kernel, so a launch
+        reads it once its own images are in (`submit_passes`), before the loop queues the
+        next: nothing else is queued then, and a queued launch still traces while the loop
+        judges the last. Why every launch: the history keeps a record of every kernel run
+        until it is read (hundreds of kB a pass), so read only at checkpoints a render's
+        memory grew with its passes (1.8 GB after 2,500)."""
         if self._counts_kernels:
             dr = require("drjit")
             self._ledger.count("kernel_compiles", sum(1 for k in dr.kernel_history()
@@ -288,6 +291,7 @@ class BlockRenderer(BlockWindows):
                     idx = self._unit_idx[torch.from_numpy(units[rows]).to(self.device)]
                     out[torch.from_numpy(rows).to(self.device)] = frame.view(-1, 3)[idx].view(
                         len(rows), self.tile_h, self.tile_w, 3)
+            self.count_kernels()      # its kernels are done: read their records now, so they do not pile up
             return out
         return Traced(gather)
 

@@ -3,8 +3,8 @@
 Without a budget every pass renders every active unit (the words: `renderer.live.passloop`).
 Users with a deadline want the best image by that time instead (Cycles, Arnold and
 LuxCore pair a noise target with a time limit), so with ``--spp-budget N`` (samples per
-pixel averaged over the units) or ``--time-limit S`` each round renders the active units
-farthest from their target, one pass each:
+pixel averaged over the units) or ``--time-limit S`` each round renders the blocks whose
+units are farthest from their target, one pass each:
 
 * The loop's `ratios` (`renderer.live.passloop.UnitRatios`) hold, per unit, its last score
   relative to the criterion's threshold (flip: the half-buffer FLIP over c(tau); > 1 is
@@ -17,18 +17,30 @@ farthest from their target, one pass each:
   the mean error (Cauchy-Schwarz: sum sqrt(a_u) <= sqrt(U sum a_u)); levelling the ratio
   itself (``per_sample=False``: samples in proportion to a_u^2, every unit to the same
   error) helps the worst unit most but measured worse on the mean.
-* A round renders the units whose priority is at least `band` times the largest: the
-  worst alone at first, then, as it comes down, every unit within the band (water
-  filling, in rounds large enough to trace well).
+* A round renders the blocks whose priority (their worst pending unit's) is at least
+  `band` times the largest: the worst alone at first, then, as it comes down, every
+  block within the band (water filling, in rounds large enough to trace well). A round
+  takes every pending unit of a block it picks: a tile is judged in its block's context,
+  so only a block whose tiles move together keeps the unbudgeted render's samples and
+  decisions.
 * While the budget left covers every active unit to max spp, rounds render all of them:
-  a roomy budget renders exactly what the unbudgeted loop renders, pass for pass.
+  a budget that does not bind renders exactly what the unbudgeted loop renders, pass for
+  pass.
+* Decisions: an spp budget below max spp (one that can bind: known from the settings)
+  judges every unit it renders at every pass, so the ratios that pick where its samples
+  go are fresh (`judges_every_unit`, in report.json too). Otherwise (a larger spp budget,
+  a time limit) units are judged when the unbudgeted render judges them, decisions
+  skipped and spaced alike (`renderer.live.passloop.next_decision`), and the ratio a
+  block is ranked by is brought from its last decision to its spp now.
 
 A unit's j-th pass always draws the samples of pass index j (`BlockRenderer.submit_passes`
 traces units at different pass counts in one launch; a round is the loop's,
-`PassLoop.run_round`), so a unit ends with the very image the unbudgeted loop gives it at
-the same spp; units that reach the target stop as always. What the rounds cost (seconds
-and unit-spp: the time limit's rate) is in the render's ledger (`renderer.live.ledger`). When
-the budget ends, the units still above the target are listed with their ratios
+`PassLoop.run_round`), and it is judged at the spp its own decisions ask for, so a block
+goes through the very states of the unbudgeted render (deciding as the budget render
+does), only in another order: the units that stop, stop at that render's spp, and a
+resume of a render a time limit ended, with or without the limit, ends in the
+uninterrupted render's image. What the rounds cost (seconds and unit-spp: the time limit's rate) is in the render's ledger
+(`renderer.live.ledger`). When the budget ends, the units still above the target are listed with their ratios
 (`above_target`).
 """
 from __future__ import annotations
@@ -45,6 +57,19 @@ from .passloop import PassLoop
 
 #: a round renders the active units whose priority is at least this share of the largest
 BAND = 0.8
+
+
+def needs(loop: PassLoop, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(block [k], need [b]): for pending units `ids`, the index of their block among the
+    blocks they lie in, and what each such block's next pass costs (the unit-spp of its
+    units' next passes). A budget round takes whole blocks: a tile is judged in its
+    block's context (`renderer.live.block_windows`), so a block whose units all move
+    together gets the samples and decisions of the unbudgeted render, whatever the order."""
+    per_block = loop.tiling.tiles_per_block if loop.tiling is not None else 1
+    _, block = np.unique(np.asarray(ids, np.int64) // per_block, return_inverse=True)
+    need = np.zeros(int(block.max()) + 1 if block.size else 0)
+    np.add.at(need, block, loop.pass_spp[loop.acc.pass_counts()[ids]])
+    return block, need
 
 
 @dataclass
@@ -70,12 +95,29 @@ class Budget:
             raise ValueError(f"band must be in (0, 1], got {self.band!r}")
 
     @classmethod
-    def for_spec(cls, spec: RenderSpec, ledger: Ledger) -> Budget | None:
+    def for_spec(cls, spec: RenderSpec, ledger: Ledger, resumed: bool = False) -> Budget | None:
         """The budget a render spec asks for (None: neither an spp budget nor a time limit),
-        reporting to the render's `ledger`."""
-        if spec.spp_budget is None and spec.time_limit is None:
+        reporting to the render's `ledger`. `resumed`: the render goes on from a budget
+        render's checkpoint, whose units may be at different pass counts: without limits it
+        gets a budget of none (every pending unit each round, at its own next pass), so its
+        checkpoints stay a budget render's."""
+        if spec.spp_budget is None and spec.time_limit is None and not resumed:
             return None
         return cls(spec.spp_budget, spec.time_limit, ledger=ledger)
+
+    @property
+    def limited(self) -> bool:
+        """Whether it has a limit (a resumed render's budget of none has not: `for_spec`)."""
+        return self.spp_budget is not None or self.time_limit is not None
+
+    def judges_every_unit(self, max_spp: int) -> bool:
+        """Whether the render judges every unit it renders at every pass (its decisions
+        neither skipped nor spaced: `renderer.live.passloop.next_decision`): with an spp
+        budget below max spp, which can bind, so that its ratios, which pick where the
+        samples go, are fresh. Known from the settings alone, so every round of a render and
+        of its resumes decides alike. A larger spp budget never binds, and a time limit does
+        not change decisions: the render decides as without a budget."""
+        return self.spp_budget is not None and self.spp_budget < max_spp
 
     def state(self) -> dict[str, Any]:
         """What a checkpoint keeps of the budget, so a resumed budget render goes on as the
@@ -107,36 +149,32 @@ class Budget:
         return left
 
     def select(self, loop: PassLoop, elapsed: float = 0.0) -> list[int]:
-        """The units of the next round, in unit order ([]: the budget or the units ran out)."""
-        acc = loop.acc
-        n = acc.n_units
-        spp, counts = acc.spp_all(), acc.pass_counts()
+        """The units of the next round, in unit order ([]: the budget or the units ran out).
+
+        While the budget left covers every pending unit to max spp: all of them (the
+        unbudgeted round). Otherwise whole blocks (`needs`): those whose priority is within
+        the band of the largest, worst first as far as an spp budget pays for them."""
+        spp = loop.acc.spp_all()
         ids = np.flatnonzero(loop.pending())
         if not ids.size:
             return []
-        next_spp = loop.pass_spp[counts[ids]]           # what each unit's next pass costs
         left = self._left(spp, elapsed)
         if left >= float((int(loop.schedule[-1]) - spp[ids]).sum()):
             return ids.tolist()                            # enough for everything: as unbudgeted
-        known, _ = loop.ratios.take(ids)
-        unknown = ids[~known & ((spp[ids] >= loop.min_spp) if loop.min_spp is not None else True)]
-        if unknown.size:            # judged before a resume: ask again (same state, same answer)
-            loop.judge(unknown.tolist())
-        ratio = self.priority(loop, ids)
-        top = ratio.max()
-        chosen = ratio >= self.band * top if np.isfinite(top) else ~np.isfinite(ratio)
+        block, need = needs(loop, ids)
+        prio = np.full(len(need), -np.inf)
+        np.maximum.at(prio, block, self.priority(loop, ids))   # a block: its worst unit
+        top = prio.max()
+        chosen = prio >= self.band * top if np.isfinite(top) else ~np.isfinite(prio)
         if self.spp_budget is not None:                    # what fits, worst first
-            order = np.flatnonzero(chosen)[np.argsort(-ratio[chosen], kind="stable")]
-            room = self.spp_budget * n - float(spp.sum())
-            fit = []                 # greedy: a unit that does not fit leaves its room to the next
-            for i, need in zip(order.tolist(), next_spp[order].tolist()):
-                if need <= room:
-                    fit.append(i)
-                    room -= need
-            order = np.asarray(fit, np.int64)
-            chosen = np.zeros(len(ids), bool)
-            chosen[order] = True
-        picked = ids[chosen]
+            order = np.flatnonzero(chosen)[np.argsort(-prio[chosen], kind="stable")]
+            room = self.spp_budget * loop.acc.n_units - float(spp.sum())
+            chosen = np.zeros(len(need), bool)
+            for i in order.tolist():     # greedy: a block that does not fit leaves its room to the next
+                if need[i] <= room:
+                    chosen[i] = True
+                    room -= need[i]
+        picked = ids[chosen[block]]
         if not picked.size:
             self.ended = True
         elif picked.size < ids.size:
@@ -145,24 +183,25 @@ class Budget:
 
     def priority(self, loop: PassLoop, ids: np.ndarray) -> np.ndarray:
         """The priority `select` ranks units `ids` by: each one's last ratio to its target
-        (inf: no estimate yet, so first), over sqrt(spp) with `per_sample`."""
-        _, ratio = loop.ratios.take(ids)
+        brought to its spp now (`UnitRatios.predicted`; inf: no estimate yet, so first),
+        over sqrt(spp) with `per_sample`."""
+        spp = loop.acc.spp_all()[ids]
+        ratio = loop.ratios.predicted(ids, spp)
         ratio = np.where(np.isnan(ratio), np.inf, ratio)
         if self.per_sample:
-            ratio = ratio / np.sqrt(np.maximum(loop.acc.spp_all()[ids], 1))
+            ratio = ratio / np.sqrt(np.maximum(spp, 1))
         return ratio
 
     def finished(self, loop: PassLoop) -> bool:
         """Whether the render is over: no unit is pending, or the sample budget cannot pay
-        for another pass of any of them (the budget ended)."""
-        acc = loop.acc
-        left = loop.pending()
-        if not left.any():
+        for another pass of any block's pending units (the budget ended)."""
+        left = np.flatnonzero(loop.pending())
+        if not left.size:
             return True
         if self.spp_budget is None:
             return False
-        next_spp = loop.pass_spp[acc.pass_counts()[left]]
-        if int(next_spp.min()) > self.spp_budget * acc.n_units - float(acc.spp_all().sum()):
+        _, need = needs(loop, left)
+        if float(need.min()) > self.spp_budget * loop.acc.n_units - float(loop.acc.spp_all().sum()):
             self.ended = True
         return self.ended
 
@@ -177,5 +216,6 @@ class Budget:
                  for b, r in zip(ids.tolist(), ratio.tolist())]
         above.sort(key=lambda x: -(math.inf if x["ratio"] is None else x["ratio"]))
         return {"spp_budget": self.spp_budget, "time_limit": self.time_limit, "band": self.band,
-                "ended": ended, "prioritised_rounds": self.prioritised_rounds,
+                "judges_every_unit": self.judges_every_unit(int(loop.schedule[-1])), "ended": ended,
+                "prioritised_rounds": self.prioritised_rounds,
                 "above_target": above if ended else []}

@@ -24,7 +24,9 @@ made with the same settings, and holds a state that the loop could have produced
 
 What the file alone cannot vouch for, its radiance (sums scaled by 1e30, digest recomputed,
 resumed with every block "converged"), the session checks against the scene: its first
-pass traced again (`renderer.live.session.check_radiance`).
+pass traced again (`renderer.live.session.check_radiance`); nor each unit's decision
+evidence and next decision, which the session checks against the half buffers the file
+holds (`renderer.live.session.check_evidence`).
 
 Anything else is a ValueError naming the file and what is wrong; `--resume` never
 continues from a state it cannot vouch for.

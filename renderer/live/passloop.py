@@ -92,11 +92,23 @@ class UnitRatios:
     def __init__(self, n: int) -> None:
         self.asked = np.zeros(n, bool)
         self.value = np.full(n, np.nan)
+        self.spp = np.zeros(n, np.int64)        # the spp each ratio was taken at
 
-    def put(self, ids: Any, ratio: Any) -> None:
+    def put(self, ids: Any, ratio: Any, spp: Any) -> None:
+        """Units `ids`' ratios, taken at their `spp` (one value for all, or one each)."""
         idx = np.asarray(ids, np.int64).reshape(-1)
         self.asked[idx] = True
         self.value[idx] = np.asarray(ratio, np.float64).reshape(-1)
+        self.spp[idx] = np.broadcast_to(np.asarray(spp, np.int64), idx.shape)
+
+    def predicted(self, ids: Any, spp: Any) -> np.ndarray:
+        """float64 [k]: the ratios of units `ids` brought from the spp they were taken at to
+        `spp` [k] by Monte Carlo's 1/sqrt(spp) (NaN where unknown): a unit whose decisions
+        skip passes (`next_decision`) is ranked by where its noise stands now."""
+        _, ratio = self.take(ids)
+        idx = np.asarray(ids, np.int64).reshape(-1)
+        now = np.maximum(np.asarray(spp, np.float64).reshape(-1), 1.0)
+        return ratio * np.sqrt(np.maximum(self.spp[idx], 1) / now)
 
     def take(self, ids: Any) -> tuple[np.ndarray, np.ndarray]:
         """(asked bool [k], ratio float64 [k], NaN where unknown) of units `ids`."""
@@ -186,14 +198,14 @@ class PassLoop:
 
     def judge(self, ids: Sequence[int]) -> np.ndarray:
         """The criterion's verdicts int8 [k] on units as they stand, their cost in the
-        ledger, their ratios kept; the active set is `run_round`'s to change (a resumed
-        budget render asks units judged before the interruption again: same state, same
-        answer)."""
+        ledger, their ratios kept; the active set is `run_round`'s to change. Only a round
+        calls it: a decision outside the units' own schedule would move their next decision
+        and evidence."""
         idx = np.asarray(ids, np.int64).reshape(-1)
         d: Decision = self.criterion.decide(idx, BlockBatch.from_accumulator(self.acc, idx, self.quick, self.tiling,
                                                                             self.evidence))
-        self.ratios.put(idx, d.ratio)
         spp = self.acc.spp_all()[idx]
+        self.ratios.put(idx, d.ratio, spp)
         self.next_spp[idx] = next_decision(spp, d.ratio, self.decide_skip, self.decide_growth)
         if d.evidence is not None:
             self.evidence.add(idx, d.evidence, spp)

@@ -205,7 +205,7 @@ def render_result(session: Any, *, time_limit_reached: bool, ref_stack: Stack | 
         report["defines"] = dict(spec.defines)
     if spec.time_limit is not None:
         report["time_limit"] = {"seconds": float(spec.time_limit), "reached": time_limit_reached}
-    if session.budget is not None:
+    if session.budget is not None and session.budget.limited:    # not a resumed one's budget of none
         report["budget"] = session.budget.describe(loop, time_limit_reached)
     report["render_calls"] = session.counts()
     windows = [br.unit_window(u) for u in range(n)]

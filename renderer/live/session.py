@@ -23,16 +23,17 @@ from typing import Any
 import numpy as np
 import torch
 
+from learning.inputs.history import last_decided_spp
 from noisefeat.runtime import torch_threads
 from noisefeat.safeio import present
 
-from ..criteria import COUNTER_NAMES, TIMER_NAMES, Criterion
+from ..criteria import COUNTER_NAMES, TIMER_NAMES, BlockBatch, Criterion
 from ..spec import RenderSpec
 from .blocks import BlockRenderer
 from .budget import Budget
 from .checkpoint import load_checkpoint, save_checkpoint
 from .ledger import RENDER_COUNTERS, RENDER_TIMERS, Ledger
-from .passloop import PassLoop, schedule
+from .passloop import PassLoop, next_decision, schedule
 from .wavefront import Traced
 
 logger = logging.getLogger(__name__)
@@ -97,6 +98,81 @@ def check_radiance(path: Path, acc: Any, br: BlockRenderer, first_spp: int, seed
                          "--resume) to start over")
 
 
+#: how far a unit's mean noise estimate may lie from its halves' estimate now
+EVIDENCE_RATIO = 1e3
+#: how far a unit's next decision may lie past the one its ratio now asks for
+NEXT_RATIO = 1e3
+
+
+def _refuse(path: Path, what: str) -> None:
+    """The one-line refusal of a checkpoint whose decision state its halves contradict."""
+    raise ValueError(f"{path}: inconsistent checkpoint: {what} (forged or damaged); delete it (or rerun "
+                     "without --resume) to start over")
+
+
+def check_evidence(path: Path, loop: PassLoop) -> None:
+    """ValueError unless a resumed loop's decision evidence and next decisions agree with
+    the half buffers its checkpoint holds. Neither can be recomputed from the file: the
+    scores they came from were taken on halves at spp long past, so a forged file (sums
+    zeroed or 1e300, every next decision at the latest the format allows, digest
+    recomputed) silently stopped units early or ran them to max spp. Every decision of a
+    unit estimated one per-unit constant (noise falls as 1/sqrt(spp)), so the criterion
+    is asked once more on the units as they stand, keeping nothing (no verdict, evidence,
+    counter or timer: the resumed render counts as the uninterrupted one), and the file is
+    refused where a unit judged at the spp it holds held less evidence than that very
+    decision added (same state, same estimate: half of it, for a tile's context), where its mean estimate lies more than
+    EVIDENCE_RATIO from its halves' now or is 0 while they give more (honest ones: within
+    a factor 3 on cornell), or where its next decision lies more than NEXT_RATIO past the
+    one its ratio now asks for. Only active units that were judged are asked."""
+    decided = loop.evidence.last
+    ids = np.flatnonzero(loop.active & (decided > 0))
+    if not ids.size or not loop.criterion.noise_ratio:
+        return
+    d = loop.criterion.decide(ids, BlockBatch.from_accumulator(loop.acc, ids, loop.quick, loop.tiling,
+                                                               loop.evidence))
+    spp = loop.acc.spp_all()[ids]
+    ratio = np.asarray(d.ratio, np.float64)
+    if loop.decide_skip > 0 or loop.decide_growth > 0:
+        known = np.isfinite(ratio)
+        asked = next_decision(spp[known], ratio[known], loop.decide_skip, loop.decide_growth)
+        late = loop.next_spp[ids[known]] > NEXT_RATIO * np.maximum(asked, spp[known] + 1)
+        if late.any():
+            _refuse(path, f"unit {int(ids[known][late][0])}'s next decision is far past what its noise asks for")
+    if d.evidence is None:
+        return
+    x = np.asarray(d.evidence, np.float64)
+    total, weight = loop.evidence.sums[ids, 0], loop.evidence.sums[ids, 1]
+    fresh = np.isfinite(x)
+    # judged at the spp it holds: that decision added (spp - the one before) x (the same up
+    # to a tile's context, hence half of it)
+    here = fresh & (spp == decided[ids])
+    if here.any():
+        before = _decided_before(loop, ids[here])
+        w = (spp[here] - before).astype(np.float64)
+        short = (weight[here] < w) | (total[here] < 0.5 * w * x[here])
+        if short.any():
+            _refuse(path, f"unit {int(ids[here][short][0])} holds less evidence than its last decision added")
+    held = fresh & (weight > 0) & (x > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean = np.where(held, total / np.where(weight > 0, weight, 1.0), np.nan)
+        off = held & ~((mean >= x / EVIDENCE_RATIO) & (mean <= x * EVIDENCE_RATIO))
+    if off.any():
+        _refuse(path, f"unit {int(ids[off][0])}'s decision evidence is {mean[off][0]:.3g} per sample, its "
+                      f"half buffers give {x[off][0]:.3g}")
+
+
+def _decided_before(loop: PassLoop, ids: np.ndarray) -> np.ndarray:
+    """int64 [k]: the spp of each unit's decision before its last one (0: none), from the
+    verdict history."""
+    asked = loop.history[:, ids] != 0
+    out = np.zeros(len(ids), np.int64)
+    for j in range(len(ids)):
+        rows = np.flatnonzero(asked[:, j])
+        if len(rows) >= 2:
+            out[j] = loop.history_unit_spp[rows[-2], ids[j]]
+    return out
+
+
 class RenderSession:
     """The state of one render between its set-up and its result (see the module docstring).
 
@@ -112,9 +188,9 @@ class RenderSession:
         self.label, self.ckpt_path, self.grow, self.t_start = label, ckpt_path, grow, t_start
         self.ledger = Ledger(COUNTER_NAMES + RENDER_COUNTERS, TIMER_NAMES + RENDER_TIMERS)
         br.ledger = self.ledger                       # the renderer's Mitsuba calls, from now on
-        self.budget = Budget.for_spec(spec, self.ledger)
         sched = schedule(spec.step, spec.max_spp)
         self.state = self._initial_state(resume, np.diff(sched, prepend=0).tolist())
+        self.budget = Budget.for_spec(spec, self.ledger, resumed=self.state.get("budget") is not None)
         self.ledger.time("setup_s", time.perf_counter() - t_start)  # imports, scene load, checkpoint read
         quick_blocks = None
         if crit.needs_quick:
@@ -126,16 +202,19 @@ class RenderSession:
         # the loop's units: the blocks' tiles (T a block; the blocks themselves when T = 1)
         self.loop = PassLoop(crit, (br.n_blocks, br.tiles_per_block), br.tile_shape, sched, spec.min_spp, quick_blocks,
                              device=br.device, tiling=br, ledger=self.ledger,
-                             # a budget spends by fresh ratios: it judges every unit it renders
-                             decide_skip=spec.decide_skip if self.budget is None else 0.0,
-                             decide_growth=spec.decide_growth if self.budget is None else 0.0)
+                             # an spp budget that can bind judges every unit it renders (`Budget.judges_every_unit`)
+                             **({"decide_skip": 0.0, "decide_growth": 0.0}
+                                if self.budget is not None and self.budget.judges_every_unit(spec.max_spp)
+                                else {"decide_skip": spec.decide_skip, "decide_growth": spec.decide_growth}))
         if "acc" in self.state:                       # resumed: counters and timers go on from there
             self.loop.restore(self.state)
+            check_evidence(self.ckpt_path, self.loop)   # what the file alone cannot vouch for
             self.ledger.restore(self.state["counters"], self.state["timers"])
             if self.budget is not None and self.state.get("budget") is not None:
                 self.budget.restore(self.state["budget"])
                 asked, ratio = self.state["budget"]["ratio_asked"], self.state["budget"]["ratio"]
-                self.loop.ratios.put(np.flatnonzero(asked), ratio[asked])   # what the rounds are chosen by
+                taken = last_decided_spp(self.loop.history, self.loop.history_unit_spp)   # at the last decision
+                self.loop.ratios.put(np.flatnonzero(asked), ratio[asked], taken[asked])   # what rounds are chosen by
         #: the next launch, queued on the device while this one is judged (`advance`)
         self._ahead: tuple[np.ndarray, list[np.ndarray], Traced[torch.Tensor]] | None = None
 

@@ -96,17 +96,16 @@ def _same(a, b, ra, rb) -> None:
 
 
 def test_a_roomy_budget_renders_what_the_unbudgeted_loop_renders(tmp_path) -> None:
-    # a budget render judges every block it renders (its ratios pick where the samples go):
-    # the plain loop to match is the one that skips no decision
-    plain = adaptive_render("cornell", tmp_path / "plain", VarianceCriterion(0.3), decide_skip=0.0,
-                          decide_growth=0.0, **TINY)
+    # a budget that cannot bind (max spp) or is never reached decides as the plain render
+    # does, decisions skipped and spaced (the defaults): the same render
+    plain = adaptive_render("cornell", tmp_path / "plain", VarianceCriterion(0.3), **TINY)
     assert "budget" not in plain
     spp = adaptive_render("cornell", tmp_path / "spp", VarianceCriterion(0.3), spp_budget=24, **TINY)
     secs = adaptive_render("cornell", tmp_path / "secs", VarianceCriterion(0.3), time_limit=1e6, **TINY)
     for name, rep in (("spp", spp), ("secs", secs)):
         _same(tmp_path / "plain", tmp_path / name, plain, rep)
         assert rep["budget"]["ended"] is False and rep["budget"]["above_target"] == []
-        assert rep["budget"]["prioritised_rounds"] == 0
+        assert rep["budget"]["prioritised_rounds"] == 0 and rep["budget"]["judges_every_unit"] is False
 
 
 def test_a_tight_budget_goes_to_the_blocks_farthest_from_target(tmp_path) -> None:
@@ -288,5 +287,5 @@ def test_a_time_budget_prioritises_once_the_time_left_will_not_cover_every_block
     assert budget.select(loop, elapsed=50.0) == [0, 1, 2, 3]         # 800 block-spp left >= 240 needed
     assert budget.select(loop, elapsed=90.0) == [2]                  # 160 left: the censored block first
     assert budget.prioritised_rounds == 1 and not budget.ended
-    loop.ratios.put([2], [1.5])                                             # now finite: the band decides
+    loop.ratios.put([2], [1.5], 4)                                          # now finite: the band decides
     assert budget.select(loop, elapsed=90.0) == [1]                  # 16/2 = 8 > 0.8 x others

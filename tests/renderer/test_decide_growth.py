@@ -1,6 +1,6 @@
 """decide_growth (issue 50): a unit's spp grows by at least that fraction between two of its
 decisions, so a unit of thousands of spp near its target is not judged at every pass of 16;
-a budget render, whose ratios pick where samples go, judges every unit it renders."""
+a budget render skips and spaces decisions as the unbudgeted one does."""
 from __future__ import annotations
 
 import warnings
@@ -52,8 +52,12 @@ def test_a_units_decisions_are_at_least_the_growth_apart(tmp_path) -> None:
 
 
 @pytest.mark.parametrize("growth", [0.0, 0.5])
-def test_a_budget_judges_every_unit_it_renders_whatever_the_growth(tmp_path, growth) -> None:
-    a = adaptive_render("cornell", tmp_path / f"g{growth}", VarianceCriterion(0.3), spp_budget=24, decide_growth=growth,
+def test_a_roomy_budget_keeps_the_skip_and_growth_of_its_decisions(tmp_path, growth) -> None:
+    """A budget that does not bind decides when the unbudgeted render decides, growth and
+    skip included (it used to judge every unit it rendered: another render)."""
+    a = adaptive_render("cornell", tmp_path / f"b{growth}", VarianceCriterion(0.3), spp_budget=64, decide_growth=growth,
                         **TINY)
-    ref = adaptive_render("cornell", tmp_path / "ref", VarianceCriterion(0.3), spp_budget=24, decide_growth=0.0, **TINY)
+    ref = adaptive_render("cornell", tmp_path / f"p{growth}", VarianceCriterion(0.3), decide_growth=growth, **TINY)
     assert _decisions(a) == _decisions(ref) and [b["spp"] for b in a["blocks"]] == [b["spp"] for b in ref["blocks"]]
+    if growth:
+        assert sum(map(len, _decisions(a))) < len(a["blocks"]) * 15     # decisions were skipped

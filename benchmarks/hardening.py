@@ -22,6 +22,9 @@ from .hardening_round3 import bench_round3, md_round3
 from .hardening_round4 import bench_round4, round4_files
 from .hardening_round5 import (bench_inline_json, bench_nonfinite_scenes, bench_scene_files, md_inline_json,
                                md_nonfinite, md_scene_files)
+from .hardening_doors import bench_doors, md_doors
+from .hardening_loop_state import bench_loop_state, md_loop_state
+from .hardening_scene_walk import bench_scene_walk, md_scene_walk
 
 #: the address-space cap (RLIMIT_AS) the attacked server runs under
 ADDRESS_SPACE = 3 << 30
@@ -59,7 +62,8 @@ def bench_hardening() -> dict[str, Any]:
                 "auth": _auth_paths(bundle), "sighup": _sighup(bundle), "protocol": _protocol(bundle),
                 "round3": bench_round3(bundle), "round4": bench_round4(bundle), "round4_files": round4_files(bundle),
                 "round5_scene_files": bench_scene_files(),
-                "round5_nonfinite": bench_nonfinite_scenes(), "round5_inline_json": bench_inline_json(bundle)}
+                "round5_nonfinite": bench_nonfinite_scenes(), "round5_inline_json": bench_inline_json(bundle),
+                "scene_walk": bench_scene_walk(), "loop_state": bench_loop_state(), "doors": bench_doors()}
 
 
 def _hardening_shapes() -> dict[str, Any]:
@@ -263,4 +267,7 @@ def md_hardening(r: dict[str, Any]) -> str:
         lines += ["", md_nonfinite(r["round5_nonfinite"])]
     if "round5_inline_json" in r:
         lines += ["", md_inline_json(r["round5_inline_json"])]
+    for key, md in (("scene_walk", md_scene_walk), ("loop_state", md_loop_state), ("doors", md_doors)):
+        if key in r:
+            lines += ["", md(r[key])]
     return "\n".join(lines)

@@ -174,9 +174,8 @@ def bench_realscenes(scenes: tuple[str, ...] | None = None, size: int | None = N
     for name in names:
         if refs_only:
             scene = load_scene(scene_path(name), size)
-            t0 = time.perf_counter()
             _, source = rendered_reference(scene, ref_spp, keep=Path(ref_dir) / f"realscene_{name}_{size}_{ref_spp}.exr")
-            log.info("bench realscenes: %s reference: %s (%.0f s)", name, source, time.perf_counter() - t0)
+            log.info("bench realscenes: %s reference: %s", name, source)
             continue
         log.info("bench realscenes: %s", name)
         out["scenes"].append(measure_scene(name, size, max_spp, tau, ref_spp, Path(ref_dir), chunk))
@@ -247,6 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--refs-only", action="store_true", help="render the missing references and stop")
     p.add_argument("--json", default=None, help="write the results here (after each scene)")
     p.add_argument("--update", default=None, metavar="FILE", help="rewrite FILE's marked section")
+    p.add_argument("--plot", default=None, metavar="PNG", help="draw each scene's curves and our renders here")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
 
@@ -259,6 +259,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.refs_only:
         return 0
     print(md_realscenes(r))
+    if args.plot:
+        from .charts import realscenes
+
+        realscenes(r["scenes"], args.plot, r["tau"])
     if args.update:
         from .marked_sections import update_markdown
 

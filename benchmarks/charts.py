@@ -117,3 +117,33 @@ def ablation(rows: Sequence[Mapping], path: str | os.PathLike) -> str:
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     return save(fig, path)
+
+
+def realscenes(scenes: Sequence[Mapping], path: str | os.PathLike, tau: float) -> str:
+    """Per suite scene, `mi.render`'s worst block against its render seconds (two seeds, a
+    point every 64 spp), with the default render (star) and the time-limited one (triangle)
+    at their wall times: a point below and left of the curves is a picture `mi.render` has
+    not reached by then (`bench realscenes`)."""
+    n = len(scenes)
+    cols = min(4, n)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.9 * rows), squeeze=False)
+    for ax, s in zip(axes.flat, scenes):
+        for i, (seed, pts) in enumerate(s["curves"].items()):
+            ax.plot([p["t"] for p in pts], [p["worst"] for p in pts], "-", color=f"C{i}", lw=1.1,
+                    label=f"mi.render, seed {seed}")
+        a, lim = s["adaptive"], s["time_limit"]
+        ax.plot([a["wall_s"]], [a["worst"]], "*", color="k", ms=11, label="noisestop (default)")
+        ax.plot([lim["ours"]["wall_s"]], [lim["ours"]["worst"]], "^", color="C3", ms=8,
+                label="noisestop --time-limit")
+        ax.axhline(tau, color="0.6", lw=0.8, ls="--")
+        ax.set_yscale("log")
+        ax.set_title(f"{s['scene']}: {s['equal_time_verdict']}", fontsize=9)
+        ax.set_xlabel("seconds", fontsize=8)
+        ax.tick_params(labelsize=7)
+    for ax in list(axes.flat)[n:]:
+        ax.axis("off")
+    axes.flat[0].set_ylabel("worst block (FLIP)", fontsize=8)
+    axes.flat[0].legend(fontsize=6, loc="upper right")
+    fig.tight_layout()
+    return save(fig, path)

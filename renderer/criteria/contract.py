@@ -160,6 +160,7 @@ class Criterion(ABC):
     def decide(self, ids: Sequence[int], batch: BlockBatch | Sequence[BlockView]) -> Decision:
         """The `Decision` on the listed blocks: a `BlockBatch` (the loop's), or one
         `BlockView` per block."""
+        t0 = time.perf_counter()       # before the views are batched: that may time features too
         ids = np.asarray(ids, np.int64).reshape(-1).tolist()
         tally = Tally()
         if not isinstance(batch, BlockBatch):
@@ -172,7 +173,6 @@ class Criterion(ABC):
             raise ValueError(f"{self.name} criterion needs the quick image, the batch has none")
         if self.needs_halves and batch.half_spp is None:
             raise ValueError(f"{self.name} criterion needs half buffers, the batch has none")
-        t0 = time.perf_counter()
         verdict, ratio, *rest = self.assess(ids, batch, tally)
         verdict, ratio = np.asarray(verdict), np.asarray(ratio, np.float64)
         evidence = np.asarray(rest[0], np.float64).reshape(-1) if rest and rest[0] is not None else None

@@ -66,5 +66,9 @@ def test_one_tiny_scene_goes_through_every_row(tmp_path, monkeypatch) -> None:
     assert list(refs.glob("realscene_tiny_64_256.exr"))
     text = md_realscenes(r)
     assert "| tiny |" in text and "Equal wall time:" in text
+    from benchmarks.charts import realscenes
+
+    png = realscenes(r["scenes"], tmp_path / "curves.png", r["tau"])
+    assert open(png, "rb").read(8) == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(ValueError, match="unknown suite scene"):
         bench_realscenes(("nope",), size=64, max_spp=64, ref_spp=64, ref_dir=refs)

@@ -39,30 +39,12 @@ def _forge(src: Path, dst: Path, change: Callable[[dict[str, np.ndarray]], None]
     return dst
 
 
-def _zero(arrays: dict[str, np.ndarray]) -> None:
-    arrays["evidence"] = np.zeros_like(arrays["evidence"])
-
-
-def _huge(arrays: dict[str, np.ndarray]) -> None:
-    ev = arrays["evidence"].copy()
-    ev[:, 0] = np.where(ev[:, 1] > 0, 1e300, 0.0)
-    arrays["evidence"] = ev
-
-
-def _latest(arrays: dict[str, np.ndarray]) -> None:
-    from learning.inputs.history import last_decided_spp
-
-    decided = last_decided_spp(arrays["history"], arrays["history_block_spp"])
-    arrays["next_spp"] = np.where(decided > 0, decided << 20, arrays["next_spp"])
-
-
-FORGERIES = {"evidence zeroed": _zero, "evidence sums 1e300": _huge, "next decisions at the latest allowed": _latest}
-
-
 def bench_loop_state(passes: tuple[int, ...] = (500, 2500)) -> list[dict[str, Any]]:
     """Rows: budgets against the unbudgeted render (image equal, mean spp), forged decision
     evidence on resume (exit, message), and an 8x8 uniform render's peak RSS at each count
     of `passes` (step 1)."""
+    from tests.support.forgery import FORGERIES
+
     rows: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory() as tmp:
         t = Path(tmp)

@@ -12,6 +12,7 @@ from learning.data.npz import read_npz
 from renderer.live.adaptive import adaptive_render
 from renderer.live.budget import Budget
 from renderer.live.passloop import PassLoop
+from tests.support.forgery import killed_at
 
 pytestmark = pytest.mark.slow
 
@@ -54,17 +55,9 @@ def test_a_time_limit_that_binds_but_is_not_reached_gives_the_unbudgeted_render(
 
 
 def test_a_resume_after_a_binding_time_limit_is_the_uninterrupted_render(plain, tmp_path, monkeypatch) -> None:
-    calls = {"n": 0}
-    real = PassLoop.judge
-
-    def dying(self, ids):
-        calls["n"] += 1
-        if calls["n"] == 12:
-            raise RuntimeError("simulated kill")
-        return real(self, ids)
     with monkeypatch.context() as m:
         _binding(m)
-        m.setattr(PassLoop, "judge", dying)
+        m.setattr(PassLoop, "judge", killed_at(12))
         with pytest.raises(RuntimeError, match="simulated kill"):
             adaptive_render("cornell", tmp_path / "r", time_limit=1e6, checkpoint_every=0.0, **TILED)
     saved = read_npz(tmp_path / "r" / "checkpoint.npz")

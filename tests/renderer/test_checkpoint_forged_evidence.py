@@ -16,6 +16,7 @@ from renderer.live.checkpoint import CHECKPOINT
 from renderer.live.passloop import PassLoop
 from tests.renderer.test_checkpoint_forged_ranges import _forged
 from tests.support.errors import assert_one_line_error, run
+from tests.support.forgery import FORGERIES, killed_at
 
 pytestmark = pytest.mark.slow
 
@@ -31,48 +32,13 @@ def unfinished(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The checkpoint of a render killed at its 12th decision (units hold evidence, some
     were judged in the last round, others skip decisions)."""
     out = tmp_path_factory.mktemp("ckpt") / "out"
-    calls = {"n": 0}
-    real = PassLoop.judge
-
-    def dying(self, ids):
-        calls["n"] += 1
-        if calls["n"] == 12:
-            raise RuntimeError("simulated kill")
-        return real(self, ids)
     with pytest.MonkeyPatch.context() as m:
-        m.setattr(PassLoop, "judge", dying)
+        m.setattr(PassLoop, "judge", killed_at(12))
         with pytest.raises(RuntimeError, match="simulated kill"):
             adaptive_render("cornell", out, progress=False, checkpoint_every=0.0, **SETTINGS)
     state = read_npz(out / CHECKPOINT, kind="checkpoint")
     assert not bool(state["done"]) and (state["evidence"][:, 1] > 0).sum() > 8
     return out
-
-
-def _zero_evidence(arrays: dict[str, np.ndarray]) -> None:
-    arrays["evidence"] = np.zeros_like(arrays["evidence"])
-
-
-def _huge_evidence(arrays: dict[str, np.ndarray]) -> None:
-    ev = arrays["evidence"].copy()
-    ev[:, 0] = np.where(ev[:, 1] > 0, 1e300, 0.0)
-    arrays["evidence"] = ev
-
-
-def _tiny_evidence(arrays: dict[str, np.ndarray]) -> None:
-    ev = arrays["evidence"].copy()
-    ev[:, 0] = ev[:, 0] * 1e-6                   # weights kept: every unit's mean nearly 0
-    arrays["evidence"] = ev
-
-
-def _latest_next_decision(arrays: dict[str, np.ndarray]) -> None:
-    from learning.inputs.history import last_decided_spp
-
-    decided = last_decided_spp(arrays["history"], arrays["history_block_spp"])
-    arrays["next_spp"] = np.where(decided > 0, decided << 20, arrays["next_spp"])
-
-
-FORGERIES = {"evidence zeroed": _zero_evidence, "evidence of 1e300": _huge_evidence,
-             "evidence scaled by 1e-6": _tiny_evidence, "next decisions at the latest allowed": _latest_next_decision}
 
 
 @pytest.mark.parametrize("case", FORGERIES)

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from .bench_equal_time import judged, kind_of
+from .bench_equal_time import adaptive, judged, kind_of
 from .bench_native import block_errors, mi_render, rendered_reference
 
 log = logging.getLogger(__name__)
@@ -101,18 +101,6 @@ def compare(ours: dict[str, Any], seeds: list[dict[str, Any]]) -> str:
     return "tie"
 
 
-def adaptive(scene: Any, max_spp: int, tau: float, **settings: Any) -> dict[str, Any]:
-    """The default render to `max_spp`, timed as a user times the call, and its figures."""
-    import renderer
-
-    t0 = time.perf_counter()
-    r = renderer.render(scene, max_spp=max_spp, tau=tau, progress=False, **settings)
-    wall = time.perf_counter() - t0
-    return {"wall_s": wall, "mean_spp": float(r.report["mean_spp"]), "image": np.asarray(r.image, np.float32),
-            "stopped": [bool(b["converged"]) for b in r.report["blocks"]], "tiles": r.report.get("tiles"),
-            "decisions_s": float(r.report["timing"].get("decisions_s", 0.0))}
-
-
 def measure_scene(name: str, size: int, max_spp: int, tau: float, ref_spp: int, ref_dir: Path,
                   chunk: int = 64, seeds: tuple[int, ...] = (1, 2)) -> dict[str, Any]:
     """Every row of one suite scene (the module docstring)."""
@@ -124,16 +112,16 @@ def measure_scene(name: str, size: int, max_spp: int, tau: float, ref_spp: int, 
 
     scene = load_scene(scene_path(name), size)
     mi.render(scene, spp=16, seed=99)                  # warm: both kernels compiled
-    adaptive(scene, 32, tau)
+    adaptive(scene, 32, tau=tau)
     ref, source = rendered_reference(scene, ref_spp, keep=ref_dir / f"realscene_{name}_{size}_{ref_spp}.exr")
-    a = adaptive(scene, max_spp, tau)
+    a = adaptive(scene, max_spp, tau=tau)
     ours = {"wall_s": a["wall_s"], "mean_spp": a["mean_spp"], "decisions_s": a["decisions_s"],
             **judged(a["image"], ref, tau, a["stopped"], a["tiles"])}
     # each curve runs on past max spp while it is short of our wall time: its picture there
     curves = {s: quality_curve(scene, ref, tau, max_spp, chunk, s, until_s=a["wall_s"]) for s in seeds}
     first = curves[seeds[0]]
     limit_t = next(p["t"] for p in first if p["spp"] >= min(LIMIT_SPP, max_spp))
-    lim = adaptive(scene, max_spp, tau, time_limit=limit_t)
+    lim = adaptive(scene, max_spp, tau=tau, time_limit=limit_t)
     limited = {"wall_s": lim["wall_s"], "mean_spp": lim["mean_spp"], **judged(lim["image"], ref, tau)}
     matches = {s: time_to_match(c, ours["above_tau"], ours["worst"]) for s, c in curves.items()}
     out: dict[str, Any] = {

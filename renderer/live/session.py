@@ -165,12 +165,9 @@ def _decided_before(loop: PassLoop, ids: np.ndarray) -> np.ndarray:
     """int64 [k]: the spp of each unit's decision before its last one (0: none), from the
     verdict history."""
     asked = loop.history[:, ids] != 0
-    out = np.zeros(len(ids), np.int64)
-    for j in range(len(ids)):
-        rows = np.flatnonzero(asked[:, j])
-        if len(rows) >= 2:
-            out[j] = loop.history_unit_spp[rows[-2], ids[j]]
-    return out
+    if asked.any():                    # each unit's last decision left out, the last before it remains
+        asked[len(asked) - 1 - np.argmax(asked[::-1], axis=0), np.arange(len(ids))] = False
+    return last_decided_spp(asked, loop.history_unit_spp[:, ids])
 
 
 class RenderSession:

@@ -131,6 +131,11 @@ class Criterion(ABC):
     #: noise does, so the loop may predict when a unit can stop and skip its decisions
     #: before then (`renderer.live.passloop.next_decision`); else every pass is judged
     noise_ratio: bool = False
+    #: it may call a unit converged; one that never does (the uniform baseline) is asked only
+    #: at a unit's last pass (`renderer.live.passloop.PassLoop.run_round`), so the loop traces
+    #: the passes before it in as few launches as it can
+    #: (`renderer.live.session.grown_passes`): no decision where none can succeed
+    stops: bool = True
 
     @classmethod
     def from_spec(cls, spec: RenderSpec, thresholds: Sequence[int | None] | None = None) -> Criterion:

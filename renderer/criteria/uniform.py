@@ -16,6 +16,7 @@ class UniformCriterion(Criterion):
 
     name = "uniform"
     summary = "never: max_spp everywhere, the baseline"
+    stops = False
 
     def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
         return np.full(len(ids), NOISY, np.int8), np.full(len(ids), np.nan)

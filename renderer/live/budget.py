@@ -137,8 +137,10 @@ class Budget:
         cost[0] += float(seconds)
         cost[1] += float(unit_spp)
 
-    def _left(self, spp: np.ndarray, elapsed: float) -> float:
-        """Unit-spp the budget still allows (inf: no bound known yet)."""
+    def left(self, spp: np.ndarray, elapsed: float) -> float:
+        """Unit-spp the budget still allows (inf: no bound known yet), `spp` every unit's
+        now: what `select` picks by, and what sizes a time-limited round's launch
+        (`renderer.live.session.RenderSession.plan`)."""
         left = math.inf
         seconds, traced = self.ledger.budget_cost
         if self.spp_budget is not None:
@@ -158,7 +160,7 @@ class Budget:
         ids = np.flatnonzero(loop.pending())
         if not ids.size:
             return []
-        left = self._left(spp, elapsed)
+        left = self.left(spp, elapsed)
         if left >= float((int(loop.schedule[-1]) - spp[ids]).sum()):
             return ids.tolist()                            # enough for everything: as unbudgeted
         block, need = needs(loop, ids)

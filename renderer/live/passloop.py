@@ -164,6 +164,16 @@ class PassLoop:
         """bool [n]: the units that still get passes (active, with a pass left)."""
         return self.active & (self.acc.pass_counts() < len(self.schedule))
 
+    def due_pass(self, ids: Any, first: Any) -> np.ndarray:
+        """int64 [k]: for units `ids` whose next pass is `first` [k], the first pass index at or
+        after it whose round judges them (`run_round`): where their spp reaches both their
+        next decision and min_spp, and at the latest their last pass. Passes before it
+        cannot stop them, so a launch may trace them all at once (`RenderSession.plan`)."""
+        idx = np.asarray(ids, np.int64).reshape(-1)
+        target = np.maximum(self.next_spp[idx], 0 if self.min_spp is None else int(self.min_spp))
+        at = np.searchsorted(self.schedule, target, side="left") if self.criterion.stops else len(self.schedule)
+        return np.clip(np.maximum(at, np.asarray(first, np.int64).reshape(-1)), 0, len(self.schedule) - 1)
+
     def run_round(self, ids: Sequence[int], passes: Sequence[tuple[Any, int | Sequence[int]]]) -> np.ndarray:
         """One round (the module docstring): add `passes` to the units `ids` (each an
         (images [len(ids), uh, uw, 3], pass_spp) pair: one spp for all or one per unit;
@@ -183,7 +193,9 @@ class PassLoop:
         for images, pass_spp in passes:
             self.acc.add_batch(idx, images, pass_spp)
             rows_spp.append(self.acc.spp_all())
-        due = idx[(rows_spp[-1][idx] >= self.next_spp[idx]) | (self.acc.pass_counts()[idx] == len(self.schedule))]
+        # due: at its next decision (a criterion that never stops: never) or at its last pass
+        reached = rows_spp[-1][idx] >= self.next_spp[idx] if self.criterion.stops else False
+        due = idx[reached | (self.acc.pass_counts()[idx] == len(self.schedule))]
         row = decide_active(self.active, rows_spp[-1], self.min_spp, self.judge, among=due) if due.size \
             else np.zeros(len(self.active), np.int8)
         stopped = row > 0

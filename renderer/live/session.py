@@ -16,6 +16,7 @@ survives a crash: `snapshot` is the state the checkpoint holds (`renderer.live.c
 from __future__ import annotations
 
 import logging
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -39,23 +40,37 @@ from .wavefront import Traced
 logger = logging.getLogger(__name__)
 
 
-def grown_passes(n_units: int, n_pending: int, passes_left: int, grow: bool = True) -> int:
+def grown_passes(n_units: int, n_pending: int, passes_left: int, grow: bool = True, undecided: int = 1,
+                 lane_cap: int = 1) -> int:
     """How many passes of the pending units one launch traces (the rule that keeps the
-    device busy): as units stop, the remaining ones get more passes per launch, so each
-    launch holds about as many samples as the first (all units, one pass). The count is
-    floor(n_units / n_pending), made even (a pass goes to each half buffer in turn, so an
-    even count keeps them balanced), capped by the passes left; 1 without `grow`.
+    device busy, and its launches few). Two reasons to trace more than one:
 
-    The passes keep their own pass indices (so their own random numbers) and are judged one
-    after the other, a round each, so a grown launch changes neither the stops nor the
-    image: a unit still gets a decision every pass, and the passes traced past its stop are
-    dropped."""
+    * as units stop, the remaining ones get more passes per launch, so each launch holds
+      about as many samples as the first (all units, one pass): floor(n_units / n_pending),
+      made even (a pass goes to each half buffer in turn, so an even count keeps them
+      balanced);
+    * while no unit can be judged, nothing can stop: the `undecided` passes up to the first
+      one whose round judges one of them (`PassLoop.due_pass`) go in one launch, at most
+      `lane_cap` passes (`LAUNCH_LANES`): a launch costs about 10 ms here whatever its size
+      (building and hashing the path tracer's kernel, starting the thread pool), 3-4 % of a
+      16-spp pass at 256x256 (BENCHMARKS, "Where a sample's cost goes").
+
+    Capped by the passes left; 1 without `grow`. The passes keep their own pass indices (so
+    their own random numbers) and are judged one after the other, a round each, so a grown
+    launch changes neither the stops nor the image: a unit still gets its decisions at its
+    own passes, and the passes traced past its stop are dropped."""
     if not grow or n_pending <= 0:
         return 1
     k = n_units // n_pending
     if k >= 2:
         k -= k % 2
-    return max(1, min(k, passes_left))
+    return max(1, min(max(k, min(undecided, lane_cap)), passes_left))
+
+
+#: lanes (samples) one launch may hold when it traces passes ahead of a decision
+#: (`grown_passes`): 2^23, 0.2-0.5 s of this machine's two cores per million lanes, so a
+#: launch of a few seconds at most; a pass larger than this is one launch
+LAUNCH_LANES = 1 << 23
 
 
 def run_settings(spec: RenderSpec, br: BlockRenderer, crit: Criterion, variant: str, scene: str) -> dict[str, Any]:
@@ -252,15 +267,32 @@ class RenderSession:
         if self.budget is None:
             ids = np.flatnonzero(loop.pending())
             return ids, self._grown(ids, counts[ids])
-        ids = np.asarray(self.budget.select(loop, time.perf_counter() - self.t_start), np.int64)
-        return ids, [counts[ids]] if ids.size else []
+        elapsed = time.perf_counter() - self.t_start
+        ids = np.asarray(self.budget.select(loop, elapsed), np.int64)
+        if not ids.size:
+            return ids, []
+        if self.budget.spp_budget is not None or not self.grow:   # a sample budget pays pass by pass
+            return ids, [counts[ids]]
+        # a time limit: the round's blocks get passes as a grown launch would (a launch of a few
+        # blocks costs up to 2.6x a lane of a full one: BENCHMARKS "cost per kept sample"), as
+        # many as the time left pays for at the rate so far (one pass until a rate is known)
+        grown = self._grown(ids, counts[ids])
+        one = float(loop.pass_spp[counts[ids]].sum())
+        left = self.budget.left(loop.acc.spp_all(), elapsed)      # inf: no rate known yet
+        return ids, grown[:max(1, int(left // max(one, 1.0)) if math.isfinite(left) else 1)]
 
-    def _grown(self, ids: np.ndarray, first: np.ndarray) -> list[np.ndarray]:
+    def _grown(self, ids: np.ndarray, first: np.ndarray, judged: bool = True) -> list[np.ndarray]:
         """The pass indices of units `ids` in one launch, from their next ones `first`: as
-        many passes as `grown_passes` gives for that many pending units ([] for none)."""
+        many passes as `grown_passes` gives ([] for none). `judged`: every unit's last
+        decision is made (its next one known); a launch queued before the last one is judged
+        knows only that of units not due in it (`_queue_next`)."""
         if not ids.size:
             return []
-        k = grown_passes(self.br.n_units, len(ids), len(self.loop.schedule) - int(first.max()), self.grow)
+        loop = self.loop
+        undecided = int((loop.due_pass(ids, first) - first).min()) + 1 if judged else 1
+        lanes = len(ids) * self.br.tile_h * self.br.tile_w * int(loop.pass_spp[first].max())
+        k = grown_passes(self.br.n_units, len(ids), len(loop.schedule) - int(first.max()), self.grow,
+                         undecided=undecided, lane_cap=max(1, LAUNCH_LANES // max(1, lanes)))
         return [first + j for j in range(k)]
 
     def advance(self) -> int:
@@ -302,8 +334,8 @@ class RenderSession:
                 rows = torch.from_numpy(j * m + keep).to(images.device)
                 loop.run_round(ids[keep], [(images[rows], loop.pass_spp[index[keep]])])
                 added += 1
-        if self.budget is not None:   # decisions too: they spend the time
-            self.budget.record(time.perf_counter() - t0, int(loop.pass_spp[pass_ids[0]].sum()))
+        if self.budget is not None:   # decisions too: they spend the time; every pass traced
+            self.budget.record(time.perf_counter() - t0, int(sum(loop.pass_spp[index].sum() for index in pass_ids)))
         self.state["pass_index"] = self.rows + added
         self.state["done"] = not loop.pending().any() if self.budget is None else self.budget.finished(loop)
         if self.done:
@@ -325,7 +357,9 @@ class RenderSession:
         go = self.loop.active[ids] & (after < len(self.loop.schedule))
         if not go.any():
             return None
-        nxt, ahead = ids[go], self._grown(ids[go], after[go])
+        # a unit judged in this launch gets its next decision only then: plan as if it were due at once
+        unjudged = not (self.loop.due_pass(ids, pass_ids[0]) <= pass_ids[-1]).any()
+        nxt, ahead = ids[go], self._grown(ids[go], after[go], judged=unjudged)
         return nxt, ahead, self._submit(nxt, ahead)
 
     # -- what survives a crash ---------------------------------------------------------

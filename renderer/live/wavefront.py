@@ -17,7 +17,7 @@ therefore gets the same samples whichever other pixels are traced with it, and a
 units is bit for bit the same estimator as those units cut out of a full-frame trace:
 
 * box filter (radius 1/2): each sample is summed into its own pixel (the pixel's
-  consecutive lanes), so units are independent;
+  consecutive lanes, summed on the device by `dr.block_sum`), so units are independent;
 * wider filters (the Gaussian of most published scenes): samples are splatted with the
   film's filter into a frame-sized ``mi.ImageBlock``, and the traced set is the requested
   pixels grown by a guard band of ``floor(radius + 1/2)`` pixels, every pixel whose samples
@@ -27,9 +27,13 @@ Pixels on the frame's edge get no samples from outside it, as in a full-frame re
 without ``sample_border``.
 
 Keys are per lane, so one launch can also trace several passes (`trace_jobs`: a pixel set
-and a key per job): the units of a budget round at different pass counts, or k passes of
-few active units as one k times larger wavefront, each job's values exactly those of
-its pass traced alone. Launches, lanes and samples traced go to the tracer's `ledger`
+and a key per job): the units of a budget round at different pass counts, or k passes
+of the active units as one k times larger wavefront (few units left, or no decision due
+before the k-th pass: `renderer.live.session.grown_passes`). With a box filter each job's
+values are bit for bit those of its pass traced alone; with a wider filter, to float32
+rounding (the samples are the same; a launch of several jobs evaluates them first and
+splats each job's own lanes in a kernel of its own, one job fuses the splat into the
+path tracer's kernel). Launches, lanes and samples traced go to the tracer's `ledger`
 (`renderer.live.ledger`: its renderer's).
 """
 from __future__ import annotations
@@ -49,9 +53,6 @@ T = TypeVar("T")
 
 #: lanes per kernel launch: larger pixel sets are traced in chunks (same kernel)
 MAX_LANES = 1 << 24
-#: jobs one wide-filter launch splats (one ImageBlock each; the count is baked into the
-#: kernel, so launches are padded to one of these widths: a few kernels per render at most)
-SPLAT_WIDTHS = (1, 2, 4, 8)
 
 
 def guard_band(radius: float) -> int:
@@ -186,12 +187,13 @@ class WavefrontTracer:
     def trace_jobs(self, jobs: Sequence[tuple[Any, int]], spp: int) -> list[torch.Tensor]:
         """Several passes in one launch: float32 [H, W, 3] per (pixel mask, key) job.
 
-        Each job is exactly what `trace(mask, spp, key)` returns (random numbers are keyed
+        Each job is what `trace(mask, spp, key)` returns (random numbers are keyed
         per (pixel, sample, key), and every job's pixels are summed on their own), so
         passes of different units at different pass indices, or several passes of the same
-        units, share one launch: a larger wavefront when few pixels are active. With a
-        box filter each pixel's samples are summed on their own; a wider filter splats
-        each job into its own frame (one ImageBlock per job, one kernel for all).
+        units, share one launch: a larger wavefront, whose fixed cost per launch (about
+        10 ms here) is paid once. With a box filter each pixel's samples are summed on
+        their own; a wider filter splats each job into its own frame (one ImageBlock per
+        job; `_submit_splat`), equal to the job traced alone to float32 rounding.
         """
         return self.submit_jobs(jobs, spp).result()
 
@@ -229,31 +231,28 @@ class WavefrontTracer:
                     outs.append(out.view(frame))
                 return outs
             return Traced(box_result)
-        # a wide filter: every job splats into its own frame, up to 8 jobs per launch
+        # a wide filter: every job splats into its own frame; a launch's lanes hold its jobs'
+        # pixels one job after the other, so each job's splat reads only its own lanes
+        mi = self._mi
+        blocks = [mi.ImageBlock(mi.ScalarVector2u(self.width, self.height), mi.ScalarPoint2i(0, 0), 4, self.rfilter,
+                                border=False) for _ in masks]
         ends = np.cumsum([0, *counts])
-        widest = SPLAT_WIDTHS[-1]
-        launches = []                              # (first job, jobs, [finish per chunk])
-        for g0 in range(0, len(masks), widest):     # groups of jobs (one in a plain pass)
-            g1 = min(len(masks), g0 + widest)
-            width = next(w for w in SPLAT_WIDTHS if w >= g1 - g0)
-            lo, hi = int(ends[g0]), int(ends[g1])
-            chunks = []
-            for i in range(lo, hi, per_launch):
-                j = min(hi, i + per_launch)
-                chunks.append(self._submit_splat(all_pixels[i:j], int(spp), all_keys[i:j],
-                                                 (job_of[i:j] - g0).to(torch.int32), width))
-            launches.append((g0, g1 - g0, chunks))
+        for i in range(0, total, per_launch):
+            j = min(total, i + per_launch)
+            spans = [(b, max(lo, i) - i, min(hi, j) - i) for b, lo, hi in zip(blocks, ends[:-1], ends[1:])
+                     if min(hi, j) > max(lo, i)]
+            self._submit_splat(all_pixels[i:j], int(spp), all_keys[i:j], spans)
+        tensors = [b.tensor() for b in blocks]
 
         def splat_result() -> list[torch.Tensor]:
+            self._sync()
             outs = []
-            for g0, n, chunks in launches:
-                frames = chunks[0]()[:n]           # sums and weights [n, H * W, 4], float64
-                for finish in chunks[1:]:
-                    frames = frames + finish()[:n]
-                for mask, sums in zip(masks[g0:g0 + n], frames):
-                    w = sums[:, 3:]
-                    value = torch.where(w > 0, sums[:, :3] / torch.where(w > 0, w, 1.0), 0.0).to(torch.float32)
-                    outs.append(torch.where(mask.reshape(-1, 1), value, 0.0).view(frame))
+            for mask, t in zip(masks, tensors):
+                sums = t.torch().reshape(-1, 4)
+                w = sums[:, 3:]
+                # float32 division of float32 sums: the correctly rounded quotient, as float64's rounded
+                value = torch.where(w > 0, sums[:, :3] / torch.where(w > 0, w, 1.0), 0.0)
+                outs.append(torch.where(mask.reshape(-1, 1), value, 0.0).view(frame))
             return outs
         return Traced(splat_result)
 
@@ -303,45 +302,48 @@ class WavefrontTracer:
 
     def _submit_box(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor) -> Callable[[], torch.Tensor]:
         """Box filter: queue one launch; its finish gives the mean of each pixel's own
-        samples, float32 [n, 3] on the device."""
+        samples, float32 [n, 3] on the device. Lanes are pixel-major, so each pixel's spp
+        samples are consecutive: Dr.Jit sums them by blocks of spp (`dr.block_sum`, in
+        float32, in lane order: a pixel's sum depends on its samples alone), on the device,
+        once the lanes are evaluated (summed straight from the path tracer's expression, each
+        channel would trace the paths again)."""
+        dr = self._dr
         self._sync()
         _, rgb = self._samples(pixels, spp, keys)
-        self._dr.eval(rgb)
+        dr.eval(rgb)
+        sums = [dr.block_sum(rgb[c], spp) for c in range(3)]
+        dr.eval(*sums)
         self._queued(pixels, spp)
-        n = int(pixels.numel())
 
         def finish() -> torch.Tensor:
             self._sync()
-            # lanes are pixel-major: each pixel's spp samples are consecutive; summed in
-            # float64 by torch where the lanes live (channel by channel through DLPack: a
-            # Color3f converted at once would compile a copy kernel per wavefront size)
-            values = torch.stack([rgb[c].torch() for c in range(3)], dim=1).view(n, spp, 3)
-            return values.sum(dim=1, dtype=torch.float64).to(torch.float32) / np.float32(spp)
+            # channel by channel through DLPack: a Color3f converted at once would compile a
+            # copy kernel per wavefront size
+            return torch.stack([s.torch() for s in sums], dim=1) / np.float32(spp)
         return finish
 
-    def _submit_splat(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor, jobs: torch.Tensor,
-                      n_jobs: int) -> Callable[[], torch.Tensor]:
-        """Any filter: queue one launch, each lane splatted into its job's frame (one
-        ImageBlock per job, all filled by the one kernel); its finish gives the weighted
-        sums and weights [n_jobs, H * W, 4], float64 on the device."""
+    def _submit_splat(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor,
+                      spans: Sequence[tuple[Any, int, int]]) -> None:
+        """Any filter: queue one launch of `pixels`' samples, then splat each span of its
+        pixels (block, first, end: pixel positions in `pixels`) into its block with the film's
+        filter. One job (a plain pass) is one kernel, the splat fused in; several are the
+        samples evaluated once and a splat per job over its own lanes (masked splats over
+        every lane would cost a filter footprint per lane per job). Start and size are opaque,
+        so no job layout compiles anything new."""
         mi, dr = self._mi, self._dr
         self._sync()
         pos, rgb = self._samples(pixels, spp, keys)
-        lane_job = dr.gather(mi.UInt32, mi.UInt32(jobs.contiguous()), dr.arange(mi.UInt32, int(pixels.numel()) * spp)
-                             // dr.opaque(mi.UInt32, spp))
-        blocks = []
-        for j in range(n_jobs):          # the jobs of one launch: a few passes
-            block = mi.ImageBlock(mi.ScalarVector2u(self.width, self.height), mi.ScalarPoint2i(0, 0), 4,
-                                  self.rfilter, border=False)
-            block.put(pos, [rgb[0], rgb[1], rgb[2], mi.Float(1.0)], active=(lane_job == j) if n_jobs > 1 else True)
-            blocks.append(block.tensor())
-        dr.eval(*blocks)
+        if len(spans) == 1 and spans[0][1] == 0 and spans[0][2] == int(pixels.numel()):
+            spans[0][0].put(pos, [rgb[0], rgb[1], rgb[2], mi.Float(1.0)])
+        else:
+            dr.eval(pos, rgb)
+            for block, lo, hi in spans:
+                lane = dr.arange(mi.UInt32, (hi - lo) * spp) + dr.opaque(mi.UInt32, lo * spp)
+                p = mi.Vector2f(dr.gather(mi.Float, pos.x, lane), dr.gather(mi.Float, pos.y, lane))
+                block.put(p, [dr.gather(mi.Float, rgb[c], lane) for c in range(3)] + [mi.Float(1.0)])
+                dr.eval(block.tensor())    # alone: splats of equal size evaluated together fuse into a new kernel
+        dr.eval(*[block.tensor() for block, _, _ in spans])
         self._queued(pixels, spp)
-
-        def finish() -> torch.Tensor:
-            self._sync()
-            return torch.stack([t.torch().reshape(-1, 4) for t in blocks]).to(torch.float64)
-        return finish
 
 
 class Traced(Generic[T]):

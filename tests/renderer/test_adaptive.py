@@ -142,7 +142,7 @@ def test_only_active_blocks_are_rendered_and_asked(tmp_path, model, monkeypatch)
     assert r["counters"]["decisions"] == sum(per_pass[1:])
     assert r["counters"]["blocks_featured"] + r["counters"]["flat_blocks"] == r["counters"]["decisions"]
     calls.clear()
-    adaptive_render("cornell", tmp_path / "v", VarianceCriterion(), **TINY)
+    adaptive_render("cornell", tmp_path / "v", VarianceCriterion(), **TINY, grow=False)
     assert calls == []                                            # variance: no quick image
 
 

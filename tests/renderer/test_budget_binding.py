@@ -35,7 +35,7 @@ def _assert_same_render(a, b, ra: dict, rb: dict) -> None:
 def _binding(monkeypatch) -> None:
     """Every round's budget left is nothing: a time limit that binds from the first round on
     (the render still runs to its end: the limit itself is never reached)."""
-    monkeypatch.setattr(Budget, "_left", lambda self, spp, elapsed: 0.0)
+    monkeypatch.setattr(Budget, "left", lambda self, spp, elapsed: 0.0)
 
 
 @pytest.fixture(scope="module")
@@ -52,6 +52,39 @@ def test_a_time_limit_that_binds_but_is_not_reached_gives_the_unbudgeted_render(
     assert rep["budget"]["judges_every_unit"] is False
     assert any(t["converged"] for t in rep["tiles"]) and rep["passes"] > plain[1]["passes"]
     _assert_same_render(tmp_path / "t", plain[0], rep, plain[1])
+
+
+def test_a_binding_time_limit_traces_what_the_time_left_pays_for_in_one_launch(plain, tmp_path,
+                                                                                 monkeypatch) -> None:
+    """A prioritised round of a time limit gets several passes in one launch, as many as the
+    time left pays for (a launch of a few blocks costs more per lane than a full one), and
+    still goes through the unbudgeted render's states. Control: with no time left to speak of
+    (`_binding`), one pass a launch."""
+    from renderer.live.blocks import BlockRenderer
+
+    def launches(left: float, out) -> tuple[dict, list[tuple[int, int]]]:
+        per_launch: list[tuple[int, int]] = []
+        real = BlockRenderer.submit_passes
+
+        def counting(self, jobs, spp, seed):
+            units = [u for u, _ in jobs]
+            per_launch.append((len(set(units)), max(units.count(u) for u in set(units))))   # units, passes
+            return real(self, jobs, spp, seed)
+
+        with monkeypatch.context() as m:
+            m.setattr(Budget, "left", lambda self, spp, elapsed: left)
+            m.setattr(BlockRenderer, "submit_passes", counting)
+            return adaptive_render("cornell", out, time_limit=1e6, **TILED), per_launch
+
+    # 100 unit-spp left: below the ~4000 that all 16 tiles need (it binds); a launch of n tiles'
+    # 8-spp passes holds at most 100 // (8 n) of them (three for a block's 4 tiles)
+    rep, per_launch = launches(100.0, tmp_path / "g")
+    assert rep["budget"]["prioritised_rounds"] > 0 and (4, 3) in per_launch
+    assert all(k <= max(1, 100 // (8 * n)) for n, k in per_launch)
+    assert len(per_launch) < rep["passes"] * 0.75
+    _assert_same_render(tmp_path / "g", plain[0], rep, plain[1])
+    _, one = launches(0.0, tmp_path / "z")
+    assert max(k for _, k in one) == 1
 
 
 def test_a_resume_after_a_binding_time_limit_is_the_uninterrupted_render(plain, tmp_path, monkeypatch) -> None:

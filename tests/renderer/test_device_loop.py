@@ -132,6 +132,36 @@ def test_the_growth_rule() -> None:
     assert grown_passes(256, 50, 60) == 4                    # 5 made even
     assert grown_passes(256, 1, 3) == 3                      # capped by the passes left
     assert grown_passes(256, 1, 60, grow=False) == 1
+    # while no unit can be judged, the passes up to the first that judges one, within the lane cap
+    assert grown_passes(256, 256, 60, undecided=9, lane_cap=8) == 8
+    assert grown_passes(256, 256, 60, undecided=5, lane_cap=8) == 5
+    assert grown_passes(256, 256, 3, undecided=5, lane_cap=8) == 3   # the passes left
+    assert grown_passes(256, 60, 60, undecided=2, lane_cap=8) == 4   # growth by stops still holds
+    assert grown_passes(256, 256, 60, grow=False, undecided=9, lane_cap=8) == 1
+
+
+def test_passes_before_a_due_decision_share_a_launch(variant) -> None:
+    """No decision can stop a unit before it is due (`PassLoop.due_pass`), so the passes up to
+    it go in one launch from the first pass on, every unit still active: fewer launches, the
+    same stops, history and image as one launch per pass. The uniform baseline, which never
+    stops, is asked once per unit at its last pass and traces its passes in one launch. A
+    control: judging every pass (decide_skip 0) gives one launch per pass while all are active."""
+    kw = {"resolution": 64, "block": 16, "step": 4, "min_spp": 8, "max_spp": 96, "progress": False}
+    runs = {g: run_adaptive("cornell", "flip", tau=0.02, grow=g, **kw) for g in (True, False)}
+    grown, fixed = runs[True].report, runs[False].report
+    assert [b["spp"] for b in grown["blocks"]] == [b["spp"] for b in fixed["blocks"]]
+    assert [b["history"] for b in grown["blocks"]] == [b["history"] for b in fixed["blocks"]]
+    np.testing.assert_array_equal(runs[True].image, runs[False].image)
+    assert fixed["render_calls"]["kernel_launches"] == fixed["passes"] == 24
+    assert grown["render_calls"]["kernel_launches"] <= 0.6 * fixed["passes"]
+    every = run_adaptive("cornell", "flip", tau=0.02, decide_skip=0.0, decide_growth=0.0, **kw).report
+    first_stop = min([b["spp"] for b in every["blocks"] if b["converged"]], default=96)
+    assert every["render_calls"]["kernel_launches"] >= first_stop // 4 - 1
+    uni = {g: run_adaptive("cornell", "uniform", grow=g, **kw) for g in (True, False)}
+    assert uni[True].report["render_calls"]["kernel_launches"] == 1
+    assert uni[False].report["render_calls"]["kernel_launches"] == 24
+    assert uni[True].report["counters"]["decisions"] == 16 == len(uni[True].report["blocks"])   # once a block
+    np.testing.assert_array_equal(uni[True].image, uni[False].image)
 
 
 def test_flip_on_the_accumulators_device_matches_flip_evaluator() -> None:

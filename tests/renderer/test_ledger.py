@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from renderer.live.budget import Budget
-from renderer.criteria import COUNTER_NAMES, TIMER_NAMES, UniformCriterion
+from renderer.criteria import COUNTER_NAMES, TIMER_NAMES, VarianceCriterion
 from renderer.live.ledger import RENDER_COUNTERS, RENDER_TIMERS, Ledger
 from renderer.live.passloop import PassLoop, schedule
 
@@ -30,13 +30,14 @@ def test_the_loop_and_the_budget_report_into_the_ledger_they_are_given() -> None
     """A loop and a budget made with a render's ledger keep no counts of their own; made
     alone, each has a ledger of its own."""
     ledger = Ledger(COUNTER_NAMES + RENDER_COUNTERS, TIMER_NAMES + RENDER_TIMERS)
-    loop = PassLoop(UniformCriterion(), (2, 2), (4, 4), schedule(4, 16), None, ledger=ledger)
+    # a criterion that can stop judges every pass (no decide_skip); uniform is asked at the last pass only
+    loop = PassLoop(VarianceCriterion(1e-6), (2, 2), (4, 4), schedule(4, 16), None, ledger=ledger)
     budget = Budget(spp_budget=8.0, ledger=ledger)
     loop.run_round([0, 1, 2, 3], [(np.full((4, 4, 4, 3), 0.5), 4)])
     budget.record(0.5, 16)
     assert ledger.counters["decide_calls"] == 1 and ledger.counters["blocks_asked"] == 4
     assert ledger.budget_cost == [0.5, 16.0] and budget.state()["cost"] == [0.5, 16.0]
-    alone = PassLoop(UniformCriterion(), (2, 2), (4, 4), schedule(4, 16), None)
+    alone = PassLoop(VarianceCriterion(1e-6), (2, 2), (4, 4), schedule(4, 16), None)
     alone.run_round([0, 1], [(np.full((2, 4, 4, 3), 0.5), 4)])
     assert alone.ledger is not ledger and alone.ledger.counters["decide_calls"] == 1
     assert ledger.counters["decide_calls"] == 1 and Budget().ledger is not ledger

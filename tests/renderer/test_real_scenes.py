@@ -141,8 +141,9 @@ def test_bad_input_is_one_line(scenes, tmp_path, capsys):
     assert_one_line_error(rc, err, "--checkpoint-every")
 
 
+# uniform traces its passes in launches of up to LAUNCH_LANES (8M) lanes: 4 of them, a few seconds
 RENDER = ["render", "--scene", "cornell", "--resolution", "64", "--grid", "2", "2", "--criterion", "uniform",
-          "--step", "4", "--min-spp", "4", "--max-spp", "1024", "--json", "--checkpoint-every", "1000"]
+          "--step", "4", "--min-spp", "4", "--max-spp", "8192", "--json", "--checkpoint-every", "1000"]
 
 
 def _cli(*args: str) -> subprocess.Popen:

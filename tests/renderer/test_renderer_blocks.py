@@ -187,7 +187,9 @@ for rfilter in ("box", "gaussian"):
         counts.append(r.kernel_compiles)
     r.render_passes([(0, 5), (0, 6), (3, 7)], 4, seed=0)    # several passes in one wavefront
     counts.append(r.kernel_compiles)
-    r.render_passes([(1, 8), (2, 9), (4, 10), (5, 11)], 4, seed=0)   # another set, the same width
+    r.render_passes([(1, 8), (2, 9), (4, 10), (5, 11)], 4, seed=0)   # another set, more passes
+    counts.append(r.kernel_compiles)
+    r.render_passes([(6, 12), (6, 13), (7, 14), (8, 15), (9, 16), (9, 17), (10, 18)], 3, seed=0)   # 7 passes
     counts.append(r.kernel_compiles)
     out[rfilter] = [counts, r.ledger.get("mitsuba_calls"), r.ledger.get("kernel_launches")]
 print(json.dumps(out))
@@ -211,10 +213,11 @@ def test_one_kernel_compile_per_render_whatever_the_active_set(tmp_path) -> None
                           env=env, timeout=300)
     assert done.returncode == 0, done.stderr
     for rfilter, (counts, calls, launches) in json.loads(done.stdout.splitlines()[-1]).items():
-        # a wide filter's kernel holds one splat per job of the launch: the first launch of
-        # several passes compiles its width (4) once, later ones of that width nothing
-        assert counts == ([1] * 7 if rfilter == "box" else [1] * 5 + [2, 2]), (rfilter, counts)
-        assert (calls, launches) == (7, 7)       # several passes, one launch, whatever the filter
+        # a wide filter's launch of several passes evaluates its samples once and splats each
+        # pass from its own lanes: the first such launch compiles those two kernels, later
+        # ones nothing, whatever their count of passes
+        assert counts == ([1] * 8 if rfilter == "box" else [1] * 5 + [3, 3, 3]), (rfilter, str(counts))
+        assert (calls, launches) == (8, 8)       # several passes, one launch, whatever the filter
 
 
 def test_block_windows_cover_any_frame_with_full_size_edge_windows() -> None:

@@ -242,9 +242,12 @@ def test_the_cold_rows_xml_is_mitsubas_cornell_box() -> None:
 def test_the_per_sample_split_times_each_row_against_one_mi_render() -> None:
     """benchmarks.bench_per_sample at a tiny size: every row timed, each ratio to one
     mi.render (the first row 1.0 by definition), medians of the runs kept."""
-    from benchmarks.bench_per_sample import ROWS, per_sample
+    from benchmarks.bench_per_sample import ROWS, md_per_sample, per_sample
 
-    r = per_sample(size=16, spp=8, step=4, repeats=1)
+    r = per_sample(size=16, spp=8, step=4, grown=2, repeats=1)
     assert set(r["median_s"]) == set(ROWS) and r["ratio"]["mi_render_once"] == 1.0
     assert all(v > 0 and np.isfinite(v) for v in r["ratio"].values())
     assert all(len(w) == 1 for w in r["walls"].values())
+    assert r["mean_spp"]["uniform_loop"] == 8.0 and 4.0 <= r["mean_spp"]["default_loop"] <= 8.0
+    table = md_per_sample(r)
+    assert table.count("\n| ") == len(ROWS) + 1 and "2 passes a launch" in table

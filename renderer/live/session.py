@@ -49,11 +49,12 @@ def grown_passes(n_units: int, n_pending: int, passes_left: int, grow: bool = Tr
       about as many samples as the first (all units, one pass): floor(n_units / n_pending),
       made even (a pass goes to each half buffer in turn, so an even count keeps them
       balanced);
-    * while no unit can be judged, nothing can stop: the `undecided` passes up to the first
-      one whose round judges one of them (`PassLoop.due_pass`) go in one launch, at most
-      `lane_cap` passes (`LAUNCH_LANES`): a launch costs about 10 ms here whatever its size
-      (building and hashing the path tracer's kernel, starting the thread pool), 3-4 % of a
-      16-spp pass at 256x256 (BENCHMARKS, "Where a sample's cost goes").
+    * while few units can stop, `undecided` passes (`ahead_passes`: the decisions that may
+      stop a unit, `PassLoop.due_pass` and `NEAR`, waste little of the launch if they do)
+      go in one launch, at most `lane_cap` passes (`LAUNCH_LANES`): a launch costs about
+      10 ms here whatever its size (building and hashing the path tracer's kernel, starting
+      the thread pool), 3-4 % of a 16-spp pass at 256x256 (BENCHMARKS, "The loop's
+      launches").
 
     Capped by the passes left; 1 without `grow`. The passes keep their own pass indices (so
     their own random numbers) and are judged one after the other, a round each, so a grown
@@ -65,6 +66,29 @@ def grown_passes(n_units: int, n_pending: int, passes_left: int, grow: bool = Tr
     if k >= 2:
         k -= k % 2
     return max(1, min(max(k, min(undecided, lane_cap)), passes_left))
+
+
+#: a decision that may stop a unit: one where the unit's ratio, brought to the decision's spp
+#: (`UnitRatios.predicted`), is at most this (or unknown). Farther from its target (the skip
+#: judges a unit again at a predicted ratio near 1/decide_skip = 2) a decision is taken within
+#: a launch as if it could not stop the unit; one that does drops the launch's later passes
+#: of the unit, traced for nothing (samples_traced counts them)
+NEAR = 1.5
+#: the most of a launch's unit-passes that may be traced for nothing (`ahead_passes`)
+WASTE_SHARE = 1.0 / 16
+
+
+def ahead_passes(offsets: np.ndarray, n: int, cap: int) -> int:
+    """How many passes a launch of `n` units may trace ahead of their decisions: the most, up
+    to `cap`, whose worst case wastes at most `WASTE_SHARE` of the launch. `offsets`: for each
+    unit that may stop (`NEAR`), the passes of the launch before its decision (0: the first
+    pass judges it); worst case, each stops there and drops the rest of its passes. Why not
+    end a launch at the first such decision: a few units hovering near their target are
+    judged at every pass (the growth floor), and would hold every launch to one pass, each
+    costing its fixed 10 ms (3-4 % of a 16-spp pass at 256x256), for a waste of a few tiles' passes."""
+    ks = np.arange(1, max(1, int(cap)) + 1)
+    waste = np.maximum(ks[:, None] - 1 - np.asarray(offsets, np.int64)[None, :], 0).sum(axis=1)
+    return int(ks[waste <= WASTE_SHARE * ks * n].max())
 
 
 #: lanes (samples) one launch may hold when it traces passes ahead of a decision
@@ -281,18 +305,24 @@ class RenderSession:
         left = self.budget.left(loop.acc.spp_all(), elapsed)      # inf: no rate known yet
         return ids, grown[:max(1, int(left // max(one, 1.0)) if math.isfinite(left) else 1)]
 
-    def _grown(self, ids: np.ndarray, first: np.ndarray, judged: bool = True) -> list[np.ndarray]:
+    def _grown(self, ids: np.ndarray, first: np.ndarray, stale: np.ndarray | None = None) -> list[np.ndarray]:
         """The pass indices of units `ids` in one launch, from their next ones `first`: as
-        many passes as `grown_passes` gives ([] for none). `judged`: every unit's last
-        decision is made (its next one known); a launch queued before the last one is judged
-        knows only that of units not due in it (`_queue_next`)."""
+        many passes as `grown_passes` gives ([] for none). The launch runs up to the first
+        decision that may stop a unit (`NEAR`): a unit due before then is judged at its own
+        pass within the launch. `stale`: units whose next decision is not known yet (judged
+        in a launch queued before this one, `_queue_next`): taken as due at their first pass."""
         if not ids.size:
             return []
         loop = self.loop
-        undecided = int((loop.due_pass(ids, first) - first).min()) + 1 if judged else 1
+        passes_left = len(loop.schedule) - int(first.max())
+        due = loop.due_pass(ids, first)
+        if stale is not None:
+            due = np.where(stale, first, due)
+        near = ~(loop.ratios.predicted(ids, loop.schedule[due]) > NEAR)     # NaN: no estimate, may stop
         lanes = len(ids) * self.br.tile_h * self.br.tile_w * int(loop.pass_spp[first].max())
-        k = grown_passes(self.br.n_units, len(ids), len(loop.schedule) - int(first.max()), self.grow,
-                         undecided=undecided, lane_cap=max(1, LAUNCH_LANES // max(1, lanes)))
+        cap = min(passes_left, max(1, LAUNCH_LANES // max(1, lanes)))
+        k = grown_passes(self.br.n_units, len(ids), passes_left, self.grow,
+                         undecided=ahead_passes((due - first)[near], len(ids), cap), lane_cap=cap)
         return [first + j for j in range(k)]
 
     def advance(self) -> int:
@@ -357,9 +387,9 @@ class RenderSession:
         go = self.loop.active[ids] & (after < len(self.loop.schedule))
         if not go.any():
             return None
-        # a unit judged in this launch gets its next decision only then: plan as if it were due at once
-        unjudged = not (self.loop.due_pass(ids, pass_ids[0]) <= pass_ids[-1]).any()
-        nxt, ahead = ids[go], self._grown(ids[go], after[go], judged=unjudged)
+        # a unit judged in this launch gets its next decision only then
+        stale = self.loop.due_pass(ids, pass_ids[0]) <= pass_ids[-1]
+        nxt, ahead = ids[go], self._grown(ids[go], after[go], stale=stale[go])
         return nxt, ahead, self._submit(nxt, ahead)
 
     # -- what survives a crash ---------------------------------------------------------

@@ -3,6 +3,7 @@ grown passes that change nothing but the launches, FLIP where the half buffers l
 state leaking from one render into the next."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -140,12 +141,27 @@ def test_the_growth_rule() -> None:
     assert grown_passes(256, 256, 60, grow=False, undecided=9, lane_cap=8) == 1
 
 
+def test_passes_ahead_of_decisions_that_may_stop_units_waste_little() -> None:
+    """`ahead_passes`: with no unit that may stop, the cap; a unit judged at the first pass of a
+    256-unit launch costs at most its k - 1 later passes, within 1/16 of the launch; many such
+    units hold the launch to one pass."""
+    from renderer.live.session import WASTE_SHARE, ahead_passes
+
+    assert ahead_passes(np.array([], np.int64), 256, 8) == 8
+    assert ahead_passes(np.zeros(10, np.int64), 256, 8) == 8          # 10 x 7 <= 256 x 8 / 16
+    assert ahead_passes(np.zeros(100, np.int64), 256, 8) == 1         # 100 (k - 1) > 16 k for every k > 1
+    assert ahead_passes(np.full(100, 3), 256, 8) == 4                 # judged at the 4th pass: 4 waste nothing
+    k = ahead_passes(np.zeros(20, np.int64), 256, 64)
+    assert 20 * (k - 1) <= WASTE_SHARE * 256 * k < 20 * k             # the largest k within the share
+
+
 def test_passes_before_a_due_decision_share_a_launch(variant) -> None:
     """No decision can stop a unit before it is due (`PassLoop.due_pass`), so the passes up to
     it go in one launch from the first pass on, every unit still active: fewer launches, the
     same stops, history and image as one launch per pass. The uniform baseline, which never
     stops, is asked once per unit at its last pass and traces its passes in one launch. A
-    control: judging every pass (decide_skip 0) gives one launch per pass while all are active."""
+    control: judging every pass (decide_skip 0), each decision one that may stop a unit
+    (`NEAR` infinite), gives one launch per pass while all are active."""
     kw = {"resolution": 64, "block": 16, "step": 4, "min_spp": 8, "max_spp": 96, "progress": False}
     runs = {g: run_adaptive("cornell", "flip", tau=0.02, grow=g, **kw) for g in (True, False)}
     grown, fixed = runs[True].report, runs[False].report
@@ -154,7 +170,12 @@ def test_passes_before_a_due_decision_share_a_launch(variant) -> None:
     np.testing.assert_array_equal(runs[True].image, runs[False].image)
     assert fixed["render_calls"]["kernel_launches"] == fixed["passes"] == 24
     assert grown["render_calls"]["kernel_launches"] <= 0.6 * fixed["passes"]
-    every = run_adaptive("cornell", "flip", tau=0.02, decide_skip=0.0, decide_growth=0.0, **kw).report
+    # far from their target (ratio above NEAR) units are judged within a launch; were every
+    # decision one that may stop a unit, each pass judged would end its launch
+    import renderer.live.session as session_module
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(session_module, "NEAR", math.inf)
+        every = run_adaptive("cornell", "flip", tau=0.02, decide_skip=0.0, decide_growth=0.0, **kw).report
     first_stop = min([b["spp"] for b in every["blocks"] if b["converged"]], default=96)
     assert every["render_calls"]["kernel_launches"] >= first_stop // 4 - 1
     uni = {g: run_adaptive("cornell", "uniform", grow=g, **kw) for g in (True, False)}

@@ -17,7 +17,7 @@ For each scene and reconstruction filter (the film's rfilter swapped in the scen
   100, 50, 25, 10 and 5 % of the 16-px tiles a launch, the tiles dealt at random (seeded)
   into groups that together hold every tile once, so that cost does not choose them; one
   pass of `step` spp per launch, and grown passes (as many passes per launch as the loop
-  traces for that many active tiles, `renderer.live.session.grown_passes`); seconds per traced
+  traces for that many active tiles, `renderer.live.launches.grown_passes`); seconds per traced
   lane against 100 %;
 * from the adaptive render's report: lanes traced per kept sample (``samples_traced`` over
   ``samples_spent``), the shares of wall time that are rendering (waiting for the tracer),
@@ -151,7 +151,7 @@ def sparse_trace(scene: Any, step: int, repeats: int, seed: int = 50,
     time. Per mode and fraction: the median seconds of a round, its lanes and launches,
     seconds per lane and their ratio to 100 % (one pass)."""
     from renderer.live.blocks import BlockRenderer
-    from renderer.live.session import grown_passes
+    from renderer.live.launches import grown_passes
 
     size = int(scene.sensors()[0].film().crop_size()[0])
     block = min(BLOCK, size)

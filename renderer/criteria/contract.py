@@ -134,7 +134,7 @@ class Criterion(ABC):
     #: it may call a unit converged; one that never does (the uniform baseline) is asked only
     #: at a unit's last pass (`renderer.live.passloop.PassLoop.run_round`), so the loop traces
     #: the passes before it in as few launches as it can
-    #: (`renderer.live.session.grown_passes`): no decision where none can succeed
+    #: (`renderer.live.launches.grown_passes`): no decision where none can succeed
     stops: bool = True
 
     @classmethod

@@ -243,7 +243,7 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
     `sensor` / `integrator`: render from this sensor with this integrator instead of the
     scene's first sensor and own integrator (the plugin passes its nested one).
     `checkpoints`: None renders without any file. `grow`: trace several passes per launch
-    as units stop (`renderer.live.session.grown_passes`; same result, fewer launches).
+    as units stop (`renderer.live.launches.grown_passes`; same result, fewer launches).
     """
     from learning.data.relabel import observed
     from learning.data.variant import current_variant, select_variant

@@ -29,7 +29,7 @@ without ``sample_border``.
 Keys are per lane, so one launch can also trace several passes (`trace_jobs`: a pixel set
 and a key per job): the units of a budget round at different pass counts, or k passes
 of the active units as one k times larger wavefront (few units left, or no decision due
-before the k-th pass: `renderer.live.session.grown_passes`). With a box filter each job's
+before the k-th pass: `renderer.live.launches.grown_passes`). With a box filter each job's
 values are bit for bit those of its pass traced alone; with a wider filter, to float32
 rounding (the samples are the same; a launch of several jobs evaluates them first and
 splats each job's own lanes in a kernel of its own, one job fuses the splat into the

@@ -12,7 +12,7 @@ import torch
 
 from renderer.live.adaptive import run_adaptive
 from renderer.criteria import BlockBatch, FlipCriterion, OracleCriterion
-from renderer.live.session import grown_passes
+from renderer.live.launches import grown_passes
 from tests.support import passloop_golden as golden
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -145,7 +145,7 @@ def test_passes_ahead_of_decisions_that_may_stop_units_waste_little() -> None:
     """`ahead_passes`: with no unit that may stop, the cap; a unit judged at the first pass of a
     256-unit launch costs at most its k - 1 later passes, within 1/16 of the launch; many such
     units hold the launch to one pass."""
-    from renderer.live.session import WASTE_SHARE, ahead_passes
+    from renderer.live.launches import WASTE_SHARE, ahead_passes
 
     assert ahead_passes(np.array([], np.int64), 256, 8) == 8
     assert ahead_passes(np.zeros(10, np.int64), 256, 8) == 8          # 10 x 7 <= 256 x 8 / 16

@@ -234,15 +234,15 @@ class WavefrontTracer:
         # a wide filter: every job splats into its own frame; a launch's lanes hold its jobs'
         # pixels one job after the other, so each job's splat reads only its own lanes
         mi = self._mi
-        blocks = [mi.ImageBlock(mi.ScalarVector2u(self.width, self.height), mi.ScalarPoint2i(0, 0), 4, self.rfilter,
-                                border=False) for _ in masks]
+        films = [mi.ImageBlock(mi.ScalarVector2u(self.width, self.height), mi.ScalarPoint2i(0, 0), 4, self.rfilter,
+                               border=False) for _ in masks]
         ends = np.cumsum([0, *counts])
         for i in range(0, total, per_launch):
             j = min(total, i + per_launch)
-            spans = [(b, max(lo, i) - i, min(hi, j) - i) for b, lo, hi in zip(blocks, ends[:-1], ends[1:])
+            spans = [(b, max(lo, i) - i, min(hi, j) - i) for b, lo, hi in zip(films, ends[:-1], ends[1:])
                      if min(hi, j) > max(lo, i)]
             self._submit_splat(all_pixels[i:j], int(spp), all_keys[i:j], spans)
-        tensors = [b.tensor() for b in blocks]
+        tensors = [f.tensor() for f in films]      # a job's frame: its ImageBlock
 
         def splat_result() -> list[torch.Tensor]:
             self._sync()

@@ -4,7 +4,8 @@ Without a budget every pass renders every active unit (the words: `renderer.live
 Users with a deadline want the best image by that time instead (Cycles, Arnold and
 LuxCore pair a noise target with a time limit), so with ``--spp-budget N`` (samples per
 pixel averaged over the units) or ``--time-limit S`` each round renders the blocks whose
-units are farthest from their target, one pass each:
+units are farthest from their target, one pass each (with a time limit, as many as the time
+left pays for, at most a grown launch's: `renderer.live.session.RenderSession.plan`):
 
 * The loop's `ratios` (`renderer.live.passloop.UnitRatios`) hold, per unit, its last score
   relative to the criterion's threshold (flip: the half-buffer FLIP over c(tau); > 1 is

@@ -32,8 +32,8 @@ from ..criteria import COUNTER_NAMES, TIMER_NAMES, BlockBatch, Criterion
 from ..spec import RenderSpec
 from .blocks import BlockRenderer
 from .budget import Budget
-from .launches import LAUNCH_LANES, NEAR, ahead_passes, grown_passes
 from .checkpoint import load_checkpoint, save_checkpoint
+from .launches import LAUNCH_LANES, NEAR, ahead_passes, grown_passes
 from .ledger import RENDER_COUNTERS, RENDER_TIMERS, Ledger
 from .passloop import PassLoop, next_decision, schedule
 from .wavefront import Traced
@@ -251,8 +251,8 @@ class RenderSession:
 
     def _grown(self, ids: np.ndarray, first: np.ndarray, stale: np.ndarray | None = None) -> list[np.ndarray]:
         """The pass indices of units `ids` in one launch, from their next ones `first`: as
-        many passes as `grown_passes` gives ([] for none). The launch runs up to the first
-        decision that may stop a unit (`NEAR`): a unit due before then is judged at its own
+        many passes as `grown_passes` gives ([] for none): past decisions that may stop a
+        unit (`NEAR`) only as far as `ahead_passes` allows; every unit is judged at its own
         pass within the launch. `stale`: units whose next decision is not known yet (judged
         in a launch queued before this one, `_queue_next`): taken as due at their first pass."""
         if not ids.size:

@@ -12,9 +12,10 @@ STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)
 DATA ?= data/train
 LIBRARY ?= data/default
 HELDOUT ?= data/heldout
+CORPUS ?= data/corpus64
 OUT ?= out
 
-.PHONY: setup run test test-fast test-portability bench realscenes realscene-refs dataset library heldout fixture model clean
+.PHONY: setup run test test-fast test-portability bench realscenes realscene-refs dataset library heldout corpus estimate fixture model clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -79,6 +80,19 @@ dataset: setup
 	$(NOISESTOP) dataset build --out $(DATA) --scenes procedural:$(PROCEDURAL),training $(TRAIN_ARGS)
 	$(NOISESTOP) dataset check $(DATA)
 
+# The learned stop's training corpus (issue 59; README "Datasets"): CORPUS_SCENES seeded
+# procedural scenes plus the 14 training scenes, each a 64x64 frame of one 64x64 block (16
+# tiles), a level every 32 spp to 2048 and a 4096-spp reference; the tile truth written beside
+# the block truth. Nothing held out goes in. About 10 s a scene here: run it in the background
+# (`make corpus &`), it resumes where it stopped; --scheduler (see `noisestop dataset build
+# --help`) spreads it over a Dask farm.
+CORPUS_SCENES ?= procedural:366,training
+CORPUS_ARGS ?= --resolution 64 --block 64 --step 32 --levels 64 --reference-spp 4096 --no-contact-sheets
+corpus: setup
+	$(NOISESTOP) dataset build --out $(CORPUS) --scenes $(CORPUS_SCENES) $(CORPUS_ARGS)
+	$(NOISESTOP) dataset relabel $(CORPUS)
+	$(NOISESTOP) dataset check $(CORPUS)
+
 # The scene library at the paper's layout (14 scenes x 16 blocks of 64x64, 16..640 spp,
 # reference 4096): the reference `make run` compares its render with. Resumes if interrupted.
 LIBRARY_ARGS ?= --resolution 256 --step 16 --levels 40 --reference-spp 4096
@@ -104,6 +118,12 @@ model: setup
 	$(NOISESTOP) train --data $(DATA) --model dsvm_as --input halves --update-package \
 		$(if $(wildcard $(HELDOUT)/*/meta.json),--heldout $(HELDOUT),--test-scenes '')
 	$(NOISESTOP) calibrate --criterion flip --data $(DATA) --update-package
+
+# The learned stop's bundle (issue 59, learning/bundled_estimate): the per-tile error estimate
+# trained on the corpus and its c(tau) chosen out of fold there (README "A learned stop").
+ESTIMATE_ARGS ?= --kind gbm
+estimate: setup
+	$(NOISESTOP) calibrate --criterion estimate --data $(CORPUS) $(ESTIMATE_ARGS) --update-package
 
 # The small dataset committed for tests (tests/fixtures/dataset, about 2 MB): 4 scenes x
 # 16 blocks x 16 levels of 64x64 frames.

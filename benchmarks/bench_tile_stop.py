@@ -3,8 +3,9 @@
 Per held-out scene and noise target, what each run spends and what the frame it ends with
 shows: flip per block (the block grain's default), flip per 16x16 tile (the loop's
 default: the tile's history against the tile curve of c), the oracle per block and per tile
-(the final-frame tile truth, `learning.data.tile_truth`), and the bundled model per block
-and gated per tile. Samples are mean spp a pixel; "/ block grain" is against flip per block
+(the final-frame tile truth, `learning.data.tile_truth`), the learned stop (`estimate`, issue
+59) and the bundled model per block and gated per tile. The spread s (`learning.evaluation.spread`)
+of the halves' history and of the learned estimate, per held-out scene. Samples are mean spp a pixel; "/ block grain" is against flip per block
 on the same scene. "early" counts the blocks the final frame leaves above tau although their
 own truth converges in the stack (noise the observer says could be gone).
 """
@@ -13,7 +14,7 @@ from __future__ import annotations
 from typing import Any
 
 #: (name, criterion, tile): the runs, at every tau; the model's only at TAU_MODEL (it is slow)
-RUNS = (("flip per block", "flip", None), ("flip per tile", "flip", 16),
+RUNS = (("flip per block", "flip", None), ("flip per tile", "flip", 16), ("estimate per tile", "estimate", 16),
         ("oracle per block", "oracle", None), ("oracle per tile", "oracle", 16))
 MODEL_RUNS = (("model per block", "model", None), ("model per tile", "model", 16))
 TAUS = (0.01, 0.02, 0.04)
@@ -27,7 +28,7 @@ def bench_tile_stop(data: str | None, heldout: str | None = None, taus: tuple[fl
 
     if heldout is None:
         raise ValueError("bench tilestop needs --heldout DIR (the scenes no knob was set on)")
-    out: dict[str, Any] = {"taus": list(taus), "heldout": heldout}
+    out: dict[str, Any] = {"taus": list(taus), "heldout": heldout, "spread": spread_per_scene(heldout)}
     for tau in taus:
         runs = RUNS + (MODEL_RUNS if abs(tau - TAU_MODEL) < 1e-12 else ())
         for name, kind, tile in runs:
@@ -41,6 +42,33 @@ def bench_tile_stop(data: str | None, heldout: str | None = None, taus: tuple[fl
                               "above_tau": end["above_tau"], "early": end["early"], "worst": end["worst"],
                               "blocks": end["blocks"], "converging": end["converging"]}
             out.setdefault(str(tau), {})[name] = {"per_scene": per, "criterion": r["criterion"]}
+    return out
+
+
+def spread_per_scene(heldout: str, tile: int = 16) -> dict[str, dict[str, float]]:
+    """scene (and "all") -> the spread s of the halves' history and of the shipped estimate,
+    and how many tiles converge there."""
+    import numpy as np
+
+    from learning.data.dataset_dir import read_stacks
+    from learning.data.relabel import with_tile_truth
+    from learning.evaluation.spread import needed_margins
+    from learning.inputs.tile_table import stack_tile_table
+    from learning.models.tile_error_bundle import load_tile_error_bundle
+    from learning.training.train_estimate import estimates_of
+
+    bundle = load_tile_error_bundle()
+    out, pooled = {}, {"history": [], "estimate": []}
+    for st in read_stacks(heldout):
+        st = with_tile_truth(st, tile)
+        table = stack_tile_table(st, tile)
+        h, e = needed_margins(st, table.e_hist), needed_margins(st, estimates_of(bundle.estimator, table))
+        pooled["history"].append(h)
+        pooled["estimate"].append(e)
+        out[st.scene] = {"history": float(np.std(h)) if h.size > 1 else float("nan"),
+                         "estimate": float(np.std(e)) if e.size > 1 else float("nan"), "tiles": int(h.size)}
+    h, e = np.concatenate(pooled["history"]), np.concatenate(pooled["estimate"])
+    out["all"] = {"history": float(np.std(h)), "estimate": float(np.std(e)), "tiles": int(h.size)}
     return out
 
 
@@ -67,5 +95,11 @@ def md_tile_stop(r: dict[str, Any]) -> str:
         b = totals["flip per block"][2]
         lines.append("| all | " + " | ".join(f"{t[0]} ({t[1]}), {t[2]:.0f} ({t[2] / b:.2f}x)" for t in totals.values())
                      + " |")
+        lines.append("")
+    if "spread" in r:
+        lines += ["**The spread s of log(smallest estimate before the truth / tau)** over each scene's tiles whose "
+                  "truth converges (tau 0.02; `learning.evaluation.spread`):", "",
+                  "| scene | tiles | halves' history | learned estimate |", "|---|---|---|---|"]
+        lines += [f"| {k} | {v['tiles']} | {v['history']:.3f} | {v['estimate']:.3f} |" for k, v in r["spread"].items()]
         lines.append("")
     return "\n".join(lines)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -204,10 +204,13 @@ FLIP_CANDIDATES = tuple(float(f"{c:.5g}") for c in np.geomspace(0.004, 0.4, 311)
 
 def flip_sweep(stacks: Sequence[Stack], candidates: Sequence[float] = FLIP_CANDIDATES, *,
                min_spp: int | None = None, progress: bool = False,
-               pooling: str = CRITERION_POOLING, tile: int | None = None) -> list[dict[str, Any]]:
+               pooling: str = CRITERION_POOLING, tile: int | None = None,
+               estimates: Mapping[str, np.ndarray] | None = None) -> list[dict[str, Any]]:
     """Metrics of the flip criterion at each c (overall, per scene, per group), through the
     one stop rule (min spp, held stops, flat units at once), on labelled `stacks`: per
-    block, or with `tile` per tile against the tile truth (issue 41)."""
+    block, or with `tile` per tile against the tile truth (issue 41). `estimates` (scene
+    -> [K, n_tiles], with `tile`): a learned error estimate compared with c in place of the
+    halves' history (the `estimate` criterion, issue 59), out of fold, with flip's dot guard."""
     if not stacks:
         raise ValueError("no stacks to sweep c on")
     unlabelled = [str(s.path) for s in stacks if s.thresholds is None]
@@ -219,7 +222,8 @@ def flip_sweep(stacks: Sequence[Stack], candidates: Sequence[float] = FLIP_CANDI
         truth = {s.scene: (s.labels(), s.thresholds) for s in stacks}
     else:
         stacks = [with_tile_truth(s, tile) for s in stacks]
-        both = {s.scene: guarded_tile_flip_scores(s, tile, progress=progress) for s in stacks}
+        both = {s.scene: guarded_tile_flip_scores(s, tile, progress=progress, estimate=None if estimates is None
+                                                  else estimates[s.scene]) for s in stacks}
         scores, flats = {k: v[0] for k, v in both.items()}, {k: v[1] for k, v in both.items()}
         truth = {s.scene: (s.tile_labels(), s.tile_thresholds) for s in stacks}
     per_block = None if tile is None else {s.scene: len(s.tile_thresholds) // s.n_blocks for s in stacks}
@@ -239,13 +243,15 @@ def flip_sweep(stacks: Sequence[Stack], candidates: Sequence[float] = FLIP_CANDI
 
 def calibrate_flip(stacks: Sequence[Stack], max_early_stop: float = 0.05, *, min_spp: int | None = None,
                    candidates: Sequence[float] = FLIP_CANDIDATES, progress: bool = True,
-                   pooling: str = CRITERION_POOLING, tile: int | None = None) -> dict[str, Any]:
+                   pooling: str = CRITERION_POOLING, tile: int | None = None,
+                   estimates: Mapping[str, np.ndarray] | None = None) -> dict[str, Any]:
     """c for the `flip` criterion on labelled `stacks` (training scenes, never the held-out
     ones): the largest c (fewest samples) whose early-stop rate stays within
     `max_early_stop` on scenes it was not chosen on (`choose_out_of_fold`); per block, or
     per tile of `tile` pixels, where the rate is the final frame's: of the blocks whose
     truth converges, those the frame the render ends with leaves above tau (issue 49)."""
-    curve = flip_sweep(stacks, candidates, min_spp=min_spp, progress=progress, pooling=pooling, tile=tile)
+    curve = flip_sweep(stacks, candidates, min_spp=min_spp, progress=progress, pooling=pooling, tile=tile,
+                       estimates=estimates)
     chosen = choose_out_of_fold(curve, max_early_stop, larger_is_safer=False,
                                 rate="early_stop_rate" if tile is None else "end_early_rate")
     return {"c": chosen["threshold"], "target_early_stop_rate": max_early_stop, "chosen": _record(chosen),
@@ -256,8 +262,10 @@ def calibrate_flip(stacks: Sequence[Stack], max_early_stop: float = 0.05, *, min
 
 def calibrate_flip_curve(stacks: Sequence[Stack], max_early_stop: float = 0.05, *,
                          taus: Sequence[float] = CURVE_TAUS, min_spp: int | None = None,
-                         candidates: Sequence[float] = FLIP_CANDIDATES, progress: bool = True,
-                         pooling: str = CRITERION_POOLING, tile: int | None = None) -> dict[str, Any]:
+                         candidates: Sequence[float] | Callable[[float], Sequence[float]] = FLIP_CANDIDATES,
+                         progress: bool = True,
+                         pooling: str = CRITERION_POOLING, tile: int | None = None,
+                         estimates: Mapping[str, np.ndarray] | None = None) -> dict[str, Any]:
     """The curve c(tau) for the `flip` criterion: at each noise target tau, the stacks are
     labelled by the observer at that tau (`observed`: relabelled from cached errors, never
     re-rendered) and c is chosen out of fold for `max_early_stop` (`calibrate_flip`).
@@ -265,12 +273,14 @@ def calibrate_flip_curve(stacks: Sequence[Stack], max_early_stop: float = 0.05, 
     A stricter target never gets a larger c: a c that is safe against the labels of a tau
     is safe against those of any larger tau (every threshold can only come earlier), so
     where the chosen c's dip with tau the curve keeps the running maximum, which meets the
-    target at both. `c_raw` records what was chosen before that."""
+    target at both. `c_raw` records what was chosen before that. `candidates`: the c tried,
+    or a function of tau giving them (an estimate of the error itself has its c near tau)."""
     points, raw = [], []
     for tau in tqdm(sorted(taus), desc="c(tau)", disable=not progress, leave=False):
         labelled = [observed(s, tau) for s in stacks]          # DESIGN's observer at this tau
-        cal = calibrate_flip(labelled, max_early_stop, min_spp=min_spp, candidates=candidates,
-                             progress=False, pooling=pooling, tile=tile)
+        cal = calibrate_flip(labelled, max_early_stop, min_spp=min_spp,
+                             candidates=candidates(tau) if callable(candidates) else candidates,
+                             progress=False, pooling=pooling, tile=tile, estimates=estimates)
         raw.append(cal["c"])
         points.append({"tau": float(tau), "c": max(raw), "c_raw": cal["c"], "chosen": cal["chosen"],
                        "internal_target": cal["chosen"].get("internal_target"),

@@ -234,15 +234,19 @@ def stack_tile_terms(stack: Stack, tile: int, exposure: float = 0.0, ppd: float 
     return cached_array(stack, f"tile{tile}-flip-{pooling}-e{exposure:g}-ppd{ppd:g}-l{DOT_LEVEL:g}", shape, compute)
 
 
-def guarded_tile_flip_scores(stack: Stack, tile: int, exposure: float = 0.0,
-                             progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def guarded_tile_flip_scores(stack: Stack, tile: int, exposure: float = 0.0, progress: bool = False,
+                             estimate: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(scores [K, n_tiles], flat [K, n_tiles]) of the flip criterion at tile grain: -e of
-    the tile's history (`learning.inputs.history.running`, issue 49), NaN where the tile's
-    dot guard holds it at the stack's tau; flat where the tile is."""
+    the tile's history (`learning.inputs.history.running`, issue 49), or of a learned
+    `estimate` [K, n_tiles] of its error (issue 59), NaN where the tile's dot guard holds it
+    at the stack's tau; flat where the tile is."""
     from .history import running
 
     terms = stack_tile_terms(stack, tile, exposure, progress=progress)
-    return guard_dots(-running(terms[0], stack.spp), terms[1], label_tau(stack)), terms[2] > 0.5
+    e = running(terms[0], stack.spp) if estimate is None else np.asarray(estimate, np.float64)
+    if e.shape != terms[0].shape:
+        raise ValueError(f"{stack.scene}: an estimate of shape {e.shape} for tiles of shape {terms[0].shape}")
+    return guard_dots(-e, terms[1], label_tau(stack)), terms[2] > 0.5
 
 
 # ----------------------------------------------------------------------------- the shipped c
@@ -275,7 +279,7 @@ def load_flip_calibration(path: str | os.PathLike | None = None) -> dict[str, An
         if not isinstance(tiles, dict):
             raise ValueError(f"tiles must be an object of curves by tile size, got {type(tiles).__name__}")
         for part in (cal, *tiles.values()):          # the block curve, and one per tile size
-            _check_curve(part["curve"] if isinstance(part, dict) else None)
+            check_curve(part["curve"] if isinstance(part, dict) else None)
     except InputFileError as exc:            # one line naming the file, as the others
         raise InputFileError(f"{p}: unreadable flip calibration ({str(exc).split(': ', 1)[-1]})") from None
     except (ValueError, KeyError, TypeError, OverflowError) as exc:
@@ -283,7 +287,7 @@ def load_flip_calibration(path: str | os.PathLike | None = None) -> dict[str, An
     return {**cal, "source": str(p)}
 
 
-def _check_curve(curve: Any) -> None:
+def check_curve(curve: Any) -> None:
     """A c(tau) curve: points of finite, increasing, positive tau and non-negative c."""
     if not isinstance(curve, list):
         raise ValueError(f"a curve must be a list of points, got {type(curve).__name__}")

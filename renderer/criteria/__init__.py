@@ -4,6 +4,8 @@ criterion, each declaring itself (`registry`), and the factory.
 * `ModelCriterion` (`model`): a learned model, in this process or on a verdict server;
   at tile grain `GatedCriterion` (`gated`): its block verdict gates flip's tile verdicts.
 * `FlipCriterion` (`flip`): training-free FLIP between the two half buffers.
+* `EstimateCriterion` (`estimate`): flip's history corrected per tile by a learned
+  estimate of the observer's error (issue 59).
 * `VarianceCriterion` (`variance`): Blender Cycles' adaptive-sampling pixel test.
 * `OracleCriterion` (`oracle`): a labelled stack's true thresholds (the best stops).
 * `UniformCriterion` (`uniform`): never stops (the baseline).
@@ -15,6 +17,7 @@ the one a `renderer.spec.RenderSpec` names; `criterion_names()` lists them.
 """
 from .batch import BlockBatch, BlockView
 from .contract import COUNTER_NAMES, TIMER_NAMES, Criterion, Decision, Tally
+from .estimate import EstimateCriterion
 from .factory import make_criterion
 from .flip import FlipCriterion
 from .gated import GatedCriterion
@@ -26,6 +29,6 @@ from .uniform import UniformCriterion
 from .variance import VarianceCriterion
 
 __all__ = ["COUNTER_NAMES", "TIMER_NAMES", "BlockBatch", "BlockView", "Criterion", "Decision", "Tally",
-           "make_criterion", "FlipCriterion", "GatedCriterion", "ModelCriterion", "ScoresBlocks", "OracleCriterion",
+           "make_criterion", "EstimateCriterion", "FlipCriterion", "GatedCriterion", "ModelCriterion", "ScoresBlocks", "OracleCriterion",
            "UniformCriterion", "VarianceCriterion", "BLOCK", "BLOCK_ONLY", "TILE", "Setting", "declare",
            "criterion_names"]

@@ -61,9 +61,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_train)
 
-    p = sub.add_parser("calibrate", help="calibrate the flip criterion's c on training scenes")
+    p = sub.add_parser("calibrate", help="calibrate the flip criterion's c on training scenes, or train and "
+                                         "calibrate the estimate criterion's bundle")
     p.add_argument("--data", required=True, help="labelled dataset of training scenes (never held-out ones)")
-    p.add_argument("--criterion", choices=("flip",), default="flip")
+    p.add_argument("--criterion", choices=("flip", "estimate"), default="flip",
+                   help="flip: c(tau) for the halves' score; estimate: the learned per-tile error estimate "
+                        "and its c(tau), written as a bundle directory (README \"A learned stop\")")
+    p.add_argument("--kind", choices=("gbm", "linear"), default="gbm",
+                   help="estimate only: boosted trees or a ridge line (default gbm)")
+    p.add_argument("--quantile", type=arg.float_in(0.0, 1.0), default=None,
+                   help="estimate only: learn this quantile of the correction (the trees' pinball loss: each "
+                        "tile its own margin) instead of its mean")
     p.add_argument("--max-early-stop", type=arg.rate, default=0.05,
                    help="largest early-stop rate accepted on the training scenes (default 0.05)")
     p.add_argument("--min-spp", type=arg.spp, default=None,
@@ -72,7 +80,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"also calibrate c(tau) per tile of PX pixels, on the tiles' history, against the "
                         f"blocks the final frame leaves above tau (default {DEFAULT_TILE}, the render's; 0: blocks only)")
     _destination(p, "calibration file to write (default: flip.json in the user data directory, which the "
-                    "flip criterion then reads instead of the shipped one)", "learning/flip.json")
+                    "flip criterion then reads instead of the shipped one; estimate: the bundle directory, "
+                    "default estimate/ there)", "learning/flip.json or learning/bundled_estimate")
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_calibrate)
 
@@ -220,6 +229,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if not stacks:
         raise UsageError(f"{args.data}: no stacks found")
     _refuse_heldout([s.scene for s in stacks], "calibrate")
+    if args.criterion == "estimate":
+        return _calibrate_estimate(args, stacks)
     cal = calibrate_flip_curve(stacks, args.max_early_stop, min_spp=args.min_spp)
     if args.tile:                # the same, per tile against the tile truth (the live loop's default grain)
         part = calibrate_flip_curve(stacks, args.max_early_stop, min_spp=args.min_spp, tile=args.tile)
@@ -242,6 +253,39 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                       f"early stops {p['chosen']['early_stop_rate']:.3f} (target {args.max_early_stop:g}), "
                       f"samples {p['chosen']['spp_ratio_vs_oracle']:.3f} x oracle")
         print(f"wrote {out}")
+    return 0
+
+
+def _calibrate_estimate(args: argparse.Namespace, stacks: list) -> int:
+    """`calibrate --criterion estimate`: train the per-tile error estimate on the stacks,
+    choose its c(tau) out of fold, write the bundle."""
+    from learning.data.dataset_dir import dataset_fingerprint
+    from learning.models.tile_error_bundle import BUNDLED_DIR, USER_DIR, save_tile_error_bundle
+    from learning.training.train_estimate import train_tile_error
+
+    if args.min_spp is not None:
+        raise UsageError("--min-spp applies to --criterion flip only")
+    tile = args.tile or DEFAULT_TILE
+    if args.quantile is not None and not 0 < args.quantile < 1:
+        raise UsageError(f"--quantile must be in (0, 1), got {args.quantile}")
+    if args.quantile is not None and args.kind != "gbm":
+        raise UsageError("--quantile is learned by --kind gbm only")
+    params = {"kind": args.kind, **({} if args.quantile is None else {"quantile": args.quantile})}
+    estimator, cal, record = train_tile_error(stacks, tile=tile, params=params,
+                                              max_early_stop=args.max_early_stop)
+    record.update(data=str(args.data), fingerprint=dataset_fingerprint(args.data))
+    out = Path(args.out) if args.out else BUNDLED_DIR if args.update_package else user_file(USER_DIR)
+    save_tile_error_bundle(estimator, out, tile=tile, calibration=cal, training=record)
+    if args.json:
+        emit_json({"out": str(out), "rows": record["rows"], "curve": [{"tau": p["tau"], "c": p["c"]}
+                                                                       for p in cal["curve"]],
+                   "out_of_fold_spread": record["out_of_fold_spread"]})
+    else:
+        for p in cal["curve"]:
+            print(f"estimate per tile{tile}: tau {p['tau']:<7g} c = {p['c']:.5g}")
+        spread = record["out_of_fold_spread"]
+        print(f"{record['rows']} rows from {len(stacks)} training scenes; out-of-fold spread s "
+              f"{spread['estimate']:.3f} (the halves' history: {spread['halves_history']:.3f}); wrote {out}")
     return 0
 
 

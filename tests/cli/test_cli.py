@@ -154,6 +154,32 @@ def test_calibrate_writes_c_and_refuses_held_out_scenes(tmp_path):
         assert out.returncode == 2 and "studio_preview" in out.stderr and "held out" in out.stderr, out.stderr
 
 
+@pytest.mark.slow
+def test_calibrate_trains_the_estimate_bundle_that_evaluate_then_reads(tmp_path):
+    """`calibrate --criterion estimate` writes a bundle (estimator and c(tau)); found in the
+    user data directory, `evaluate --criterion estimate` decides with it. Options of the
+    other criterion or that do not fit together are one line and exit 2."""
+    import os
+
+    out = run("calibrate", "--criterion", "estimate", "--data", str(FIXTURE), "--out", str(tmp_path / "ud" / "estimate"),
+              "--json")
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout)
+    manifest = json.loads((tmp_path / "ud" / "estimate" / "manifest.json").read_text())
+    assert got["rows"] == manifest["training"]["rows"] > 0 and manifest["tile"] == 16
+    assert [p["c"] for p in got["curve"]] == [p["c"] for p in manifest["calibration"]["curve"]]
+    env = {**os.environ, "NOISESTOP_DATA_DIR": str(tmp_path / "ud")}
+    ev = subprocess.run([sys.executable, "-m", "service.cli", "evaluate", "--data", str(FIXTURE), "--criterion",
+                         "estimate", "--tile", "16", "--json"], capture_output=True, text=True, env=env, timeout=600)
+    assert ev.returncode == 0, ev.stderr
+    r = json.loads(ev.stdout)
+    assert r["criterion"]["name"] == "estimate" and r["criterion"]["source"] == str(tmp_path / "ud" / "estimate")
+    assert set(r["per_scene"]) == {"checker", "cornell", "cornell_dark", "sky"}
+    for bad, words in ((("--min-spp", "8"), "--min-spp"), (("--kind", "linear", "--quantile", "0.9"), "--kind gbm")):
+        out = run("calibrate", "--criterion", "estimate", "--data", str(FIXTURE), "--out", str(tmp_path / "x"), *bad)
+        assert out.returncode == 2 and words in out.stderr and "Traceback" not in out.stderr, out.stderr
+
+
 def test_tau_outside_the_calibrated_range_or_not_a_number_is_one_line_and_exit_2(tmp_path):
     for cmd in (("evaluate", "--data", str(FIXTURE), "--criterion", "flip"),
                 ("evaluate", "--data", str(FIXTURE), "--criterion", "model"),

@@ -140,12 +140,13 @@ def test_the_end_of_a_simulated_render_is_judged_by_the_block_observer(tmp_path)
     assert got["early"] == 1 and got["converging"] == 1       # the block above tau could be clean
 
 
-def _noisy_stack(path, scene: str, seed: int):
+def _noisy_stack(path, scene: str, seed: int, amplitude: tuple[float, float] = (0.02, 0.3)):
     """A virtual-observer stack whose levels are true cumulative means of noisy passes (8 spp
-    each), its 16 tiles noisy to different degrees: the halves the live loop would keep."""
+    each), its 16 tiles noisy to different degrees (uniform in `amplitude`): the halves the
+    live loop would keep."""
     rng = np.random.default_rng(seed)
     ref = np.full((64, 64, 3), 0.35, np.float32)
-    amp = np.repeat(np.repeat(rng.uniform(0.02, 0.3, (4, 4)), 16, 0), 16, 1)[..., None]
+    amp = np.repeat(np.repeat(rng.uniform(*amplitude, (4, 4)), 16, 0), 16, 1)[..., None]
     total, levels, spp = np.zeros_like(ref, np.float64), [], []
     for k in range(12):
         total += (ref + amp * rng.standard_normal(ref.shape)) * 8

@@ -1,0 +1,116 @@
+"""The learned stop's bundle (issue 59): a directory with manifest.json (the input columns, the
+tile, c(tau) and the training record) and estimator.skops (a `TileErrorEstimator`), never
+a pickle: skops loads only the types on `ALLOWED_TYPES`. The package ships one in
+learning/bundled_estimate (`make estimate`); `noisestop train-estimate --out DIR` writes a
+user's own.
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import skops.io as sio
+
+from noisefeat.atomic import atomic_write
+from noisefeat.errors import InputNotFound
+from noisefeat.jsonout import json_default
+from noisefeat.safeio import read_input
+from noisefeat.userdata import find as find_user_file
+
+from ..inputs.halves import check_curve, flip_c
+from ..inputs.tile_features import FEATURE_NAMES
+from .tile_error import TileErrorEstimator
+
+FORMAT = "noisestop-tile-error"
+MANIFEST = "manifest.json"
+ESTIMATOR_FILE = "estimator.skops"
+BUNDLED_DIR = Path(__file__).parents[1] / "bundled_estimate"
+#: a user's own bundle (`noisestop calibrate --criterion estimate` without --out), found first
+USER_DIR = "estimate"
+ALLOWED_TYPES = ["learning.models.tile_error.TileErrorEstimator",
+                 "sklearn.ensemble._hist_gradient_boosting.predictor.TreePredictor"]
+
+
+@dataclass(frozen=True)
+class TileErrorBundle:
+    """A loaded bundle: the `estimator`, the `tile` it was trained at, its c(tau)
+    `calibration` ({"curve": [{"tau", "c"}, ...]}), where it came from (`source`) and the
+    `training` record."""
+
+    estimator: TileErrorEstimator
+    tile: int
+    calibration: dict[str, Any]
+    source: str
+    training: dict[str, Any] = field(default_factory=dict)
+
+    def c(self, tau: float) -> float:
+        """c(tau), interpolated in log between calibrated points; ValueError outside them."""
+        return flip_c({**self.calibration, "source": self.source}, tau)
+
+    def describe(self) -> dict[str, Any]:
+        return {"kind": self.estimator.kind, "tile": self.tile, "source": self.source,
+                "rows": self.training.get("rows"), "scenes": len(self.training.get("scenes", []))}
+
+
+def save_tile_error_bundle(estimator: TileErrorEstimator, path: str | os.PathLike, *, tile: int,
+                           calibration: dict[str, Any], training: dict[str, Any]) -> Path:
+    """Write the bundle directory (estimator first, manifest last: a bundle without its
+    manifest is not one)."""
+    out = Path(path)
+    out.mkdir(parents=True, exist_ok=True)
+    check_curve(calibration.get("curve"))
+    atomic_write(out / ESTIMATOR_FILE, sio.dumps(estimator))
+    manifest = {"format": FORMAT, "tile": int(tile), "features": list(FEATURE_NAMES), "kind": estimator.kind,
+                "calibration": calibration, "training": training}
+    atomic_write(out / MANIFEST, json.dumps(manifest, indent=1, default=json_default).encode())
+    return out
+
+
+def load_tile_error_bundle(path: str | os.PathLike | None = None) -> TileErrorBundle:
+    """The bundle at `path` (None: the user's own in the user data directory if they trained
+    one, else the shipped one). InputNotFound when there is none; ValueError naming the file
+    on anything damaged, foreign or trained on other inputs."""
+    d = find_user_file(USER_DIR, BUNDLED_DIR) if path is None else Path(path)
+    if not (d / MANIFEST).is_file():
+        raise InputNotFound(f"{d}: not a noisestop estimate bundle (no {MANIFEST}); `make estimate` builds the "
+                            "shipped one")
+    try:
+        manifest = json.loads(read_input(d / MANIFEST, "manifest"))
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
+        raise ValueError(f"{d / MANIFEST}: not valid JSON ({type(exc).__name__})") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        raise ValueError(f"{d / MANIFEST}: not a {FORMAT} manifest")
+    if manifest.get("features") != list(FEATURE_NAMES):
+        raise ValueError(f"{d / MANIFEST}: trained on other inputs ({manifest.get('features')}); this version "
+                         f"reads {list(FEATURE_NAMES)}: retrain it")
+    tile = manifest.get("tile")
+    if not isinstance(tile, int) or isinstance(tile, bool) or tile <= 0:
+        raise ValueError(f"{d / MANIFEST}: tile must be a positive integer, got {tile!r}")
+    cal = manifest.get("calibration")
+    if not isinstance(cal, dict):
+        raise ValueError(f"{d / MANIFEST}: no calibration")
+    try:
+        check_curve(cal.get("curve"))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{d / MANIFEST}: {exc}") from None
+    f = d / ESTIMATOR_FILE
+    if not f.is_file():
+        raise InputNotFound(f"{f}: missing")
+    data = read_input(f, "model")         # a regular file within the model cap
+    try:
+        untrusted = sio.get_untrusted_types(data=data)
+    except Exception as exc:     # skops raises many kinds of errors on a malformed file
+        raise ValueError(f"{f}: unreadable skops file ({type(exc).__name__}: {exc})") from None
+    unknown = [t for t in untrusted if t not in ALLOWED_TYPES]
+    if unknown:
+        raise ValueError(f"{f}: refuses to load unknown types {unknown}")
+    try:
+        est = sio.loads(data, trusted=untrusted)
+    except Exception as exc:
+        raise ValueError(f"{f}: unreadable skops file ({type(exc).__name__}: {exc})") from None
+    if not isinstance(est, TileErrorEstimator) or getattr(est, "n_features_in_", None) != len(FEATURE_NAMES):
+        raise ValueError(f"{f}: not a fitted TileErrorEstimator on {len(FEATURE_NAMES)} inputs")
+    return TileErrorBundle(est, tile, cal, str(d), manifest.get("training") or {})

@@ -23,7 +23,7 @@ from noisefeat.atomic import atomic_path, atomic_write
 from noisefeat.jsonout import json_default
 
 from ..inputs.noise_input import HALVES, n_inputs
-from .bundle_check import check_estimator, file_sha256, model_bytes, read_manifest
+from .bundle_check import check_estimator, file_sha256, load_skops, model_bytes, read_manifest
 from .estimators import RBFSVM
 from .model import FORMAT, MANIFEST, VERSION, Model, versions
 
@@ -112,18 +112,7 @@ def load_model(path: str | os.PathLike | None = None, base: FeatureBase | None =
     model_file = path / MODEL_FILE
     if not model_file.exists():
         raise InputNotFound(f"{model_file}: missing")
-    data = model_bytes(model_file, manifest)
-    try:
-        untrusted = sio.get_untrusted_types(data=data)
-    except Exception as exc:     # skops raises many kinds of errors on a malformed file
-        raise ValueError(f"{model_file}: unreadable skops file ({type(exc).__name__}: {exc})") from None
-    unknown = [t for t in untrusted if t not in ALLOWED_TYPES]
-    if unknown:
-        raise ValueError(f"{model_file}: refuses to load unknown types {unknown}")
-    try:
-        estimator = sio.loads(data, trusted=untrusted)
-    except Exception as exc:     # e.g. a spoofed type name: AttributeError inside skops
-        raise ValueError(f"{model_file}: unreadable skops file ({type(exc).__name__}: {exc})") from None
+    estimator = load_skops(model_bytes(model_file, manifest), ALLOWED_TYPES, model_file)
     if isinstance(estimator, RBFSVM) and "offset_" not in vars(estimator):   # written before offset_ was fitted
         estimator.offset_ = float(manifest.get("offset") if manifest.get("offset") is not None
                                   else getattr(estimator, "offset", 0.0))

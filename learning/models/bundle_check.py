@@ -343,3 +343,21 @@ def _check_svc(svc: Any, d: int) -> None:
         raise ValueError("svc_ is not a successfully fitted SVC (fit_status_ / break_ties)")
     if getattr(svc, "_impl", "c_svc") != "c_svc":
         raise ValueError("svc_ must be a C-SVC")
+
+
+def load_skops(data: bytes, allowed: list[str], path: Path) -> Any:
+    """The object a skops file holds, built only from `allowed` types (never `trusted=True`):
+    ValueError naming `path` on a malformed file or any other type."""
+    import skops.io as sio
+
+    try:
+        untrusted = sio.get_untrusted_types(data=data)
+    except Exception as exc:     # skops raises many kinds of errors on a malformed file
+        raise ValueError(f"{path}: unreadable skops file ({type(exc).__name__}: {exc})") from None
+    unknown = [t for t in untrusted if t not in allowed]
+    if unknown:
+        raise ValueError(f"{path}: refuses to load unknown types {unknown}")
+    try:
+        return sio.loads(data, trusted=untrusted)
+    except Exception as exc:     # e.g. a spoofed type name: AttributeError inside skops
+        raise ValueError(f"{path}: unreadable skops file ({type(exc).__name__}: {exc})") from None

@@ -22,6 +22,7 @@ from noisefeat.userdata import find as find_user_file
 
 from ..inputs.halves import check_curve, flip_c
 from ..inputs.tile_features import FEATURE_NAMES
+from .bundle_check import load_skops
 from .tile_error import TileErrorEstimator
 
 FORMAT = "noisestop-tile-error"
@@ -99,18 +100,7 @@ def load_tile_error_bundle(path: str | os.PathLike | None = None) -> TileErrorBu
     f = d / ESTIMATOR_FILE
     if not f.is_file():
         raise InputNotFound(f"{f}: missing")
-    data = read_input(f, "model")         # a regular file within the model cap
-    try:
-        untrusted = sio.get_untrusted_types(data=data)
-    except Exception as exc:     # skops raises many kinds of errors on a malformed file
-        raise ValueError(f"{f}: unreadable skops file ({type(exc).__name__}: {exc})") from None
-    unknown = [t for t in untrusted if t not in ALLOWED_TYPES]
-    if unknown:
-        raise ValueError(f"{f}: refuses to load unknown types {unknown}")
-    try:
-        est = sio.loads(data, trusted=untrusted)
-    except Exception as exc:
-        raise ValueError(f"{f}: unreadable skops file ({type(exc).__name__}: {exc})") from None
+    est = load_skops(read_input(f, "model"), ALLOWED_TYPES, f)     # a regular file within the model cap
     if not isinstance(est, TileErrorEstimator) or getattr(est, "n_features_in_", None) != len(FEATURE_NAMES):
         raise ValueError(f"{f}: not a fitted TileErrorEstimator on {len(FEATURE_NAMES)} inputs")
     return TileErrorBundle(est, tile, cal, str(d), manifest.get("training") or {})

@@ -100,6 +100,11 @@ class RenderSpec:
         side = _block_side(self.block, self.grid, self.resolution)
         return self.tile if side is not None and self.tile < side else None
 
+    def unit_side(self) -> int | None:
+        """The side of the units the loop decides on: the tile when blocks are cut into
+        tiles, else the block's (None: the frame decides it, not known yet)."""
+        return self.tile_grain() or _block_side(self.block, self.grid, self.resolution)
+
     def settings_source(self) -> dict[str, str]:
         """report.json ``settings_source``: where every setting in use came from."""
         return {r.name: self.sources[r.name] for r in ROWS

@@ -46,7 +46,8 @@ class EstimateCriterion(FlipCriterion):
                  tile: int | None = None, bundle: Any = None) -> None:
         """`c`: the threshold (None: the bundle's c(tau)); `exposure`, `tau`: None for the
         render spec's defaults; `tile`: the tile side (the bundle's: 16); `bundle`: a
-        loaded `TileErrorBundle` (None: the one shipped with the package)."""
+        loaded `TileErrorBundle` (None: the one shipped with the package). Whole blocks of
+        the bundle's tile side are that tile (`tile` None: checked at the first decision)."""
         from learning.inputs.halves import flip_offset
         from learning.models.tile_error_bundle import load_tile_error_bundle
 
@@ -69,7 +70,7 @@ class EstimateCriterion(FlipCriterion):
 
     @classmethod
     def from_spec(cls, spec: RenderSpec, thresholds: Sequence[int | None] | None = None) -> EstimateCriterion:
-        return cls(spec.threshold, exposure=spec.exposure, tau=spec.tau, tile=spec.tile_grain())
+        return cls(spec.threshold, exposure=spec.exposure, tau=spec.tau, tile=spec.unit_side())
 
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "name": self.name, "estimator": self.bundle.describe()}

@@ -229,3 +229,18 @@ def test_a_live_render_stops_tiles_on_the_learned_estimate(tmp_path) -> None:
     strict = adaptive_render("large_light", tmp_path / "b", EstimateCriterion(c=1e-6, tau=0.05, tile=16, bundle=bundle),
                              **kw)
     assert all(t["spp"] == 48 for t in strict["tiles"])
+
+
+def test_the_criterion_refuses_units_of_another_size_before_any_render() -> None:
+    """From a render spec, whole 64-px blocks are refused when the criterion is built (not at
+    its first decision, after a pass was paid for); 16-px tiles of them, or 16-px blocks, are
+    its grain."""
+    from renderer.criteria.estimate import EstimateCriterion
+    from renderer.spec import resolve
+
+    with pytest.raises(ValueError, match="got 64-px units"):
+        EstimateCriterion.from_spec(resolve({"criterion": "estimate", "resolution": 128, "block": 64, "tile": 64}))
+    for block in (64, 16):
+        crit = EstimateCriterion.from_spec(resolve({"criterion": "estimate", "resolution": 128, "block": block,
+                                                    "tile": 16}))
+        assert crit.unit == "tile16"

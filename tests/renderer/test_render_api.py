@@ -109,7 +109,7 @@ def test_a_loaded_scene_renders_as_its_name(flip_result):
 
 @pytest.mark.parametrize("kwargs, message", [
     ({"scene": 42}, "scene must be an mi.Scene, an XML file path or a built-in scene name, got int"),
-    ({"criterion": "bogus"}, "criterion must be one of flip, model, oracle, uniform, variance"),   # + any declared since
+    ({"criterion": "bogus"}, "criterion must be one of flip, estimate, model, oracle, uniform, variance"),   # + any declared since
     ({"tau": -1.0}, "tau must be a finite number in (0, 1], got -1.0"),
     ({"max_spp": 0}, "max_spp must be a whole number in [1, 1048576], got 0"),
     ({"time_limit": -1.0}, "time_limit must be a finite number in (0, 31536000], got -1.0"),

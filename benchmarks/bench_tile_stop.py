@@ -3,9 +3,10 @@
 Per held-out scene and noise target, what each run spends and what the frame it ends with
 shows: flip per block (the block grain's default), flip per 16x16 tile (the loop's
 default: the tile's history against the tile curve of c), the oracle per block and per tile
-(the final-frame tile truth, `learning.data.tile_truth`), the learned stop (`estimate`, issue
-59) and the bundled model per block and gated per tile. The spread s (`learning.evaluation.spread`)
-of the halves' history and of the learned estimate, per held-out scene. Samples are mean spp a pixel; "/ block grain" is against flip per block
+(the final-frame tile truth, `learning.data.tile_truth`), the learned stop (`estimate`,
+issue 59) and the bundled model per block and gated per tile; and the spread s
+(`learning.evaluation.spread`) of the halves' history and of the learned estimate, per
+held-out scene. Samples are mean spp a pixel; "/ block grain" is against flip per block
 on the same scene. "early" counts the blocks the final frame leaves above tau although their
 own truth converges in the stack (noise the observer says could be gone).
 """
@@ -52,7 +53,7 @@ def spread_per_scene(heldout: str, tile: int = 16) -> dict[str, dict[str, float]
 
     from learning.data.dataset_dir import read_stacks
     from learning.data.relabel import with_tile_truth
-    from learning.evaluation.spread import needed_margins
+    from learning.evaluation.spread import needed_margins, spread
     from learning.inputs.tile_table import stack_tile_table
     from learning.models.tile_error_bundle import load_tile_error_bundle
     from learning.training.train_estimate import estimates_of
@@ -65,10 +66,9 @@ def spread_per_scene(heldout: str, tile: int = 16) -> dict[str, dict[str, float]
         h, e = needed_margins(st, table.e_hist), needed_margins(st, estimates_of(bundle.estimator, table))
         pooled["history"].append(h)
         pooled["estimate"].append(e)
-        out[st.scene] = {"history": float(np.std(h)) if h.size > 1 else float("nan"),
-                         "estimate": float(np.std(e)) if e.size > 1 else float("nan"), "tiles": int(h.size)}
+        out[st.scene] = {"history": spread(h), "estimate": spread(e), "tiles": int(h.size)}
     h, e = np.concatenate(pooled["history"]), np.concatenate(pooled["estimate"])
-    out["all"] = {"history": float(np.std(h)), "estimate": float(np.std(e)), "tiles": int(h.size)}
+    out["all"] = {"history": spread(h), "estimate": spread(e), "tiles": int(h.size)}
     return out
 
 

@@ -37,7 +37,12 @@ def needed_margins(stack: Stack, estimate: np.ndarray, flat: np.ndarray | None =
     return np.asarray(out, np.float64)
 
 
+def spread(margins: np.ndarray) -> float:
+    """s of `needed_margins` (of one scene or several pooled; NaN with fewer than two)."""
+    m = np.asarray(margins, np.float64)
+    return float(np.std(m)) if m.size > 1 else float("nan")
+
+
 def needed_spread(stacks: Sequence[Stack], estimates: Mapping[str, np.ndarray]) -> float:
     """s over every tile of `stacks` (`needed_margins`; NaN when no tile converges)."""
-    m = np.concatenate([needed_margins(s, estimates[s.scene]) for s in stacks] or [np.zeros(0)])
-    return float(np.std(m)) if m.size > 1 else float("nan")
+    return spread(np.concatenate([needed_margins(s, estimates[s.scene]) for s in stacks] or [np.zeros(0)]))

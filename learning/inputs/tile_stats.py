@@ -58,8 +58,9 @@ def tile_stats(even: torch.Tensor, odd: torch.Tensor, windows: Sequence[tuple[in
     a = torch.as_tensor(even).to(torch.float64)
     b = torch.as_tensor(odd).to(device=a.device, dtype=torch.float64)
     scale = float(2.0 ** exposure)
-    mean = 0.5 * (torch.nan_to_num(a, nan=0.0, posinf=1e30, neginf=0.0)
-                  + torch.nan_to_num(b, nan=0.0, posinf=1e30, neginf=0.0)).clamp_min(0.0)
+    fa = torch.nan_to_num(a, nan=0.0, posinf=1e30, neginf=0.0)
+    fb = torch.nan_to_num(b, nan=0.0, posinf=1e30, neginf=0.0)
+    mean = 0.5 * (fa + fb).clamp_min(0.0)
     lum = _luminance(mean) * scale
     da, db, dm = display(a, exposure), display(b, exposure), display(mean, exposure)
     diff2 = ((da - db) ** 2).mean(-1)
@@ -70,8 +71,7 @@ def tile_stats(even: torch.Tensor, odd: torch.Tensor, windows: Sequence[tuple[in
     gy = torch.zeros_like(dm[..., 0])
     gx[:, :, :-1] = (dm[:, :, 1:] - dm[:, :, :-1]).abs().mean(-1)
     gy[:, :-1, :] = (dm[:, 1:, :] - dm[:, :-1, :]).abs().mean(-1)
-    la = _luminance(torch.nan_to_num(a, nan=0.0, posinf=1e30, neginf=0.0).clamp_min(0.0))
-    lb = _luminance(torch.nan_to_num(b, nan=0.0, posinf=1e30, neginf=0.0).clamp_min(0.0))
+    la, lb = _luminance(fa.clamp_min(0.0)), _luminance(fb.clamp_min(0.0))
     both = la + lb
     relative = torch.where(both > 0, (la - lb).abs() / both.clamp_min(1e-30), torch.zeros_like(both))
     per_pixel = torch.stack([lum.clamp(max=1e30), dark.to(a.dtype), (lum > 1.0).to(a.dtype), diff2,

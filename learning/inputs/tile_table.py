@@ -31,7 +31,8 @@ def stack_tile_stats(stack: Stack, tile: int = TILE, exposure: float = 0.0, prog
     def compute() -> np.ndarray:
         out = np.zeros(shape)
         for k, even, odd in iter_stack_halves(stack, progress):
-            out[k] = tile_stats(torch.as_tensor(even), torch.as_tensor(odd), windows, exposure).reshape(shape[1:]).numpy()
+            stats = tile_stats(torch.as_tensor(even), torch.as_tensor(odd), windows, exposure)
+            out[k] = stats.reshape(shape[1:]).numpy()
         return out
     return cached_array(stack, f"tile{tile}-stats-v2-e{exposure:g}", shape, compute)
 

@@ -17,7 +17,7 @@ import skops.io as sio
 from noisefeat.atomic import atomic_write
 from noisefeat.errors import InputNotFound
 from noisefeat.jsonout import json_default
-from noisefeat.safeio import read_input
+from noisefeat.safeio import read_input, read_json
 from noisefeat.userdata import find as find_user_file
 
 from ..inputs.halves import check_curve, flip_c
@@ -78,10 +78,7 @@ def load_tile_error_bundle(path: str | os.PathLike | None = None) -> TileErrorBu
     if not (d / MANIFEST).is_file():
         raise InputNotFound(f"{d}: not a noisestop estimate bundle (no {MANIFEST}); `make estimate` builds the "
                             "shipped one")
-    try:
-        manifest = json.loads(read_input(d / MANIFEST, "manifest"))
-    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
-        raise ValueError(f"{d / MANIFEST}: not valid JSON ({type(exc).__name__})") from None
+    manifest = read_json(d / MANIFEST, "manifest")          # one line naming the file if not JSON
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise ValueError(f"{d / MANIFEST}: not a {FORMAT} manifest")
     if manifest.get("features") != list(FEATURE_NAMES):

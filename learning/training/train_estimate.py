@@ -105,9 +105,9 @@ def train_tile_error(stacks: Sequence[Stack], *, tile: int = 16, params: Mapping
     X, y = training_rows(list(tables.values()))
     estimator = TileErrorEstimator(**params).fit(X, y)
     calibration = {k: cal[k] for k in ("unit", "curve", "c", "target_early_stop_rate", "tile_truth", "rate")}
-    history = {s.scene: t.e_hist for s, t in zip(stacks, tables.values())}
-    record = {"scenes": sorted(tables), "calibration_scenes": sorted(chosen_on), "rows": int(len(y)), "params": estimator.get_params(),
+    record = {"scenes": sorted(tables), "calibration_scenes": sorted(chosen_on), "rows": int(len(y)),
+              "params": estimator.get_params(),
               "band": list(BAND), "folds": folds, "seconds": round(time.perf_counter() - t0, 1),
               "out_of_fold_spread": {"estimate": needed_spread(stacks, oof), "halves_history": needed_spread(
-                  stacks, history)}}
+                  stacks, {k: t.e_hist for k, t in tables.items()})}}
     return estimator, calibration, record

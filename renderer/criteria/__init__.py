@@ -29,6 +29,6 @@ from .uniform import UniformCriterion
 from .variance import VarianceCriterion
 
 __all__ = ["COUNTER_NAMES", "TIMER_NAMES", "BlockBatch", "BlockView", "Criterion", "Decision", "Tally",
-           "make_criterion", "EstimateCriterion", "FlipCriterion", "GatedCriterion", "ModelCriterion", "ScoresBlocks", "OracleCriterion",
-           "UniformCriterion", "VarianceCriterion", "BLOCK", "BLOCK_ONLY", "TILE", "Setting", "declare",
+           "make_criterion", "EstimateCriterion", "FlipCriterion", "GatedCriterion", "ModelCriterion", "ScoresBlocks",
+           "OracleCriterion", "UniformCriterion", "VarianceCriterion", "BLOCK", "BLOCK_ONLY", "TILE", "Setting", "declare",
            "criterion_names"]

@@ -73,7 +73,7 @@ class EstimateCriterion(FlipCriterion):
         return cls(spec.threshold, exposure=spec.exposure, tau=spec.tau, tile=spec.unit_side())
 
     def describe(self) -> dict[str, Any]:
-        return {**super().describe(), "name": self.name, "estimator": self.bundle.describe()}
+        return {**super().describe(), "estimator": self.bundle.describe()}
 
     def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
         from learning.inputs.tile_features import tile_features

@@ -102,8 +102,9 @@ def compare(ours: dict[str, Any], seeds: list[dict[str, Any]]) -> str:
 
 
 def measure_scene(name: str, size: int, max_spp: int, tau: float, ref_spp: int, ref_dir: Path,
-                  chunk: int = 64, seeds: tuple[int, ...] = (1, 2)) -> dict[str, Any]:
-    """Every row of one suite scene (the module docstring)."""
+                  chunk: int = 64, seeds: tuple[int, ...] = (1, 2), criterion: str | None = None) -> dict[str, Any]:
+    """Every row of one suite scene (the module docstring); `criterion`: ours with another
+    criterion than the default (every other setting at its default)."""
     import mitsuba as mi
 
     from renderer.scenes.catalog import load_scene
@@ -112,16 +113,17 @@ def measure_scene(name: str, size: int, max_spp: int, tau: float, ref_spp: int, 
 
     scene = load_scene(scene_path(name), size)
     mi.render(scene, spp=16, seed=99)                  # warm: both kernels compiled
-    adaptive(scene, 32, tau=tau)
+    ours_settings = {"tau": tau, **({"criterion": criterion} if criterion else {})}
+    adaptive(scene, 32, **ours_settings)
     ref, source = rendered_reference(scene, ref_spp, keep=ref_dir / f"realscene_{name}_{size}_{ref_spp}.exr")
-    a = adaptive(scene, max_spp, tau=tau)
+    a = adaptive(scene, max_spp, **ours_settings)
     ours = {"wall_s": a["wall_s"], "mean_spp": a["mean_spp"], "decisions_s": a["decisions_s"],
             **judged(a["image"], ref, tau, a["stopped"], a["tiles"])}
     # each curve runs on past max spp while it is short of our wall time: its picture there
     curves = {s: quality_curve(scene, ref, tau, max_spp, chunk, s, until_s=a["wall_s"]) for s in seeds}
     first = curves[seeds[0]]
     limit_t = next(p["t"] for p in first if p["spp"] >= min(LIMIT_SPP, max_spp))
-    lim = adaptive(scene, max_spp, tau=tau, time_limit=limit_t)
+    lim = adaptive(scene, max_spp, time_limit=limit_t, **ours_settings)
     limited = {"wall_s": lim["wall_s"], "mean_spp": lim["mean_spp"], **judged(lim["image"], ref, tau)}
     matches = {s: time_to_match(c, ours["above_tau"], ours["worst"]) for s, c in curves.items()}
     out: dict[str, Any] = {
@@ -142,9 +144,11 @@ def measure_scene(name: str, size: int, max_spp: int, tau: float, ref_spp: int, 
 
 def bench_realscenes(scenes: tuple[str, ...] | None = None, size: int | None = None, max_spp: int = 4096,
                      tau: float | None = None, ref_spp: int = 8192, ref_dir: str | Path = "out/bench/references",
-                     chunk: int = 64, refs_only: bool = False, on_scene: Any = None) -> dict[str, Any]:
+                     chunk: int = 64, refs_only: bool = False, on_scene: Any = None,
+                     criterion: str | None = None) -> dict[str, Any]:
     """Every suite scene (`measure_scene`); `on_scene(result)` after each, so a run cut short
-    keeps what it measured. `refs_only`: render (or find cached) the references and stop."""
+    keeps what it measured. `refs_only`: render (or find cached) the references and stop;
+    `criterion`: ours with that criterion instead of the default."""
     from learning.data.variant import select_variant
     from learning.names import DEFAULT_TAU
     from renderer.scenes.catalog import load_scene
@@ -161,7 +165,7 @@ def bench_realscenes(scenes: tuple[str, ...] | None = None, size: int | None = N
     size = size or SIZE[kind]
     tau = tau or DEFAULT_TAU
     out: dict[str, Any] = {"variant": variant, "device": device_name(kind), "tau": tau, "size": size,
-                           "max_spp": max_spp, "scenes": []}
+                           "max_spp": max_spp, "criterion": criterion, "scenes": []}
     for name in names:
         if refs_only:
             scene = load_scene(scene_path(name), size)
@@ -169,7 +173,8 @@ def bench_realscenes(scenes: tuple[str, ...] | None = None, size: int | None = N
             log.info("bench realscenes: %s reference: %s", name, source)
             continue
         log.info("bench realscenes: %s", name)
-        out["scenes"].append(measure_scene(name, size, max_spp, tau, ref_spp, Path(ref_dir), chunk))
+        out["scenes"].append(measure_scene(name, size, max_spp, tau, ref_spp, Path(ref_dir), chunk,
+                                           criterion=criterion))
         if on_scene is not None:
             on_scene(out)
     return out
@@ -190,8 +195,9 @@ def md_realscenes(r: dict[str, Any]) -> str:
     """One row per scene, losses first; then the goals."""
     from .realscenes import SCENES
 
+    ours = f"ours with `--criterion {r['criterion']}`" if r.get("criterion") else "the default render"
     lines = [f"Device: **{r['device']}**, variant `{r['variant']}`, {r['size']}x{r['size']}, max {r['max_spp']} "
-             f"spp, tau {r['tau']}; each tool warm, one run of ours, `mi.render` with two seeds (a curve point "
+             f"spp, tau {r['tau']}, {ours}; each tool warm, one run of ours, `mi.render` with two seeds (a curve point "
              "every 64 spp). Frames as *blocks above tau / worst block* (DESIGN's observer, 64-px blocks) against "
              "`mi.render` at 8192 spp.", "",
              "| scene | kind | ours: wall, mean spp | ours | `mi.render` at our wall (2 seeds) | equal time | "
@@ -238,6 +244,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", default=None, help="write the results here (after each scene)")
     p.add_argument("--update", default=None, metavar="FILE", help="rewrite FILE's marked section")
     p.add_argument("--plot", default=None, metavar="PNG", help="draw each scene's curves and our renders here")
+    p.add_argument("--criterion", default=None, help="ours with this criterion (default: the default render's); "
+                   "its table goes to the section realscenes-CRITERION")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
 
@@ -246,7 +254,7 @@ def main(argv: list[str] | None = None) -> int:
             Path(args.json).write_text(json.dumps(r, indent=1))
 
     r = bench_realscenes(tuple(s for s in args.scenes.split(",") if s) or None, args.size, args.max_spp,
-                         ref_spp=args.ref_spp, refs_only=args.refs_only, on_scene=save)
+                         ref_spp=args.ref_spp, refs_only=args.refs_only, on_scene=save, criterion=args.criterion)
     if args.refs_only:
         return 0
     print(md_realscenes(r))
@@ -257,7 +265,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.update:
         from .marked_sections import update_markdown
 
-        update_markdown(Path(args.update), {SECTION[kind_of(r["variant"])]: md_realscenes(r)})
+        key = SECTION[kind_of(r["variant"])] + (f"-{args.criterion}" if args.criterion else "")
+        update_markdown(Path(args.update), {key: md_realscenes(r)})
     return 0
 
 

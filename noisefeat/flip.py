@@ -25,7 +25,7 @@ import torch
 from .flip_kernels import check_ppd
 from .flip_maps import check_pair, maps_by_chunk
 from .perceptual import DEFAULT_PPD
-from .pooling import CRITERION_POOLING, MEAN, TILES, check_pooling, tile_starts
+from .pooling import CRITERION_POOLING, MEAN, TILES, check_pooling, cuts_evenly, tile_starts
 
 
 def flip_halves(even: torch.Tensor | np.ndarray, odd: torch.Tensor | np.ndarray,
@@ -66,11 +66,10 @@ def pool_tiles(maps: torch.Tensor, windows: Sequence[tuple[int, int, int, int]],
     calibration on stacks both judge a tile by this one function."""
     check_pooling(pooling)
     n, bh, bw = maps.shape
-    _, _, tw, th = windows[0]
-    grid = [(x, y, tw, th) for y in range(0, bh, th) for x in range(0, bw, tw)]
-    if bh % th == 0 and bw % tw == 0 and list(map(tuple, windows)) == grid:    # tiles cut the block: one call
+    if cuts_evenly(windows, bh, bw):                                          # one call
+        _, _, tw, th = windows[0]
         tiles = maps.reshape(n, bh // th, th, bw // tw, tw).transpose(2, 3).reshape(-1, th, tw)
-        return _pool(tiles, pooling).reshape(n, len(grid))
+        return _pool(tiles, pooling).reshape(n, len(windows))
     return torch.stack([_pool(maps[:, y:y + h, x:x + w], pooling) for x, y, w, h in windows], dim=1)
 
 

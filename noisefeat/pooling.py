@@ -23,6 +23,8 @@ the same few operations per pixel, far below FLIP's own cost.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 TILE = 16
@@ -66,6 +68,16 @@ def tile_windows(h: int, w: int, tile: int = TILE) -> list[tuple[int, int, int, 
     truth cut blocks by this one rule."""
     th, tw = min(int(tile), int(h)), min(int(tile), int(w))
     return [(int(x), int(y), tw, th) for y in tile_starts(h, th) for x in tile_starts(w, tw)]
+
+
+def cuts_evenly(windows: Sequence[tuple[int, int, int, int]], h: int, w: int) -> bool:
+    """Whether `windows` ((x, y, w, h), row-major) are the grid of one tile size that cuts an
+    `h` x `w` block evenly: then every tile's pool is a reshape, not a loop over windows."""
+    if not windows:
+        return False
+    _, _, tw, th = windows[0]
+    return h % th == 0 and w % tw == 0 and \
+        list(map(tuple, windows)) == [(x, y, tw, th) for y in range(0, h, th) for x in range(0, w, tw)]
 
 
 def pool_maps(maps: np.ndarray, pooling: str = TILE_MAX) -> np.ndarray:

@@ -28,6 +28,7 @@ from collections.abc import Sequence
 import torch
 
 from noisefeat.display import display
+from noisefeat.pooling import cuts_evenly
 
 #: the names of `tile_stats`' columns, in order
 STAT_NAMES = ("log_luminance", "dark_share", "clipped_share", "log_halves_mse", "outlier_share",
@@ -36,6 +37,8 @@ STAT_NAMES = ("log_luminance", "dark_share", "clipped_share", "log_halves_mse", 
 DARK = 0.1
 #: display difference over which a pixel's halves disagree as an outlier
 OUTLIER = 0.1
+#: linear values are clipped to this (and +Inf taken as it), so that a tile's sums stay finite in float32
+HUGE = 1e30
 #: floors of the logs: below them a term is as good as zero
 LOG_FLOOR = 1e-6
 
@@ -47,6 +50,19 @@ def _luminance(rgb: torch.Tensor) -> torch.Tensor:
     return (rgb * w).sum(-1)
 
 
+def _window_sums(x: torch.Tensor, windows: Sequence[tuple[int, int, int, int]]) -> torch.Tensor:
+    """float64 [n, T, C]: the sums of per-pixel values `x` [n, bh, bw, C] over each window of one
+    size: a reshape where the windows cut the block evenly (the live loop's and the stacks'
+    tiles), else a loop over them."""
+    n, bh, bw, c = x.shape
+    if cuts_evenly(windows, bh, bw):
+        _, _, tw, th = windows[0]
+        return x.reshape(n, bh // th, th, bw // tw, tw, c).sum(dim=(2, 4), dtype=torch.float64) \
+            .reshape(n, len(windows), c)
+    return torch.stack([x[:, y:y + h, x0:x0 + w].sum(dim=(1, 2), dtype=torch.float64)
+                        for x0, y, w, h in windows], dim=1)
+
+
 def tile_stats(even: torch.Tensor, odd: torch.Tensor, windows: Sequence[tuple[int, int, int, int]],
                exposure: float = 0.0) -> torch.Tensor:
     """float64 [n, T, len(STAT_NAMES)]: the content terms of every tile `windows` ((x, y, w,
@@ -55,13 +71,13 @@ def tile_stats(even: torch.Tensor, odd: torch.Tensor, windows: Sequence[tuple[in
     if even.shape != odd.shape or even.ndim != 4 or even.shape[-1] != 3:
         raise ValueError(f"half buffers must be two [n, h, w, 3] arrays of one shape, got "
                          f"{tuple(even.shape)} and {tuple(odd.shape)}")
-    a = torch.as_tensor(even).to(torch.float64)
-    b = torch.as_tensor(odd).to(device=a.device, dtype=torch.float64)
+    a = torch.as_tensor(even).to(torch.float32)
+    b = torch.as_tensor(odd).to(device=a.device, dtype=torch.float32)
     scale = float(2.0 ** exposure)
-    fa = torch.nan_to_num(a, nan=0.0, posinf=1e30, neginf=0.0)
-    fb = torch.nan_to_num(b, nan=0.0, posinf=1e30, neginf=0.0)
+    fa = torch.nan_to_num(a, nan=0.0, posinf=HUGE, neginf=0.0).clamp_(max=HUGE)
+    fb = torch.nan_to_num(b, nan=0.0, posinf=HUGE, neginf=0.0).clamp_(max=HUGE)
     mean = 0.5 * (fa + fb).clamp_min(0.0)
-    lum = _luminance(mean) * scale
+    lum = (_luminance(mean) * scale).clamp_(max=HUGE)
     da, db, dm = display(a, exposure), display(b, exposure), display(mean, exposure)
     diff2 = ((da - db) ** 2).mean(-1)
     outlier = (da - db).abs().amax(-1) > OUTLIER
@@ -74,13 +90,11 @@ def tile_stats(even: torch.Tensor, odd: torch.Tensor, windows: Sequence[tuple[in
     la, lb = _luminance(fa.clamp_min(0.0)), _luminance(fb.clamp_min(0.0))
     both = la + lb
     relative = torch.where(both > 0, (la - lb).abs() / both.clamp_min(1e-30), torch.zeros_like(both))
-    per_pixel = torch.stack([lum.clamp(max=1e30), dark.to(a.dtype), (lum > 1.0).to(a.dtype), diff2,
+    per_pixel = torch.stack([lum, dark.to(a.dtype), (lum > 1.0).to(a.dtype), diff2,
                              outlier.to(a.dtype), (black_a & black_b).to(a.dtype),
                              (black_a ^ black_b).to(a.dtype), gx + gy, relative], dim=-1)
-    tiles = torch.stack([per_pixel[:, y:y + h, x:x + w].mean(dim=(1, 2)) for x, y, w, h in windows], dim=1)
-    sums = torch.stack([torch.stack([la[:, y:y + h, x:x + w].sum(dim=(1, 2)).clamp(max=1e300),
-                                     lb[:, y:y + h, x:x + w].sum(dim=(1, 2)).clamp(max=1e300)], -1)
-                        for x, y, w, h in windows], dim=1)
+    tiles = _window_sums(per_pixel, windows) / (windows[0][2] * windows[0][3])
+    sums = _window_sums(torch.stack([la, lb], dim=-1), windows)
     total = sums.sum(-1)
     balance = torch.where(total > 0, (sums[..., 0] - sums[..., 1]).abs() / total.clamp_min(1e-300),
                           torch.zeros_like(total))

@@ -34,7 +34,7 @@ def stack_tile_stats(stack: Stack, tile: int = TILE, exposure: float = 0.0, prog
             stats = tile_stats(torch.as_tensor(even), torch.as_tensor(odd), windows, exposure)
             out[k] = stats.reshape(shape[1:]).numpy()
         return out
-    return cached_array(stack, f"tile{tile}-stats-v2-e{exposure:g}", shape, compute)
+    return cached_array(stack, f"tile{tile}-stats-v3-e{exposure:g}", shape, compute)
 
 
 @dataclass(frozen=True)

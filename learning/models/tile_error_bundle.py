@@ -6,6 +6,7 @@ user's own.
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 from dataclasses import dataclass, field
@@ -78,6 +79,26 @@ def load_tile_error_bundle(path: str | os.PathLike | None = None) -> TileErrorBu
     if not (d / MANIFEST).is_file():
         raise InputNotFound(f"{d}: not a noisestop estimate bundle (no {MANIFEST}); `make estimate` builds the "
                             "shipped one")
+    return _load(d.resolve(), _signature(d))
+
+
+def _signature(d: Path) -> tuple[tuple[int, int] | None, ...]:
+    """What identifies a bundle's files on disk (modification time and size, None if absent)."""
+    out = []
+    for f in (d / MANIFEST, d / ESTIMATOR_FILE):
+        try:
+            st = f.stat()
+            out.append((st.st_mtime_ns, st.st_size))
+        except OSError:
+            out.append(None)
+    return tuple(out)
+
+
+@functools.lru_cache(maxsize=4)
+def _load(d: Path, signature: tuple[tuple[int, int] | None, ...]) -> TileErrorBundle:
+    """The checked bundle of directory `d`, read once per process while its files are
+    unchanged (`signature`): every render with the estimate would otherwise pay a second
+    for the allow-listed skops load. A failed load is not kept."""
     manifest = read_json(d / MANIFEST, "manifest")          # one line naming the file if not JSON
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise ValueError(f"{d / MANIFEST}: not a {FORMAT} manifest")

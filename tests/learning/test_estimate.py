@@ -150,7 +150,12 @@ def test_a_bundle_that_is_damaged_foreign_or_of_other_inputs_is_refused(tmp_path
     est = TileErrorEstimator(kind="linear").fit(np.zeros((4, len(FEATURE_NAMES))), np.zeros(4))
     cal = {"curve": [{"tau": 0.01, "c": 0.01}, {"tau": 0.02, "c": 0.02}]}
     d = save_tile_error_bundle(est, tmp_path / "b", tile=16, calibration=cal, training={})
-    assert load_tile_error_bundle(d).c(0.015) == pytest.approx(0.015)
+    first = load_tile_error_bundle(d)
+    assert first.c(0.015) == pytest.approx(0.015)
+    assert load_tile_error_bundle(d) is first               # read once per process while unchanged
+    (d / "estimator.skops").write_bytes(sio.dumps(TileErrorEstimator(kind="linear", alpha=2.0).fit(
+        np.zeros((4, len(FEATURE_NAMES))), np.zeros(4))))
+    assert load_tile_error_bundle(d).estimator.alpha == 2.0  # a rewritten file is read again
     manifest = json.loads((d / "manifest.json").read_text())
     for broken, match in (({**manifest, "features": ["x"]}, "other inputs"), ({**manifest, "format": "x"}, "manifest"),
                           ({**manifest, "tile": 0}, "tile"),

@@ -70,7 +70,8 @@ def test_one_tiny_scene_goes_through_every_row(tmp_path, monkeypatch) -> None:
         assert x["ratio"] == pytest.approx(x["t"] / s["adaptive"]["wall_s"])
     assert list(refs.glob("realscene_tiny_64_256.exr"))
     text = md_realscenes(r)
-    assert "| tiny |" in text and "Equal wall time:" in text
+    assert "| tiny |" in text and "Equal wall time:" in text and "the default render" in text
+    assert "ours with `--criterion estimate`" in md_realscenes({**r, "criterion": "estimate"})
     from benchmarks.charts import realscenes
 
     png = realscenes(r["scenes"], tmp_path / "curves.png", r["tau"])

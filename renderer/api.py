@@ -19,8 +19,8 @@ import numpy as np
 
 from .errors import InputNotFound, ServerUnavailable
 from .live.result import RenderResult
-from .setting_row import help_text
-from .spec import API, ARGUMENT, ROWS
+from .settings import API, ROWS
+from .spec import ARGUMENT
 
 if TYPE_CHECKING:
     from learning.data.stack import Stack
@@ -94,15 +94,9 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
 
 def _numpydoc_rows(door: str = API) -> str:
     """The rows a door offers as a numpydoc Parameters section (renderer.render's)."""
-    kinds = {"int": "int", "float": "float", "str": "str", "criterion": "str or Criterion",
-             "grid": "sequence of two ints", "resolution": "int or (int, int) or str",
-             "defines": "mapping"}
-    out = []
-    for row in ROWS:
-        if door in row.doors:
-            out.append(f"    {row.name} : {kinds[row.kind]} or None\n"
-                       + textwrap.fill(f"{help_text(row)}.", 92, initial_indent=" " * 8, subsequent_indent=" " * 8))
-    return "\n".join(out)
+    return "\n".join(f"    {row.name} : {row.type_doc} or None\n"
+                     + textwrap.fill(f"{row.help_text()}.", 92, initial_indent=" " * 8, subsequent_indent=" " * 8)
+                     for row in ROWS if door in row.doors)
 
 
 render.__doc__ = (render.__doc__ or "").replace("{rows}", _numpydoc_rows(API))

@@ -16,7 +16,7 @@ channels. The last render's `RenderResult` (report included) is kept as
 ``integrator.result``.
 
 Properties (all optional): the render spec's rows the plugin offers
-(`renderer.spec.PLUGIN_ROWS`: ``criterion``, ``tau``, ``threshold``, ``offset``,
+(`renderer.settings.PLUGIN_ROWS`: ``criterion``, ``tau``, ``threshold``, ``offset``,
 ``quantile``, ``model``, ``exposure``, ``block``, ``tile`` (the unit's side in pixels; the
 block's own side for whole blocks), ``min_spp``, ``max_spp``, ``step``, ``decide_skip``,
 ``decide_growth``, ``seed``, ``time_limit``, ``spp_budget``, ``quick_spp``: every row but server,
@@ -52,8 +52,9 @@ from typing import Any
 
 import numpy as np
 
+from .settings import PLUGIN_ROWS
 from .spec import PLUGIN as FROM_PLUGIN
-from .spec import PLUGIN_ROWS, resolve
+from .spec import resolve
 
 PLUGIN = "noisestop"
 #: the channels mi.render returns, after R, G, B

@@ -76,7 +76,7 @@ def render_command(scenes: str | Sequence[str], out: str | os.PathLike, given: d
 
     `scenes`: a name, an XML path, or a comma-separated list; `given`: the render spec's
     settings the command line gave (None: not given), resolved per scene (its reference
-    stack may imply some); `kwargs`: `adaptive_render`'s (resume, checkpoint_every).
+    stack may imply some); `kwargs`: `adaptive_render`'s (resume).
     """
     names = [s.strip() for s in scenes.split(",") if s.strip()] if isinstance(scenes, str) else list(scenes)
     if not names:

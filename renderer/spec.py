@@ -1,6 +1,6 @@
-"""The render spec: every setting of a render is one row of `ROWS` (`renderer.spec_rows`,
-re-exported here), and `resolve` is the one place a render's settings are defaulted and
-checked (DESIGN "Render spec"), into a typed, frozen `RenderSpec`.
+"""The render spec: every setting of a render is one row of `ROWS` (`renderer.settings`),
+and `resolve` is the one place a render's settings are defaulted and checked (DESIGN
+"Render spec"), into a typed, frozen `RenderSpec`.
 
 Why one table: settings used to be defaulted and range-checked in five layers (the API,
 the command line's types, the plugin, `run_adaptive`, the budget), and the copies drifted
@@ -30,9 +30,7 @@ from typing import Any
 from noisefeat.bounds import SizeBounds
 
 from .criteria.registry import BLOCK_ONLY, TILE, Declared, criterion_class, declared
-from .setting_row import API, CLI, MAX_SIDE, XML
-from .spec_rows import (DEFAULT_BLOCK, DEFAULT_CRITERION, DEFAULT_TILE, MAX_PASSES, MAX_SEED, MAX_SPP,
-                        MAX_TIME_LIMIT, PLUGIN_ROWS, ROW, ROWS, check_known, declared_row, declared_values)
+from .settings import MAX_PASSES, MAX_SIDE, ROW, ROWS, check_known, declared_row
 
 logger = logging.getLogger(__name__)
 
@@ -45,10 +43,7 @@ SCENE = "scene"
 NOT_USED = "not used"
 
 __all__ = ["ARGUMENT", "COMMAND_LINE", "PLUGIN", "DEFAULT", "SCENE", "NOT_USED", "RenderSpec", "FIELDS", "resolve",
-           "fit_frame", "grain_of", "reference_settings", "file_load_settings",
-           # the table's (`renderer.spec_rows`), here too: a render's settings have one address
-           "API", "CLI", "XML", "MAX_SIDE", "DEFAULT_BLOCK", "DEFAULT_CRITERION", "DEFAULT_TILE", "MAX_PASSES",
-           "MAX_SEED", "MAX_SPP", "MAX_TIME_LIMIT", "PLUGIN_ROWS", "ROW", "ROWS", "declared_row", "declared_values"]
+           "fit_frame", "grain_of", "reference_settings", "file_load_settings"]
 
 
 @dataclass(frozen=True)
@@ -79,6 +74,7 @@ class RenderSpec:
     spp_budget: float | None
     quick_spp: int
     defines: Mapping[str, str] | None
+    checkpoint_every: float
     sources: Mapping[str, str] = field(compare=False)
 
     def values(self) -> dict[str, Any]:

@@ -62,7 +62,7 @@ def _run_session(session: RenderSession, progress: bool, time_limit: float | Non
     checkpoints and raises KeyboardInterrupt). A render that ends within its first period writes none (a
     1024x1024 checkpoint costs about half a second; resuming a render that short is
     rendering it again). Returns whether the time limit ended the render."""
-    every = checkpoints.every if checkpoints is not None else math.inf
+    every = session.spec.checkpoint_every if checkpoints is not None else math.inf
     last_saved = time.perf_counter()
     bar = tqdm(total=len(session.loop.schedule), initial=session.rows, desc=f"{session.label} passes", unit="pass",
                disable=not progress, leave=False)
@@ -96,14 +96,13 @@ class Checkpoints:
     """Where and how often the loop checkpoints: the command line's resumable render.
 
     `out`: the output folder (checked writable before the scene is loaded; the checkpoint
-    is out/checkpoint.npz); `resume`: continue from it if it exists; `every`: seconds
-    between checkpoints (0: after every pass). With checkpoints the first SIGINT/SIGTERM
-    finishes the pass and checkpoints before stopping (`renderer.live.signals`).
+    is out/checkpoint.npz); `resume`: continue from it if it exists. How often: the render
+    spec's `checkpoint_every`. With checkpoints the first SIGINT/SIGTERM finishes the pass
+    and checkpoints before stopping (`renderer.live.signals`).
     """
 
     out: str | os.PathLike[str]
     resume: bool = False
-    every: float = 30.0
 
 
 def is_scene_object(scene: Any) -> bool:
@@ -207,17 +206,17 @@ def load_reference(reference: Stack | str | os.PathLike[str] | np.ndarray,
 
 
 def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion: Any = None, *,
-                    resume: bool = False, checkpoint_every: float = 30.0, **kwargs: Any) -> dict[str, Any]:
+                    resume: bool = False, **kwargs: Any) -> dict[str, Any]:
     """Render `scene` adaptively into `out`; return the report (also out/report.json).
 
     The command line's render: `run_adaptive` with checkpoints in `out` (`resume`:
-    continue from them; `checkpoint_every`: seconds between them, 0: after every pass),
-    then `RenderResult.save(out)`. wall_s in the report runs from the call to the end of
+    continue from them; the setting `checkpoint_every`: seconds between them, 0: after
+    every pass), then `RenderResult.save(out)`. wall_s in the report runs from the call to the end of
     the last pass (writing the output files is not in it); resumed runs add up the time of
     every attempt. `kwargs`: `run_adaptive`'s (the render spec's settings, `reference`,
     `progress`, `source`).
     """
-    result = run_adaptive(scene, criterion, checkpoints=Checkpoints(out, resume, checkpoint_every), **kwargs)
+    result = run_adaptive(scene, criterion, checkpoints=Checkpoints(out, resume), **kwargs)
     result.save(out)
     report = result.report
     logger.info("%s: %d passes, saved %.1f%% vs uniform, %.2f s", report["scene"], report["passes"],
@@ -252,8 +251,6 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
     from ..scenes.catalog import load_scene
 
     t_start = time.perf_counter()
-    if checkpoints is not None and not (math.isfinite(checkpoints.every) and checkpoints.every >= 0):
-        raise ValueError(f"checkpoint interval must be 0 or more seconds, got {checkpoints.every!r}")
     loaded, label = _check_scene_arg(scene, settings.get("resolution"), settings.get("defines"))
     ref_stack, ref_image = load_reference(reference, label) if reference is not None else (None, None)
     given = {"criterion": criterion, **settings}

@@ -34,7 +34,7 @@ from learning.names import DEFAULT_TAU
 
 from ..criteria import Criterion
 from ..live.passloop import PassLoop
-from ..spec import ROW
+from ..settings import ROW
 
 logger = logging.getLogger(__name__)
 
@@ -245,7 +245,7 @@ def criterion_factory(kind: str, *, model: str | None = None, server: str | None
     the oracle with each stack's own thresholds (its tiles' with `tile`)."""
     from ..criteria import make_criterion
     from ..criteria.gated import GatedCriterion
-    from ..setting_row import MAX_SIDE
+    from ..settings import MAX_SIDE
     from ..spec import COMMAND_LINE, resolve
 
     spec = resolve({"criterion": kind, "model": model, "server": server, "threshold": threshold,

@@ -1,5 +1,5 @@
 """One declaration per setting (issue 52): no module of `renderer` checks or defaults a
-render setting outside its declaration, the render spec's row (`renderer/spec_rows.py`,
+render setting outside its declaration, the render spec's row (`renderer/settings.py`,
 checked and combined once by `renderer/spec.py`) or a criterion's own declaration (its
 `settings`, read through the same rows).
 
@@ -21,12 +21,12 @@ import ast
 from pathlib import Path
 from typing import NamedTuple
 
-from renderer.spec import ROWS
+from renderer.settings import ROWS
 from tests.support import ROOT
 
 SETTINGS = frozenset(r.name for r in ROWS)
-#: the declarations themselves: the table, how a row checks, and the one resolver
-DECLARATIONS = frozenset({"renderer/spec_rows.py", "renderer/setting_row.py", "renderer/spec.py"})
+#: the declarations themselves: the rows (each checking its values), and the one resolver
+DECLARATIONS = frozenset({"renderer/settings.py", "renderer/spec.py"})
 _DISPLAY = "the display transform's exposure (DESIGN 'Display transform', default 0), for images outside a render too"
 _SIMULATE = ("the offline simulation's own door (stored stacks, evaluate): it takes its settings directly, not "
              "through resolve, and checks them by the rows' own checks")

@@ -14,7 +14,7 @@ from renderer.live.blocks import BlockRenderer
 from renderer.live.budget import Budget
 from renderer.criteria import OracleCriterion, UniformCriterion, VarianceCriterion
 from renderer.live.passloop import PassLoop, schedule
-from renderer.spec import MAX_SPP
+from renderer.settings import MAX_SPP
 from tests.support.errors import assert_one_line_error, run
 from tests.renderer.test_renderer_blocks import _scene
 
@@ -145,7 +145,7 @@ def test_bad_budgets_are_refused_at_each_door_by_one_check(bad) -> None:
     bound, issue 40)."""
     from learning import make_synthetic_stack
     from renderer.simulation.simulate import simulate_budget
-    from renderer.spec import ROW
+    from renderer.settings import ROW
 
     with pytest.raises(ValueError, match="spp_budget must be a finite number in") as one:
         ROW["spp_budget"].check(bad)

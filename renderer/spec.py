@@ -126,17 +126,24 @@ def reference_settings(stack: Any) -> dict[str, Any]:
     return out
 
 
+def checked(given: Mapping[str, Any]) -> dict[str, Any]:
+    """`given`'s values (None: not given, left out), each checked once by its row: what a
+    door checks before anything loads. One-line ValueError naming the setting; unknown
+    names refused."""
+    check_known(given)
+    return {name: ROW[name].check(value) for name, value in given.items() if value is not None}
+
+
 def file_load_settings(given: Mapping[str, Any], reference: Any = None) -> tuple[Any, Any]:
     """(resolution, defines) to load a scene file with, every given row checked first (a bad
     setting fails before the file loads): what loading needs before the file's own
     ``noisestop`` integrator's properties are known; `resolve` takes them after, and checks
     the combination then. Neither row is a plugin property, so neither changes after."""
-    check_known(given)
-    checked = {name: ROW[name].check(value) for name, value in given.items() if value is not None}
-    resolution = checked.get("resolution")
+    values = checked(given)
+    resolution = values.get("resolution")
     if resolution is None and reference is not None:
         resolution = reference_settings(reference)["resolution"]
-    return resolution, checked.get("defines")
+    return resolution, values.get("defines")
 
 
 def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping[str, Any] | None = None,
@@ -257,12 +264,20 @@ def _block_side(block: int | None, grid: tuple[int, int] | None, resolution: Any
 
 def fit_frame(spec: RenderSpec, width: int, height: int) -> RenderSpec:
     """The spec for the loaded frame: its resolution, a default block no larger than the
-    frame's short side, and the frame and block bounds (noisefeat.bounds) checked."""
+    frame's short side, and the blocks, the frame and block bounds (noisefeat.bounds)
+    checked against it: a block no larger than the frame, a grid that divides it."""
     values, sources = spec.values(), dict(spec.sources)
     values["resolution"] = (int(width), int(height))
-    if spec.block is not None and sources["block"] == DEFAULT and spec.block > min(width, height):
-        values["block"] = int(min(width, height))
-        sources["block"] = f"{DEFAULT} (the frame's short side)"
+    short = int(min(width, height))
+    if spec.block is not None and spec.block > short:
+        if sources["block"] != DEFAULT:
+            raise ValueError(f"block of {spec.block} px is larger than the {width}x{height} frame: "
+                             f"take --block {short} or less")
+        values["block"], sources["block"] = short, f"{DEFAULT} (the frame's short side)"
+    if spec.grid is not None and (width % spec.grid[1] or height % spec.grid[0]):
+        gh, gw = spec.grid
+        raise ValueError(f"image {width}x{height} (WxH) cannot be cut into a {gh}x{gw} grid of equal blocks: "
+                         f"width must be divisible by {gw} and height by {gh}")
     block = values["block"]
     side = _block_side(block, spec.grid, values["resolution"])
     if grain_of(spec.criterion) == BLOCK_ONLY and values["tile"] < side:

@@ -39,7 +39,7 @@ from learning.data.dataset_dir import find_stack
 from learning.data.stack import Stack
 from noisefeat.safeio import check_regular
 
-from ..spec import ARGUMENT, DEFAULT, file_load_settings, fit_frame, resolve
+from ..spec import ARGUMENT, file_load_settings, fit_frame, resolve
 from .blocks import BlockRenderer
 from .checkpoint import CHECKPOINT
 from .outputs import clear_results, prepare_output_dir
@@ -275,13 +275,11 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True,
         ref_stack = observed(ref_stack, spec.tau)
     if loaded and sensor is None and not scene_obj.sensors():
         raise ValueError(f"{label}: the scene has no sensor (camera) to render from; add one")
-    if spec.sources["block"] == DEFAULT:     # the default block, no larger than the frame
-        crop = (sensor if sensor is not None else scene_obj.sensors()[0]).film().crop_size()
-        spec = fit_frame(spec, int(crop[0]), int(crop[1]))
+    crop = (sensor if sensor is not None else scene_obj.sensors()[0]).film().crop_size()
+    spec = fit_frame(spec, int(crop[0]), int(crop[1]))      # the frame as rendered, within the bounds
     given_objects = {k: v for k, v in (("sensor", sensor), ("integrator", integrator)) if v is not None}
     br = BlockRenderer(scene_obj, grid=spec.grid, block=spec.block, tile=spec.tile, **given_objects)
     try:
-        spec = fit_frame(spec, br.width, br.height)     # the frame as rendered, within the bounds
         crit = make_criterion(spec, None if ref_stack is None else ref_stack.thresholds)   # knows its grain now
         logger.info("%s: %s", label, spec.describe())
         if ref_stack is not None:

@@ -48,7 +48,7 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
     naming the argument: a missing model, scene file or reference raises
     `renderer.errors.InputNotFound` and an unreachable or failing verdict server
     `renderer.errors.ServerUnavailable`, ValueErrors that are also FileNotFoundError and
-    ConnectionError. Every setting is a row of the render spec (`renderer.spec.ROWS`);
+    ConnectionError. Every setting is a row of the render spec (`renderer.settings.ROWS`);
     None means not given: the scene's ``noisestop`` integrator's property, else what the
     reference stack implies, else the default (report.json ``settings_source`` says which).
 

@@ -12,7 +12,10 @@ plugin``, also under `renderer.render`'s arguments for a scene that has one).
 
 `resolve` takes, for each row, the value given, else the scene plugin's, else what the
 reference stack implies, else the row's default, checks it (one-line ValueError naming the
-setting), then the combination; `RenderSpec` records where each value came from.
+setting), then the combination, then, given the loaded frame, fits the blocks to it;
+`RenderSpec` records where each value came from. A render resolves its spec once
+(`renderer.live.plan.prepare`), after its scene is loaded: the given values are `checked`
+first, so a bad one still fails before anything loads, and not checked again.
 
 What a criterion takes is its own declaration (`renderer.criteria.registry`): which rows it
 reads, with its own defaults and ranges where the row's do not do (`declared_row`), its
@@ -24,7 +27,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 from noisefeat.bounds import SizeBounds
@@ -43,7 +46,7 @@ SCENE = "scene"
 NOT_USED = "not used"
 
 __all__ = ["ARGUMENT", "COMMAND_LINE", "PLUGIN", "DEFAULT", "SCENE", "NOT_USED", "RenderSpec", "FIELDS", "resolve",
-           "fit_frame", "grain_of", "reference_settings", "file_load_settings"]
+           "Checked", "checked", "grain_of", "reference_settings"]
 
 
 @dataclass(frozen=True)
@@ -126,33 +129,28 @@ def reference_settings(stack: Any) -> dict[str, Any]:
     return out
 
 
-def checked(given: Mapping[str, Any]) -> dict[str, Any]:
+class Checked(dict[str, Any]):
+    """Settings a door was given, each checked by its row (`checked`): `resolve` takes them
+    as they are."""
+
+
+def checked(given: Mapping[str, Any]) -> Checked:
     """`given`'s values (None: not given, left out), each checked once by its row: what a
     door checks before anything loads. One-line ValueError naming the setting; unknown
     names refused."""
     check_known(given)
-    return {name: ROW[name].check(value) for name, value in given.items() if value is not None}
-
-
-def file_load_settings(given: Mapping[str, Any], reference: Any = None) -> tuple[Any, Any]:
-    """(resolution, defines) to load a scene file with, every given row checked first (a bad
-    setting fails before the file loads): what loading needs before the file's own
-    ``noisestop`` integrator's properties are known; `resolve` takes them after, and checks
-    the combination then. Neither row is a plugin property, so neither changes after."""
-    values = checked(given)
-    resolution = values.get("resolution")
-    if resolution is None and reference is not None:
-        resolution = reference_settings(reference)["resolution"]
-    return resolution, values.get("defines")
+    return Checked({name: ROW[name].check(value) for name, value in given.items() if value is not None})
 
 
 def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping[str, Any] | None = None,
-            reference: Any = None, thresholds_known: bool | None = None) -> RenderSpec:
-    """The `RenderSpec` of a render: each row from `given` (None: not given), else the scene
-    plugin's properties, else the reference stack's implied settings, else its default
-    (the criterion's declared one for the rows it declares); each checked once, then the
-    combination. `thresholds_known`: true thresholds will be there for a criterion that
-    needs them (default: a reference stack is given).
+            reference: Any = None, frame: tuple[int, int] | None = None,
+            thresholds_known: bool | None = None) -> RenderSpec:
+    """The `RenderSpec` of a render: each row from `given` (None: not given; `Checked`:
+    checked already), else the scene plugin's properties, else the reference stack's implied
+    settings, else its default (the criterion's declared one for the rows it declares); each
+    checked once, then the combination; with `frame` (the loaded film's (width, height)) the
+    blocks fitted to it (`_fit_frame`). `thresholds_known`: true thresholds will be there
+    for a criterion that needs them (default: a reference stack is given).
     ValueError (one line, naming the setting) for anything wrong."""
     check_known(given, plugin)
     ref_source = f"reference {getattr(reference, 'path', '')}".rstrip()
@@ -163,7 +161,8 @@ def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping
     for layer, src in layers:
         for name, value in layer.items():
             if value is not None and name not in values:
-                values[name], sources[name] = ROW[name].check(value), src
+                values[name] = value if isinstance(layer, Checked) else ROW[name].check(value)
+                sources[name] = src
     # blocks are a grid or a block size: the highest layer that names either decides
     for layer, src in layers:
         named = [k for k in ("grid", "block") if layer.get(k) is not None]
@@ -190,6 +189,8 @@ def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping
             sources[row.name] = SCENE if row.name == "resolution" else DEFAULT
     _combine(values, sources, [source, PLUGIN, ref_source, DEFAULT],
              reference is not None if thresholds_known is None else thresholds_known)
+    if frame is not None:
+        _fit_frame(values, sources, *frame)
     return RenderSpec(**values, sources=sources)
 
 
@@ -262,28 +263,26 @@ def _block_side(block: int | None, grid: tuple[int, int] | None, resolution: Any
     return None
 
 
-def fit_frame(spec: RenderSpec, width: int, height: int) -> RenderSpec:
-    """The spec for the loaded frame: its resolution, a default block no larger than the
+def _fit_frame(values: dict[str, Any], sources: dict[str, str], width: int, height: int) -> None:
+    """The settings for the loaded frame: its resolution, a default block no larger than the
     frame's short side, and the blocks, the frame and block bounds (noisefeat.bounds)
     checked against it: a block no larger than the frame, a grid that divides it."""
-    values, sources = spec.values(), dict(spec.sources)
     values["resolution"] = (int(width), int(height))
-    short = int(min(width, height))
-    if spec.block is not None and spec.block > short:
+    short, block, grid = int(min(width, height)), values["block"], values["grid"]
+    if block is not None and block > short:
         if sources["block"] != DEFAULT:
-            raise ValueError(f"block of {spec.block} px is larger than the {width}x{height} frame: "
+            raise ValueError(f"block of {block} px is larger than the {width}x{height} frame: "
                              f"take --block {short} or less")
-        values["block"], sources["block"] = short, f"{DEFAULT} (the frame's short side)"
-    if spec.grid is not None and (width % spec.grid[1] or height % spec.grid[0]):
-        gh, gw = spec.grid
-        raise ValueError(f"image {width}x{height} (WxH) cannot be cut into a {gh}x{gw} grid of equal blocks: "
-                         f"width must be divisible by {gw} and height by {gh}")
-    block = values["block"]
-    side = _block_side(block, spec.grid, values["resolution"])
-    if grain_of(spec.criterion) == BLOCK_ONLY and values["tile"] < side:
-        raise ValueError(f"the {getattr(spec.criterion, 'name', spec.criterion)} criterion decides whole blocks: "
+        block = values["block"] = short
+        sources["block"] = f"{DEFAULT} (the frame's short side)"
+    if grid is not None and (width % grid[1] or height % grid[0]):
+        raise ValueError(f"image {width}x{height} (WxH) cannot be cut into a {grid[0]}x{grid[1]} grid of equal "
+                         f"blocks: width must be divisible by {grid[1]} and height by {grid[0]}")
+    side = _block_side(block, grid, values["resolution"])
+    crit = values["criterion"]
+    if grain_of(crit) == BLOCK_ONLY and values["tile"] < side:
+        raise ValueError(f"the {getattr(crit, 'name', crit)} criterion decides whole blocks: "
                          f"leave tile unset or give the block's side ({side})")
     values["tile"] = min(values["tile"], side)            # a tile is at most its block
-    SizeBounds.from_env().check_frame(int(height), int(width), spec.grid or (1, 1),
-                                      block=None if spec.grid else (block, block))
-    return replace(spec, **values, sources=sources)
+    SizeBounds.from_env().check_frame(int(height), int(width), grid or (1, 1),
+                                      block=None if grid else (block, block))

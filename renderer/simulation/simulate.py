@@ -260,7 +260,7 @@ def criterion_factory(kind: str, *, model: str | None = None, server: str | None
 
     def per_block(st: Stack) -> Criterion:
         """The criterion at the stack's block: a tile as large as the block is the whole
-        block (block grain: the model alone, as the live render's fit_frame makes it)."""
+        block (block grain: the model alone, as the live render's frame fit makes it)."""
         fitted = replace(spec, block=max(int(b) for b in st.block), grid=None)
         whole = fitted.tile_grain() is None
         if whole not in built:

@@ -8,7 +8,7 @@ import torch
 
 from learning.inputs.halves import recover_passes
 from noisefeat import split_blocks
-from renderer.live import adaptive
+from renderer.live import adaptive, plan
 from renderer.live.ledger import Ledger
 from renderer.live.wavefront import Traced
 
@@ -81,7 +81,7 @@ def stack_scene(stack):
     """Stand-in for the loaded scene of `stack`: one sensor whose film is the stack's frame
     (what the render spec is fitted to)."""
     film = SimpleNamespace(crop_size=lambda: (stack.width, stack.height))
-    return SimpleNamespace(sensors=lambda: [SimpleNamespace(film=lambda: film)])
+    return SimpleNamespace(sensors=lambda: [SimpleNamespace(film=lambda: film)], integrator=lambda: None)
 
 
 def live(monkeypatch, tmp_path, stack, crit, min_spp, name="live", grow=False):
@@ -89,11 +89,11 @@ def live(monkeypatch, tmp_path, stack, crit, min_spp, name="live", grow=False):
     per launch unless `grow` (then passes traced past a block's stop are in `calls` too)."""
     made = []
 
-    def fake_renderer(scene, grid=None, block=None, tile=None):
+    def fake_renderer(scene, grid=None, block=None, tile=None, sensor=None, integrator=None):
         made.append(StackRenderer(stack, grid))
         return made[-1]
 
-    monkeypatch.setattr(adaptive, "BlockRenderer", fake_renderer)
+    monkeypatch.setattr(plan, "BlockRenderer", fake_renderer)
     monkeypatch.setattr("renderer.scenes.catalog.load_scene",
                         lambda scene, resolution, defines=None: stack_scene(stack))
     report = adaptive.adaptive_render(stack.scene, tmp_path / name, crit, resolution=stack.width,

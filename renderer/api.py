@@ -43,9 +43,10 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
            progress: bool = True) -> RenderResult:
     """Render `scene` adaptively: sample each block until it looks converged, in memory.
 
-    Also registers the ``noisestop`` Mitsuba integrator for the current variant (as
-    `renderer.register` does). Bad arguments raise ValueError with a one-line message
-    naming the argument: a missing model, scene file or reference raises
+    A scene file is loaded with the ``noisestop`` Mitsuba integrator registered for the
+    current variant (as `renderer.register` does), so its integrator may be that one; a
+    built-in or loaded scene needs no registration. Bad arguments raise ValueError with a
+    one-line message naming the argument: a missing model, scene file or reference raises
     `renderer.errors.InputNotFound` and an unreachable or failing verdict server
     `renderer.errors.ServerUnavailable`, ValueErrors that are also FileNotFoundError and
     ConnectionError. Every setting is a row of the render spec (`renderer.settings.ROWS`);
@@ -74,8 +75,10 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
     """
     from .live.adaptive import run_adaptive
     from .plugin import register
+    from .scenes.catalog import is_scene_file
 
-    register()          # also before a scene file loads: its integrator may be `noisestop`
+    if is_scene_file(scene):
+        register()      # before the file loads: its integrator may be `noisestop`
     try:
         return run_adaptive(scene, criterion, tau=tau, threshold=threshold, offset=offset, quantile=quantile,
                             model=model, server=server, exposure=exposure, resolution=resolution, grid=grid,

@@ -44,8 +44,9 @@ to the variant's ``mi.SamplingIntegrator`` (one class per variant, made once).
 Registering is an explicit call, `register` (idempotent, per variant; also
 `renderer.register`): it needs a Mitsuba variant, so neither ``import renderer`` nor
 importing this module does it. `renderer.render` and ``noisestop render`` call it before
-they load a scene. Python plugins are registered for the variant that is set: after
-``mi.set_variant`` to another one, call `register` again.
+they load a scene file (whose integrator may be ``noisestop``); a built-in scene needs
+none, and a loaded one was loaded with it. Python plugins are registered for the variant
+that is set: after ``mi.set_variant`` to another one, call `register` again.
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """A render's front hall (`renderer.live.plan.prepare`): the spec is resolved once per render,
-whatever the scene is (a built-in name, a scene file, a loaded ``mi.Scene``), and the plugin
-is known by its class."""
+whatever the scene is (a built-in name, a scene file, a loaded ``mi.Scene``), the plugin is
+known by its class, and the ``noisestop`` integrator is registered only for a scene file."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -85,6 +85,19 @@ def test_a_scene_files_plugin_is_read_once_loaded_and_resolved_with_the_render(m
     report = renderer.render(str(scene_file(tmp_path, NOISESTOP)), **settings).report
     assert calls == [{"max_spp": 16}]
     assert report["max_spp"] == 16 and report["settings_source"]["max_spp"] == "scene plugin"
+
+
+def test_the_integrator_is_registered_only_for_a_scene_file(monkeypatch, tmp_path) -> None:
+    import renderer.plugin
+
+    registered: list[int] = []
+    real = renderer.plugin.register
+    monkeypatch.setattr(renderer.plugin, "register", lambda: (registered.append(1), real())[1])
+    renderer.render("cornell", **TINY)
+    assert registered == []
+    settings = {k: v for k, v in TINY.items() if k != "resolution"}
+    renderer.render(str(scene_file(tmp_path)), **settings)
+    assert registered == [1]
 
 
 def test_the_plugin_is_known_by_its_class() -> None:

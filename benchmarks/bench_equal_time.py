@@ -129,7 +129,7 @@ def measure_make_run(tau: float, **overrides: Any) -> dict[str, Any]:
     from renderer.live.adaptive import run_adaptive
     from renderer.scenes.catalog import load_scene
     from renderer.showcase import SCENE, SETTINGS, shipped_reference
-    from renderer.spec import DEFAULT_CRITERION
+    from renderer.settings import DEFAULT_CRITERION
 
     settings = {**SETTINGS, **overrides}
     scene = load_scene(SCENE, settings["resolution"])

@@ -201,7 +201,7 @@ def render_scaling(repeats: int = 1) -> list[dict[str, Any]]:
     """Adaptive (flip) against uniform to the same max spp, per frame size."""
     from renderer.live.adaptive import adaptive_render
     from renderer.criteria import FlipCriterion, UniformCriterion
-    from renderer.spec import DEFAULT_BLOCK
+    from renderer.settings import DEFAULT_BLOCK
 
     out = []
     for scene, res, step, max_spp in RENDERS:

@@ -10,9 +10,9 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-_HOMES = {"BlockRenderer": "blocks", "DEFAULT_SCENE": "scenes", "list_scenes": "scenes",
-          "load_scene": "scenes", "adaptive_render": "adaptive", "render": "api",
-          "RenderResult": "result", "register": "plugin"}
+_HOMES = {"BlockRenderer": "live.blocks", "DEFAULT_SCENE": "scenes.catalog", "list_scenes": "scenes.catalog",
+          "load_scene": "scenes.catalog", "adaptive_render": "live.adaptive", "render": "api",
+          "RenderResult": "live.result", "register": "plugin"}
 __all__ = list(_HOMES)
 
 

@@ -19,8 +19,8 @@ import numpy as np
 
 from .errors import InputNotFound, ServerUnavailable
 from .live.result import RenderResult
-from .setting_row import help_text
-from .spec import API, ARGUMENT, ROWS
+from .settings import API, ROWS
+from .spec import ARGUMENT
 
 if TYPE_CHECKING:
     from learning.data.stack import Stack
@@ -43,12 +43,13 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
            progress: bool = True) -> RenderResult:
     """Render `scene` adaptively: sample each block until it looks converged, in memory.
 
-    Also registers the ``noisestop`` Mitsuba integrator for the current variant (as
-    `renderer.register` does). Bad arguments raise ValueError with a one-line message
-    naming the argument: a missing model, scene file or reference raises
+    A scene file is loaded with the ``noisestop`` Mitsuba integrator registered for the
+    current variant (as `renderer.register` does), so its integrator may be that one; a
+    built-in or loaded scene needs no registration. Bad arguments raise ValueError with a
+    one-line message naming the argument: a missing model, scene file or reference raises
     `renderer.errors.InputNotFound` and an unreachable or failing verdict server
     `renderer.errors.ServerUnavailable`, ValueErrors that are also FileNotFoundError and
-    ConnectionError. Every setting is a row of the render spec (`renderer.spec.ROWS`);
+    ConnectionError. Every setting is a row of the render spec (`renderer.settings.ROWS`);
     None means not given: the scene's ``noisestop`` integrator's property, else what the
     reference stack implies, else the default (report.json ``settings_source`` says which).
 
@@ -74,8 +75,10 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
     """
     from .live.adaptive import run_adaptive
     from .plugin import register
+    from .scenes.catalog import is_scene_file
 
-    register()          # also before a scene file loads: its integrator may be `noisestop`
+    if is_scene_file(scene):
+        register()      # before the file loads: its integrator may be `noisestop`
     try:
         return run_adaptive(scene, criterion, tau=tau, threshold=threshold, offset=offset, quantile=quantile,
                             model=model, server=server, exposure=exposure, resolution=resolution, grid=grid,
@@ -94,15 +97,9 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
 
 def _numpydoc_rows(door: str = API) -> str:
     """The rows a door offers as a numpydoc Parameters section (renderer.render's)."""
-    kinds = {"int": "int", "float": "float", "str": "str", "criterion": "str or Criterion",
-             "grid": "sequence of two ints", "resolution": "int or (int, int) or str",
-             "defines": "mapping"}
-    out = []
-    for row in ROWS:
-        if door in row.doors:
-            out.append(f"    {row.name} : {kinds[row.kind]} or None\n"
-                       + textwrap.fill(f"{help_text(row)}.", 92, initial_indent=" " * 8, subsequent_indent=" " * 8))
-    return "\n".join(out)
+    return "\n".join(f"    {row.name} : {row.type_doc} or None\n"
+                     + textwrap.fill(f"{row.help_text()}.", 92, initial_indent=" " * 8, subsequent_indent=" " * 8)
+                     for row in ROWS if door in row.doors)
 
 
 render.__doc__ = (render.__doc__ or "").replace("{rows}", _numpydoc_rows(API))

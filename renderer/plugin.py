@@ -16,11 +16,12 @@ channels. The last render's `RenderResult` (report included) is kept as
 ``integrator.result``.
 
 Properties (all optional): the render spec's rows the plugin offers
-(`renderer.spec.PLUGIN_ROWS`: ``criterion``, ``tau``, ``threshold``, ``offset``,
+(`renderer.settings.PLUGIN_ROWS`: ``criterion``, ``tau``, ``threshold``, ``offset``,
 ``quantile``, ``model``, ``exposure``, ``block``, ``tile`` (the unit's side in pixels; the
 block's own side for whole blocks), ``min_spp``, ``max_spp``, ``step``, ``decide_skip``,
 ``decide_growth``, ``seed``, ``time_limit``, ``spp_budget``, ``quick_spp``: every row but server,
-resolution, grid and defines, which name things outside the scene), plus ``progress`` (boolean). They are read once, in the
+resolution, grid, defines and checkpoint_every, which name things outside the scene), plus
+``progress`` (boolean); `renderer.plugin_schema.PROPERTIES`. They are read once, in the
 constructor, and resolved and checked there by the same resolver as `renderer.render`'s
 arguments (source "scene plugin"; unset ones take its defaults). ``mi.render``'s own
 arguments add to them: a nonzero ``spp`` is the render's max_spp, and ``seed`` is added to
@@ -28,8 +29,8 @@ the resolved seed, so ``mi.render(scene, seed=k)`` for k = 0, 1, ... gives indep
 renders, and ``mi.render(scene)`` equals ``renderer.render(scene, ...)`` with the same
 settings, and ``renderer.render(scene)`` on such a scene takes these properties for the
 arguments it is not given, as do ``renderer.render("FILE.xml")`` and ``noisestop render
---scene FILE.xml`` on such a file (`renderer.live.adaptive.run_adaptive` reads them once the
-file is loaded).
+--scene FILE.xml`` on such a file (`renderer.live.plan.prepare` reads them once the scene is
+loaded, through `renderer.plugin_schema`, which knows the integrator by its class).
 
 A bad property (a wrong type, out of range, a block too small, min_spp above max_spp, two
 nested integrators) does not fail the scene's loading, where Mitsuba would wrap the error
@@ -43,8 +44,9 @@ to the variant's ``mi.SamplingIntegrator`` (one class per variant, made once).
 Registering is an explicit call, `register` (idempotent, per variant; also
 `renderer.register`): it needs a Mitsuba variant, so neither ``import renderer`` nor
 importing this module does it. `renderer.render` and ``noisestop render`` call it before
-they load a scene. Python plugins are registered for the variant that is set: after
-``mi.set_variant`` to another one, call `register` again.
+they load a scene file (whose integrator may be ``noisestop``); a built-in scene needs
+none, and a loaded one was loaded with it. Python plugins are registered for the variant
+that is set: after ``mi.set_variant`` to another one, call `register` again.
 """
 from __future__ import annotations
 
@@ -52,17 +54,11 @@ from typing import Any
 
 import numpy as np
 
+from .plugin_schema import AOVS, CLASSES, PLUGIN, PROPERTIES, noisestop_of
 from .spec import PLUGIN as FROM_PLUGIN
-from .spec import PLUGIN_ROWS, resolve
-
-PLUGIN = "noisestop"
-#: the channels mi.render returns, after R, G, B
-AOVS = ("spp", "converged")
-#: the properties it reads: the render spec's rows it offers, and whether to show progress
-PROPERTIES = (*(r.name for r in PLUGIN_ROWS), "progress")
+from .spec import resolve
 
 _registered: set[str] = set()
-_classes: dict[str, type] = {}
 
 
 class NoisestopIntegrator:
@@ -99,13 +95,14 @@ class NoisestopIntegrator:
         try:
             if len(nested) > 1:
                 raise ValueError(f"the noisestop integrator wraps one integrator, got {len(nested)} nested ones")
-            if nested and isinstance(nested[0], tuple(_classes.values())):
+            if nested and noisestop_of(nested[0]) is not None:
                 raise ValueError("the noisestop integrator cannot wrap another noisestop integrator: nest the "
                                  "integrator that makes the samples (path, volpath, ...) in one noisestop")
             if not isinstance(progress, bool):
                 raise ValueError(f"progress must be a boolean, got {progress!r}")
             self.progress = progress
-            self.base_seed = resolve(self.settings, source=FROM_PLUGIN).seed   # a bad property: known now, raised when used
+            # a bad property: known now, raised when used
+            self.base_seed = resolve(self.settings, source=FROM_PLUGIN).seed
         except ValueError as exc:
             self.property_error = f"noisestop integrator: {exc}".replace(
                 "noisestop integrator: noisestop integrator: ", "noisestop integrator: ")
@@ -166,12 +163,12 @@ def integrator_class() -> type:
     from noisefeat.extras import require
 
     variant = select_variant()
-    if variant not in _classes:
+    if variant not in CLASSES:
         mi = require("mitsuba")
         methods = {k: v for k, v in vars(NoisestopIntegrator).items() if k not in ("__dict__", "__weakref__")}
-        _classes[variant] = type("NoisestopIntegrator", (mi.SamplingIntegrator,),
-                                 {**methods, "base": mi.SamplingIntegrator})
-    return _classes[variant]
+        CLASSES[variant] = type("NoisestopIntegrator", (mi.SamplingIntegrator,),
+                                {**methods, "base": mi.SamplingIntegrator})
+    return CLASSES[variant]
 
 
 def _as_int(seed: Any) -> int:

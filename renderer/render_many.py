@@ -19,13 +19,22 @@ from .spec import COMMAND_LINE
 logger = logging.getLogger(__name__)
 
 
+def _register_for(scene: str | os.PathLike) -> None:
+    """Register the ``noisestop`` integrator in this process if `scene` is a file: its
+    integrator may be that one (the loop cannot import the plugin; a built-in needs none)."""
+    from .plugin import register
+    from .scenes.catalog import is_scene_file
+
+    if is_scene_file(scene):
+        register()
+
+
 def _render_task(scene: str, out: str, kwargs: dict[str, Any]) -> dict[str, Any]:
     """What one worker runs: one scene, start to finish (or resume to finish)."""
     from .farm import configure_worker_threads
-    from .plugin import register
 
     configure_worker_threads()
-    register()          # a scene file whose integrator is `noisestop` loads in this process too
+    _register_for(scene)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     return adaptive_render(scene, out, **kwargs)
 
@@ -76,7 +85,7 @@ def render_command(scenes: str | Sequence[str], out: str | os.PathLike, given: d
 
     `scenes`: a name, an XML path, or a comma-separated list; `given`: the render spec's
     settings the command line gave (None: not given), resolved per scene (its reference
-    stack may imply some); `kwargs`: `adaptive_render`'s (resume, checkpoint_every).
+    stack may imply some); `kwargs`: `adaptive_render`'s (resume).
     """
     names = [s.strip() for s in scenes.split(",") if s.strip()] if isinstance(scenes, str) else list(scenes)
     if not names:
@@ -87,8 +96,6 @@ def render_command(scenes: str | Sequence[str], out: str | os.PathLike, given: d
                          "directory holding every scene)")
     kwargs = {**given, **kwargs, "reference": reference, "source": COMMAND_LINE}
     if len(names) == 1:
-        from .plugin import register
-
-        register()      # a scene file whose integrator is `noisestop` loads (the loop cannot import it)
+        _register_for(names[0])
         return adaptive_render(names[0], out, **kwargs)
     return render_many(names, out, workers=workers, scheduler=scheduler, **kwargs)

@@ -41,7 +41,7 @@ import numpy as np
 
 from .live.adaptive import adaptive_render
 from .live.outputs import prepare_output_dir, to_srgb8
-from .spec import DEFAULT_CRITERION
+from .settings import DEFAULT_CRITERION
 from noisefeat.dots import REPORT_LEVEL
 from noisefeat.extras import require
 

@@ -1,6 +1,6 @@
-"""The render spec: every setting of a render is one row of `ROWS` (`renderer.spec_rows`,
-re-exported here), and `resolve` is the one place a render's settings are defaulted and
-checked (DESIGN "Render spec"), into a typed, frozen `RenderSpec`.
+"""The render spec: every setting of a render is one row of `ROWS` (`renderer.settings`),
+and `resolve` is the one place a render's settings are defaulted and checked (DESIGN
+"Render spec"), into a typed, frozen `RenderSpec`.
 
 Why one table: settings used to be defaulted and range-checked in five layers (the API,
 the command line's types, the plugin, `run_adaptive`, the budget), and the copies drifted
@@ -12,7 +12,10 @@ plugin``, also under `renderer.render`'s arguments for a scene that has one).
 
 `resolve` takes, for each row, the value given, else the scene plugin's, else what the
 reference stack implies, else the row's default, checks it (one-line ValueError naming the
-setting), then the combination; `RenderSpec` records where each value came from.
+setting), then the combination, then, given the loaded frame, fits the blocks to it;
+`RenderSpec` records where each value came from. A render resolves its spec once
+(`renderer.live.plan.prepare`), after its scene is loaded: the given values are `checked`
+first, so a bad one still fails before anything loads, and not checked again.
 
 What a criterion takes is its own declaration (`renderer.criteria.registry`): which rows it
 reads, with its own defaults and ranges where the row's do not do (`declared_row`), its
@@ -24,15 +27,13 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 from noisefeat.bounds import SizeBounds
 
 from .criteria.registry import BLOCK_ONLY, TILE, Declared, criterion_class, declared
-from .setting_row import API, CLI, MAX_SIDE, XML
-from .spec_rows import (DEFAULT_BLOCK, DEFAULT_CRITERION, DEFAULT_TILE, MAX_PASSES, MAX_SEED, MAX_SPP,
-                        MAX_TIME_LIMIT, PLUGIN_ROWS, ROW, ROWS, check_known, declared_row, declared_values)
+from .settings import MAX_PASSES, MAX_SIDE, ROW, ROWS, check_known, declared_row
 
 logger = logging.getLogger(__name__)
 
@@ -45,10 +46,7 @@ SCENE = "scene"
 NOT_USED = "not used"
 
 __all__ = ["ARGUMENT", "COMMAND_LINE", "PLUGIN", "DEFAULT", "SCENE", "NOT_USED", "RenderSpec", "FIELDS", "resolve",
-           "fit_frame", "grain_of", "reference_settings", "file_load_settings",
-           # the table's (`renderer.spec_rows`), here too: a render's settings have one address
-           "API", "CLI", "XML", "MAX_SIDE", "DEFAULT_BLOCK", "DEFAULT_CRITERION", "DEFAULT_TILE", "MAX_PASSES",
-           "MAX_SEED", "MAX_SPP", "MAX_TIME_LIMIT", "PLUGIN_ROWS", "ROW", "ROWS", "declared_row", "declared_values"]
+           "Checked", "checked", "grain_of", "reference_settings"]
 
 
 @dataclass(frozen=True)
@@ -79,6 +77,7 @@ class RenderSpec:
     spp_budget: float | None
     quick_spp: int
     defines: Mapping[str, str] | None
+    checkpoint_every: float
     sources: Mapping[str, str] = field(compare=False)
 
     def values(self) -> dict[str, Any]:
@@ -130,26 +129,28 @@ def reference_settings(stack: Any) -> dict[str, Any]:
     return out
 
 
-def file_load_settings(given: Mapping[str, Any], reference: Any = None) -> tuple[Any, Any]:
-    """(resolution, defines) to load a scene file with, every given row checked first (a bad
-    setting fails before the file loads): what loading needs before the file's own
-    ``noisestop`` integrator's properties are known; `resolve` takes them after, and checks
-    the combination then. Neither row is a plugin property, so neither changes after."""
+class Checked(dict[str, Any]):
+    """Settings a door was given, each checked by its row (`checked`): `resolve` takes them
+    as they are."""
+
+
+def checked(given: Mapping[str, Any]) -> Checked:
+    """`given`'s values (None: not given, left out), each checked once by its row: what a
+    door checks before anything loads. One-line ValueError naming the setting; unknown
+    names refused."""
     check_known(given)
-    checked = {name: ROW[name].check(value) for name, value in given.items() if value is not None}
-    resolution = checked.get("resolution")
-    if resolution is None and reference is not None:
-        resolution = reference_settings(reference)["resolution"]
-    return resolution, checked.get("defines")
+    return Checked({name: ROW[name].check(value) for name, value in given.items() if value is not None})
 
 
 def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping[str, Any] | None = None,
-            reference: Any = None, thresholds_known: bool | None = None) -> RenderSpec:
-    """The `RenderSpec` of a render: each row from `given` (None: not given), else the scene
-    plugin's properties, else the reference stack's implied settings, else its default
-    (the criterion's declared one for the rows it declares); each checked once, then the
-    combination. `thresholds_known`: true thresholds will be there for a criterion that
-    needs them (default: a reference stack is given).
+            reference: Any = None, frame: tuple[int, int] | None = None,
+            thresholds_known: bool | None = None) -> RenderSpec:
+    """The `RenderSpec` of a render: each row from `given` (None: not given; `Checked`:
+    checked already), else the scene plugin's properties, else the reference stack's implied
+    settings, else its default (the criterion's declared one for the rows it declares); each
+    checked once, then the combination; with `frame` (the loaded film's (width, height)) the
+    blocks fitted to it (`_fit_frame`). `thresholds_known`: true thresholds will be there
+    for a criterion that needs them (default: a reference stack is given).
     ValueError (one line, naming the setting) for anything wrong."""
     check_known(given, plugin)
     ref_source = f"reference {getattr(reference, 'path', '')}".rstrip()
@@ -160,7 +161,8 @@ def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping
     for layer, src in layers:
         for name, value in layer.items():
             if value is not None and name not in values:
-                values[name], sources[name] = ROW[name].check(value), src
+                values[name] = value if isinstance(layer, Checked) else ROW[name].check(value)
+                sources[name] = src
     # blocks are a grid or a block size: the highest layer that names either decides
     for layer, src in layers:
         named = [k for k in ("grid", "block") if layer.get(k) is not None]
@@ -187,6 +189,8 @@ def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping
             sources[row.name] = SCENE if row.name == "resolution" else DEFAULT
     _combine(values, sources, [source, PLUGIN, ref_source, DEFAULT],
              reference is not None if thresholds_known is None else thresholds_known)
+    if frame is not None:
+        _fit_frame(values, sources, *frame)
     return RenderSpec(**values, sources=sources)
 
 
@@ -259,20 +263,26 @@ def _block_side(block: int | None, grid: tuple[int, int] | None, resolution: Any
     return None
 
 
-def fit_frame(spec: RenderSpec, width: int, height: int) -> RenderSpec:
-    """The spec for the loaded frame: its resolution, a default block no larger than the
-    frame's short side, and the frame and block bounds (noisefeat.bounds) checked."""
-    values, sources = spec.values(), dict(spec.sources)
+def _fit_frame(values: dict[str, Any], sources: dict[str, str], width: int, height: int) -> None:
+    """The settings for the loaded frame: its resolution, a default block no larger than the
+    frame's short side, and the blocks, the frame and block bounds (noisefeat.bounds)
+    checked against it: a block no larger than the frame, a grid that divides it."""
     values["resolution"] = (int(width), int(height))
-    if spec.block is not None and sources["block"] == DEFAULT and spec.block > min(width, height):
-        values["block"] = int(min(width, height))
+    short, block, grid = int(min(width, height)), values["block"], values["grid"]
+    if block is not None and block > short:
+        if sources["block"] != DEFAULT:
+            raise ValueError(f"block of {block} px is larger than the {width}x{height} frame: "
+                             f"take --block {short} or less")
+        block = values["block"] = short
         sources["block"] = f"{DEFAULT} (the frame's short side)"
-    block = values["block"]
-    side = _block_side(block, spec.grid, values["resolution"])
-    if grain_of(spec.criterion) == BLOCK_ONLY and values["tile"] < side:
-        raise ValueError(f"the {getattr(spec.criterion, 'name', spec.criterion)} criterion decides whole blocks: "
+    if grid is not None and (width % grid[1] or height % grid[0]):
+        raise ValueError(f"image {width}x{height} (WxH) cannot be cut into a {grid[0]}x{grid[1]} grid of equal "
+                         f"blocks: width must be divisible by {grid[1]} and height by {grid[0]}")
+    side = _block_side(block, grid, values["resolution"])
+    crit = values["criterion"]
+    if grain_of(crit) == BLOCK_ONLY and values["tile"] < side:
+        raise ValueError(f"the {getattr(crit, 'name', crit)} criterion decides whole blocks: "
                          f"leave tile unset or give the block's side ({side})")
     values["tile"] = min(values["tile"], side)            # a tile is at most its block
-    SizeBounds.from_env().check_frame(int(height), int(width), spec.grid or (1, 1),
-                                      block=None if spec.grid else (block, block))
-    return replace(spec, **values, sources=sources)
+    SizeBounds.from_env().check_frame(int(height), int(width), grid or (1, 1),
+                                      block=None if grid else (block, block))

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from ..spec_rows import ROW
+from ..settings import ROW
 from .oip_codec import DATATYPES, HEADER_LENGTH, WireError, join_body, read_tensor, split_body, tensor_bytes
 from .token import check_token, resolve_token
 

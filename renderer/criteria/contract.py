@@ -146,9 +146,9 @@ class Criterion(ABC):
     @classmethod
     def checked(cls, **given: Any) -> dict[str, Any]:
         """`given` (render settings by row name; None: not given) checked and defaulted by
-        this criterion's declaration (`renderer.spec_rows.declared_values`): what a constructor
+        this criterion's declaration (`renderer.settings.declared_values`): what a constructor
         keeps of its arguments, by the one check the render spec makes."""
-        from ..spec_rows import declared_values
+        from ..settings import declared_values
 
         return declared_values(cls, given)
 

@@ -39,7 +39,7 @@ T = TypeVar("T", bound=type)
 
 @dataclass(frozen=True)
 class Setting:
-    """How a criterion takes one render setting (a row of `renderer.spec.ROWS`, by name):
+    """How a criterion takes one render setting (a row of `renderer.settings.ROWS`, by name):
     its `default` for this criterion (None: the row's), a narrower range [`low`, `high`]
     (None: the row's), what the setting means to it (`doc`, for the help), and whether
     giving the setting without a criterion chooses this criterion (`selects`: a model

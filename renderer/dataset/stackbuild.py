@@ -42,7 +42,7 @@ from noisefeat.pooling import POOLINGS
 
 from ..live.blocks import BlockRenderer
 from ..scenes.catalog import load_scene, scene_label
-from ..spec_rows import ROW
+from ..settings import ROW
 from learning.data.variant import select_variant
 from noisefeat.extras import require
 

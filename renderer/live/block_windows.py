@@ -34,9 +34,8 @@ __all__ = ["BlockWindows", "compose", "tile_starts"]
 
 
 def tile_starts(size: int, block: int) -> list[int]:
-    """Window starts along one axis: every `block` pixels, the last one flush with the edge."""
-    if block > size:
-        raise ValueError(f"a block of {block} px is larger than the frame's {size} px side")
+    """Window starts along one axis: every `block` pixels (at most `size`), the last one
+    flush with the edge."""
     starts = list(range(0, size - block + 1, block))
     if starts[-1] + block < size:
         starts.append(size - block)
@@ -44,27 +43,20 @@ def tile_starts(size: int, block: int) -> list[int]:
 
 
 class BlockWindows:
-    """The blocks of a `width` x `height` frame, numbered row-major, block 0 top-left: a
-    `grid` (rows, columns) that must divide the frame, or windows of `block` pixels (see
-    the module docstring). Exactly one of the two is given."""
+    """The blocks of a `width` x `height` frame, numbered row-major, block 0 top-left:
+    windows of `block` pixels, else a `grid` (rows, columns) (see the module docstring).
+    What they are is checked where they are given: the render spec's rows and its frame fit
+    (`renderer.spec`: a block no larger than the frame, a grid that divides it), the
+    dataset command's checks; a stack's grid divides its frame."""
 
     def __init__(self, width: int, height: int, grid: tuple[int, int] | None = None,
                  block: int | None = None, tile: int | None = None) -> None:
         self.width, self.height = width, height
-        if (grid is None) == (block is None):
-            raise ValueError("give the blocks either as a grid (rows, columns) or as a size in pixels")
-        if block is not None:          # its range is the render spec's (the block row); the frame's is here
-            if block > min(self.width, self.height):
-                raise ValueError(f"block of {block} px is larger than the {self.width}x{self.height} frame: "
-                                 f"take --block {min(self.width, self.height)} or less")
+        if block is not None:
             self.block_h = self.block_w = int(block)
             self._xs, self._ys = tile_starts(self.width, int(block)), tile_starts(self.height, int(block))
         else:
             gh, gw = (int(g) for g in grid)  # type: ignore[union-attr]
-            if self.width % gw or self.height % gh:
-                raise ValueError(
-                    f"image {self.width}x{self.height} (WxH) cannot be cut into a {gh}x{gw} grid of equal "
-                    f"blocks: width must be divisible by {gw} and height by {gh}")
             self.block_h, self.block_w = self.height // gh, self.width // gw
             self._xs = [c * self.block_w for c in range(gw)]
             self._ys = [r * self.block_h for r in range(gh)]

@@ -35,6 +35,7 @@ import torch
 from learning.data.variant import select_variant
 from noisefeat.extras import require
 
+from ..plugin_schema import noisestop_of
 from .block_windows import BlockWindows
 from .ledger import Ledger
 from .wavefront import Traced, WavefrontTracer, filter_guard, filter_nonnegative, torch_device
@@ -104,9 +105,10 @@ class BlockRenderer(BlockWindows):
         super().__init__(int(film.crop_size()[0]), int(film.crop_size()[1]), grid, block, tile)
         # an XML scene may declare no integrator (mi.render then refuses): Mitsuba's path tracer
         self._integrator = scene.integrator() if integrator is None else integrator
-        if hasattr(self._integrator, "property_error"):        # the noisestop plugin: its nested one
-            self._integrator.check()                            # (a bad property: one line, here)
-            self._integrator = self._integrator.nested
+        plugin = noisestop_of(self._integrator)
+        if plugin is not None:              # the noisestop plugin: its nested one (a bad property: one line)
+            plugin.check()
+            self._integrator = plugin.nested
         if self._integrator is None:
             logger.info("scene declares no integrator; using Mitsuba's 'path'")
             self._integrator = mi.load_dict({"type": "path"})

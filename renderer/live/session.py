@@ -1,6 +1,7 @@
 """One adaptive render in progress: its renderer, loop, budget, ledger, checkpoint and report.
 
-`renderer.live.adaptive.run_adaptive` resolves the render spec, opens a `RenderSession`, calls
+`renderer.live.adaptive.run_adaptive` prepares the render (`renderer.live.plan.prepare`: the
+spec resolved, the renderer and the criterion built), opens a `RenderSession`, calls
 `advance` until the session is done, and asks it for the result. The words (unit, pass,
 round, launch) and a round are explained once, in `renderer.live.passloop`; `advance` plans one
 launch (`plan`: the units and the passes each gets), queues it

@@ -120,6 +120,18 @@ def list_scenes(heldout: bool | None = None) -> list[tuple[str, str]]:
             if heldout is None or (HELDOUT in s.tags) == heldout]
 
 
+def is_builtin(name: str | os.PathLike) -> bool:
+    """Whether `name` names a built-in scene (the library's or a procedural one), not a file."""
+    name = os.fspath(name)
+    return name in SCENES or procedural_seed(name) is not None
+
+
+def is_scene_file(scene: Any) -> bool:
+    """Whether `scene` is a scene file's path: a name, not a built-in one nor a loaded scene
+    (what loading may need the ``noisestop`` integrator registered for)."""
+    return isinstance(scene, (str, os.PathLike)) and not is_builtin(scene)
+
+
 def scene_label(scene: str | os.PathLike) -> str:
     """Directory name of a scene: the built-in name, or an XML file's stem."""
     s = os.fspath(scene)
@@ -253,9 +265,9 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | No
     mi = require("mitsuba")
     preload()          # Mitsuba's plugin libraries from its own folder, before any scene names one
 
-    size = resolution      # checked by the render spec's row (`renderer.spec.ROW["resolution"]`)
+    size = resolution      # checked by the render spec's row (`renderer.settings.ROW["resolution"]`)
     name_or_path = os.fspath(name_or_path)
-    if name_or_path in SCENES or procedural_seed(name_or_path) is not None:
+    if is_builtin(name_or_path):
         if defines:
             raise ValueError(f"-D sets parameters of an XML scene; {name_or_path!r} is built in")
         side = 256 if size is None else max(size) if isinstance(size, tuple) else size

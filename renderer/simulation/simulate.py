@@ -9,9 +9,10 @@ are unbalanced and a warning says so.
 
 `simulate_stack` then runs the live loop's own rounds (`renderer.live.passloop.PassLoop`), one
 a level: once spp >= min_spp, only the still-active units (the stack's blocks, or their
-tiles) are asked, and a unit once converged stays converged and is never asked again. The verdict matrix V [K, B] therefore holds -1 up to
-the level where the loop would have stopped the block and +1 from there on, which is what
-`learning.evaluation.metrics.evaluate_verdicts` scores.
+tiles) are asked, and a unit once converged stays converged and is never asked again. The
+verdict matrix V [K, B] therefore holds -1 up to the level where the loop would have stopped
+the block and +1 from there on, which is what `learning.evaluation.metrics.evaluate_verdicts`
+scores.
 """
 from __future__ import annotations
 
@@ -34,7 +35,7 @@ from learning.names import DEFAULT_TAU
 
 from ..criteria import Criterion
 from ..live.passloop import PassLoop
-from ..spec import ROW
+from ..settings import ROW
 
 logger = logging.getLogger(__name__)
 
@@ -47,17 +48,13 @@ def simulate_loop(stack: Stack, criterion: Criterion, min_spp: int | None = None
     (its `ledger`: the decisions' counters and timers). Units: the stack's blocks, or with `tile` (smaller
     than a block) each block's tiles, numbered as the live render numbers them.
 
-    `min_spp` (None: no minimum; else checked by the render spec's row): no decision
-    before that many samples. `decide_skip`: how far a unit's decisions skip towards its predicted
-    stop, `decide_growth`: the least its spp grows between them (`renderer.live.passloop.
-    next_decision`; each checked by its row).
+    `min_spp` (None: no minimum): no decision before that many samples. `decide_skip`: how
+    far a unit's decisions skip towards its predicted stop, `decide_growth`: the least its
+    spp grows between them (`renderer.live.passloop.next_decision`). Each as its door
+    checked it (`evaluate_criterion_cli`: the rows' checks), not checked again here.
     """
     from ..live.block_windows import BlockWindows
 
-    if min_spp is not None:
-        ROW["min_spp"].check(min_spp)
-    ROW["decide_skip"].check(decide_skip)
-    ROW["decide_growth"].check(decide_growth)
     if criterion.needs_halves:
         check_constant_step(stack)
     tiling = BlockWindows(stack.width, stack.height, grid=tuple(stack.grid), tile=tile)
@@ -94,14 +91,13 @@ def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int 
     """The budget render on a stored stack: block b's j-th pass is the stack's pass j
     (`learning.inputs.halves.recover_passes`), as the live render's keyed samples make it,
     so the loop (`Budget.select`, `PassLoop.run_round`) sees what it would see live.
-    `spp_budget` is checked by the render spec's row.
+    `spp_budget` as a door checked it (the render spec's row).
 
     Returns each block's final spp, whether it stopped, the budget's report part and the
     rounds run. The final image of block b is the stack's level at its spp.
     """
     from ..live.budget import BAND, Budget
 
-    ROW["spp_budget"].check(spp_budget)
     if criterion.needs_halves:
         check_constant_step(stack)
     passes, pass_spp = [], []
@@ -245,7 +241,7 @@ def criterion_factory(kind: str, *, model: str | None = None, server: str | None
     the oracle with each stack's own thresholds (its tiles' with `tile`)."""
     from ..criteria import make_criterion
     from ..criteria.gated import GatedCriterion
-    from ..setting_row import MAX_SIDE
+    from ..settings import MAX_SIDE
     from ..spec import COMMAND_LINE, resolve
 
     spec = resolve({"criterion": kind, "model": model, "server": server, "threshold": threshold,
@@ -264,7 +260,7 @@ def criterion_factory(kind: str, *, model: str | None = None, server: str | None
 
     def per_block(st: Stack) -> Criterion:
         """The criterion at the stack's block: a tile as large as the block is the whole
-        block (block grain: the model alone, as the live render's fit_frame makes it)."""
+        block (block grain: the model alone, as the live render's frame fit makes it)."""
         fitted = replace(spec, block=max(int(b) for b in st.block), grid=None)
         whole = fitted.tile_grain() is None
         if whole not in built:
@@ -282,7 +278,11 @@ def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list
                            decide_growth: float = ROW["decide_growth"].default) -> dict[str, Any]:
     """What `noisestop evaluate --criterion C` runs for a rule criterion: simulate C on the
     stacks of `data` (only `scenes` if given), labelled by the observer at the noise target
-    `tau`, and return the DESIGN metrics, overall and per scene."""
+    `tau`, and return the DESIGN metrics, overall and per scene. The simulation's door: its
+    settings are checked here, by their rows, before any stack is read."""
+    from ..spec import checked
+
+    checked({"min_spp": min_spp, "decide_skip": decide_skip, "decide_growth": decide_growth})
     factory = criterion_factory(criterion, model=model, server=server, threshold=threshold, offset=offset,
                                 tau=tau, tile=tile)   # a knob out of range fails before any stack is read
     stacks = read_observed(str(data), tau)

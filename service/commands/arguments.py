@@ -2,7 +2,7 @@
 as an argparse type, so a bad value is a one-line usage error before any work.
 
 The choices and ranges come from their one home, in modules that import nothing heavy: a
-render setting's from its row of the render spec (`renderer.spec.ROWS`, whose `parse` is the
+render setting's from its row of the render spec (`renderer.settings.ROWS`, whose `parse` is the
 argparse type); frame and block sizes are also checked against noisefeat.bounds
 (environment-configurable)."""
 from __future__ import annotations
@@ -12,8 +12,7 @@ import math
 from collections.abc import Callable
 
 from learning.names import QUICK_MODES
-from renderer.setting_row import ascii_float, ascii_int
-from renderer.spec import MAX_SIDE, MAX_SPP, ROW
+from renderer.settings import MAX_SIDE, MAX_SPP, ROW, ascii_float, ascii_int
 
 from ..console import UsageError
 

@@ -5,7 +5,7 @@ import argparse
 
 from noisefeat.bounds import MIN_SIDE
 from noisefeat.pooling import DEFAULT_POOLING, POOLINGS
-from renderer.spec import MAX_SPP
+from renderer.settings import MAX_SPP
 
 from ..console import UsageError, emit_json, log
 from . import arguments as arg

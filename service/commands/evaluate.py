@@ -6,8 +6,7 @@ import argparse
 from learning.names import DEFAULT_TAU
 from renderer.criteria.registry import criterion_class
 from renderer.criteria.registry import names as criterion_names
-from renderer.setting_row import help_text
-from renderer.spec import ROW
+from renderer.settings import ROW
 
 from ..console import UsageError, emit_json, log
 from . import arguments as arg
@@ -18,8 +17,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", required=True)
     p.add_argument("--model", default=None, help="model bundle (default: the bundled model)")
     p.add_argument("--criterion", default="model", choices=criterion_names())
-    p.add_argument("--offset", type=arg.offset, default=None, help=help_text(ROW["offset"]))
-    p.add_argument("--threshold", type=arg.threshold, default=None, help=help_text(ROW["threshold"]))
+    p.add_argument("--offset", type=arg.offset, default=None, help=ROW["offset"].help_text())
+    p.add_argument("--threshold", type=arg.threshold, default=None, help=ROW["threshold"].help_text())
     p.add_argument("--tau", type=arg.tau, default=DEFAULT_TAU, help=arg.TAU_HELP + "; labels come from the "
                    "observer at this tau")
     p.add_argument("--min-spp", type=arg.spp, default=None,

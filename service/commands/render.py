@@ -8,9 +8,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from renderer.criteria.registry import names as criterion_names
-from renderer.setting_row import ascii_int, help_text
-from renderer.spec import CLI, ROWS
+from renderer.settings import CLI, ROWS
 
 from ..console import UsageError, emit_json, log
 from . import arguments as arg
@@ -25,13 +23,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="labelled dataset or stack of the scene (oracle thresholds, early-stop metrics, "
                         "final_vs_reference; its grid and levels become the defaults), or a reference image "
                         "FILE.exr of the render's size (final_vs_reference only)")
-    # the render spec's rows (renderer/spec.py): None = not given, then the reference, the
+    # the render spec's rows (renderer/settings.py): None = not given, then the reference, the
     # scene and the defaults; the report's settings_source says which
     add_arguments(p)
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz")
-    p.add_argument("--checkpoint-every", type=arg.float_in(0.0, 1e9), default=30.0, metavar="S",
-                   help="seconds between checkpoints (also written at the end, at --time-limit and on "
-                        "Ctrl-C/SIGTERM); 0: after every pass (default 30)")
     arg.add_pool_arguments(p, ", for several scenes")
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_render)
@@ -51,7 +46,7 @@ def cmd_render(args: argparse.Namespace) -> int:
             scenes = DEFAULT_SCENE if args.scene is None else args.scene
             result = render_command(scenes, args.out, given_from_args(args),
                                     reference=args.reference, workers=args.workers, scheduler=args.scheduler,
-                                    resume=args.resume, checkpoint_every=args.checkpoint_every)
+                                    resume=args.resume)
     except ConnectionError as exc:      # verdict server unreachable or failing
         raise UsageError(str(exc)) from exc
     return _print_result(args, result, format_report)
@@ -83,35 +78,14 @@ def _print_result(args: argparse.Namespace, result: dict[str, Any], format_repor
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The command line's flags for the render spec's rows it offers: help and types from
-    the rows and the criteria's declarations (the combinations, such as grid with block, are
-    `resolve`'s to refuse)."""
+    """The command line's flags for the render spec's rows it offers: each row's own
+    (`Row.cli_options`: its type, metavar and help; the combinations, such as grid with
+    block, are `resolve`'s to refuse)."""
     for row in ROWS:
-        if CLI not in row.doors:
-            continue
-        kw: dict[str, Any] = {"default": None, "type": row.parse, "metavar": row.metavar, "help": help_text(row)}
-        if row.kind == "grid":
-            kw.update(type=_grid_side, nargs=2, metavar=("ROWS", "COLS"))
-        elif row.kind == "criterion":
-            kw["metavar"] = "{" + ",".join(criterion_names()) + "}"
-        elif row.kind == "defines":
-            parser.add_argument("-D", dest=row.name, action="append", **kw)
-            continue
-        parser.add_argument(row.flag, dest=row.name, **kw)
-
-
-def _grid_side(text: str) -> int:
-    try:
-        return ascii_int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"grid must be two whole numbers, got {repr(text[:40])}") from None
+        if CLI in row.doors:
+            parser.add_argument(row.flag, dest=row.name, **row.cli_options())
 
 
 def given_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """What the command line gave, row by row (None: not given)."""
-    given = {r.name: getattr(args, r.name, None) for r in ROWS if CLI in r.doors}
-    if given.get("defines") is not None:
-        given["defines"] = {k: v for d in given["defines"] for k, v in d.items()}
-    if given.get("grid") is not None:
-        given["grid"] = tuple(given["grid"])
-    return given
+    return {r.name: r.from_cli(getattr(args, r.name, None)) for r in ROWS if CLI in r.doors}

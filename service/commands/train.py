@@ -15,7 +15,7 @@ from noisefeat.atomic import atomic_write
 from noisefeat.userdata import UPDATE_PACKAGE, user_file
 from learning.names import DEFAULT_INPUT, DEFAULT_TAU, MODEL_KINDS, QUICK_MODES, TRANSFER_INPUTS, TRANSFER_KINDS
 
-from renderer.spec import DEFAULT_TILE
+from renderer.settings import DEFAULT_TILE
 
 from ..console import UsageError, emit_json
 from . import arguments as arg

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from renderer.live import adaptive, outputs
+from renderer.live import adaptive, outputs, plan
 from renderer.live.session import RenderSession
 from service import cli
 from tests.support.errors import assert_one_line_error, run
@@ -50,7 +50,7 @@ def test_the_api_refuses_them_too(out, monkeypatch, tmp_path):
     def never(*args, **kwargs):       # were the check gone, no render may write into /
         raise AssertionError(f"rendered into {out!r}")
 
-    monkeypatch.setattr(adaptive, "BlockRenderer", never)
+    monkeypatch.setattr(plan, "BlockRenderer", never)
     monkeypatch.chdir(tmp_path)
     with pytest.raises(ValueError, match="output folder"):
         outputs.prepare_output_dir(out)

@@ -199,3 +199,13 @@ def test_criterion_factory_for_the_evaluate_command(synth):
     assert cli["precision"] == var["precision"] and set(cli["per_scene"]) == {"synthetic"}
     with pytest.raises(ValueError, match="no stack of scene.*kitchen"):
         evaluate_criterion_cli(synth.path.parent, "uniform", ["kitchen"])
+
+
+@pytest.mark.parametrize("bad,message", [({"min_spp": 0}, "min_spp must be a whole number"),
+                                         ({"decide_skip": 1.5}, "decide_skip must be a finite number"),
+                                         ({"decide_growth": -0.1}, "decide_growth must be a finite number")])
+def test_the_simulation_door_refuses_bad_settings_before_reading_a_stack(tmp_path, bad, message):
+    """The simulation's door checks its settings by their rows (the loop behind it does
+    not check them again): a bad one fails before any stack is read (here: none exists)."""
+    with pytest.raises(ValueError, match=message):
+        evaluate_criterion_cli(tmp_path / "nowhere", "uniform", **bad)

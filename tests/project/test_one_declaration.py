@@ -1,5 +1,5 @@
 """One declaration per setting (issue 52): no module of `renderer` checks or defaults a
-render setting outside its declaration, the render spec's row (`renderer/spec_rows.py`,
+render setting outside its declaration, the render spec's row (`renderer/settings.py`,
 checked and combined once by `renderer/spec.py`) or a criterion's own declaration (its
 `settings`, read through the same rows).
 
@@ -21,15 +21,15 @@ import ast
 from pathlib import Path
 from typing import NamedTuple
 
-from renderer.spec import ROWS
+from renderer.settings import ROWS
 from tests.support import ROOT
 
 SETTINGS = frozenset(r.name for r in ROWS)
-#: the declarations themselves: the table, how a row checks, and the one resolver
-DECLARATIONS = frozenset({"renderer/spec_rows.py", "renderer/setting_row.py", "renderer/spec.py"})
+#: the declarations themselves: the rows (each checking its values), and the one resolver
+DECLARATIONS = frozenset({"renderer/settings.py", "renderer/spec.py"})
 _DISPLAY = "the display transform's exposure (DESIGN 'Display transform', default 0), for images outside a render too"
 _SIMULATE = ("the offline simulation's own door (stored stacks, evaluate): it takes its settings directly, not "
-             "through resolve, and checks them by the rows' own checks")
+             "through resolve")
 #: (module, scope, setting) -> why it may stay
 ALLOWED: dict[tuple[str, str, str], str] = {
     ("renderer/live/blocks.py", "BlockRenderer.quick_image", "seed"):
@@ -48,10 +48,6 @@ ALLOWED: dict[tuple[str, str, str], str] = {
         "the loop's own default for callers outside a render (every pass judged); a render passes its spec's",
     ("renderer/client/remote.py", "RemoteModel.__init__", "model"):
         "the name a verdict server serves a model under (DESIGN 'HTTP API': `default`), not a bundle's path",
-    ("renderer/simulation/simulate.py", "simulate_loop", "min_spp"): _SIMULATE,
-    ("renderer/simulation/simulate.py", "simulate_loop", "decide_skip"): _SIMULATE,
-    ("renderer/simulation/simulate.py", "simulate_loop", "decide_growth"): _SIMULATE,
-    ("renderer/simulation/simulate.py", "simulate_budget", "spp_budget"): _SIMULATE,
     ("renderer/simulation/simulate.py", "_as_stacks", "tau"): _SIMULATE,
     ("renderer/simulation/simulate.py", "evaluate_criterion", "tau"): _SIMULATE,
     ("renderer/simulation/simulate.py", "evaluate_criterion_cli", "tau"): _SIMULATE,

@@ -44,7 +44,7 @@ def test_a_budget_below_one_pass_is_refused():
 @pytest.mark.parametrize("value", [np.nan, np.inf])
 def test_a_non_finite_reference_is_refused(value):
     img = np.full((4, 4, 3), value, np.float32)
-    from renderer.live.adaptive import load_reference
+    from renderer.live.plan import load_reference
 
     with pytest.raises(ValueError, match="non-finite"):
         load_reference(img, "scene")

@@ -294,6 +294,7 @@ def test_register_is_idempotent(mi, monkeypatch):
 def test_the_docstring_names_every_property() -> None:
     """The module docstring names each property the plugin reads (it once left out ``tile``)."""
     from renderer import plugin
+    from renderer.plugin_schema import PROPERTIES
 
     doc = plugin.__doc__ or ""
-    assert [p for p in plugin.PROPERTIES if f"``{p}``" not in doc] == []
+    assert [p for p in PROPERTIES if f"``{p}``" not in doc] == []

@@ -7,7 +7,7 @@ import pytest
 
 import renderer
 from learning.models.bundle import BUNDLED_DIR
-from renderer.spec import MAX_TIME_LIMIT
+from renderer.settings import MAX_TIME_LIMIT
 from service.cli import build_parser
 from tests.support.errors import assert_one_line_error, run
 

@@ -7,7 +7,8 @@ import pytest
 from learning import make_synthetic_stack
 from renderer.live.adaptive import adaptive_render
 from renderer.criteria import UniformCriterion
-from renderer.spec import FIELDS, ROWS, RenderSpec, reference_settings, resolve
+from renderer.settings import ROWS
+from renderer.spec import FIELDS, RenderSpec, reference_settings, resolve
 
 
 @pytest.fixture(scope="module")

@@ -7,12 +7,14 @@ a catch that stops the render there, so no scene is loaded or traced."""
 from __future__ import annotations
 
 import math
+import tempfile
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 import renderer
-from renderer.spec import CLI, MAX_PASSES, MAX_SEED, MAX_SIDE, MAX_SPP, MAX_TIME_LIMIT, ROW, ROWS, XML
+from renderer.settings import API, CLI, MAX_PASSES, MAX_SEED, MAX_SIDE, MAX_SPP, MAX_TIME_LIMIT, ROW, ROWS, XML
 from service import cli
 
 pytestmark = pytest.mark.slow
@@ -28,12 +30,12 @@ class Resolved(BaseException):
 
 @pytest.fixture
 def caught(monkeypatch):
-    import renderer.live.adaptive
+    import renderer.live.plan
     from renderer.spec import resolve
 
-    def resolved(*args: Any, **kwargs: Any) -> Any:
-        raise Resolved(resolve(*args, **kwargs))
-    monkeypatch.setattr(renderer.live.adaptive, "resolve", resolved)
+    def resolved(*args: Any, **kwargs: Any) -> Any:     # the rows' values, before the frame is fitted
+        raise Resolved(resolve(*args, **{**kwargs, "frame": None}))
+    monkeypatch.setattr(renderer.live.plan, "resolve", resolved)
 
 
 #: per row: (values that resolve, values refused). A value is (API value, command-line
@@ -71,6 +73,7 @@ CASES: dict[str, tuple[list, list, dict]] = {
              [((0, 1), ["0", "1"], None), ((MAX_SIDE + 1, 1), [str(MAX_SIDE + 1), "1"], None),
               ("4x4", None, None)], {}),
     "defines": ([({"res": "64"}, "res=64", None)], [({"1a": "x"}, "1a=x", None), ("res=64", None, None)], {}),
+    "checkpoint_every": (*_num(0.0, 1e9, -0.5, 1.5e9), {}),
 }
 
 
@@ -79,9 +82,33 @@ def test_every_row_has_its_cases() -> None:
     assert MAX_SPP // MAX_SPP <= MAX_PASSES
 
 
+def _scene(name: str) -> str:
+    """What the doors render: cornell, or for `defines` (a scene file's parameters, set as it
+    loads, before the resolver) a file that declares `res`."""
+    if name != "defines":
+        return "cornell"
+    path = Path(tempfile.mkdtemp()) / "defines.xml"
+    path.write_text(DEFINES_SCENE)
+    return str(path)
+
+
+DEFINES_SCENE = """<scene version="3.0.0">
+  <default name="res" value="16"/>
+  <sensor type="perspective">
+    <film type="hdrfilm"><integer name="width" value="$res"/><integer name="height" value="$res"/></film>
+  </sensor>
+  <shape type="sphere"/>
+</scene>
+"""
+
+
 def _api(name: str, value: Any, context: dict) -> Any:
+    settings = {**context, name: value}
     try:
-        renderer.render("cornell", progress=False, **{**context, name: value})
+        if API in ROW[name].doors:
+            renderer.render(_scene(name), progress=False, **settings)
+        else:       # a render into a folder's setting: its Python door is adaptive_render
+            renderer.adaptive_render(_scene(name), tempfile.mkdtemp(), progress=False, **settings)
     except Resolved as r:
         return r.spec
     raise AssertionError("renderer.render did not reach the resolver")
@@ -90,7 +117,7 @@ def _api(name: str, value: Any, context: dict) -> Any:
 def _cli(name: str, text: Any, context: dict, tmp_path: Any, capsys: Any) -> Any:
     row = ROW[name]
     flag = ["-D"] if name == "defines" else [row.flag]
-    argv = ["render", "--scene", "cornell", "--out", str(tmp_path / "o")]
+    argv = ["render", "--scene", _scene(name), "--out", str(tmp_path / "o")]
     for k, v in context.items():
         argv += [ROW[k].flag, str(v)]
     argv += flag + (text if isinstance(text, list) else [text])
@@ -170,7 +197,7 @@ def test_the_doors_documentation_comes_from_the_rows(capsys) -> None:
     """`--help`, renderer.render's docstring and the plugin's properties are the rows'."""
     import inspect
 
-    from renderer.plugin import PROPERTIES
+    from renderer.plugin_schema import PROPERTIES
 
     doc = " ".join((renderer.render.__doc__ or "").split())
     params = inspect.signature(renderer.render).parameters
@@ -178,8 +205,9 @@ def test_the_doors_documentation_comes_from_the_rows(capsys) -> None:
         cli.main(["render", "--help"])
     help_text = " ".join(capsys.readouterr().out.split())
     for row in ROWS:
-        assert row.name in params and params[row.name].default is None, row.name
-        assert " ".join(row.doc.split()) in doc, row.name
+        if API in row.doors:
+            assert row.name in params and params[row.name].default is None, row.name
+            assert " ".join(row.doc.split()) in doc, row.name
         if CLI in row.doors:
             assert " ".join(row.doc.split())[:40] in help_text, row.name
     assert set(PROPERTIES) == {r.name for r in ROWS if XML in r.doors} | {"progress"}

@@ -9,6 +9,7 @@ import pytest
 from learning.data.accumulator import UnitAccumulator
 from renderer.live.blocks import BlockRenderer, derive_seed
 from renderer.scenes.catalog import load_scene
+from renderer.spec import resolve
 from tests.support.windows import block_slices
 
 
@@ -26,10 +27,11 @@ def test_derive_seed_is_deterministic_and_distinct() -> None:
 
 
 def test_grid_must_divide_resolution() -> None:
-    scene = load_scene("sky", 30)
+    """Refused at the door, where the spec meets the frame; the renderer takes what it is given."""
     with pytest.raises(ValueError, match="30x30.*4x4"):
-        BlockRenderer(scene, grid=(4, 4))
-    r = BlockRenderer(scene, grid=(3, 5))
+        resolve({"grid": (4, 4)}, frame=(30, 30))
+    assert resolve({"grid": (3, 3)}, frame=(30, 30)).grid == (3, 3)
+    r = BlockRenderer(load_scene("sky", 30), grid=(3, 5))
     assert r.block_shape == (10, 6) and r.n_blocks == 15
 
 
@@ -227,10 +229,11 @@ def test_block_windows_cover_any_frame_with_full_size_edge_windows() -> None:
     assert [r.block_origin(4 * k)[1] for k in range(3)] == [0, 32, 38]
     assert r.window(11) == (68, 38, 32, 32)
     assert not BlockRenderer(_scene("sky", 64), block=32).overlapping
+    # what the blocks may be is the door's to refuse, where the spec meets the frame
     with pytest.raises(ValueError, match="larger than the 100x70 frame"):
-        BlockRenderer(_scene("sky", 70, width=100), block=71)
+        resolve({"block": 71}, frame=(100, 70))
     with pytest.raises(ValueError, match="either"):
-        BlockRenderer(_scene("sky", 64), grid=(2, 2), block=32)
+        resolve({"grid": (2, 2), "block": 32})
 
 
 def test_compose_takes_each_pixel_from_the_window_with_most_samples() -> None:

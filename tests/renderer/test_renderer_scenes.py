@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from renderer.scenes.catalog import DEFAULT_SCENE, SCENES, list_scenes, load_scene, scene_dict
-from renderer.spec import ROW
+from renderer.settings import ROW
 
 
 def _render(scene, spp: int = 4, seed: int = 0) -> np.ndarray:

@@ -159,16 +159,16 @@ def test_the_model_and_the_oracle_decide_whole_blocks_unless_told() -> None:
     given a smaller tile it gates flip's tile verdicts (`GatedCriterion`). The oracle's
     thresholds are per block: a smaller tile is refused in one line."""
     from renderer.criteria import GatedCriterion, ModelCriterion, make_criterion
-    from renderer.spec import fit_frame, resolve
+    from renderer.spec import resolve
 
     spec = resolve({"criterion": "model"})
     assert spec.tile >= spec.block and "whole blocks" in spec.sources["tile"]
     assert resolve({}).tile == 16 and resolve({"criterion": "variance"}).tile == 16
-    assert isinstance(make_criterion(fit_frame(spec, 256, 256)), ModelCriterion)
-    gated = make_criterion(fit_frame(resolve({"criterion": "model", "tile": 16}), 256, 256))
+    assert isinstance(make_criterion(resolve({"criterion": "model"}, frame=(256, 256))), ModelCriterion)
+    gated = make_criterion(resolve({"criterion": "model", "tile": 16}, frame=(256, 256)))
     assert isinstance(gated, GatedCriterion) and gated.tiles.unit == "tile16"
     with pytest.raises(ValueError, match="the oracle criterion decides whole blocks"):
-        fit_frame(resolve({"criterion": "oracle", "tile": 16}, thresholds_known=True), 256, 256)
+        resolve({"criterion": "oracle", "tile": 16}, thresholds_known=True, frame=(256, 256))
 
 
 class _Gate:

@@ -1,12 +1,14 @@
 """Test helper: the live render loop fed a stored stack's own passes instead of Mitsuba's."""
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import torch
 
 from learning.inputs.halves import recover_passes
 from noisefeat import split_blocks
-from renderer.live import adaptive
+from renderer.live import adaptive, plan
 from renderer.live.ledger import Ledger
 from renderer.live.wavefront import Traced
 
@@ -75,17 +77,25 @@ class StackRenderer:
         return self.stack.quick(kind)
 
 
+def stack_scene(stack):
+    """Stand-in for the loaded scene of `stack`: one sensor whose film is the stack's frame
+    (what the render spec is fitted to)."""
+    film = SimpleNamespace(crop_size=lambda: (stack.width, stack.height))
+    return SimpleNamespace(sensors=lambda: [SimpleNamespace(film=lambda: film)], integrator=lambda: None)
+
+
 def live(monkeypatch, tmp_path, stack, crit, min_spp, name="live", grow=False):
     """adaptive_render over `stack`'s passes; returns (report, the renderer used). One pass
     per launch unless `grow` (then passes traced past a block's stop are in `calls` too)."""
     made = []
 
-    def fake_renderer(scene, grid=None, block=None, tile=None):
+    def fake_renderer(scene, grid=None, block=None, tile=None, sensor=None, integrator=None):
         made.append(StackRenderer(stack, grid))
         return made[-1]
 
-    monkeypatch.setattr(adaptive, "BlockRenderer", fake_renderer)
-    monkeypatch.setattr("renderer.scenes.catalog.load_scene", lambda scene, resolution, defines=None: scene)
+    monkeypatch.setattr(plan, "BlockRenderer", fake_renderer)
+    monkeypatch.setattr("renderer.scenes.catalog.load_scene",
+                        lambda scene, resolution, defines=None: stack_scene(stack))
     report = adaptive.adaptive_render(stack.scene, tmp_path / name, crit, resolution=stack.width,
                                       grid=tuple(stack.grid), tile=max(stack.block), step=int(stack.spp[0]),
                                       min_spp=min_spp,

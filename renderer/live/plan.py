@@ -1,0 +1,199 @@
+"""A render's front hall: everything an adaptive render needs, made once (`prepare`), before
+its first pass.
+
+`prepare` checks the settings a door was given (`renderer.spec.checked`: a bad one fails
+before anything loads), loads the reference (`load_reference`) and the scene (a built-in
+name, an XML path or an already-loaded ``mi.Scene``), reads the scene's own ``noisestop``
+integrator's properties (`renderer.plugin_schema`: the loop never imports the plugin),
+resolves the render spec once, knowing the frame (`renderer.spec.resolve`), and builds the
+renderer and the criterion. What it gives back, a `RenderPlan`, is what
+`renderer.live.adaptive.run_adaptive` opens its session on.
+
+Why one place: the spec used to be resolved up to three times a render (five for a scene
+file), the frame fitted in two steps and the plugin's properties read by duck type; each
+copy was a place for the doors to drift apart.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from learning.data.dataset_dir import find_stack
+from learning.data.stack import Stack
+from noisefeat.safeio import check_regular
+
+from ..criteria import Criterion
+from ..plugin_schema import noisestop_of
+from ..spec import ARGUMENT, RenderSpec, checked, reference_settings, resolve
+from .blocks import BlockRenderer
+from .outputs import prepare_output_dir
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Reference:
+    """What a render is compared with: `given` as the caller gave it (None: nothing), a
+    labelled `stack` (oracle thresholds, early-stop metrics, final_vs_reference) or an
+    `image` (final_vs_reference only)."""
+
+    given: Any = None
+    stack: Stack | None = None
+    image: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class RenderPlan:
+    """A render ready for its first pass (`prepare`): its `label` in reports, `scene` as the
+    checkpoint records it (a built-in name, a file's path, a loaded scene's label), the
+    resolved `spec`, the `renderer` (the loaded scene is its `scene`; the caller closes it),
+    the `criterion`, the `reference` and the Mitsuba `variant`."""
+
+    label: str
+    scene: str
+    spec: RenderSpec
+    renderer: BlockRenderer
+    criterion: Criterion
+    reference: Reference
+    variant: str
+
+
+def prepare(scene: Any, given: Mapping[str, Any], *, reference: Any = None, source: str = ARGUMENT,
+            plugin: Mapping[str, Any] | None = None, sensor: Any = None, integrator: Any = None,
+            out: str | os.PathLike[str] | None = None) -> RenderPlan:
+    """The `RenderPlan` of a render (see the module docstring).
+
+    `scene`: a built-in name, an XML path or a loaded ``mi.Scene`` (then `resolution` and
+    `defines` are refused). `given`: the render spec's rows (`renderer.settings.ROWS`; None:
+    not given), given by `source` ("argument", "command line" or "scene plugin"). `plugin`:
+    the ``noisestop`` properties under them (None: the scene's own integrator's, if it is
+    one). `reference`: a labelled stack or dataset directory of this scene (its grid and
+    levels become the defaults), or a reference image (EXR path or float [H, W, 3] array).
+    `sensor` / `integrator`: render from this sensor with this integrator instead of the
+    scene's first sensor and own integrator (the plugin passes its nested one). `out`: a
+    folder checked writable before the scene loads. ValueError (one line) for anything wrong.
+    """
+    from learning.data.relabel import observed
+    from learning.data.variant import current_variant, select_variant
+
+    from ..criteria import make_criterion
+    from ..scenes.catalog import load_scene
+
+    loaded, label = _scene_arg(scene, given)
+    ref = load_reference(reference, label)
+    values = checked(given)            # each given setting once: a bad one fails before anything loads
+    if out is not None:
+        prepare_output_dir(out)        # writable: before the scene loads
+    variant = select_variant() or current_variant()
+    implied = reference_settings(ref.stack) if ref.stack is not None else {}
+    scene_obj = scene if loaded else load_scene(scene, values.get("resolution", implied.get("resolution")),
+                                                defines=values.get("defines"))
+    own = noisestop_of(scene_obj.integrator())
+    if own is not None:
+        own.check()                    # a bad property: its one line, here
+    spec = resolve(values, source=source, plugin=(own.settings if own else {}) if plugin is None else plugin,
+                   reference=ref.stack, frame=_frame(scene_obj, sensor, label))
+    if ref.stack is not None:
+        ref = replace(ref, stack=observed(ref.stack, spec.tau))
+    br = BlockRenderer(scene_obj, grid=spec.grid, block=spec.block, tile=spec.tile, sensor=sensor,
+                       integrator=integrator)
+    try:
+        crit = make_criterion(spec, None if ref.stack is None else ref.stack.thresholds)
+        logger.info("%s: %s", label, spec.describe())
+        _check_reference(ref, br)
+    except BaseException:
+        br.close()
+        raise
+    return RenderPlan(label, label if loaded else os.fspath(scene), spec, br, crit, ref, variant)
+
+
+def _scene_arg(scene: Any, given: Mapping[str, Any]) -> tuple[bool, str]:
+    """(whether `scene` is a loaded mi.Scene, its label); one-line ValueError for what
+    cannot be asked of a loaded scene or for a scene of another type."""
+    if isinstance(scene, (str, os.PathLike)):
+        from ..scenes.catalog import scene_label
+        return False, scene_label(scene)
+    from noisefeat.extras import require
+
+    if not isinstance(scene, require("mitsuba").Scene):
+        raise ValueError(f"scene must be an mi.Scene, an XML file path or a built-in scene name, "
+                         f"got {type(scene).__name__}")
+    if given.get("resolution") is not None:
+        raise ValueError("resolution cannot be changed on an already-loaded mi.Scene: set the film's "
+                         "width and height in the scene, or pass the XML file's path")
+    if given.get("defines"):
+        raise ValueError("defines (-D) set parameters while an XML file loads: pass the file's path, "
+                         "not an already-loaded mi.Scene")
+    return True, _scene_object_label(scene)
+
+
+def _scene_object_label(scene: Any) -> str:
+    """A loaded scene's name in reports: its id when the file or dict gave one, else 'scene'."""
+    try:
+        sid = str(scene.id())
+    except Exception:  # an id is cosmetic: never fail a render over it
+        sid = ""
+    return sid if sid and not sid.startswith("_unnamed") else "scene"
+
+
+def _frame(scene: Any, sensor: Any, label: str) -> tuple[int, int]:
+    """(width, height) of the frame rendered: the film's crop of `sensor`, else of the
+    scene's first sensor (one-line ValueError for a scene with none)."""
+    if sensor is None:
+        sensors = scene.sensors()
+        if not sensors:
+            raise ValueError(f"{label}: the scene has no sensor (camera) to render from; add one")
+        sensor = sensors[0]
+    crop = sensor.film().crop_size()
+    return int(crop[0]), int(crop[1])
+
+
+def load_reference(reference: Stack | str | os.PathLike[str] | np.ndarray | None, label: str) -> Reference:
+    """A reference as given: nothing (None), a stack or dataset directory (not yet labelled:
+    the observer's tau is the spec's), or a reference image, an EXR file or a float
+    [H, W, 3] array. An image gives the final-vs-reference check only: it has no per-level
+    errors, so no oracle thresholds."""
+    if reference is None:
+        return Reference()
+    img = None
+    if isinstance(reference, np.ndarray):
+        img = np.asarray(reference, np.float32)
+        if img.ndim != 3 or img.shape[2] != 3:
+            raise ValueError(f"a reference image must be float [H, W, 3] linear RGB, got shape {img.shape}")
+    elif isinstance(reference, (str, os.PathLike)) and (
+            os.fspath(reference).lower().endswith(".exr")
+            or (os.path.exists(reference) and not os.path.isdir(reference))):
+        from learning.data.exr import read_exr
+
+        if not os.path.lexists(reference):
+            raise FileNotFoundError(f"{os.fspath(reference)}: reference image not found")
+        check_regular(reference, "reference image")     # a device, a FIFO, a folder: one line saying which
+        img = read_exr(reference)
+    if img is None:
+        return Reference(reference, stack=find_stack(reference, label))
+    finite = np.isfinite(img)
+    if not finite.all():       # every figure would be NaN
+        raise ValueError(f"the reference image has {int(finite.size - np.count_nonzero(finite))} non-finite "
+                         f"value(s) (NaN/Inf) of {img.size}: a reference must be finite")
+    return Reference(reference, image=img)
+
+
+def _check_reference(ref: Reference, br: BlockRenderer) -> None:
+    """One-line ValueError for a reference of other blocks or another size than the render's
+    (a stack of another size is only warned about: its thresholds are compared anyway)."""
+    st = ref.stack
+    if st is not None:
+        if tuple(st.grid) != tuple(br.grid):
+            raise ValueError(f"{st.path}: reference grid {list(st.grid)} differs from "
+                             f"the render's {list(br.grid)}: its thresholds are for other blocks")
+        if (st.width, st.height) != (br.width, br.height):
+            logger.warning("reference %s is %dx%d, the render %dx%d: thresholds compared anyway",
+                           st.path, st.width, st.height, br.width, br.height)
+    if ref.image is not None and ref.image.shape[:2] != (br.height, br.width):
+        raise ValueError(f"the reference image is {ref.image.shape[1]}x{ref.image.shape[0]}, the render "
+                         f"{br.width}x{br.height}: give a reference of the render's size")

@@ -1,5 +1,5 @@
 # Two commands on a fresh machine: `make run` and `make test`. Each creates or reuses the
-# virtual environment .venv and installs what it needs.
+# virtual environment .venv and installs what it needs. `make docs` builds the docs site.
 SHELL := /bin/bash
 PYTHON ?= python3
 VENV ?= .venv
@@ -15,7 +15,7 @@ HELDOUT ?= data/heldout
 CORPUS ?= data/corpus64
 OUT ?= out
 
-.PHONY: setup run test test-fast test-portability bench realscenes realscene-refs dataset library heldout corpus estimate fixture model clean
+.PHONY: setup run test test-fast docs test-portability bench realscenes realscene-refs dataset library heldout corpus estimate fixture model clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -29,7 +29,7 @@ setup: $(STAMP)
 # The main job, showing what the product is for (renderer/showcase.py): the held-out
 # studio_preview rendered adaptively with the default criterion, then uniformly for the same
 # wall time; out/equal_time.png puts them side by side with the shipped reference, and one
-# line sums up blocks above tau, the worst block, the samples and time. README "make run".
+# line sums up blocks above tau, the worst block, the samples and time (docs/guide/rendering.md).
 RUN_SCENE ?= studio_preview
 run: setup
 	$(PY) -m renderer.showcase --scene $(RUN_SCENE) --out $(OUT)
@@ -37,7 +37,7 @@ run: setup
 test: setup
 	$(PY) -m pytest -q
 
-# The CPU-portability check (issue 39): how far pixels and decisions move when Dr.Jit's LLVM
+# The CPU-portability check (docs/guide/install.md): how far pixels and decisions move when Dr.Jit's LLVM
 # backend compiles for another CPU (AVX2 Haswell code, 8 lanes, on whatever this machine
 # is), then the whole suite with every in-process kernel compiled so, in a fresh kernel cache.
 PORTABLE_TARGET ?= haswell,8
@@ -47,6 +47,18 @@ test-portability: setup
 
 test-fast: setup
 	$(PY) -m pytest -q -m "not slow"
+
+# The docs site (mkdocs.yml) into site/: the [docs] extra's tools into .venv (its list read
+# from pyproject.toml, so that the project's own install is left as it is), the reference
+# pages regenerated from the code (docs/gen_reference.py: the render spec's rows and the
+# command line), then a strict build (a broken link or a docstring mkdocstrings cannot read
+# fails it). Open site/index.html.
+docs: $(STAMP)
+	$(PY) -c "import subprocess, sys, tomllib; \
+		reqs = tomllib.load(open('pyproject.toml', 'rb'))['project']['optional-dependencies']['docs']; \
+		sys.exit(subprocess.call([sys.executable, '-m', 'pip', 'install', '-q', '--disable-pip-version-check', *reqs]))"
+	PYTHONPATH=. $(PY) docs/gen_reference.py
+	PYTHONPATH=. $(VENV)/bin/mkdocs build --strict
 
 # Every figure and plot of BENCHMARKS.md, from scratch: builds (or finds complete) the
 # default dataset first, then runs every section; the timing sections first, alone on the
@@ -69,18 +81,18 @@ realscene-refs: setup
 realscenes: realscene-refs
 	$(NOISESTOP) bench realscenes --update BENCHMARKS.md
 
-# The training dataset (README "Datasets"): PROCEDURAL seeded procedural scenes
+# The training dataset (docs/guide/training.md): PROCEDURAL seeded procedural scenes
 # (renderer/scenes/procedural.py) plus the 14 built-in training scenes, each a 64x64 frame of one
 # 64x64 block, a level every 32 spp up to 4096 spp and an 8192-spp reference, so that most
 # blocks converge inside their stacks under the tile observer. Resumes if interrupted; on a
-# complete dataset it relabels stacks of an older observer (no rendering). Time: README.
+# complete dataset it relabels stacks of an older observer (no rendering). Time: BENCHMARKS.md.
 PROCEDURAL ?= 72
 TRAIN_ARGS ?= --resolution 64 --block 64 --step 32 --levels 128 --reference-spp 8192
 dataset: setup
 	$(NOISESTOP) dataset build --out $(DATA) --scenes procedural:$(PROCEDURAL),training $(TRAIN_ARGS)
 	$(NOISESTOP) dataset check $(DATA)
 
-# The learned stop's training corpus (issue 59; README "Datasets"): CORPUS_SCENES seeded
+# The learned stop's training corpus (docs/guide/training.md): CORPUS_SCENES seeded
 # procedural scenes plus the 14 training scenes, each a 64x64 frame of one 64x64 block (16
 # tiles), a level every 32 spp to 2048 and a 4096-spp reference; the tile truth written beside
 # the block truth. Nothing held out goes in. About 10 s a scene here: run it in the background
@@ -119,8 +131,8 @@ model: setup
 		$(if $(wildcard $(HELDOUT)/*/meta.json),--heldout $(HELDOUT),--test-scenes '')
 	$(NOISESTOP) calibrate --criterion flip --data $(DATA) --update-package
 
-# The learned stop's bundle (issue 59, learning/bundled_estimate): the per-tile error estimate
-# trained on the corpus and its c(tau) chosen out of fold there (README "A learned stop").
+# The learned stop's bundle (learning/bundled_estimate): the per-tile error estimate
+# trained on the corpus and its c(tau) chosen out of fold there (docs/guide/training.md).
 ESTIMATE_ARGS ?= --kind gbm
 estimate: setup
 	$(NOISESTOP) calibrate --criterion estimate --data $(CORPUS) $(ESTIMATE_ARGS) --update-package
@@ -134,4 +146,4 @@ fixture: setup
 	$(NOISESTOP) dataset check tests/fixtures/dataset
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis
+	rm -rf $(VENV) build site *.egg-info .pytest_cache .hypothesis

@@ -1,5 +1,5 @@
-"""`bench criteria`: every stopping criterion simulated on the held-out stacks (BENCHMARKS.md
-"Stopping criteria"), with its decision cost, each knob calibrated on the training scenes.
+"""`bench criteria`: every stopping criterion simulated on the held-out stacks (docs/benchmarks/accuracy.md,
+"Criteria at block grain"), with its decision cost, each knob calibrated on the training scenes.
 """
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """`bench step`: the render step (spp per pass) against samples, early stops and wall time
-(BENCHMARKS.md "Render step size"), on the held-out stacks and in real renders.
+(docs/benchmarks/accuracy.md "The render step"), on the held-out stacks and in real renders.
 """
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """`bench tradeoff`: samples against early stops on the held-out scenes, one curve per
-criterion (BENCHMARKS.md "Speed / accuracy trade-off", docs/pareto.png), the defaults per
+criterion (docs/benchmarks/accuracy.md, docs/pareto.png), the defaults per
 scene, where their early stops fell short and where their samples went.
 """
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """One `noisestop` command in a fresh process, as a user runs it: exit status, seconds,
 stderr lines, its last line and the process's peak RSS.
 
-Why a fresh process: the hostile-file cases (BENCHMARKS.md "Hardening") are judged on
+Why a fresh process: the hostile-file cases (docs/benchmarks/reliability.md) are judged on
 what a user sees (one line, exit 2) and on the memory the command took, which only a
 process of its own shows.
 """

@@ -1,7 +1,7 @@
 """The crop engine's cost: wall time of rendering some blocks alone against the full frame.
 
 Why here, not in renderer.live.blocks: it is a measurement of the renderer, not part of it
-(BENCHMARKS.md "Crop rendering", `bench crop`; `bench cost`'s selection part times every
+(docs/benchmarks/speed.md, `bench crop`; `bench cost`'s selection part times every
 block alone with `time_crop_renders`).
 """
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""`noisestop bench hardening`: the hardening figures of BENCHMARKS.md ("Hardening, second
-round" and the rounds after it), also part of `bench reliability`.
+"""`noisestop bench hardening`: the hardening figures of BENCHMARKS.md ("Reliability"; the
+tables in docs/benchmarks/reliability.md), also part of `bench reliability`.
 
 Peak RSS of the worst JSON and binary shapes with and without the address-space cap,
 normal latency beside slow uploaders, every way of starting `serve` without a token,

@@ -1,5 +1,5 @@
 """Hardening, fifth round (issue 51): files a scene XML names, non-finite scenes, and JSON
-bodies at the parse pool's threshold (BENCHMARKS.md "Hardening, fifth round").
+bodies at the parse pool's threshold (docs/benchmarks/reliability.md).
 """
 from __future__ import annotations
 

@@ -15,7 +15,7 @@ MODEL_KINDS = SVM_KINDS + TRANSFER_KINDS
 #: inputs a transfer baseline reads: the displayed noise picture of the half buffers
 #: (`halves`) or the block itself (`none`, the paper's); it takes no quick image
 TRANSFER_INPUTS = ("halves", "none")
-#: the input `train` uses unless told (README "Model inputs")
+#: the input `train` uses unless told (docs/guide/training.md "Model inputs")
 DEFAULT_INPUT = "halves"
 #: offsets a user, a request or a bundle may set are finite and at most this far from 0 (an
 #: SVM's scores are a few units; an offset beyond any score only means "never" or "always",

@@ -8,8 +8,8 @@ distance (67 pixels per degree), the HyAB distance |dL| + |(da, db)|, raised to 
 compressed into [0, 1]; the error is averaged over the block. This module computes that
 with separable Gaussian filters on the Lab difference (FLIP filters in its opponent
 space first, and adds an edge/point pipeline; both are left out), batched over blocks.
-On the training dataset its log correlates 0.995 with log FLIP(A, B) (README "Model
-inputs"), while the FeatureBase's std features, whose pooling is quadratic and blind to
+On the training dataset its log correlates 0.995 with log FLIP(A, B) (docs/guide/training.md,
+"Model inputs"), while the FeatureBase's std features, whose pooling is quadratic and blind to
 chroma, explain about three quarters of its variance.
 
 `pooled_colour_error(a, b)` is the `p` part of the `halves` model input

@@ -14,7 +14,7 @@ from typing import Any
 def torch_threads(n: int) -> Iterator[None]:
     """Torch on `n` threads inside the block, as before afterwards.
 
-    Why one thread for decisions (measured, BENCHMARKS.md "Block passes and scaling"):
+    Why one thread for decisions (measured, docs/benchmarks/speed.md "Passes"):
     right after a Dr.Jit kernel its worker threads still spin on both cores, and torch's
     OpenMP team stalled against them, 50x slower than one thread (features of 16 blocks
     of 64x64 took 47 ms per pass against 2 ms); a decision's few blocks gain nothing from

@@ -20,9 +20,9 @@ three spheres (rough plastic, rough aluminium, matte) on a floor under a studio 
 Its tiles stop anywhere from 64 spp (the backdrop) to 4096 (the metal sphere's
 highlights), so where the samples go matters, and to max 4096 spp a hard tile can get
 what it needs. The per-tile criterion had no early tile on it in the held-out evaluation
-(BENCHMARKS "Decisions per tile"). ``spot_stage`` (a dark
+(docs/benchmarks/accuracy.md). ``spot_stage`` (a dark
 stage under one spot) shows the other side: its dark tiles stop early and leave more
-blocks above tau than uniform at equal time (README "make run"). Both scenes' 8192-spp
+blocks above tau than uniform at equal time (BENCHMARKS.md, "Speed"). Both scenes' 8192-spp
 references ship with the package in half floats (`renderer/references/`: studio_preview's
 made by `make_reference`, ``python -m renderer.showcase --scene NAME --make-reference``;
 spot_stage's is its held-out stack's); a scene

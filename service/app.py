@@ -54,8 +54,7 @@ def create_app(registry: ModelRegistry, *, token: str | None = None, limits: Lim
     ignored); `parse_seconds`: the time a large JSON header may take to parse (service.parsepool).
 
     Requests are classified one by one, 2 at a time (`inference_threads`): a micro-batching
-    window across concurrent requests was measured slower (BENCHMARKS.md "Verdict
-    service") and is not kept."""
+    window across concurrent requests was measured slower (docs/benchmarks/service.md) and is not kept."""
     limits = limits or Limits()
     metrics = metrics or ServiceMetrics()
 

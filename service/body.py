@@ -2,7 +2,7 @@
 
 Why not Starlette's `request.body()`: it joins a list of chunks, twice the body at its peak;
 and a body placed at `TENSOR_ALIGNMENT` lets oip.decode_tensors use the tensors in place,
-as numpy views of the body, with no copy (BENCHMARKS.md "Verdict service").
+as numpy views of the body, with no copy (docs/benchmarks/service.md).
 """
 from __future__ import annotations
 

@@ -9,14 +9,14 @@ JSON is counted by its brackets, commas and colons, the costs measured for the w
 from __future__ import annotations
 
 #: working memory a request of binary tensors takes per byte of its body, at its peak, the
-#: body included (measured ~10x, BENCHMARKS.md "Reliability under attack"), plus a fixed part
+#: body included (measured ~10x, BENCHMARKS.md "Reliability"), plus a fixed part
 MEMORY_PER_BODY_BYTE = 16
 MEMORY_PER_REQUEST = 1 << 20
 #: what parsing and decoding JSON costs, in bytes, per opening bracket or brace (a list or
 #: dict object, its slot in its parent, numpy's walk of it), per comma or colon (a number
 #: object and its slot, or a dict entry) and per byte of text (strings). Measured peak
-#: working memory over the body, full decode (BENCHMARKS.md "Hardening, second
-#: round"): 20 nested lists around each number 52x (this estimate: 60x), [1] 31x (48x),
+#: working memory over the body, full decode (docs/benchmarks/reliability.md,
+#: "Memory"): 20 nested lists around each number 52x (this estimate: 60x), [1] 31x (48x),
 #: {} 28x (64x), {"a":1} 26x (32x), flat 3-digit integers 13x (16x), floats of 9 digits
 #: 4.3x (5.3x), whitespace and long number strings ~0x (1x).
 JSON_COST_PER_CONTAINER = 128

@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 
 #: JSON headers larger than this go to a worker process: the costliest JSON this size
 #: (nested lists, or valid tensor data) decodes in about 2 ms holding the GIL (measured,
-#: BENCHMARKS "Hardening, fourth round"); a binary request's header is far smaller
+#: docs/benchmarks/reliability.md "JSON bodies"); a binary request's header is far smaller
 INLINE_BYTES = 16 * 1024
 #: ... and opening at most this many lists and objects (the module docstring: well under the
 #: garbage collector's 700, so that a parse on the server's thread never sets off a collection)

@@ -2,7 +2,7 @@
 
 Each function drives one kind of abuse the attack found or the hardening must survive, and
 returns what happened as plain numbers, so that tests assert on them and `noisestop bench
-reliability` reports them (BENCHMARKS.md "Reliability under attack"). One module per kind:
+reliability` reports them (BENCHMARKS.md "Reliability"). One module per kind:
 
 * `wire`: the client side (`post`, `timed_get`, `wait_closed`), loopback http:// only;
 * `connections`: `idle_flood` (N connections that send nothing or half a request line,

@@ -105,7 +105,7 @@ def halves_flip(even: np.ndarray, odd: np.ndarray, exposure: float = 0.0,
     values follow the display rule (NaN/-Inf black, +Inf white), so e is always finite.
     Computed for all blocks at once by `noisefeat.flip` (FLIP's LDR pipeline in torch, each
     block alone), which agrees with `flip-evaluator` (`halves_flip_evaluator`) to float32
-    rounding at a small fraction of its cost (BENCHMARKS.md "FLIP between the halves").
+    rounding at a small fraction of its cost (docs/benchmarks/speed.md "FLIP between the halves").
     """
     even, odd, exposure = _check_halves(even, odd, exposure)
     return flip_halves(even, odd, exposure, ppd, pooling)

@@ -24,7 +24,7 @@ estimates of one image, so their difference holds noise and no content. From the
 Logs, because noise falls as 1/sqrt(spp) and a radial-basis SVM compares distances: in
 log scale equal ratios of noise are equal steps whatever the exposure. `COMPOSITIONS`
 names the combinations `noisestop bench inputs` measures on held-out scenes; `HALVES` is
-the one the `halves` input uses (README "Model inputs" gives the measurements behind it).
+the one the `halves` input uses (docs/guide/training.md gives the measurements behind it).
 
 Every route (the tables of stored stacks, the render loop, the server given `even` and
 `odd`) builds the input here from the two half buffers, so all judge the same numbers.

@@ -9,7 +9,7 @@ scenes' final frames (`learning.evaluation.tile_error_calibration`), so the marg
 keeps early stops rare is the estimate's own out-of-fold error, not a guess.
 
 Two kinds: "gbm" (gradient-boosted trees, `HistGradientBoostingRegressor`) and "linear"
-(ridge on standardised inputs), compared in BENCHMARKS "A learned stop".
+(ridge on standardised inputs), compared in docs/benchmarks/learning.md.
 """
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
 """How many passes one launch traces: the rule that keeps the device busy and its launches few.
 
 A launch costs about 10 ms here whatever its size (building and hashing the path tracer's
-kernel, starting Dr.Jit's thread pool), 3-4 % of a 16-spp pass at 256x256 (BENCHMARKS,
-"The loop's launches"), so the live loop (`renderer.live.session.RenderSession.plan`) puts
+kernel, starting Dr.Jit's thread pool), 3-4 % of a 16-spp pass at 256x256 (BENCHMARKS.md,
+"Speed"), so the live loop (`renderer.live.session.RenderSession.plan`) puts
 several passes in one launch where that changes nothing but the launches: each pass keeps
 its own pass index (its random numbers) and is judged in turn, a round each
 (`renderer.live.passloop`), so the stops, history and image are those of one pass per launch.

@@ -7,7 +7,7 @@ an open scene; two to six objects in diffuse, textured, glossy, metal, mirror an
 materials; lights from tiny to large panels and spheres (some seen directly), an
 environment (constant, procedural sky map or sun and sky); albedos from dark to bright and
 an exposure from dim to bright. The draws are weighted so that most blocks converge within
-2048 spp (glass only under broad light, where its caustics resolve; see README "Datasets").
+2048 spp (glass only under broad light, where its caustics resolve; see docs/guide/training.md).
 
 Content scale: a block of a real frame (64 px of a 256 or 1280 px frame) shows a part of
 the view, not a thumbnail of all of it. So a procedural scene at resolution R is an R x R

@@ -26,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", required=True, help="dataset directory")
     p.add_argument("--model", default="dsvm_as", choices=MODEL_KINDS,
                    help="model kind (default dsvm_as); vgg19 ... densenet201: a transfer baseline "
-                        "(frozen conv base + the paper's head, README \"Transfer baselines\")")
+                        "(frozen conv base + the paper's head, docs/guide/training.md)")
     p.add_argument("--weights", default=None, metavar="FILE",
                    help="transfer baselines: a local ImageNet state_dict for the base (never downloaded; "
                         "default: the torch hub cache, else an untrained base, labelled so)")
@@ -48,15 +48,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-calibrate", action="store_true", help="keep the decision offset at 0")
     p.add_argument("--input", "--quick", dest="quick", choices=QUICK_MODES, default=DEFAULT_INPUT,
                    help="feature models' input: halves (noise features of the half buffers next to "
-                        "features of the block, README \"Model inputs\"), or the paper's quick image "
+                        "features of the block, docs/guide/training.md), or the paper's quick image "
                         "subtracted from the features: the albedo AOV, direct lighting, or none (a "
                         f"flat image: features of the current block alone); default {DEFAULT_INPUT}. "
                         "Transfer baselines: halves (the displayed noise picture of the half buffers) "
                         "or none (the block itself, the paper's)")
     p.add_argument("--composition", default=None,
                    help="input halves: which parts of the half-buffer input a feature model reads, "
-                        "joined by '+' (n noise, c current, r ratios, l luminance, f FLIP; README "
-                        "\"Model inputs\"; default: the measured best, learning.inputs.noise_input.HALVES)")
+                        "joined by '+' (n noise, c current, r ratios, l luminance, f FLIP; "
+                        "docs/guide/training.md; default: the measured best, learning.inputs.noise_input.HALVES)")
     p.add_argument("--seed", type=arg.seed, default=0)
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler=cmd_train)
@@ -66,7 +66,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", required=True, help="labelled dataset of training scenes (never held-out ones)")
     p.add_argument("--criterion", choices=("flip", "estimate"), default="flip",
                    help="flip: c(tau) for the halves' score; estimate: the learned per-tile error estimate "
-                        "and its c(tau), written as a bundle directory (README \"A learned stop\")")
+                        "and its c(tau), written as a bundle directory (docs/guide/training.md)")
     p.add_argument("--kind", choices=("gbm", "linear"), default="gbm",
                    help="estimate only: boosted trees or a ridge line (default gbm)")
     p.add_argument("--quantile", type=arg.float_in(0.0, 1.0), default=None,

@@ -362,7 +362,7 @@ def test_serve_never_runs_without_a_token_by_accident(capsys, monkeypatch, good_
 
 @pytest.mark.slow
 def test_a_second_ctrl_c_stops_a_render_pass_at_once(tmp_path):
-    """DESIGN/README: the first Ctrl-C finishes the pass, a second one stops at once. The
+    """DESIGN, docs/guide/rendering.md: the first Ctrl-C finishes the pass, a second one stops at once. The
     second used to wait for the pass (a minute here) because the pass runs in native code."""
     import os
     import signal

@@ -12,7 +12,7 @@ largest 16x16 tile mean) it does not. The `flip` criterion at the shipped c(tau)
 sampling until the dots are gone because it pools its half-buffer FLIP by 8x8 tiles
 (`noisefeat.pooling.CRITERION_POOLING`); pooled by 16x16 tiles, as the observer, it
 stopped these blocks at 96, 736 and 288 spp against thresholds of 640, 1312 and 1312
-(README "Deciding a stop": a dot saturates FLIP in both the halves' difference and the
+(docs/how-it-works.md, "The criteria": a dot saturates FLIP in both the halves' difference and the
 observer's, so the halves' usual 1.5x margin over the observer, which c is calibrated
 on, is missing for fireflies; finer tiles weigh a dot 4x more).
 """

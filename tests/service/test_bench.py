@@ -30,6 +30,31 @@ def test_update_markdown_replaces_only_its_section(tmp_path):
     assert "<!-- bench:c -->\nfresh\n<!-- /bench:c -->" in doc.read_text()
 
 
+def test_a_section_on_a_detail_page_is_written_there(tmp_path):
+    """The report keeps its headline; a section whose markers are on a detail page
+    (docs/benchmarks/*.md beside the report) is rewritten there, its links rebased from the
+    report's folder to the page's, the report untouched; one
+    whose markers are nowhere is appended to the report. Control: the report's own section
+    is still written in the report."""
+    report = tmp_path / "B.md"
+    report.write_text("# B\n<!-- bench:head -->\nold head\n<!-- /bench:head -->\nSee the details.\n")
+    details = tmp_path / "docs" / "benchmarks"
+    details.mkdir(parents=True)
+    (details / "speed.md").write_text("# Speed\n<!-- bench:cost -->\nold cost\n<!-- /bench:cost -->\nend\n")
+    (details / "other.md").write_text("# Other\nno markers\n")
+    before = report.read_text()
+    update_markdown(report, {"cost": "new cost"})
+    assert report.read_text() == before
+    assert (details / "speed.md").read_text() == "# Speed\n<!-- bench:cost -->\nnew cost\n<!-- /bench:cost -->\nend\n"
+    assert (details / "other.md").read_text() == "# Other\nno markers\n"
+    update_markdown(report, {"cost": "![chart](docs/cost.png), [report](B.md#head), [x](https://x.org/a.md)"})
+    assert "![chart](../cost.png), [report](../../B.md#head), [x](https://x.org/a.md)" in (details / "speed.md").read_text()
+    update_markdown(report, {"head": "new head", "fresh": "appended"})
+    text = report.read_text()
+    assert "new head" in text and "old head" not in text and text.endswith("<!-- /bench:fresh -->\n")
+    assert "fresh" not in (details / "speed.md").read_text()
+
+
 @pytest.fixture(scope="module")
 def split(tmp_path_factory) -> tuple[str, str]:
     """The fixture as the protocol's two datasets: 'cornell' held out, the rest to train on."""

@@ -21,7 +21,7 @@ def demo(tmp_path_factory):
 def test_token_from_env_or_file(tmp_path):
     assert resolve_token(environ={}) is None
     assert resolve_token(environ={"NOISESTOP_TOKEN": "abc"}) == "abc"
-    with pytest.raises(ValueError, match="visible ASCII"):         # README: spaces are refused, not dropped
+    with pytest.raises(ValueError, match="visible ASCII"):         # docs/guide/serving.md: spaces are refused
         resolve_token(environ={"NOISESTOP_TOKEN": " abc \n"})
     f = tmp_path / "secret"
     f.write_text("from-file\n")

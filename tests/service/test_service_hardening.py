@@ -117,7 +117,7 @@ def test_colons_in_strings_are_not_taken_for_duplicates(client):
 # --- /openapi.json, out of memory ------------------------------------------------------------------
 
 def test_openapi_is_open_and_names_no_model(client):
-    """Decision (README): the API's description is public, as the protocol is; it holds
+    """Decision (docs/guide/serving.md): the API's description is public, as the protocol is; it holds
     no model name, token or setting of this server."""
     r = client.get("/openapi.json")
     assert r.status_code == 200

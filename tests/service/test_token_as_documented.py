@@ -1,4 +1,4 @@
-"""Tokens as the README documents them: a token with surrounding spaces is refused (serve
+"""Tokens as docs/guide/serving.md documents them: a token with surrounding spaces is refused (serve
 used to strip `NOISESTOP_TOKEN=" abc"` and accept a 3-character token); an error about a
 token file names where the file came from (`--token-file`, or the variable only when the
 variable named it); and the HTTP layer's 400 never echoes a header line (a NUL in the

@@ -228,7 +228,7 @@ def md_realscenes(r: dict[str, Any]) -> str:
               f"- Speed-up at equal quality of at least 2x (both seeds) on {len(fast)} of the {len(converging)} scenes "
               "where tiles stop" + (f": {', '.join(fast)}" if fast else "") + ".",
               f"- Time limit: better than `mi.render` at T on {len(lim_w)} of {n}.",
-              "- Where the default render traces most samples: " + (", ".join(
+              f"- Where {ours} traces most samples: " + (", ".join(
                   f"{s['scene']} {s['same_samples']['ratio']:.3f}x `mi.render`'s wall for the same samples"
                   for s in same) if same else "no scene") + " (goal 1.02x)."]
     return "\n".join(lines)

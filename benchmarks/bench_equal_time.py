@@ -81,7 +81,7 @@ def judged(image: np.ndarray, reference: np.ndarray, tau: float, stopped: list[b
 def reference_for(scene_name: str, scene: Any, size: int, ref_spp: int, ref_dir: Path) -> tuple[np.ndarray, str]:
     """The shipped reference when it matches the film, else `mi.render` at `ref_spp`
     (`bench_native.rendered_reference`), kept in `ref_dir`."""
-    from renderer.showcase import shipped_reference
+    from examples.showcase import shipped_reference
 
     ref = shipped_reference(scene_name)
     if ref is not None and ref.shape[:2] == (size, size):
@@ -128,7 +128,7 @@ def measure_make_run(tau: float, **overrides: Any) -> dict[str, Any]:
     our uniform loop given its time and twice it."""
     from renderer.live.adaptive import run_adaptive
     from renderer.scenes.catalog import load_scene
-    from renderer.showcase import SCENE, SETTINGS, shipped_reference
+    from examples.showcase import SCENE, SETTINGS, shipped_reference
     from renderer.settings import DEFAULT_CRITERION
 
     settings = {**SETTINGS, **overrides}

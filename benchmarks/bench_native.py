@@ -136,7 +136,7 @@ def ours(scene: Any, criterion: str, max_spp: int, tau: float, grow: bool = True
 def reference_image(case: Case, scene: Any) -> tuple[np.ndarray, str]:
     """The case's reference: the shipped one (ref_spp 0) or mi.render at ref_spp (seed apart)."""
     if case.ref_spp == 0:
-        from renderer.showcase import shipped_reference
+        from examples.showcase import shipped_reference
 
         ref = shipped_reference(case.scene)
         if ref is None:

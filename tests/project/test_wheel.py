@@ -71,7 +71,7 @@ def test_the_checker_sees_benchmarks_in_a_listing() -> None:
     moved into a package is caught; the real packages' files are not."""
     listing = ["service/app.py", "service/commands/bench.py", "learning/models/bundle.py", "service/lab/attack.py",
                "benchmarks/bench.py", "tests/support/demo.py", "service/loadtest.py", "renderer/bench_passes.py",
-               "service/attack/wire.py", "learning/hardening_round5.py"]
+               "service/attack/wire.py", "learning/hardening_files.py"]
     assert shipped_benchmarks(listing) == listing[3:]
 
 

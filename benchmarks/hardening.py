@@ -39,7 +39,7 @@ def mib(n: int) -> str:
 
 
 #: the variables and flags `serve` is started with, to find any path that serves without a
-#: token that nobody asked for (the issue: `NOISESTOP_TOKEN=` did)
+#: token that nobody asked for (`NOISESTOP_TOKEN=`, empty, once did)
 AUTH_CASES: tuple[tuple[str, dict[str, str], tuple[str, ...]], ...] = (
     ("NOISESTOP_TOKEN= (empty)", {"NOISESTOP_TOKEN": ""}, ()),
     ("NOISESTOP_TOKEN of spaces", {"NOISESTOP_TOKEN": "   "}, ()),
@@ -101,10 +101,10 @@ def _hardening_shapes() -> dict[str, Any]:
 
     wide = int((DEFAULT_MAX_BODY - 4096) // (2 * 12)) // 2048
     return {
-        "JSON: 62 MiB, 20 lists around every value (the issue's)": attack.nested_json_request_62,
+        "JSON: 62 MiB, 20 lists around every value": attack.nested_json_request_62,
         "JSON: 20 lists around every value, estimate 90% of the budget (parsed; 400: not 26 features)":
             lambda: nested_values(0.9),
-        "JSON image [2, 1024, W, 3] x 2, one-digit numbers nested per pixel, 64 MiB (issue 14's worst)":
+        "JSON image [2, 1024, W, 3] x 2, one-digit numbers nested per pixel, 64 MiB":
             lambda: image(b"0", 64 << 20, nested=True),
         "JSON image, 3-digit integers, flat, 48 MiB": lambda: image(b"257", 48 << 20, nested=False),
         "JSON image, 9-digit floats nested per pixel, 60 MiB": lambda: image(b"0.1234567", 60 << 20, nested=True),

@@ -93,7 +93,7 @@ def test_the_report_counts_dots_in_stopped_blocks_only():
 
 
 def test_the_summary_leads_with_blocks_above_tau_and_the_worst_block():
-    """Issue 43: what a user judges first (blocks above tau, the worst block, each side), then
+    """What a user judges first (blocks above tau, the worst block, each side), then
     samples and time, then the mean error."""
     from examples.showcase import summary_line
 

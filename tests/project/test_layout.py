@@ -18,7 +18,7 @@ EXAMPLES = "examples"
 BENCHMARKS = "benchmarks"
 #: learning's rooms, each importing only from those before it (learning/__init__.py)
 LEARNING = {"names": 0, "stoprule": 0, "data": 1, "inputs": 2, "models": 3, "evaluation": 4, "training": 5}
-#: renderer's rooms (issue 52): a folder per job, each importing only the jobs named here and
+#: renderer's rooms: a folder per job, each importing only the jobs named here and
 #: the shared modules at the top; the shared modules import no job but the criteria; the
 #: doors at the top (the package, api, plugin, render_many) may import any room
 RENDERER_JOBS = {"client": set(), "criteria": {"client"}, "scenes": set(), "live": {"criteria", "scenes"},

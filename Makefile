@@ -26,13 +26,14 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 	@bash scripts/install-llvm.sh
 
-# The main job, showing what the product is for (renderer/showcase.py): the held-out
-# studio_preview rendered adaptively with the default criterion, then uniformly for the same
-# wall time; out/equal_time.png puts them side by side with the shipped reference, and one
-# line sums up blocks above tau, the worst block, the samples and time (docs/guide/rendering.md).
+# The main job, showing what the product is for (examples/showcase.py, run from this checkout:
+# examples/ is a demo, not installed): the held-out studio_preview rendered adaptively with the
+# default criterion, then uniformly for the same wall time; out/equal_time.png puts them side by
+# side with the reference shipped in examples/references/, and one line sums up blocks above
+# tau, the worst block, the samples and time (docs/guide/rendering.md).
 RUN_SCENE ?= studio_preview
 run: setup
-	$(PY) -m renderer.showcase --scene $(RUN_SCENE) --out $(OUT)
+	$(PY) -m examples.showcase --scene $(RUN_SCENE) --out $(OUT)
 
 test: setup
 	$(PY) -m pytest -q

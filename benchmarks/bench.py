@@ -113,11 +113,11 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
         measure("native_gpu" if variant.startswith("cuda") else "native", bench_native, md_native)
     if "cost" in only:
         from .bench_cost import bench_cost, md_cost
-        # the cost per kept sample, in parts (issue 50); a GPU run fills a section of its own
+        # the cost per kept sample, in parts; a GPU run fills a section of its own
         measure("cost_gpu" if variant.startswith("cuda") else "cost", bench_cost, md_cost)
     if "equaltime" in only:
         from .bench_equal_time import SECTION, bench_equal_time, md_equal_time
-        # the default render against mi.render at equal wall time (issue 50), per device
+        # the default render against mi.render at equal wall time, per device
         measure(SECTION[kind_of(variant)], bench_equal_time, md_equal_time)
     if "realscenes" in only:
         from .bench_realscenes import SECTION as REAL, bench_realscenes, md_realscenes
@@ -142,7 +142,7 @@ def run_all(repeats: int = 30, only: tuple[str, ...] = ("features", "crop"), dat
         from .hardening import md_hardening
         from .reliability import bench_reliability, md_reliability
         measure("reliability", bench_reliability, md_reliability)
-        if "reliability" in results:                     # its issue-26 part: a section of its own
+        if "reliability" in results:                     # its hardening part: a section of its own
             markdown["hardening"] = md_hardening(results["reliability"]["hardening"])
             if on_section is not None:
                 on_section("hardening", markdown["hardening"])

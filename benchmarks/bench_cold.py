@@ -1,4 +1,4 @@
-"""The cold row of `bench native` (issue 43): what a user times, a fresh process from the
+"""The cold row of `bench native`: what a user times, a fresh process from the
 command to the files written, for `noisestop render` and for the plain `mi.render` script
 that renders the same XML scene to the same max spp, each broken down.
 

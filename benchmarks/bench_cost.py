@@ -1,5 +1,5 @@
 """`noisestop bench cost`: the adaptive render's cost per kept sample against the uniform
-loop's, in parts (issue 50, part 1; DESIGN "Cost per kept sample").
+loop's, in parts (DESIGN "Cost per kept sample").
 
 For each scene and reconstruction filter (the film's rfilter swapped in the scene's dict:
 ``box`` or ``gaussian``), in one process, kernels compiled first:
@@ -26,7 +26,7 @@ For each scene and reconstruction filter (the film's rfilter swapped in the scen
 The table's first rows are an identity: wall per kept sample = (wall / render time) x
 (render time per lane) x (lanes per kept sample), each as adaptive over uniform. The
 headline is the adaptive wall per kept sample over the uniform loop's, raw and with
-selection divided out (issue 50's goal: at most 1.05x on the CPU, 1.15x on the GPU).
+selection divided out (goal: at most 1.05x on the CPU, 1.15x on the GPU).
 
     python -m benchmarks.bench_cost [--size 256] [--max-spp 1024] \\
         [--scenes studio_preview,cornell_box,spot_stage] [--filter box,gaussian] [--repeats 3] [--json F]

@@ -1,5 +1,5 @@
 """`noisestop bench equaltime`: the default render against `mi.render` at equal wall time, to
-max 4096 spp (issue 50's goals on the CPU: 256x256; on a GPU: 1024x1024).
+max 4096 spp (on the CPU at 256x256; on a GPU at 1024x1024).
 
 What a Mitsuba user asks is "do I get a better picture in the same time, and how much
 sooner do I get `mi.render`'s picture". For each scene (studio_preview, Mitsuba's Cornell
@@ -12,7 +12,7 @@ box, spot_stage), warm, one run of each:
 * each final frame judged against the scene's reference by DESIGN's observer: blocks (64
   px) above tau, the worst and mean block, 16-px tiles above tau.
 
-Time to `mi.render`'s quality (the issue's: its blocks above tau at max spp) is A / M when
+Time to `mi.render`'s quality (its blocks above tau at max spp) is A / M when
 the adaptive frame ends with no more blocks above tau than `mi.render`'s at max spp (an upper
 bound: the adaptive render may have got there before its end), else "not reached"; the
 worst blocks are shown beside it (an adaptive render stops a block once it is below tau, so
@@ -40,7 +40,7 @@ from .bench_native import Case, block_errors, load_case_scene, mi_render, render
 log = logging.getLogger(__name__)
 
 SCENES = ("studio_preview", "cornell_box", "spot_stage")
-#: the film side per device kind (the issue's sizes)
+#: the film side per device kind
 SIZE = {"cpu": 256, "cuda": 1024}
 #: BENCHMARKS' marked section per device kind
 SECTION = {"cpu": "equaltime", "cuda": "equaltime_gpu"}
@@ -81,7 +81,7 @@ def judged(image: np.ndarray, reference: np.ndarray, tau: float, stopped: list[b
 def reference_for(scene_name: str, scene: Any, size: int, ref_spp: int, ref_dir: Path) -> tuple[np.ndarray, str]:
     """The shipped reference when it matches the film, else `mi.render` at `ref_spp`
     (`bench_native.rendered_reference`), kept in `ref_dir`."""
-    from renderer.showcase import shipped_reference
+    from examples.showcase import shipped_reference
 
     ref = shipped_reference(scene_name)
     if ref is not None and ref.shape[:2] == (size, size):
@@ -128,7 +128,7 @@ def measure_make_run(tau: float, **overrides: Any) -> dict[str, Any]:
     our uniform loop given its time and twice it."""
     from renderer.live.adaptive import run_adaptive
     from renderer.scenes.catalog import load_scene
-    from renderer.showcase import SCENE, SETTINGS, shipped_reference
+    from examples.showcase import SCENE, SETTINGS, shipped_reference
     from renderer.settings import DEFAULT_CRITERION
 
     settings = {**SETTINGS, **overrides}

@@ -57,7 +57,7 @@ CASES = {
     "cpu": (Case("cornell_box", 512, 256, 1024, 512), Case("spot_stage", 256, 256, 0, 1024)),
     "cuda": (Case("cornell_box", 1024, 1024, 8192, 4096), Case("spot_stage", 1024, 1024, 8192, 4096)),
 }
-#: the cold row's (size, max spp) per device: issue 43's cases
+#: the cold row's (size, max spp) per device
 COLD = {"cpu": (256, 1024), "cuda": (1024, 1024)}
 
 
@@ -101,7 +101,7 @@ def block_errors(image: np.ndarray, reference: np.ndarray, tau: float,
                  stopped: list[bool] | None = None) -> dict[str, Any]:
     """DESIGN's observer per 64x64 block of `image` against `reference`: worst, mean, above
     tau; with the blocks a criterion `stopped`, the most dots one of them holds and how many
-    hold more than 16 (issue 33: none may)."""
+    hold more than 16 (none may)."""
     from renderer.live.report import final_vs_reference
 
     h, w = image.shape[:2]
@@ -117,7 +117,7 @@ def block_errors(image: np.ndarray, reference: np.ndarray, tau: float,
 def ours(scene: Any, criterion: str, max_spp: int, tau: float, grow: bool = True,
          tile: int | None = None) -> dict[str, Any]:
     """One render by our loop: wall, render time, mean spp, image. `tile`: the grain (None:
-    the render's default, 16-pixel tiles; BLOCK: whole blocks, the loop before issue 41)."""
+    the render's default, 16-pixel tiles; BLOCK: whole blocks, the block-grain loop)."""
     from renderer.live.adaptive import run_adaptive
 
     t0 = time.perf_counter()            # the whole call, as a user times it (report and image included)
@@ -136,7 +136,7 @@ def ours(scene: Any, criterion: str, max_spp: int, tau: float, grow: bool = True
 def reference_image(case: Case, scene: Any) -> tuple[np.ndarray, str]:
     """The case's reference: the shipped one (ref_spp 0) or mi.render at ref_spp (seed apart)."""
     if case.ref_spp == 0:
-        from renderer.showcase import shipped_reference
+        from examples.showcase import shipped_reference
 
         ref = shipped_reference(case.scene)
         if ref is None:
@@ -181,7 +181,7 @@ def measure_case(case: Case, tau: float, repeats: int = 3, walls_only: bool = Fa
         runs["uniform"].append(ours(scene, "uniform", case.max_spp, tau))
         runs["adaptive"].append(ours(scene, "flip", case.max_spp, tau, grow=True))
         runs["adaptive_fixed_step"].append(ours(scene, "flip", case.max_spp, tau, grow=False))
-        runs["adaptive_block"].append(ours(scene, "flip", case.max_spp, tau, tile=BLOCK))     # issue 41's baseline
+        runs["adaptive_block"].append(ours(scene, "flip", case.max_spp, tau, tile=BLOCK))     # the block-grain baseline
     for name, rs in runs.items():
         walls = [r["wall_s"] for r in rs]
         med = rs[int(np.argsort(walls)[len(walls) // 2])]
@@ -354,7 +354,7 @@ def md_cold(c: dict[str, Any]) -> list[str]:
     """The cold row: each command from a fresh process to its files, broken down."""
     m, o = c["mi_render"], c["noisestop"]
     rest = o["wall_s"] - o["imports_s"] - o["report_wall_s"]
-    return ["", f"**Cold start** (issue 43): Mitsuba's Cornell box {c['size']}x{c['size']} as XML, max "
+    return ["", f"**Cold start**: Mitsuba's Cornell box {c['size']}x{c['size']} as XML, max "
             f"{c['max_spp']} spp, each a fresh process from the command to its files written "
             f"(`benchmarks/bench_cold.py`); medians of {c.get('repeats', 1)} interleaved runs (walls: "
             + ", ".join(f"{r['noisestop']['wall_s']:.2f}/{r['mi_render']['wall_s']:.2f} s" for r in c.get("runs", []))

@@ -1,4 +1,4 @@
-"""Where our loop's cost per sample goes against `mi.render` (issues 43 and 57), on the CPU.
+"""Where our loop's cost per sample goes against `mi.render`, on the CPU.
 
 Why: `bench native` and `bench realscenes` compare whole renders; this splits the gap. On
 one scene, in one process, interleaved runs of: one `mi.render` of all the samples;

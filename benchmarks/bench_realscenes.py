@@ -20,7 +20,7 @@ judged by DESIGN's observer (the largest 16x16-tile FLIP of each 64-px block) ag
 * the time limit: `renderer.render(time_limit=T)` with T the seed-1 curve's time at 1024
   spp, against that curve point;
 * where the default render traces most samples (mean spp at least 90 % of max), its wall
-  time per sample against `mi.render` in one call per 1024 spp (the issue's "same samples").
+  time per sample against `mi.render` in one call per 1024 spp ("same samples").
 
 Verdicts call a difference within the two seeds' spread a tie: worse is more blocks above
 tau than either seed, or a worst block over 1.02x the larger seed's; better is fewer blocks
@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 SIZE = {"cpu": 256, "cuda": 1024}
 #: BENCHMARKS' marked section per device kind
 SECTION = {"cpu": "realscenes", "cuda": "realscenes_gpu"}
-#: a worst block this much over the larger seed's is worse, not a tie (the issue's 2 %)
+#: a worst block this much over the larger seed's is worse, not a tie (2 %)
 WORST_SLACK = 1.02
 #: the time limit's T is the seed-1 curve's time at this spp
 LIMIT_SPP = 1024

@@ -1,4 +1,4 @@
-"""Decisions skipped towards a unit's predicted stop (issue 50): `noisestop bench skip`.
+"""Decisions skipped towards a unit's predicted stop: `noisestop bench skip`.
 
 The speed knobs `decide_skip` and `decide_growth` (`renderer.live.passloop.next_decision`)
 judge a unit that is r times above its target again only at (skip r)^2 times its spp, and

@@ -1,10 +1,10 @@
-"""The stop at tile grain against the observer's own (issue 49): `noisestop bench tilestop`.
+"""The stop at tile grain against the observer's own: `noisestop bench tilestop`.
 
 Per held-out scene and noise target, what each run spends and what the frame it ends with
 shows: flip per block (the block grain's default), flip per 16x16 tile (the loop's
 default: the tile's history against the tile curve of c), the oracle per block and per tile
-(the final-frame tile truth, `learning.data.tile_truth`), the learned stop (`estimate`,
-issue 59) and the bundled model per block and gated per tile; and the spread s
+(the final-frame tile truth, `learning.data.tile_truth`), the learned stop (`estimate`)
+and the bundled model per block and gated per tile; and the spread s
 (`learning.evaluation.spread`) of the halves' history and of the learned estimate, per
 held-out scene. Samples are mean spp a pixel; "/ block grain" is against flip per block
 on the same scene. "early" counts the blocks the final frame leaves above tau although their

@@ -1,10 +1,13 @@
 """`noisestop bench hardening`: the hardening figures of BENCHMARKS.md ("Reliability"; the
 tables in docs/benchmarks/reliability.md), also part of `bench reliability`.
 
-Peak RSS of the worst JSON and binary shapes with and without the address-space cap,
-normal latency beside slow uploaders, every way of starting `serve` without a token,
-SIGHUP with a request in flight, a protocol error, a key twice; then each later round's
-cases (`hardening_round3`, `hardening_round4`, `hardening_round5`).
+Here, the server's own cases: peak RSS of the worst JSON and binary shapes with and
+without the address-space cap, normal latency beside slow uploaders, every way of starting
+`serve` without a token, SIGHUP with a request in flight, a protocol error, a key twice.
+Then the cases of the other harnesses: hostile request bodies (`hardening_bodies`), hostile
+files (`hardening_files`), non-finite scenes (`hardening_nonfinite`), what a scene XML makes
+Mitsuba open (`hardening_scene_walk`), the loop's state (`hardening_loop_state`) and the
+doors that check first (`hardening_doors`).
 """
 from __future__ import annotations
 
@@ -18,12 +21,12 @@ from pathlib import Path
 from typing import Any
 
 from .cli_run import ROOT
-from .hardening_round3 import bench_round3, md_round3
-from .hardening_round4 import bench_round4, round4_files
-from .hardening_round5 import (bench_inline_json, bench_nonfinite_scenes, bench_scene_files, md_inline_json,
-                               md_nonfinite, md_scene_files)
+from .hardening_bodies import (bench_burst_then_stall, bench_costly_json, bench_inline_json, bench_large_bodies,
+                               md_burst_then_stall, md_costly_json, md_inline_json)
 from .hardening_doors import bench_doors, md_doors
+from .hardening_files import bench_scene_files, hostile_files, input_slot_files, md_hostile_files, md_scene_files
 from .hardening_loop_state import bench_loop_state, md_loop_state
+from .hardening_nonfinite import bench_nonfinite_scenes, md_nonfinite
 from .hardening_scene_walk import bench_scene_walk, md_scene_walk
 
 #: the address-space cap (RLIMIT_AS) the attacked server runs under
@@ -36,7 +39,7 @@ def mib(n: int) -> str:
 
 
 #: the variables and flags `serve` is started with, to find any path that serves without a
-#: token that nobody asked for (the issue: `NOISESTOP_TOKEN=` did)
+#: token that nobody asked for (`NOISESTOP_TOKEN=`, empty, once did)
 AUTH_CASES: tuple[tuple[str, dict[str, str], tuple[str, ...]], ...] = (
     ("NOISESTOP_TOKEN= (empty)", {"NOISESTOP_TOKEN": ""}, ()),
     ("NOISESTOP_TOKEN of spaces", {"NOISESTOP_TOKEN": "   "}, ()),
@@ -60,9 +63,10 @@ def bench_hardening() -> dict[str, Any]:
         bundle = str(make_demo_bundle(Path(tmp) / "demo", name="demo"))
         return {"shapes": _shape_peaks(bundle), "slow": _slow_uploaders(bundle),
                 "auth": _auth_paths(bundle), "sighup": _sighup(bundle), "protocol": _protocol(bundle),
-                "round3": bench_round3(bundle), "round4": bench_round4(bundle), "round4_files": round4_files(bundle),
-                "round5_scene_files": bench_scene_files(),
-                "round5_nonfinite": bench_nonfinite_scenes(), "round5_inline_json": bench_inline_json(bundle),
+                "costly_json": bench_costly_json(bundle), "burst_then_stall": bench_burst_then_stall(bundle),
+                "hostile_files": hostile_files(bundle), "large_bodies": bench_large_bodies(bundle),
+                "input_slots": input_slot_files(bundle), "scene_files": bench_scene_files(),
+                "nonfinite": bench_nonfinite_scenes(), "inline_json": bench_inline_json(bundle),
                 "scene_walk": bench_scene_walk(), "loop_state": bench_loop_state(), "doors": bench_doors()}
 
 
@@ -97,10 +101,10 @@ def _hardening_shapes() -> dict[str, Any]:
 
     wide = int((DEFAULT_MAX_BODY - 4096) // (2 * 12)) // 2048
     return {
-        "JSON: 62 MiB, 20 lists around every value (the issue's)": attack.nested_json_request_62,
+        "JSON: 62 MiB, 20 lists around every value": attack.nested_json_request_62,
         "JSON: 20 lists around every value, estimate 90% of the budget (parsed; 400: not 26 features)":
             lambda: nested_values(0.9),
-        "JSON image [2, 1024, W, 3] x 2, one-digit numbers nested per pixel, 64 MiB (issue 14's worst)":
+        "JSON image [2, 1024, W, 3] x 2, one-digit numbers nested per pixel, 64 MiB":
             lambda: image(b"0", 64 << 20, nested=True),
         "JSON image, 3-digit integers, flat, 48 MiB": lambda: image(b"257", 48 << 20, nested=False),
         "JSON image, 9-digit floats nested per pixel, 60 MiB": lambda: image(b"0.1234567", 60 << 20, nested=True),
@@ -259,15 +263,11 @@ def md_hardening(r: dict[str, Any]) -> str:
               "", f"Hangs (a server not answering health after a shape): {hangs}; tracebacks in any server or "
                   f"command output: {tracebacks}; silent auth-off paths (served without a token and without "
                   f"--no-auth): {silent}."]
-    if "round3" in r:
-        lines += ["", md_round3(r["round3"])]
-    if "round5_scene_files" in r:
-        lines += ["", md_scene_files(r["round5_scene_files"])]
-    if "round5_nonfinite" in r:
-        lines += ["", md_nonfinite(r["round5_nonfinite"])]
-    if "round5_inline_json" in r:
-        lines += ["", md_inline_json(r["round5_inline_json"])]
-    for key, md in (("scene_walk", md_scene_walk), ("loop_state", md_loop_state), ("doors", md_doors)):
+    if "costly_json" in r:
+        lines += ["", md_costly_json(r["costly_json"]), md_burst_then_stall(r["burst_then_stall"]),
+                  "", md_hostile_files(r["hostile_files"])]
+    for key, md in (("scene_files", md_scene_files), ("nonfinite", md_nonfinite), ("inline_json", md_inline_json),
+                    ("scene_walk", md_scene_walk), ("loop_state", md_loop_state), ("doors", md_doors)):
         if key in r:
             lines += ["", md(r[key])]
     return "\n".join(lines)

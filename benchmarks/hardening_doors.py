@@ -1,7 +1,7 @@
-"""Doors that check first (hardening, sixth round): a damaged reference under `dataset
-relabel`, `bench --update` at a file that cannot be rewritten, unknown `bench` model names,
-tokens with spaces or given by flag, a header line the HTTP layer cannot parse, a folder as
-`render --reference` and a looping checkpoint link under `--resume`.
+"""Doors that check first (in `noisestop bench hardening`): a damaged reference under
+`dataset relabel`, `bench --update` at a file that cannot be rewritten, unknown `bench`
+model names, tokens with spaces or given by flag, a header line the HTTP layer cannot parse,
+a folder as `render --reference` and a looping checkpoint link under `--resume`.
 
 Each case is one command in a fresh process (`cli_run.run_cli`, with -q: exit, seconds,
 stderr lines, peak RSS, last line); the goal is exit 2, one line, within 5 s and 500 MiB

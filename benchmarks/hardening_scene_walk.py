@@ -1,8 +1,9 @@
-"""Hardening, sixth round: what a scene XML made Mitsuba open, load or run past the scene
-walker (`renderer.scenes.scenefiles`), each as a user meets it: `noisestop render --scene
-FILE.xml` in a fresh process (exit, seconds, peak RSS, the last stderr line), or the Python
-call for the API cases. Goal: each refused in one line (exit 2, a ValueError from the API)
-within 5 s and 500 MiB, a planted library's code never run.
+"""Scene XMLs that would make Mitsuba open, load or run what the scene walker
+(`renderer.scenes.scenefiles`) must stop (in `noisestop bench hardening`), each as a user
+meets it: `noisestop render --scene FILE.xml` in a fresh process (exit, seconds, peak RSS,
+the last stderr line), or the Python call for the API cases. Goal: each refused in one line
+(exit 2, a ValueError from the API) within 5 s and 500 MiB, a planted library's code never
+run.
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """`noisestop bench reliability`: the reliability table of BENCHMARKS.md.
 
-Three sources, each counted as it ran, nothing typed by hand:
+Four sources, each counted as it ran, nothing typed by hand:
 
 1. the attack scenarios of `benchmarks.attack` against `noisestop serve` in a subprocess with
    the default settings under RLIMIT_AS = 3 GiB: 64 idle connections (health latency),
@@ -15,7 +15,8 @@ Three sources, each counted as it ran, nothing typed by hand:
    `hardening` on its own): peak RSS of the worst JSON and binary shapes with and without
    the address-space cap, normal latency beside slow uploaders, every way of starting
    `serve` without a token, SIGHUP with a request in flight, a protocol error, a key twice;
-   the hostile files of each round, scene-named ones included (issue 51).
+   hostile bodies and files (scene-named ones included), non-finite scenes, the scene
+   walk, the loop's state and the doors that check first.
 """
 from __future__ import annotations
 
@@ -187,7 +188,7 @@ def md_reliability(r: dict[str, Any]) -> str:
               "test_fuzz": "hypothesis fuzzing: tensor decoder, JSON parser and its memory estimate, duplicate keys, "
                            "manifest and checkpoint readers",
               "test_kill_resume": "kill -9 at 3 random passes, then --resume (bit-identical image and report)",
-              "test_service_hardening": "issue 26 on the service: memory before parsing, slow uploaders, duplicate "
+              "test_service_hardening": "the service's hardening: memory before parsing, slow uploaders, duplicate "
                                         "keys, protocol 400s, /openapi.json, out of memory, SIGHUP"}
     for f, counts in sorted(by_file.items()):
         extra = ""

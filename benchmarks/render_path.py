@@ -1,4 +1,4 @@
-"""What one `renderer.render` with flip touches (issue 52's "render path"): the project's
+"""What one `renderer.render` with flip touches (its "render path"): the project's
 files in which a function runs during the render, after `import renderer`, with their
 lines. Module and class bodies run by an import inside the render are not counted (what a
 reader follows is the calls: only functions, `inspect.CO_OPTIMIZED`), nor are the benchmarks.

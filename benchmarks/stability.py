@@ -16,7 +16,8 @@ Entry = Callable[[np.ndarray], Any]
 
 
 def extreme_inputs(seed: int = 0) -> dict[str, np.ndarray]:
-    """Block batches [N, h, w, 3] of linear RGB at the extremes the issue lists."""
+    """Block batches [N, h, w, 3] of linear RGB at the extremes: black, constant, fireflies,
+    NaN and Inf pixels, huge and tiny values, half floats, odd block sizes, an empty batch."""
     rng = np.random.default_rng(seed)
     base = (rng.random((4, 16, 16, 3)) * 0.3).astype(np.float32)
     fire = base.copy()

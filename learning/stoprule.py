@@ -55,7 +55,7 @@ def flat_halves(even: Any, odd: Any, exposure: float = 0.0) -> np.ndarray:
     and every pixel of either within one 8-bit level of every pixel of both (the display
     range of the two together). Why not the flat test of their mean: halves that disagree
     completely (all NaN against grey, +3e38 against -3e38) can have a flat mean, and a
-    block whose halves disagree is noisy, never flat (issue 42)."""
+    block whose halves disagree is noisy, never flat."""
     import torch
 
     from noisefeat.display import display_range
@@ -73,7 +73,7 @@ def dots_ratio(even: Any, odd: Any, exposure: float, tau: float) -> np.ndarray:
     noise target (`noisefeat.dots.halves_dots` / tau), computed where the buffers live (a
     device tensor stays there; only the numbers cross to the host). Above 1 a block still
     holds more isolated outlier pixels than the observer at tau lets through: the
-    observer's version-3 rule seen through the halves (issue 33)."""
+    observer's version-3 rule seen through the halves."""
     import torch
 
     from noisefeat.dots import halves_dots

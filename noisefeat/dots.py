@@ -2,8 +2,8 @@
 
 Why: FLIP at 67 pixels per degree blurs single pixels away, and the observer pools it by
 16x16 tile means, so a block holding a few dozen light dots on black scored 0.013-0.015
-(under tau 0.02) while a person at 1:1 sees every dot (issue 33; Cycles' own test is per
-pixel for the same reason). The term counts pixels instead of averaging them:
+(under tau 0.02) while a person at 1:1 sees every dot (Cycles' own test is per pixel for
+the same reason). The term counts pixels instead of averaging them:
 
 * a pixel's display error is the largest per-channel difference of the two display images
   (DESIGN's display transform, values in [0, 1]);
@@ -15,10 +15,10 @@ pixel for the same reason). The term counts pixels instead of averaging them:
   at another tau needs no new pass over the pixels.
 
 The level was chosen by measurement on `make run`'s near-black blocks (BENCHMARKS.md
-"Observer version 3"): at 2.5 tau (0.05, the issue's yardstick) a stopped block kept 11-14
+"Observer version 3"): at 2.5 tau (0.05, the reports' yardstick) a stopped block kept 11-14
 such pixels and, visible at 3x, a hundred fainter ones (0.03-0.05) that uniform's same
 blocks did not show; at 1.5 tau they stop with 0-1 pixels over 0.05. Reports count pixels
-over the issue's yardstick, `REPORT_LEVEL` * tau (0.05 = 13 of 255 levels at tau 0.02).
+over that yardstick, `REPORT_LEVEL` * tau (0.05 = 13 of 255 levels at tau 0.02).
 
 The criteria see the dots through their half buffers A and B (`halves_dots`). The image
 shown is (up to one pass) their mean M; a pixel's error against the truth is estimated by
@@ -35,7 +35,7 @@ from .display import display
 
 #: an outlier's display error, in units of tau (0.03, about 8 of 255 levels, at tau 0.02)
 DOT_LEVEL = 1.5
-#: the yardstick reports count dots by (issue 33: display error > 0.05 at tau 0.02)
+#: the yardstick reports count dots by (display error > 0.05 at tau 0.02)
 REPORT_LEVEL = 2.5
 #: one outlier pixel is tolerated per this many pixels (16 in a 64x64 block)
 DOT_DENSITY = 256

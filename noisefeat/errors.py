@@ -2,7 +2,7 @@
 
 Why: the Python API (DESIGN "Python API": `learning.load_model`, `learning.read_stack`,
 `renderer.render`) promises ValueError for a bad argument, and a path naming nothing is one;
-subclassing FileNotFoundError too keeps code that catches that working (issue 51).
+subclassing FileNotFoundError too keeps code that catches that working.
 """
 from __future__ import annotations
 

@@ -55,7 +55,7 @@ def run() -> NoReturn:
     Why: at exit CPython collects every object the imports made, and torch's alone take
     about 0.45 s of it on this project's CI machine; frozen (`gc.freeze`), they are left to
     the operating system (0.13 s). Atexit handlers still run. What a user times is the
-    whole command (issue 43). In-process callers (tests) call `main`, which freezes nothing.
+    whole command. In-process callers (tests) call `main`, which freezes nothing.
     """
     rc = main()
     gc.freeze()

@@ -8,10 +8,10 @@ is ended (the worker is killed and replaced) and answered 413.
 
 Headers up to `INLINE_BYTES` that open at most `INLINE_CONTAINERS` lists and objects (every
 binary-tensor request's, small JSON ones: `parse_inline`) are parsed in the server's own
-thread. A 255 kB body nested 11 deep, parsed there, moved other requests' p99 13x (issue
-42). Why containers and not bytes or depth (issue 51): a 16.3 kB body nested 11 deep parses
-in about 1 ms, but it allocates some 7,600 lists, and a JSON parse's lists and dicts are
-what Python's cyclic garbage collector counts: past about 700 live ones a collection runs,
+thread. A 255 kB body nested 11 deep, parsed there, moved other requests' p99 13x. Why
+containers and not bytes or depth: a 16.3 kB body nested 11 deep parses in about 1 ms, but
+it allocates some 7,600 lists, and a JSON parse's lists and dicts are what Python's cyclic
+garbage collector counts: past about 700 live ones a collection runs,
 and every few requests a full one walks the server's whole heap (300,000 objects with
 torch: 150-330 ms holding the GIL, measured). A body under 700 containers triggers none
 however it loops (measured: 0 collections in 3,000 parses of 264 containers; 3 full ones of

@@ -154,7 +154,7 @@ def run(models: dict[str, str | None] | None = None, host: str = "127.0.0.1", po
 
 
 class _DrainingServer(uvicorn.Server):
-    """uvicorn's server, which also drains on SIGHUP (a hang-up used to kill the process
+    """uvicorn's server, which also drains on SIGHUP (by default a hang-up kills the process
     at once, without a word), and says in the log which signal started the drain."""
 
     @contextlib.contextmanager

@@ -5,7 +5,7 @@ calibration or pre-training in the developer's real one (`noisefeat.userdata`) n
 what the tests measure, and no test writes there.
 
 With NOISESTOP_TEST_LLVM_TARGET set ("haswell,8"), Dr.Jit's LLVM backend compiles every
-kernel of this process for that CPU (`make test-portability`, issue 39): the suite must
+kernel of this process for that CPU (`make test-portability`): the suite must
 pass on code another CPU would generate.
 """
 from __future__ import annotations

@@ -13,7 +13,8 @@ reliability` reports them (BENCHMARKS.md "Reliability"). One module per kind:
   `protocol_error`;
 * `uploads`: `slow_upload`, `normal_latency_under_slow_uploads`, `burst_then_stall`;
 * `bodies`: the hostile bodies, made (`worst_shapes`: the largest and oddest requests the
-  limits allow, and some they refuse; the costliest JSON; issue 42's and 51's bodies);
+  limits allow, and some they refuse; the costliest JSON; nested and valid JSON bodies
+  around the parse pool's threshold);
 * `hostile_bodies`: those bodies sent (`run_worst_shapes`, `costly_json_loop`, ...).
 
 Everything is importable from here (`from benchmarks import attack; attack.post(...)`).

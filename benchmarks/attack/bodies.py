@@ -1,5 +1,6 @@
 """Hostile request bodies, made and not sent: the largest and oddest shapes the limits allow
-(and some they refuse), the costliest JSON to parse per byte, issue 42's and 51's bodies.
+(and some they refuse), the costliest JSON to parse per byte, nested and valid JSON bodies
+around the parse pool's threshold.
 
 Each maker returns (body, headers) for `post`.
 """
@@ -40,7 +41,7 @@ def worst_shapes(max_body: int) -> dict[str, Callable[[], tuple[bytes, dict[str,
     side_px = lambda n: int((max_body - 4096) // (2 * 12 * n))     # noqa: E731 pixels a body holds
     wide = side_px(1) // 2048
     return {
-        "issue shape [1, 8, 40000, 3]": lambda: binary_request((1, 8, 40000, 3)),
+        "block side past the limit [1, 8, 40000, 3]": lambda: binary_request((1, 8, 40000, 3)),
         f"widest block [1, {wide}, 2048, 3]": lambda: binary_request((1, wide, 2048, 3)),
         "thin blocks [160, 8, 2048, 3]": lambda: binary_request((160, 8, 2048, 3)),
         "many small blocks [1024, 40, 40, 3]": lambda: binary_request((1024, 40, 40, 3)),
@@ -77,7 +78,7 @@ def costliest_valid_json(budget_fraction: float = 0.9, budget: int | None = None
 
 
 def nested_json_255k(depth: int = 7) -> tuple[bytes, dict[str, str]]:
-    """Issue 42's body: 255 kB of `[[[[[[[0]]]]]]]` (11 deep with the envelope, the most a
+    """A nested body: 255 kB of `[[[[[[[0]]]]]]]` (11 deep with the envelope, the most a
     request may nest), a rank-8 `features` tensor: parsed in full, then refused (400)."""
     unit = b"[" * depth + b"0" + b"]" * depth
     n = (255_000 - 100) // (len(unit) + 1)
@@ -86,8 +87,8 @@ def nested_json_255k(depth: int = 7) -> tuple[bytes, dict[str, str]]:
 
 
 def nested_json(size: int, depth: int = 7) -> tuple[bytes, dict[str, str]]:
-    """Issue 42's nested body at about `size` bytes (issue 51: 16.3 kB, just under the
-    parse pool's threshold, was parsed on the server's own thread)."""
+    """The nested body at about `size` bytes (16.3 kB is just under the parse pool's byte
+    threshold: too many lists to parse on the server's own thread)."""
     unit = b"[" * depth + b"0" + b"]" * depth
     n = (size - 100) // (len(unit) + 1)
     return (b'{"inputs":[{"name":"features","shape":[%d%s],"datatype":"FP32","data":[' % (n, b",1" * depth)
@@ -95,7 +96,7 @@ def nested_json(size: int, depth: int = 7) -> tuple[bytes, dict[str, str]]:
 
 
 def bound_json(size: int, units: int = 35, depth: int = 7) -> tuple[bytes, dict[str, str]]:
-    """The costliest body still parsed on the server's own thread (issue 51): `units`
+    """The costliest body still parsed on the server's own thread: `units`
     values nested `depth` deep (253 lists and objects with the envelope, under
     `parsepool.INLINE_CONTAINERS`), padded with a flat list of zeros to about `size` bytes."""
     unit = b"[" * depth + b"0" + b"]" * depth
@@ -107,7 +108,7 @@ def bound_json(size: int, units: int = 35, depth: int = 7) -> tuple[bytes, dict[
 
 def valid_halves_json(size: int) -> tuple[bytes, dict[str, str]]:
     """The largest valid halves request (`even` and `odd`, [k, 8, 8, 3] of 0.5, for the
-    bundled model) of at most `size` bytes: issue 51's valid 16 kB body."""
+    bundled model) of at most `size` bytes (16 kB: a valid body at the parse pool's threshold)."""
     def body(k: int) -> bytes:
         values = b"[" + b",".join([b"0.5"] * (k * 8 * 8 * 3)) + b"]"
         return (b'{"inputs":[{"name":"even","shape":[%d,8,8,3],"datatype":"FP32","data":' % k + values +
@@ -119,7 +120,7 @@ def valid_halves_json(size: int) -> tuple[bytes, dict[str, str]]:
 
 
 def valid_json_255k() -> tuple[bytes, dict[str, str]]:
-    """Issue 42's other body: a fully valid JSON request (184 kB), 8x8 blocks as the demo
+    """A large valid body: a fully valid JSON request (184 kB), 8x8 blocks as the demo
     model takes them (120 blocks and their 120 quick images: 240 of [8, 8, 3])."""
     values = b"[" + b",".join([b"0.5"] * (120 * 8 * 8 * 3)) + b"]"
     return (b'{"inputs":[{"name":"blocks","shape":[120,8,8,3],"datatype":"FP32","data":' + values +

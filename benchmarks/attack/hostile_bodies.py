@@ -1,4 +1,4 @@
-"""The hostile bodies sent: each worst shape once (with the server's peak RSS), the issue's
+"""The hostile bodies sent: each worst shape once (with the server's peak RSS), the 62 MiB
 nested request, a key twice, and a costly body in a loop beside timed normal requests.
 """
 from __future__ import annotations
@@ -54,7 +54,7 @@ def duplicate_keys(url: str, token: str | None) -> dict[str, Any]:
 
 
 def nested_over_budget(url: str, token: str | None, megabytes: int = 62) -> dict[str, Any]:
-    """The issue's request: ~62 MiB of JSON, every value inside 20 nested lists (56x its
+    """The 62 MiB nested request: ~62 MiB of JSON, every value inside 20 nested lists (56x its
     size in memory once parsed). Answered how, and how fast."""
     body, headers = nested_json_request_62(megabytes)
     t0 = time.perf_counter()

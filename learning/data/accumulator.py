@@ -190,7 +190,7 @@ class UnitAccumulator:
     def unestimated(self, units: Sequence[int] | np.ndarray) -> np.ndarray:
         """int64 [k] (host): the pixels of each unit that have no finite value in a half
         buffer holding a pass (every value there was dropped): no estimate of the pixel, so
-        neither a mean to judge nor halves to compare (issue 51)."""
+        neither a mean to judge nor halves to compare."""
         ids = self._check_ids(units)
         out = np.zeros(len(ids), np.int64)
         # only a unit that dropped values can hold such a pixel: the others cost no pass over their weights

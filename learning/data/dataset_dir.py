@@ -34,7 +34,7 @@ def list_stacks(root: str | os.PathLike, include_incomplete: bool = False) -> li
 
     A directory is a stack if it holds meta.json (or, with `include_incomplete`,
     meta.partial.json); stacks are not searched for nested stacks. A meta.json that is a
-    directory is a broken stack: one-line ValueError (it used to be skipped silently).
+    directory is a broken stack: one-line ValueError, never skipped silently.
     """
     root = Path(root)
     if not root.is_dir():

@@ -94,8 +94,8 @@ class VirtualObserver:
         return thresholds_from_errors(self.stack_errors(stack), stack.spp, self.tau)
 
     def label_tiles(self, stack: Stack, tile: int = TILE) -> list[int | None]:
-        """The tile truth on the frame a render ends with (`learning.data.tile_truth`, issue
-        49): the fewest samples at which a tile may stop when every other tile stops at its
+        """The tile truth on the frame a render ends with (`learning.data.tile_truth`): the
+        fewest samples at which a tile may stop when every other tile stops at its
         own threshold, the finished frame still at or below tau in every block."""
         spp = list(stack.spp)
         start = np.array([len(spp) if t is None else spp.index(t) for t in self.label_tiles_same_samples(stack, tile)],
@@ -115,7 +115,7 @@ class VirtualObserver:
         return blocks, np.maximum(*tile_row(ref_t, lev_t, emap, g, tile))
 
     def label_tiles_same_samples(self, stack: Stack, tile: int = TILE) -> list[int | None]:
-        """The first tile truth (issue 41), kept for comparison: each tile converged from the
+        """The same-samples tile truth, kept for comparison: each tile converged from the
         first level at which its FLIP mean is at most tau with at most one outlier pixel, at
         that level and every later one, on a frame where every tile has the same samples."""
         return thresholds_from_errors(stack_tile_errors(stack, tile, self.ppd, self.exposure), stack.spp, self.tau)

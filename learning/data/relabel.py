@@ -40,7 +40,7 @@ def observed(stack: Stack, tau: float | None = DEFAULT_TAU, pooling: str = DEFAU
 
 
 def with_tile_truth(stack: Stack, tile: int = TILE) -> Stack:
-    """The stack with its tile truth (issue 41) by the observer of its labels: as stored when
+    """The stack with its tile truth by the observer of its labels: as stored when
     meta.json holds it for this observer and tile, else computed (cached per stack)."""
     if stack.tile == tile and stack.tile_thresholds is not None and _current_tile_truth(stack.labeler):
         return stack

@@ -48,7 +48,7 @@ class Stack:
     thresholds: list[int | None] | None
     path: Path
     extras: dict = field(default_factory=dict)
-    #: the tile truth (issue 41): the side of the tiles each block is cut into, and each
+    #: the tile truth: the side of the tiles each block is cut into, and each
     #: tile's threshold (block-major, `noisefeat.pooling.tile_windows`), or None
     tile: int | None = None
     tile_thresholds: list[int | None] | None = None

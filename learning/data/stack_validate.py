@@ -109,7 +109,7 @@ def validate_meta(meta: Any) -> list[str]:
 
 
 def _tile_errors(meta: Mapping) -> list[str]:
-    """The tile truth's keys (issue 41): `tile` (pixels) and `tile_thresholds`, one per tile
+    """The tile truth's keys: `tile` (pixels) and `tile_thresholds`, one per tile
     of every block (`noisefeat.pooling.tile_windows`, block-major), given together."""
     tile, th = meta.get("tile"), meta.get("tile_thresholds")
     if tile is None and th is None:

@@ -1,4 +1,4 @@
-"""The virtual observer's terms per tile (issue 41): each 16x16 tile of every block judged
+"""The virtual observer's terms per tile: each 16x16 tile of every block judged
 by its FLIP mean and its own dot term, as the renderer numbers its units (block-major).
 
 Why apart from the block terms: the tile truth (`tile_truth`, `observer.VirtualObserver.
@@ -23,7 +23,7 @@ from .stack_format import block_shape
 def tile_terms(reference_rgb: np.ndarray, levels_rgb: np.ndarray | Iterable[np.ndarray],
                grid: Sequence[int] = (4, 4), tile: int = TILE, ppd: float = DEFAULT_PPD,
                exposure: float = 0.0) -> np.ndarray:
-    """The observer's terms per tile (issue 41), float64 [2, K, n_blocks * T]: for each
+    """The observer's terms per tile, float64 [2, K, n_blocks * T]: for each
     block's tiles (`noisefeat.pooling.tile_windows`, block-major, as the renderer numbers
     its units), the mean of the frame's FLIP map over the tile and the tile's dot term (at
     most one outlier pixel in a 16x16 tile). `tile_errors` combines them."""

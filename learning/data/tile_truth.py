@@ -1,6 +1,6 @@
-"""The tile truth on the frame a render ends with (issue 49; DESIGN "Decision grain").
+"""The tile truth on the frame a render ends with (DESIGN "Decision grain").
 
-The first tile truth (issue 41) judged each 16x16 tile on a level where every tile has the
+The same-samples tile truth judged each 16x16 tile on a level where every tile has the
 same samples. A render ends with each tile at its own stop, and a noisier neighbour reaches
 a tile through FLIP's filters (about 10 px at 67 ppd): stopping every tile at that truth
 left 27 blocks above tau where the block oracle left 14. This truth is measured on the
@@ -20,7 +20,7 @@ frame the render ends with instead, as a fixed point on the stack:
 
 Tiles only ever move later, so it ends, after at most as many rounds as levels. Every block
 whose tiles did not reach the last level ends at or below tau by construction; a tile that
-is still above tau at the last level has no threshold (censored), as in the first truth.
+is still above tau at the last level has no threshold (censored), as in the same-samples truth.
 What a tile's threshold means: the fewest samples at which it may stop given that every
 other tile stops at its own threshold; its neighbours are its context.
 """

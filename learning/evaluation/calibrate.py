@@ -183,7 +183,7 @@ def calibrate_offset(fit: Callable[[SubImageTable], Any], table: SubImageTable, 
                        "spp_ratio_vs_oracle": pick["spp_ratio_vs_oracle"]})
     # the bundle's own offset is the curve's at the labels' tau, so `offset` and `offset_at(tau)`
     # never disagree: the running maximum can raise it (the dot guard is tau's own, so a looser
-    # target may need a larger offset than a stricter one; issue 33)
+    # target may need a larger offset than a stricter one)
     at_label = [r for r in by_tau if abs(r["tau"] - label_tau(next(iter(table.stacks.values())))) < 1e-12]
     if at_label and at_label[0]["offset"] != chosen["offset"]:
         row = next(r for r in curve if r["offset"] == at_label[0]["offset"])
@@ -208,9 +208,9 @@ def flip_sweep(stacks: Sequence[Stack], candidates: Sequence[float] = FLIP_CANDI
                estimates: Mapping[str, np.ndarray] | None = None) -> list[dict[str, Any]]:
     """Metrics of the flip criterion at each c (overall, per scene, per group), through the
     one stop rule (min spp, held stops, flat units at once), on labelled `stacks`: per
-    block, or with `tile` per tile against the tile truth (issue 41). `estimates` (scene
+    block, or with `tile` per tile against the tile truth. `estimates` (scene
     -> [K, n_tiles], with `tile`): a learned error estimate compared with c in place of the
-    halves' history (the `estimate` criterion, issue 59), out of fold, with flip's dot guard."""
+    halves' history (the `estimate` criterion), out of fold, with flip's dot guard."""
     if not stacks:
         raise ValueError("no stacks to sweep c on")
     unlabelled = [str(s.path) for s in stacks if s.thresholds is None]
@@ -249,7 +249,7 @@ def calibrate_flip(stacks: Sequence[Stack], max_early_stop: float = 0.05, *, min
     ones): the largest c (fewest samples) whose early-stop rate stays within
     `max_early_stop` on scenes it was not chosen on (`choose_out_of_fold`); per block, or
     per tile of `tile` pixels, where the rate is the final frame's: of the blocks whose
-    truth converges, those the frame the render ends with leaves above tau (issue 49)."""
+    truth converges, those the frame the render ends with leaves above tau."""
     curve = flip_sweep(stacks, candidates, min_spp=min_spp, progress=progress, pooling=pooling, tile=tile,
                        estimates=estimates)
     chosen = choose_out_of_fold(curve, max_early_stop, larger_is_safer=False,

@@ -86,7 +86,7 @@ def add_end_counts(result: dict[str, Any], ends: Mapping[str, Mapping[str, float
     `learning.data.tile_truth.FinalFrame.judge`) in its counts: ``end_blocks`` (blocks
     whose truth converges in the stack) and ``end_early`` (those the frame leaves above tau),
     and their rate ``end_early_rate``, per scene and pooled: the rate a tile-grain c is
-    calibrated to (issue 49: what the user judges, not early tiles)."""
+    calibrated to (what the user judges, not early tiles)."""
     for scene, end in ends.items():
         entry = result["per_scene"][scene]
         entry["counts"].update(end_blocks=int(end["converging"]), end_early=int(end["early"]))

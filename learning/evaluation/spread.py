@@ -1,11 +1,11 @@
-"""How well an error estimate ranks a scene's tiles (issue 59): the spread s.
+"""How well an error estimate ranks a scene's tiles: the spread s.
 
 A stop "estimate <= c" is early on a tile when the estimate falls to c at some level
 before the tile's truth. The c each tile can bear is the smallest estimate it shows
 before its truth; one c for all tiles must be below nearly all of them, so the wider they
 spread, the more samples the safe c costs (about exp(3.3 s) for 5 % early stops). s is the
 standard deviation of log(that smallest estimate / tau) over the tiles whose truth
-converges (issue 49 measured 0.28 for the halves' history on the held-out stacks).
+converges (measured: 0.28 for the halves' history on the held-out stacks).
 """
 from __future__ import annotations
 

@@ -208,7 +208,7 @@ def guarded_flip_scores(stack: Stack, exposure: float = 0.0, progress: bool = Fa
 
 def stack_tile_terms(stack: Stack, tile: int, exposure: float = 0.0, ppd: float = DEFAULT_PPD,
                      progress: bool = False, pooling: str = CRITERION_POOLING) -> np.ndarray:
-    """float64 [3, K, n_tiles]: the flip criterion's terms per tile (issue 41), as the live
+    """float64 [3, K, n_tiles]: the flip criterion's terms per tile, as the live
     loop makes them at tile grain: the FLIP map between the halves of each whole block (its
     tiles' neighbours are context) pooled over the tile; the tile's dot term; whether the
     tile is flat (1.0) in the level's image. Tiles block-major (`noisefeat.pooling.
@@ -237,8 +237,8 @@ def stack_tile_terms(stack: Stack, tile: int, exposure: float = 0.0, ppd: float 
 def guarded_tile_flip_scores(stack: Stack, tile: int, exposure: float = 0.0, progress: bool = False,
                              estimate: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(scores [K, n_tiles], flat [K, n_tiles]) of the flip criterion at tile grain: -e of
-    the tile's history (`learning.inputs.history.running`, issue 49), or of a learned
-    `estimate` [K, n_tiles] of its error (issue 59), NaN where the tile's dot guard holds it
+    the tile's history (`learning.inputs.history.running`), or of a learned
+    `estimate` [K, n_tiles] of its error, NaN where the tile's dot guard holds it
     at the stack's tau; flat where the tile is."""
     from .history import running
 
@@ -302,8 +302,8 @@ def check_curve(curve: Any) -> None:
 
 def unit_calibration(cal: dict[str, Any], tile: int | None) -> dict[str, Any]:
     """The part of a calibration for one grain: the block curve, or with `tile` the curve
-    calibrated per tile against the tile truth (``tiles`` in flip.json, issue 41) on the
-    history's statistic (issue 49: a tile curve of another statistic is refused); a file
+    calibrated per tile against the tile truth (``tiles`` in flip.json) on the
+    history's statistic (a tile curve of another statistic is refused); a file
     without it gives the block curve, with a warning (`noisestop calibrate` makes both)."""
     if tile is None:
         return {**cal, "unit": cal.get("unit", "block")}

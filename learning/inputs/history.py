@@ -1,4 +1,4 @@
-"""A unit's noise estimate from its whole decision history, not from one level (issue 49).
+"""A unit's noise estimate from its whole decision history, not from one level.
 
 Monte Carlo noise falls as 1/sqrt(spp), so each decision's score e_j (the halves' FLIP at
 spp_j) times spp_j^ALPHA estimates one constant per unit. One level's score is noisy; the
@@ -8,7 +8,7 @@ The criterion stops on it (the stop rule with score -e_hist) where it decides fr
 history.
 
 Each estimate weighs the samples it stands for, w_j = spp_j minus the spp of the unit's
-decision before it (issue 50): decided after every pass of a constant step, every w_j is
+decision before it: decided after every pass of a constant step, every w_j is
 the step and this is the plain mean the tile curve of c(tau) was calibrated on; decided at
 geometric spp steps (`renderer.live.passloop.decision_passes`), it is the same mean sampled more
 sparsely, not one tilted towards the early, noisier levels. So one curve holds for every

@@ -1,4 +1,4 @@
-"""The inputs of the learned per-tile error estimate (issue 59), one function for the stored
+"""The inputs of the learned per-tile error estimate, one function for the stored
 stacks and the live loop, so that what is trained on is what is decided on.
 
 A row is one tile at one decision: its halves' score now (`e_last`) and its history's

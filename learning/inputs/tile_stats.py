@@ -1,5 +1,5 @@
 """What a tile's half buffers show besides their FLIP score: the content terms a learned
-estimate of the tile's true error reads (issue 59).
+estimate of the tile's true error reads.
 
 The halves' score is blind where both halves miss the same rare paths (dark tiles: both
 black where the reference is not) and where texture masks noise the halves still disagree

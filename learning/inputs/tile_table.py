@@ -1,4 +1,4 @@
-"""A stack's rows for the learned per-tile error estimate (issue 59): every tile at every
+"""A stack's rows for the learned per-tile error estimate: every tile at every
 level, as the live loop at tile grain would see it had it decided there, with the
 observer's same-samples error of the tile as the target's truth.
 

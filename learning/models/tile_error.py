@@ -1,4 +1,4 @@
-"""The learned per-tile error estimate (issue 59): how far a tile's halves history is from
+"""The learned per-tile error estimate: how far a tile's halves history is from
 the observer's error, learned from the training corpus, as a scikit-learn regressor.
 
 `TileErrorEstimator.fit(X, y)` learns y = log(true error) - log(e_hist) from rows of

@@ -1,4 +1,4 @@
-"""The learned stop's bundle (issue 59): a directory with manifest.json (the input columns, the
+"""The learned stop's bundle: a directory with manifest.json (the input columns, the
 tile, c(tau) and the training record) and estimator.skops (a `TileErrorEstimator`), never
 a pickle: skops loads only the types on `ALLOWED_TYPES`. The package ships one in
 learning/bundled_estimate (`make estimate`); `noisestop train-estimate --out DIR` writes a

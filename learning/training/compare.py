@@ -1,4 +1,4 @@
-"""The issue-4 comparison: every model kind, trained on the training scenes and judged on
+"""The model comparison: every model kind, trained on the training scenes and judged on
 held-out ones (learning.evaluation.generalisation), on one table.
 
 Columns: precision, f1, threshold_mse, early_stop_rate, labels queried (and % of the

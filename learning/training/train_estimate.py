@@ -1,4 +1,4 @@
-"""Training the learned stop (issue 59): the per-tile error estimate and its c(tau).
+"""Training the learned stop: the per-tile error estimate and its c(tau).
 
 1. Every training stack's tiles at every level become rows (`learning.inputs.tile_table`);
    the estimator learns log(true / e_hist) on the rows whose true error lies in `BAND`,

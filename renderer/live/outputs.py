@@ -121,7 +121,7 @@ def spp_map_png(spp: np.ndarray, windows: Sequence[Sequence[int]], block_spp: Se
     the criterion stopping them outlined in red, blocks a budget left above the noise
     target (`above_target`, block ids) outlined in orange; each block's spp written on it
     when there are at most 64 blocks. Drawn with Pillow and cmap's viridis: matplotlib
-    cost every render 0.5 s to import and draw (issue 43: what a user times is the whole
+    would cost every render 0.5 s to import and draw (what a user times is the whole
     command).
     """
     from PIL import Image, ImageDraw, ImageFont

@@ -2,7 +2,7 @@
 
 Why: Mitsuba opens what a scene names itself, past `noisefeat.safeio`: a ``<shape
 type="ply">`` naming /dev/zero grew a render to 7.6 GB, an ``<include>`` or a bitmap of a
-FIFO hung it (issue 51). So the XML is walked first, as Mitsuba 3's parser reads it
+FIFO hung it. So the XML is walked first, as Mitsuba 3's parser reads it
 (src/core/parser.cpp, 3.9), and each file it names must be a regular file within its kind's
 cap (`safeio.CAPS`: mesh, texture, environment map, included scene, ...); the first that is
 not is refused in one line naming the file and the element naming it.

@@ -218,7 +218,7 @@ def test_dataset_relabel_rewrites_first_observer_labels_and_keeps_human_ones(tmp
     (data / "sky" / "meta.json").write_text(json.dumps(h))
     out = json.loads(run("dataset", "relabel", str(data), "--json").stdout)
     done = {r["scene"]: r["relabelled"] for r in out["stacks"]}
-    # the fixture's current labels lacked the tile truth (issue 41): relabel writes it too
+    # the fixture's current labels lack the tile truth: relabel writes it too
     assert done == {"checker": True, "cornell": True, "cornell_dark": True, "sky": False}
     assert json.loads(meta.read_text())["labeler"]["pooling"] == "tile16-max+dots"
     assert len(json.loads(meta.read_text())["tile_thresholds"]) == 16   # 16-px blocks: a tile each

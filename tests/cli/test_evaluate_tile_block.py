@@ -1,6 +1,6 @@
-"""`noisestop evaluate --tile T --criterion model` where T equals the stacks' block (issue
-51): the tile is the whole block, so the model decides whole blocks (no flip gate),
-instead of failing on a tiling that has no tiles."""
+"""`noisestop evaluate --tile T --criterion model` where T equals the stacks' block: the
+tile is the whole block, so the model decides whole blocks (no flip gate), instead of
+failing on a tiling that has no tiles."""
 from __future__ import annotations
 
 import json

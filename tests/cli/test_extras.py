@@ -90,7 +90,7 @@ def _requirement_name(req: str) -> str:
 
 
 #: the source checkout's own top-level folders (not third-party, not installed)
-CHECKOUT = ("benchmarks", "tests")
+CHECKOUT = ("benchmarks", "examples", "tests")
 
 
 def _third_party_imports(packages: tuple[str, ...] = PACKAGES) -> dict[str, set[str]]:
@@ -131,7 +131,7 @@ def test_every_import_is_in_the_core_or_its_extra():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     core = {_requirement_name(r) for r in project["dependencies"]}
     extras = {k: {_requirement_name(r) for r in v} for k, v in project["optional-dependencies"].items()}
-    assert set(PACKAGES_OF) | {"all", "dev"} == set(extras)
+    assert set(PACKAGES_OF) | {"all", "dev", "docs"} == set(extras)       # dev and docs: tools, imported by none
     assert extras["all"] == {"noisestop"} and "render,serve,data,transfer" in str(
         project["optional-dependencies"]["all"])
     for name, files in _third_party_imports().items():
@@ -145,7 +145,7 @@ def test_every_import_is_in_the_core_or_its_extra():
             assert dist in core, (name, "imported but not a core dependency", files)
     for extra, modules in PACKAGES_OF.items():
         assert all(EXTRA_OF[m] == extra for m in modules)
-    bench = _third_party_imports(("benchmarks",))
+    bench = _third_party_imports(("benchmarks", "examples"))     # the checkout's code: what [all] and [dev] bring
     assert DEV_ONLY <= set(bench)                  # the scan sees the developer tools where they are
     every_extra = set().union(*extras.values())
     for name, files in bench.items():

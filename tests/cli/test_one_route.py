@@ -166,12 +166,12 @@ def test_flip_stops_agree_on_every_route(data, monkeypatch, tmp_path):
     assert np.isfinite(measured).all() and (measured >= 0).all()
     # half the blocks end below c, taken midway between two scores: a c equal to a score
     # would let the routes' FLIP (batched differently; equal to 1e-6, test_flip) and
-    # another CPU's matmul rounding decide that block's stop (issue 39)
+    # another CPU's matmul rounding decide that block's stop
     last = np.sort(e[-1][np.isfinite(e[-1])])
     c = float(last[len(last) // 2 - 1] + last[len(last) // 2]) / 2
     assert np.abs(measured - c).min() > 1e-6                # no decision within rounding of c
     rule = StopRule(flip_offset(c))
-    # the criterion's scores as the live loop makes them: -e, held by the dot guard (issue 33)
+    # the criterion's scores as the live loop makes them: -e, held by the dot guard
     truth = stop_spp(rule.stops(guarded_flip_scores(stack), stack.spp, stack_flat(stack)), stack.spp)
     assert truth[FLAT_BLOCK] == stack.spp[0]             # flat: at the first level, halves or not
     assert 2 <= sum(t > 0 for t in truth) <= 14

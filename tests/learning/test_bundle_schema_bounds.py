@@ -1,4 +1,4 @@
-"""A model.skops's schema is bounded and its attributes known (issue 51): a schema of 88 MB
+"""A model.skops's schema is bounded and its attributes known: a schema of 88 MB
 of nodes within the file caps was accepted (`render --model` peaked at 1.1 GB against
 0.47 GB), and an attribute no noisestop estimator has was loaded as it came. Both are
 refused in one line naming the file, the schema before skops parses it."""

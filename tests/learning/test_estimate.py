@@ -1,4 +1,4 @@
-"""The learned stop (issue 59): per-tile content terms, the error estimator, its bundle, its
+"""The learned stop: per-tile content terms, the error estimator, its bundle, its
 out-of-fold calibration, and the `estimate` criterion deciding on what it was trained on."""
 from __future__ import annotations
 

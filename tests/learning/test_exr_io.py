@@ -16,7 +16,7 @@ from learning.data.exr import read_exr, read_exr_channels, read_png, write_exr, 
 from tests.support import ROOT
 
 FIXTURE_EXRS = sorted((ROOT / "tests" / "fixtures" / "dataset").glob("*/**/*.exr")) + sorted(
-    (ROOT / "renderer" / "references").glob("*.exr"))
+    (ROOT / "examples" / "references").glob("*.exr"))
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""A unit's noise estimate from its decision history (issue 49): one formula in two forms
+"""A unit's noise estimate from its decision history: one formula in two forms
 (the calibration's matrix, the live loop's running sums), stable at the extremes."""
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ def test_the_live_form_is_the_calibration_form() -> None:
 
 def test_with_a_constant_step_the_history_is_the_plain_mean_bit_for_bit() -> None:
     """Decided after every pass, every weight is the step: the statistic the tile curve of
-    c(tau) was calibrated on (issue 49), to the last bit for a power-of-two step."""
+    c(tau) was calibrated on, to the last bit for a power-of-two step."""
     rng = np.random.default_rng(2)
     e = rng.uniform(0.005, 0.2, (len(SPP), 7))
     x = e * SPP[:, None] ** ALPHA
@@ -41,7 +41,7 @@ def test_with_a_constant_step_the_history_is_the_plain_mean_bit_for_bit() -> Non
 
 
 def test_sparse_decisions_weigh_each_estimate_by_the_samples_it_stands_for() -> None:
-    """Decided at some levels only (a geometric decision schedule, issue 50), each estimate
+    """Decided at some levels only (a geometric decision schedule), each estimate
     weighs the spp since the unit's decision before it, so the history is the step
     schedule's mean sampled more sparsely, not one tilted towards the early levels."""
     rng = np.random.default_rng(3)

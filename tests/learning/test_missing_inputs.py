@@ -1,4 +1,4 @@
-"""The Python API's loaders raise ValueError for a path naming nothing (issue 51): a
+"""The Python API's loaders raise ValueError for a path naming nothing: a
 `noisefeat.errors.InputNotFound`, which is a FileNotFoundError too, naming the path."""
 from __future__ import annotations
 

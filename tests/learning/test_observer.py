@@ -271,7 +271,7 @@ def _dotted(n_dots: int, value: float = 0.005, size: int = 64) -> tuple[np.ndarr
 
 @pytest.mark.parametrize("n_dots,v3_converged", [(0, True), (8, True), (16, True), (17, False), (60, False)])
 def test_version_3_refuses_dots_on_black_that_the_tile_mean_blurs_away(n_dots, v3_converged):
-    """Issue 33: single light pixels on black at 1:1. FLIP's 16x16 tile mean stays under tau
+    """Single light pixels on black at 1:1. FLIP's 16x16 tile mean stays under tau
     with sixty of them; the dot term lets at most 16 of a 64x64 block through."""
     ref, lev = _dotted(n_dots)
     e = pooled_errors(ref, [lev], (1, 1))[:, 0, 0]
@@ -293,8 +293,8 @@ def test_the_dot_level_follows_tau():
 
 def test_a_version_2_stack_is_relabelled_by_its_dot_term_alone(tmp_path, monkeypatch):
     """Stacks labelled before version 3 keep their cached FLIP errors: relabelling reads the
-    levels for the dot term only, never FLIP (the tile truth's FLIP terms, issue 41, and its
-    final-frame fixed point, issue 49, are cached apart, made once)."""
+    levels for the dot term only, never FLIP (the tile truth's FLIP terms and its final-frame
+    fixed point are cached apart, made once)."""
     from learning.data.observer import observer_for
     from learning.data.tile_terms import stack_tile_errors
 

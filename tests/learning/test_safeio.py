@@ -1,4 +1,4 @@
-"""Issue 34: every input file is read through noisefeat.safeio: regular files only, each kind
+"""Every input file is read through noisefeat.safeio: regular files only, each kind
 capped in size, EXR chunks checked against the file; the token file, flip.json, meta.json,
 references and the XDG rule."""
 from __future__ import annotations

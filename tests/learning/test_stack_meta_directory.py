@@ -1,5 +1,5 @@
-"""A stack whose meta.json is a directory (issue 51): `evaluate` used to skip it without a
-word and exit 0 on the other stacks; it is refused in one line naming it."""
+"""A stack whose meta.json is a directory is refused in one line naming it (not skipped
+without a word while `evaluate` exits 0 on the other stacks)."""
 from __future__ import annotations
 
 import shutil

@@ -1,4 +1,4 @@
-"""The truth at tile grain (issue 41): a tile is converged at a level when its FLIP mean is at
+"""The truth at tile grain: a tile is converged at a level when its FLIP mean is at
 most tau and at most one pixel exceeds the dot level, at that level and every later one."""
 from __future__ import annotations
 
@@ -159,7 +159,7 @@ def _noisy_stack(path, scene: str, seed: int, amplitude: tuple[float, float] = (
 
 def test_c_is_calibrated_per_tile_against_the_tile_truth(tmp_path) -> None:
     """`noisestop calibrate` makes the tile curve too: chosen out of fold against the final
-    frame's early blocks (issue 49), on the history's statistic, and recorded with its unit;
+    frame's early blocks, on the history's statistic, and recorded with its unit;
     the flip criterion at tile grain reads it, a file without it falls back to the block
     curve, and a tile curve of another statistic is refused."""
     from learning.evaluation.calibrate import calibrate_flip_curve
@@ -178,7 +178,7 @@ def test_c_is_calibrated_per_tile_against_the_tile_truth(tmp_path) -> None:
     cal = {**blocks, "tiles": {"16": part}}
     assert unit_calibration(cal, 16)["curve"] == tiles["curve"] and unit_calibration(cal, 16)["unit"] == "tile16"
     assert unit_calibration(blocks, 16)["curve"] == blocks["curve"]          # no tile curve: the block one
-    older = {**blocks, "tiles": {"16": {k: v for k, v in part.items() if k != "statistic"}}}   # issue 41's
+    older = {**blocks, "tiles": {"16": {k: v for k, v in part.items() if k != "statistic"}}}   # no statistic named
     with pytest.raises(ValueError, match="recalibrate"):
         unit_calibration(older, 16)
 
@@ -198,7 +198,7 @@ def test_the_shipped_calibration_holds_a_checked_tile_curve(tmp_path) -> None:
         load_flip_calibration(tmp_path / "flip.json")
 
 
-# ----------------------------------------------------------------------------- on the final frame (issue 49)
+# ----------------------------------------------------------------------------- on the final frame
 
 def _leaky(residual: float = 0.01) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """A checkerboard of early and late tiles whose residual noise halves every level after
@@ -251,7 +251,7 @@ def test_a_tile_noisy_at_the_last_level_is_censored_and_holds_no_neighbour() -> 
 
 def test_stored_tile_truth_of_the_first_version_is_recomputed(tmp_path) -> None:
     obs, st = _written(tmp_path)
-    old = {k: v for k, v in obs.labeler.items() if k != "tile_truth"}   # as issue 41's relabel wrote it
+    old = {k: v for k, v in obs.labeler.items() if k != "tile_truth"}   # as a same-samples relabel wrote it
     update_labels(st.path, st.thresholds, old, 16, [8] * 16)
     assert relabel_if_stale(read_stack(st.path))[1]                 # stale: rewritten
     again = read_stack(st.path)

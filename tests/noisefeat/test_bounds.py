@@ -119,7 +119,7 @@ def test_env_seconds_is_the_one_parser_of_time_settings(raw, zero, want):
 
 def test_no_noisestop_number_is_parsed_outside_bounds():
     """One parser of NOISESTOP_* numbers (`env_int`, `env_seconds`): no product module turns
-    an environment value into a number itself (issue 40 found three)."""
+    an environment value into a number itself."""
     import re
 
     from tests.support import ROOT

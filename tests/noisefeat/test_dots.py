@@ -1,6 +1,6 @@
 """The dot term (noisefeat.dots): the observer's version-3 rule and the criteria's guard,
 at the extremes (black, constant, fireflies, NaN/Inf, tiny and huge values) and on the
-dots-on-black case of issue 33."""
+dots-on-black case (a few dozen light pixels on black)."""
 from __future__ import annotations
 
 import numpy as np
@@ -107,7 +107,7 @@ def view(a: np.ndarray, b: np.ndarray, spp: tuple[int, int] = (16, 16)) -> Block
 
 
 def test_flip_criterion_holds_a_block_whose_halves_disagree_on_dots():
-    """Issue 33: 40 dots on black in one half. FLIP between the halves at 67 ppd (tile 8x8)
+    """40 dots on black in one half. FLIP between the halves at 67 ppd (tile 8x8)
     stays under a lenient c, so without the guard (tau 1: a dot level above any display
     error) the block stops; at tau 0.02 it does not, and its ratio says why."""
     a, b = dots_on_black(40, value=0.01, seed=1), np.zeros((64, 64, 3))

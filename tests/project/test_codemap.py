@@ -1,5 +1,5 @@
-"""docs/codemap.md names every room: each module of the four packages and of the benchmarks,
-and each sub-package, appears (as `name`, or `name/` for a sub-package) in its package's part
+"""docs/codemap.md names every room: each module of the four packages, of the benchmarks and
+of the examples, and each sub-package, appears (as `name`, or `name/` for a sub-package) in its package's part
 of the map (the section headed by the package's name), so a newcomer can find any file from
 the docs."""
 from __future__ import annotations
@@ -9,7 +9,7 @@ from pathlib import Path
 
 from tests.support import ROOT
 
-ROOMS = ("noisefeat", "learning", "renderer", "service", "benchmarks")
+ROOMS = ("noisefeat", "learning", "renderer", "service", "benchmarks", "examples")
 CODEMAP = ROOT / "docs" / "codemap.md"
 
 

@@ -1,5 +1,5 @@
 """The house rules, checked on the source: dependencies point one way (noisefeat <-
-learning <- renderer <- service <- benchmarks, DESIGN.md, and inside learning its
+learning <- renderer <- service <- examples <- benchmarks, DESIGN.md, and inside learning its
 sub-packages in the order of their jobs), in every import statement of a module, inside
 functions too (a function-level import only hides an upward edge or a circle until the
 function runs), and no modules import each other around a circle, among the packages and
@@ -11,17 +11,20 @@ from pathlib import Path
 from tests.support import ROOT
 
 PACKAGES = ("noisefeat", "learning", "renderer", "service")
-#: the benchmarks sit above the packages: they may import any of them, none imports them
+#: the examples (`make run`'s demo) sit above the packages: they may import any of them, none
+#: imports them
+EXAMPLES = "examples"
+#: the benchmarks sit above the packages and the examples: they may import any of them, none imports them
 BENCHMARKS = "benchmarks"
 #: learning's rooms, each importing only from those before it (learning/__init__.py)
 LEARNING = {"names": 0, "stoprule": 0, "data": 1, "inputs": 2, "models": 3, "evaluation": 4, "training": 5}
-#: renderer's rooms (issue 52): a folder per job, each importing only the jobs named here and
+#: renderer's rooms: a folder per job, each importing only the jobs named here and
 #: the shared modules at the top; the shared modules import no job but the criteria; the
-#: doors at the top (the package, api, plugin, render_many, showcase) may import any room
+#: doors at the top (the package, api, plugin, render_many) may import any room
 RENDERER_JOBS = {"client": set(), "criteria": {"client"}, "scenes": set(), "live": {"criteria", "scenes"},
                  "simulation": {"criteria", "live"}, "dataset": {"live", "scenes"}}
 RENDERER_SHARED = {"spec", "settings", "plugin_schema", "errors", "farm"}
-RENDERER_DOORS = {"api", "plugin", "render_many", "showcase"}
+RENDERER_DOORS = {"api", "plugin", "render_many"}
 
 
 def _modules(root: Path = ROOT, packages: tuple[str, ...] = PACKAGES) -> dict[str, Path]:
@@ -73,7 +76,8 @@ def _graph(anywhere: bool = False, root: Path = ROOT,
     return {name: _load_time_imports(name, path, known, anywhere) for name, path in mods.items()}
 
 
-def upward_imports(root: Path = ROOT, packages: tuple[str, ...] = PACKAGES + (BENCHMARKS,)) -> list[tuple[str, str]]:
+def upward_imports(root: Path = ROOT,
+                   packages: tuple[str, ...] = PACKAGES + (EXAMPLES, BENCHMARKS)) -> list[tuple[str, str]]:
     """(importer, imported) for every import statement anywhere in a module (load time,
     functions, methods, `if` and `try` blocks) that names a package later in `packages`."""
     rank = {pkg: i for i, pkg in enumerate(packages)}
@@ -83,6 +87,7 @@ def upward_imports(root: Path = ROOT, packages: tuple[str, ...] = PACKAGES + (BE
 
 def test_dependencies_point_one_way() -> None:
     assert len(_modules(packages=(BENCHMARKS,))) >= 18          # the benchmarks are in the graph
+    assert "examples.showcase" in _modules(packages=(EXAMPLES,))   # and the examples
     assert upward_imports() == []
 
 

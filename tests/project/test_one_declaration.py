@@ -1,4 +1,4 @@
-"""One declaration per setting (issue 52): no module of `renderer` checks or defaults a
+"""One declaration per setting: no module of `renderer` checks or defaults a
 render setting outside its declaration, the render spec's row (`renderer/settings.py`,
 checked and combined once by `renderer/spec.py`) or a criterion's own declaration (its
 `settings`, read through the same rows).

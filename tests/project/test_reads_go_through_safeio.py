@@ -1,4 +1,4 @@
-"""Every file the product reads goes through `noisefeat.safeio` (issue 42): a walk of the
+"""Every file the product reads goes through `noisefeat.safeio`: a walk of the
 four packages' code finds each call that reads a file by path, and fails on one that is not
 on the list below with its reason. Image libraries count too (Pillow, imageio, OpenEXR and
 any `imread`): they open a path themselves unless handed bytes safeio read. Controls: the

@@ -1,5 +1,5 @@
 """What ships: the wheel (`pip install 'noisestop[serve]'`) and the serving image hold the four
-packages and no benchmark, load-generator or attack code; from such a plain install
+packages and no benchmark, example, load-generator or attack code; from such a plain install
 `noisestop bench` says in one line that it needs a source checkout."""
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ import pytest
 from tests.support import ROOT
 
 PACKAGES = ("noisefeat", "learning", "renderer", "service")
-#: what a checkout holds and no install may: the benchmarks, the tests, the old lab
-NOT_SHIPPED = ("benchmarks/", "tests/", "service/lab/")
+#: what a checkout holds and no install may: the benchmarks, the examples, the tests, the old lab
+NOT_SHIPPED = ("benchmarks/", "examples/", "tests/", "service/lab/")
 #: file names of the load generators, attack drivers and hardening harnesses (and the attack
 #: package's folder), wherever they would land
 BENCH_FILES = re.compile(r"(^|/)((attack|loadtest|openloop|reliability|hardening\w*|bench_\w+)\.py$|attack/)")
@@ -37,10 +37,11 @@ def _copy_source(dest: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory) -> Path:
-    """The wheel `pip wheel` builds from a copy of the checkout, benchmarks/ and tests/ included."""
+    """The wheel `pip wheel` builds from a copy of the checkout, benchmarks/, examples/ and tests/ included."""
     tmp = tmp_path_factory.mktemp("wheel")
     src = _copy_source(tmp / "src")
     assert (src / "benchmarks" / "attack" / "wire.py").is_file()   # there to be left out
+    assert (src / "examples" / "references" / "studio_preview.exr").is_file()
     out = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation",
                           "--no-index", "-w", str(tmp / "dist"), str(src)],
                          capture_output=True, text=True, timeout=600)
@@ -70,7 +71,7 @@ def test_the_checker_sees_benchmarks_in_a_listing() -> None:
     moved into a package is caught; the real packages' files are not."""
     listing = ["service/app.py", "service/commands/bench.py", "learning/models/bundle.py", "service/lab/attack.py",
                "benchmarks/bench.py", "tests/support/demo.py", "service/loadtest.py", "renderer/bench_passes.py",
-               "service/attack/wire.py", "learning/hardening_round5.py"]
+               "service/attack/wire.py", "learning/hardening_files.py"]
     assert shipped_benchmarks(listing) == listing[3:]
 
 

@@ -1,7 +1,7 @@
-"""`renderer.render` raises ValueError for every bad argument, as its docstring promises
-(issue 51): `tau=10**400` raised OverflowError, a missing model FileNotFoundError and an
-unreachable server ConnectionError. The last two are now ValueError subclasses that are
-still FileNotFoundError and ConnectionError (`renderer.errors`)."""
+"""`renderer.render` raises ValueError for every bad argument, as its docstring promises:
+`tau=10**400` (not OverflowError), a missing model and an unreachable server, whose errors
+are ValueError subclasses that are still FileNotFoundError and ConnectionError
+(`renderer.errors`)."""
 from __future__ import annotations
 
 from pathlib import Path

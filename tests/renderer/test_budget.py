@@ -139,8 +139,8 @@ def test_a_budget_is_spent_to_the_last_pass_it_pays_for(tmp_path) -> None:
 @pytest.mark.parametrize("bad", [-1, 0, float("nan"), float("inf"), "12", True, MAX_SPP * 2])
 def test_bad_budgets_are_refused_at_each_door_by_one_check(bad) -> None:
     """One check, one message (the render spec's row), at the door: the live render refuses
-    the budgets the row does, MAX_SPP included (the budget's own check had no upper bound,
-    issue 40); the simulation behind it checks nothing again."""
+    the budgets the row does, MAX_SPP included; the simulation behind it checks nothing
+    again."""
     from renderer.settings import ROW
 
     with pytest.raises(ValueError, match="spp_budget must be a finite number in") as one:

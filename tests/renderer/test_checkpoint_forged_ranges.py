@@ -1,4 +1,4 @@
-"""Forged checkpoints whose digest was recomputed (issue 51): huge counters ended the
+"""Forged checkpoints whose digest was recomputed: huge counters ended the
 resumed render in an OverflowError "(a bug)", a timer of 1e308 was reported as wall_s with
 exit 0, and sums scaled by 1e30 resumed with every block converged. Each is refused in one
 line naming the file, before any pass is added."""
@@ -57,10 +57,10 @@ def _more_samples_weighed_than_decided(arrays: dict[str, np.ndarray]) -> None:
 
 FORGERIES = {"huge counters": _set("counter_values", 2**62), "a timer of 1e308": _set("timer_values", 1e308),
              "sums x1e30": _scale_sums,
-             # the decision history's evidence (issue 49): what a history criterion decides from
+             # the decision history's evidence: what a history criterion decides from
              "negative evidence": _set("evidence", -1.0), "NaN evidence": _set("evidence", np.nan),
              "more samples weighed than decided": _more_samples_weighed_than_decided,
-             # each unit's next decision (issue 50): never before its last one
+             # each unit's next decision: never before its last one
              "a next decision in the past": _set("next_spp", -1)}
 
 

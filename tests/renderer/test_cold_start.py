@@ -1,4 +1,4 @@
-"""Issue 43: what a short render need not pay."""
+"""What a short render need not pay (a user times the whole command)."""
 from __future__ import annotations
 
 import numpy as np
@@ -27,8 +27,8 @@ def test_a_render_shorter_than_the_checkpoint_period_writes_no_checkpoint(tmp_pa
 
 
 def test_the_spp_map_is_drawn_without_matplotlib() -> None:
-    """The spp map every render writes costs no matplotlib import (0.5 s of every command,
-    issue 43), and it is a picture of the samples: viridis, log2 from min to max spp (the
+    """The spp map every render writes costs no matplotlib import (0.5 s of every command),
+    and it is a picture of the samples: viridis, log2 from min to max spp (the
     block at min spp dark purple, the one at max spp yellow), a red outline round a block
     that ran to max spp."""
     import io

@@ -103,7 +103,7 @@ def test_nonfinite_pixels_never_give_nan_decisions():
     err = c.pixel_error(i, a)
     assert np.isfinite(err).all()
     d = c.decide([3], [view(i, a)])
-    # a pixel with no finite estimate holds the block noisy, its ratio "no estimate" (issue 51)
+    # a pixel with no finite estimate holds the block noisy, its ratio "no estimate"
     assert d.verdict.dtype == np.int8 and d.verdict.tolist() == [-1] and np.isnan(d.ratio).all()
     assert d.counts["nonfinite_blocks"] == 1
 
@@ -220,7 +220,7 @@ def test_model_criterion_without_quick_image(tmp_path):
 
 
 def test_a_criterion_is_configuration_only_and_the_loop_keeps_the_render(model_and_stack):
-    """Issue 40: a render changes nothing in its criterion (no counters, ratios or caches
+    """A render changes nothing in its criterion (no counters, ratios or caches
     there), so one object judges any number of renders alike; the loop counts, and prepares
     the quick image's features once per render (16 quick rows, then one row per block asked)."""
     from renderer.criteria import FlipCriterion

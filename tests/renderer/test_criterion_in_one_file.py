@@ -1,4 +1,4 @@
-"""A criterion is one file (issue 52): `tests/support/plugin_criterion.py` declares
+"""A criterion is one file: `tests/support/plugin_criterion.py` declares
 ``halves_gap`` and nothing else in the project knows it, yet importing that file is all it
 takes to render with it from all three doors (`renderer.render`, ``noisestop render`` in
 process, and an XML scene whose integrator is the ``noisestop`` plugin), with its own

@@ -1,4 +1,4 @@
-"""decide_growth (issue 50): a unit's spp grows by at least that fraction between two of its
+"""decide_growth: a unit's spp grows by at least that fraction between two of its
 decisions, so a unit of thousands of spp near its target is not judged at every pass of 16;
 a budget render skips and spaces decisions as the unbudgeted one does."""
 from __future__ import annotations

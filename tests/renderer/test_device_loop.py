@@ -1,4 +1,4 @@
-"""The device-resident loop (issue 32): the same stops and image as the host loop it replaced,
+"""The device-resident loop: the same stops and image as the host loop it replaced,
 grown passes that change nothing but the launches, FLIP where the half buffers live, and no
 state leaking from one render into the next."""
 from __future__ import annotations

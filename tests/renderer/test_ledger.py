@@ -1,4 +1,4 @@
-"""A render's counters and timers have one owner, its ledger (`renderer.live.ledger`, issue 52)."""
+"""A render's counters and timers have one owner, its ledger (`renderer.live.ledger`)."""
 from __future__ import annotations
 
 import numpy as np

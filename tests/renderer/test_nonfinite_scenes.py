@@ -1,4 +1,4 @@
-"""Non-finite samples never converge (issue 51): a unit whose pixels have no finite sample
+"""Non-finite samples never converge: a unit whose pixels have no finite sample
 renders to max spp under every criterion, and the render's end says so (stderr, the
 summary, report.json, exit status 3)."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""No code is loaded from a scene's folders or the current one (hardening 6).
+"""No code is loaded from a scene's folders or the current one.
 
 Mitsuba looks a plugin's library up as ``plugins/<type>.so`` through its file resolver,
 which holds the scene's folder (and the current folder) before Mitsuba's own: a

@@ -1,7 +1,7 @@
-"""A ``noisestop`` integrator with two nested integrators and a property (issue 51): it used
-to fail to load with Mitsuba's "unreferenced property" (the property was never read once
-the nesting was refused); the error now names the real cause, one line, on every door.
-Likewise one nested in itself, and a sensor index out of range (hardening 6)."""
+"""A ``noisestop`` integrator with two nested integrators and a property: the error names
+the real cause (not Mitsuba's "unreferenced property", from the property never read once
+the nesting was refused), one line, on every door. Likewise one nested in itself, and a
+sensor index out of range."""
 from __future__ import annotations
 
 from pathlib import Path

@@ -183,11 +183,12 @@ def test_the_command_line_takes_a_reference_exr(tmp_path, capsys, _quiet_cli):
 
 
 def test_no_block_the_default_criterion_stops_holds_visible_dots():
-    """Issue 33 on a live render: `make run`'s scene (black background, one spot light), the
-    shipped criterion at its defaults, judged against the shipped 8192-spp reference: no
-    stopped block holds more than 16 pixels over 0.05 display error (at tau 0.02), and
-    blocks do stop, the near-black ones among them (else the check says nothing)."""
-    from renderer.showcase import shipped_reference
+    """Dots on black on a live render: `make run`'s dark scene (black background, one spot
+    light), the shipped criterion at its defaults, judged against the shipped 8192-spp
+    reference: no stopped block holds more than 16 pixels over 0.05 display error (at tau
+    0.02), and blocks do stop, the near-black ones among them (else the check says
+    nothing)."""
+    from examples.showcase import shipped_reference
 
     ref = shipped_reference("spot_stage")
     r = renderer.render("spot_stage", reference=ref, resolution=256, block=64, step=32, min_spp=32,

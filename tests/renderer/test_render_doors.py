@@ -1,5 +1,5 @@
-"""The drifts between the render's doors (issue 40), each a test that failed before it was
-fixed: a model given without a criterion is rendered with, an exposure given as 0 wins over
+"""The drifts between the render's doors, each a test that failed before it was fixed: a
+model given without a criterion is rendered with, an exposure given as 0 wins over
 the scene plugin's, and the time limit and the sample budget have one bound on every door."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Every render-spec row through all three doors (issue 40): `renderer.render`, `noisestop
+"""Every render-spec row through all three doors: `renderer.render`, `noisestop
 render` and the ``noisestop`` Mitsuba plugin. At its bounds a value resolves to the same
 spec value on every door; just past them, or of a wrong type, every door gives the same
 one-line error naming the setting (the text before ", got", which shows the value as that

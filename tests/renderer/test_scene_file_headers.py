@@ -1,4 +1,4 @@
-"""Decompression bombs under the size caps (hardening 6): the images and meshes a scene
+"""Decompression bombs under the size caps: the images and meshes a scene
 names are bounded by what their headers state, before Mitsuba decodes them.
 
 A 1.2 MB PNG of 20000 x 20000 grew a render past 2.5 GB, as did a sparse obj just under

@@ -1,4 +1,4 @@
-"""A scene file's own ``noisestop`` integrator settings on every door (issue 51): loading
+"""A scene file's own ``noisestop`` integrator settings on every door: loading
 by path (`renderer.render(PATH)`, `noisestop render --scene PATH`) resolves given > scene
 plugin > default exactly as an already-loaded ``mi.Scene`` does, and report.json's
 settings_source says "scene plugin". Table-driven: each row a plugin can set, through each

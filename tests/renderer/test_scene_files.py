@@ -1,8 +1,8 @@
-"""Issue 51: every file a scene XML names is checked before Mitsuba opens it.
+"""Every file a scene XML names is checked before Mitsuba opens it.
 
 Each kind of named file (a ply mesh, an <include>, a bitmap texture, an environment map) as
 /dev/zero, a FIFO, a 3 GB sparse file and a missing file: refused in one line naming the file
-and the element, within seconds (before the fix a ply of /dev/zero grew to 7.6 GB and an
+and the element, within seconds (unchecked, a ply of /dev/zero grew to 7.6 GB and an
 include of a FIFO hung). The walk resolves names as Mitsuba does and follows -D and <default>.
 """
 from __future__ import annotations

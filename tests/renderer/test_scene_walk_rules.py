@@ -1,4 +1,4 @@
-"""The scene walker reads a scene as Mitsuba will, or refuses it, in one line (hardening 6).
+"""The scene walker reads a scene as Mitsuba will, or refuses it, in one line.
 
 Each case made Mitsuba open a file the walker never checked, or cost it unbounded time:
 the declared encoding (expat decoded it, pugixml reads UTF-8), a DOCTYPE's attribute

@@ -1,4 +1,4 @@
-"""Decisions per tile (issue 41): each tile of a block has its own samples and stop; the flip
+"""Decisions per tile: each tile of a block has its own samples and stop; the flip
 criterion judges a tile with its block's pixels as context; tile = block is the block loop
 (the golden fixture, tests/renderer/test_device_loop.py, holds at tile = block)."""
 from __future__ import annotations

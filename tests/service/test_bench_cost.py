@@ -1,4 +1,4 @@
-"""benchmarks.bench_cost (issue 50, part 1) at a tiny size: the table's structure and the
+"""benchmarks.bench_cost at a tiny size: the table's structure and the
 invariants its parts hold whatever the machine's speed (never a timing goal: those live in
 BENCHMARKS.md)."""
 from __future__ import annotations

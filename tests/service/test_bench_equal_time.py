@@ -1,4 +1,4 @@
-"""benchmarks.bench_equal_time (issue 50) at a tiny size: the rows it compares, the rules its
+"""benchmarks.bench_equal_time at a tiny size: the rows it compares, the rules its
 verdicts follow and the reference it keeps, whatever the machine's speed (the timing goals
 live in BENCHMARKS.md)."""
 from __future__ import annotations

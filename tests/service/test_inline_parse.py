@@ -1,8 +1,9 @@
-"""Issue 51: no JSON parse on the server's own thread that can stall it. A body just under
+"""No JSON parse on the server's own thread that can stall it. A body just under
 the pool's byte threshold (16.3 kB nested 11 deep) opens thousands of lists, and their
 garbage collections stalled the server (p99 8x, health p95 26x): such a body goes to the
 parse pool; a binary request's header and a flat JSON tensor stay inline. Speed goals live
-in benchmarks (`benchmarks.hardening_round5.bench_inline_json`); these tests check the routing."""
+in benchmarks (`benchmarks.hardening_bodies.bench_inline_json`); these tests check the
+routing."""
 from __future__ import annotations
 
 import pytest

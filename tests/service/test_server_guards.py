@@ -66,10 +66,10 @@ def test_requests_over_the_in_flight_limit_get_503_and_probes_still_200(server):
 @pytest.mark.slow
 def test_memory_ceiling_under_the_worst_shapes(bundle):
     """The server in a subprocess under RLIMIT_AS = 3 GiB with the default limits: the worst
-    shapes (the issue's, the widest and thinnest blocks, 64 MiB of nested JSON, three of the
+    shapes (a block side past the limit, the widest and thinnest blocks, 64 MiB of nested JSON, three of the
     largest at once) are answered or refused, never a 5xx, and its peak RSS stays under 2 GiB.
     The nested JSON is refused unparsed (its decoding would take ~2.5 GiB: over the memory
-    budget), as is the issue-26 request (62 MiB, 20 lists around every value); after them
+    budget), as is the 62 MiB request (20 lists around every value); after them
     the server still answers."""
     with LocalServer({"demo": bundle}, address_space=3 << 30) as s:
         rows = attack.run_worst_shapes(s.url, s.token, 64 << 20, concurrent=3, memory=s.memory)
@@ -79,7 +79,7 @@ def test_memory_ceiling_under_the_worst_shapes(bundle):
         peak = s.memory()["peak_rss"]
     statuses = [st for r in rows for st in r.get("statuses", [r["status"]])]
     assert all(st in (200, 413) for st in statuses), rows
-    # the issue shape, the pixel budget, the nested JSON, the declared body
+    # the long block, the pixel budget, the nested JSON, the declared body
     assert sum(st == 413 for st in statuses) == 4, rows
     assert nested["status"] == 413 and "working memory" in nested["error"], nested
     assert peak < 2 << 30, (peak, rows)

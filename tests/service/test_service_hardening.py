@@ -1,4 +1,4 @@
-"""Hardening, second round, on the service: memory bounded from the body before parsing,
+"""The service's hardening: memory bounded from the body before parsing,
 slow uploaders cut off without denying service, duplicate JSON keys, JSON bodies for the
 HTTP layer's 400s, /openapi.json, out-of-memory answers, SIGHUP. The scenarios on real
 sockets are benchmarks.attack's, the ones `noisestop bench reliability` reports."""
@@ -55,7 +55,7 @@ def _post(client, content):
 # --- memory bounded before parsing ---------------------------------------------------------------
 
 def test_nested_json_over_the_budget_is_413_without_being_parsed(client, monkeypatch):
-    """The issue's shape (every value in 20 nested lists), scaled to this server's budget:
+    """The 62 MiB nested shape (every value in 20 nested lists), scaled to this server's budget:
     its cost estimate (a byte count) is over the budget, so it is refused unparsed."""
     parsed = []
     monkeypatch.setattr(infer_mod, "parse_request", lambda head: parsed.append(1))

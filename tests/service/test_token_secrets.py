@@ -1,8 +1,8 @@
-"""A token must be one line of visible ASCII characters, and no error ever shows it (issue
-51): a two-line token file used to reach the HTTP layer, whose error printed
-``Invalid header value b'Bearer <the token>\\nsecond line'``, and `serve` took the same file
-and then answered every request 401. Client and server now refuse it in one line naming the
-file; the secret appears in no output and no exception text."""
+"""A token must be one line of visible ASCII characters, and no error ever shows it: a
+two-line token file must not reach the HTTP layer (whose error would print ``Invalid
+header value b'Bearer <the token>\\nsecond line'``), nor `serve` take it and answer every
+request 401. Client and server refuse it in one line naming the file; the secret appears
+in no output and no exception text."""
 from __future__ import annotations
 
 import pytest

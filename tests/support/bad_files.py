@@ -1,5 +1,5 @@
-"""Input files that are no regular files, as a hostile user or a broken disk makes them
-(issue 51): shared by the tests and the hardening bench."""
+"""Input files that are no regular files, as a hostile user or a broken disk makes them:
+shared by the tests and the hardening bench."""
 from __future__ import annotations
 
 import os

@@ -8,7 +8,7 @@ the device loop to the same result.
 was run once, on the loop being replaced (the commit before the device loop), on an Intel
 Xeon; the file is committed (about 0.3 MB). Running it now records the current loop instead.
 
-**What holds on another CPU (issue 39).** Dr.Jit's LLVM backend compiles for the CPU it
+**What holds on another CPU.** Dr.Jit's LLVM backend compiles for the CPU it
 runs on (vector width, FMA contraction, order of sums), so the path tracer's float32
 arithmetic rounds differently on another CPU: the image is held to `IMAGE_RTOL`
 (`image_mismatch`), not bit for bit. The stops are held exactly, which is sound only where
@@ -38,7 +38,7 @@ import renderer
 #: (the guard itself: tests/noisefeat/test_dots.py)
 NO_DOTS = 1.0
 #: (name, scene, keyword arguments of renderer.render)
-#: the recorded cases: block grain (tile = block, issue 41) and every unit near its target
+#: the recorded cases: block grain (tile = block) and every unit near its target
 #: judged at each pass (decide_growth 0: `renderer.live.passloop.next_decision`), as when
 #: they were recorded; the growth floor's own tests: tests/renderer/test_decide_growth.py
 CASES = tuple((name, scene, {**kw, "decide_growth": 0.0}) for name, scene, kw in (
@@ -66,7 +66,7 @@ CASES = tuple((name, scene, {**kw, "decide_growth": 0.0}) for name, scene, kw in
 #: relative; radiance samples are non-negative, so their mean moves by no more, relatively,
 #: and the accumulators sum in float64. Measured: 4.8e-5 at worst between AVX-512 and AVX2
 #: code on one AMD EPYC (`make test-portability`), 5.5e-5 between an Intel Xeon and an AMD
-#: EPYC (issue 39). Why that is enough to catch a wrong loop: one pass of n added twice or
+#: EPYC. Why that is enough to catch a wrong loop: one pass of n added twice or
 #: dropped moves a pixel by (pass - mean) / n, the noise of one 4-spp pass over n <= 24,
 #: percents, a hundred times the bound (the controls in tests/renderer/test_device_loop.py).
 IMAGE_RTOL = 2.0 ** -12

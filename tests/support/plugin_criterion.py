@@ -1,4 +1,4 @@
-"""A criterion declared in one file, outside the package (issue 52): importing this module is
+"""A criterion declared in one file, outside the package: importing this module is
 all it takes for every door to offer it (`renderer.render`, ``noisestop render`` and the
 ``noisestop`` Mitsuba plugin; tests/renderer/test_criterion_in_one_file.py).
 

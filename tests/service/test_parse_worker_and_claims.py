@@ -1,6 +1,6 @@
-"""Issue 34 on the service: JSON depth refused from the bytes, large JSON parsed in a worker
-process with a time budget, upload claims ranked and reclaimed, health outside every layer,
-SIGHUP during start-up."""
+"""The service under hostile bodies: JSON depth refused from the bytes, large JSON parsed in a
+worker process with a time budget, upload claims ranked and reclaimed, health outside every
+layer, SIGHUP during start-up."""
 from __future__ import annotations
 
 import json

@@ -1,12 +1,12 @@
-"""`make run`'s pieces (renderer.showcase): the dots each side holds against the reference,
-the summary's dots clause, and equal_time.png's 1:1 row (issue 33)."""
+"""`make run`'s pieces (examples.showcase): the dots each side holds against the reference,
+the summary's dots clause, and equal_time.png's 1:1 row."""
 from __future__ import annotations
 
 import io
 
 import numpy as np
 import pytest
-from renderer.showcase import block_outliers_vs, darkest_stopped, dots_summary, equal_time_png
+from examples.showcase import block_outliers_vs, darkest_stopped, dots_summary, equal_time_png
 
 
 def report(stopped: list[bool], spp: list[int], tau: float = 0.02, size: int = 32) -> dict:
@@ -93,9 +93,9 @@ def test_the_report_counts_dots_in_stopped_blocks_only():
 
 
 def test_the_summary_leads_with_blocks_above_tau_and_the_worst_block():
-    """Issue 43: what a user judges first (blocks above tau, the worst block, each side), then
+    """What a user judges first (blocks above tau, the worst block, each side), then
     samples and time, then the mean error."""
-    from renderer.showcase import summary_line
+    from examples.showcase import summary_line
 
     a = {**report([True, True, False, True], [32, 64, 256, 32]), "scene": "s", "saved_vs_uniform": 0.5,
          "max_spp": 256, "blocks_converged": 3, "timing": {"setup_s": 0.1, "render_s": 0.9}}
@@ -116,7 +116,7 @@ def test_make_reference_writes_the_stack_builders_mean_in_half_floats(tmp_path, 
     seed) and writes it where `shipped_reference` reads it: the same image to half-float
     rounding, finite and lit."""
     from learning.data.variant import select_variant
-    from renderer import showcase
+    from examples import showcase
     from renderer.live.blocks import BlockRenderer
     from renderer.scenes.catalog import load_scene
     from renderer.dataset.stackbuild import BuildSettings, render_mean

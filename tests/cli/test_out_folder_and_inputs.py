@@ -1,12 +1,12 @@
-"""Issue 51, outputs and the smaller command-line cases.
+"""The out folder and the smaller command-line inputs.
 
-- `--out ""` rendered into the current folder without the out-folder lock, `--out /` into /:
-  both are one-line errors now, on the command line and in the API.
-- A render killed after its first checkpoint left the earlier render's final.exr and
-  report.json beside its own checkpoint: a render now removes them when it starts (a
-  resume too, once its checkpoint is accepted; a refused resume touches nothing).
-- `--reference` naming /dev/zero, a FIFO or a folder said "not found"; `--scene ""` rendered
-  cornell; `１６` and `1_024` passed as numbers.
+- `--out ""` (the current folder, without the out-folder lock) and `--out /` are one-line
+  errors, on the command line and in the API.
+- A render removes an earlier render's final.exr and report.json when it starts (a resume
+  too, once its checkpoint is accepted; a refused resume touches nothing), so a render
+  killed after its first checkpoint never leaves them beside its own checkpoint.
+- `--reference` naming /dev/zero, a FIFO or a folder says what it is (not "not found");
+  `--scene ""` is refused (not cornell); numbers are ASCII digits only (not `１６` or `1_024`).
 """
 from __future__ import annotations
 

@@ -1,10 +1,11 @@
 #!/bin/sh
-# Issue 50's GPU figures in one run on a lent NVIDIA device, parts in order of worth, each
-# under its own timeout so that a slow part leaves the others their time (about 11 minutes
-# in all, in the 15 a session is lent; not yet run: no GPU was lent when it was written).
+# The speed figures on a GPU (docs/benchmarks/speed.md: equal time, cost per kept sample,
+# cold start) in one run on a lent NVIDIA device, parts in order of worth, each under its own
+# timeout so that a slow part leaves the others their time (about 11 minutes in all, in the
+# 15 a session is lent; not yet run: no GPU was lent when it was written).
 #
 #   here:   sh ../shared/gpu/pack-site.sh .gpu/site.tar.xz
-#   there:  the device tool, carrying .gpu/site.tar.xz:  sh benchmarks/gpu_issue50.sh .gpu/site.tar.xz
+#   there:  the device tool, carrying .gpu/site.tar.xz:  sh benchmarks/gpu_speed.sh .gpu/site.tar.xz
 #
 # Writes under $OUT (else out/gpu): device.txt, and per part its JSON and log:
 # equaltime_gpu.json (the default render against mi.render at equal time and to its quality,

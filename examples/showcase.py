@@ -1,19 +1,22 @@
 """`make run`: what the product is for, on one built-in scene, in a few minutes.
 
+A demo beside the packages, not part of them (examples/ is not installed): it runs from a
+source checkout, ``python -m examples.showcase`` (``make run`` calls it so).
+
 1. Render the scene adaptively with the default criterion (blocks stop when converged).
 2. Render it again with uniform sampling, given the same wall time (``--time-limit``).
 3. Write out/equal_time.png: both images side by side, and below them the block where
    the adaptive render spent the most samples, enlarged: where noise is hardest to
    remove, equal time buys the adaptive render more samples.
    At the bottom, the darkest block the criterion stopped, at 1:1 and 3x, in each panel:
-   where dots on black would show (issue 33).
+   where dots on black would show.
 4. Print one summary line: the share of uniform's samples used, the speed-up over a
    uniform render to the same max spp (its time from the equal-time run's rate), how
    many blocks stopped, each side's worst-block and mean error against the scene's
    reference under DESIGN's observer (version 3: the largest 16x16-tile mean FLIP of a
    block, or its dot term if larger), and per side the pixels over the dot level (display
-   error > 2.5 tau, 0.05 at tau 0.02: issue 33's yardstick): in all, in the worst stopped block, and how many
-   blocks hold more of them adaptive than uniform.
+   error > 2.5 tau, 0.05 at tau 0.02): in all, in the worst stopped block, and how many blocks
+   hold more of them adaptive than uniform.
 
 The default scene is the held-out ``studio_preview`` (never used to train or calibrate):
 three spheres (rough plastic, rough aluminium, matte) on a floor under a studio light.
@@ -23,8 +26,8 @@ what it needs. The per-tile criterion had no early tile on it in the held-out ev
 (docs/benchmarks/accuracy.md). ``spot_stage`` (a dark
 stage under one spot) shows the other side: its dark tiles stop early and leave more
 blocks above tau than uniform at equal time (BENCHMARKS.md, "Speed"). Both scenes' 8192-spp
-references ship with the package in half floats (`renderer/references/`: studio_preview's
-made by `make_reference`, ``python -m renderer.showcase --scene NAME --make-reference``;
+references ship beside this module in half floats (`examples/references/`: studio_preview's
+made by `make_reference`, ``python -m examples.showcase --scene NAME --make-reference``;
 spot_stage's is its held-out stack's); a scene
 without one gets no error figures.
 """
@@ -39,11 +42,11 @@ from typing import Any
 
 import numpy as np
 
-from .live.adaptive import adaptive_render
-from .live.outputs import prepare_output_dir, to_srgb8
-from .settings import DEFAULT_CRITERION
 from noisefeat.dots import REPORT_LEVEL
 from noisefeat.extras import require
+from renderer.live.adaptive import adaptive_render
+from renderer.live.outputs import prepare_output_dir, to_srgb8
+from renderer.settings import DEFAULT_CRITERION
 
 logger = logging.getLogger(__name__)
 
@@ -57,7 +60,7 @@ REFERENCES = Path(__file__).parent / "references"
 
 
 def shipped_reference(scene: str) -> np.ndarray | None:
-    """The scene's reference image shipped with the package (None if there is none)."""
+    """The scene's reference image shipped in examples/references/ (None if there is none)."""
     from learning.data.exr import read_exr
 
     path = REFERENCES / f"{scene}.exr"
@@ -73,9 +76,9 @@ def make_reference(scene: str, resolution: int = SETTINGS["resolution"]) -> Path
     from learning.data.exr import write_exr
     from learning.data.variant import select_variant
 
-    from .live.blocks import BlockRenderer
-    from .scenes.catalog import load_scene
-    from .dataset.stackbuild import BuildSettings, render_mean
+    from renderer.dataset.stackbuild import BuildSettings, render_mean
+    from renderer.live.blocks import BlockRenderer
+    from renderer.scenes.catalog import load_scene
 
     select_variant()
     build = BuildSettings()
@@ -100,7 +103,7 @@ def block_errors_vs(image: np.ndarray, reference: np.ndarray, report: dict[str, 
 def block_outliers_vs(image: np.ndarray, reference: np.ndarray, report: dict[str, Any], tau: float) -> np.ndarray:
     """int [blocks]: per block of `report`, the pixels of `image` whose display error against
     `reference` exceeds the reports' dot level (`renderer.live.report.window_dots`)."""
-    from .live.report import window_dots
+    from renderer.live.report import window_dots
 
     return window_dots(image, reference, [b["window"] for b in report["blocks"]], tau,
                        float(report["exposure"]))
@@ -223,7 +226,7 @@ def summary_line(a: dict[str, Any], u: dict[str, Any], errors: dict[str, np.ndar
 def dots_summary(a: dict[str, Any], errors: dict[str, np.ndarray]) -> str:
     """The summary's dots clause: per side, the pixels over the dot level (2.5 tau on the
     display) in all blocks and in the worst block the criterion stopped, and how many
-    blocks hold more of them adaptive than uniform (issue 33: none should)."""
+    blocks hold more of them adaptive than uniform (none should)."""
     oa, ou = errors["outliers_adaptive"], errors["outliers_uniform"]
     stopped = np.array([b["converged"] for b in a["blocks"]], bool)
     worst = int(np.argmax(np.where(stopped, oa, -1))) if stopped.any() else None
@@ -260,11 +263,11 @@ def showcase(scene: str = SCENE, out: str | Path = "out", **settings: Any) -> di
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m renderer.showcase", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m examples.showcase", description=__doc__.splitlines()[0])
     p.add_argument("--scene", default=SCENE)
     p.add_argument("--out", default="out")
     p.add_argument("--make-reference", action="store_true",
-                   help=f"render the scene's {REFERENCE_SPP}-spp reference into renderer/references/ and stop")
+                   help=f"render the scene's {REFERENCE_SPP}-spp reference into examples/references/ and stop")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:

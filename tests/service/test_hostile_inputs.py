@@ -1,5 +1,6 @@
-"""Hardening, fourth round (issue 42): the cases a hostile user or a broken disk found, one
-test each (each failed on the code before it)."""
+"""What a hostile user or a broken disk can hand the code, one test each: halves that disagree
+completely, forged checkpoints, every file through one door (devices, FIFOs, huge sparse
+files, zip bombs) and the parse pool's deadlines."""
 from __future__ import annotations
 
 import os

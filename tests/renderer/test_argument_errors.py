@@ -1,5 +1,5 @@
-"""Issue 34: every argument error of run_adaptive names its argument, one line, ValueError;
-a budget below one pass, a non-finite reference, the output-folder lock."""
+"""Every argument error of run_adaptive names its argument, one line, ValueError; a budget
+below one pass, a non-finite reference, the output-folder lock."""
 from __future__ import annotations
 
 import multiprocessing

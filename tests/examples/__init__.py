@@ -1,0 +1,1 @@
+"""Tests of the examples (examples/, run from a source checkout)."""

@@ -114,7 +114,7 @@ def drive(session: RenderSession, progress: bool, checkpointing: bool) -> bool:
             reached = time_limit is not None and not session.done and now - session.t_start >= time_limit
             requested = stop is not None and stop.requested
             if session.done and session.ledger.counters["checkpoints"] == 0 and now - session.t_start < every:
-                session.drop_checkpoint()     # shorter than the period: nothing worth resuming (issue 43)
+                session.drop_checkpoint()     # shorter than the period: nothing worth resuming
             elif session.done or reached or requested or now - last_saved >= every:
                 session.checkpoint()
                 last_saved = time.perf_counter()

@@ -44,13 +44,15 @@ from learning.inputs.history import last_decided_spp
 from noisefeat.atomic import atomic_write
 from learning.data.npz import check_digest, read_npz, savez_bytes
 
+from ..criteria import external_counters, internal_counters
+
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_FORMAT = "noisestop-adaptive-checkpoint"
 CHECKPOINT_VERSION = 6          # 2: content digest and validated state; 3: per-block spp history, budget state;
-                                # 4: per-tile state (units: every block's tiles, issue 41);
-                                # 5: each unit's decision evidence (the history criterion, issue 49);
+                                # 4: per-tile state (units: every block's tiles);
+                                # 5: each unit's decision evidence (the history criterion);
                                 # 6: that evidence weighted by the samples each decision stands for, and
-                                #    each unit's next decision (issue 50)
+                                #    each unit's next decision
 
 
 def _str_array(text: str) -> np.ndarray:
@@ -73,7 +75,7 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
         "next_spp": np.asarray(state["next_spp"], np.int64),
         "pass_index": np.int64(state["pass_index"]),
         "done": np.bool_(state["done"]),
-        "counter_names": np.array(list(state["counters"]), dtype="<U64"),
+        "counter_names": np.array(list(external_counters(state["counters"])), dtype="<U64"),
         "counter_values": np.array(list(state["counters"].values()), np.int64),
         "timer_names": np.array(list(state["timers"]), dtype="<U64"),
         "timer_values": np.array(list(state["timers"].values()), np.float64),
@@ -264,7 +266,7 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
         "history_spp": history_spp.copy(), "history_block_spp": unit_spp.copy(), "rendered": rendered.copy(),
         "evidence": evidence.copy(), "next_spp": next_spp.copy(),
         "pass_index": p, "done": done,
-        "counters": dict(zip(names.tolist(), values.tolist())),
+        "counters": internal_counters(dict(zip(names.tolist(), values.tolist()))),
         "timers": dict(zip(tnames.tolist(), tvalues.tolist())),
         "quick": None if quick.size == 0 else quick,
     }

@@ -48,7 +48,7 @@ from learning.data.accumulator import UnitAccumulator
 from learning.inputs.history import Evidence, last_decided_spp
 from learning.stoprule import decide_active
 
-from ..criteria import COUNTER_NAMES, TIMER_NAMES, BlockBatch, Criterion, Decision
+from ..criteria import COUNTER_NAMES, TIMER_NAMES, UnitBatch, Criterion, Decision
 from .ledger import Ledger
 
 
@@ -65,7 +65,7 @@ def next_decision(spp: np.ndarray, ratio: np.ndarray, skip: float, growth: float
     pass where both are no later (r <= 1/skip and growth below a pass, no estimate, or skip
     and growth 0: every pass). Why: a decision costs the same whether or not the unit can
     stop, far from its target it cannot, and near it a unit of thousands of spp changes
-    little in one pass of 16 (issue 50). A unit with no estimate is judged at the next pass."""
+    little in one pass of 16. A unit with no estimate is judged at the next pass."""
     r = np.asarray(ratio, np.float64)
     finite = np.isfinite(r)
     with np.errstate(over="ignore"):              # a huge ratio: the clip's top
@@ -214,7 +214,7 @@ class PassLoop:
         calls it: a decision outside the units' own schedule would move their next decision
         and evidence."""
         idx = np.asarray(ids, np.int64).reshape(-1)
-        d: Decision = self.criterion.decide(idx, BlockBatch.from_accumulator(self.acc, idx, self.quick, self.tiling,
+        d: Decision = self.criterion.decide(idx, UnitBatch.from_accumulator(self.acc, idx, self.quick, self.tiling,
                                                                             self.evidence))
         spp = self.acc.spp_all()[idx]
         self.ratios.put(idx, d.ratio, spp)

@@ -15,7 +15,7 @@ import numpy as np
 from learning.data.accumulator import UnitAccumulator
 from learning.data.stack import Stack
 
-from ..criteria import COUNTER_NAMES, Criterion
+from ..criteria import COUNTER_NAMES, Criterion, external_counters
 from .block_windows import compose
 from .blocks import BlockRenderer
 from .passloop import schedule, unit_events
@@ -81,9 +81,9 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
                    "overhead_s": max(0.0, wall - setup_s - render_s - features_s - decisions_s)},
         "counters": {"blocks_rendered_per_pass": state["rendered"].tolist(),
                      "blocks_rendered": int(state["rendered"].sum()),
-                     "blocks_featured": int(c.get("blocks_featured", 0)),
-                     "decisions": int(c.get("blocks_asked", 0)),
-                     **{k: int(c.get(k, 0)) for k in COUNTER_NAMES}},
+                     "blocks_featured": int(c.get("units_featured", 0)),
+                     "decisions": int(c.get("units_asked", 0)),
+                     **external_counters({k: int(c.get(k, 0)) for k in COUNTER_NAMES})},
         "blocks": blocks, **({"tiles": units} if T > 1 else {}),
     }
     if ref is not None:
@@ -119,7 +119,7 @@ def against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settin
 def window_dots(image: np.ndarray, reference: np.ndarray, windows: Sequence[Sequence[int]], tau: float,
                 exposure: float = 0.0) -> np.ndarray:
     """int64 [windows]: per (x, y, w, h) window, the pixels of `image` more than the reports'
-    dot level (2.5 tau: 0.05 at tau 0.02, issue 33's yardstick) off `reference` on the display."""
+    dot level (2.5 tau: 0.05 at tau 0.02, the dots yardstick) off `reference` on the display."""
     from noisefeat.dots import count_outliers
 
     return np.array([count_outliers(image[y:y + h, x:x + w], reference[y:y + h, x:x + w], tau, exposure)
@@ -133,7 +133,7 @@ def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int
     observer's per-block error of the finished image (DESIGN's pooling, version 3), the
     blocks still above the noise target tau (visible noise left), and among them those the
     criterion stopped (the others ran out of samples at max spp); per block the pixels over
-    the reports' dot level (`dots`, display error > 2.5 tau: 0.05 at tau 0.02, issue 33's
+    the reports' dot level (`dots`, display error > 2.5 tau: 0.05 at tau 0.02, the dots
     yardstick), and among the stopped blocks the most of them and how many hold more than
     a block may (16 in 64x64).
 
@@ -160,7 +160,7 @@ def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int
     if stopped is not None:
         stop = np.asarray(stopped, bool)
         out["visible_noise_stopped_blocks"] = int((visible & stop).sum())
-        # issue 33's check: no block the criterion stopped holds more dots than a block may
+        # the dots check: no block the criterion stopped holds more dots than a block may
         out["max_stopped_dots"] = int(dots[stop].max()) if stop.any() else 0
         out["dotted_stopped_blocks"] = int((stop & (dots > allowed)).sum())
     return out

@@ -29,7 +29,7 @@ from learning.inputs.history import last_decided_spp
 from noisefeat.runtime import torch_threads
 from noisefeat.safeio import present
 
-from ..criteria import COUNTER_NAMES, TIMER_NAMES, BlockBatch, Criterion
+from ..criteria import COUNTER_NAMES, TIMER_NAMES, UnitBatch, Criterion
 from ..spec import RenderSpec
 from .blocks import BlockRenderer
 from .budget import Budget
@@ -112,7 +112,7 @@ def check_evidence(path: Path, loop: PassLoop) -> None:
     ids = np.flatnonzero(loop.active & (decided > 0))
     if not ids.size or not loop.criterion.noise_ratio:
         return
-    d = loop.criterion.decide(ids, BlockBatch.from_accumulator(loop.acc, ids, loop.quick, loop.tiling,
+    d = loop.criterion.decide(ids, UnitBatch.from_accumulator(loop.acc, ids, loop.quick, loop.tiling,
                                                                loop.evidence))
     spp = loop.acc.spp_all()[ids]
     ratio = np.asarray(d.ratio, np.float64)

@@ -107,7 +107,7 @@ def test_model_stops_agree_on_every_route(data, model, server, monkeypatch, tmp_
     # 2. the simulation on the stack (the criterion code the live loop runs)
     V_sim, sim = simulate_loop(stack, ModelCriterion(model, offset=off), min_spp=MIN_SPP)
     assert stop_spp(V_sim, stack.spp) == truth
-    assert sim.ledger.counters["flat_blocks"] >= 1
+    assert sim.ledger.counters["flat_units"] >= 1
     # 3. the live loop, fed the stack's passes
     report, _ = live(monkeypatch, tmp_path, stack, ModelCriterion(model, offset=off), MIN_SPP)
     assert spp_from_report(report) == truth and report["offset"] == off
@@ -166,18 +166,18 @@ def test_flip_stops_agree_on_every_route(data, monkeypatch, tmp_path):
     assert np.isfinite(measured).all() and (measured >= 0).all()
     # half the blocks end below c, taken midway between two scores: a c equal to a score
     # would let the routes' FLIP (batched differently; equal to 1e-6, test_flip) and
-    # another CPU's matmul rounding decide that block's stop (issue 39)
+    # another CPU's matmul rounding decide that block's stop
     last = np.sort(e[-1][np.isfinite(e[-1])])
     c = float(last[len(last) // 2 - 1] + last[len(last) // 2]) / 2
     assert np.abs(measured - c).min() > 1e-6                # no decision within rounding of c
     rule = StopRule(flip_offset(c))
-    # the criterion's scores as the live loop makes them: -e, held by the dot guard (issue 33)
+    # the criterion's scores as the live loop makes them: -e, held by the dot guard
     truth = stop_spp(rule.stops(guarded_flip_scores(stack), stack.spp, stack_flat(stack)), stack.spp)
     assert truth[FLAT_BLOCK] == stack.spp[0]             # flat: at the first level, halves or not
     assert 2 <= sum(t > 0 for t in truth) <= 14
     V_sim, sim = simulate_loop(stack, FlipCriterion(c))
     assert stop_spp(V_sim, stack.spp) == truth
-    assert sim.ledger.timers["decisions_s"] > 0 and sim.ledger.counters["blocks_featured"] > 0
+    assert sim.ledger.timers["decisions_s"] > 0 and sim.ledger.counters["units_featured"] > 0
     report, renderer = live(monkeypatch, tmp_path, stack, FlipCriterion(c), int(stack.spp[0]))
     assert spp_from_report(report) == truth and report["threshold"] == c
     # converged blocks were never rendered again

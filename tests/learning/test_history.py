@@ -1,4 +1,4 @@
-"""A unit's noise estimate from its decision history (issue 49): one formula in two forms
+"""A unit's noise estimate from its decision history: one formula in two forms
 (the calibration's matrix, the live loop's running sums), stable at the extremes."""
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ def test_the_live_form_is_the_calibration_form() -> None:
 
 def test_with_a_constant_step_the_history_is_the_plain_mean_bit_for_bit() -> None:
     """Decided after every pass, every weight is the step: the statistic the tile curve of
-    c(tau) was calibrated on (issue 49), to the last bit for a power-of-two step."""
+    c(tau) was calibrated on, to the last bit for a power-of-two step."""
     rng = np.random.default_rng(2)
     e = rng.uniform(0.005, 0.2, (len(SPP), 7))
     x = e * SPP[:, None] ** ALPHA
@@ -41,7 +41,7 @@ def test_with_a_constant_step_the_history_is_the_plain_mean_bit_for_bit() -> Non
 
 
 def test_sparse_decisions_weigh_each_estimate_by_the_samples_it_stands_for() -> None:
-    """Decided at some levels only (a geometric decision schedule, issue 50), each estimate
+    """Decided at some levels only (a geometric decision schedule), each estimate
     weighs the spp since the unit's decision before it, so the history is the step
     schedule's mean sampled more sparsely, not one tilted towards the early levels."""
     rng = np.random.default_rng(3)
@@ -91,12 +91,12 @@ def test_flip_at_tile_grain_stops_on_the_history_and_at_block_grain_on_one_level
     """A unit whose first estimate was loud and whose current level looks quiet stays noisy
     when its history says so; the same level alone (block grain) stops it. The evidence it
     returns is what the loop adds (`renderer.live.passloop.PassLoop`)."""
-    from renderer.criteria import BlockBatch, BlockView, FlipCriterion
+    from renderer.criteria import UnitBatch, UnitView, FlipCriterion
 
-    def batch_of(noise: float, seed: int, spp: int, sums=None) -> BlockBatch:
+    def batch_of(noise: float, seed: int, spp: int, sums=None) -> UnitBatch:
         rng = np.random.default_rng(seed)
         a, b = (0.3 + noise * rng.standard_normal((16, 16, 3)) for _ in range(2))
-        batch = BlockBatch.from_views([BlockView(mean=(a + b) / 2, spp=spp, halves=(a, b), half_spp=(spp // 2,) * 2)])
+        batch = UnitBatch.from_views([UnitView(mean=(a + b) / 2, spp=spp, halves=(a, b), half_spp=(spp // 2,) * 2)])
         batch.evidence = sums
         return batch
     tile, block = FlipCriterion(0.02, tile=16), FlipCriterion(0.02)

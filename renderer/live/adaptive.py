@@ -40,7 +40,7 @@ from .outputs import clear_results
 from .plan import RenderPlan, prepare
 from .report import render_result
 from .result import RenderResult
-from .session import RenderSession, run_settings
+from .session import RenderSession
 from .signals import DeferredStop
 
 logger = logging.getLogger(__name__)
@@ -84,11 +84,10 @@ def open_session(plan: RenderPlan, checkpoints: Checkpoints | None, grow: bool, 
     """The session of `plan` (resumed from its checkpoint when asked); with checkpoints, the
     folder's earlier results go before this render's first pass."""
     ckpt = None if checkpoints is None else Path(checkpoints.out) / CHECKPOINT
-    settings = run_settings(plan.spec, plan.renderer, plan.criterion, plan.variant, plan.scene)
-    session = RenderSession(plan.renderer, plan.criterion, plan.spec, settings, label=plan.label, ckpt_path=ckpt,
-                            resume=checkpoints is not None and checkpoints.resume, grow=grow, t_start=t_start)
+    session = RenderSession(plan, ckpt_path=ckpt, resume=checkpoints is not None and checkpoints.resume, grow=grow,
+                            t_start=t_start)
     if ckpt is not None:
-        _clear_previous(ckpt.parent, resumed="acc" in session.state)
+        _clear_previous(ckpt.parent, resumed=session.resumed)
     return session
 
 

@@ -19,28 +19,29 @@ from ..criteria import COUNTER_NAMES, Criterion, external_counters
 from .block_windows import compose
 from .blocks import BlockRenderer
 from .passloop import schedule, unit_events
+from .progress import Progress, RunSettings
 from .result import RenderResult
 
 logger = logging.getLogger(__name__)
 
 
-def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit: Criterion, state: dict[str, Any],
-                  acc: UnitAccumulator, counters: dict[str, int], timers: dict[str, float], variant: str | None,
-                  ref: Stack | None) -> dict[str, Any]:
-    """report.json of a render: its settings (`renderer.live.session.run_settings`), the loop's
+def render_report(label: str, br: BlockRenderer, settings: RunSettings, crit: Criterion, progress: Progress,
+                  acc: UnitAccumulator, variant: str | None, ref: Stack | None) -> dict[str, Any]:
+    """report.json of a render: its settings (`renderer.live.progress.RunSettings`), the loop's
     state, the ledger's counters and timers, per block window (and per unit), and against
     `ref` the early-stop metrics."""
     n, T = br.n_blocks, br.tiles_per_block
-    max_spp = settings["max_spp"]
+    max_spp = settings.max_spp
+    state, counters, timers = progress.loop, progress.counters, progress.timers
     spp = acc.spp_all()                       # per unit: a block, or one of its T tiles
     nonfinite = acc.nonfinite_all()
-    converged = ~state["active"]
-    events = unit_events(state["history"], state["history_block_spp"])
+    converged = ~state.active
+    events = unit_events(state.history, state.history_unit_spp)
     units = []
     for u in range(n * T):
         own = [[s, v] for s, v in events.get(u, [])]
         units.append({"id": u, "window": list(br.unit_window(u)), "spp": int(spp[u]),
-                      "converged": bool(converged[u]), "stop_spp": int(state["stop_spp"][u]) if converged[u] else None,
+                      "converged": bool(converged[u]), "stop_spp": int(state.stop_spp[u]) if converged[u] else None,
                       "nonfinite": int(nonfinite[u]), "history": own})
     block_spp, block_done = spp.reshape(n, T), converged.reshape(n, T).all(axis=1)
     if T == 1:
@@ -64,14 +65,14 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
         # (None for other criteria, and for a server's own offset), flip's or variance's threshold
         "offset": described.get("offset"), "threshold": described.get("threshold"),
         # the noise target: the observer's tau the knob above was calibrated for (flip: c = c(tau))
-        "tau": settings["tau"],
+        "tau": settings.tau,
         "resolution": [br.width, br.height], "grid": list(br.grid), "block": [br.block_h, br.block_w],
         "tile": [br.tile_h, br.tile_w],
-        "step": settings["step"], "min_spp": settings["min_spp"], "max_spp": max_spp,
+        "step": settings.step, "min_spp": settings.min_spp, "max_spp": max_spp,
         # when units are judged (`renderer.live.passloop.next_decision`): where stops can land
-        "decide_skip": settings["decide_skip"], "decide_growth": settings["decide_growth"],
-        "seed": settings["seed"], "exposure": settings["exposure"], "quick": settings["quick"],
-        "passes": int(state["pass_index"]),
+        "decide_skip": settings.decide_skip, "decide_growth": settings.decide_growth,
+        "seed": settings.seed, "exposure": settings.exposure, "quick": settings.quick,
+        "passes": state.rows,
         "samples_spent": int(spp.sum()) * pixels, "mean_spp": float(spp.mean()),
         "saved_vs_uniform": 1.0 - float(spp.sum()) / (n * T * max_spp),
         "blocks_converged": int(block_done.sum()), "tiles_converged": int(converged.sum()),
@@ -79,8 +80,8 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
         "timing": {"setup_s": setup_s, "render_s": render_s, "features_s": features_s,
                    "decisions_s": decisions_s,
                    "overhead_s": max(0.0, wall - setup_s - render_s - features_s - decisions_s)},
-        "counters": {"blocks_rendered_per_pass": state["rendered"].tolist(),
-                     "blocks_rendered": int(state["rendered"].sum()),
+        "counters": {"blocks_rendered_per_pass": state.rendered.tolist(),
+                     "blocks_rendered": int(state.rendered.sum()),
                      "blocks_featured": int(c.get("units_featured", 0)),
                      "decisions": int(c.get("units_asked", 0)),
                      **external_counters({k: int(c.get(k, 0)) for k in COUNTER_NAMES})},
@@ -93,7 +94,7 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
     return report
 
 
-def against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settings: dict[str, Any]) -> dict[str, Any]:
+def against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settings: RunSettings) -> dict[str, Any]:
     """DESIGN metrics of one live render against a labelled stack's true thresholds.
 
     The oracle is what `OracleCriterion` would spend in this same loop: the first pass at
@@ -102,8 +103,8 @@ def against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settin
     """
     if ref.thresholds is None:
         raise ValueError(f"{ref.path}: reference stack has no thresholds (not labelled)")
-    max_spp, min_spp = settings["max_spp"], settings["min_spp"]
-    cum = schedule(settings["step"], max_spp)
+    max_spp, min_spp = settings.max_spp, settings.min_spp
+    cum = schedule(settings.step, max_spp)
     oracle = []
     for t in ref.thresholds:
         need = max(min_spp, t) if t is not None else None
@@ -197,9 +198,9 @@ def render_result(session: Any, *, time_limit_reached: bool, ref_stack: Stack | 
     """A finished `renderer.live.session.RenderSession` as the image, per-pixel spp and stops,
     and the report (report.json)."""
     br, loop, acc, n, spec = session.br, session.loop, session.loop.acc, session.br.n_units, session.spec
-    final = session.snapshot()
-    report = render_report(session.label, br, session.settings, session.crit, final, acc, final["counters"],
-                           final["timers"], session.settings["variant"], ref_stack)
+    br.count_kernels()                      # waits for the device
+    report = render_report(session.label, br, session.settings, session.crit, session.progress, acc,
+                           session.settings.variant, ref_stack)
     report["settings_source"] = spec.settings_source()
     if spec.defines:
         report["defines"] = dict(spec.defines)

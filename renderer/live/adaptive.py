@@ -73,9 +73,7 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True, re
     try:
         session = open_session(plan, checkpoints, grow, t_start)
         reached = drive(session, progress, checkpoints is not None)
-        ref = plan.reference
-        return render_result(session, time_limit_reached=reached, ref_stack=ref.stack, ref_image=ref.image,
-                             reference=ref.given)
+        return render_result(session, time_limit_reached=reached)
     finally:
         plan.renderer.close()
 

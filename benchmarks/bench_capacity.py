@@ -43,7 +43,7 @@ def _halves(blocks: int, size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarr
 def per_core(sizes: tuple[int, ...] = SIZES, repeats: int = 9) -> list[dict[str, Any]]:
     """Milliseconds per request of BLOCKS blocks and blocks per second on one core, for the
     bundled model and the flip criterion at each block size."""
-    from renderer.criteria import BlockView, FlipCriterion
+    from renderer.criteria import UnitView, FlipCriterion
     from service.registry import ModelRegistry
 
     registry = ModelRegistry({"m": None})
@@ -54,7 +54,7 @@ def per_core(sizes: tuple[int, ...] = SIZES, repeats: int = 9) -> list[dict[str,
     with torch_threads(1):
         for size in sizes:
             even, odd = _halves(BLOCKS, size)
-            views = [BlockView(mean=0.5 * (a + b), spp=64, halves=(a, b), half_spp=(32, 32))
+            views = [UnitView(mean=0.5 * (a + b), spp=64, halves=(a, b), half_spp=(32, 32))
                      for a, b in zip(even, odd)]
             ids = list(range(BLOCKS))
             runs = {"bundled model": lambda: served.infer({"even": even, "odd": odd}),

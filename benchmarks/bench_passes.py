@@ -106,7 +106,7 @@ def sample_cost(repeats: int = 3, steps: tuple[int, ...] = STEPS_PER_LAUNCH) -> 
 
 def decision_cost(repeats: int = 5, counts: tuple[int, ...] = (1, 4, 16, 64, 256)) -> dict[str, Any]:
     """Seconds of one flip decision call against the number of 64x64 blocks it judges."""
-    from renderer.criteria import BlockView, FlipCriterion
+    from renderer.criteria import UnitView, FlipCriterion
     from noisefeat.runtime import torch_threads
 
     rng = np.random.default_rng(0)
@@ -116,7 +116,7 @@ def decision_cost(repeats: int = 5, counts: tuple[int, ...] = (1, 4, 16, 64, 256
         base = rng.random((n, 64, 64, 3)) * 0.5
         a = base + rng.normal(0, 0.02, base.shape)
         b = base + rng.normal(0, 0.02, base.shape)
-        views = [BlockView(mean=(a[i] + b[i]) / 2, spp=64, nonfinite=0, halves=(a[i], b[i]), half_spp=(32, 32),
+        views = [UnitView(mean=(a[i] + b[i]) / 2, spp=64, nonfinite=0, halves=(a[i], b[i]), half_spp=(32, 32),
                            quick=None) for i in range(n)]
         with torch_threads(1):                                      # as the render loop decides
             crit.decide(list(range(n)), views)                      # warm

@@ -43,7 +43,7 @@ def entry_points(model=None) -> dict[str, Entry]:
     """name -> callable(blocks) for features, the model, the service and the render loop."""
     from learning.models.bundle import load_model
     from noisefeat import extract_features
-    from renderer.criteria import BlockView, FlipCriterion, ModelCriterion, VarianceCriterion
+    from renderer.criteria import UnitView, FlipCriterion, ModelCriterion, VarianceCriterion
     from service.oip import ApiError
     from learning.inputs.noise_input import halves_input
     from service.registry import ServedModel
@@ -60,7 +60,7 @@ def entry_points(model=None) -> dict[str, Entry]:
 
     def views(blocks: np.ndarray, halves: bool) -> list:
         b = np.asarray(blocks)
-        return [BlockView(mean=x, spp=16, halves=(x, x * 0.9) if halves else None,
+        return [UnitView(mean=x, spp=16, halves=(x, x * 0.9) if halves else None,
                           half_spp=(8, 8) if halves else None, quick=x) for x in b]
 
     def render_model(blocks: np.ndarray) -> Any:

@@ -4,7 +4,7 @@ estimate of the tile's true error reads.
 The halves' score is blind where both halves miss the same rare paths (dark tiles: both
 black where the reference is not) and where texture masks noise the halves still disagree
 on. So, per tile, from the even and odd half means alone (what the live loop has at a
-decision, `renderer.criteria.batch.BlockBatch.block_halves`, and what a stack's recovered
+decision, `renderer.criteria.batch.UnitBatch.block_halves`, and what a stack's recovered
 passes give, `learning.inputs.halves.iter_stack_halves`):
 
 * brightness: log10 of the mean luminance, the share of dark display pixels (under 0.1,

@@ -5,7 +5,7 @@ criterion, each declaring itself (`registry`), and the factory.
   at tile grain `GatedCriterion` (`gated`): its block verdict gates flip's tile verdicts.
 * `FlipCriterion` (`flip`): training-free FLIP between the two half buffers.
 * `EstimateCriterion` (`estimate`): flip's history corrected per tile by a learned
-  estimate of the observer's error (issue 59).
+  estimate of the observer's error.
 * `VarianceCriterion` (`variance`): Blender Cycles' adaptive-sampling pixel test.
 * `OracleCriterion` (`oracle`): a labelled stack's true thresholds (the best stops).
 * `UniformCriterion` (`uniform`): never stops (the baseline).
@@ -15,8 +15,9 @@ A new criterion is one file: a `Criterion` subclass with its declaration, decora
 package's entry point in the group ``noisestop.criteria``). `make_criterion(spec)` builds
 the one a `renderer.spec.RenderSpec` names; `criterion_names()` lists them.
 """
-from .batch import BlockBatch, BlockView
-from .contract import COUNTER_NAMES, TIMER_NAMES, Criterion, Decision, Tally
+from .batch import UnitBatch, UnitView
+from .contract import (COUNTER_NAMES, EXTERNAL_COUNTER_NAMES, TIMER_NAMES, Criterion, Decision, Tally,
+                       external_counters, internal_counters)
 from .estimate import EstimateCriterion
 from .factory import make_criterion
 from .flip import FlipCriterion
@@ -28,7 +29,8 @@ from .registry import names as criterion_names
 from .uniform import UniformCriterion
 from .variance import VarianceCriterion
 
-__all__ = ["COUNTER_NAMES", "TIMER_NAMES", "BlockBatch", "BlockView", "Criterion", "Decision", "Tally",
-           "make_criterion", "EstimateCriterion", "FlipCriterion", "GatedCriterion", "ModelCriterion", "ScoresBlocks",
-           "OracleCriterion", "UniformCriterion", "VarianceCriterion", "BLOCK", "BLOCK_ONLY", "TILE", "Setting", "declare",
+__all__ = ["COUNTER_NAMES", "EXTERNAL_COUNTER_NAMES", "external_counters", "internal_counters", "TIMER_NAMES",
+           "UnitBatch", "UnitView", "Criterion", "Decision", "Tally", "make_criterion", "EstimateCriterion",
+           "FlipCriterion", "GatedCriterion", "ModelCriterion", "ScoresBlocks", "OracleCriterion",
+           "UniformCriterion", "VarianceCriterion", "BLOCK", "BLOCK_ONLY", "TILE", "Setting", "declare",
            "criterion_names"]

@@ -1,5 +1,5 @@
-"""What a criterion reads: the units it is asked about at once (`BlockBatch`), or one
-`BlockView` per block for callers outside the loop.
+"""What a criterion reads: the units it is asked about at once (`UnitBatch`), or one
+`UnitView` per unit for callers outside the loop.
 
 Kept apart from the contract (`renderer.criteria.contract`): this is how the loop's device
 tensors are read lazily and how tiles are put back together into their blocks; that is
@@ -18,16 +18,16 @@ if TYPE_CHECKING:
     import torch
 
 @dataclass(frozen=True)
-class BlockView:
-    """What a criterion may look at for one block at one moment of the render.
+class UnitView:
+    """What a criterion may look at for one unit (a block, or a tile of one) at one moment of the render.
 
     `mean` is the cumulative mean of every sample so far, [bh, bw, 3] linear RGB.
     `halves` = (A, B): means of the even-numbered and odd-numbered passes (the
     `UnitAccumulator` convention), or None when the caller does not track them.
-    `half_spp` = samples in A and in B. `quick` is the block of the quick noise-free image
+    `half_spp` = samples in A and in B. `quick` is the unit's part of the quick noise-free image
     (None if not rendered). `nonfinite` counts (pixel, pass) values the accumulator dropped.
     A non-finite pixel in `mean`, or in a half whose `half_spp` is positive, is one with no
-    finite estimate: the block is never converged (the module docstring).
+    finite estimate: the unit is never converged (the module docstring).
     """
 
     mean: np.ndarray
@@ -38,8 +38,8 @@ class BlockView:
     nonfinite: int = 0
 
 
-class BlockBatch:
-    """What a criterion may look at for all the blocks it is asked about, at once.
+class UnitBatch:
+    """What a criterion may look at for all the units it is asked about, at once.
 
     Why batched: the live loop keeps its accumulators on the renderer's device, and a
     criterion that reads whole tensors (flip: FLIP on the device) sends only its verdicts
@@ -71,7 +71,7 @@ class BlockBatch:
 
     @classmethod
     def from_accumulator(cls, acc: Any, ids: Sequence[int], quick: np.ndarray | None = None,
-                         tiling: Any = None, evidence: np.ndarray | None = None) -> BlockBatch:
+                         tiling: Any = None, evidence: np.ndarray | None = None) -> UnitBatch:
         """The units `ids` of a `UnitAccumulator`, read lazily from its device tensors.
         `quick` is per block: with `tiling`, a tile's row is its block's. `evidence`: the
         loop's `learning.inputs.history.Evidence`, or None."""
@@ -82,8 +82,8 @@ class BlockBatch:
                    evidence=None if evidence is None else evidence.rows(ids_a))
 
     @classmethod
-    def from_views(cls, views: Sequence[BlockView]) -> BlockBatch:
-        """One batch from per-block views (callers outside the live loop, tests)."""
+    def from_views(cls, views: Sequence[UnitView]) -> UnitBatch:
+        """One batch from per-unit views (callers outside the live loop, tests)."""
         import torch
 
         shapes = {np.shape(v.mean) for v in views}
@@ -176,7 +176,7 @@ class BlockBatch:
         sel = torch.from_numpy(need).to(a.device)
         return a[sel], b[sel], row, self._source[1][among] % self.tiling.tiles_per_block
 
-    def whole_blocks(self) -> tuple[BlockBatch, np.ndarray, np.ndarray]:
+    def whole_blocks(self) -> tuple[UnitBatch, np.ndarray, np.ndarray]:
         """(batch, blocks, row): the blocks the batch's tiles lie in as one batch of whole
         blocks (windows put together from all their tiles, stopped ones as they stopped; a
         block's spp and half spp are its least sampled tile's, its dropped values the sum),
@@ -186,7 +186,7 @@ class BlockBatch:
         blocks, first, row, every, halves = self._assembled()
         per_block = (len(blocks), self.tiling.tiles_per_block)
         mean = acc.means(every)
-        batch = BlockBatch(acc.spp_all()[every].reshape(per_block).min(axis=1),
+        batch = UnitBatch(acc.spp_all()[every].reshape(per_block).min(axis=1),
                            mean=self.tiling.assemble(mean.reshape(*per_block, *mean.shape[1:])), halves=halves,
                            half_spp=acc.half_spp_all()[every].reshape(*per_block, 2).min(axis=1),
                            nonfinite=acc.nonfinite_all()[every].reshape(per_block).sum(axis=1),
@@ -211,7 +211,7 @@ class BlockBatch:
         return np.asarray(self._unestimated, np.int64)
 
 
-def _unestimated_view(v: BlockView) -> int:
+def _unestimated_view(v: UnitView) -> int:
     """A view's pixels with no finite estimate: non-finite in its mean, or in a half that
     holds a pass (a half of unknown spp counts when given)."""
     bad = ~np.isfinite(np.asarray(v.mean, np.float64)).all(axis=-1)

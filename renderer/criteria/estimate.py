@@ -1,4 +1,4 @@
-"""The learned stop at tile grain (issue 59): the halves' history score corrected per tile by
+"""The learned stop at tile grain: the halves' history score corrected per tile by
 a learned estimate of the observer's error, against a curve c(tau) calibrated out of fold."""
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from learning.inputs.history import STATISTIC, combine
 from learning.stoprule import StopRule, hold_dotted
 from noisefeat.pooling import CRITERION_POOLING
 
-from .batch import BlockBatch
+from .batch import UnitBatch
 from .contract import Tally
 from .flip import FlipCriterion
 from .registry import TILE, Setting, declare
@@ -75,7 +75,7 @@ class EstimateCriterion(FlipCriterion):
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "estimator": self.bundle.describe()}
 
-    def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
+    def _decide(self, ids: list[int], batch: UnitBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
         from learning.inputs.tile_features import tile_features
         from learning.inputs.tile_stats import tile_stats
         from noisefeat.flip import pool_tiles
@@ -98,7 +98,7 @@ class EstimateCriterion(FlipCriterion):
             block_e = pool_tiles(flip_maps_tensor(a, b, self.exposure), windows, CRITERION_POOLING).cpu().numpy()
             stats = tile_stats(a, b, windows, self.exposure).cpu().numpy()
             e[ask] = block_e[row, slot]
-            tally.add("blocks_featured", int(ask.size))
+            tally.add("units_featured", int(ask.size))
         e_hist, evidence = combine(batch.evidence, e, batch.spp)
         if ask.size:
             # the dot term as the stacks hold it (`learning.inputs.halves.stack_tile_terms`):

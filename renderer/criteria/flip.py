@@ -10,7 +10,7 @@ from learning.inputs.history import LAST, STATISTIC, combine
 from learning.stoprule import StopRule, hold_dotted
 from noisefeat.pooling import CRITERION_POOLING
 
-from .batch import BlockBatch
+from .batch import UnitBatch
 from .contract import Criterion, Tally
 from .registry import TILE, Setting, declare
 
@@ -27,14 +27,14 @@ class FlipCriterion(Criterion):
     `learning.inputs.halves`); the block is converged when e <= c (the stop rule with score
     -e), or at once when flat. `c` defaults to c(tau), the curve calibrated on training
     scenes only and shipped in `learning/flip.json`. A block whose halves still disagree on
-    more isolated pixels than the observer lets through (`Criterion._dots`, issue 33) stays
+    more isolated pixels than the observer lets through (`Criterion._dots`) stays
     noisy whatever e is. A block whose odd half is still empty (one pass) has no estimate
     yet and stays noisy, so the first flip decision comes after two passes unless the block
     is flat. FLIP runs on the active, non-flat blocks only, where the half buffers live (the
     GPU with cuda_ad_rgb); its time is the decision cost. The ratio is e / c, or the dot
     term where that is larger.
 
-    At tile grain a tile decides from its history (issue 49): e is the mean of its
+    At tile grain a tile decides from its history: e is the mean of its
     decisions' e_j sqrt(spp_j) brought to the current spp (`learning.inputs.history`), which
     the loop keeps per unit; one level's score is noisy, the history's is not. The tile curve
     of c(tau) is calibrated on the same statistic (`statistic` in its record and in `describe`).
@@ -76,7 +76,7 @@ class FlipCriterion(Criterion):
         return {"name": self.name, "threshold": self.c, "tau": self.tau, "pooling": CRITERION_POOLING,
                 "source": self.source, "unit": self.unit, "statistic": self.statistic}
 
-    def _flip(self, batch: BlockBatch, ask: np.ndarray) -> np.ndarray:
+    def _flip(self, batch: UnitBatch, ask: np.ndarray) -> np.ndarray:
         """e of the asked units: of a block, its pooled FLIP between the halves; of a tile,
         the FLIP map of its whole block (its neighbours are context) pooled over the tile."""
         import torch
@@ -92,13 +92,13 @@ class FlipCriterion(Criterion):
         e = pool_tiles(flip_maps_tensor(a, b, self.exposure), batch.tiling.tile_windows(), CRITERION_POOLING)
         return e.cpu().numpy()[row, slot]
 
-    def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
+    def _decide(self, ids: list[int], batch: UnitBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
         flat = self._flat(batch, self.exposure, tally)
         ask = self._ready(batch, flat)
         score = np.full(len(ids), np.nan)
         if ask.size:
             score[ask] = -self._flip(batch, ask)
-            tally.add("blocks_featured", int(ask.size))
+            tally.add("units_featured", int(ask.size))
         evidence = None
         if self.statistic == STATISTIC:
             e_hist, evidence = combine(batch.evidence, -score, batch.spp)

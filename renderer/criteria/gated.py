@@ -8,7 +8,7 @@ import numpy as np
 
 from learning.stoprule import CONVERGED, NOISY
 
-from .batch import BlockBatch
+from .batch import UnitBatch
 from .contract import Criterion, Tally
 
 
@@ -39,7 +39,7 @@ class GatedCriterion(Criterion):
     def prepare(self, quick: np.ndarray) -> tuple[np.ndarray, Tally]:
         return self.gate.prepare(quick)
 
-    def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, ...]:
+    def _decide(self, ids: list[int], batch: UnitBatch, tally: Tally) -> tuple[np.ndarray, ...]:
         verdict, ratio, evidence = self.tiles.assess(ids, batch, tally)     # the tiles' history is flip's
         whole, block_ids, row = batch.whole_blocks()
         gate, gate_ratio, *_ = self.gate.assess(block_ids.tolist(), whole, tally)

@@ -10,7 +10,7 @@ import numpy as np
 from learning.stoprule import CONVERGED, NOISY, StopRule, hold_dotted
 from noisefeat.runtime import torch_threads
 
-from .batch import BlockBatch
+from .batch import UnitBatch
 from .contract import Criterion, Tally
 from .registry import BLOCK, Setting, declare
 
@@ -57,7 +57,7 @@ class LocalScorer:
         tally.add("feature_rows", len(quick))
         return feats
 
-    def judge(self, batch: BlockBatch, ask: np.ndarray, quick: np.ndarray | None, exposure: float,
+    def judge(self, batch: UnitBatch, ask: np.ndarray, quick: np.ndarray | None, exposure: float,
               tally: Tally) -> tuple[np.ndarray, np.ndarray]:
         """(verdict, ratio) of the asked blocks: the rule at the offset, and the distance to
         it as a ratio (a score is a signed distance: exp(offset - score) is 1 at the offset).
@@ -97,7 +97,7 @@ class RemoteScorer:
     def prepare(self, quick: np.ndarray, exposure: float, tally: Tally) -> np.ndarray:
         return quick
 
-    def judge(self, batch: BlockBatch, ask: np.ndarray, quick: np.ndarray | None, exposure: float,
+    def judge(self, batch: UnitBatch, ask: np.ndarray, quick: np.ndarray | None, exposure: float,
               tally: Tally) -> tuple[np.ndarray, np.ndarray]:
         m = self.model
         if getattr(m, "needs_halves", False):
@@ -211,13 +211,13 @@ class ModelCriterion(Criterion):
             out = self.scorer.prepare(np.asarray(quick, np.float32), self.exposure, tally)
         return out, tally
 
-    def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
+    def _decide(self, ids: list[int], batch: UnitBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
         flat = self._flat(batch, self.exposure, tally)
         ask = self._ready(batch, flat) if self.needs_halves else np.flatnonzero(~flat)
         verdict = np.full(len(ids), NOISY, np.int8)
         ratio = np.full(len(ids), np.nan)
         if ask.size:
-            tally.add("blocks_featured", int(ask.size))
+            tally.add("units_featured", int(ask.size))
             quick = batch.quick if self.needs_quick else None     # a model without a quick image reads none
             verdict[ask], ratio[ask] = self.scorer.judge(batch, ask, quick, self.exposure, tally)
         dots = self._dots(batch, ask, self.exposure, self._dots_tau, tally) if self.needs_halves \

@@ -8,7 +8,7 @@ import numpy as np
 
 from learning.stoprule import CONVERGED, NOISY
 
-from .batch import BlockBatch
+from .batch import UnitBatch
 from .contract import Criterion, Tally
 from .registry import BLOCK_ONLY, declare
 
@@ -45,7 +45,7 @@ class OracleCriterion(Criterion):
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "thresholds": self.thresholds}
 
-    def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
+    def _decide(self, ids: list[int], batch: UnitBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
         idx = np.asarray(ids, np.int64)
         bad = idx[(idx < 0) | (idx >= len(self.thresholds))]
         if bad.size:

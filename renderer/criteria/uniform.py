@@ -5,7 +5,7 @@ import numpy as np
 
 from learning.stoprule import NOISY
 
-from .batch import BlockBatch
+from .batch import UnitBatch
 from .contract import Criterion, Tally
 from .registry import declare
 
@@ -18,5 +18,5 @@ class UniformCriterion(Criterion):
     summary = "never: max_spp everywhere, the baseline"
     stops = False
 
-    def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
+    def _decide(self, ids: list[int], batch: UnitBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
         return np.full(len(ids), NOISY, np.int8), np.full(len(ids), np.nan)

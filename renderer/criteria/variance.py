@@ -8,7 +8,7 @@ import numpy as np
 
 from learning.stoprule import CONVERGED, NOISY
 
-from .batch import BlockBatch
+from .batch import UnitBatch
 from .contract import Criterion, Tally
 from .registry import TILE, Setting, declare
 
@@ -95,7 +95,7 @@ class VarianceCriterion(Criterion):
         norm = torch.where(intensity < 1.0, intensity.sqrt(), intensity)
         return diff / (1e-4 + norm)
 
-    def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
+    def _decide(self, ids: list[int], batch: UnitBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
         flat = self._flat(batch, self.exposure, tally) if self.flat_shortcut else np.zeros(len(ids), bool)
         out = np.full(len(ids), NOISY, np.int8)
         ratio = np.full(len(ids), np.nan)

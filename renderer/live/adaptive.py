@@ -40,7 +40,7 @@ from .outputs import clear_results
 from .plan import RenderPlan, prepare
 from .report import render_result
 from .result import RenderResult
-from .session import RenderSession, run_settings
+from .session import RenderSession
 from .signals import DeferredStop
 
 logger = logging.getLogger(__name__)
@@ -73,9 +73,7 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True, re
     try:
         session = open_session(plan, checkpoints, grow, t_start)
         reached = drive(session, progress, checkpoints is not None)
-        ref = plan.reference
-        return render_result(session, time_limit_reached=reached, ref_stack=ref.stack, ref_image=ref.image,
-                             reference=ref.given)
+        return render_result(session, time_limit_reached=reached)
     finally:
         plan.renderer.close()
 
@@ -84,11 +82,10 @@ def open_session(plan: RenderPlan, checkpoints: Checkpoints | None, grow: bool, 
     """The session of `plan` (resumed from its checkpoint when asked); with checkpoints, the
     folder's earlier results go before this render's first pass."""
     ckpt = None if checkpoints is None else Path(checkpoints.out) / CHECKPOINT
-    settings = run_settings(plan.spec, plan.renderer, plan.criterion, plan.variant, plan.scene)
-    session = RenderSession(plan.renderer, plan.criterion, plan.spec, settings, label=plan.label, ckpt_path=ckpt,
-                            resume=checkpoints is not None and checkpoints.resume, grow=grow, t_start=t_start)
+    session = RenderSession(plan, ckpt_path=ckpt, resume=checkpoints is not None and checkpoints.resume, grow=grow,
+                            t_start=t_start)
     if ckpt is not None:
-        _clear_previous(ckpt.parent, resumed="acc" in session.state)
+        _clear_previous(ckpt.parent, resumed=session.resumed)
     return session
 
 
@@ -114,7 +111,7 @@ def drive(session: RenderSession, progress: bool, checkpointing: bool) -> bool:
             reached = time_limit is not None and not session.done and now - session.t_start >= time_limit
             requested = stop is not None and stop.requested
             if session.done and session.ledger.counters["checkpoints"] == 0 and now - session.t_start < every:
-                session.drop_checkpoint()     # shorter than the period: nothing worth resuming (issue 43)
+                session.drop_checkpoint()     # shorter than the period: nothing worth resuming
             elif session.done or reached or requested or now - last_saved >= every:
                 session.checkpoint()
                 last_saved = time.perf_counter()

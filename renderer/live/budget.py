@@ -40,9 +40,9 @@ traces units at different pass counts in one launch; a round is the loop's,
 goes through the very states of the unbudgeted render (deciding as the budget render
 does), only in another order: the units that stop, stop at that render's spp, and a
 resume of a render a time limit ended, with or without the limit, ends in the
-uninterrupted render's image. What the rounds cost (seconds and unit-spp: the time limit's rate) is in the render's ledger
-(`renderer.live.ledger`). When the budget ends, the units still above the target are listed with their ratios
-(`above_target`).
+uninterrupted render's image. What the rounds cost (seconds and unit-spp: the time limit's
+rate) is in the render's ledger (`renderer.live.ledger`). When the budget ends, the units
+still above the target are listed with their ratios (`above_target`).
 """
 from __future__ import annotations
 
@@ -54,7 +54,8 @@ import numpy as np
 
 from ..spec import RenderSpec
 from .ledger import Ledger
-from .passloop import PassLoop
+from .passloop import PassLoop, UnitRatios
+from .progress import BudgetState
 
 #: a round renders the active units whose priority is at least this share of the largest
 BAND = 0.8
@@ -120,16 +121,20 @@ class Budget:
         not change decisions: the render decides as without a budget."""
         return self.spp_budget is not None and self.spp_budget < max_spp
 
-    def state(self) -> dict[str, Any]:
+    def state(self, ratios: UnitRatios) -> BudgetState:
         """What a checkpoint keeps of the budget, so a resumed budget render goes on as the
-        interrupted one would have (`renderer.live.checkpoint`; "cost": the ledger's)."""
-        return {"prioritised_rounds": self.prioritised_rounds, "ended": self.ended,
-                "cost": list(self.ledger.budget_cost)}
+        interrupted one would have (`renderer.live.checkpoint`; "cost": the ledger's), with
+        the loop's `ratios` it picks units by."""
+        asked, ratio = ratios.take(np.arange(len(ratios.asked)))
+        seconds, traced = self.ledger.budget_cost
+        return BudgetState(prioritised_rounds=self.prioritised_rounds, ended=self.ended,
+                           cost=(float(seconds), float(traced)), ratio_asked=asked, ratio=ratio)
 
-    def restore(self, state: dict[str, Any]) -> None:
-        self.prioritised_rounds = int(state["prioritised_rounds"])
-        self.ended = bool(state["ended"])
-        self.ledger.budget_cost = [float(c) for c in state["cost"]]
+    def restore(self, state: BudgetState) -> None:
+        """Go on from a checkpoint's budget (its ratios are the loop's: the session puts them back)."""
+        self.prioritised_rounds = int(state.prioritised_rounds)
+        self.ended = bool(state.ended)
+        self.ledger.budget_cost = [float(c) for c in state.cost]
 
     def record(self, seconds: float, unit_spp: int) -> None:
         """Seconds of a round and the unit-samples it traced, into the ledger (the time

@@ -24,9 +24,14 @@ made with the same settings, and holds a state that the loop could have produced
 
 What the file alone cannot vouch for, its radiance (sums scaled by 1e30, digest recomputed,
 resumed with every block "converged"), the session checks against the scene: its first
-pass traced again (`renderer.live.session.check_radiance`); nor each unit's decision
-evidence and next decision, which the session checks against the half buffers the file
-holds (`renderer.live.session.check_evidence`).
+pass traced again (`check_radiance`); nor each unit's decision evidence and next decision,
+checked against the half buffers the file holds (`check_evidence`). The session calls both
+on a resume; they are the checkpoint's checks, so they are here.
+
+The checkpoint is the one place where the render's typed progress
+(`renderer.live.progress.Progress`, `RunSettings`) becomes arrays and back
+(`save_checkpoint`, `load_checkpoint`); where a name differs between the two, `ARRAY_NAMES`
+says so (and `renderer.criteria.EXTERNAL_COUNTER_NAMES` for the counters).
 
 Anything else is a ValueError naming the file and what is wrong; `--resume` never
 continues from a state it cannot vouch for.
@@ -34,8 +39,9 @@ continues from a state it cannot vouch for.
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -44,53 +50,86 @@ from learning.inputs.history import last_decided_spp
 from noisefeat.atomic import atomic_write
 from learning.data.npz import check_digest, read_npz, savez_bytes
 
+from ..criteria import UnitBatch, external_counters, internal_counters
+from .passloop import PassLoop, next_decision
+from .progress import BudgetState, LoopState, Progress, RunSettings
+
+if TYPE_CHECKING:
+    from .blocks import BlockRenderer
+
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_FORMAT = "noisestop-adaptive-checkpoint"
 CHECKPOINT_VERSION = 6          # 2: content digest and validated state; 3: per-block spp history, budget state;
-                                # 4: per-tile state (units: every block's tiles, issue 41);
-                                # 5: each unit's decision evidence (the history criterion, issue 49);
+                                # 4: per-tile state (units: every block's tiles);
+                                # 5: each unit's decision evidence (the history criterion);
                                 # 6: that evidence weighted by the samples each decision stands for, and
-                                #    each unit's next decision (issue 50)
+                                #    each unit's next decision
 
 
 def _str_array(text: str) -> np.ndarray:
     return np.array(text)  # 0-d unicode array: no pickle needed
 
 
-def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    """np.savez into memory with a digest, then an atomic write (never a half-written file)."""
+#: where this code's name for a piece of the state differs from the checkpoint's array: the
+#: one mapping (the file's names stay, so a checkpoint written before still loads; the
+#: counters' names: `renderer.criteria.EXTERNAL_COUNTER_NAMES`)
+ARRAY_NAMES = {"rows": "pass_index", "history_unit_spp": "history_block_spp"}
+
+
+def settings_record(settings: RunSettings) -> dict[str, Any]:
+    """`settings` as the checkpoint records them (JSON: tuples as lists, no spp_budget key
+    without a sample budget), the record a resume compares."""
+    record: dict[str, Any] = {
+        "scene": settings.scene, "resolution": list(settings.resolution), "grid": list(settings.grid),
+        "block": list(settings.block), "tile": list(settings.tile), "exposure": settings.exposure,
+        "step": settings.step, "min_spp": settings.min_spp, "max_spp": settings.max_spp,
+        "decide_skip": settings.decide_skip, "decide_growth": settings.decide_growth, "seed": settings.seed,
+        "quick_spp": settings.quick_spp, "quick": settings.quick, "criterion": dict(settings.criterion),
+        "variant": settings.variant, "defines": dict(settings.defines), "tau": settings.tau}
+    if settings.spp_budget is not None:
+        record["spp_budget"] = settings.spp_budget
+    return record
+
+
+def save_checkpoint(path: Path, progress: Progress, settings: RunSettings | Mapping[str, Any]) -> None:
+    """np.savez into memory with a digest, then an atomic write (never a half-written file).
+    `settings`: the run's, or a record of them as `settings_record` makes it."""
+    loop, n = progress.loop, len(progress.loop.active)
+    record = settings_record(settings) if isinstance(settings, RunSettings) else dict(settings)
+    counters = external_counters(progress.counters)
     arrays: dict[str, np.ndarray] = {
         "format": _str_array(CHECKPOINT_FORMAT),
         "version": np.int64(CHECKPOINT_VERSION),
-        "settings": _str_array(json.dumps(state["settings"], sort_keys=True)),
-        "active": np.asarray(state["active"], bool),
-        "stop_spp": np.asarray(state["stop_spp"], np.int64),
-        "history": np.asarray(state["history"], np.int8).reshape(-1, len(state["active"])),
-        "history_spp": np.asarray(state["history_spp"], np.int64),
-        "history_block_spp": np.asarray(state["history_block_spp"], np.int64).reshape(-1, len(state["active"])),
-        "rendered": np.asarray(state["rendered"], np.int64),
-        "evidence": np.asarray(state["evidence"], np.float64).reshape(-1, 2),
-        "next_spp": np.asarray(state["next_spp"], np.int64),
-        "pass_index": np.int64(state["pass_index"]),
-        "done": np.bool_(state["done"]),
-        "counter_names": np.array(list(state["counters"]), dtype="<U64"),
-        "counter_values": np.array(list(state["counters"].values()), np.int64),
-        "timer_names": np.array(list(state["timers"]), dtype="<U64"),
-        "timer_values": np.array(list(state["timers"].values()), np.float64),
-        "quick": np.zeros((0, 0, 3), np.float32) if state["quick"] is None else state["quick"],
+        "settings": _str_array(json.dumps(record, sort_keys=True)),
+        "active": np.asarray(loop.active, bool),
+        "stop_spp": np.asarray(loop.stop_spp, np.int64),
+        "history": np.asarray(loop.history, np.int8).reshape(-1, n),
+        "history_spp": np.asarray(loop.history_spp, np.int64),
+        ARRAY_NAMES["history_unit_spp"]: np.asarray(loop.history_unit_spp, np.int64).reshape(-1, n),
+        "rendered": np.asarray(loop.rendered, np.int64),
+        "evidence": np.asarray(loop.evidence, np.float64).reshape(-1, 2),
+        "next_spp": np.asarray(loop.next_spp, np.int64),
+        ARRAY_NAMES["rows"]: np.int64(loop.rows),
+        "done": np.bool_(progress.done),
+        "counter_names": np.array(list(counters), dtype="<U64"),
+        "counter_values": np.array(list(counters.values()), np.int64),
+        "timer_names": np.array(list(progress.timers), dtype="<U64"),
+        "timer_values": np.array(list(progress.timers.values()), np.float64),
+        "quick": np.zeros((0, 0, 3), np.float32) if progress.quick is None else progress.quick,
     }
-    for k, v in state["acc"].items():
+    for k, v in loop.acc.state().items():
         arrays[f"acc_{k}"] = v
-    if state.get("budget") is not None:          # a budget render: its blocks may be out of step
-        b = state["budget"]
-        arrays.update({"budget_prioritised_rounds": np.int64(b["prioritised_rounds"]),
-                       "budget_ended": np.bool_(b["ended"]), "budget_cost": np.asarray(b["cost"], np.float64),
-                       "budget_ratio_asked": np.asarray(b["ratio_asked"], bool),
-                       "budget_ratio": np.asarray(b["ratio"], np.float64)})
+    b = progress.budget
+    if b is not None:          # a budget render: its blocks may be out of step
+        arrays.update({"budget_prioritised_rounds": np.int64(b.prioritised_rounds),
+                       "budget_ended": np.bool_(b.ended), "budget_cost": np.asarray(b.cost, np.float64),
+                       "budget_ratio_asked": np.asarray(b.ratio_asked, bool),
+                       "budget_ratio": np.asarray(b.ratio, np.float64)})
     atomic_write(path, savez_bytes(arrays, with_digest=True))
 
 
-def expected_bytes(frame: tuple[int, int], n_units: int, n_passes: int, unit_shape: tuple[int, int] | None = None) -> int:
+def expected_bytes(frame: tuple[int, int], n_units: int, n_passes: int,
+                   unit_shape: tuple[int, int] | None = None) -> int:
     """An upper bound on a valid checkpoint's size: accumulator (float64 sums and int64
     weights of two halves, of every block window: overlapping windows hold more than the
     frame), quick image, the history (a row per pass, or per budget round: verdicts and
@@ -101,14 +140,18 @@ def expected_bytes(frame: tuple[int, int], n_units: int, n_passes: int, unit_sha
     return 2 * held * (3 * 8 + 8) + h * w * 3 * 4 + rows * (9 * n_units + 24) + 32 * n_units + (1 << 20)
 
 
-def load_checkpoint(path: Path, settings: dict[str, Any], *, pass_spp: list[int], grid: tuple[int, int],
-                    unit_shape: tuple[int, int], frame: tuple[int, int], nonnegative: bool = True) -> dict[str, Any]:
-    """The state a checkpoint written by `save_checkpoint` for these settings holds, or
-    ValueError. `nonnegative`: the film's filter has no negative lobe (radiance sums >= 0)."""
+def load_checkpoint(path: Path, settings: RunSettings | Mapping[str, Any], *, pass_spp: list[int],
+                    grid: tuple[int, int], unit_shape: tuple[int, int], frame: tuple[int, int],
+                    nonnegative: bool = True) -> Progress:
+    """The progress a checkpoint written by `save_checkpoint` for these settings holds (its
+    accumulator on the host), or ValueError. `settings`: the run's, or a record of them
+    (`settings_record`). `nonnegative`: the film's filter has no negative lobe (radiance
+    sums >= 0)."""
     n = grid[0] * grid[1]
     try:
         data = read_npz(path, max_bytes=expected_bytes(frame, n, len(pass_spp), unit_shape), kind="checkpoint")
-        return _validated(path, data, settings, pass_spp, grid, unit_shape, frame, nonnegative)
+        record = settings_record(settings) if isinstance(settings, RunSettings) else dict(settings)
+        return _validated(path, data, record, pass_spp, grid, unit_shape, frame, nonnegative)
     except ValueError as exc:
         if "start over" in str(exc):
             raise
@@ -129,7 +172,7 @@ def _get(data: dict[str, np.ndarray], key: str, dtype: str, shape: tuple[int, ..
 
 def _validated(path: Path, data: dict[str, np.ndarray], settings: dict[str, Any], pass_spp: list[int],
                grid: tuple[int, int], unit_shape: tuple[int, int], frame: tuple[int, int],
-               nonnegative: bool) -> dict[str, Any]:
+               nonnegative: bool) -> Progress:
     fmt, version = data.get("format"), data.get("version")
     if fmt is None or fmt.shape != () or str(fmt) != CHECKPOINT_FORMAT:
         raise ValueError(f"{path}: not a noisestop adaptive-render checkpoint")
@@ -184,17 +227,17 @@ def _check_meaning(acc: dict[str, np.ndarray], nonnegative: bool) -> None:
 
 
 def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, int], unit_shape: tuple[int, int],
-           frame: tuple[int, int], nonnegative: bool = True) -> dict[str, Any]:
+           frame: tuple[int, int], nonnegative: bool = True) -> Progress:
     n = grid[0] * grid[1]
     budget = "budget_cost" in data
-    p = int(_get(data, "pass_index", "int64", ()))
+    p = int(_get(data, ARRAY_NAMES["rows"], "int64", ()))
     if not 0 <= p <= (n * len(pass_spp) if budget else len(pass_spp)):
         raise ValueError(f"pass {p} claimed, these settings make {len(pass_spp)} passes")
     active = _get(data, "active", "bool", (n,))
     stop_spp = _get(data, "stop_spp", "int64", (n,))
     history = _get(data, "history", "int8", (p, n))
     history_spp = _get(data, "history_spp", "int64", (p,))
-    unit_spp = _get(data, "history_block_spp", "int64", (p, n))
+    unit_spp = _get(data, ARRAY_NAMES["history_unit_spp"], "int64", (p, n))
     rendered = _get(data, "rendered", "int64", (p,))
     evidence = _get(data, "evidence", "float64", (n, 2))
     next_spp = _get(data, "next_spp", "int64", (n,))
@@ -238,7 +281,8 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
     for key, want in (("grid", grid), ("block", unit_shape)):
         got = acc_state.get(key)
         if got is None or got.shape != (2,) or got.dtype.kind != "i" or tuple(int(v) for v in got) != tuple(want):
-            raise ValueError(f"accumulator {key} {None if got is None else got.tolist()} is not the render's {list(want)}")
+            raise ValueError(f"accumulator {key} {None if got is None else got.tolist()} is not the render's "
+                             f"{list(want)}")
     bh, bw = unit_shape
     if int(_get(acc_state, "version", "int64", ())) != UnitAccumulator.STATE_VERSION:
         raise ValueError(f"accumulator state version {acc_state['version']}, this code reads "
@@ -259,15 +303,12 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
         raise ValueError("the accumulated samples disagree with the passes and stops")
     if not budget and not (pass_counts[active] == p).all():
         raise ValueError("the accumulated samples disagree with the passes and stops")
-    state = {
-        "acc": acc, "active": active.copy(), "stop_spp": stop_spp.copy(), "history": history.copy(),
-        "history_spp": history_spp.copy(), "history_block_spp": unit_spp.copy(), "rendered": rendered.copy(),
-        "evidence": evidence.copy(), "next_spp": next_spp.copy(),
-        "pass_index": p, "done": done,
-        "counters": dict(zip(names.tolist(), values.tolist())),
-        "timers": dict(zip(tnames.tolist(), tvalues.tolist())),
-        "quick": None if quick.size == 0 else quick,
-    }
+    progress = Progress(
+        LoopState(acc=acc, active=active.copy(), stop_spp=stop_spp.copy(), history=history.copy(),
+                  history_spp=history_spp.copy(), history_unit_spp=unit_spp.copy(), rendered=rendered.copy(),
+                  evidence=evidence.copy(), next_spp=next_spp.copy()),
+        done=done, counters=internal_counters(dict(zip(names.tolist(), values.tolist()))),
+        timers=dict(zip(tnames.tolist(), tvalues.tolist())), quick=None if quick.size == 0 else quick)
     if budget:
         rounds = int(_get(data, "budget_prioritised_rounds", "int64", ()))
         ended = bool(_get(data, "budget_ended", "bool", ()))
@@ -279,10 +320,112 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
                 or (asked < 0).any() or np.isinf(asked).any():
             raise ValueError("budget state out of range (a ratio is NaN or finite and >= 0)")
         if cost[1] != float(spp.sum()):
-            raise ValueError(f"the budget counts {cost[1]:g} block-spp rendered, the accumulator holds {int(spp.sum())}")
+            raise ValueError(f"the budget counts {cost[1]:g} block-spp rendered, the accumulator holds "
+                             f"{int(spp.sum())}")
         left = active & (pass_counts < len(pass_spp))
         if done != (not left.any() or ended):
             raise ValueError(f"done is {done} with {int(left.sum())} blocks able to take a pass")
-        state["budget"] = {"prioritised_rounds": rounds, "ended": ended, "cost": cost.tolist(),
-                           "ratio_asked": ratio_asked.copy(), "ratio": ratio.copy()}
-    return state
+        progress.budget = BudgetState(prioritised_rounds=rounds, ended=ended,
+                                      cost=(float(cost[0]), float(cost[1])),
+                                      ratio_asked=ratio_asked.copy(), ratio=ratio.copy())
+    return progress
+
+
+# -- what the file alone cannot vouch for: checked against the scene and the criterion --
+
+#: how far a resumed checkpoint's mean radiance may lie from its first pass traced again
+RADIANCE_RATIO = 1e6
+
+
+def check_radiance(path: Path, acc: UnitAccumulator, br: BlockRenderer, first_spp: int, seed: int) -> None:
+    """ValueError unless a checkpoint's radiance is what its scene renders: a forged file
+    whose sums were scaled (x1e30: every unit then "converged") passes every check the file
+    alone allows, its digest recomputed. The first pass depends only on (seed, pixel, pass),
+    so it is traced again over the frame (`render_full`: one pass, not added to the image;
+    its Mitsuba call is counted) and the mean radiance held must be within a factor
+    RADIANCE_RATIO of its mean: both estimate the frame's mean, so a true checkpoint is
+    within noise of it. A black first pass proves nothing (light found later) and is not
+    held against the file."""
+    units = np.flatnonzero(acc.pass_counts() > 0)
+    if not units.size:
+        return
+    again = np.nan_to_num(br.render_full(int(first_spp), seed, 0).astype(np.float64), nan=0.0, posinf=0.0,
+                          neginf=0.0)
+    traced = float(np.abs(again).mean())
+    held = float(acc.means(units).abs().mean().cpu())
+    if traced > 0 and not traced / RADIANCE_RATIO <= held <= traced * RADIANCE_RATIO:
+        raise ValueError(f"{path}: inconsistent checkpoint: its mean radiance is {held / traced:.3g} times what "
+                         "its first pass traces again (forged or damaged); delete it (or rerun without "
+                         "--resume) to start over")
+
+
+#: how far a unit's mean noise estimate may lie from its halves' estimate now
+EVIDENCE_RATIO = 1e3
+#: how far a unit's next decision may lie past the one its ratio now asks for
+NEXT_RATIO = 1e3
+
+
+def _refuse(path: Path, what: str) -> None:
+    """The one-line refusal of a checkpoint whose decision state its halves contradict."""
+    raise ValueError(f"{path}: inconsistent checkpoint: {what} (forged or damaged); delete it (or rerun "
+                     "without --resume) to start over")
+
+
+def check_evidence(path: Path, loop: PassLoop) -> None:
+    """ValueError unless a resumed loop's decision evidence and next decisions agree with
+    the half buffers its checkpoint holds. Neither can be recomputed from the file: the
+    scores they came from were taken on halves at spp long past, so a forged file (sums
+    zeroed or 1e300, every next decision at the latest the format allows, digest
+    recomputed) silently stopped units early or ran them to max spp. Every decision of a
+    unit estimated one per-unit constant (noise falls as 1/sqrt(spp)), so the criterion
+    is asked once more on the units as they stand, keeping nothing (no verdict, evidence,
+    counter or timer: the resumed render counts as the uninterrupted one), and the file is
+    refused where a unit judged at the spp it holds held less evidence than that very
+    decision added (same state, same estimate: half of it, for a tile's context), where its mean estimate lies more than
+    EVIDENCE_RATIO from its halves' now or is 0 while they give more (honest ones: within
+    a factor 3 on cornell), or where its next decision lies more than NEXT_RATIO past the
+    one its ratio now asks for. Only active units that were judged are asked."""
+    decided = loop.evidence.last
+    ids = np.flatnonzero(loop.active & (decided > 0))
+    if not ids.size or not loop.criterion.noise_ratio:
+        return
+    d = loop.criterion.decide(ids, UnitBatch.from_accumulator(loop.acc, ids, loop.quick, loop.tiling,
+                                                               loop.evidence))
+    spp = loop.acc.spp_all()[ids]
+    ratio = np.asarray(d.ratio, np.float64)
+    if loop.decide_skip > 0 or loop.decide_growth > 0:
+        known = np.isfinite(ratio)
+        asked = next_decision(spp[known], ratio[known], loop.decide_skip, loop.decide_growth)
+        late = loop.next_spp[ids[known]] > NEXT_RATIO * np.maximum(asked, spp[known] + 1)
+        if late.any():
+            _refuse(path, f"unit {int(ids[known][late][0])}'s next decision is far past what its noise asks for")
+    if d.evidence is None:
+        return
+    x = np.asarray(d.evidence, np.float64)
+    total, weight = loop.evidence.sums[ids, 0], loop.evidence.sums[ids, 1]
+    fresh = np.isfinite(x)
+    # judged at the spp it holds: that decision added (spp - the one before) x (the same up
+    # to a tile's context, hence half of it)
+    here = fresh & (spp == decided[ids])
+    if here.any():
+        before = _decided_before(loop, ids[here])
+        w = (spp[here] - before).astype(np.float64)
+        short = (weight[here] < w) | (total[here] < 0.5 * w * x[here])
+        if short.any():
+            _refuse(path, f"unit {int(ids[here][short][0])} holds less evidence than its last decision added")
+    held = fresh & (weight > 0) & (x > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean = np.where(held, total / np.where(weight > 0, weight, 1.0), np.nan)
+        off = held & ~((mean >= x / EVIDENCE_RATIO) & (mean <= x * EVIDENCE_RATIO))
+    if off.any():
+        _refuse(path, f"unit {int(ids[off][0])}'s decision evidence is {mean[off][0]:.3g} per sample, its "
+                      f"half buffers give {x[off][0]:.3g}")
+
+
+def _decided_before(loop: PassLoop, ids: np.ndarray) -> np.ndarray:
+    """int64 [k]: the spp of each unit's decision before its last one (0: none), from the
+    verdict history."""
+    asked = loop.history[:, ids] != 0
+    if asked.any():                    # each unit's last decision left out, the last before it remains
+        asked[len(asked) - 1 - np.argmax(asked[::-1], axis=0), np.arange(len(ids))] = False
+    return last_decided_spp(asked, loop.history_unit_spp[:, ids])

@@ -7,7 +7,7 @@ cost, `renderer.criteria`'s COUNTER_NAMES and TIMER_NAMES), the renderer
 lanes and compilations, samples traced) and the budget (`renderer.live.budget.Budget`: the
 seconds and unit-samples of its rounds, its time limit's rate); the session adds the
 checkpoints it writes and the setup, render and wall seconds. Each reports into it; the
-checkpoint (`RenderSession.snapshot`) and report.json (`renderer.live.report`) read it, nothing
+checkpoint (`RenderSession.progress`) and report.json (`renderer.live.report`) read it, nothing
 else. A part made alone (a `BlockRenderer`, `PassLoop` or `Budget` of a test, a
 simulation or a benchmark) keeps a ledger of its own.
 

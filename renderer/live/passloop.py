@@ -48,8 +48,9 @@ from learning.data.accumulator import UnitAccumulator
 from learning.inputs.history import Evidence, last_decided_spp
 from learning.stoprule import decide_active
 
-from ..criteria import COUNTER_NAMES, TIMER_NAMES, BlockBatch, Criterion, Decision
+from ..criteria import COUNTER_NAMES, TIMER_NAMES, UnitBatch, Criterion, Decision
 from .ledger import Ledger
+from .progress import LoopState
 
 
 def schedule(step: int, max_spp: int) -> np.ndarray:
@@ -65,7 +66,7 @@ def next_decision(spp: np.ndarray, ratio: np.ndarray, skip: float, growth: float
     pass where both are no later (r <= 1/skip and growth below a pass, no estimate, or skip
     and growth 0: every pass). Why: a decision costs the same whether or not the unit can
     stop, far from its target it cannot, and near it a unit of thousands of spp changes
-    little in one pass of 16 (issue 50). A unit with no estimate is judged at the next pass."""
+    little in one pass of 16. A unit with no estimate is judged at the next pass."""
     r = np.asarray(ratio, np.float64)
     finite = np.isfinite(r)
     with np.errstate(over="ignore"):              # a huge ratio: the clip's top
@@ -129,7 +130,7 @@ class PassLoop:
     `quick`: the quick image's blocks [n, bh, bw, 3] when the criterion reads them
     (prepared once here). `device`: where the accumulator's tensors live (the renderer's).
     `ledger`: where the decisions' counters and timers go (the render's; None: one of its
-    own). `state()` / `restore` is what the live render checkpoints.
+    own). `state()` / `restore` is what the live render checkpoints (`LoopState`).
     """
 
     def __init__(self, criterion: Criterion, grid: tuple[int, int], unit_shape: tuple[int, int],
@@ -214,7 +215,7 @@ class PassLoop:
         calls it: a decision outside the units' own schedule would move their next decision
         and evidence."""
         idx = np.asarray(ids, np.int64).reshape(-1)
-        d: Decision = self.criterion.decide(idx, BlockBatch.from_accumulator(self.acc, idx, self.quick, self.tiling,
+        d: Decision = self.criterion.decide(idx, UnitBatch.from_accumulator(self.acc, idx, self.quick, self.tiling,
                                                                             self.evidence))
         spp = self.acc.spp_all()[idx]
         self.ratios.put(idx, d.ratio, spp)
@@ -231,25 +232,27 @@ class PassLoop:
 
     # -- checkpointing ---------------------------------------------------------------
 
-    def state(self) -> dict[str, Any]:
-        """What a checkpoint keeps of the loop, under the checkpoint's array names
-        (history_block_spp: `history_unit_spp`)."""
-        return {"acc": self.acc.state(), "active": self.active, "stop_spp": self.stop_spp,
-                "history": self.history, "history_spp": self.history_spp,
-                "history_block_spp": self.history_unit_spp, "rendered": self.rendered,
-                "evidence": self.evidence.sums, "next_spp": self.next_spp}
+    @property
+    def rows(self) -> int:
+        """The verdict history's rows so far: one a pass of a round."""
+        return int(self.history.shape[0])
 
-    def restore(self, state: dict[str, Any]) -> None:
+    def state(self) -> LoopState:
+        """What a checkpoint keeps of the loop (`renderer.live.checkpoint`): its live
+        accumulator and arrays, not copies, to be written at once."""
+        return LoopState(acc=self.acc, active=self.active, stop_spp=self.stop_spp, history=self.history,
+                         history_spp=self.history_spp, history_unit_spp=self.history_unit_spp,
+                         rendered=self.rendered, evidence=self.evidence.sums, next_spp=self.next_spp)
+
+    def restore(self, state: LoopState) -> None:
         """Continue from a validated checkpoint's state (`renderer.live.checkpoint`; its
         counters and timers go to the ledger: `renderer.live.ledger.Ledger.restore`)."""
-        acc = state["acc"]
-        self.acc = UnitAccumulator.from_state(acc.state() if isinstance(acc, UnitAccumulator) else acc,
-                                               device=self.device)
-        self.active = np.asarray(state["active"], bool).copy()
-        self.stop_spp = np.asarray(state["stop_spp"], np.int64).copy()
-        self.history = np.asarray(state["history"], np.int8).reshape(-1, len(self.active))
-        self.history_spp = np.asarray(state["history_spp"], np.int64)
-        self.rendered = np.asarray(state["rendered"], np.int64)
-        self.history_unit_spp = np.asarray(state["history_block_spp"], np.int64).reshape(self.history.shape)
-        self.evidence.restore(state["evidence"], last_decided_spp(self.history, self.history_unit_spp))
-        self.next_spp = np.asarray(state["next_spp"], np.int64).copy()
+        self.acc = UnitAccumulator.from_state(state.acc.state(), device=self.device)
+        self.active = np.asarray(state.active, bool).copy()
+        self.stop_spp = np.asarray(state.stop_spp, np.int64).copy()
+        self.history = np.asarray(state.history, np.int8).reshape(-1, len(self.active))
+        self.history_spp = np.asarray(state.history_spp, np.int64)
+        self.rendered = np.asarray(state.rendered, np.int64)
+        self.history_unit_spp = np.asarray(state.history_unit_spp, np.int64).reshape(self.history.shape)
+        self.evidence.restore(state.evidence, last_decided_spp(self.history, self.history_unit_spp))
+        self.next_spp = np.asarray(state.next_spp, np.int64).copy()

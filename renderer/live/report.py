@@ -2,45 +2,61 @@
 `renderer.live.passloop`), spp and verdict history; totals, the counters and timers of the
 render's ledger (`renderer.live.ledger`); and, against a labelled reference stack, DESIGN's
 early-stop metrics and what a person would see flipping between final.png and the
-reference."""
+reference.
+
+The report is read from the live objects of a finished render (`render_result`): its plan
+(`renderer.live.plan.RenderPlan`: label, renderer, criterion, spec, reference, variant), its
+loop (`renderer.live.passloop.PassLoop`), its ledger and its budget; never from the
+checkpoint's arrays, which are the checkpoint's own format (`renderer.live.checkpoint`)."""
 from __future__ import annotations
 
 import logging
 import os
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from learning.data.accumulator import UnitAccumulator
 from learning.data.stack import Stack
 
-from ..criteria import COUNTER_NAMES, Criterion
+from ..criteria import COUNTER_NAMES, external_counters
 from .block_windows import compose
-from .blocks import BlockRenderer
-from .passloop import schedule, unit_events
+from .ledger import Ledger
+from .passloop import PassLoop, schedule
+from .plan import RenderPlan
+from .progress import RunSettings
 from .result import RenderResult
+
+if TYPE_CHECKING:
+    from .session import RenderSession
 
 logger = logging.getLogger(__name__)
 
+#: a report.json object, or one of its parts, as `json.dumps` writes it (the JSON document
+#: DESIGN fixes: its keys are its own, not this code's names)
+Json = dict[str, Any]
 
-def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit: Criterion, state: dict[str, Any],
-                  acc: UnitAccumulator, counters: dict[str, int], timers: dict[str, float], variant: str | None,
-                  ref: Stack | None) -> dict[str, Any]:
-    """report.json of a render: its settings (`renderer.live.session.run_settings`), the loop's
-    state, the ledger's counters and timers, per block window (and per unit), and against
-    `ref` the early-stop metrics."""
+
+def render_report(plan: RenderPlan, loop: PassLoop, ledger: Ledger, wall_s: float) -> Json:
+    """report.json of a render: its settings (`renderer.live.progress.RunSettings` of `plan`),
+    the `loop`'s units, the `ledger`'s counters and timers (`wall_s`: every attempt's seconds
+    so far), per block window (and per unit), and against the plan's labelled reference stack
+    the early-stop metrics."""
+    br, crit, ref = plan.renderer, plan.criterion, plan.reference.stack
+    settings = RunSettings.of(plan)
     n, T = br.n_blocks, br.tiles_per_block
-    max_spp = settings["max_spp"]
+    max_spp = settings.max_spp
+    acc, counters, timers = loop.acc, ledger.counters, {**ledger.timers, "wall_s": float(wall_s)}
     spp = acc.spp_all()                       # per unit: a block, or one of its T tiles
     nonfinite = acc.nonfinite_all()
-    converged = ~state["active"]
-    events = unit_events(state["history"], state["history_block_spp"])
+    converged = ~loop.active
+    events = loop.events
     units = []
     for u in range(n * T):
         own = [[s, v] for s, v in events.get(u, [])]
         units.append({"id": u, "window": list(br.unit_window(u)), "spp": int(spp[u]),
-                      "converged": bool(converged[u]), "stop_spp": int(state["stop_spp"][u]) if converged[u] else None,
+                      "converged": bool(converged[u]), "stop_spp": int(loop.stop_spp[u]) if converged[u] else None,
                       "nonfinite": int(nonfinite[u]), "history": own})
     block_spp, block_done = spp.reshape(n, T), converged.reshape(n, T).all(axis=1)
     if T == 1:
@@ -58,20 +74,20 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
                                                   for k in ("setup_s", "render_s", "features_s", "decisions_s"))
     c = counters
     described = crit.describe()
-    report: dict[str, Any] = {
-        "scene": label, "variant": variant, "criterion": described,
+    report: Json = {
+        "scene": plan.label, "variant": plan.variant, "criterion": described,
         # the speed/accuracy knob the stops were made at: the model's decision offset
         # (None for other criteria, and for a server's own offset), flip's or variance's threshold
         "offset": described.get("offset"), "threshold": described.get("threshold"),
         # the noise target: the observer's tau the knob above was calibrated for (flip: c = c(tau))
-        "tau": settings["tau"],
+        "tau": settings.tau,
         "resolution": [br.width, br.height], "grid": list(br.grid), "block": [br.block_h, br.block_w],
         "tile": [br.tile_h, br.tile_w],
-        "step": settings["step"], "min_spp": settings["min_spp"], "max_spp": max_spp,
+        "step": settings.step, "min_spp": settings.min_spp, "max_spp": max_spp,
         # when units are judged (`renderer.live.passloop.next_decision`): where stops can land
-        "decide_skip": settings["decide_skip"], "decide_growth": settings["decide_growth"],
-        "seed": settings["seed"], "exposure": settings["exposure"], "quick": settings["quick"],
-        "passes": int(state["pass_index"]),
+        "decide_skip": settings.decide_skip, "decide_growth": settings.decide_growth,
+        "seed": settings.seed, "exposure": settings.exposure, "quick": settings.quick,
+        "passes": loop.rows,
         "samples_spent": int(spp.sum()) * pixels, "mean_spp": float(spp.mean()),
         "saved_vs_uniform": 1.0 - float(spp.sum()) / (n * T * max_spp),
         "blocks_converged": int(block_done.sum()), "tiles_converged": int(converged.sum()),
@@ -79,11 +95,11 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
         "timing": {"setup_s": setup_s, "render_s": render_s, "features_s": features_s,
                    "decisions_s": decisions_s,
                    "overhead_s": max(0.0, wall - setup_s - render_s - features_s - decisions_s)},
-        "counters": {"blocks_rendered_per_pass": state["rendered"].tolist(),
-                     "blocks_rendered": int(state["rendered"].sum()),
-                     "blocks_featured": int(c.get("blocks_featured", 0)),
-                     "decisions": int(c.get("blocks_asked", 0)),
-                     **{k: int(c.get(k, 0)) for k in COUNTER_NAMES}},
+        "counters": {"blocks_rendered_per_pass": loop.rendered.tolist(),
+                     "blocks_rendered": int(loop.rendered.sum()),
+                     "blocks_featured": int(c.get("units_featured", 0)),
+                     "decisions": int(c.get("units_asked", 0)),
+                     **external_counters({k: int(c.get(k, 0)) for k in COUNTER_NAMES})},
         "blocks": blocks, **({"tiles": units} if T > 1 else {}),
     }
     if ref is not None:
@@ -93,7 +109,7 @@ def render_report(label: str, br: BlockRenderer, settings: dict[str, Any], crit:
     return report
 
 
-def against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settings: dict[str, Any]) -> dict[str, Any]:
+def against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settings: RunSettings) -> Json:
     """DESIGN metrics of one live render against a labelled stack's true thresholds.
 
     The oracle is what `OracleCriterion` would spend in this same loop: the first pass at
@@ -102,8 +118,8 @@ def against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settin
     """
     if ref.thresholds is None:
         raise ValueError(f"{ref.path}: reference stack has no thresholds (not labelled)")
-    max_spp, min_spp = settings["max_spp"], settings["min_spp"]
-    cum = schedule(settings["step"], max_spp)
+    max_spp, min_spp = settings.max_spp, settings.min_spp
+    cum = schedule(settings.step, max_spp)
     oracle = []
     for t in ref.thresholds:
         need = max(min_spp, t) if t is not None else None
@@ -119,7 +135,7 @@ def against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settin
 def window_dots(image: np.ndarray, reference: np.ndarray, windows: Sequence[Sequence[int]], tau: float,
                 exposure: float = 0.0) -> np.ndarray:
     """int64 [windows]: per (x, y, w, h) window, the pixels of `image` more than the reports'
-    dot level (2.5 tau: 0.05 at tau 0.02, issue 33's yardstick) off `reference` on the display."""
+    dot level (2.5 tau: 0.05 at tau 0.02, the dots yardstick) off `reference` on the display."""
     from noisefeat.dots import count_outliers
 
     return np.array([count_outliers(image[y:y + h, x:x + w], reference[y:y + h, x:x + w], tau, exposure)
@@ -128,12 +144,12 @@ def window_dots(image: np.ndarray, reference: np.ndarray, windows: Sequence[Sequ
 
 def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int, int], tau: float,
                        exposure: float = 0.0, stopped: np.ndarray | None = None,
-                       windows: Sequence[Sequence[int]] | None = None) -> dict[str, Any]:
+                       windows: Sequence[Sequence[int]] | None = None) -> Json:
     """What a person would see flipping between final.png and the reference: the virtual
     observer's per-block error of the finished image (DESIGN's pooling, version 3), the
     blocks still above the noise target tau (visible noise left), and among them those the
     criterion stopped (the others ran out of samples at max spp); per block the pixels over
-    the reports' dot level (`dots`, display error > 2.5 tau: 0.05 at tau 0.02, issue 33's
+    the reports' dot level (`dots`, display error > 2.5 tau: 0.05 at tau 0.02, the dots
     yardstick), and among the stopped blocks the most of them and how many hold more than
     a block may (16 in 64x64).
 
@@ -160,7 +176,7 @@ def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int
     if stopped is not None:
         stop = np.asarray(stopped, bool)
         out["visible_noise_stopped_blocks"] = int((visible & stop).sum())
-        # issue 33's check: no block the criterion stopped holds more dots than a block may
+        # the dots check: no block the criterion stopped holds more dots than a block may
         out["max_stopped_dots"] = int(dots[stop].max()) if stop.any() else 0
         out["dotted_stopped_blocks"] = int((stop & (dots > allowed)).sum())
     return out
@@ -179,7 +195,7 @@ def nonfinite_totals(acc: UnitAccumulator, windows: Sequence[Sequence[int]],
             "units": int((acc.unestimated(np.arange(n)) > 0).sum())}
 
 
-def nonfinite_line(report: dict[str, Any]) -> str | None:
+def nonfinite_line(report: Json) -> str | None:
     """The one line a render that dropped non-finite samples ends with (stderr and the
     command line's summary), or None when it dropped none."""
     nf = report.get("nonfinite") or {}
@@ -192,21 +208,21 @@ def nonfinite_line(report: dict[str, Any]) -> str | None:
     return f"{head} and were dropped; every pixel still has a finite estimate"
 
 
-def render_result(session: Any, *, time_limit_reached: bool, ref_stack: Stack | None,
-                  ref_image: np.ndarray | None, reference: Any) -> RenderResult:
+def render_result(session: RenderSession, *, time_limit_reached: bool) -> RenderResult:
     """A finished `renderer.live.session.RenderSession` as the image, per-pixel spp and stops,
-    and the report (report.json)."""
-    br, loop, acc, n, spec = session.br, session.loop, session.loop.acc, session.br.n_units, session.spec
-    final = session.snapshot()
-    report = render_report(session.label, br, session.settings, session.crit, final, acc, final["counters"],
-                           final["timers"], session.settings["variant"], ref_stack)
+    and the report (report.json), read from its live objects: the plan, the loop, the ledger
+    and the budget."""
+    plan, loop, ledger, budget = session.render_plan, session.loop, session.ledger, session.budget
+    br, spec, ref = plan.renderer, plan.spec, plan.reference
+    acc, n = loop.acc, br.n_units
+    report = render_report(plan, loop, ledger, session.wall_s())
     report["settings_source"] = spec.settings_source()
     if spec.defines:
         report["defines"] = dict(spec.defines)
     if spec.time_limit is not None:
         report["time_limit"] = {"seconds": float(spec.time_limit), "reached": time_limit_reached}
-    if session.budget is not None and session.budget.limited:    # not a resumed one's budget of none
-        report["budget"] = session.budget.describe(loop, time_limit_reached)
+    if budget is not None and budget.limited:    # not a resumed one's budget of none
+        report["budget"] = budget.describe(loop, time_limit_reached)
     report["render_calls"] = session.counts()
     windows = [br.unit_window(u) for u in range(n)]
     image, spp_px, owner = compose(acc.means(np.arange(n)).cpu().numpy(), windows, acc.spp_all(),
@@ -216,9 +232,9 @@ def render_result(session: Any, *, time_limit_reached: bool, ref_stack: Stack | 
         logger.warning("%s", nonfinite_line(report))
     block_done = (~loop.active).reshape(br.n_blocks, br.tiles_per_block).all(axis=1)
     image = image.astype(np.float32)
-    ref_img = ref_image
-    if ref_stack is not None:
-        ref_img = ref_stack.reference()
+    ref_img = ref.image
+    if ref.stack is not None:
+        ref_img = ref.stack.reference()
         if ref_img.shape != image.shape:
             logger.warning("reference image %s differs from the render %s: no final-vs-reference check",
                            ref_img.shape, image.shape)
@@ -227,8 +243,8 @@ def render_result(session: Any, *, time_limit_reached: bool, ref_stack: Stack | 
         report["final_vs_reference"] = final_vs_reference(
             image, ref_img, br.grid, float(spec.tau), float(spec.exposure), block_done,
             windows=[br.window(b) for b in range(br.n_blocks)] if br.overlapping else None)
-        if ref_stack is None:
-            report["reference"] = {"image": os.fspath(reference) if isinstance(reference, (str, os.PathLike))
+        if ref.stack is None:
+            report["reference"] = {"image": os.fspath(ref.given) if isinstance(ref.given, (str, os.PathLike))
                                    else "array", "width": br.width, "height": br.height}
     return RenderResult(image=image, spp=spp_px, converged=(~loop.active)[owner], report=report,
                         reference=ref_img)

@@ -10,8 +10,10 @@ launch (`plan`: the units and the passes each gets), queues it
 
 The session owns the render's `renderer.live.ledger.Ledger` (its counters and timers): it hands
 it to the renderer, the loop and the budget, which report into it. It also keeps what
-survives a crash: `snapshot` is the state the checkpoint holds (`renderer.live.checkpoint`),
-`checkpoint` writes it, and `counts` is what every attempt cost in Mitsuba.
+survives a crash: `progress` is what the render has done, typed
+(`renderer.live.progress.Progress`: the loop's state, the budget's, the ledger's counters and
+timers, done and the quick image), `checkpoint` writes it (`renderer.live.checkpoint`, the one
+place it becomes arrays), and `counts` is what every attempt cost in Mitsuba.
 `renderer.live.report.render_result` turns a finished session into the result.
 """
 from __future__ import annotations
@@ -20,7 +22,6 @@ import logging
 import math
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -29,157 +30,51 @@ from learning.inputs.history import last_decided_spp
 from noisefeat.runtime import torch_threads
 from noisefeat.safeio import present
 
-from ..criteria import COUNTER_NAMES, TIMER_NAMES, BlockBatch, Criterion
-from ..spec import RenderSpec
-from .blocks import BlockRenderer
+from ..criteria import COUNTER_NAMES, TIMER_NAMES
 from .budget import Budget
-from .checkpoint import load_checkpoint, save_checkpoint
+from .checkpoint import check_evidence, check_radiance, load_checkpoint, save_checkpoint
 from .launches import LAUNCH_LANES, NEAR, ahead_passes, grown_passes
 from .ledger import RENDER_COUNTERS, RENDER_TIMERS, Ledger
-from .passloop import PassLoop, next_decision, schedule
+from .passloop import PassLoop, schedule
+from .plan import RenderPlan
+from .progress import Progress, RunSettings
 from .wavefront import Traced
 
 logger = logging.getLogger(__name__)
 
 
-def run_settings(spec: RenderSpec, br: BlockRenderer, crit: Criterion, variant: str, scene: str) -> dict[str, Any]:
-    """What a resume must match and the report repeats: the spec as rendered (the frame's
-    blocks, the criterion as built, the variant)."""
-    gh, gw = br.grid
-    return {"scene": scene, "resolution": [br.width, br.height], "grid": [gh, gw], "block": [br.block_h, br.block_w],
-            "tile": [br.tile_h, br.tile_w],
-            "exposure": float(spec.exposure), "step": int(spec.step), "min_spp": int(spec.min_spp),
-            "max_spp": int(spec.max_spp), "decide_skip": float(spec.decide_skip),
-            "decide_growth": float(spec.decide_growth), "seed": int(spec.seed), "quick_spp": int(spec.quick_spp),
-            "quick": crit.quick_kind if crit.needs_quick else "none", "criterion": crit.describe(),
-            "variant": variant, "defines": dict(spec.defines or {}), "tau": float(spec.tau),
-            **({} if spec.spp_budget is None else {"spp_budget": float(spec.spp_budget)})}
-
-
-#: how far a resumed checkpoint's mean radiance may lie from its first pass traced again
-RADIANCE_RATIO = 1e6
-
-
-def check_radiance(path: Path, acc: Any, br: BlockRenderer, first_spp: int, seed: int) -> None:
-    """ValueError unless a checkpoint's radiance is what its scene renders: a forged file
-    whose sums were scaled (x1e30: every unit then "converged") passes every check the file
-    alone allows, its digest recomputed. The first pass depends only on (seed, pixel, pass),
-    so it is traced again over the frame (`render_full`: one pass, not added to the image;
-    its Mitsuba call is counted) and the mean radiance held must be within a factor
-    RADIANCE_RATIO of its mean: both estimate the frame's mean, so a true checkpoint is
-    within noise of it. A black first pass proves nothing (light found later) and is not
-    held against the file."""
-    units = np.flatnonzero(acc.pass_counts() > 0)
-    if not units.size:
-        return
-    again = np.nan_to_num(br.render_full(int(first_spp), seed, 0).astype(np.float64), nan=0.0, posinf=0.0,
-                          neginf=0.0)
-    traced = float(np.abs(again).mean())
-    held = float(acc.means(units).abs().mean().cpu())
-    if traced > 0 and not traced / RADIANCE_RATIO <= held <= traced * RADIANCE_RATIO:
-        raise ValueError(f"{path}: inconsistent checkpoint: its mean radiance is {held / traced:.3g} times what "
-                         "its first pass traces again (forged or damaged); delete it (or rerun without "
-                         "--resume) to start over")
-
-
-#: how far a unit's mean noise estimate may lie from its halves' estimate now
-EVIDENCE_RATIO = 1e3
-#: how far a unit's next decision may lie past the one its ratio now asks for
-NEXT_RATIO = 1e3
-
-
-def _refuse(path: Path, what: str) -> None:
-    """The one-line refusal of a checkpoint whose decision state its halves contradict."""
-    raise ValueError(f"{path}: inconsistent checkpoint: {what} (forged or damaged); delete it (or rerun "
-                     "without --resume) to start over")
-
-
-def check_evidence(path: Path, loop: PassLoop) -> None:
-    """ValueError unless a resumed loop's decision evidence and next decisions agree with
-    the half buffers its checkpoint holds. Neither can be recomputed from the file: the
-    scores they came from were taken on halves at spp long past, so a forged file (sums
-    zeroed or 1e300, every next decision at the latest the format allows, digest
-    recomputed) silently stopped units early or ran them to max spp. Every decision of a
-    unit estimated one per-unit constant (noise falls as 1/sqrt(spp)), so the criterion
-    is asked once more on the units as they stand, keeping nothing (no verdict, evidence,
-    counter or timer: the resumed render counts as the uninterrupted one), and the file is
-    refused where a unit judged at the spp it holds held less evidence than that very
-    decision added (same state, same estimate: half of it, for a tile's context), where its mean estimate lies more than
-    EVIDENCE_RATIO from its halves' now or is 0 while they give more (honest ones: within
-    a factor 3 on cornell), or where its next decision lies more than NEXT_RATIO past the
-    one its ratio now asks for. Only active units that were judged are asked."""
-    decided = loop.evidence.last
-    ids = np.flatnonzero(loop.active & (decided > 0))
-    if not ids.size or not loop.criterion.noise_ratio:
-        return
-    d = loop.criterion.decide(ids, BlockBatch.from_accumulator(loop.acc, ids, loop.quick, loop.tiling,
-                                                               loop.evidence))
-    spp = loop.acc.spp_all()[ids]
-    ratio = np.asarray(d.ratio, np.float64)
-    if loop.decide_skip > 0 or loop.decide_growth > 0:
-        known = np.isfinite(ratio)
-        asked = next_decision(spp[known], ratio[known], loop.decide_skip, loop.decide_growth)
-        late = loop.next_spp[ids[known]] > NEXT_RATIO * np.maximum(asked, spp[known] + 1)
-        if late.any():
-            _refuse(path, f"unit {int(ids[known][late][0])}'s next decision is far past what its noise asks for")
-    if d.evidence is None:
-        return
-    x = np.asarray(d.evidence, np.float64)
-    total, weight = loop.evidence.sums[ids, 0], loop.evidence.sums[ids, 1]
-    fresh = np.isfinite(x)
-    # judged at the spp it holds: that decision added (spp - the one before) x (the same up
-    # to a tile's context, hence half of it)
-    here = fresh & (spp == decided[ids])
-    if here.any():
-        before = _decided_before(loop, ids[here])
-        w = (spp[here] - before).astype(np.float64)
-        short = (weight[here] < w) | (total[here] < 0.5 * w * x[here])
-        if short.any():
-            _refuse(path, f"unit {int(ids[here][short][0])} holds less evidence than its last decision added")
-    held = fresh & (weight > 0) & (x > 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        mean = np.where(held, total / np.where(weight > 0, weight, 1.0), np.nan)
-        off = held & ~((mean >= x / EVIDENCE_RATIO) & (mean <= x * EVIDENCE_RATIO))
-    if off.any():
-        _refuse(path, f"unit {int(ids[off][0])}'s decision evidence is {mean[off][0]:.3g} per sample, its "
-                      f"half buffers give {x[off][0]:.3g}")
-
-
-def _decided_before(loop: PassLoop, ids: np.ndarray) -> np.ndarray:
-    """int64 [k]: the spp of each unit's decision before its last one (0: none), from the
-    verdict history."""
-    asked = loop.history[:, ids] != 0
-    if asked.any():                    # each unit's last decision left out, the last before it remains
-        asked[len(asked) - 1 - np.argmax(asked[::-1], axis=0), np.arange(len(ids))] = False
-    return last_decided_spp(asked, loop.history_unit_spp[:, ids])
-
-
 class RenderSession:
     """The state of one render between its set-up and its result (see the module docstring).
 
-    `state` is what a checkpoint restores, under the checkpoint's names ("pass_index": the
-    history rows so far, `rows`; done, counters, timers, quick image, a budget's state; the
-    loop's arrays come from `loop.state()`); `settings` (`run_settings`) are what a resume
-    must match; `ledger` holds the render's counters and timers.
+    `render_plan`: the prepared render (`renderer.live.plan.RenderPlan`; `br`, `crit`, `spec` and
+    `label` are its renderer, criterion, spec and label); `settings` (`RunSettings`) are what
+    a resume must match; `ledger` holds the render's counters and timers; `done`: nothing is
+    left to render; `quick`: the quick image (None when the criterion reads none);
+    `resumed`: the render went on from a checkpoint.
     """
 
-    def __init__(self, br: BlockRenderer, crit: Criterion, spec: RenderSpec, settings: dict[str, Any], *,
-                 label: str, ckpt_path: Path | None, resume: bool, grow: bool, t_start: float) -> None:
-        self.br, self.crit, self.spec, self.settings = br, crit, spec, settings
-        self.label, self.ckpt_path, self.grow, self.t_start = label, ckpt_path, grow, t_start
+    def __init__(self, plan: RenderPlan, *, ckpt_path: Path | None, resume: bool, grow: bool,
+                 t_start: float) -> None:
+        br, crit, spec = plan.renderer, plan.criterion, plan.spec
+        self.render_plan, self.br, self.crit, self.spec, self.label = plan, br, crit, spec, plan.label
+        self.settings = RunSettings.of(plan)
+        self.ckpt_path, self.grow, self.t_start = ckpt_path, grow, t_start
         self.ledger = Ledger(COUNTER_NAMES + RENDER_COUNTERS, TIMER_NAMES + RENDER_TIMERS)
         br.ledger = self.ledger                       # the renderer's Mitsuba calls, from now on
         sched = schedule(spec.step, spec.max_spp)
-        self.state = self._initial_state(resume, np.diff(sched, prepend=0).tolist())
-        self.budget = Budget.for_spec(spec, self.ledger, resumed=self.state.get("budget") is not None)
+        restored = self._restored(resume, np.diff(sched, prepend=0).tolist())
+        self.resumed = restored is not None
+        self.done = restored is not None and restored.done
+        self.quick = None if restored is None else restored.quick
+        self.budget = Budget.for_spec(spec, self.ledger, resumed=restored is not None and restored.budget is not None)
         self.ledger.time("setup_s", time.perf_counter() - t_start)  # imports, scene load, checkpoint read
         quick_blocks = None
         if crit.needs_quick:
-            if self.state["quick"] is None:
+            if self.quick is None:
                 t0 = time.perf_counter()
-                self.state["quick"] = br.quick_image(spp=spec.quick_spp, seed=spec.seed, kind=crit.quick_kind)
+                self.quick = br.quick_image(spp=spec.quick_spp, seed=spec.seed, kind=crit.quick_kind)
                 self.ledger.time("render_s", time.perf_counter() - t0)
-            quick_blocks = br.cut_blocks(self.state["quick"])
+            quick_blocks = br.cut_blocks(self.quick)
         # the loop's units: the blocks' tiles (T a block; the blocks themselves when T = 1)
         self.loop = PassLoop(crit, (br.n_blocks, br.tiles_per_block), br.tile_shape, sched, spec.min_spp, quick_blocks,
                              device=br.device, tiling=br, ledger=self.ledger,
@@ -187,44 +82,43 @@ class RenderSession:
                              **({"decide_skip": 0.0, "decide_growth": 0.0}
                                 if self.budget is not None and self.budget.judges_every_unit(spec.max_spp)
                                 else {"decide_skip": spec.decide_skip, "decide_growth": spec.decide_growth}))
-        if "acc" in self.state:                       # resumed: counters and timers go on from there
-            self.loop.restore(self.state)
+        if restored is not None:                      # resumed: counters and timers go on from there
+            self.loop.restore(restored.loop)
             check_evidence(self.ckpt_path, self.loop)   # what the file alone cannot vouch for
-            self.ledger.restore(self.state["counters"], self.state["timers"])
-            if self.budget is not None and self.state.get("budget") is not None:
-                self.budget.restore(self.state["budget"])
-                asked, ratio = self.state["budget"]["ratio_asked"], self.state["budget"]["ratio"]
+            self.ledger.restore(restored.counters, restored.timers)
+            if self.budget is not None and restored.budget is not None:
+                self.budget.restore(restored.budget)
+                asked, ratio = restored.budget.ratio_asked, restored.budget.ratio
                 taken = last_decided_spp(self.loop.history, self.loop.history_unit_spp)   # at the last decision
                 self.loop.ratios.put(np.flatnonzero(asked), ratio[asked], taken[asked])   # what rounds are chosen by
         #: the next launch, queued on the device while this one is judged (`advance`)
         self._ahead: tuple[np.ndarray, list[np.ndarray], Traced[torch.Tensor]] | None = None
 
-    def _initial_state(self, resume: bool, pass_spp: list[int]) -> dict[str, Any]:
+    def _restored(self, resume: bool, pass_spp: list[int]) -> Progress | None:
+        """The progress of the checkpoint to resume (None: a fresh render), checked against
+        the scene's first pass (`check_radiance`)."""
         path, br = self.ckpt_path, self.br
         if path is not None and resume and present(path):      # a broken or looping link: refused there
-            state = load_checkpoint(path, self.settings, pass_spp=pass_spp, grid=(br.n_blocks, br.tiles_per_block),
-                                    unit_shape=br.tile_shape, frame=(br.height, br.width), nonnegative=br.nonnegative)
-            check_radiance(path, state["acc"], self.br, pass_spp[0], self.spec.seed)
-            logger.info("%s: resuming after pass %d (%d active units)", path, state["pass_index"],
-                        int(state["active"].sum()))
-            return state
+            progress = load_checkpoint(path, self.settings, pass_spp=pass_spp,
+                                       grid=(br.n_blocks, br.tiles_per_block), unit_shape=br.tile_shape,
+                                       frame=(br.height, br.width), nonnegative=br.nonnegative)
+            check_radiance(path, progress.loop.acc, self.br, pass_spp[0], self.spec.seed)
+            logger.info("%s: resuming after pass %d (%d active units)", path, progress.rows,
+                        int(progress.loop.active.sum()))
+            return progress
         if path is not None and resume:
             logger.info("%s: no checkpoint, starting from the beginning", path)
         elif path is not None and path.exists():
             logger.warning("%s: existing checkpoint ignored and replaced (use resume to continue it)", path)
-        return {"pass_index": 0, "done": False, "counters": {}, "timers": {}, "quick": None}
+        return None
 
     # -- the launch ----------------------------------------------------------------------
-
-    @property
-    def done(self) -> bool:
-        return bool(self.state["done"])
 
     @property
     def rows(self) -> int:
         """The verdict history's rows so far, one a pass (report.json "passes", the
         checkpoint's "pass_index"): the passes of the longest unit in a plain render."""
-        return int(self.state["pass_index"])
+        return self.loop.rows
 
     def plan(self) -> tuple[np.ndarray, list[np.ndarray]]:
         """The units of the next launch and, for each of its passes, every unit's pass index
@@ -288,7 +182,7 @@ class RenderSession:
         if ahead is None:
             ids, pass_ids = self.plan()
             if not ids.size:
-                self.state["done"] = True
+                self.done = True
                 return 0
             traced = self._submit(ids, pass_ids)
         else:
@@ -311,8 +205,7 @@ class RenderSession:
                 added += 1
         if self.budget is not None:   # decisions too: they spend the time; every pass traced
             self.budget.record(time.perf_counter() - t0, int(sum(loop.pass_spp[index].sum() for index in pass_ids)))
-        self.state["pass_index"] = self.rows + added
-        self.state["done"] = not loop.pending().any() if self.budget is None else self.budget.finished(loop)
+        self.done = not loop.pending().any() if self.budget is None else self.budget.finished(loop)
         if self.done:
             self._ahead = None        # a launch queued for units that have all stopped since
         return added
@@ -345,17 +238,19 @@ class RenderSession:
         self.br.count_kernels()
         return {k: self.ledger.counters[k] for k in RENDER_COUNTERS}
 
-    def snapshot(self) -> dict[str, Any]:
-        """The state a checkpoint holds: the session's and the loop's, the budget's, and the
-        ledger's counters and timers (wall_s up to now)."""
-        self.br.count_kernels()                      # waits for the device
+    def wall_s(self) -> float:
+        """Seconds of every attempt so far: the ledger's (the earlier attempts') and this one's."""
+        return self.ledger.timers["wall_s"] + (time.perf_counter() - self.t_start)
+
+    @property
+    def progress(self) -> Progress:
+        """What the render has done, now: the loop's state (its live arrays, not copies), the
+        budget's, done, the quick image, and the ledger's counters and timers (wall_s up to
+        now). Kernel compilations are counted as last read (`counts`, `checkpoint`)."""
         timers = dict(self.ledger.timers)
-        timers["wall_s"] += time.perf_counter() - self.t_start
-        return {**self.state, **self.loop.state(), "settings": self.settings,
-                "budget": None if self.budget is None else {
-                    **self.budget.state(), **dict(zip(("ratio_asked", "ratio"),
-                                                      self.loop.ratios.take(np.arange(self.br.n_units))))},
-                "counters": dict(self.ledger.counters), "timers": timers}
+        timers["wall_s"] = self.wall_s()
+        return Progress(self.loop.state(), done=self.done, counters=dict(self.ledger.counters), timers=timers,
+                        quick=self.quick, budget=None if self.budget is None else self.budget.state(self.loop.ratios))
 
     def drop_checkpoint(self) -> None:
         """A finished render that wrote no checkpoint: remove one an earlier run left, so
@@ -368,4 +263,5 @@ class RenderSession:
         if self.ckpt_path is None:
             return
         self.ledger.count("checkpoints")
-        save_checkpoint(self.ckpt_path, self.snapshot())
+        self.br.count_kernels()                      # waits for the device
+        save_checkpoint(self.ckpt_path, self.progress, self.settings)

@@ -33,7 +33,7 @@ from learning.evaluation.metrics import evaluate_verdicts
 from learning.inputs.halves import check_constant_step, recover_passes
 from learning.names import DEFAULT_TAU
 
-from ..criteria import Criterion
+from ..criteria import Criterion, external_counters
 from ..live.passloop import PassLoop
 from ..settings import ROW
 
@@ -191,7 +191,7 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
     out["end"] = {"per_scene": end, "above_tau": sum(e["above_tau"] for e in end.values()),
                   "blocks": sum(e["blocks"] for e in end.values())}
     out["criterion"] = description
-    out["counters"] = counters
+    out["counters"] = external_counters(counters)         # the names a simulation's JSON has always had
     return out
 
 

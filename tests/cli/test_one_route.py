@@ -107,7 +107,7 @@ def test_model_stops_agree_on_every_route(data, model, server, monkeypatch, tmp_
     # 2. the simulation on the stack (the criterion code the live loop runs)
     V_sim, sim = simulate_loop(stack, ModelCriterion(model, offset=off), min_spp=MIN_SPP)
     assert stop_spp(V_sim, stack.spp) == truth
-    assert sim.ledger.counters["flat_blocks"] >= 1
+    assert sim.ledger.counters["flat_units"] >= 1
     # 3. the live loop, fed the stack's passes
     report, _ = live(monkeypatch, tmp_path, stack, ModelCriterion(model, offset=off), MIN_SPP)
     assert spp_from_report(report) == truth and report["offset"] == off
@@ -177,7 +177,7 @@ def test_flip_stops_agree_on_every_route(data, monkeypatch, tmp_path):
     assert 2 <= sum(t > 0 for t in truth) <= 14
     V_sim, sim = simulate_loop(stack, FlipCriterion(c))
     assert stop_spp(V_sim, stack.spp) == truth
-    assert sim.ledger.timers["decisions_s"] > 0 and sim.ledger.counters["blocks_featured"] > 0
+    assert sim.ledger.timers["decisions_s"] > 0 and sim.ledger.counters["units_featured"] > 0
     report, renderer = live(monkeypatch, tmp_path, stack, FlipCriterion(c), int(stack.spp[0]))
     assert spp_from_report(report) == truth and report["threshold"] == c
     # converged blocks were never rendered again

@@ -13,7 +13,7 @@ from learning.evaluation.calibrate import calibrate_flip, calibrate_flip_curve, 
 from learning.inputs.halves import (flip_c, flip_offset, flip_tau_range, halves_flip, load_flip_calibration,
                                     stack_flip_errors)
 from learning.stoprule import StopRule
-from renderer.criteria import BlockView, FlipCriterion, make_criterion
+from renderer.criteria import UnitView, FlipCriterion, make_criterion
 from renderer.spec import resolve
 
 SPP = [8 * (k + 1) for k in range(12)]
@@ -27,7 +27,7 @@ def halves(level=0.3, noise=0.0, seed=0, size=16):
 
 
 def view(a, b, spp=(8, 8)):
-    return BlockView(mean=(a + b) / 2, spp=sum(spp), halves=(a, b), half_spp=spp)
+    return UnitView(mean=(a + b) / 2, spp=sum(spp), halves=(a, b), half_spp=spp)
 
 
 def test_flip_between_halves_grows_with_the_noise():
@@ -72,11 +72,11 @@ def test_flip_criterion_decisions():
     d = crit.decide([0, 1, 2, 3], [view(*quiet), view(*loud), view(*flat, spp=(8, 0)),
                                     view(*one_pass, spp=(8, 0))])
     assert d.verdict.tolist() == [1, -1, 1, -1]          # one pass: no noise estimate yet, unless flat
-    assert d.counts["flat_blocks"] == 1 and d.counts["blocks_featured"] == 2
+    assert d.counts["flat_units"] == 1 and d.counts["units_featured"] == 2
     assert crit.describe() == {"name": "flip", "threshold": 0.02, "tau": 0.02, "pooling": "tile8-max",
                                "source": "argument", "unit": "block", "statistic": "last"}
     with pytest.raises(ValueError, match="half buffers"):
-        crit.decide([0], [BlockView(mean=quiet[0], spp=8)]).verdict
+        crit.decide([0], [UnitView(mean=quiet[0], spp=8)]).verdict
     def flip(**given):
         return make_criterion(resolve({"criterion": "flip", "tile": 64, **given}))      # whole 64-px blocks
 

@@ -91,12 +91,12 @@ def test_flip_at_tile_grain_stops_on_the_history_and_at_block_grain_on_one_level
     """A unit whose first estimate was loud and whose current level looks quiet stays noisy
     when its history says so; the same level alone (block grain) stops it. The evidence it
     returns is what the loop adds (`renderer.live.passloop.PassLoop`)."""
-    from renderer.criteria import BlockBatch, BlockView, FlipCriterion
+    from renderer.criteria import UnitBatch, UnitView, FlipCriterion
 
-    def batch_of(noise: float, seed: int, spp: int, sums=None) -> BlockBatch:
+    def batch_of(noise: float, seed: int, spp: int, sums=None) -> UnitBatch:
         rng = np.random.default_rng(seed)
         a, b = (0.3 + noise * rng.standard_normal((16, 16, 3)) for _ in range(2))
-        batch = BlockBatch.from_views([BlockView(mean=(a + b) / 2, spp=spp, halves=(a, b), half_spp=(spp // 2,) * 2)])
+        batch = UnitBatch.from_views([UnitView(mean=(a + b) / 2, spp=spp, halves=(a, b), half_spp=(spp // 2,) * 2)])
         batch.evidence = sums
         return batch
     tile, block = FlipCriterion(0.02, tile=16), FlipCriterion(0.02)

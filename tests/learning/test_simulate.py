@@ -115,7 +115,7 @@ def test_converged_blocks_stay_converged_and_are_not_asked_again(synth):
     assert (np.diff(V, axis=0) >= 0).all()              # monotone per block
     active_before = [(V[k - 1] < 0).sum() if k else 16 for k in range(len(SPP))]
     asked = sum(a for k, a in enumerate(active_before) if SPP[k] >= 16)
-    assert loop.ledger.counters["blocks_asked"] == asked
+    assert loop.ledger.counters["units_asked"] == asked
     assert 0 < (V[-1] > 0).sum() < 16                   # the test is informative on this stack
 
 
@@ -148,9 +148,9 @@ def test_simulation_and_live_loop_agree(monkeypatch, tmp_path, synth, kind):
     active = [np.flatnonzero(V[k - 1] < 0).tolist() if k else list(range(16)) for k in range(len(SPP))]
     assert renderer.calls == active[:len(renderer.calls)]
     assert report["counters"]["blocks_rendered_per_pass"] == [len(c) for c in renderer.calls]
-    assert report["counters"]["decisions"] == sim.ledger.counters["blocks_asked"]
+    assert report["counters"]["decisions"] == sim.ledger.counters["units_asked"]
     if kind == "model":
-        assert report["counters"]["blocks_featured"] == sim.ledger.counters["blocks_featured"] > 0
+        assert report["counters"]["blocks_featured"] == sim.ledger.counters["units_featured"] > 0
 
 
 def test_evaluate_criterion_metrics(tmp_path, synth):
@@ -177,7 +177,7 @@ def test_nonfinite_levels_give_defined_verdicts(tmp_path):
                      reference=levels[-1], quick=None, reference_spp=400)
     V, loop = simulate_loop(st, VarianceCriterion(0.5))
     assert set(np.unique(V)) <= {-1, 1}
-    assert loop.ledger.counters["nonfinite_blocks"] >= 1
+    assert loop.ledger.counters["nonfinite_units"] >= 1
 
 
 def test_find_stack(tmp_path, synth):

@@ -296,7 +296,7 @@ def test_simulation_makes_the_evaluate_stops(trained):
     assert len(set(stop_thresholds(V, stack.spp).tolist())) > 2      # blocks stop at several spp
     got, loop = simulate_loop(stack, ModelCriterion(model, offset=off))
     np.testing.assert_array_equal(stop_thresholds(got, stack.spp), stop_thresholds(V, stack.spp))
-    assert loop.ledger.counters["blocks_featured"] > 0
+    assert loop.ledger.counters["units_featured"] > 0
 
 
 def test_calibration_offsets_follow_the_scores():

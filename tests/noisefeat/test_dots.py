@@ -9,7 +9,7 @@ import torch
 
 from noisefeat.display import display
 from noisefeat.dots import (DOT_LEVEL, count_outliers, dot_rank, halves_dots, rank_pool, reference_dots)
-from renderer.criteria import BlockView, FlipCriterion, ModelCriterion
+from renderer.criteria import UnitView, FlipCriterion, ModelCriterion
 
 
 def dots_on_black(n: int, value: float = 0.01, size: int = 64, seed: int = 0) -> np.ndarray:
@@ -102,8 +102,8 @@ def test_halves_dots_at_the_extremes(case):
     assert out.shape == (2,) and np.isfinite(out).all() and (out == 0).all()    # the halves agree
 
 
-def view(a: np.ndarray, b: np.ndarray, spp: tuple[int, int] = (16, 16)) -> BlockView:
-    return BlockView(mean=(a + b) / 2, spp=sum(spp), halves=(a, b), half_spp=spp)
+def view(a: np.ndarray, b: np.ndarray, spp: tuple[int, int] = (16, 16)) -> UnitView:
+    return UnitView(mean=(a + b) / 2, spp=sum(spp), halves=(a, b), half_spp=spp)
 
 
 def test_flip_criterion_holds_a_block_whose_halves_disagree_on_dots():
@@ -117,7 +117,7 @@ def test_flip_criterion_holds_a_block_whose_halves_disagree_on_dots():
     crit = FlipCriterion(0.05, tau=0.02)
     d = crit.decide([0, 1], [view(a, b), view(*quiet)])
     assert d.verdict.tolist() == [-1, 1]
-    assert d.counts["dotted_blocks"] == 1
+    assert d.counts["dotted_units"] == 1
     assert d.ratio[0] > 1 >= d.ratio[1]
 
 

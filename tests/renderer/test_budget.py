@@ -62,7 +62,7 @@ def test_a_budget_round_is_the_plain_pass_when_every_block_is_at_the_same_pass()
         np.testing.assert_array_equal(row0, row1)
     assert loops[0].active.tolist() == [False, False, True, True]
     for key in ("active", "stop_spp", "history", "history_spp", "rendered"):
-        np.testing.assert_array_equal(loops[0].state()[key], loops[1].state()[key])
+        np.testing.assert_array_equal(getattr(loops[0].state(), key), getattr(loops[1].state(), key))
     assert loops[0].events == loops[1].events
     np.testing.assert_array_equal(loops[0].acc.state()["sum"], loops[1].acc.state()["sum"])
 

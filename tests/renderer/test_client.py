@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from renderer.client.remote import HEADER_LENGTH, RemoteModel
-from renderer.criteria import BlockView, ModelCriterion
+from renderer.criteria import UnitView, ModelCriterion
 from tests.support.live_server import handler_server
 
 TOKEN = "s3cret"
@@ -210,9 +210,9 @@ def test_model_criterion_over_http(server):
     crit = ModelCriterion(RemoteModel(server, token=TOKEN))
     assert crit.needs_quick
     rng = np.random.default_rng(1)
-    views = [BlockView(mean=0.1 + 0.05 * rng.random((8, 8, 3)), spp=16, quick=np.full((8, 8, 3), 0.5)),
-             BlockView(mean=0.8 + 0.05 * rng.random((8, 8, 3)), spp=16, quick=np.full((8, 8, 3), 0.5))]
+    views = [UnitView(mean=0.1 + 0.05 * rng.random((8, 8, 3)), spp=16, quick=np.full((8, 8, 3), 0.5)),
+             UnitView(mean=0.8 + 0.05 * rng.random((8, 8, 3)), spp=16, quick=np.full((8, 8, 3), 0.5))]
     d = crit.decide([2, 9], views)
     assert d.verdict.tolist() == [-1, 1]
-    assert d.counts["blocks_featured"] == 2 and d.counts.get("feature_rows", 0) == 0
+    assert d.counts["units_featured"] == 2 and d.counts.get("feature_rows", 0) == 0
     assert crit.describe()["model"]["remote"] == server

@@ -9,7 +9,7 @@ from learning.models.bundle import load_model, save_model
 from learning.models.estimators import DSVM
 from learning.inputs.table import stack_features
 from noisefeat.display import display_range
-from renderer.criteria import (BlockView, ModelCriterion, OracleCriterion, UniformCriterion,
+from renderer.criteria import (UnitView, ModelCriterion, OracleCriterion, UniformCriterion,
                                VarianceCriterion, make_criterion)
 from renderer.spec import resolve
 
@@ -32,7 +32,7 @@ def view(mean, a=None, half_spp=(8, 8), spp=16, quick=None):
     a = mean if a is None else np.asarray(a, np.float64)
     with np.errstate(invalid="ignore"):
         b = 2 * mean - a
-    return BlockView(mean=mean, spp=spp, halves=(a, b), half_spp=half_spp, quick=quick)
+    return UnitView(mean=mean, spp=spp, halves=(a, b), half_spp=half_spp, quick=quick)
 
 
 def noisy_block(seed=0, level=0.3, shape=(8, 8)):
@@ -88,7 +88,7 @@ def test_flat_blocks_are_converged_without_halves():
     sky = np.full((8, 8, 3), 0.5)
     d = c.decide([0, 1], [view(black, half_spp=(16, 0)), view(sky, half_spp=(16, 0))])
     assert d.verdict.tolist() == [1, 1] and d.ratio.tolist() == [0.0, 0.0]
-    assert d.counts["flat_blocks"] == 2
+    assert d.counts["flat_units"] == 2
     assert display_range(sky[None])[0] == 0.0 and display_range(noisy_block()[None])[0] > 0.1
     off = VarianceCriterion(0.01, flat_shortcut=False)
     assert off.decide([0], [view(black, half_spp=(16, 0))]).verdict[0] == -1
@@ -105,7 +105,7 @@ def test_nonfinite_pixels_never_give_nan_decisions():
     d = c.decide([3], [view(i, a)])
     # a pixel with no finite estimate holds the block noisy, its ratio "no estimate"
     assert d.verdict.dtype == np.int8 and d.verdict.tolist() == [-1] and np.isnan(d.ratio).all()
-    assert d.counts["nonfinite_blocks"] == 1
+    assert d.counts["nonfinite_units"] == 1
 
 
 # ----------------------------------------------------------------------------- oracle, uniform
@@ -123,7 +123,7 @@ def test_oracle_and_uniform():
     u = UniformCriterion()
     d = u.decide([0, 1], views[:2])
     assert d.verdict.tolist() == [-1, -1]
-    assert d.counts["blocks_asked"] == 2 and d.counts["decide_calls"] == 1
+    assert d.counts["units_asked"] == 2 and d.counts["decide_calls"] == 1
 
 
 def test_bad_input_is_a_clear_error():
@@ -131,7 +131,7 @@ def test_bad_input_is_a_clear_error():
     with pytest.raises(ValueError, match="2 block ids but 1 views"):
         c.decide([0, 1], [view(noisy_block())]).verdict
     with pytest.raises(ValueError, match="half buffers"):
-        c.decide([0], [BlockView(mean=noisy_block(), spp=4)]).verdict
+        c.decide([0], [UnitView(mean=noisy_block(), spp=4)]).verdict
     with pytest.raises(ValueError, match="oracle criterion needs true thresholds"):
         resolve({"criterion": "oracle"})                  # the render spec's check, by the declaration
     with pytest.raises(ValueError, match="thresholds must be a sequence"):
@@ -155,11 +155,11 @@ def test_model_criterion_matches_score_blocks(model_and_stack):
     for k in (0, st.n_levels - 1):
         blocks = st.blocks(k)
         expected, _ = model.score_blocks(blocks, quick)
-        d = crit.decide(ids, [BlockView(mean=blocks[b], spp=st.spp[k], quick=quick[b]) for b in ids])
+        d = crit.decide(ids, [UnitView(mean=blocks[b], spp=st.spp[k], quick=quick[b]) for b in ids])
         assert d.verdict.tolist() == expected.tolist()
         # 16 current rows + 16 quick rows (views carry raw quick blocks; the loop prepares them once)
-        assert d.counts["blocks_featured"] == 16 and d.counts["feature_rows"] == 32
-        assert d.counts["blocks_asked"] == 16
+        assert d.counts["units_featured"] == 16 and d.counts["feature_rows"] == 32
+        assert d.counts["units_asked"] == 16
         assert d.timers["features_s"] > 0 and d.timers["decisions_s"] > 0
     assert set(expected.tolist()) <= {-1, 1}
 
@@ -169,12 +169,12 @@ def test_model_criterion_skips_flat_blocks(model_and_stack):
     crit = ModelCriterion(model)
     quick = st.split(st.quick())
     flat = np.zeros_like(quick[0])
-    d = crit.decide([0, 1], [BlockView(mean=flat, spp=4, quick=quick[0]),
-                             BlockView(mean=st.blocks(0)[1], spp=4, quick=quick[1])])
+    d = crit.decide([0, 1], [UnitView(mean=flat, spp=4, quick=quick[0]),
+                             UnitView(mean=st.blocks(0)[1], spp=4, quick=quick[1])])
     assert d.verdict[0] == 1
-    assert d.counts["flat_blocks"] == 1 and d.counts["blocks_featured"] == 1
+    assert d.counts["flat_units"] == 1 and d.counts["units_featured"] == 1
     with pytest.raises(ValueError, match="needs the quick image"):
-        crit.decide([0], [BlockView(mean=st.blocks(0)[0], spp=4)]).verdict
+        crit.decide([0], [UnitView(mean=st.blocks(0)[0], spp=4)]).verdict
 
 
 def test_model_criterion_uses_any_scorer():
@@ -191,7 +191,7 @@ def test_model_criterion_uses_any_scorer():
 
     fake = Fake()
     crit = ModelCriterion(fake)
-    views = [BlockView(mean=noisy_block(level=lv), spp=8, quick=np.ones((8, 8, 3))) for lv in (0.1, 0.5)]
+    views = [UnitView(mean=noisy_block(level=lv), spp=8, quick=np.ones((8, 8, 3))) for lv in (0.1, 0.5)]
     assert crit.decide([4, 7], views).verdict.tolist() == [-1, 1]
     assert fake.calls == [((2, 8, 8, 3), (2, 8, 8, 3), 0.0, None)]
     assert crit.describe()["model"] == {"type": "Fake"}
@@ -204,14 +204,14 @@ def test_model_criterion_without_quick_image(tmp_path):
     """A model trained with quick 'none' decides from the current blocks alone."""
     from learning.models.bundle import load_model, save_model
     from learning.models.estimators import DSVM
-    from renderer.criteria import BlockView, ModelCriterion
+    from renderer.criteria import UnitView, ModelCriterion
     rng = np.random.default_rng(0)
     X = rng.normal(size=(120, 26))
     y = np.where(X[:, 0] > 0, 1, -1)
     save_model(DSVM().fit(X, y), tmp_path / "m", kind="dsvm", input="features", extra={"quick": "none"})
     crit = ModelCriterion(load_model(tmp_path / "m"))
     assert not crit.needs_quick
-    views = [BlockView(mean=rng.random((16, 16, 3)).astype(np.float32), spp=16) for _ in range(3)]
+    views = [UnitView(mean=rng.random((16, 16, 3)).astype(np.float32), spp=16) for _ in range(3)]
     out = crit.decide([0, 1, 2], views).verdict
     assert out.shape == (3,) and set(out.tolist()) <= {-1, 1}
 
@@ -233,9 +233,9 @@ def test_a_criterion_is_configuration_only_and_the_loop_keeps_the_render(model_a
         second, again = simulate_loop(st, crit, min_spp=8)
         assert repr(sorted(vars(crit).items())) == before, crit.name
         np.testing.assert_array_equal(first, second)
-        assert loop.ledger.counters == again.ledger.counters and loop.ledger.counters["blocks_asked"] > 0
+        assert loop.ledger.counters == again.ledger.counters and loop.ledger.counters["units_asked"] > 0
         assert not hasattr(crit, "counters") and not hasattr(crit, "ratios")
         if crit.name == "model":
-            assert loop.ledger.counters["feature_rows"] == st.n_blocks + loop.ledger.counters["blocks_featured"]
+            assert loop.ledger.counters["feature_rows"] == st.n_blocks + loop.ledger.counters["units_featured"]
         asked, ratio = loop.ratios.take(np.arange(st.n_blocks))
         assert asked.all() and not np.isnan(ratio[asked & np.isfinite(ratio)]).any()

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from renderer.live.adaptive import run_adaptive
-from renderer.criteria import BlockBatch, FlipCriterion, OracleCriterion
+from renderer.criteria import UnitBatch, FlipCriterion, OracleCriterion
 from renderer.live.launches import grown_passes
 from tests.support import passloop_golden as golden
 
@@ -216,12 +216,12 @@ def test_the_flip_criterion_judges_a_batch_without_host_blocks() -> None:
         acc.add_batch([0, 1, 2], np.stack([np.full((16, 16, 3), 0.5),                 # flat
                                            0.5 + 0.01 * rng.standard_normal((16, 16, 3)),    # quiet
                                            0.5 + 0.4 * rng.standard_normal((16, 16, 3))]), 8)
-    batch = BlockBatch.from_accumulator(acc, [0, 1, 2])
+    batch = UnitBatch.from_accumulator(acc, [0, 1, 2])
     crit = FlipCriterion(c=0.05)
     d = crit.decide([0, 1, 2], batch)
     assert d.verdict.tolist() == [1, 1, -1]
     assert d.ratio[0] == 0.0 and d.ratio[2] > 1.0
-    assert d.counts["flat_blocks"] == 1 and d.counts["blocks_featured"] == 2
+    assert d.counts["flat_units"] == 1 and d.counts["units_featured"] == 2
 
 
 def test_a_reused_criterion_carries_nothing_into_the_next_render() -> None:

@@ -35,8 +35,8 @@ def test_the_loop_and_the_budget_report_into_the_ledger_they_are_given() -> None
     budget = Budget(spp_budget=8.0, ledger=ledger)
     loop.run_round([0, 1, 2, 3], [(np.full((4, 4, 4, 3), 0.5), 4)])
     budget.record(0.5, 16)
-    assert ledger.counters["decide_calls"] == 1 and ledger.counters["blocks_asked"] == 4
-    assert ledger.budget_cost == [0.5, 16.0] and budget.state()["cost"] == [0.5, 16.0]
+    assert ledger.counters["decide_calls"] == 1 and ledger.counters["units_asked"] == 4
+    assert ledger.budget_cost == [0.5, 16.0] and budget.state(loop.ratios).cost == (0.5, 16.0)
     alone = PassLoop(VarianceCriterion(1e-6), (2, 2), (4, 4), schedule(4, 16), None)
     alone.run_round([0, 1], [(np.full((2, 4, 4, 3), 0.5), 4)])
     assert alone.ledger is not ledger and alone.ledger.counters["decide_calls"] == 1

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from learning.data.accumulator import UnitAccumulator
-from renderer.criteria import BlockBatch, BlockView, FlipCriterion, UniformCriterion, VarianceCriterion
+from renderer.criteria import UnitBatch, UnitView, FlipCriterion, UniformCriterion, VarianceCriterion
 
 ROOT = Path(__file__).resolve().parents[2]
 SMALL = ["--block", "16", "--step", "4", "--min-spp", "4", "--max-spp", "16"]
@@ -49,11 +49,11 @@ def sphere_scene(tmp_path: Path) -> Path:
 # ------------------------------------------------------------------- the rule, on the accumulator
 
 
-def _loop_batch(passes: list[np.ndarray]) -> BlockBatch:
+def _loop_batch(passes: list[np.ndarray]) -> UnitBatch:
     acc = UnitAccumulator((1, 1), (8, 8))
     for p in passes:
         acc.add(0, p, 4)
-    return BlockBatch.from_accumulator(acc, [0])
+    return UnitBatch.from_accumulator(acc, [0])
 
 
 @pytest.mark.parametrize("make", CRITERIA)
@@ -91,8 +91,8 @@ def test_a_pixel_with_some_finite_passes_is_judged_as_usual(make):
 def test_views_with_non_finite_halves_are_noisy_as_on_the_served_route():
     black = np.zeros((8, 8, 3))
     nan = np.full((8, 8, 3), np.nan)
-    views = [BlockView(mean=black, spp=8, halves=(black, black), half_spp=(4, 4)),
-             BlockView(mean=black, spp=8, halves=(nan, black), half_spp=(4, 4))]
+    views = [UnitView(mean=black, spp=8, halves=(black, black), half_spp=(4, 4)),
+             UnitView(mean=black, spp=8, halves=(nan, black), half_spp=(4, 4))]
     for crit in (FlipCriterion(0.02), VarianceCriterion(0.01), UniformCriterion()):
         assert crit.decide([0, 1], views).verdict[1] == -1
     assert FlipCriterion(0.02).decide([0, 1], views).verdict.tolist() == [1, -1]

@@ -60,22 +60,22 @@ def test_a_tile_is_judged_in_its_blocks_context() -> None:
     own 16x16 window, no neighbours) scores differently, so the context is really used."""
     tiling = BlockWindows(64, 64, block=64, tile=16)
     loop, _ = _one_noisy_tile(tiling, n_passes=2)
-    from renderer.criteria import BlockBatch
+    from renderer.criteria import UnitBatch
 
-    batch = BlockBatch.from_accumulator(loop.acc, [4, 5, 6], tiling=tiling)
+    batch = UnitBatch.from_accumulator(loop.acc, [4, 5, 6], tiling=tiling)
     in_context = FlipCriterion(0.05, tau=0.02)._flip(batch, np.arange(3))
-    alone = FlipCriterion(0.05, tau=0.02)._flip(BlockBatch.from_accumulator(loop.acc, [4, 5, 6]), np.arange(3))
+    alone = FlipCriterion(0.05, tau=0.02)._flip(UnitBatch.from_accumulator(loop.acc, [4, 5, 6]), np.arange(3))
     assert in_context[1] > 0.05 and alone[1] > 0.05                   # the noisy tile either way
     assert not np.allclose(in_context, alone)
 
 
 def test_a_tiles_halves_are_read_once_and_the_same_either_way() -> None:
-    """`BlockBatch.halves_of`: a few tiles' halves, read alone before their blocks are put
+    """`UnitBatch.halves_of`: a few tiles' halves, read alone before their blocks are put
     together and cut from the assembled tiles after, are every unit's halves (`halves`)
     bit for bit, in any order; a frame of two blocks, so a tile's block row matters."""
     import torch
 
-    from renderer.criteria import BlockBatch
+    from renderer.criteria import UnitBatch
 
     tiling = BlockWindows(128, 64, block=64, tile=16)
     rng = np.random.default_rng(3)
@@ -83,10 +83,10 @@ def test_a_tiles_halves_are_read_once_and_the_same_either_way() -> None:
     for _ in range(3):
         loop.acc.add_batch(np.arange(32), 0.5 + 0.1 * rng.standard_normal((32, 16, 16, 3)), 8)
     ids, rows = [3, 17, 30, 5], np.array([2, 0, 3])
-    whole = BlockBatch.from_accumulator(loop.acc, ids, tiling=tiling).halves
-    before = BlockBatch.from_accumulator(loop.acc, ids, tiling=tiling)
+    whole = UnitBatch.from_accumulator(loop.acc, ids, tiling=tiling).halves
+    before = UnitBatch.from_accumulator(loop.acc, ids, tiling=tiling)
     early = before.halves_of(rows)
-    after = BlockBatch.from_accumulator(loop.acc, ids, tiling=tiling)
+    after = UnitBatch.from_accumulator(loop.acc, ids, tiling=tiling)
     after.block_halves(np.arange(4))                        # the blocks put together first
     late = after.halves_of(rows)
     assert after._halves is None                            # no unit's halves read again

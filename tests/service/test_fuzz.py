@@ -20,6 +20,7 @@ from learning.data.accumulator import UnitAccumulator
 from learning.models.bundle_check import read_manifest
 from learning.data.npz import read_npz, savez_bytes
 from renderer.live.checkpoint import load_checkpoint, save_checkpoint
+from renderer.live.progress import LoopState, Progress
 from service.limits import Limits
 from service.oip import DATATYPES, ApiError, decode_tensors, parse_request, split_body
 
@@ -186,15 +187,14 @@ def _valid_checkpoint(path: Path) -> None:
             row[0], active[0], stop_spp[0] = 1, False, 8
         history.append(row)
         rendered.append(len(ids))
-    save_checkpoint(path, {"settings": SETTINGS, "active": active, "stop_spp": stop_spp,
-                           "history": np.stack(history), "history_spp": np.array([4, 8]),
-                           "history_block_spp": np.array([[4] * 4, [8] * 4]), "rendered": np.array(rendered), "pass_index": 2, "done": False,
-                           "counters": {"decide_calls": 2}, "timers": {"wall_s": 0.5}, "quick": None,
-                           "acc": acc.state(), "evidence": np.tile([[2.4, 8.0]], (4, 1)),
-                           "next_spp": np.full(4, 8)})   # weights: the 8 spp decided
+    loop = LoopState(acc=acc, active=active, stop_spp=stop_spp, history=np.stack(history),
+                     history_spp=np.array([4, 8]), history_unit_spp=np.array([[4] * 4, [8] * 4]),
+                     rendered=np.array(rendered), evidence=np.tile([[2.4, 8.0]], (4, 1)),   # weights: the 8 spp decided
+                     next_spp=np.full(4, 8))
+    save_checkpoint(path, Progress(loop, done=False, counters={"decide_calls": 2}, timers={"wall_s": 0.5}), SETTINGS)
 
 
-def _load(path: Path) -> dict:
+def _load(path: Path) -> Progress:
     return load_checkpoint(path, SETTINGS, pass_spp=SIZES, grid=GRID, unit_shape=BLOCK, frame=FRAME)
 
 
@@ -203,7 +203,7 @@ def valid_checkpoint(tmp_path_factory) -> bytes:
     path = tmp_path_factory.mktemp("ck") / "checkpoint.npz"
     _valid_checkpoint(path)
     state = _load(path)                                  # the reader accepts what the writer wrote
-    assert state["pass_index"] == 2 and state["stop_spp"].tolist() == [8, 0, 0, 0]
+    assert state.rows == 2 and state.loop.stop_spp.tolist() == [8, 0, 0, 0]
     return path.read_bytes()
 
 
@@ -229,7 +229,7 @@ def test_checkpoint_reader_refuses_damaged_bytes(tmp_path_factory, valid_checkpo
     except ValueError as exc:
         assert "checkpoint.npz" in str(exc)
         return
-    assert bytes(raw) == valid_checkpoint or state["pass_index"] == 2   # a no-op mutation
+    assert bytes(raw) == valid_checkpoint or state.rows == 2   # a no-op mutation
 
 
 @FUZZ
@@ -255,4 +255,4 @@ def test_checkpoint_reader_refuses_forged_states(tmp_path_factory, valid_checkpo
         state = _load(path)
     except ValueError:
         return
-    assert 0 <= state["pass_index"] <= len(SIZES)
+    assert 0 <= state.rows <= len(SIZES)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from learning.models.bundle import load_model
-from renderer.criteria import BlockView, FlipCriterion
+from renderer.criteria import UnitView, FlipCriterion
 
 GREY = np.full((1, 64, 64, 3), 0.5, np.float32)
 #: (even, odd) pairs whose halves disagree completely: noisy, however flat their mean
@@ -46,9 +46,9 @@ def test_disagreeing_halves_are_noisy_in_the_local_criteria(case: str) -> None:
     even, odd = DISAGREE[case]
     crit = FlipCriterion(0.05, tau=0.02)
     mean = GREY[0].astype(np.float64)        # what a mean of the halves may look like: flat
-    view = BlockView(mean=mean, spp=2, halves=(even[0], odd[0]), half_spp=(1, 1))
+    view = UnitView(mean=mean, spp=2, halves=(even[0], odd[0]), half_spp=(1, 1))
     assert crit.decide([0], [view]).verdict.tolist() == [-1], case
-    same = BlockView(mean=mean, spp=2, halves=(GREY[0], GREY[0].copy()), half_spp=(1, 1))
+    same = UnitView(mean=mean, spp=2, halves=(GREY[0], GREY[0].copy()), half_spp=(1, 1))
     assert crit.decide([0], [same]).verdict.tolist() == [1]
 
 

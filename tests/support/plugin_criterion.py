@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from learning.stoprule import CONVERGED, NOISY
-from renderer.criteria import TILE, BlockBatch, Criterion, Setting, Tally, declare
+from renderer.criteria import TILE, UnitBatch, Criterion, Setting, Tally, declare
 from renderer.spec import RenderSpec
 
 #: the threshold when none is given, and the largest it takes (the row's is 1000)
@@ -43,7 +43,7 @@ class HalvesGapCriterion(Criterion):
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "threshold": self.threshold}
 
-    def _decide(self, ids: list[int], batch: BlockBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
+    def _decide(self, ids: list[int], batch: UnitBatch, tally: Tally) -> tuple[np.ndarray, np.ndarray]:
         import torch
 
         flat = self._flat(batch, self.exposure, tally)

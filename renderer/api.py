@@ -19,7 +19,8 @@ import numpy as np
 
 from .errors import InputNotFound, ServerUnavailable
 from .live.result import RenderResult
-from .settings import API, ROWS
+from .setting_kinds import API
+from .settings import ROWS
 from .spec import ARGUMENT
 
 if TYPE_CHECKING:

@@ -33,7 +33,8 @@ from typing import Any
 from noisefeat.bounds import SizeBounds
 
 from .criteria.registry import BLOCK_ONLY, TILE, Declared, criterion_class, declared
-from .settings import MAX_PASSES, MAX_SIDE, ROW, ROWS, check_known, declared_row
+from .setting_kinds import MAX_SIDE
+from .settings import MAX_PASSES, ROW, ROWS, check_known, declared_row
 
 logger = logging.getLogger(__name__)
 

@@ -26,7 +26,7 @@ What the file alone cannot vouch for, its radiance (sums scaled by 1e30, digest 
 resumed with every block "converged"), the session checks against the scene: its first
 pass traced again (`check_radiance`); nor each unit's decision evidence and next decision,
 checked against the half buffers the file holds (`check_evidence`). The session calls both
-on a resume; they are the checkpoint's checks, so they are here.
+on a resume; they are the checkpoint's checks, in `renderer.live.checkpoint_checks`.
 
 The checkpoint is the one place where the render's typed progress
 (`renderer.live.progress.Progress`, `RunSettings`) becomes arrays and back
@@ -41,7 +41,7 @@ from __future__ import annotations
 import json
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -50,12 +50,8 @@ from learning.inputs.history import last_decided_spp
 from noisefeat.atomic import atomic_write
 from learning.data.npz import check_digest, read_npz, savez_bytes
 
-from ..criteria import UnitBatch, external_counters, internal_counters
-from .passloop import PassLoop, next_decision
+from ..criteria import external_counters, internal_counters
 from .progress import BudgetState, LoopState, Progress, RunSettings
-
-if TYPE_CHECKING:
-    from .blocks import BlockRenderer
 
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_FORMAT = "noisestop-adaptive-checkpoint"
@@ -329,103 +325,3 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
                                       cost=(float(cost[0]), float(cost[1])),
                                       ratio_asked=ratio_asked.copy(), ratio=ratio.copy())
     return progress
-
-
-# -- what the file alone cannot vouch for: checked against the scene and the criterion --
-
-#: how far a resumed checkpoint's mean radiance may lie from its first pass traced again
-RADIANCE_RATIO = 1e6
-
-
-def check_radiance(path: Path, acc: UnitAccumulator, br: BlockRenderer, first_spp: int, seed: int) -> None:
-    """ValueError unless a checkpoint's radiance is what its scene renders: a forged file
-    whose sums were scaled (x1e30: every unit then "converged") passes every check the file
-    alone allows, its digest recomputed. The first pass depends only on (seed, pixel, pass),
-    so it is traced again over the frame (`render_full`: one pass, not added to the image;
-    its Mitsuba call is counted) and the mean radiance held must be within a factor
-    RADIANCE_RATIO of its mean: both estimate the frame's mean, so a true checkpoint is
-    within noise of it. A black first pass proves nothing (light found later) and is not
-    held against the file."""
-    units = np.flatnonzero(acc.pass_counts() > 0)
-    if not units.size:
-        return
-    again = np.nan_to_num(br.render_full(int(first_spp), seed, 0).astype(np.float64), nan=0.0, posinf=0.0,
-                          neginf=0.0)
-    traced = float(np.abs(again).mean())
-    held = float(acc.means(units).abs().mean().cpu())
-    if traced > 0 and not traced / RADIANCE_RATIO <= held <= traced * RADIANCE_RATIO:
-        raise ValueError(f"{path}: inconsistent checkpoint: its mean radiance is {held / traced:.3g} times what "
-                         "its first pass traces again (forged or damaged); delete it (or rerun without "
-                         "--resume) to start over")
-
-
-#: how far a unit's mean noise estimate may lie from its halves' estimate now
-EVIDENCE_RATIO = 1e3
-#: how far a unit's next decision may lie past the one its ratio now asks for
-NEXT_RATIO = 1e3
-
-
-def _refuse(path: Path, what: str) -> None:
-    """The one-line refusal of a checkpoint whose decision state its halves contradict."""
-    raise ValueError(f"{path}: inconsistent checkpoint: {what} (forged or damaged); delete it (or rerun "
-                     "without --resume) to start over")
-
-
-def check_evidence(path: Path, loop: PassLoop) -> None:
-    """ValueError unless a resumed loop's decision evidence and next decisions agree with
-    the half buffers its checkpoint holds. Neither can be recomputed from the file: the
-    scores they came from were taken on halves at spp long past, so a forged file (sums
-    zeroed or 1e300, every next decision at the latest the format allows, digest
-    recomputed) silently stopped units early or ran them to max spp. Every decision of a
-    unit estimated one per-unit constant (noise falls as 1/sqrt(spp)), so the criterion
-    is asked once more on the units as they stand, keeping nothing (no verdict, evidence,
-    counter or timer: the resumed render counts as the uninterrupted one), and the file is
-    refused where a unit judged at the spp it holds held less evidence than that very
-    decision added (same state, same estimate: half of it, for a tile's context), where its mean estimate lies more than
-    EVIDENCE_RATIO from its halves' now or is 0 while they give more (honest ones: within
-    a factor 3 on cornell), or where its next decision lies more than NEXT_RATIO past the
-    one its ratio now asks for. Only active units that were judged are asked."""
-    decided = loop.evidence.last
-    ids = np.flatnonzero(loop.active & (decided > 0))
-    if not ids.size or not loop.criterion.noise_ratio:
-        return
-    d = loop.criterion.decide(ids, UnitBatch.from_accumulator(loop.acc, ids, loop.quick, loop.tiling,
-                                                               loop.evidence))
-    spp = loop.acc.spp_all()[ids]
-    ratio = np.asarray(d.ratio, np.float64)
-    if loop.decide_skip > 0 or loop.decide_growth > 0:
-        known = np.isfinite(ratio)
-        asked = next_decision(spp[known], ratio[known], loop.decide_skip, loop.decide_growth)
-        late = loop.next_spp[ids[known]] > NEXT_RATIO * np.maximum(asked, spp[known] + 1)
-        if late.any():
-            _refuse(path, f"unit {int(ids[known][late][0])}'s next decision is far past what its noise asks for")
-    if d.evidence is None:
-        return
-    x = np.asarray(d.evidence, np.float64)
-    total, weight = loop.evidence.sums[ids, 0], loop.evidence.sums[ids, 1]
-    fresh = np.isfinite(x)
-    # judged at the spp it holds: that decision added (spp - the one before) x (the same up
-    # to a tile's context, hence half of it)
-    here = fresh & (spp == decided[ids])
-    if here.any():
-        before = _decided_before(loop, ids[here])
-        w = (spp[here] - before).astype(np.float64)
-        short = (weight[here] < w) | (total[here] < 0.5 * w * x[here])
-        if short.any():
-            _refuse(path, f"unit {int(ids[here][short][0])} holds less evidence than its last decision added")
-    held = fresh & (weight > 0) & (x > 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        mean = np.where(held, total / np.where(weight > 0, weight, 1.0), np.nan)
-        off = held & ~((mean >= x / EVIDENCE_RATIO) & (mean <= x * EVIDENCE_RATIO))
-    if off.any():
-        _refuse(path, f"unit {int(ids[off][0])}'s decision evidence is {mean[off][0]:.3g} per sample, its "
-                      f"half buffers give {x[off][0]:.3g}")
-
-
-def _decided_before(loop: PassLoop, ids: np.ndarray) -> np.ndarray:
-    """int64 [k]: the spp of each unit's decision before its last one (0: none), from the
-    verdict history."""
-    asked = loop.history[:, ids] != 0
-    if asked.any():                    # each unit's last decision left out, the last before it remains
-        asked[len(asked) - 1 - np.argmax(asked[::-1], axis=0), np.arange(len(ids))] = False
-    return last_decided_spp(asked, loop.history_unit_spp[:, ids])

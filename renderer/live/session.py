@@ -32,7 +32,8 @@ from noisefeat.safeio import present
 
 from ..criteria import COUNTER_NAMES, TIMER_NAMES
 from .budget import Budget
-from .checkpoint import check_evidence, check_radiance, load_checkpoint, save_checkpoint
+from .checkpoint import load_checkpoint, save_checkpoint
+from .checkpoint_checks import check_evidence, check_radiance
 from .launches import LAUNCH_LANES, NEAR, ahead_passes, grown_passes
 from .ledger import RENDER_COUNTERS, RENDER_TIMERS, Ledger
 from .passloop import PassLoop, schedule

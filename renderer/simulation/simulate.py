@@ -241,7 +241,7 @@ def criterion_factory(kind: str, *, model: str | None = None, server: str | None
     the oracle with each stack's own thresholds (its tiles' with `tile`)."""
     from ..criteria import make_criterion
     from ..criteria.gated import GatedCriterion
-    from ..settings import MAX_SIDE
+    from ..setting_kinds import MAX_SIDE
     from ..spec import COMMAND_LINE, resolve
 
     spec = resolve({"criterion": kind, "model": model, "server": server, "threshold": threshold,

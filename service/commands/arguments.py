@@ -12,7 +12,8 @@ import math
 from collections.abc import Callable
 
 from learning.names import QUICK_MODES
-from renderer.settings import MAX_SIDE, MAX_SPP, ROW, ascii_float, ascii_int
+from renderer.setting_kinds import MAX_SIDE, ascii_float, ascii_int
+from renderer.settings import MAX_SPP, ROW
 
 from ..console import UsageError
 

@@ -8,7 +8,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from renderer.settings import CLI, ROWS
+from renderer.setting_kinds import CLI
+from renderer.settings import ROWS
 
 from ..console import UsageError, emit_json, log
 from . import arguments as arg

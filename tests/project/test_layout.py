@@ -23,7 +23,7 @@ LEARNING = {"names": 0, "stoprule": 0, "data": 1, "inputs": 2, "models": 3, "eva
 #: doors at the top (the package, api, plugin, render_many) may import any room
 RENDERER_JOBS = {"client": set(), "criteria": {"client"}, "scenes": set(), "live": {"criteria", "scenes"},
                  "simulation": {"criteria", "live"}, "dataset": {"live", "scenes"}}
-RENDERER_SHARED = {"spec", "settings", "plugin_schema", "errors", "farm"}
+RENDERER_SHARED = {"spec", "settings", "setting_kinds", "plugin_schema", "errors", "farm"}
 RENDERER_DOORS = {"api", "plugin", "render_many"}
 
 

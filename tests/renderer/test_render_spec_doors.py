@@ -14,7 +14,8 @@ from typing import Any
 import pytest
 
 import renderer
-from renderer.settings import API, CLI, MAX_PASSES, MAX_SEED, MAX_SIDE, MAX_SPP, MAX_TIME_LIMIT, ROW, ROWS, XML
+from renderer.setting_kinds import API, CLI, MAX_SIDE, XML
+from renderer.settings import MAX_PASSES, MAX_SEED, MAX_SPP, MAX_TIME_LIMIT, ROW, ROWS
 from service import cli
 
 pytestmark = pytest.mark.slow

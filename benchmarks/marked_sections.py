@@ -66,29 +66,22 @@ def _markers(name: str) -> tuple[str, str]:
     return f"<!-- bench:{name} -->", f"<!-- /bench:{name} -->"
 
 
-def home(path: Path, name: str, text: str | None = None) -> Path:
-    """The file that holds section `name`'s markers: `path` (whose text may be given), else
-    the first detail page that holds both, else `path` (where a new section is appended)."""
+def _home(texts: dict[Path, str], report: Path, name: str) -> Path:
+    """The file of `texts` (the report first, then its detail pages) that holds section
+    `name`'s markers, else the report (where a new section is appended)."""
     start, end = _markers(name)
-    text = check_target(path) if text is None else text
-    if start in text and end in text:
-        return path
-    for page in detail_pages(path):
-        page_text = read_text(page, "markdown")
-        if start in page_text and end in page_text:
-            return page
-    return path
+    return next((f for f, text in texts.items() if start in text and end in text), report)
 
 
 def update_markdown(path: Path, sections: dict[str, str]) -> None:
     """Replace the text between <!-- bench:NAME --> and <!-- /bench:NAME --> markers, in
     `path` or on the detail page that holds them (a new section: appended to `path`)."""
-    report = check_target(path)
+    texts = {path: check_target(path), **{page: read_text(page, "markdown") for page in detail_pages(path)}}
     by_file: dict[Path, dict[str, str]] = {}
     for name, body in sections.items():
-        by_file.setdefault(home(path, name, report), {})[name] = body
+        by_file.setdefault(_home(texts, path, name), {})[name] = body
     for target, its_sections in by_file.items():
-        text = report if target == path else read_text(target, "markdown")
+        text = texts[target]
         for name, body in its_sections.items():
             if target != path:
                 body = rebase_links(body, path.parent, target.parent)

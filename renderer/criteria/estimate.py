@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from learning.inputs.history import STATISTIC, combine
-from learning.stoprule import StopRule, hold_dotted
+from learning.stoprule import StopRule
 from noisefeat.pooling import CRITERION_POOLING
 
 from .batch import UnitBatch
@@ -107,7 +107,4 @@ class EstimateCriterion(FlipCriterion):
                               stats[row, slot])
             estimate[ask] = self.bundle.estimator.estimate(X)
             tally.add("feature_rows", int(ask.size))
-        with np.errstate(invalid="ignore"):
-            ratio = np.fmax(estimate / self.c if self.c > 0 else np.inf, dots)
-        ratio = np.where(flat, 0.0, np.where(np.isnan(estimate), np.nan, ratio))
-        return hold_dotted(self.rule.verdict(-estimate, flat), dots, flat), ratio, evidence
+        return *self._verdicts(-estimate, flat, dots), evidence

@@ -104,7 +104,12 @@ class FlipCriterion(Criterion):
             e_hist, evidence = combine(batch.evidence, -score, batch.spp)
             score = -e_hist
         dots = self._dots(batch, ask, self.exposure, self.tau, tally)
+        return *self._verdicts(score, flat, dots), evidence
+
+    def _verdicts(self, score: np.ndarray, flat: np.ndarray, dots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(verdicts, ratios) of the units' scores -e (NaN: not decided) against c: flat units
+        stop (ratio 0), dotted ones stay noisy, the ratio is e / c or the dot term's."""
         with np.errstate(invalid="ignore"):
             ratio = np.fmax(-score / self.c if self.c > 0 else np.inf, dots)
         ratio = np.where(flat, 0.0, np.where(np.isnan(score), np.nan, ratio))
-        return hold_dotted(self.rule.verdict(score, flat), dots, flat), ratio, evidence
+        return hold_dotted(self.rule.verdict(score, flat), dots, flat), ratio

@@ -1,41 +1,19 @@
-"""The pass loop: what one round of a progressive render does, for the live render and the
-simulation on stored stacks alike.
+"""The pass loop: one round of a progressive render, live or simulated on stored stacks.
 
-The words (the one place they are defined; renderer/README.md repeats them):
+The loop's words (defined here; docs/codemap.md repeats them):
 
-* a *unit* is what the loop samples, judges and stops: a tile of a block (`tile`), or the
-  block itself at block grain; "block" keeps its meaning, the frame's window the model, the
-  observer and the HTTP protocol judge (`renderer.live.block_windows`: unit u is tile u % T of
-  block u // T);
-* a *pass* adds `pass_spp[j]` samples per pixel to some units; j is its *pass index* (what
-  keys its random numbers) and the `schedule` holds the spp at the end of each pass; a
-  unit's *pass count* is how many passes it holds, so the index of its next one; each pass
-  is one row of the verdict history;
-* the *step* is the render setting `step`, the spp of a pass (`schedule`), nothing else;
-* a *round* adds one or more passes to some units and then judges those due (`run_round`);
-  a live *launch* traces the passes of one or more rounds at once
-  (`renderer.live.session.RenderSession.advance`).
+* a *unit* is what the loop samples, judges and stops: a tile of a block, or the block itself
+  at block grain (unit u is tile u % T of block u // T: `renderer.live.block_windows`);
+* a *pass* adds `pass_spp[j]` samples per pixel to some units; j, its *pass index*, keys its
+  random numbers; `schedule` holds the spp at the end of each pass; a unit's *pass count* is
+  how many passes it holds; each pass is one row of the verdict history;
+* the *step* is the spp of a pass; a unit is *pending* while active with a pass left;
+* a *round* adds one or more passes to some units, then judges those due (`run_round`);
+* a *launch* traces the passes of one or more rounds at once (`RenderSession.advance`).
 
-A unit is *pending* while it is active with a pass left (`PassLoop.pending`).
-
-**One round** (the one explanation; other modules point here). The caller picks units and
-their passes (`RenderSession.plan`: every pending unit at its next pass, several passes per
-launch as units stop, or in a budget render the units `renderer.live.budget.Budget.select`
-picks), traces them (`BlockRenderer.submit_passes`, or a stack's recovered passes in
-`renderer.simulation.simulate`) and hands each pass to `PassLoop.run_round`, which:
-
-1. adds the passes to the `UnitAccumulator` (exact means, even/odd half buffers, tensors on
-   the accumulator's device); each pass is one row of the verdict history;
-2. applies the stop rule's gate (`learning.stoprule.decide_active`): the units of the round
-   at or past min_spp and at their next decision (`next_decision`; always at the last
-   pass) are judged in one batched `Criterion.decide` (`PassLoop.judge`), and those it
-   calls converged leave the active set for good: never traced, featured or asked again.
-
-The loop owns what a render accumulates: each unit's last ratio to its target
-(`UnitRatios`, what a budget spends by) and decision history for a criterion that decides
-from it (`learning.inputs.history.Evidence`); what its decisions cost goes to the render's
-`renderer.live.ledger.Ledger`. A criterion is configuration only. Everything per unit is an
-array; only verdicts and numbers cross to the host.
+A round's units due are judged in one batched `Criterion.decide` through the stop rule's gate
+(`learning.stoprule.decide_active`); those called converged leave the active set for good. A
+criterion is configuration only: the loop owns what a render accumulates.
 """
 from __future__ import annotations
 
@@ -59,14 +37,10 @@ def schedule(step: int, max_spp: int) -> np.ndarray:
 
 
 def next_decision(spp: np.ndarray, ratio: np.ndarray, skip: float, growth: float = 0.0) -> np.ndarray:
-    """int64 [k]: the spp at which units just judged at `spp` with ratio to target `ratio`
-    are judged next. Monte Carlo noise falls as 1/sqrt(spp), so a unit r times above its
-    target is predicted to reach it at spp r^2; it is judged again at spp (skip r)^2, a
-    factor skip^2 before that prediction, and never before spp (1 + growth): after the next
-    pass where both are no later (r <= 1/skip and growth below a pass, no estimate, or skip
-    and growth 0: every pass). Why: a decision costs the same whether or not the unit can
-    stop, far from its target it cannot, and near it a unit of thousands of spp changes
-    little in one pass of 16. A unit with no estimate is judged at the next pass."""
+    """int64 [k]: the spp at which units judged at `spp`, `ratio` times their target, are judged
+    next. Noise falls as 1/sqrt(spp), so a unit r times above its target reaches it near spp
+    r^2: judge it again at (skip r)^2 times its spp, and not before (1 + growth) times it (a
+    decision costs the same whether or not the unit can stop). No estimate: the next pass."""
     r = np.asarray(ratio, np.float64)
     finite = np.isfinite(r)
     with np.errstate(over="ignore"):              # a huge ratio: the clip's top
@@ -75,20 +49,8 @@ def next_decision(spp: np.ndarray, ratio: np.ndarray, skip: float, growth: float
     return np.floor(np.asarray(spp, np.float64) * grow).astype(np.int64)
 
 
-def unit_events(history: np.ndarray, unit_spp: np.ndarray) -> dict[int, list[tuple[int, int]]]:
-    """Each decided unit's own [(spp, verdict)], in history order, from the verdict rows
-    [K, n] and every unit's spp after each row [K, n] (budget rounds put units at
-    different spp in one row, so the spp are the unit's own). Read once, for the report."""
-    rows, cols = np.nonzero(history.T)              # unit-major, rows in order within a unit
-    out: dict[int, list[tuple[int, int]]] = {}
-    for u, s, v in zip(rows.tolist(), unit_spp[cols, rows].tolist(), history[cols, rows].tolist()):
-        out.setdefault(u, []).append((s, v))
-    return out
-
-
 class UnitRatios:
-    """Per unit, how far its last verdict was from the target, as a ratio (> 1: above it;
-    NaN: no estimate): arrays indexed by unit id, read and written a batch at a time."""
+    """Per unit, its last verdict's ratio to the target (> 1: above it; NaN: no estimate)."""
 
     def __init__(self, n: int) -> None:
         self.asked = np.zeros(n, bool)
@@ -103,9 +65,8 @@ class UnitRatios:
         self.spp[idx] = np.broadcast_to(np.asarray(spp, np.int64), idx.shape)
 
     def predicted(self, ids: Any, spp: Any) -> np.ndarray:
-        """float64 [k]: the ratios of units `ids` brought from the spp they were taken at to
-        `spp` [k] by Monte Carlo's 1/sqrt(spp) (NaN where unknown): a unit whose decisions
-        skip passes (`next_decision`) is ranked by where its noise stands now."""
+        """float64 [k]: the ratios of units `ids` brought to `spp` [k] by 1/sqrt(spp) (NaN where
+        unknown), so a unit whose decisions skip passes is ranked by its noise now."""
         _, ratio = self.take(ids)
         idx = np.asarray(ids, np.int64).reshape(-1)
         now = np.maximum(np.asarray(spp, np.float64).reshape(-1), 1.0)
@@ -120,17 +81,10 @@ class UnitRatios:
 class PassLoop:
     """Active set, accumulator, verdict history and ratios of one render's units.
 
-    `grid`: the units as (rows, columns), numbered row-major: a live render's (blocks,
-    tiles a block), a stack's block grid; `unit_shape`: a unit's (height, width). `tiling`
-    (the renderer's `BlockWindows`) puts tiles back into their blocks for a criterion that
-    judges a tile in its block's context. `schedule`: the spp at the end of each pass;
-    `min_spp`: no decision below it (None: from the first pass); `decide_skip`: how far a
-    unit's decisions skip towards its predicted stop and `decide_growth` the least its spp
-    grows between them (`next_decision`; both 0: every pass).
-    `quick`: the quick image's blocks [n, bh, bw, 3] when the criterion reads them
-    (prepared once here). `device`: where the accumulator's tensors live (the renderer's).
-    `ledger`: where the decisions' counters and timers go (the render's; None: one of its
-    own). `state()` / `restore` is what the live render checkpoints (`LoopState`).
+    `grid`: the units as (rows, columns), row-major. `tiling` (the renderer's `BlockWindows`)
+    puts tiles back into their blocks for a criterion that judges a tile in its block's
+    context. `decide_skip`, `decide_growth`: see `next_decision`. `quick`: the quick image's
+    blocks [n, bh, bw, 3] when the criterion reads them. `ledger`: None, one of its own.
     """
 
     def __init__(self, criterion: Criterion, grid: tuple[int, int], unit_shape: tuple[int, int],
@@ -139,7 +93,7 @@ class PassLoop:
                  ledger: Ledger | None = None) -> None:
         self.criterion, self.min_spp, self.device = criterion, min_spp, device
         self.ledger = Ledger(COUNTER_NAMES, TIMER_NAMES) if ledger is None else ledger
-        #: the skip of `next_decision`, for a criterion whose ratio it can predict from
+        # skipping needs a ratio that predicts where the noise goes
         self.decide_skip = decide_skip if criterion.noise_ratio else 0.0
         self.decide_growth = decide_growth if criterion.noise_ratio else 0.0
         self.tiling = tiling if tiling is not None and tiling.tiles_per_block > 1 else None
@@ -167,22 +121,17 @@ class PassLoop:
 
     def due_pass(self, ids: Any, first: Any) -> np.ndarray:
         """int64 [k]: for units `ids` whose next pass is `first` [k], the first pass index at or
-        after it whose round judges them (`run_round`): where their spp reaches both their
-        next decision and min_spp, and at the latest their last pass. Passes before it
-        cannot stop them, so a launch may trace them all at once (`RenderSession.plan`)."""
+        after it whose round judges them (at their next decision and min_spp, at the latest
+        their last pass). The passes before it cannot stop them."""
         idx = np.asarray(ids, np.int64).reshape(-1)
         target = np.maximum(self.next_spp[idx], 0 if self.min_spp is None else int(self.min_spp))
         at = np.searchsorted(self.schedule, target, side="left") if self.criterion.stops else len(self.schedule)
         return np.clip(np.maximum(at, np.asarray(first, np.int64).reshape(-1)), 0, len(self.schedule) - 1)
 
     def run_round(self, ids: Sequence[int], passes: Sequence[tuple[Any, int | Sequence[int]]]) -> np.ndarray:
-        """One round (the module docstring): add `passes` to the units `ids` (each an
-        (images [len(ids), uh, uw, 3], pass_spp) pair: one spp for all or one per unit;
-        images on any device), then judge them through the stop rule's gate.
-
-        The verdicts go in the round's last history row. Returns that row, int8 [n]: +1
-        converged now, -1 noisy, 0 not asked.
-        """
+        """One round: add `passes`, (images [len(ids), uh, uw, 3], pass_spp: one for all or one
+        per unit) pairs, to units `ids`, then judge those due. Returns the round's last history
+        row, int8 [n]: +1 converged now, -1 noisy, 0 not asked."""
         idx = np.asarray(ids, np.int64).reshape(-1)
         if not idx.size:
             raise ValueError("a round renders at least one unit")
@@ -210,10 +159,9 @@ class PassLoop:
         return row
 
     def judge(self, ids: Sequence[int]) -> np.ndarray:
-        """The criterion's verdicts int8 [k] on units as they stand, their cost in the
-        ledger, their ratios kept; the active set is `run_round`'s to change. Only a round
-        calls it: a decision outside the units' own schedule would move their next decision
-        and evidence."""
+        """The criterion's verdicts int8 [k] on units as they stand; keeps their ratios and next
+        decisions, puts the cost in the ledger. Only a round calls it: a decision off the
+        units' schedule would move their next decision and evidence."""
         idx = np.asarray(ids, np.int64).reshape(-1)
         d: Decision = self.criterion.decide(idx, UnitBatch.from_accumulator(self.acc, idx, self.quick, self.tiling,
                                                                             self.evidence))
@@ -227,8 +175,14 @@ class PassLoop:
 
     @property
     def events(self) -> dict[int, list[tuple[int, int]]]:
-        """Each decided unit's own [(spp, verdict)], in order (`unit_events`)."""
-        return unit_events(self.history, self.history_unit_spp)
+        """Each decided unit's own [(spp, verdict)], in order (a budget row holds units at
+        different spp, so each is the unit's own)."""
+        units, rows = np.nonzero(self.history.T)        # unit-major, rows in order within a unit
+        out: dict[int, list[tuple[int, int]]] = {}
+        for u, s, v in zip(units.tolist(), self.history_unit_spp[rows, units].tolist(),
+                           self.history[rows, units].tolist()):
+            out.setdefault(u, []).append((s, v))
+        return out
 
     # -- checkpointing ---------------------------------------------------------------
 
@@ -238,15 +192,13 @@ class PassLoop:
         return int(self.history.shape[0])
 
     def state(self) -> LoopState:
-        """What a checkpoint keeps of the loop (`renderer.live.checkpoint`): its live
-        accumulator and arrays, not copies, to be written at once."""
+        """What a checkpoint keeps of the loop: its live accumulator and arrays, not copies."""
         return LoopState(acc=self.acc, active=self.active, stop_spp=self.stop_spp, history=self.history,
                          history_spp=self.history_spp, history_unit_spp=self.history_unit_spp,
                          rendered=self.rendered, evidence=self.evidence.sums, next_spp=self.next_spp)
 
     def restore(self, state: LoopState) -> None:
-        """Continue from a validated checkpoint's state (`renderer.live.checkpoint`; its
-        counters and timers go to the ledger: `renderer.live.ledger.Ledger.restore`)."""
+        """Continue from a validated checkpoint's state (the session restores the ledger)."""
         self.acc = UnitAccumulator.from_state(state.acc.state(), device=self.device)
         self.active = np.asarray(state.active, bool).copy()
         self.stop_spp = np.asarray(state.stop_spp, np.int64).copy()

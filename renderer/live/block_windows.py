@@ -1,72 +1,46 @@
-"""Where a frame's blocks lie: their windows in pixels, and the image they compose.
+"""Where a frame's blocks and tiles lie, in pixels: arithmetic only, the same for every engine.
 
-Kept apart from the engines that fill the windows (`renderer.live.blocks`): this is arithmetic
-on pixel positions only, no Mitsuba, the same for every variant and engine.
-
-Blocks are either a grid that divides the frame (``grid=(rows, cols)``: stacks,
-references) or windows of a given size in pixels (``block=64``: the live render of any
-film). With a size, windows start every `block` pixels and the last row and column are
-moved flush with the frame's edge, so an edge block smaller than the size is judged
-together with its neighbour's pixels: every window the criterion sees is a full
-``block x block`` window of one sample count, the size the model and the flip threshold
-were calibrated on. Overlapping pixels are traced once per pass and shared by the
-windows that hold them (`renderer.live.wavefront`); the final image takes each pixel from the
-covering window with the most samples (`compose`, `noisefeat.blocks`: the one rule, which
-the simulation on stacks puts its final frames together by too).
-
-Tiles: each block window is cut into tiles of `tile` pixels by the same rule (every
-`tile` pixels, the last flush with the block's edge), the same layout in every block. The
-tiles are the live loop's units (DESIGN "Decision grain": each has its own samples and
-stop); unit u is tile u % T of block u // T, T tiles a block. Without a tile size (or
-with tile = block) a block is its one tile.
+Blocks are a grid that divides the frame (``grid=(rows, cols)``: stacks, references) or
+windows every `block` pixels (the live render of any film), the last row and column flush
+with the frame's edge, so every window the criterion sees is a full block of one sample
+count, the size the model and the flip threshold were calibrated on. The final image takes
+each pixel from the covering window with the most samples (`compose`). Each block is cut
+into tiles of `tile` pixels by the same rule, the same in every block: the loop's units
+(unit u is tile u % T of block u // T; without a tile size a block is its one tile).
 """
-
 from __future__ import annotations
-
 
 import numpy as np
 import torch
 
 from noisefeat.blocks import compose
-from noisefeat.pooling import tile_windows
+from noisefeat.pooling import tile_starts, tile_windows
 
-__all__ = ["BlockWindows", "compose", "tile_starts"]
-
-
-def tile_starts(size: int, block: int) -> list[int]:
-    """Window starts along one axis: every `block` pixels (at most `size`), the last one
-    flush with the edge."""
-    starts = list(range(0, size - block + 1, block))
-    if starts[-1] + block < size:
-        starts.append(size - block)
-    return starts
+__all__ = ["BlockWindows", "compose"]
 
 
 class BlockWindows:
-    """The blocks of a `width` x `height` frame, numbered row-major, block 0 top-left:
-    windows of `block` pixels, else a `grid` (rows, columns) (see the module docstring).
-    What they are is checked where they are given: the render spec's rows and its frame fit
-    (`renderer.spec`: a block no larger than the frame, a grid that divides it), the
-    dataset command's checks; a stack's grid divides its frame."""
+    """The blocks of a `width` x `height` frame, numbered row-major, block 0 top-left: windows
+    of `block` pixels, else a `grid` (rows, columns); checked where they are given (the render
+    spec: a block no larger than the frame, a grid that divides it)."""
 
     def __init__(self, width: int, height: int, grid: tuple[int, int] | None = None,
                  block: int | None = None, tile: int | None = None) -> None:
         self.width, self.height = width, height
         if block is not None:
             self.block_h = self.block_w = int(block)
-            self._xs, self._ys = tile_starts(self.width, int(block)), tile_starts(self.height, int(block))
+            self._xs = tile_starts(self.width, int(block)).tolist()
+            self._ys = tile_starts(self.height, int(block)).tolist()
         else:
             gh, gw = (int(g) for g in grid)  # type: ignore[union-attr]
             self.block_h, self.block_w = self.height // gh, self.width // gw
             self._xs = [c * self.block_w for c in range(gw)]
             self._ys = [r * self.block_h for r in range(gh)]
         self.grid = (len(self._ys), len(self._xs))
-        # flat pixel indices of every window [n, bh * bw] (host; a renderer moves them to its
-        # device): a pass gathers its blocks at once
+        # flat pixel indices of every window [n, bh * bw], to gather a pass's blocks at once
         ys = torch.tensor(self._ys)[:, None, None, None] + torch.arange(self.block_h)[None, None, :, None]
         xs = torch.tensor(self._xs)[None, :, None, None] + torch.arange(self.block_w)[None, None, None, :]
         self._win_idx = (ys * self.width + xs).reshape(self.n_blocks, -1)
-        # the tiles of a block: their offsets inside it, the same in every block
         windows = tile_windows(self.block_h, self.block_w, max(self.block_h, self.block_w) if tile is None else tile)
         self.tile_w, self.tile_h = windows[0][2:]
         self._tile_offsets = [(dx, dy) for dx, dy, _, _ in windows]
@@ -76,7 +50,7 @@ class BlockWindows:
         #: flat frame pixel indices of every unit (tile) window [n_units, th * tw]
         self._unit_idx = self._win_idx[:, inner.reshape(-1)].reshape(self.n_units, -1) \
             if self.tiles_per_block > 1 else self._win_idx
-        #: where each pixel of a block window comes from: (tile, row, column) of its last tile
+        #: where each pixel of a block window comes from: its last tile's (tile, row, column)
         self._block_from_tiles = torch.full((self.block_h * self.block_w,), -1, dtype=torch.int64)
         self._block_from_tiles[inner.reshape(len(self._tile_offsets), -1)] = torch.arange(
             len(self._tile_offsets) * self.tile_h * self.tile_w).reshape(len(self._tile_offsets), -1)

@@ -1,20 +1,8 @@
 """A render's counters and timers, in one place: its ledger.
 
-One `Ledger` per render. The session makes it (`renderer.live.session.RenderSession`) and hands
-it to the parts that spend: the loop (`renderer.live.passloop.PassLoop`: what its decisions
-cost, `renderer.criteria`'s COUNTER_NAMES and TIMER_NAMES), the renderer
-(`renderer.live.blocks.BlockRenderer` and its `WavefrontTracer`: Mitsuba calls, kernel launches,
-lanes and compilations, samples traced) and the budget (`renderer.live.budget.Budget`: the
-seconds and unit-samples of its rounds, its time limit's rate); the session adds the
-checkpoints it writes and the setup, render and wall seconds. Each reports into it; the
-checkpoint (`RenderSession.progress`) and report.json (`renderer.live.report`) read it, nothing
-else. A part made alone (a `BlockRenderer`, `PassLoop` or `Budget` of a test, a
-simulation or a benchmark) keeps a ledger of its own.
-
-A resume (`restore`): the process's costs (`RENDER_COUNTERS`, `RENDER_TIMERS`) add up over
-every attempt; the decisions' are the render's so far, so the checkpoint's replace what
-this attempt counted before it resumed (preparing the quick image again, which the first
-attempt counted already).
+The session makes one per render and hands it to the parts that spend (the loop, the renderer
+and its tracer, the budget); the checkpoint and report.json read it. A part made alone (in a
+test, a simulation, a benchmark) keeps a ledger of its own.
 """
 from __future__ import annotations
 
@@ -31,11 +19,9 @@ RENDER_TIMERS = ("render_s", "setup_s", "wall_s")
 
 
 class Ledger:
-    """Counters (whole numbers) and timers (seconds) by name, in the order first named.
-
-    `counters` and `timers` start at 0 for the names given (the order the checkpoint and
-    the report list them in); a name reported later is added. `budget_cost`: a budget
-    render's rounds, [seconds (tracing and judging), unit-spp traced]."""
+    """Counters (whole numbers) and timers (seconds) by name, in the order first named (the
+    checkpoint's and the report's). `budget_cost`: a budget render's rounds, [seconds,
+    unit-spp traced]."""
 
     def __init__(self, counters: Iterable[str] = (), timers: Iterable[str] = ()) -> None:
         self.counters: dict[str, int] = dict.fromkeys(counters, 0)
@@ -60,9 +46,10 @@ class Ledger:
         return self.counters.get(key, 0)
 
     def restore(self, counters: Mapping[str, Any], timers: Mapping[str, float]) -> None:
-        """Go on from a checkpoint's counters and timers (the module docstring: the
-        process's costs added, the decisions' replaced); names this ledger does not keep
-        are ignored."""
+        """Go on from a checkpoint's counters and timers: the process's costs (`RENDER_COUNTERS`,
+        `RENDER_TIMERS`) add up over attempts; the decisions' are the render's so far, so the
+        checkpoint's replace this attempt's (its quick image, counted already). Names this
+        ledger does not keep are ignored."""
         for k, v in counters.items():
             if k in self.counters:
                 self.counters[k] = (self.counters[k] if k in RENDER_COUNTERS else 0) + int(v)

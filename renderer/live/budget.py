@@ -1,48 +1,15 @@
-"""A budget render: spend a limited number of samples (or seconds) where the noise is.
+"""A budget render (``--spp-budget N``, ``--time-limit S``): spend the samples where the noise is.
 
-Without a budget every pass renders every active unit (the words: `renderer.live.passloop`).
-Users with a deadline want the best image by that time instead (Cycles, Arnold and
-LuxCore pair a noise target with a time limit), so with ``--spp-budget N`` (samples per
-pixel averaged over the units) or ``--time-limit S`` each round renders the blocks whose
-units are farthest from their target, one pass each (with a time limit, as many as the time
-left pays for, at most a grown launch's: `renderer.live.session.RenderSession.plan`):
-
-* The loop's `ratios` (`renderer.live.passloop.UnitRatios`) hold, per unit, its last score
-  relative to the criterion's threshold (flip: the half-buffer FLIP over c(tau); > 1 is
-  above the target). Units with no estimate yet (before their first decision) come
-  first, all together.
-* Priority = ratio / sqrt(spp). Noise falls as 1/sqrt(spp), so a unit's ratio is about
-  a_u / sqrt(spp_u) with a_u its noise per sample; levelling the priority gives each unit
-  samples in proportion to a_u. Against uniform sampling with the same samples that
-  lowers both the worst unit's error (the noisiest unit gets more than its share) and
-  the mean error (Cauchy-Schwarz: sum sqrt(a_u) <= sqrt(U sum a_u)); levelling the ratio
-  itself (``per_sample=False``: samples in proportion to a_u^2, every unit to the same
-  error) helps the worst unit most but measured worse on the mean.
-* A round renders the blocks whose priority (their worst pending unit's) is at least
-  `band` times the largest: the worst alone at first, then, as it comes down, every
-  block within the band (water filling, in rounds large enough to trace well). A round
-  takes every pending unit of a block it picks: a tile is judged in its block's context,
-  so only a block whose tiles move together keeps the unbudgeted render's samples and
-  decisions.
-* While the budget left covers every active unit to max spp, rounds render all of them:
-  a budget that does not bind renders exactly what the unbudgeted loop renders, pass for
-  pass.
-* Decisions: an spp budget below max spp (one that can bind: known from the settings)
-  judges every unit it renders at every pass, so the ratios that pick where its samples
-  go are fresh (`judges_every_unit`, in report.json too). Otherwise (a larger spp budget,
-  a time limit) units are judged when the unbudgeted render judges them, decisions
-  skipped and spaced alike (`renderer.live.passloop.next_decision`), and the ratio a
-  block is ranked by is brought from its last decision to its spp now.
-
-A unit's j-th pass always draws the samples of pass index j (`BlockRenderer.submit_passes`
-traces units at different pass counts in one launch; a round is the loop's,
-`PassLoop.run_round`), and it is judged at the spp its own decisions ask for, so a block
-goes through the very states of the unbudgeted render (deciding as the budget render
-does), only in another order: the units that stop, stop at that render's spp, and a
-resume of a render a time limit ended, with or without the limit, ends in the
-uninterrupted render's image. What the rounds cost (seconds and unit-spp: the time limit's
-rate) is in the render's ledger (`renderer.live.ledger`). When the budget ends, the units
-still above the target are listed with their ratios (`above_target`).
+A round renders whole blocks (a tile is judged in its block's context): those whose
+`priority`, their worst pending unit's ratio to its target over sqrt(spp), is at least `band`
+times the largest. Levelling it gives each unit samples in proportion to its noise per sample
+a_u, which lowers both the worst and the mean error against uniform sampling
+(Cauchy-Schwarz); levelling the ratio itself (``per_sample=False``, samples ~ a_u^2) helps the
+worst unit most but measured worse on the mean. While the budget left covers every pending
+unit to max spp, a round renders all of them, as the unbudgeted loop does. A unit's j-th pass
+is always pass index j's samples, judged when the unbudgeted render would judge it (an spp
+budget that can bind: every pass, `judges_every_unit`), so a block goes through that render's
+states, only in another order, and a resumed time-limited render ends in its image.
 """
 from __future__ import annotations
 
@@ -63,10 +30,7 @@ BAND = 0.8
 
 def needs(loop: PassLoop, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(block [k], need [b]): for pending units `ids`, the index of their block among the
-    blocks they lie in, and what each such block's next pass costs (the unit-spp of its
-    units' next passes). A budget round takes whole blocks: a tile is judged in its
-    block's context (`renderer.live.block_windows`), so a block whose units all move
-    together gets the samples and decisions of the unbudgeted render, whatever the order."""
+    blocks they lie in, and the unit-spp of each such block's next pass."""
     per_block = loop.tiling.tiles_per_block if loop.tiling is not None else 1
     _, block = np.unique(np.asarray(ids, np.int64) // per_block, return_inverse=True)
     need = np.zeros(int(block.max()) + 1 if block.size else 0)
@@ -78,10 +42,8 @@ def needs(loop: PassLoop, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class Budget:
     """What a budget render may still spend, and which units a round renders.
 
-    `spp_budget`: samples per pixel averaged over the units (None: no sample budget);
-    `time_limit`: seconds (None: none). `band`: see the module docstring. The limits are
-    the render spec's (`renderer.spec`), checked there. `ledger`: where the rounds' cost
-    goes (the render's; by default one of its own).
+    `spp_budget`: samples per pixel averaged over the units; `time_limit`: seconds (None:
+    none; both checked by the render spec). `ledger`: where the rounds' cost goes.
     """
 
     spp_budget: float | None = None
@@ -98,55 +60,45 @@ class Budget:
 
     @classmethod
     def for_spec(cls, spec: RenderSpec, ledger: Ledger, resumed: bool = False) -> Budget | None:
-        """The budget a render spec asks for (None: neither an spp budget nor a time limit),
-        reporting to the render's `ledger`. `resumed`: the render goes on from a budget
-        render's checkpoint, whose units may be at different pass counts: without limits it
-        gets a budget of none (every pending unit each round, at its own next pass), so its
-        checkpoints stay a budget render's."""
+        """The budget a render spec asks for (None: no limit). `resumed` from a budget render's
+        checkpoint (units at different pass counts), a render without limits gets a budget of
+        none, so its checkpoints stay a budget render's."""
         if spec.spp_budget is None and spec.time_limit is None and not resumed:
             return None
         return cls(spec.spp_budget, spec.time_limit, ledger=ledger)
 
     @property
     def limited(self) -> bool:
-        """Whether it has a limit (a resumed render's budget of none has not: `for_spec`)."""
+        """Whether it has a limit (a resumed render's budget of none has not)."""
         return self.spp_budget is not None or self.time_limit is not None
 
     def judges_every_unit(self, max_spp: int) -> bool:
-        """Whether the render judges every unit it renders at every pass (its decisions
-        neither skipped nor spaced: `renderer.live.passloop.next_decision`): with an spp
-        budget below max spp, which can bind, so that its ratios, which pick where the
-        samples go, are fresh. Known from the settings alone, so every round of a render and
-        of its resumes decides alike. A larger spp budget never binds, and a time limit does
-        not change decisions: the render decides as without a budget."""
+        """Whether the render judges every unit it renders at every pass (no skip, no growth):
+        with an spp budget below max spp, which can bind, so the ratios that pick where samples
+        go are fresh. From the settings alone, so a render and its resumes decide alike."""
         return self.spp_budget is not None and self.spp_budget < max_spp
 
     def state(self, ratios: UnitRatios) -> BudgetState:
-        """What a checkpoint keeps of the budget, so a resumed budget render goes on as the
-        interrupted one would have (`renderer.live.checkpoint`; "cost": the ledger's), with
-        the loop's `ratios` it picks units by."""
+        """What a checkpoint keeps of the budget, with the loop's `ratios` it picks units by."""
         asked, ratio = ratios.take(np.arange(len(ratios.asked)))
         seconds, traced = self.ledger.budget_cost
         return BudgetState(prioritised_rounds=self.prioritised_rounds, ended=self.ended,
                            cost=(float(seconds), float(traced)), ratio_asked=asked, ratio=ratio)
 
     def restore(self, state: BudgetState) -> None:
-        """Go on from a checkpoint's budget (its ratios are the loop's: the session puts them back)."""
+        """Go on from a checkpoint's budget (the session puts the ratios back in the loop)."""
         self.prioritised_rounds = int(state.prioritised_rounds)
         self.ended = bool(state.ended)
         self.ledger.budget_cost = [float(c) for c in state.cost]
 
     def record(self, seconds: float, unit_spp: int) -> None:
-        """Seconds of a round and the unit-samples it traced, into the ledger (the time
-        budget's rate)."""
+        """Seconds of a round and the unit-samples it traced (the time limit's rate)."""
         cost = self.ledger.budget_cost
         cost[0] += float(seconds)
         cost[1] += float(unit_spp)
 
     def left(self, spp: np.ndarray, elapsed: float) -> float:
-        """Unit-spp the budget still allows (inf: no bound known yet), `spp` every unit's
-        now: what `select` picks by, and what sizes a time-limited round's launch
-        (`renderer.live.session.RenderSession.plan`)."""
+        """Unit-spp the budget still allows (inf: no bound known yet), `spp` every unit's now."""
         left = math.inf
         seconds, traced = self.ledger.budget_cost
         if self.spp_budget is not None:
@@ -157,11 +109,9 @@ class Budget:
         return left
 
     def select(self, loop: PassLoop, elapsed: float = 0.0) -> list[int]:
-        """The units of the next round, in unit order ([]: the budget or the units ran out).
-
-        While the budget left covers every pending unit to max spp: all of them (the
-        unbudgeted round). Otherwise whole blocks (`needs`): those whose priority is within
-        the band of the largest, worst first as far as an spp budget pays for them."""
+        """The units of the next round, in unit order ([]: the budget or the units ran out):
+        all pending ones while the budget covers them, else whole blocks within the band,
+        worst first as far as an spp budget pays."""
         spp = loop.acc.spp_all()
         ids = np.flatnonzero(loop.pending())
         if not ids.size:
@@ -190,9 +140,8 @@ class Budget:
         return picked.tolist()
 
     def priority(self, loop: PassLoop, ids: np.ndarray) -> np.ndarray:
-        """The priority `select` ranks units `ids` by: each one's last ratio to its target
-        brought to its spp now (`UnitRatios.predicted`; inf: no estimate yet, so first),
-        over sqrt(spp) with `per_sample`."""
+        """Units `ids`' ratios brought to their spp now (inf: no estimate yet, so first), over
+        sqrt(spp) with `per_sample`."""
         spp = loop.acc.spp_all()[ids]
         ratio = loop.ratios.predicted(ids, spp)
         ratio = np.where(np.isnan(ratio), np.inf, ratio)
@@ -201,8 +150,7 @@ class Budget:
         return ratio
 
     def finished(self, loop: PassLoop) -> bool:
-        """Whether the render is over: no unit is pending, or the sample budget cannot pay
-        for another pass of any block's pending units (the budget ended)."""
+        """Whether no unit is pending, or the spp budget cannot pay another pass of any block."""
         left = np.flatnonzero(loop.pending())
         if not left.size:
             return True
@@ -214,8 +162,8 @@ class Budget:
         return self.ended
 
     def describe(self, loop: PassLoop, time_limit_reached: bool = False) -> dict[str, Any]:
-        """report.json "budget": the limits, whether they ended the render, and the units
-        still above their target (worst first) with their last ratio to it."""
+        """report.json "budget": the limits, whether they ended the render, and the units still
+        above their target, worst first."""
         ended = bool(self.ended or time_limit_reached)
         spp = loop.acc.spp_all()
         ids = np.flatnonzero(loop.active)

@@ -1,20 +1,10 @@
-"""One adaptive render in progress: its renderer, loop, budget, ledger, checkpoint and report.
+"""One adaptive render in progress: its renderer, loop, budget, ledger and checkpoint.
 
-`renderer.live.adaptive.run_adaptive` prepares the render (`renderer.live.plan.prepare`: the
-spec resolved, the renderer and the criterion built), opens a `RenderSession`, calls
-`advance` until the session is done, and asks it for the result. The words (unit, pass,
-round, launch) and a round are explained once, in `renderer.live.passloop`; `advance` plans one
-launch (`plan`: the units and the passes each gets), queues it
-(`BlockRenderer.submit_passes`), waits for its images and hands each pass to
-`PassLoop.run_round`.
-
-The session owns the render's `renderer.live.ledger.Ledger` (its counters and timers): it hands
-it to the renderer, the loop and the budget, which report into it. It also keeps what
-survives a crash: `progress` is what the render has done, typed
-(`renderer.live.progress.Progress`: the loop's state, the budget's, the ledger's counters and
-timers, done and the quick image), `checkpoint` writes it (`renderer.live.checkpoint`, the one
-place it becomes arrays), and `counts` is what every attempt cost in Mitsuba.
-`renderer.live.report.render_result` turns a finished session into the result.
+`renderer.live.adaptive.run_adaptive` opens a `RenderSession` on a prepared
+`renderer.live.plan.RenderPlan` and calls `advance` until it is done;
+`renderer.live.report.render_result` turns it into the result. The session owns the render's
+`Ledger` and hands it to the renderer, the loop and the budget; `progress` is what survives a
+crash (`checkpoint` writes it).
 """
 from __future__ import annotations
 
@@ -42,22 +32,22 @@ from .progress import Progress, RunSettings
 from .wavefront import Traced
 
 logger = logging.getLogger(__name__)
+#: a queued launch: its units, each pass's pass indices, its images to come
+Launch = tuple[np.ndarray, list[np.ndarray], Traced[torch.Tensor]]
 
 
 class RenderSession:
-    """The state of one render between its set-up and its result (see the module docstring).
+    """The state of one render between its set-up and its result.
 
-    `render_plan`: the prepared render (`renderer.live.plan.RenderPlan`; `br`, `crit`, `spec` and
-    `label` are its renderer, criterion, spec and label); `settings` (`RunSettings`) are what
-    a resume must match; `ledger` holds the render's counters and timers; `done`: nothing is
-    left to render; `quick`: the quick image (None when the criterion reads none);
-    `resumed`: the render went on from a checkpoint.
+    `br`, `spec`, `label`: the plan's renderer, spec and label; `settings`: what a resume must
+    match; `done`: nothing is left to render; `quick`: the quick image (None when the
+    criterion reads none); `resumed`: the render went on from a checkpoint.
     """
 
     def __init__(self, plan: RenderPlan, *, ckpt_path: Path | None, resume: bool, grow: bool,
                  t_start: float) -> None:
         br, crit, spec = plan.renderer, plan.criterion, plan.spec
-        self.render_plan, self.br, self.crit, self.spec, self.label = plan, br, crit, spec, plan.label
+        self.render_plan, self.br, self.spec, self.label = plan, br, spec, plan.label
         self.settings = RunSettings.of(plan)
         self.ckpt_path, self.grow, self.t_start = ckpt_path, grow, t_start
         self.ledger = Ledger(COUNTER_NAMES + RENDER_COUNTERS, TIMER_NAMES + RENDER_TIMERS)
@@ -76,13 +66,11 @@ class RenderSession:
                 self.quick = br.quick_image(spp=spec.quick_spp, seed=spec.seed, kind=crit.quick_kind)
                 self.ledger.time("render_s", time.perf_counter() - t0)
             quick_blocks = br.cut_blocks(self.quick)
-        # the loop's units: the blocks' tiles (T a block; the blocks themselves when T = 1)
+        every = self.budget is not None and self.budget.judges_every_unit(spec.max_spp)
         self.loop = PassLoop(crit, (br.n_blocks, br.tiles_per_block), br.tile_shape, sched, spec.min_spp, quick_blocks,
                              device=br.device, tiling=br, ledger=self.ledger,
-                             # an spp budget that can bind judges every unit it renders (`Budget.judges_every_unit`)
-                             **({"decide_skip": 0.0, "decide_growth": 0.0}
-                                if self.budget is not None and self.budget.judges_every_unit(spec.max_spp)
-                                else {"decide_skip": spec.decide_skip, "decide_growth": spec.decide_growth}))
+                             decide_skip=0.0 if every else spec.decide_skip,
+                             decide_growth=0.0 if every else spec.decide_growth)
         if restored is not None:                      # resumed: counters and timers go on from there
             self.loop.restore(restored.loop)
             check_evidence(self.ckpt_path, self.loop)   # what the file alone cannot vouch for
@@ -93,11 +81,10 @@ class RenderSession:
                 taken = last_decided_spp(self.loop.history, self.loop.history_unit_spp)   # at the last decision
                 self.loop.ratios.put(np.flatnonzero(asked), ratio[asked], taken[asked])   # what rounds are chosen by
         #: the next launch, queued on the device while this one is judged (`advance`)
-        self._ahead: tuple[np.ndarray, list[np.ndarray], Traced[torch.Tensor]] | None = None
+        self._ahead: Launch | None = None
 
     def _restored(self, resume: bool, pass_spp: list[int]) -> Progress | None:
-        """The progress of the checkpoint to resume (None: a fresh render), checked against
-        the scene's first pass (`check_radiance`)."""
+        """The progress of the checkpoint to resume (None: a fresh render)."""
         path, br = self.ckpt_path, self.br
         if path is not None and resume and present(path):      # a broken or looping link: refused there
             progress = load_checkpoint(path, self.settings, pass_spp=pass_spp,
@@ -117,15 +104,12 @@ class RenderSession:
 
     @property
     def rows(self) -> int:
-        """The verdict history's rows so far, one a pass (report.json "passes", the
-        checkpoint's "pass_index"): the passes of the longest unit in a plain render."""
+        """The verdict history's rows so far (report.json "passes")."""
         return self.loop.rows
 
     def plan(self) -> tuple[np.ndarray, list[np.ndarray]]:
-        """The units of the next launch and, for each of its passes, every unit's pass index
-        ([] when the render is over): every pending unit at its own next pass (all at the
-        same one, unless a resumed budget render left them at different counts), or the units a
-        budget picks."""
+        """The units of the next launch and, per pass, each unit's pass index ([]: the render is
+        over): every pending unit at its own next pass, or the units a budget picks."""
         loop = self.loop
         counts = loop.acc.pass_counts()
         if self.budget is None:
@@ -137,20 +121,18 @@ class RenderSession:
             return ids, []
         if self.budget.spp_budget is not None or not self.grow:   # a sample budget pays pass by pass
             return ids, [counts[ids]]
-        # a time limit: the round's blocks get passes as a grown launch would (a launch of a few
-        # blocks costs up to 2.6x a lane of a full one: BENCHMARKS "cost per kept sample"), as
-        # many as the time left pays for at the rate so far (one pass until a rate is known)
+        # a time limit: passes as a grown launch (a launch of a few blocks costs up to 2.6x a lane
+        # of a full one: BENCHMARKS "cost per kept sample"), as many as the time left pays for
         grown = self._grown(ids, counts[ids])
         one = float(loop.pass_spp[counts[ids]].sum())
         left = self.budget.left(loop.acc.spp_all(), elapsed)      # inf: no rate known yet
         return ids, grown[:max(1, int(left // max(one, 1.0)) if math.isfinite(left) else 1)]
 
     def _grown(self, ids: np.ndarray, first: np.ndarray, stale: np.ndarray | None = None) -> list[np.ndarray]:
-        """The pass indices of units `ids` in one launch, from their next ones `first`: as
-        many passes as `grown_passes` gives ([] for none): past decisions that may stop a
-        unit (`NEAR`) only as far as `ahead_passes` allows; every unit is judged at its own
-        pass within the launch. `stale`: units whose next decision is not known yet (judged
-        in a launch queued before this one, `_queue_next`): taken as due at their first pass."""
+        """The pass indices of units `ids` in one launch from their next ones `first`
+        (`grown_passes`; past decisions that may stop a unit only as far as `ahead_passes`
+        allows). `stale`: units whose next decision is not known yet (`_queue_next`), taken as
+        due at their first pass."""
         if not ids.size:
             return []
         loop = self.loop
@@ -166,18 +148,14 @@ class RenderSession:
         return [first + j for j in range(k)]
 
     def advance(self) -> int:
-        """One launch: plan it (`plan`), queue it, wait for its images, then a round
-        (`PassLoop.run_round`, `renderer.live.passloop`) per pass; returns the passes it added,
-        the history rows (0: done).
+        """One launch: plan, queue and wait for it, then a round per pass; returns the history
+        rows it added (0: done).
 
-        Without a budget (and with `grow`) the next launch is queued on the device as soon
-        as this one's images are in, before they are judged, planned as if none of its
-        units stopped (`_queue_next`): the device traces while the host accumulates and
-        decides. (Queued before waiting for this launch instead, the host's work competes
-        with the trace for a CPU's cores: 3 % slower on this project's 2-core machine.) The
-        passes queued for units that stop are dropped, as a grown launch drops those past a
-        stop, so the image, the stops and the history are those of the pass-by-pass loop;
-        only samples_traced counts the dropped passes."""
+        Without a budget (and with `grow`) the next launch is queued once this one's images
+        are in, before they are judged (`_queue_next`), so the device traces while the host
+        decides (queued before the wait, the host's work competes with the trace for the
+        cores: 3 % slower on 2 cores). Passes queued for units that stop are dropped, so only
+        samples_traced differs from the pass-by-pass loop."""
         ahead, self._ahead = self._ahead, None
         t0 = time.perf_counter()
         if ahead is None:
@@ -195,7 +173,7 @@ class RenderSession:
         loop, m = self.loop, len(ids)
         added = 0
         with torch_threads(1):
-            for j, index in enumerate(pass_ids):      # the passes of one launch, in order: a round each
+            for j, index in enumerate(pass_ids):      # a round each
                 keep = np.flatnonzero(loop.active[ids])
                 if not keep.size:                      # every unit stopped: the rest is dropped
                     break
@@ -217,11 +195,9 @@ class RenderSession:
         return self.br.submit_passes(jobs, np.concatenate([self.loop.pass_spp[index] for index in pass_ids]),
                                      self.spec.seed)
 
-    def _queue_next(self, ids: np.ndarray, pass_ids: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray],
-                                                                                 Traced[torch.Tensor]] | None:
+    def _queue_next(self, ids: np.ndarray, pass_ids: list[np.ndarray]) -> Launch | None:
         """The launch `plan` would give after this one if none of its units stopped, queued
-        (None when there is none): this launch's units still active (it is not judged yet)
-        with passes left, each at its next pass, grown by their count."""
+        (None: there is none)."""
         after = pass_ids[-1] + 1
         go = self.loop.active[ids] & (after < len(self.loop.schedule))
         if not go.any():
@@ -234,33 +210,30 @@ class RenderSession:
     # -- what survives a crash ---------------------------------------------------------
 
     def counts(self) -> dict[str, int]:
-        """What the render cost in Mitsuba calls and kernels, over every attempt
-        (report.json "render_calls"; reading the kernel compilations waits for the device)."""
+        """What every attempt cost in Mitsuba (report.json "render_calls"; waits for the device)."""
         self.br.count_kernels()
         return {k: self.ledger.counters[k] for k in RENDER_COUNTERS}
 
     def wall_s(self) -> float:
-        """Seconds of every attempt so far: the ledger's (the earlier attempts') and this one's."""
+        """Seconds of every attempt so far: the earlier ones' (the ledger's) and this one's."""
         return self.ledger.timers["wall_s"] + (time.perf_counter() - self.t_start)
 
     @property
     def progress(self) -> Progress:
-        """What the render has done, now: the loop's state (its live arrays, not copies), the
-        budget's, done, the quick image, and the ledger's counters and timers (wall_s up to
-        now). Kernel compilations are counted as last read (`counts`, `checkpoint`)."""
+        """What the render has done, now (the loop's live arrays, not copies); kernel
+        compilations as last counted."""
         timers = dict(self.ledger.timers)
         timers["wall_s"] = self.wall_s()
         return Progress(self.loop.state(), done=self.done, counters=dict(self.ledger.counters), timers=timers,
                         quick=self.quick, budget=None if self.budget is None else self.budget.state(self.loop.ratios))
 
     def drop_checkpoint(self) -> None:
-        """A finished render that wrote no checkpoint: remove one an earlier run left, so
-        that no stale state stays beside this render's outputs."""
+        """Remove a checkpoint an earlier run left (a finished render that wrote none)."""
         if self.ckpt_path is not None:
             self.ckpt_path.unlink(missing_ok=True)
 
     def checkpoint(self) -> None:
-        """Write the checkpoint (in memory: nothing to resume from, so nothing)."""
+        """Write the checkpoint (none for a render without a checkpoint path)."""
         if self.ckpt_path is None:
             return
         self.ledger.count("checkpoints")

@@ -1,26 +1,12 @@
 """Block rendering: samples for any subset of a frame's units, the full-frame estimator.
 
-The paper cuts every image into blocks and keeps sampling only the blocks a human would
-still find noisy, so the renderer must spend samples on any subset of the loop's units
-(the blocks' tiles, or the blocks themselves at block grain: `renderer.live.passloop` has the
-words), and a unit rendered alone must be the very estimator of that unit cut out of a
-full-frame render.
-
-Geometry. Blocks are a grid that divides the frame or windows of a given size in pixels,
-the last row and column flush with the frame's edge, and each is cut into tiles
-(`renderer.live.block_windows`, which also composes the final image from overlapping windows).
-
-Engines. On vectorised variants (llvm, cuda) `renderer.live.wavefront.WavefrontTracer` traces
-the pixels of all requested units in one kernel launch (its docstring says why a subset is
-the full frame's estimator). On scalar variants each unit is one ``mi.render`` of the
-film's crop window grown by the filter's guard band and cut back: the same estimator in
-distribution (Mitsuba seeds lanes by position, so not the same random numbers). What a
-render costs goes to the renderer's `ledger` (`renderer.live.ledger`), read there.
-
-`learning.data.accumulator.UnitAccumulator` keeps the float64 running sums so cumulative means
-are exact, plus two half buffers (even and odd passes) for the half-buffer criteria.
+A unit rendered alone must be the very estimator of that unit cut out of a full-frame
+render. On vectorised variants (llvm, cuda) `renderer.live.wavefront.WavefrontTracer` traces
+the pixels of all requested units in one launch. The crop engine (scalar variants) renders
+each unit as one ``mi.render`` of the film's crop window grown by the filter's guard band and
+cut back: the same estimator in distribution, not the same random numbers (Mitsuba seeds
+lanes by position).
 """
-
 from __future__ import annotations
 
 import hashlib
@@ -38,23 +24,18 @@ from noisefeat.extras import require
 from ..plugin_schema import noisestop_of
 from .block_windows import BlockWindows
 from .ledger import Ledger
-from .wavefront import Traced, WavefrontTracer, filter_guard, filter_nonnegative, torch_device
+from .wavefront import Traced, WavefrontTracer, filter_guard, filter_nonnegative
 
 logger = logging.getLogger(__name__)
 
-#: the unit id that keys the seeds of passes traced over the whole frame: full-frame renders,
-#: quick images and every wavefront pass (keyed per pixel, a pass of some units is the
-#: frame's pass cut down); -1, no unit's id
+#: the unit id (none's) that keys the seeds of passes traced over the whole frame: full-frame
+#: renders, quick images and every wavefront pass (keyed per pixel, a cut of the frame's pass)
 FRAME_SEED_KEY = -1
 
 
 def derive_seed(seed: int, unit: int, pass_index: int) -> int:
-    """Deterministic 32-bit Mitsuba seed for (base seed, unit, pass index).
-
-    Hashing (rather than e.g. ``seed + unit``) keeps the streams of different
-    units and passes apart even when callers pick consecutive base seeds, and makes any
-    pass reproducible on its own, which is what resuming an interrupted build needs.
-    """
+    """Deterministic 32-bit Mitsuba seed for (base seed, unit, pass index): hashed, so streams
+    stay apart for consecutive base seeds and any pass is reproducible on its own (a resume)."""
     data = struct.pack("<qqq", int(seed), int(unit), int(pass_index))
     return int.from_bytes(hashlib.blake2b(data, digest_size=4).digest(), "little")
 
@@ -74,21 +55,19 @@ def _to_rgb(img: Any, where: str) -> np.ndarray:
     raise ValueError(f"{where}: film has {c} channels; need 1 (luminance), 3 (rgb) or 4 (rgba)")
 
 
+#: (unit, pass index) jobs of `render_passes`
+Jobs = Sequence[tuple[int, int]] | np.ndarray
 #: quick images the renderer can make (learning.inputs.table.QUICK_MODES adds 'none')
 QUICK_KINDS = ("albedo", "direct")
 
 
 class BlockRenderer(BlockWindows):
-    """Render any subset of the blocks of one scene's first sensor.
+    """Render any subset of the units (`BlockWindows`) of one scene's sensor.
 
-    Blocks are numbered row-major, block 0 top-left: a `grid` (rows, columns) that must
-    divide the frame, or windows of `block` pixels (`BlockWindows`). If the film has a
-    crop window (possible in XML files), that window is the frame. Each block is cut into
-    tiles of `tile` pixels (one tile: the block): the units it renders. `engine`
-    'wavefront' or 'crop' overrides the choice by variant (tests). `sensor` and
-    `integrator` default to the scene's first sensor and its own integrator; a scene whose
-    integrator is the ``noisestop`` plugin is traced with the plugin's nested integrator.
-    What it costs goes to `ledger` (one of its own until a session hands it the render's).
+    A film's crop window (possible in XML files) is the frame. `engine` 'wavefront' or 'crop'
+    overrides the choice by variant (tests). `sensor`, `integrator`: by default the scene's
+    first sensor and its integrator (the ``noisestop`` plugin's nested one). Costs go to
+    `ledger` (one of its own until a session hands it the render's).
     """
 
     def __init__(self, scene: Any, grid: tuple[int, int] | None = None, block: int | None = None,
@@ -115,20 +94,19 @@ class BlockRenderer(BlockWindows):
         self.guard = filter_guard(film.rfilter())           # the crop engine's; the tracer has its own
         #: whether the film's filter has no negative lobe (then every pixel's radiance is >= 0)
         self.nonnegative = filter_nonnegative(film.rfilter())
+        jit = variant.split("_")[0] in ("llvm", "cuda")
         if engine is None:
-            engine = "wavefront" if variant.split("_")[0] in ("llvm", "cuda") else "crop"
+            engine = "wavefront" if jit else "crop"
         if engine not in ("wavefront", "crop"):
             raise ValueError(f"engine must be 'wavefront' or 'crop', got {engine!r}")
         self.engine = engine
-        # where passes live: the variant's device for the wavefront engine; the crop engine's
-        # mi.render calls return host images (scalar variants)
-        self.device = torch_device(variant) if engine == "wavefront" else torch.device("cpu")
+        # where passes live: the variant's device for the wavefront engine (the crop engine's are host images)
+        self.device = torch.device("cuda" if engine == "wavefront" and variant.startswith("cuda") else "cpu")
         self._ledger = Ledger()
         self._tracer = WavefrontTracer(scene, self.sensor, self._integrator, self.device, self._ledger) \
             if engine == "wavefront" else None
         self._unit_idx = self._unit_idx.to(self.device)       # the units' pixels, where passes live
-        # a JIT variant: Dr.Jit's kernel history can count its compilations (kernel_compiles)
-        self._counts_kernels = variant.split("_")[0] in ("llvm", "cuda")
+        self._counts_kernels = jit                            # Dr.Jit's kernel history counts compilations
         self._history_flag_before: bool | None = None
         if self._counts_kernels:
             dr = require("drjit")
@@ -140,10 +118,9 @@ class BlockRenderer(BlockWindows):
         self._set_crop(0, 0, self.width, self.height)
 
     def close(self) -> None:
-        """Put the process-wide kernel-history flag back as it was before this renderer
-        (it is on only to count compilations; left on, Dr.Jit keeps a record of every
+        """Put the process-wide kernel-history flag back (left on, Dr.Jit keeps a record of every
         launch for whoever renders next in the process)."""
-        if self._counts_kernels and self._history_flag_before is not None:
+        if self._history_flag_before is not None:
             dr = require("drjit")
             self.count_kernels()
             dr.set_flag(dr.JitFlag.KernelHistory, self._history_flag_before)
@@ -171,7 +148,7 @@ class BlockRenderer(BlockWindows):
 
     @property
     def ledger(self) -> Ledger:
-        """Where this renderer's costs go; a session sets the render's (`renderer.live.ledger`)."""
+        """Where this renderer's costs go (its tracer's too); a session sets the render's."""
         return self._ledger
 
     @ledger.setter
@@ -181,13 +158,10 @@ class BlockRenderer(BlockWindows):
             self._tracer.ledger = ledger
 
     def count_kernels(self) -> None:
-        """Add the compilations in Dr.Jit's kernel history since the last count to the
-        ledger, emptying it. Reading the history waits for every queued kernel, so a launch
-        reads it once its own images are in (`submit_passes`), before the loop queues the
-        next: nothing else is queued then, and a queued launch still traces while the loop
-        judges the last. Why every launch: the history keeps a record of every kernel run
-        until it is read (hundreds of kB a pass), so read only at checkpoints a render's
-        memory grew with its passes (1.8 GB after 2,500)."""
+        """Add the compilations in Dr.Jit's kernel history since the last count to the ledger,
+        emptying it. Read after every launch (once its images are in, as reading waits for
+        queued kernels): the history keeps every kernel run until read, and read only at
+        checkpoints it grew a render's memory to 1.8 GB after 2,500 passes."""
         if self._counts_kernels:
             dr = require("drjit")
             self._ledger.count("kernel_compiles", sum(1 for k in dr.kernel_history()
@@ -212,16 +186,12 @@ class BlockRenderer(BlockWindows):
         return _to_rgb(img, where)
 
     def render_units(self, units: Sequence[int], spp: int, seed: int, pass_index: int = 0) -> torch.Tensor:
-        """`spp` new samples for each listed unit: float32 [len(units), th, tw, 3] on `device`.
-
-        Pass (seed, pass_index) always draws the same samples for a pixel: call again
-        with a new `pass_index` (or `seed`) for an independent pass of the same units.
-        """
+        """`spp` new samples for each listed unit: float32 [len(units), th, tw, 3] on `device`;
+        (seed, pass_index) always draws the same samples for a pixel."""
         ids = np.asarray(units).reshape(-1)        # its dtype checked with the jobs'
         return self.render_passes(np.stack([ids, np.full_like(ids, int(pass_index))], axis=1), spp, seed)
 
-    def _check_jobs(self, jobs: Sequence[tuple[int, int]] | np.ndarray, spp: int | Sequence[int]) -> tuple[np.ndarray, np.ndarray,
-                                                                                               np.ndarray]:
+    def _check_jobs(self, jobs: Jobs, spp: int | Sequence[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(units, pass indices, sizes) as int64 arrays; one-line errors for bad jobs."""
         arr = np.asarray(jobs)
         if arr.size and (arr.dtype == bool or not np.issubdtype(arr.dtype, np.integer)):
@@ -245,25 +215,15 @@ class BlockRenderer(BlockWindows):
             raise ValueError(f"spp must be a positive integer, got {spp!r:.80}")
         return units, pass_ids, sizes
 
-    def render_passes(self, jobs: Sequence[tuple[int, int]] | np.ndarray, spp: int | Sequence[int], seed: int) -> torch.Tensor:
-        """One pass per (unit, pass index) job, all in as few launches as the engine allows:
-        float32 [len(jobs), th, tw, 3] on `device`: `submit_passes`, waited for. A unit is a
-        block, or one of its tiles when the renderer cuts blocks into tiles (`tile`).
-
-        Job (u, p) is exactly ``render_units([u], spp, seed, pass_index=p)``: units at
-        different pass counts (a budget render spends passes unevenly), or several passes
-        of the same unit, share one wavefront. `spp`: one size for all, or per job (jobs
-        of the same size share a launch). The wavefront engine gathers every unit of a
-        pass from the traced frame on the device in one indexing operation.
-        """
+    def render_passes(self, jobs: Jobs, spp: int | Sequence[int], seed: int) -> torch.Tensor:
+        """One pass per (unit, pass index) job in as few launches as the engine allows: float32
+        [len(jobs), th, tw, 3] on `device`. Job (u, p) is exactly ``render_units([u], spp, seed,
+        pass_index=p)``. `spp`: one for all, or per job (jobs of one size share a launch)."""
         return self.submit_passes(jobs, spp, seed).result()
 
-    def submit_passes(self, jobs: Sequence[tuple[int, int]] | np.ndarray, spp: int | Sequence[int],
-                      seed: int) -> Traced[torch.Tensor]:
-        """`render_passes` without waiting for the wavefront engine's launches (what the
-        live loop calls: `renderer.live.session.RenderSession.advance`): `result()` gives the
-        tensor `render_passes` returns (`WavefrontTracer.submit_jobs`; the crop engine
-        renders at once)."""
+    def submit_passes(self, jobs: Jobs, spp: int | Sequence[int], seed: int) -> Traced[torch.Tensor]:
+        """`render_passes` without waiting for the wavefront engine's launches (the crop engine
+        renders at once): `result()` gives its tensor."""
         units, pass_ids, sizes = self._check_jobs(jobs, spp)
         out = torch.empty((len(units), self.tile_h, self.tile_w, 3), dtype=torch.float32, device=self.device)
         if not len(units):
@@ -278,19 +238,19 @@ class BlockRenderer(BlockWindows):
         launched = []
         for size in np.unique(sizes).tolist():
             same = sizes == size
-            masks = []
+            jobs_p = []                                    # (mask, key) job, its rows, their pixels
             for p in np.unique(pass_ids[same]).tolist():   # the distinct pass indices: one in a plain pass
                 rows = np.flatnonzero(same & (pass_ids == p))
+                idx = self._unit_idx[torch.from_numpy(units[rows]).to(self.device)]
                 mask = torch.zeros(self.height * self.width, dtype=torch.bool, device=self.device)
-                mask[self._unit_idx[torch.from_numpy(units[rows]).to(self.device)].flatten()] = True
-                masks.append((mask.view(self.height, self.width), derive_seed(seed, FRAME_SEED_KEY, p), rows))
-            launched.append((self._tracer.submit_jobs([(m, k) for m, k, _ in masks], int(size)), masks))
+                mask[idx.flatten()] = True
+                jobs_p.append(((mask.view(self.height, self.width), derive_seed(seed, FRAME_SEED_KEY, p)), rows, idx))
+            launched.append((self._tracer.submit_jobs([job for job, _, _ in jobs_p], int(size)), jobs_p))
             self._ledger.count("mitsuba_calls")
 
         def gather() -> torch.Tensor:
-            for traced, masks in launched:
-                for frame, (_, _, rows) in zip(traced.result(), masks):
-                    idx = self._unit_idx[torch.from_numpy(units[rows]).to(self.device)]
+            for traced, jobs_p in launched:
+                for frame, (_, rows, idx) in zip(traced.result(), jobs_p):
                     out[torch.from_numpy(rows).to(self.device)] = frame.view(-1, 3)[idx].view(
                         len(rows), self.tile_h, self.tile_w, 3)
             self.count_kernels()      # its kernels are done: read their records now, so they do not pile up
@@ -298,8 +258,8 @@ class BlockRenderer(BlockWindows):
         return Traced(gather)
 
     def _render_crop(self, u: int, spp: int, seed: int, pass_index: int) -> np.ndarray:
-        """The crop engine: unit `u` (a block, or a tile) as one mi.render of its window grown
-        by the guard band (the caller puts the crop back)."""
+        """The crop engine: unit `u` as one mi.render of its window grown by the guard band (the
+        caller puts the crop back)."""
         g = self.guard
         x0, y0, w, h = self.unit_window(u)
         gx, gy = min(g, x0), min(g, y0)          # the guard band, clipped to the frame
@@ -323,12 +283,9 @@ class BlockRenderer(BlockWindows):
         return self._render(spp, derive_seed(seed, FRAME_SEED_KEY, pass_index), where="full frame")
 
     def quick_image(self, spp: int = 16, seed: int = 0, kind: str = "albedo") -> np.ndarray:
-        """The noise-free-ish 'quick' image of the design, full frame.
-
-        kind 'albedo' (the design's default): the albedo AOV, no light transport at all;
-        'direct': direct lighting only (Mitsuba's `direct` integrator), which carries the
-        shading and shadows but still some noise under area lights (quick-image ablation).
-        """
+        """The design's noise-free-ish 'quick' image, full frame: kind 'albedo' (the default, no
+        light transport) or 'direct' (direct lighting: shading and shadows, some noise under
+        area lights; the quick-image ablation)."""
         self._set_crop(0, 0, self.width, self.height)
         if kind == "albedo":
             integrator = self._mi.load_dict({"type": "aov", "aovs": "albedo:albedo"})

@@ -1,40 +1,17 @@
 """One kernel launch per pass for any set of pixels: the live loop's Mitsuba calls.
 
-`mi.render` traces a whole film (or its crop window). An adaptive render wants samples
-only for the pixels of its active units (`renderer.live.passloop`: tiles, or blocks), which may
-be any set; a crop window per unit costs one Mitsuba call and, the first time, one kernel
-compilation per unit (the crop is baked into the kernel, mitsuba3 #908).
-`WavefrontTracer` instead does what Mitsuba's
-``SamplingIntegrator.render`` does per sample, for a wavefront of exactly the requested
-pixels: a film position per sample, ``sensor.sample_ray_differential``, the scene's own
-integrator's ``sample``, and the film's reconstruction filter. Every value that changes
-between passes (the pixels, the pass key, spp) is opaque, so one render compiles its
-kernel once, whatever the active set.
+A crop window per unit would cost a Mitsuba call and, the first time, a kernel compilation
+per unit (the crop is baked into the kernel, mitsuba3 #908). `WavefrontTracer` does what
+``SamplingIntegrator.render`` does per sample (film position, ``sample_ray_differential``, the
+scene's integrator, the film's filter) for exactly the requested pixels; every value that
+changes between passes is opaque, so a render compiles its kernel once.
 
-Random numbers are keyed per sample, not per lane: sample j of pixel p in a pass with key
-k draws from a PCG32 stream seeded by TEA(p, k) and TEA(j, .) (`KeyedSampler`). A pixel
-therefore gets the same samples whichever other pixels are traced with it, and any set of
-units is bit for bit the same estimator as those units cut out of a full-frame trace:
-
-* box filter (radius 1/2): each sample is summed into its own pixel (the pixel's
-  consecutive lanes, summed on the device by `dr.block_sum`), so units are independent;
-* wider filters (the Gaussian of most published scenes): samples are splatted with the
-  film's filter into a frame-sized ``mi.ImageBlock``, and the traced set is the requested
-  pixels grown by a guard band of ``floor(radius + 1/2)`` pixels, every pixel whose samples
-  can reach a requested one (`guard_band`). Only the requested pixels are kept.
-
-Pixels on the frame's edge get no samples from outside it, as in a full-frame render
-without ``sample_border``.
-
-Keys are per lane, so one launch can also trace several passes (`trace_jobs`: a pixel set
-and a key per job): the units of a budget round at different pass counts, or k passes
-of the active units as one k times larger wavefront (few units left, or no decision due
-before the k-th pass: `renderer.live.launches.grown_passes`). With a box filter each job's
-values are bit for bit those of its pass traced alone; with a wider filter, to float32
-rounding (the samples are the same; a launch of several jobs evaluates them first and
-splats each job's own lanes in a kernel of its own, one job fuses the splat into the
-path tracer's kernel). Launches, lanes and samples traced go to the tracer's `ledger`
-(`renderer.live.ledger`: its renderer's).
+Random numbers are keyed per (pixel, sample, pass) (`KeyedSampler`), so any set of units is
+the estimator of a full-frame trace cut down: bit for bit with a box filter (each pixel sums
+its own samples); a wider filter splats into a frame-sized ``mi.ImageBlock`` from the pixels
+grown by a guard band (`guard_band`), equal to float32 rounding. Edge pixels get no samples
+from outside the frame (no ``sample_border``). One launch may trace several jobs (pixel set,
+key), e.g. several passes (`trace_jobs`).
 """
 from __future__ import annotations
 
@@ -56,41 +33,34 @@ MAX_LANES = 1 << 24
 
 
 def guard_band(radius: float) -> int:
-    """Pixels around a requested one whose samples can reach it through the filter.
-
-    A sample of pixel q lies in [q, q + 1] (inclusive: q + u rounds to q + 1 in float32
-    for u close to 1) and reaches pixel p when |p + 1/2 - x| <= radius.
-    """
+    """Pixels around a requested one whose samples can reach it through the filter: a sample
+    of pixel q lies in [q, q + 1] (inclusive: q + u rounds to q + 1 in float32 for u near 1)
+    and reaches pixel p when |p + 1/2 - x| <= radius."""
     return int(math.floor(float(radius) + 0.5))
 
 
 def filter_nonnegative(rfilter: Any) -> bool:
     """Whether a reconstruction filter is >= 0 over its radius (box, tent, gaussian; not
-    mitchell or catmullrom), sampled at 64 points: a checkpoint's sums are then >= 0."""
+    mitchell, catmullrom), sampled at 64 points: a checkpoint's sums are then >= 0."""
     r = float(rfilter.radius())
     return all(float(np.asarray(rfilter.eval(r * i / 63)).min()) >= 0.0 for i in range(64))
 
 
 def filter_guard(rfilter: Any) -> int:
-    """The guard band a film's reconstruction filter needs, for both engines: none for a box
-    filter (each sample stays in its own pixel), else `guard_band` of its radius."""
+    """The guard band a film's filter needs, for both engines (none for a box filter)."""
     return 0 if rfilter.is_box_filter() else guard_band(rfilter.radius())
 
 
 def _keyed_sampler_class() -> type:
-    """`KeyedSampler` needs a variant; built on first use and cached."""
+    """`KeyedSampler` needs a variant: built on first use, cached."""
     global _KEYED
     if _KEYED is not None:
         return _KEYED
     mi = require("mitsuba")
 
     class KeyedSampler(mi.Sampler):
-        """Independent uniform numbers from one PCG32 stream per (pixel, sample, pass).
-
-        Mitsuba's `independent` sampler seeds lane i's stream from (seed, i): a pixel's
-        samples would depend on its position in the wavefront, i.e. on which other
-        pixels are traced. Here the caller gives each lane its stream (`set_streams`).
-        """
+        """One PCG32 stream per (pixel, sample, pass), given per lane (`set_streams`): Mitsuba's
+        `independent` sampler seeds by lane, tying a pixel's samples to the other pixels traced."""
 
         DRJIT_STRUCT = {"rng": mi.PCG32}
 
@@ -102,9 +72,8 @@ def _keyed_sampler_class() -> type:
             """Streams come from `set_streams`; Mitsuba's own seeding is not used."""
 
         def set_streams(self, state: Any, sequence: Any) -> None:
-            # seed() on a default generator: a constructor given the size would add
-            # arange(size) to both values (tying a lane's stream to its position in the
-            # wavefront) and compile a small kernel for every new wavefront size
+            # seed() on a default generator: a constructor given the size would add arange(size)
+            # (a lane's position) and compile a small kernel for every new wavefront size
             self.rng = mi.PCG32()
             self.rng.seed(state, sequence)
 
@@ -121,26 +90,11 @@ def _keyed_sampler_class() -> type:
 _KEYED: type | None = None
 
 
-def as_int32_bits(values: torch.Tensor) -> torch.Tensor:
-    """32-bit keys (int64 in [0, 2^32)) as int32 tensors of the same bits: Dr.Jit's UInt32
-    takes them bit for bit, and int32 crosses DLPack on every torch device."""
-    return torch.where(values >= 2**31, values - 2**32, values).to(torch.int32)
-
-
-def torch_device(variant: str) -> torch.device:
-    """Where a render's per-pass arrays live: the GPU for a ``cuda_*`` variant, else the CPU."""
-    return torch.device("cuda") if variant.startswith("cuda") else torch.device("cpu")
-
-
 class WavefrontTracer:
-    """Trace `spp` samples for any set of a frame's pixels; one compiled kernel per render.
-
-    `frame` is the film's crop window (the whole film unless an XML file sets a crop):
-    pixel indices are row-major within it. Needs a vectorised (JIT) Mitsuba variant.
-    Pixel sets come in and frames go out as torch tensors on `device`, shared with Dr.Jit
-    through DLPack: on a GPU no pass ever crosses to the host. `ledger`: where its launches
-    ("kernel_launches"), their lanes ("kernel_lanes", one a sample) and the samples traced,
-    guard band included ("samples_traced"), are counted (None: a ledger of its own).
+    """Trace `spp` samples for any set of a frame's pixels (row-major in the film's crop
+    window) on a JIT variant. Masks come in and frames go out as torch tensors on `device`,
+    shared with Dr.Jit through DLPack. `ledger` counts its launches, lanes and samples traced
+    (guard band included).
     """
 
     def __init__(self, scene: Any, sensor: Any, integrator: Any, device: torch.device | None = None,
@@ -153,8 +107,6 @@ class WavefrontTracer:
         self.device = torch.device("cpu") if device is None else device
         film = sensor.film()
         self.width, self.height = int(film.crop_size()[0]), int(film.crop_size()[1])
-        self._offset = (int(film.crop_offset()[0]), int(film.crop_offset()[1]))
-        self._film_size = (int(film.size()[0]), int(film.size()[1]))
         self.rfilter = film.rfilter()
         self.box = bool(self.rfilter.is_box_filter())
         self.guard = filter_guard(self.rfilter)
@@ -177,31 +129,19 @@ class WavefrontTracer:
         return grown[0, 0] > 0
 
     def trace(self, mask: Any, spp: int, key: int) -> torch.Tensor:
-        """Pixel estimates float32 [H, W, 3] for the pixels of `mask` (others are 0).
-
-        `key` (32 bits) selects the pass's random numbers: the same (pixel, spp, key)
-        always gives the same value, whatever else is in `mask`.
-        """
+        """Pixel estimates float32 [H, W, 3] for the pixels of `mask` (others 0); the same
+        (pixel, spp, key) always gives the same value, whatever else is in `mask`."""
         return self.trace_jobs([(mask, key)], spp)[0]
 
     def trace_jobs(self, jobs: Sequence[tuple[Any, int]], spp: int) -> list[torch.Tensor]:
-        """Several passes in one launch: float32 [H, W, 3] per (pixel mask, key) job.
-
-        Each job is what `trace(mask, spp, key)` returns (random numbers are keyed
-        per (pixel, sample, key), and every job's pixels are summed on their own), so
-        passes of different units at different pass indices, or several passes of the same
-        units, share one launch: a larger wavefront, whose fixed cost per launch (about
-        10 ms here) is paid once. With a box filter each pixel's samples are summed on
-        their own; a wider filter splats each job into its own frame (one ImageBlock per
-        job; `_submit_splat`), equal to the job traced alone to float32 rounding.
-        """
+        """float32 [H, W, 3] per (pixel mask, key) job, in one launch (its fixed 10 ms paid
+        once): each what `trace` returns, bit for bit with a box filter, to float32 rounding
+        with a wider one (each job splats into its own ImageBlock)."""
         return self.submit_jobs(jobs, spp).result()
 
     def submit_jobs(self, jobs: Sequence[tuple[Any, int]], spp: int) -> Traced[list[torch.Tensor]]:
-        """`trace_jobs` without waiting: the launches are queued on Dr.Jit's device (its
-        LLVM thread pool or CUDA stream) and the caller's thread goes on; `result()`
-        waits for them and returns what `trace_jobs` would. What the live loop judges one
-        launch by while the next traces (`renderer.live.session`)."""
+        """`trace_jobs` without waiting: the launches are queued on Dr.Jit's device (its LLVM
+        thread pool or CUDA stream); `result()` waits and returns what `trace_jobs` would."""
         if isinstance(spp, bool) or not isinstance(spp, (int, np.integer)) or spp < 1:
             raise ValueError(f"spp must be a positive integer, got {spp!r}")
         masks = [self._mask(m) for m, _ in jobs]
@@ -215,7 +155,9 @@ class WavefrontTracer:
             return Traced(lambda: [torch.zeros(frame, dtype=torch.float32, device=self.device) for _ in masks])
         all_pixels = torch.cat(pixels).to(torch.int32)
         job_of = torch.repeat_interleave(torch.arange(len(masks)), torch.tensor(counts)).to(self.device)
-        all_keys = as_int32_bits(torch.tensor(keys, dtype=torch.int64, device=self.device)[job_of])
+        key64 = torch.tensor(keys, dtype=torch.int64, device=self.device)[job_of]
+        # int32 of the same bits: Dr.Jit's UInt32 takes them bit for bit, int32 crosses DLPack everywhere
+        all_keys = torch.where(key64 >= 2**31, key64 - 2**32, key64).to(torch.int32)
         self.ledger.count("samples_traced", total * int(spp))
         per_launch = max(1, MAX_LANES // int(spp))
         if self.box:
@@ -259,8 +201,8 @@ class WavefrontTracer:
     # -- one launch ---------------------------------------------------------------
 
     def _samples(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor) -> tuple[Any, Any]:
-        """(film position, radiance) of every sample of `pixels`, each pixel with its pass
-        key (`keys`, int32 tensors read as UInt32): lanes pixel-major."""
+        """(film position, radiance) of every sample of `pixels` with their pass `keys` (int32
+        read as UInt32): lanes pixel-major; sample j of pixel p, key k seeds by TEA(p, k), TEA(j, .)."""
         mi, dr = self._mi, self._dr
         n = int(pixels.numel()) * spp
         lane = dr.arange(mi.UInt32, n)
@@ -290,8 +232,8 @@ class WavefrontTracer:
         return pos, mi.Color3f(weight * radiance)
 
     def _sync(self) -> None:
-        """Dr.Jit and torch queue GPU work on their own streams: hand arrays across only
-        once the other side's work is done (one wait per launch; nothing on the CPU)."""
+        """Dr.Jit and torch queue GPU work on their own streams: wait for both before handing
+        arrays across (nothing on the CPU)."""
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
             self._dr.sync_thread()
@@ -301,12 +243,10 @@ class WavefrontTracer:
         self.ledger.count("kernel_lanes", int(pixels.numel()) * spp)
 
     def _submit_box(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor) -> Callable[[], torch.Tensor]:
-        """Box filter: queue one launch; its finish gives the mean of each pixel's own
-        samples, float32 [n, 3] on the device. Lanes are pixel-major, so each pixel's spp
-        samples are consecutive: Dr.Jit sums them by blocks of spp (`dr.block_sum`, in
-        float32, in lane order: a pixel's sum depends on its samples alone), on the device,
-        once the lanes are evaluated (summed straight from the path tracer's expression, each
-        channel would trace the paths again)."""
+        """Box filter: queue one launch; its finish gives each pixel's mean of its own samples,
+        float32 [n, 3]: `dr.block_sum` of its consecutive lanes, in lane order, once the lanes
+        are evaluated (summed from the path tracer's expression, each channel would trace the
+        paths again)."""
         dr = self._dr
         self._sync()
         _, rgb = self._samples(pixels, spp, keys)
@@ -324,12 +264,10 @@ class WavefrontTracer:
 
     def _submit_splat(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor,
                       spans: Sequence[tuple[Any, int, int]]) -> None:
-        """Any filter: queue one launch of `pixels`' samples, then splat each span of its
-        pixels (block, first, end: pixel positions in `pixels`) into its block with the film's
-        filter. One job (a plain pass) is one kernel, the splat fused in; several are the
-        samples evaluated once and a splat per job over its own lanes (masked splats over
-        every lane would cost a filter footprint per lane per job). Start and size are opaque,
-        so no job layout compiles anything new."""
+        """Any filter: queue one launch of `pixels`' samples and splat each span (block, first,
+        end: positions in `pixels`) into its block. One span fuses the splat into the kernel;
+        several evaluate the samples once, then splat each over its own lanes (masked splats
+        over every lane would cost a footprint per lane per job), start and size opaque."""
         mi, dr = self._mi, self._dr
         self._sync()
         pos, rgb = self._samples(pixels, spp, keys)
@@ -347,8 +285,7 @@ class WavefrontTracer:
 
 
 class Traced(Generic[T]):
-    """Work queued on Dr.Jit's device and not yet read (`WavefrontTracer.submit_jobs`,
-    `BlockRenderer.submit_passes`): `result()` waits for it once and returns what the
+    """Work queued on Dr.Jit's device: `result()` waits for it once and returns what the
     waiting call (`trace_jobs`, `render_passes`) would have."""
 
     def __init__(self, finish: Callable[[], T]) -> None:

@@ -103,7 +103,8 @@ class BlockWindows:
 
     def block_origin(self, block_id: int) -> tuple[int, int]:
         """(x, y) of the block's top-left pixel within the frame."""
-        self._check_id(block_id)
+        if not isinstance(block_id, (int, np.integer)) or not 0 <= int(block_id) < self.n_blocks:
+            raise ValueError(f"block id {block_id!r} out of range 0..{self.n_blocks - 1}")
         row, col = divmod(int(block_id), self.grid[1])
         return self._xs[col], self._ys[row]
 
@@ -116,7 +117,3 @@ class BlockWindows:
         """Every block's window of a host frame [H, W, C]: [n, bh, bw, C] (one gather)."""
         flat = np.asarray(frame).reshape(self.height * self.width, -1)
         return flat[self._win_idx.cpu().numpy()].reshape(self.n_blocks, self.block_h, self.block_w, -1)
-
-    def _check_id(self, block_id: int) -> None:
-        if not isinstance(block_id, (int, np.integer)) or not 0 <= int(block_id) < self.n_blocks:
-            raise ValueError(f"block id {block_id!r} out of range 0..{self.n_blocks - 1}")

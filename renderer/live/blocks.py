@@ -62,13 +62,9 @@ QUICK_KINDS = ("albedo", "direct")
 
 
 class BlockRenderer(BlockWindows):
-    """Render any subset of the units (`BlockWindows`) of one scene's sensor.
-
-    A film's crop window (possible in XML files) is the frame. `engine` 'wavefront' or 'crop'
-    overrides the choice by variant (tests). `sensor`, `integrator`: by default the scene's
-    first sensor and its integrator (the ``noisestop`` plugin's nested one). Costs go to
-    `ledger` (one of its own until a session hands it the render's).
-    """
+    """Render any subset of the units (`BlockWindows`) of a scene's sensor (by default its
+    first), the film's crop window as the frame. `engine`: 'wavefront' or 'crop' (default: by
+    variant). `integrator`: by default the scene's (the ``noisestop`` plugin's nested one)."""
 
     def __init__(self, scene: Any, grid: tuple[int, int] | None = None, block: int | None = None,
                  engine: str | None = None, sensor: Any = None, integrator: Any = None,

@@ -37,12 +37,9 @@ Launch = tuple[np.ndarray, list[np.ndarray], Traced[torch.Tensor]]
 
 
 class RenderSession:
-    """The state of one render between its set-up and its result.
-
-    `br`, `spec`, `label`: the plan's renderer, spec and label; `settings`: what a resume must
-    match; `done`: nothing is left to render; `quick`: the quick image (None when the
-    criterion reads none); `resumed`: the render went on from a checkpoint.
-    """
+    """One render between its set-up and its result. `br`, `spec`, `label`: the plan's renderer,
+    spec and label; `settings`: what a resume must match; `quick`: the quick image (None when
+    the criterion reads none); `resumed`: the render went on from a checkpoint."""
 
     def __init__(self, plan: RenderPlan, *, ckpt_path: Path | None, resume: bool, grow: bool,
                  t_start: float) -> None:
@@ -149,13 +146,10 @@ class RenderSession:
 
     def advance(self) -> int:
         """One launch: plan, queue and wait for it, then a round per pass; returns the history
-        rows it added (0: done).
-
-        Without a budget (and with `grow`) the next launch is queued once this one's images
-        are in, before they are judged (`_queue_next`), so the device traces while the host
-        decides (queued before the wait, the host's work competes with the trace for the
-        cores: 3 % slower on 2 cores). Passes queued for units that stop are dropped, so only
-        samples_traced differs from the pass-by-pass loop."""
+        rows it added (0: done). Without a budget (and with `grow`) the next launch is queued
+        once this one's images are in, before they are judged (`_queue_next`; queued before
+        the wait, the host's work competes with the trace: 3 % slower on 2 cores). Passes
+        queued for units that stop are dropped: only samples_traced counts them."""
         ahead, self._ahead = self._ahead, None
         t0 = time.perf_counter()
         if ahead is None:

@@ -1,20 +1,17 @@
-"""One kernel launch per pass for any set of pixels: the live loop's Mitsuba calls.
+"""One kernel launch per pass for any set of pixels (docs/how-it-works.md, "The loop").
 
-A crop window per unit would cost a Mitsuba call and, the first time, a kernel compilation
-per unit (the crop is baked into the kernel, mitsuba3 #908). `WavefrontTracer` does what
-``SamplingIntegrator.render`` does per sample (film position, ``sample_ray_differential``, the
-scene's integrator, the film's filter) for exactly the requested pixels; every value that
-changes between passes is opaque, so a render compiles its kernel once.
-
-Random numbers are keyed per (pixel, sample, pass) (`KeyedSampler`), so any set of units is
-the estimator of a full-frame trace cut down: bit for bit with a box filter (each pixel sums
-its own samples); a wider filter splats into a frame-sized ``mi.ImageBlock`` from the pixels
-grown by a guard band (`guard_band`), equal to float32 rounding. Edge pixels get no samples
-from outside the frame (no ``sample_border``). One launch may trace several jobs (pixel set,
-key), e.g. several passes (`trace_jobs`).
+A crop window per unit would cost a Mitsuba call and a kernel compilation per unit (the crop
+is baked into the kernel, mitsuba3 #908). `WavefrontTracer` does what
+``SamplingIntegrator.render`` does per sample for exactly the requested pixels, every value
+that changes between passes opaque: one kernel per render. Random numbers are keyed per
+(pixel, sample, pass) (`KeyedSampler`), so any set of units is a full-frame trace cut down:
+bit for bit with a box filter; a wider filter splats into a frame-sized ``mi.ImageBlock``
+from the pixels grown by a guard band (`guard_band`), equal to float32 rounding. Edge pixels
+get no samples from outside the frame (no ``sample_border``).
 """
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from typing import Any, Generic, TypeVar
@@ -51,11 +48,9 @@ def filter_guard(rfilter: Any) -> int:
     return 0 if rfilter.is_box_filter() else guard_band(rfilter.radius())
 
 
+@functools.cache
 def _keyed_sampler_class() -> type:
-    """`KeyedSampler` needs a variant: built on first use, cached."""
-    global _KEYED
-    if _KEYED is not None:
-        return _KEYED
+    """`KeyedSampler` needs a variant: built on first use."""
     mi = require("mitsuba")
 
     class KeyedSampler(mi.Sampler):
@@ -83,11 +78,7 @@ def _keyed_sampler_class() -> type:
         def next_2d(self, active: Any = True) -> Any:
             return mi.Point2f(self.next_1d(active), self.next_1d(active))
 
-    _KEYED = KeyedSampler
     return KeyedSampler
-
-
-_KEYED: type | None = None
 
 
 class WavefrontTracer:

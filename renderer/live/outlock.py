@@ -1,10 +1,7 @@
-"""One render at a time per output folder: `--out` is locked for the render's lifetime.
-
-Why: two renders into one folder both exited 0 and, 2 times in 6, left final.exr from one
-and report.json from the other. The lock is an advisory `flock` on out/.noisestop.lock,
-which the kernel drops when its holder dies (kill -9 included): a lock file left behind
-by a killed run is taken over, with a log line naming the run it came from; a lock held by
-a running render refuses the second one in one line.
+"""One render at a time per output folder (two renders into one folder left final.exr from
+one and report.json from the other): an advisory `flock` on out/.noisestop.lock, which the
+kernel drops when its holder dies, kill -9 included, so a lock file a killed run left is taken
+over (logged), and one a running render holds refuses the second render in one line.
 """
 from __future__ import annotations
 
@@ -63,8 +60,7 @@ def locked_output(out: str | os.PathLike) -> Iterator[Path]:
 
 
 def _open_lock(path: Path) -> int:
-    """The lock file's descriptor: created if missing, a regular file or refused in one line
-    naming it (a link, a FIFO or a device in its place is no lock of ours)."""
+    """The lock file's descriptor; a link, a FIFO or a device in its place: one line."""
     flags = os.O_RDWR | os.O_CREAT | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOFOLLOW", 0)
     try:
         fd = os.open(path, flags, 0o644)

@@ -1,16 +1,8 @@
-"""Ctrl-C and SIGTERM during a render: finish the pass, checkpoint, then stop; a second
-signal stops at once.
-
-The checkpoint is written on a time interval, not after every pass (cheaper), so an
-interrupt must not simply kill the loop: the passes since the last checkpoint would be
-lost, and an interrupt inside `UnitAccumulator.add_batch` would leave a half-added pass.
-`DeferredStop` turns the first SIGINT/SIGTERM into a request the loop reads between
-passes. A second one stops the process at once with one line and exit status 130, even
-while a render pass runs in native code (Mitsuba), where Python signal handlers wait for
-the call to return: the signal is seen by a watcher thread through the interpreter's
-wake-up file descriptor (`signal.set_wakeup_fd`), which the C-level handler writes to
-at once. SIGKILL cannot be caught: `--resume` then continues from the last checkpoint,
-still bit for bit; so it does after a second signal.
+"""Ctrl-C and SIGTERM during a render: finish the pass, checkpoint, then stop (checkpoints
+are timed, so killing the loop would lose the passes since the last one, or leave a pass
+half-added); a second signal stops at once, even inside a native Mitsuba call, where Python
+handlers wait for the call to return: a watcher thread reads the interpreter's wake-up fd,
+which the C-level handler writes at once. `--resume` then goes on bit for bit.
 """
 from __future__ import annotations
 
@@ -31,12 +23,9 @@ EXIT_STATUS = 130
 
 
 class DeferredStop:
-    """Context manager: ``requested`` is the first signal's name once one arrived; a
-    second signal ends the process at once (one line on stderr, exit status 130).
-
-    Outside the main thread (Dask workers) signals cannot be handled; it then does
-    nothing and the process's own handling applies.
-    """
+    """Context manager: ``requested`` is the first signal's name once one arrived; a second
+    one ends the process (one line on stderr, exit status 130). Outside the main thread (Dask
+    workers), where signals cannot be handled, it does nothing."""
 
     def __init__(self) -> None:
         self.requested: str | None = None

@@ -61,13 +61,16 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True, re
 
 
 def open_session(plan: RenderPlan, checkpoints: Checkpoints | None, grow: bool, t_start: float) -> RenderSession:
-    """The session of `plan`, resumed when asked; with checkpoints, the folder's earlier
-    results go before its first pass."""
+    """The session of `plan`, resumed when asked. With checkpoints, the results an earlier
+    render left in the folder go once it is under way (a refused resume leaves the folder as
+    it was), on a resume too: beside an unfinished checkpoint they are an earlier render's,
+    beside a finished one they are written again at once."""
     ckpt = None if checkpoints is None else Path(checkpoints.out) / CHECKPOINT
     session = RenderSession(plan, ckpt_path=ckpt, resume=checkpoints is not None and checkpoints.resume, grow=grow,
                             t_start=t_start)
-    if ckpt is not None:
-        _clear_previous(ckpt.parent, resumed=session.resumed)
+    if ckpt is not None and (removed := clear_results(ckpt.parent)):
+        logger.info("%s: removed the previous render's %s (%s)", ckpt.parent, ", ".join(removed),
+                    "the resumed render writes them" if session.resumed else "this render writes its own when it ends")
     return session
 
 
@@ -104,16 +107,6 @@ def drive(session: RenderSession, progress: bool, checkpointing: bool) -> bool:
                             "; --resume continues" if session.ckpt_path is not None else "")
                 return True
     return False
-
-
-def _clear_previous(out: Path, resumed: bool) -> None:
-    """Remove the results an earlier render left in `out` once this one is under way (a
-    refused resume leaves the folder as it was). On a resume too: those beside an unfinished
-    checkpoint are an earlier render's, and beside a finished one they are written again."""
-    removed = clear_results(out)
-    if removed:
-        logger.info("%s: removed the previous render's %s (%s)", out, ", ".join(removed),
-                    "this render writes its own when it ends" if not resumed else "the resumed render writes them")
 
 
 def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion: Any = None, *,

@@ -76,13 +76,12 @@ def save_checkpoint(path: Path, progress: Progress, settings: RunSettings) -> No
     atomic_write(path, savez_bytes(arrays, with_digest=True))
 
 
-def expected_bytes(frame: tuple[int, int], n_units: int, n_passes: int,
-                   unit_shape: tuple[int, int] | None = None) -> int:
+def expected_bytes(frame: tuple[int, int], n_units: int, n_passes: int, unit_shape: tuple[int, int]) -> int:
     """An upper bound on a valid checkpoint's size: both halves' sums and weights over every
     block window (overlapping windows hold more than the frame), the quick image, a history
     row per pass (a budget render: per round), and slack for names."""
     h, w = frame
-    held = max(h * w, n_units * unit_shape[0] * unit_shape[1]) if unit_shape is not None else h * w
+    held = max(h * w, n_units * unit_shape[0] * unit_shape[1])
     rows = n_passes * n_units          # a budget render's rounds: one block's pass each, at worst
     return 2 * held * (3 * 8 + 8) + h * w * 3 * 4 + rows * (9 * n_units + 24) + 32 * n_units + (1 << 20)
 
@@ -245,9 +244,8 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
             or (not p and spp.any()) or (not budget and not (pass_counts[active] == p).all()):
         raise ValueError("the accumulated samples disagree with the passes and stops")
     progress = Progress(
-        LoopState(acc=acc, active=active.copy(), stop_spp=stop_spp.copy(), history=history.copy(),
-                  history_spp=history_spp.copy(), history_unit_spp=unit_spp.copy(), rendered=rendered.copy(),
-                  evidence=evidence.copy(), next_spp=next_spp.copy()),
+        LoopState(acc=acc, active=active, stop_spp=stop_spp, history=history, history_spp=history_spp,
+                  history_unit_spp=unit_spp, rendered=rendered, evidence=evidence, next_spp=next_spp),
         done=done, counters=internal_counters(dict(zip(names.tolist(), values.tolist()))),
         timers=dict(zip(tnames.tolist(), tvalues.tolist())), quick=None if quick.size == 0 else quick)
     if budget:
@@ -266,7 +264,6 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
         left = active & (pass_counts < len(pass_spp))
         if done != (not left.any() or ended):
             raise ValueError(f"done is {done} with {int(left.sum())} blocks able to take a pass")
-        progress.budget = BudgetState(prioritised_rounds=rounds, ended=ended,
-                                      cost=(float(cost[0]), float(cost[1])),
-                                      ratio_asked=ratio_asked.copy(), ratio=ratio.copy())
+        progress.budget = BudgetState(prioritised_rounds=rounds, ended=ended, cost=(float(cost[0]), float(cost[1])),
+                                      ratio_asked=ratio_asked, ratio=ratio)
     return progress

@@ -27,11 +27,9 @@ class OutputLocked(ValueError):
 @contextlib.contextmanager
 def locked_output(out: str | os.PathLike) -> Iterator[Path]:
     """Hold the lock of folder `out` (created if missing) while the block runs."""
-    from .outputs import check_output_path, prepare_output_dir
-    check_output_path(out)            # "" (the current folder, as a Path) and "/": one line
-    out = Path(out)
-    created = not out.exists()
-    prepare_output_dir(out)           # a file, an unwritable folder: its one-line errors first
+    from .outputs import prepare_output_dir
+    created = not Path(out).exists()
+    out = prepare_output_dir(out)     # "", "/", a file, an unwritable folder: their one-line errors first
     path = out / LOCK_NAME
     fd = _open_lock(path)
     try:

@@ -111,16 +111,11 @@ def _scene_arg(scene: Any, given: Mapping[str, Any]) -> tuple[bool, str]:
     if given.get("defines"):
         raise ValueError("defines (-D) set parameters while an XML file loads: pass the file's path, "
                          "not an already-loaded mi.Scene")
-    return True, _scene_object_label(scene)
-
-
-def _scene_object_label(scene: Any) -> str:
-    """A loaded scene's name in reports: its id when the file or dict gave one, else 'scene'."""
-    try:
+    try:                               # its id when the file or dict gave one
         sid = str(scene.id())
-    except Exception:  # an id is cosmetic: never fail a render over it
+    except Exception:                  # an id is cosmetic: never fail a render over it
         sid = ""
-    return sid if sid and not sid.startswith("_unnamed") else "scene"
+    return True, sid if sid and not sid.startswith("_unnamed") else "scene"
 
 
 def _frame(scene: Any, sensor: Any, label: str) -> tuple[int, int]:

@@ -104,8 +104,7 @@ def against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settin
     cum = schedule(settings.step, max_spp)
     oracle = []
     for t in ref.thresholds:
-        need = max(min_spp, t) if t is not None else None
-        ok = cum[cum >= need] if need is not None else cum[:0]
+        ok = cum[cum >= max(min_spp, t)] if t is not None else cum[:0]
         oracle.append(int(ok[0]) if ok.size else int(max_spp))
     early = [bool(converged[b] and (t is None or spp[b] < t)) for b, t in enumerate(ref.thresholds)]
     return {"reference": {"path": str(ref.path), "scene": ref.scene, "thresholds": list(ref.thresholds),
@@ -159,18 +158,6 @@ def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int
     return out
 
 
-def nonfinite_totals(acc: UnitAccumulator, windows: Sequence[Sequence[int]],
-                     frame: tuple[int, int]) -> dict[str, int]:
-    """report.json's `nonfinite`: (pixel, pass) values `dropped` as NaN/Inf, `pixels` of the
-    composed frame with no finite sample (shown as 0; a farm exits 3 on them), `units` never
-    converged for want of a finite estimate."""
-    n = acc.n_units
-    empty, _, _ = compose(acc.unsampled(np.arange(n))[..., None].astype(np.float64), windows,
-                          acc.spp_all(), frame)
-    return {"dropped": int(acc.nonfinite_all().sum()), "pixels": int((empty[..., 0] > 0).sum()),
-            "units": int((acc.unestimated(np.arange(n)) > 0).sum())}
-
-
 def nonfinite_line(report: Json) -> str | None:
     """The line a render that dropped non-finite samples ends with; None when it dropped none."""
     nf = report.get("nonfinite") or {}
@@ -200,7 +187,12 @@ def render_result(session: RenderSession, *, time_limit_reached: bool) -> Render
     windows = [br.unit_window(u) for u in range(n)]
     image, spp_px, owner = compose(acc.means(np.arange(n)).cpu().numpy(), windows, acc.spp_all(),
                                    (br.height, br.width))
-    report["nonfinite"] = nonfinite_totals(acc, windows, (br.height, br.width))
+    empty, _, _ = compose(acc.unsampled(np.arange(n))[..., None].astype(np.float64), windows, acc.spp_all(),
+                          (br.height, br.width))
+    # (pixel, pass) values dropped as NaN/Inf; pixels with no finite sample (shown as 0; a farm
+    # exits 3 on them); units never converged for want of a finite estimate
+    report["nonfinite"] = {"dropped": int(acc.nonfinite_all().sum()), "pixels": int((empty[..., 0] > 0).sum()),
+                           "units": int((acc.unestimated(np.arange(n)) > 0).sum())}
     if report["nonfinite"]["dropped"]:
         logger.warning("%s", nonfinite_line(report))
     block_done = (~loop.active).reshape(br.n_blocks, br.tiles_per_block).all(axis=1)

@@ -1,11 +1,7 @@
 """The adaptive progressive renderer (the paper's Figure 6): sample only the noisy blocks,
-until no unit is active or max_spp is reached. `run_adaptive`: `prepare`, `open_session`,
-`drive`, `render_result`.
-
-Only the command line's render (`adaptive_render`) checkpoints, between launches (never a
-half-saved one): every `checkpoint_every` seconds, at the end, at the time limit and on
-SIGINT/SIGTERM. Samples depend only on (seed, pixel, pass), so a resume after a crash gives
-the very image and report (timings aside) of an uninterrupted run.
+until no unit is active or max_spp is reached. Only the command line's render
+(`adaptive_render`) checkpoints, between launches; samples depend only on (seed, pixel,
+pass), so a resume gives the very image and report (timings aside) of an uninterrupted run.
 """
 from __future__ import annotations
 

@@ -1,11 +1,8 @@
-"""The adaptive render's checkpoint (out/checkpoint.npz), the one place where the typed
-progress (`renderer.live.progress`) becomes arrays and back: written atomically with a SHA-256
-digest of its arrays, read with `learning.data.npz` (member sizes against headers, no pickle),
-and trusted only when made with the same settings and holding a state the loop could have
-produced (a truncated, byte-flipped or forged file is one ValueError naming it, never a
-traceback nor a resume from pass 1,000,000). What the file alone cannot vouch for (its
-radiance, each unit's decision evidence) is checked against the scene in
-`renderer.live.checkpoint_checks`.
+"""The adaptive render's checkpoint (out/checkpoint.npz), where the typed progress becomes
+arrays and back: written atomically with a digest, read without pickle, and trusted only when
+made with the same settings and holding a state the loop could have produced (a truncated,
+byte-flipped or forged file is one ValueError naming it, never a traceback nor a resume from
+pass 1,000,000; what the file cannot vouch for: `renderer.live.checkpoint_checks`).
 """
 from __future__ import annotations
 

@@ -18,6 +18,12 @@ from .passloop import PassLoop, next_decision
 if TYPE_CHECKING:
     from .blocks import BlockRenderer
 
+
+def _refuse(path: Path, what: str) -> None:
+    raise ValueError(f"{path}: inconsistent checkpoint: {what} (forged or damaged); delete it (or rerun "
+                     "without --resume) to start over")
+
+
 #: how far a resumed checkpoint's mean radiance may lie from its first pass traced again
 RADIANCE_RATIO = 1e6
 
@@ -36,20 +42,13 @@ def check_radiance(path: Path, acc: UnitAccumulator, br: BlockRenderer, first_sp
     traced = float(np.abs(again).mean())
     held = float(acc.means(units).abs().mean().cpu())
     if traced > 0 and not traced / RADIANCE_RATIO <= held <= traced * RADIANCE_RATIO:
-        raise ValueError(f"{path}: inconsistent checkpoint: its mean radiance is {held / traced:.3g} times what "
-                         "its first pass traces again (forged or damaged); delete it (or rerun without "
-                         "--resume) to start over")
+        _refuse(path, f"its mean radiance is {held / traced:.3g} times what its first pass traces again")
 
 
 #: how far a unit's mean noise estimate may lie from its halves' estimate now
 EVIDENCE_RATIO = 1e3
 #: how far a unit's next decision may lie past the one its ratio now asks for
 NEXT_RATIO = 1e3
-
-
-def _refuse(path: Path, what: str) -> None:
-    raise ValueError(f"{path}: inconsistent checkpoint: {what} (forged or damaged); delete it (or rerun "
-                     "without --resume) to start over")
 
 
 def check_evidence(path: Path, loop: PassLoop) -> None:

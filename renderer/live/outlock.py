@@ -47,12 +47,10 @@ def locked_output(out: str | os.PathLike) -> Iterator[Path]:
         try:
             yield out
         finally:
-            try:
+            with contextlib.suppress(OSError):
                 os.unlink(path)          # a clean end leaves no lock file behind
                 if created:
                     out.rmdir()          # nor a folder it made, if the render wrote nothing
-            except OSError:
-                pass
     finally:
         os.close(fd)
 

@@ -6,6 +6,7 @@ which the C-level handler writes at once. `--resume` then goes on bit for bit.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
@@ -79,10 +80,8 @@ class DeferredStop:
                         self._stop_now(signal.Signals(signum).name)
 
     def _stop_now(self, name: str) -> None:
-        try:
+        with contextlib.suppress(Exception):       # stopping regardless
             sys.stderr.flush()
-        except Exception:                          # noqa: BLE001 - stopping regardless
-            pass
         os.write(2, f"\nnoisestop: interrupted: {name} again: stopped at once, without finishing the "
                     "pass (--resume continues from the last checkpoint)\n".encode())
         os._exit(EXIT_STATUS)
@@ -92,15 +91,12 @@ class DeferredStop:
             signal.signal(sig, handler)
         self._previous.clear()
         if self._pipe is not None:
-            try:
+            with contextlib.suppress(ValueError):
                 signal.set_wakeup_fd(self._old_wakeup)
-            except ValueError:
-                pass
             r, w = self._pipe
             self._pipe = None
             os.close(w)                            # the watcher reads EOF and ends
-            if self._watcher is not None:
-                self._watcher.join(1.0)
+            self._watcher.join(1.0)                # there is one whenever there is a pipe
             os.close(r)
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,

@@ -1,24 +1,7 @@
-"""The adaptive progressive renderer (the paper's Figure 6): sample only the noisy blocks.
-
-`run_adaptive` is the loop, in memory, in four steps: `renderer.live.plan.prepare` (the
-settings checked, the reference and the scene loaded, the spec resolved once, the renderer
-and the criterion built), `open_session` (a `renderer.live.session.RenderSession`), `drive`
-(launch by launch until it is done; the loop's words and a round: `renderer.live.passloop`)
-and `renderer.live.report.render_result`. It stops when no unit is active or max_spp is
-reached.
-
-Checkpoints are taken only when it is given a `Checkpoints` (the command line's resumable
-render, `adaptive_render`): the whole state (accumulator, active set, verdict history,
-the ledger's counters and timers, history rows, quick image), atomically into
-out/checkpoint.npz (`renderer.live.checkpoint`: digest-checked and validated against the
-settings before a resume trusts it), every `checkpoint_every` seconds (a row of the render
-spec), at the end (unless the render ended within its first period), at the time limit and
-on SIGINT/SIGTERM (`renderer.live.signals`), between launches: a launch is never
-half-saved. Because samples depend only on (seed, pixel, pass), ``resume=True`` after a
-crash gives the very image and report (timings aside) of an uninterrupted run. A render
-with checkpoints removes the results an earlier render left in its folder once it is under
-way (`_clear_previous`), so a killed one never leaves them beside its own checkpoint.
-`renderer.render` and the ``noisestop`` Mitsuba plugin run without checkpoints.
+"""The adaptive progressive renderer (the paper's Figure 6): sample only the noisy blocks,
+until no unit is active or max_spp is reached. Only the command line's render
+(`adaptive_render`) checkpoints, between launches; samples depend only on (seed, pixel,
+pass), so a resume gives the very image and report (timings aside) of an uninterrupted run.
 """
 from __future__ import annotations
 
@@ -48,13 +31,8 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Checkpoints:
-    """Where the loop checkpoints: the command line's resumable render.
-
-    `out`: the output folder (checked writable before the scene is loaded; the checkpoint
-    is out/checkpoint.npz); `resume`: continue from it if it exists. How often: the render
-    spec's `checkpoint_every`. With checkpoints the first SIGINT/SIGTERM finishes the pass
-    and checkpoints before stopping (`renderer.live.signals`).
-    """
+    """Where the loop checkpoints: out/checkpoint.npz (`out` checked writable before the
+    scene loads); `resume`: continue from it if it exists."""
 
     out: str | os.PathLike[str]
     resume: bool = False
@@ -64,9 +42,9 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True, re
                  checkpoints: Checkpoints | None = None, sensor: Any = None, integrator: Any = None,
                  grow: bool = True, source: str = ARGUMENT, plugin: Mapping[str, Any] | None = None,
                  **settings: Any) -> RenderResult:
-    """The adaptive loop, in memory (see the module docstring). `criterion` and `settings`:
-    the render spec's rows, the rest: `prepare`'s. `checkpoints`: None renders without any
-    file. `grow`: trace several passes per launch as units stop (same result, fewer launches)."""
+    """The adaptive loop, in memory. `criterion` and `settings`: the render spec's rows, the
+    rest: `prepare`'s. `checkpoints`: None writes no file. `grow`: trace several passes per
+    launch as units stop (same result, fewer launches)."""
     t_start = time.perf_counter()
     plan = prepare(scene, {"criterion": criterion, **settings}, reference=reference, source=source, plugin=plugin,
                    sensor=sensor, integrator=integrator, out=None if checkpoints is None else checkpoints.out)
@@ -79,23 +57,24 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True, re
 
 
 def open_session(plan: RenderPlan, checkpoints: Checkpoints | None, grow: bool, t_start: float) -> RenderSession:
-    """The session of `plan` (resumed from its checkpoint when asked); with checkpoints, the
-    folder's earlier results go before this render's first pass."""
+    """The session of `plan`, resumed when asked. With checkpoints, the results an earlier
+    render left in the folder go once it is under way (a refused resume leaves the folder as
+    it was), on a resume too: beside an unfinished checkpoint they are an earlier render's,
+    beside a finished one they are written again at once."""
     ckpt = None if checkpoints is None else Path(checkpoints.out) / CHECKPOINT
     session = RenderSession(plan, ckpt_path=ckpt, resume=checkpoints is not None and checkpoints.resume, grow=grow,
                             t_start=t_start)
-    if ckpt is not None:
-        _clear_previous(ckpt.parent, resumed=session.resumed)
+    if ckpt is not None and (removed := clear_results(ckpt.parent)):
+        logger.info("%s: removed the previous render's %s (%s)", ckpt.parent, ", ".join(removed),
+                    "the resumed render writes them" if session.resumed else "this render writes its own when it ends")
     return session
 
 
 def drive(session: RenderSession, progress: bool, checkpointing: bool) -> bool:
-    """Advance the session launch by launch until it is done, checkpointing (when
-    `checkpointing`) every `checkpoint_every` seconds, at the end, at the time limit and on
-    a signal (the first SIGINT/SIGTERM finishes the launch, checkpoints and raises
-    KeyboardInterrupt). A render that ends within its first period writes none (a
-    1024x1024 checkpoint costs about half a second; resuming a render that short is
-    rendering it again). Returns whether the time limit ended the render."""
+    """Advance the session launch by launch until it is done, checkpointing when
+    `checkpointing` (a first signal: checkpoint, then KeyboardInterrupt). A render that ends
+    within its first period writes none (a 1024x1024 checkpoint costs about half a second;
+    resuming a render that short is rendering it again). Whether the time limit ended it."""
     spec = session.spec
     every, time_limit = spec.checkpoint_every if checkpointing else math.inf, spec.time_limit
     last_saved = time.perf_counter()
@@ -126,31 +105,12 @@ def drive(session: RenderSession, progress: bool, checkpointing: bool) -> bool:
     return False
 
 
-def _clear_previous(out: Path, resumed: bool) -> None:
-    """Remove the results an earlier render left in `out`, once this one is under way (its
-    scene loaded, its checkpoint accepted: a refused resume leaves the folder as it was).
-
-    Why: `clear_results`. On a resume the results go too: results are written only when a
-    render ends, so those beside an unfinished checkpoint are an earlier render's, and those
-    beside a finished one are this render's own, written again at once. The checkpoint
-    itself is the session's: a fresh render replaces it at its first one."""
-    removed = clear_results(out)
-    if removed:
-        logger.info("%s: removed the previous render's %s (%s)", out, ", ".join(removed),
-                    "this render writes its own when it ends" if not resumed else "the resumed render writes them")
-
-
 def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion: Any = None, *,
                     resume: bool = False, **kwargs: Any) -> dict[str, Any]:
-    """Render `scene` adaptively into `out`; return the report (also out/report.json).
-
-    The command line's render: `run_adaptive` with checkpoints in `out` (`resume`:
-    continue from them; the setting `checkpoint_every`: seconds between them, 0: after
-    every pass), then `RenderResult.save(out)`. wall_s in the report runs from the call to
-    the end of the last pass (writing the output files is not in it); resumed runs add up
-    the time of every attempt. `kwargs`: `run_adaptive`'s (the render spec's settings,
-    `reference`, `progress`, `source`).
-    """
+    """Render `scene` adaptively into `out`, with checkpoints there (`resume`: continue from
+    them); the report, also out/report.json. Its wall_s runs to the end of the last pass
+    (writing the files is not in it), every attempt's added up. `kwargs`:
+    `run_adaptive`'s (the render spec's settings, `reference`, `progress`, `source`)."""
     result = run_adaptive(scene, criterion, checkpoints=Checkpoints(out, resume), **kwargs)
     result.save(out)
     report = result.report

@@ -1,45 +1,13 @@
-"""The adaptive render's checkpoint (out/checkpoint.npz): written atomically, validated before use.
-
-What `--resume` trusts must be exactly what an interrupted run left (read naively, a
-truncated or byte-flipped file ends in BadZipFile, CRC or KeyError tracebacks, and a
-checkpoint claiming pass 1,000,000 is accepted). So a checkpoint is read with `learning.data.npz`
-(member sizes against headers, no pickle), carries a SHA-256 digest of its arrays, was
-made with the same settings, and holds a state that the loop could have produced:
-
-* every array has its dtype and the shape the settings imply (n blocks, p passes, the
-  accumulator's grid and block, the frame of the quick image);
-* 0 <= p <= the passes of the settings, `done` only at the end or with no block active;
-* history is -1/0/+1, each row's per-block spp never decreasing and ending at what the
-  accumulator holds; each row rendered 1..n blocks; each unit's decision evidence (the
-  history criterion's sums) finite, >= 0, weighing whole samples and at most those the
-  unit had at its last decision; each unit's next decision at or after its last one;
-* every block holds exactly the samples of its passes; a stopped one stopped where its
-  history says +1, at its stop spp;
-* counters are whole numbers in [0, 2**53] and timers seconds in [0, a century] (a forged
-  huge counter overflowed at the end of the resumed render; a forged timer was reported);
-* a plain render's active blocks are all at the last pass (its rows are the cumulative pass
-  sizes); a budget render's blocks may be at different passes (its rounds are rows), and
-  its budget's state (prioritised rounds, ended, seconds and samples spent) is kept, so a
-  resume continues from the last round written, not from the first prioritised one.
-
-What the file alone cannot vouch for, its radiance (sums scaled by 1e30, digest recomputed,
-resumed with every block "converged"), the session checks against the scene: its first
-pass traced again (`check_radiance`); nor each unit's decision evidence and next decision,
-checked against the half buffers the file holds (`check_evidence`). The session calls both
-on a resume; they are the checkpoint's checks, in `renderer.live.checkpoint_checks`.
-
-The checkpoint is the one place where the render's typed progress
-(`renderer.live.progress.Progress`, `RunSettings`) becomes arrays and back
-(`save_checkpoint`, `load_checkpoint`); where a name differs between the two, `ARRAY_NAMES`
-says so (and `renderer.criteria.EXTERNAL_COUNTER_NAMES` for the counters).
-
-Anything else is a ValueError naming the file and what is wrong; `--resume` never
-continues from a state it cannot vouch for.
+"""The adaptive render's checkpoint (out/checkpoint.npz), where the typed progress becomes
+arrays and back: written atomically with a digest, read without pickle, and trusted only when
+made with the same settings and holding a state the loop could have produced (a truncated,
+byte-flipped or forged file is one ValueError naming it, never a traceback nor a resume from
+pass 1,000,000; what the file cannot vouch for: `renderer.live.checkpoint_checks`).
 """
 from __future__ import annotations
 
+import dataclasses
 import json
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -55,48 +23,29 @@ from .progress import BudgetState, LoopState, Progress, RunSettings
 
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_FORMAT = "noisestop-adaptive-checkpoint"
-CHECKPOINT_VERSION = 6          # 2: content digest and validated state; 3: per-block spp history, budget state;
-                                # 4: per-tile state (units: every block's tiles);
-                                # 5: each unit's decision evidence (the history criterion);
-                                # 6: that evidence weighted by the samples each decision stands for, and
-                                #    each unit's next decision
+CHECKPOINT_VERSION = 6          # raised whenever an array is added or its meaning changes
 
-
-def _str_array(text: str) -> np.ndarray:
-    return np.array(text)  # 0-d unicode array: no pickle needed
-
-
-#: where this code's name for a piece of the state differs from the checkpoint's array: the
-#: one mapping (the file's names stay, so a checkpoint written before still loads; the
-#: counters' names: `renderer.criteria.EXTERNAL_COUNTER_NAMES`)
+#: where this code's name differs from the checkpoint's array name (the file's names stay;
+#: the counters': `renderer.criteria.EXTERNAL_COUNTER_NAMES`)
 ARRAY_NAMES = {"rows": "pass_index", "history_unit_spp": "history_block_spp"}
 
 
 def settings_record(settings: RunSettings) -> dict[str, Any]:
-    """`settings` as the checkpoint records them (JSON: tuples as lists, no spp_budget key
-    without a sample budget), the record a resume compares."""
-    record: dict[str, Any] = {
-        "scene": settings.scene, "resolution": list(settings.resolution), "grid": list(settings.grid),
-        "block": list(settings.block), "tile": list(settings.tile), "exposure": settings.exposure,
-        "step": settings.step, "min_spp": settings.min_spp, "max_spp": settings.max_spp,
-        "decide_skip": settings.decide_skip, "decide_growth": settings.decide_growth, "seed": settings.seed,
-        "quick_spp": settings.quick_spp, "quick": settings.quick, "criterion": dict(settings.criterion),
-        "variant": settings.variant, "defines": dict(settings.defines), "tau": settings.tau}
-    if settings.spp_budget is not None:
-        record["spp_budget"] = settings.spp_budget
+    """`settings` as the checkpoint records them and a resume compares: JSON, with no
+    spp_budget key without a sample budget."""
+    record = json.loads(json.dumps(dataclasses.asdict(settings)))
+    if record["spp_budget"] is None:
+        del record["spp_budget"]
     return record
 
 
-def save_checkpoint(path: Path, progress: Progress, settings: RunSettings | Mapping[str, Any]) -> None:
-    """np.savez into memory with a digest, then an atomic write (never a half-written file).
-    `settings`: the run's, or a record of them as `settings_record` makes it."""
+def save_checkpoint(path: Path, progress: Progress, settings: RunSettings) -> None:
     loop, n = progress.loop, len(progress.loop.active)
-    record = settings_record(settings) if isinstance(settings, RunSettings) else dict(settings)
     counters = external_counters(progress.counters)
     arrays: dict[str, np.ndarray] = {
-        "format": _str_array(CHECKPOINT_FORMAT),
+        "format": np.array(CHECKPOINT_FORMAT),          # 0-d unicode arrays: no pickle needed
         "version": np.int64(CHECKPOINT_VERSION),
-        "settings": _str_array(json.dumps(record, sort_keys=True)),
+        "settings": np.array(json.dumps(settings_record(settings), sort_keys=True)),
         "active": np.asarray(loop.active, bool),
         "stop_spp": np.asarray(loop.stop_spp, np.int64),
         "history": np.asarray(loop.history, np.int8).reshape(-1, n),
@@ -124,30 +73,25 @@ def save_checkpoint(path: Path, progress: Progress, settings: RunSettings | Mapp
     atomic_write(path, savez_bytes(arrays, with_digest=True))
 
 
-def expected_bytes(frame: tuple[int, int], n_units: int, n_passes: int,
-                   unit_shape: tuple[int, int] | None = None) -> int:
-    """An upper bound on a valid checkpoint's size: accumulator (float64 sums and int64
-    weights of two halves, of every block window: overlapping windows hold more than the
-    frame), quick image, the history (a row per pass, or per budget round: verdicts and
-    per-block spp), plus slack for names."""
+def expected_bytes(frame: tuple[int, int], n_units: int, n_passes: int, unit_shape: tuple[int, int]) -> int:
+    """An upper bound on a valid checkpoint's size: both halves' sums and weights over every
+    block window (overlapping windows hold more than the frame), the quick image, a history
+    row per pass (a budget render: per round), and slack for names."""
     h, w = frame
-    held = max(h * w, n_units * unit_shape[0] * unit_shape[1]) if unit_shape is not None else h * w
+    held = max(h * w, n_units * unit_shape[0] * unit_shape[1])
     rows = n_passes * n_units          # a budget render's rounds: one block's pass each, at worst
     return 2 * held * (3 * 8 + 8) + h * w * 3 * 4 + rows * (9 * n_units + 24) + 32 * n_units + (1 << 20)
 
 
-def load_checkpoint(path: Path, settings: RunSettings | Mapping[str, Any], *, pass_spp: list[int],
-                    grid: tuple[int, int], unit_shape: tuple[int, int], frame: tuple[int, int],
-                    nonnegative: bool = True) -> Progress:
-    """The progress a checkpoint written by `save_checkpoint` for these settings holds (its
-    accumulator on the host), or ValueError. `settings`: the run's, or a record of them
-    (`settings_record`). `nonnegative`: the film's filter has no negative lobe (radiance
-    sums >= 0)."""
+def load_checkpoint(path: Path, settings: RunSettings, *, pass_spp: list[int], grid: tuple[int, int],
+                    unit_shape: tuple[int, int], frame: tuple[int, int], nonnegative: bool = True) -> Progress:
+    """The progress a checkpoint saved with these settings holds (its accumulator on the
+    host), or ValueError. `nonnegative`: the film's filter has no negative lobe (radiance sums
+    >= 0)."""
     n = grid[0] * grid[1]
     try:
         data = read_npz(path, max_bytes=expected_bytes(frame, n, len(pass_spp), unit_shape), kind="checkpoint")
-        record = settings_record(settings) if isinstance(settings, RunSettings) else dict(settings)
-        return _validated(path, data, record, pass_spp, grid, unit_shape, frame, nonnegative)
+        return _validated(path, data, settings_record(settings), pass_spp, grid, unit_shape, frame, nonnegative)
     except ValueError as exc:
         if "start over" in str(exc):
             raise
@@ -180,7 +124,7 @@ def _validated(path: Path, data: dict[str, np.ndarray], settings: dict[str, Any]
         saved = json.loads(str(_get(data, "settings", "U", ())))
     except (ValueError, RecursionError) as exc:
         raise ValueError(f"{path}: {exc}" if str(path) not in str(exc) else str(exc)) from None
-    if saved != json.loads(json.dumps(settings, sort_keys=True)):
+    if saved != settings:
         if not isinstance(saved, dict):
             raise ValueError(f"{path}: settings are not an object")
         diff = [f"{k}: {saved.get(k)!r} then, {settings.get(k)!r} now"
@@ -195,19 +139,18 @@ def _validated(path: Path, data: dict[str, np.ndarray], settings: dict[str, Any]
 
 #: the largest radiance one pass of a pixel can hold (Mitsuba's images are float32)
 PASS_MAX = float(np.finfo(np.float32).max)
-#: the largest counter a checkpoint may hold: far past any render (2**53 samples), and far
-#: enough below int64's end that a run's own counts added to it cannot overflow
+#: the largest counter a checkpoint may hold: past any render, yet far enough below int64's
+#: end that a resumed run's own counts cannot overflow it
 MAX_COUNTER = 1 << 53
-#: the longest timer, seconds: a century (a forged 1e308 used to be reported as wall_s)
+#: the longest timer, seconds: a century (a forged 1e308 would be reported as wall_s)
 MAX_TIMER_S = 100 * 365 * 24 * 3600.0
 
 
 def _check_meaning(acc: dict[str, np.ndarray], nonnegative: bool) -> None:
-    """What the accumulator's arrays mean, beyond their shapes and types: each pixel's
-    weight is the samples of its half's passes that were finite, all of them in a block that
-    dropped nothing (`UnitAccumulator.add_batch`); a sum is at most weight x the largest
-    float32 radiance, and not negative when the film's filter has no negative lobe. A digest
-    recomputed over forged values passes; these do not."""
+    """What the accumulator's arrays mean beyond shapes and types (a digest recomputed over
+    forged values passes; these do not): a pixel's weight is its half's finite samples, all of
+    them where its block dropped nothing; a sum is at most weight x the largest float32
+    radiance, and >= 0 when the film's filter has no negative lobe."""
     total, weight, spp, dropped = acc["sum"], acc["weight"], acc["spp"], acc["nonfinite"]
     half_spp = spp.T[:, :, None, None]                          # [2, n, 1, 1]
     if (weight > half_spp).any():
@@ -223,7 +166,7 @@ def _check_meaning(acc: dict[str, np.ndarray], nonnegative: bool) -> None:
 
 
 def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, int], unit_shape: tuple[int, int],
-           frame: tuple[int, int], nonnegative: bool = True) -> Progress:
+           frame: tuple[int, int], nonnegative: bool) -> Progress:
     n = grid[0] * grid[1]
     budget = "budget_cost" in data
     p = int(_get(data, ARRAY_NAMES["rows"], "int64", ()))
@@ -295,14 +238,11 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
     acc = UnitAccumulator.from_state(acc_state)
     spp, pass_counts = acc.spp_all(), acc.pass_counts()
     if not np.array_equal(spp, cum[pass_counts]) or (p and not np.array_equal(unit_spp[-1], spp)) \
-            or (not p and spp.any()):
-        raise ValueError("the accumulated samples disagree with the passes and stops")
-    if not budget and not (pass_counts[active] == p).all():
+            or (not p and spp.any()) or (not budget and not (pass_counts[active] == p).all()):
         raise ValueError("the accumulated samples disagree with the passes and stops")
     progress = Progress(
-        LoopState(acc=acc, active=active.copy(), stop_spp=stop_spp.copy(), history=history.copy(),
-                  history_spp=history_spp.copy(), history_unit_spp=unit_spp.copy(), rendered=rendered.copy(),
-                  evidence=evidence.copy(), next_spp=next_spp.copy()),
+        LoopState(acc=acc, active=active, stop_spp=stop_spp, history=history, history_spp=history_spp,
+                  history_unit_spp=unit_spp, rendered=rendered, evidence=evidence, next_spp=next_spp),
         done=done, counters=internal_counters(dict(zip(names.tolist(), values.tolist()))),
         timers=dict(zip(tnames.tolist(), tvalues.tolist())), quick=None if quick.size == 0 else quick)
     if budget:
@@ -321,7 +261,6 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
         left = active & (pass_counts < len(pass_spp))
         if done != (not left.any() or ended):
             raise ValueError(f"done is {done} with {int(left.sum())} blocks able to take a pass")
-        progress.budget = BudgetState(prioritised_rounds=rounds, ended=ended,
-                                      cost=(float(cost[0]), float(cost[1])),
-                                      ratio_asked=ratio_asked.copy(), ratio=ratio.copy())
+        progress.budget = BudgetState(prioritised_rounds=rounds, ended=ended, cost=(float(cost[0]), float(cost[1])),
+                                      ratio_asked=ratio_asked, ratio=ratio)
     return progress

@@ -1,9 +1,6 @@
 """A resumed checkpoint's checks against the scene and the criterion: what the file alone
-cannot vouch for (`renderer.live.checkpoint` vouches for the rest). Its radiance (sums scaled
-by 1e30 with the digest recomputed would resume with every block "converged") is checked by
-tracing its first pass again (`check_radiance`); each unit's decision evidence and next
-decision against the half buffers the file holds (`check_evidence`). The session calls both
-on a resume; a refusal is a ValueError naming the file.
+cannot vouch for (`renderer.live.checkpoint` vouches for the rest). A refusal is a ValueError
+naming the file.
 """
 from __future__ import annotations
 
@@ -21,19 +18,22 @@ from .passloop import PassLoop, next_decision
 if TYPE_CHECKING:
     from .blocks import BlockRenderer
 
+
+def _refuse(path: Path, what: str) -> None:
+    raise ValueError(f"{path}: inconsistent checkpoint: {what} (forged or damaged); delete it (or rerun "
+                     "without --resume) to start over")
+
+
 #: how far a resumed checkpoint's mean radiance may lie from its first pass traced again
 RADIANCE_RATIO = 1e6
 
 
 def check_radiance(path: Path, acc: UnitAccumulator, br: BlockRenderer, first_spp: int, seed: int) -> None:
-    """ValueError unless a checkpoint's radiance is what its scene renders: a forged file
-    whose sums were scaled (x1e30: every unit then "converged") passes every check the file
-    alone allows, its digest recomputed. The first pass depends only on (seed, pixel, pass),
-    so it is traced again over the frame (`render_full`: one pass, not added to the image;
-    its Mitsuba call is counted) and the mean radiance held must be within a factor
-    RADIANCE_RATIO of its mean: both estimate the frame's mean, so a true checkpoint is
-    within noise of it. A black first pass proves nothing (light found later) and is not
-    held against the file."""
+    """ValueError unless a checkpoint's radiance is what its scene renders: sums scaled x1e30
+    (every unit then "converged"), digest recomputed, pass every check of the file alone. The
+    first pass depends only on (seed, pixel, pass), so it is traced again (not added to the
+    image) and the mean radiance held must lie within RADIANCE_RATIO of its mean. A black
+    first pass proves nothing (light found later)."""
     units = np.flatnonzero(acc.pass_counts() > 0)
     if not units.size:
         return
@@ -42,9 +42,7 @@ def check_radiance(path: Path, acc: UnitAccumulator, br: BlockRenderer, first_sp
     traced = float(np.abs(again).mean())
     held = float(acc.means(units).abs().mean().cpu())
     if traced > 0 and not traced / RADIANCE_RATIO <= held <= traced * RADIANCE_RATIO:
-        raise ValueError(f"{path}: inconsistent checkpoint: its mean radiance is {held / traced:.3g} times what "
-                         "its first pass traces again (forged or damaged); delete it (or rerun without "
-                         "--resume) to start over")
+        _refuse(path, f"its mean radiance is {held / traced:.3g} times what its first pass traces again")
 
 
 #: how far a unit's mean noise estimate may lie from its halves' estimate now
@@ -53,26 +51,16 @@ EVIDENCE_RATIO = 1e3
 NEXT_RATIO = 1e3
 
 
-def _refuse(path: Path, what: str) -> None:
-    """The one-line refusal of a checkpoint whose decision state its halves contradict."""
-    raise ValueError(f"{path}: inconsistent checkpoint: {what} (forged or damaged); delete it (or rerun "
-                     "without --resume) to start over")
-
-
 def check_evidence(path: Path, loop: PassLoop) -> None:
-    """ValueError unless a resumed loop's decision evidence and next decisions agree with
-    the half buffers its checkpoint holds. Neither can be recomputed from the file: the
-    scores they came from were taken on halves at spp long past, so a forged file (sums
-    zeroed or 1e300, every next decision at the latest the format allows, digest
-    recomputed) silently stopped units early or ran them to max spp. Every decision of a
-    unit estimated one per-unit constant (noise falls as 1/sqrt(spp)), so the criterion
-    is asked once more on the units as they stand, keeping nothing (no verdict, evidence,
-    counter or timer: the resumed render counts as the uninterrupted one), and the file is
-    refused where a unit judged at the spp it holds held less evidence than that very
-    decision added (same state, same estimate: half of it, for a tile's context), where its mean estimate lies more than
-    EVIDENCE_RATIO from its halves' now or is 0 while they give more (honest ones: within
-    a factor 3 on cornell), or where its next decision lies more than NEXT_RATIO past the
-    one its ratio now asks for. Only active units that were judged are asked."""
+    """ValueError unless a resumed loop's decision evidence and next decisions agree with the
+    half buffers its checkpoint holds. Neither can be recomputed from the file (a forged one,
+    sums zeroed or 1e300, stopped units early or ran them to max spp), but every decision of
+    a unit estimated one per-unit constant (noise falls as 1/sqrt(spp)), so the criterion is
+    asked once more on the active, judged units, keeping nothing (the resumed render counts
+    as the uninterrupted one). Refused: a unit judged at the spp it holds with less evidence
+    than that decision added (half of it, for a tile's context), a mean estimate more than
+    EVIDENCE_RATIO from its halves' now (honest ones: within 3x on cornell), a next decision
+    more than NEXT_RATIO past what its ratio now asks for."""
     decided = loop.evidence.last
     ids = np.flatnonzero(loop.active & (decided > 0))
     if not ids.size or not loop.criterion.noise_ratio:
@@ -92,8 +80,7 @@ def check_evidence(path: Path, loop: PassLoop) -> None:
     x = np.asarray(d.evidence, np.float64)
     total, weight = loop.evidence.sums[ids, 0], loop.evidence.sums[ids, 1]
     fresh = np.isfinite(x)
-    # judged at the spp it holds: that decision added (spp - the one before) x (the same up
-    # to a tile's context, hence half of it)
+    # judged at the spp it holds: that decision added (spp - the one before) x
     here = fresh & (spp == decided[ids])
     if here.any():
         before = _decided_before(loop, ids[here])
@@ -111,8 +98,7 @@ def check_evidence(path: Path, loop: PassLoop) -> None:
 
 
 def _decided_before(loop: PassLoop, ids: np.ndarray) -> np.ndarray:
-    """int64 [k]: the spp of each unit's decision before its last one (0: none), from the
-    verdict history."""
+    """int64 [k]: the spp of each unit's decision before its last one (0: none)."""
     asked = loop.history[:, ids] != 0
     if asked.any():                    # each unit's last decision left out, the last before it remains
         asked[len(asked) - 1 - np.argmax(asked[::-1], axis=0), np.arange(len(ids))] = False

@@ -1,10 +1,7 @@
-"""One render at a time per output folder: `--out` is locked for the render's lifetime.
-
-Why: two renders into one folder both exited 0 and, 2 times in 6, left final.exr from one
-and report.json from the other. The lock is an advisory `flock` on out/.noisestop.lock,
-which the kernel drops when its holder dies (kill -9 included): a lock file left behind
-by a killed run is taken over, with a log line naming the run it came from; a lock held by
-a running render refuses the second one in one line.
+"""One render at a time per output folder (two renders into one folder left final.exr from
+one and report.json from the other): an advisory `flock` on out/.noisestop.lock, which the
+kernel drops when its holder dies, kill -9 included, so a lock file a killed run left is taken
+over (logged), and one a running render holds refuses the second render in one line.
 """
 from __future__ import annotations
 
@@ -30,11 +27,9 @@ class OutputLocked(ValueError):
 @contextlib.contextmanager
 def locked_output(out: str | os.PathLike) -> Iterator[Path]:
     """Hold the lock of folder `out` (created if missing) while the block runs."""
-    from .outputs import check_output_path, prepare_output_dir
-    check_output_path(out)            # "" (the current folder, as a Path) and "/": one line
-    out = Path(out)
-    created = not out.exists()
-    prepare_output_dir(out)           # a file, an unwritable folder: its one-line errors first
+    from .outputs import prepare_output_dir
+    created = not Path(out).exists()
+    out = prepare_output_dir(out)     # "", "/", a file, an unwritable folder: their one-line errors first
     path = out / LOCK_NAME
     fd = _open_lock(path)
     try:
@@ -52,19 +47,16 @@ def locked_output(out: str | os.PathLike) -> Iterator[Path]:
         try:
             yield out
         finally:
-            try:
+            with contextlib.suppress(OSError):
                 os.unlink(path)          # a clean end leaves no lock file behind
                 if created:
                     out.rmdir()          # nor a folder it made, if the render wrote nothing
-            except OSError:
-                pass
     finally:
         os.close(fd)
 
 
 def _open_lock(path: Path) -> int:
-    """The lock file's descriptor: created if missing, a regular file or refused in one line
-    naming it (a link, a FIFO or a device in its place is no lock of ours)."""
+    """The lock file's descriptor; a link, a FIFO or a device in its place: one line."""
     flags = os.O_RDWR | os.O_CREAT | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOFOLLOW", 0)
     try:
         fd = os.open(path, flags, 0o644)

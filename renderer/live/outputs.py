@@ -1,11 +1,7 @@
-"""What an adaptive render leaves on disk: final.exr (linear R, G, B, and per pixel its block's
-spp and converged mask, DESIGN), final.png, spp_map.png, report.json,
-and with a reference, compare.png (final next to reference, per-block FLIP against it).
-
-Every file is written atomically (temporary name, fsync, rename: `learning.data.exr`), so an
-interrupted run never leaves a truncated image that looks finished. The spp map is drawn
-with Pillow (no global state: safe in Dask worker threads); compare.png with matplotlib's
-object API on an Agg canvas (no pyplot).
+"""What an adaptive render leaves on disk: final.exr, final.png, spp_map.png, report.json
+and, with a reference, compare.png. Every file is written atomically, so an interrupted run
+never leaves a truncated image that looks finished; no pyplot (global state: unsafe in Dask
+worker threads).
 """
 from __future__ import annotations
 
@@ -35,12 +31,9 @@ RESULTS = (FINAL_EXR, FINAL_PNG, SPP_MAP, REPORT, COMPARE)
 
 
 def check_output_path(path: str | os.PathLike) -> None:
-    """Refuse, in one line, an output folder that is empty or the root folder.
-
-    Why: `--out ""` wrote into the current folder without the out-folder lock (two renders
-    there raced), and `--out /` wrote into `/`. An empty string is checked as given
-    (`Path("")` is the current folder); the root by where the path leads (`//`, `/..` and a
-    link to `/` are the root too)."""
+    """Refuse, in one line, an empty output folder name (`Path("")` is the current folder,
+    where the out-folder lock did not hold) and the root folder (by where the path leads:
+    `//`, `/..` and a link to `/` too)."""
     text = os.fspath(path)
     if not text:
         raise ValueError("the output folder is an empty name: name a folder (e.g. --out out)")
@@ -49,13 +42,9 @@ def check_output_path(path: str | os.PathLike) -> None:
 
 
 def clear_results(out: str | os.PathLike) -> list[str]:
-    """Remove the previous render's results (`RESULTS`) from folder `out`; the names removed.
-
-    Why: a render killed after its first checkpoint left the earlier render's final.exr and
-    report.json beside its own checkpoint, and a render without a reference left the earlier
-    one's compare.png beside its own results. A render removes them when it starts (under
-    the out-folder lock, `renderer.live.outlock`) and writes its own when it ends. A result that
-    cannot be removed (a folder in its place, a read-only entry) is one line, before any pass."""
+    """Remove the previous render's results from folder `out`, so that none is left beside
+    this render's checkpoint or results; the names removed. One that cannot be removed (a
+    folder in its place, a read-only entry): one line, before any pass."""
     removed = []
     for name in RESULTS:
         path = Path(out) / name
@@ -72,12 +61,8 @@ def clear_results(out: str | os.PathLike) -> list[str]:
 
 def prepare_output_dir(path: str | os.PathLike) -> Path:
     """`path` as an existing, writable directory, or a one-line error before any work.
-
-    Why: otherwise `--out` naming a file ends in a FileExistsError traceback, and a
-    read-only folder fails only after the first pass has been rendered. Writability is
-    probed by creating and removing a file, which is what counts (permission bits do not
-    bind root, a read-only mount binds everyone). An empty name and the root folder are
-    refused (`check_output_path`)."""
+    Writability is probed by creating a file: permission bits do not bind root, a read-only
+    mount binds everyone."""
     check_output_path(path)
     p = Path(path)
     if p.exists() and not p.is_dir():
@@ -100,12 +85,6 @@ def to_srgb8(image: np.ndarray, exposure: float = 0.0) -> np.ndarray:
     return np.clip(np.rint(d * 255.0), 0, 255).astype(np.uint8)
 
 
-def write_report(path: str | os.PathLike, report: dict[str, Any]) -> Path:
-    path = Path(path)
-    atomic_write(path, (json.dumps(report, indent=2, default=json_default) + "\n").encode("utf-8"))
-    return path
-
-
 #: the spp map's layout, in pixels: the map is scaled to about this size (whole factors up,
 #: nearest-neighbour down), with a colour bar at its right and a legend under it
 MAP_SIZE, BAR_W, BAR_GAP, MARGIN, LEGEND_ROW = 512, 18, 14, 12, 18
@@ -114,16 +93,11 @@ MAP_SIZE, BAR_W, BAR_GAP, MARGIN, LEGEND_ROW = 512, 18, 14, 12, 18
 def spp_map_png(spp: np.ndarray, windows: Sequence[Sequence[int]], block_spp: Sequence[int],
                 converged: Sequence[bool], min_spp: int, max_spp: int,
                 above_target: Sequence[int] = ()) -> bytes:
-    """PNG bytes: a heat map of the samples per pixel, with a colour bar and a legend.
-
-    Log2 colour scale (viridis) from `min_spp` to `max_spp` (Cycles' debug sample count,
-    LuxCore's convergence pass); block windows outlined, blocks that ran to max spp without
-    the criterion stopping them outlined in red, blocks a budget left above the noise
-    target (`above_target`, block ids) outlined in orange; each block's spp written on it
-    when there are at most 64 blocks. Drawn with Pillow and cmap's viridis: matplotlib
-    would cost every render 0.5 s to import and draw (what a user times is the whole
-    command).
-    """
+    """PNG bytes: a heat map of the samples per pixel (log2 viridis from `min_spp` to
+    `max_spp`), a colour bar and a legend; windows outlined, in red those that ran to max spp,
+    in orange those a budget left above target (`above_target`, ids); each one's spp written
+    on it up to 64 windows. Pillow and cmap, not matplotlib: its import and draw cost every
+    render 0.5 s."""
     from PIL import Image, ImageDraw, ImageFont
 
     Colormap = require("cmap").Colormap        # a missing [render] extra: one line naming it
@@ -188,8 +162,7 @@ def spp_map_png(spp: np.ndarray, windows: Sequence[Sequence[int]], block_spp: Se
 def compare_png(final8: np.ndarray, reference8: np.ndarray, windows: Sequence[Sequence[int]], spp: Sequence[int],
                 errors: Sequence[float], tau: float) -> bytes:
     """PNG bytes: final image and reference side by side, each block of the final image
-    labelled with its spp and its FLIP error against the reference (red: above the
-    observer's threshold, noise a person would see)."""
+    labelled with its spp and its FLIP error (red: above tau, noise a person would see)."""
     require("matplotlib")
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -219,19 +192,15 @@ def compare_png(final8: np.ndarray, reference8: np.ndarray, windows: Sequence[Se
 
 def write_outputs(out: str | os.PathLike, image: np.ndarray, report: dict[str, Any], *, spp: np.ndarray,
                   converged: np.ndarray, reference: np.ndarray | None = None) -> dict[str, str]:
-    """Write the outputs of a render into `out`; return their paths by name. `spp` and
-    `converged` are per pixel [H, W] (`renderer.live.block_windows.compose`). With the reference image
-    (and `final_vs_reference` in the report) also compare.png."""
+    """Write a render's files into `out`; their paths by name. `spp` and `converged`: per
+    pixel [H, W]; compare.png with a reference (and `final_vs_reference` in the report)."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     img = np.asarray(image, np.float32)
     if np.shape(spp) != img.shape[:2] or np.shape(converged) != img.shape[:2]:
         raise ValueError(f"per-pixel spp {np.shape(spp)} / converged {np.shape(converged)} do not match "
                          f"the image {img.shape[:2]}")
     srgb8 = to_srgb8(img, report["exposure"])
     blocks = report["blocks"]
-    block_spp = [b["spp"] for b in blocks]
-    windows = [b["window"] for b in blocks]
     units = report.get("tiles", blocks)       # the spp map at the grain that stops: tiles when cut
     write_exr_channels(out / FINAL_EXR, {"R": img[..., 0], "G": img[..., 1], "B": img[..., 2],
                                          "spp": np.asarray(spp, np.float32),
@@ -245,22 +214,19 @@ def write_outputs(out: str | os.PathLike, image: np.ndarray, report: dict[str, A
     check = report.get("final_vs_reference")
     if reference is not None and check is not None:
         atomic_write(out / COMPARE, compare_png(srgb8, to_srgb8(reference, report["exposure"]),
-                                                      windows, block_spp, check["errors"], check["tau"]))
+                                                [b["window"] for b in blocks], [b["spp"] for b in blocks],
+                                                check["errors"], check["tau"]))
         names.append(COMPARE)
-    write_report(out / REPORT, report)
+    atomic_write(out / REPORT, (json.dumps(report, indent=2, default=json_default) + "\n").encode("utf-8"))
     return {name: str(out / name) for name in names}
 
 
 def format_report(report: dict[str, Any], out: str | os.PathLike | None = None) -> str:
     """A few human-readable lines about a finished render (the non --json output)."""
     gh, gw = report["grid"]
-    rows = []
-    for r in range(gh):
-        cells = []
-        for c in range(gw):
-            b = report["blocks"][r * gw + c]
-            cells.append(f"{b['spp']:>6}{'*' if b['converged'] else ' '}")
-        rows.append(" ".join(cells))
+    blocks = report["blocks"]
+    rows = [" ".join(f"{b['spp']:>6}{'*' if b['converged'] else ' '}" for b in blocks[r * gw:(r + 1) * gw])
+            for r in range(gh)]
     t = report["timing"]
     knob = (f" at offset {report['offset']:g}" if report.get("offset") is not None else
             f" at threshold {report['threshold']:g}" if report.get("threshold") is not None else "")

@@ -1,17 +1,6 @@
-"""A render's front hall: everything an adaptive render needs, made once (`prepare`), before
-its first pass.
-
-`prepare` checks the settings a door was given (`renderer.spec.checked`: a bad one fails
-before anything loads), loads the reference (`load_reference`) and the scene (a built-in
-name, an XML path or an already-loaded ``mi.Scene``), reads the scene's own ``noisestop``
-integrator's properties (`renderer.plugin_schema`: the loop never imports the plugin),
-resolves the render spec once, knowing the frame (`renderer.spec.resolve`), and builds the
-renderer and the criterion. What it gives back, a `RenderPlan`, is what
-`renderer.live.adaptive.run_adaptive` opens its session on.
-
-Why one place: the spec used to be resolved up to three times a render (five for a scene
-file), the frame fitted in two steps and the plugin's properties read by duck type; each
-copy was a place for the doors to drift apart.
+"""Everything an adaptive render needs, made once before its first pass (`prepare`): the
+settings checked, the reference and the scene loaded, the spec resolved once knowing the
+frame, the renderer and the criterion built. One place, so that the doors cannot drift apart.
 """
 from __future__ import annotations
 
@@ -39,8 +28,7 @@ logger = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class Reference:
     """What a render is compared with: `given` as the caller gave it (None: nothing), a
-    labelled `stack` (oracle thresholds, early-stop metrics, final_vs_reference) or an
-    `image` (final_vs_reference only)."""
+    labelled `stack` or an `image` (final_vs_reference only)."""
 
     given: Any = None
     stack: Stack | None = None
@@ -49,10 +37,9 @@ class Reference:
 
 @dataclass(frozen=True)
 class RenderPlan:
-    """A render ready for its first pass (`prepare`): its `label` in reports, `scene` as the
-    checkpoint records it (a built-in name, a file's path, a loaded scene's label), the
-    resolved `spec`, the `renderer` (the loaded scene is its `scene`; the caller closes it),
-    the `criterion`, the `reference` and the Mitsuba `variant`."""
+    """A render ready for its first pass: its `label` in reports, `scene` as the checkpoint
+    records it (a built-in name, a file's path, a loaded scene's label), the resolved `spec`,
+    the `renderer` (the caller closes it), `criterion`, `reference` and Mitsuba `variant`."""
 
     label: str
     scene: str
@@ -66,18 +53,13 @@ class RenderPlan:
 def prepare(scene: Any, given: Mapping[str, Any], *, reference: Any = None, source: str = ARGUMENT,
             plugin: Mapping[str, Any] | None = None, sensor: Any = None, integrator: Any = None,
             out: str | os.PathLike[str] | None = None) -> RenderPlan:
-    """The `RenderPlan` of a render (see the module docstring).
-
-    `scene`: a built-in name, an XML path or a loaded ``mi.Scene`` (then `resolution` and
-    `defines` are refused). `given`: the render spec's rows (`renderer.settings.ROWS`; None:
-    not given), given by `source` ("argument", "command line" or "scene plugin"). `plugin`:
-    the ``noisestop`` properties under them (None: the scene's own integrator's, if it is
-    one). `reference`: a labelled stack or dataset directory of this scene (its grid and
-    levels become the defaults), or a reference image (EXR path or float [H, W, 3] array).
-    `sensor` / `integrator`: render from this sensor with this integrator instead of the
-    scene's first sensor and own integrator (the plugin passes its nested one). `out`: a
-    folder checked writable before the scene loads. ValueError (one line) for anything wrong.
-    """
+    """The `RenderPlan` of a render, or a one-line ValueError. `scene`: a built-in name, an
+    XML path or a loaded ``mi.Scene``. `given`: the render spec's rows (None: not given), given
+    by `source`. `plugin`: the ``noisestop`` properties under them (None: the scene's own
+    integrator's, if it is one). `reference`: a labelled stack or dataset directory of this
+    scene (its grid and levels become the defaults), or a reference image. `sensor` /
+    `integrator`: instead of the scene's first sensor and own integrator. `out`: a folder
+    checked writable before the scene loads."""
     from learning.data.relabel import observed
     from learning.data.variant import current_variant, select_variant
 
@@ -113,8 +95,8 @@ def prepare(scene: Any, given: Mapping[str, Any], *, reference: Any = None, sour
 
 
 def _scene_arg(scene: Any, given: Mapping[str, Any]) -> tuple[bool, str]:
-    """(whether `scene` is a loaded mi.Scene, its label); one-line ValueError for what
-    cannot be asked of a loaded scene or for a scene of another type."""
+    """(whether `scene` is a loaded mi.Scene, its label); a one-line ValueError for what
+    cannot be asked of a loaded scene."""
     if isinstance(scene, (str, os.PathLike)):
         from ..scenes.catalog import scene_label
         return False, scene_label(scene)
@@ -129,21 +111,15 @@ def _scene_arg(scene: Any, given: Mapping[str, Any]) -> tuple[bool, str]:
     if given.get("defines"):
         raise ValueError("defines (-D) set parameters while an XML file loads: pass the file's path, "
                          "not an already-loaded mi.Scene")
-    return True, _scene_object_label(scene)
-
-
-def _scene_object_label(scene: Any) -> str:
-    """A loaded scene's name in reports: its id when the file or dict gave one, else 'scene'."""
-    try:
+    try:                               # its id when the file or dict gave one
         sid = str(scene.id())
-    except Exception:  # an id is cosmetic: never fail a render over it
+    except Exception:                  # an id is cosmetic: never fail a render over it
         sid = ""
-    return sid if sid and not sid.startswith("_unnamed") else "scene"
+    return True, sid if sid and not sid.startswith("_unnamed") else "scene"
 
 
 def _frame(scene: Any, sensor: Any, label: str) -> tuple[int, int]:
-    """(width, height) of the frame rendered: the film's crop of `sensor`, else of the
-    scene's first sensor (one-line ValueError for a scene with none)."""
+    """(width, height): the film's crop of `sensor`, else of the scene's first sensor."""
     if sensor is None:
         sensors = scene.sensors()
         if not sensors:
@@ -154,10 +130,9 @@ def _frame(scene: Any, sensor: Any, label: str) -> tuple[int, int]:
 
 
 def load_reference(reference: Stack | str | os.PathLike[str] | np.ndarray | None, label: str) -> Reference:
-    """A reference as given: nothing (None), a stack or dataset directory (not yet labelled:
-    the observer's tau is the spec's), or a reference image, an EXR file or a float
-    [H, W, 3] array. An image gives the final-vs-reference check only: it has no per-level
-    errors, so no oracle thresholds."""
+    """A reference as given: None, a stack or dataset directory (not yet labelled: the
+    observer's tau is the spec's), or an image (EXR file or float [H, W, 3] array), which has
+    no per-level errors, so no oracle thresholds."""
     if reference is None:
         return Reference()
     img = None
@@ -184,8 +159,8 @@ def load_reference(reference: Stack | str | os.PathLike[str] | np.ndarray | None
 
 
 def _check_reference(ref: Reference, br: BlockRenderer) -> None:
-    """One-line ValueError for a reference of other blocks or another size than the render's
-    (a stack of another size is only warned about: its thresholds are compared anyway)."""
+    """One-line ValueError for a reference of other blocks or another size (a stack of
+    another size is only warned about)."""
     st = ref.stack
     if st is not None:
         if tuple(st.grid) != tuple(br.grid):

@@ -1,12 +1,6 @@
-"""A render in progress, typed: what it has done (`Progress`: the loop's `LoopState`, a budget's
-`BudgetState`, done, counters, timers, the quick image) and what a resume must match
-(`RunSettings`).
-
-Why typed: the session, the loop and the budget used to hand each other dicts keyed by the
-checkpoint's names, so a misspelt key or a wrong dtype surfaced only when a checkpoint was
-read back. Here each field has its type and its own name; `renderer.live.checkpoint` alone
-turns these objects into the checkpoint's arrays and back (where a name differs there, in its
-one mapping).
+"""A render in progress, typed: what it has done (`Progress`) and what a resume must match
+(`RunSettings`). Typed so that a misspelt key or a wrong dtype fails where it is made, not when
+a checkpoint is read back; `renderer.live.checkpoint` alone turns these into arrays and back.
 """
 from __future__ import annotations
 
@@ -25,9 +19,9 @@ if TYPE_CHECKING:
 @dataclass(frozen=True)
 class RunSettings:
     """The spec as rendered: what a resume must match and report.json repeats. `resolution`
-    is (width, height); `grid`, `block` and `tile` are (rows, columns) and (height, width) of
-    the frame's blocks and their tiles; `quick` is the quick image's kind ("none" when the
-    criterion reads none); `criterion` its description; `spp_budget` None: no sample budget."""
+    is (width, height); `grid`, `block` and `tile` are (rows, columns) and (height, width);
+    `quick` is the quick image's kind ("none" when the criterion reads none); `spp_budget`
+    None: no sample budget."""
 
     scene: str
     resolution: tuple[int, int]
@@ -51,8 +45,6 @@ class RunSettings:
 
     @classmethod
     def of(cls, plan: RenderPlan) -> RunSettings:
-        """The settings of a prepared render (its spec resolved knowing the frame, its
-        renderer's blocks, its criterion as built, its variant)."""
         spec, br, crit = plan.spec, plan.renderer, plan.criterion
         return cls(scene=plan.scene, resolution=(br.width, br.height), grid=(br.grid[0], br.grid[1]),
                    block=(br.block_h, br.block_w), tile=(br.tile_h, br.tile_w), exposure=float(spec.exposure),
@@ -66,12 +58,11 @@ class RunSettings:
 
 @dataclass
 class LoopState:
-    """The loop's share (`renderer.live.passloop.PassLoop.state`): its accumulator; per unit
-    (n) `active`, `stop_spp` (0 while active), its decision `evidence` float64 [n, 2] (sum,
-    samples weighed: `learning.inputs.history.Evidence`) and `next_spp`, the spp of its next
-    decision; per history row (one a pass, or a budget round's pass) the verdicts `history`
-    int8 [rows, n], the largest spp `history_spp` [rows], every unit's spp after it
-    `history_unit_spp` [rows, n] and the units it rendered, `rendered` [rows]."""
+    """The loop's share (`PassLoop.state`). Per unit (n): `active`, `stop_spp` (0 while
+    active), decision `evidence` float64 [n, 2] (sum, samples weighed) and `next_spp`, the spp
+    of its next decision. Per history row (a pass, or a budget round's pass): verdicts
+    `history` int8 [rows, n], the largest spp `history_spp`, every unit's spp after it
+    `history_unit_spp` [rows, n] and the units it rendered, `rendered`."""
 
     acc: UnitAccumulator
     active: np.ndarray
@@ -91,9 +82,9 @@ class LoopState:
 
 @dataclass
 class BudgetState:
-    """A budget render's share (`renderer.live.budget.Budget.state`): the rounds that rendered
-    only some units, whether the budget ended, what the rounds cost (seconds, unit-spp
-    traced), and each unit's last ratio to its target (`ratio_asked`: whether it has one)."""
+    """A budget render's share (`Budget.state`): the rounds that rendered only some units,
+    whether the budget ended, what the rounds cost (seconds, unit-spp traced), and each unit's
+    last ratio to its target (`ratio_asked`: whether it has one)."""
 
     prioritised_rounds: int
     ended: bool
@@ -104,10 +95,9 @@ class BudgetState:
 
 @dataclass
 class Progress:
-    """What a render has done: what a checkpoint holds and a resume goes on from. `counters`
-    and `timers` are the ledger's (`renderer.live.ledger.Ledger`, under this code's names;
-    wall_s up to the moment it was taken); `quick`: the quick image float32 [H, W, 3], None
-    when the criterion reads none; `budget`: None unless a budget render."""
+    """What a checkpoint holds and a resume goes on from. `counters` and `timers`: the
+    ledger's (wall_s up to the moment it was taken); `quick`: float32 [H, W, 3], None when the
+    criterion reads none; `budget`: None unless a budget render."""
 
     loop: LoopState
     done: bool = False
@@ -118,5 +108,4 @@ class Progress:
 
     @property
     def rows(self) -> int:
-        """The verdict history's rows so far (`LoopState.rows`)."""
         return self.loop.rows

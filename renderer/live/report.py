@@ -1,13 +1,7 @@
-"""The adaptive render's report.json: per block window (and per tile: the loop's units,
-`renderer.live.passloop`), spp and verdict history; totals, the counters and timers of the
-render's ledger (`renderer.live.ledger`); and, against a labelled reference stack, DESIGN's
-early-stop metrics and what a person would see flipping between final.png and the
-reference.
-
-The report is read from the live objects of a finished render (`render_result`): its plan
-(`renderer.live.plan.RenderPlan`: label, renderer, criterion, spec, reference, variant), its
-loop (`renderer.live.passloop.PassLoop`), its ledger and its budget; never from the
-checkpoint's arrays, which are the checkpoint's own format (`renderer.live.checkpoint`)."""
+"""The adaptive render's report.json: per block window (and per tile) spp and verdict
+history, totals, the ledger's counters and timers, and against a reference DESIGN's
+early-stop metrics and what a person would see flipping between final.png and it. Read from
+a finished render's live objects, never from the checkpoint's arrays (their own format)."""
 from __future__ import annotations
 
 import logging
@@ -33,31 +27,24 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-#: a report.json object, or one of its parts, as `json.dumps` writes it (the JSON document
-#: DESIGN fixes: its keys are its own, not this code's names)
+#: a report.json object or part (DESIGN fixes its keys: they are not this code's names)
 Json = dict[str, Any]
 
 
 def render_report(plan: RenderPlan, loop: PassLoop, ledger: Ledger, wall_s: float) -> Json:
-    """report.json of a render: its settings (`renderer.live.progress.RunSettings` of `plan`),
-    the `loop`'s units, the `ledger`'s counters and timers (`wall_s`: every attempt's seconds
-    so far), per block window (and per unit), and against the plan's labelled reference stack
-    the early-stop metrics."""
-    br, crit, ref = plan.renderer, plan.criterion, plan.reference.stack
+    """report.json's core: settings, units, counters and timers (`wall_s`: every attempt's
+    seconds so far), and the early-stop metrics against the plan's labelled stack."""
+    br, ref = plan.renderer, plan.reference.stack
     settings = RunSettings.of(plan)
     n, T = br.n_blocks, br.tiles_per_block
     max_spp = settings.max_spp
-    acc, counters, timers = loop.acc, ledger.counters, {**ledger.timers, "wall_s": float(wall_s)}
+    acc, counters, timers, wall = loop.acc, ledger.counters, ledger.timers, float(wall_s)
     spp = acc.spp_all()                       # per unit: a block, or one of its T tiles
     nonfinite = acc.nonfinite_all()
     converged = ~loop.active
-    events = loop.events
-    units = []
-    for u in range(n * T):
-        own = [[s, v] for s, v in events.get(u, [])]
-        units.append({"id": u, "window": list(br.unit_window(u)), "spp": int(spp[u]),
-                      "converged": bool(converged[u]), "stop_spp": int(loop.stop_spp[u]) if converged[u] else None,
-                      "nonfinite": int(nonfinite[u]), "history": own})
+    units = [{"id": u, "window": list(br.unit_window(u)), "spp": int(spp[u]), "converged": bool(converged[u]),
+              "stop_spp": int(loop.stop_spp[u]) if converged[u] else None, "nonfinite": int(nonfinite[u]),
+              "history": [[s, v] for s, v in loop.events.get(u, [])]} for u in range(n * T)]
     block_spp, block_done = spp.reshape(n, T), converged.reshape(n, T).all(axis=1)
     if T == 1:
         blocks = units
@@ -69,11 +56,9 @@ def render_report(plan: RenderPlan, loop: PassLoop, ledger: Ledger, wall_s: floa
         for t in units:
             t["block"] = t["id"] // T
     pixels = br.tile_h * br.tile_w            # samples_spent counts shared window pixels once per window
-    wall = float(timers.get("wall_s", 0.0))
     setup_s, render_s, features_s, decisions_s = (float(timers.get(k, 0.0))
                                                   for k in ("setup_s", "render_s", "features_s", "decisions_s"))
-    c = counters
-    described = crit.describe()
+    described = settings.criterion
     report: Json = {
         "scene": plan.label, "variant": plan.variant, "criterion": described,
         # the speed/accuracy knob the stops were made at: the model's decision offset
@@ -97,9 +82,9 @@ def render_report(plan: RenderPlan, loop: PassLoop, ledger: Ledger, wall_s: floa
                    "overhead_s": max(0.0, wall - setup_s - render_s - features_s - decisions_s)},
         "counters": {"blocks_rendered_per_pass": loop.rendered.tolist(),
                      "blocks_rendered": int(loop.rendered.sum()),
-                     "blocks_featured": int(c.get("units_featured", 0)),
-                     "decisions": int(c.get("units_asked", 0)),
-                     **external_counters({k: int(c.get(k, 0)) for k in COUNTER_NAMES})},
+                     "blocks_featured": int(counters.get("units_featured", 0)),
+                     "decisions": int(counters.get("units_asked", 0)),
+                     **external_counters({k: int(counters.get(k, 0)) for k in COUNTER_NAMES})},
         "blocks": blocks, **({"tiles": units} if T > 1 else {}),
     }
     if ref is not None:
@@ -110,20 +95,16 @@ def render_report(plan: RenderPlan, loop: PassLoop, ledger: Ledger, wall_s: floa
 
 
 def against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settings: RunSettings) -> Json:
-    """DESIGN metrics of one live render against a labelled stack's true thresholds.
-
-    The oracle is what `OracleCriterion` would spend in this same loop: the first pass at
-    or after both min_spp and T_b (censored T_b: max_spp). A block stopped early is one the
-    criterion stopped below its true threshold (censored: any stop is early).
-    """
+    """DESIGN metrics against a labelled stack's true thresholds T_b. The oracle spends what
+    `OracleCriterion` would in this loop: the first pass at or after min_spp and T_b (censored:
+    max_spp); a stop below T_b is early (censored: any stop)."""
     if ref.thresholds is None:
         raise ValueError(f"{ref.path}: reference stack has no thresholds (not labelled)")
     max_spp, min_spp = settings.max_spp, settings.min_spp
     cum = schedule(settings.step, max_spp)
     oracle = []
     for t in ref.thresholds:
-        need = max(min_spp, t) if t is not None else None
-        ok = cum[cum >= need] if need is not None else cum[:0]
+        ok = cum[cum >= max(min_spp, t)] if t is not None else cum[:0]
         oracle.append(int(ok[0]) if ok.size else int(max_spp))
     early = [bool(converged[b] and (t is None or spp[b] < t)) for b, t in enumerate(ref.thresholds)]
     return {"reference": {"path": str(ref.path), "scene": ref.scene, "thresholds": list(ref.thresholds),
@@ -134,8 +115,8 @@ def against_reference(ref: Stack, spp: np.ndarray, converged: np.ndarray, settin
 
 def window_dots(image: np.ndarray, reference: np.ndarray, windows: Sequence[Sequence[int]], tau: float,
                 exposure: float = 0.0) -> np.ndarray:
-    """int64 [windows]: per (x, y, w, h) window, the pixels of `image` more than the reports'
-    dot level (2.5 tau: 0.05 at tau 0.02, the dots yardstick) off `reference` on the display."""
+    """int64 [windows]: per (x, y, w, h) window, the pixels of `image` more than the dot
+    level (2.5 tau) off `reference` on the display."""
     from noisefeat.dots import count_outliers
 
     return np.array([count_outliers(image[y:y + h, x:x + w], reference[y:y + h, x:x + w], tau, exposure)
@@ -145,17 +126,12 @@ def window_dots(image: np.ndarray, reference: np.ndarray, windows: Sequence[Sequ
 def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int, int], tau: float,
                        exposure: float = 0.0, stopped: np.ndarray | None = None,
                        windows: Sequence[Sequence[int]] | None = None) -> Json:
-    """What a person would see flipping between final.png and the reference: the virtual
-    observer's per-block error of the finished image (DESIGN's pooling, version 3), the
-    blocks still above the noise target tau (visible noise left), and among them those the
-    criterion stopped (the others ran out of samples at max spp); per block the pixels over
-    the reports' dot level (`dots`, display error > 2.5 tau: 0.05 at tau 0.02, the dots
-    yardstick), and among the stopped blocks the most of them and how many hold more than
-    a block may (16 in 64x64).
-
-    `windows` (x, y, w, h) per block: pool each window of the FLIP map instead of cutting
-    the frame into `grid` (block windows that overlap at the frame's edge do not tile it).
-    """
+    """What a person would see flipping between final.png and the reference: the observer's
+    per-block error, the blocks still above tau and those of them the criterion stopped (the
+    others ran to max spp), per block the pixels over the dot level (`window_dots`), and among
+    the stopped blocks the most dots and how many hold more than a block may (16 in 64x64).
+    `windows` (x, y, w, h) per block: instead of cutting the frame into `grid` (windows that
+    overlap at the frame's edge do not tile it)."""
     from learning.data.block_terms import window_errors
     from learning.data.observer import VirtualObserver
     from noisefeat.dots import REPORT_LEVEL, dot_rank
@@ -182,22 +158,8 @@ def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int
     return out
 
 
-def nonfinite_totals(acc: UnitAccumulator, windows: Sequence[Sequence[int]],
-                     frame: tuple[int, int]) -> dict[str, int]:
-    """report.json's `nonfinite`: `dropped` (pixel, pass) values the accumulator dropped as
-    NaN/Inf; `pixels` of the final image with no finite sample at all (shown as 0, not an
-    estimate; counted on the frame as composed); `units` never converged for want of a
-    finite estimate (`renderer.criteria.contract`). A farm reads `pixels` (exit status 3)."""
-    n = acc.n_units
-    empty, _, _ = compose(acc.unsampled(np.arange(n))[..., None].astype(np.float64), windows,
-                          acc.spp_all(), frame)
-    return {"dropped": int(acc.nonfinite_all().sum()), "pixels": int((empty[..., 0] > 0).sum()),
-            "units": int((acc.unestimated(np.arange(n)) > 0).sum())}
-
-
 def nonfinite_line(report: Json) -> str | None:
-    """The one line a render that dropped non-finite samples ends with (stderr and the
-    command line's summary), or None when it dropped none."""
+    """The line a render that dropped non-finite samples ends with; None when it dropped none."""
     nf = report.get("nonfinite") or {}
     if not nf.get("dropped"):
         return None
@@ -209,9 +171,7 @@ def nonfinite_line(report: Json) -> str | None:
 
 
 def render_result(session: RenderSession, *, time_limit_reached: bool) -> RenderResult:
-    """A finished `renderer.live.session.RenderSession` as the image, per-pixel spp and stops,
-    and the report (report.json), read from its live objects: the plan, the loop, the ledger
-    and the budget."""
+    """A finished session as the image, per-pixel spp and stops, and report.json."""
     plan, loop, ledger, budget = session.render_plan, session.loop, session.ledger, session.budget
     br, spec, ref = plan.renderer, plan.spec, plan.reference
     acc, n = loop.acc, br.n_units
@@ -227,7 +187,12 @@ def render_result(session: RenderSession, *, time_limit_reached: bool) -> Render
     windows = [br.unit_window(u) for u in range(n)]
     image, spp_px, owner = compose(acc.means(np.arange(n)).cpu().numpy(), windows, acc.spp_all(),
                                    (br.height, br.width))
-    report["nonfinite"] = nonfinite_totals(acc, windows, (br.height, br.width))
+    empty, _, _ = compose(acc.unsampled(np.arange(n))[..., None].astype(np.float64), windows, acc.spp_all(),
+                          (br.height, br.width))
+    # (pixel, pass) values dropped as NaN/Inf; pixels with no finite sample (shown as 0; a farm
+    # exits 3 on them); units never converged for want of a finite estimate
+    report["nonfinite"] = {"dropped": int(acc.nonfinite_all().sum()), "pixels": int((empty[..., 0] > 0).sum()),
+                           "units": int((acc.unestimated(np.arange(n)) > 0).sum())}
     if report["nonfinite"]["dropped"]:
         logger.warning("%s", nonfinite_line(report))
     block_done = (~loop.active).reshape(br.n_blocks, br.tiles_per_block).all(axis=1)

@@ -1,6 +1,5 @@
-"""What an adaptive render gives back in memory (`renderer.render`, the `noisestop` plugin,
-`adaptive_render`): the image, its per-pixel sample counts and converged mask, and the
-report, with `save` writing the very files `noisestop render` leaves."""
+"""What an adaptive render gives back in memory, with `save` writing the very files
+`noisestop render` leaves."""
 from __future__ import annotations
 
 import os

@@ -1,19 +1,12 @@
-"""Ctrl-C and SIGTERM during a render: finish the pass, checkpoint, then stop; a second
-signal stops at once.
-
-The checkpoint is written on a time interval, not after every pass (cheaper), so an
-interrupt must not simply kill the loop: the passes since the last checkpoint would be
-lost, and an interrupt inside `UnitAccumulator.add_batch` would leave a half-added pass.
-`DeferredStop` turns the first SIGINT/SIGTERM into a request the loop reads between
-passes. A second one stops the process at once with one line and exit status 130, even
-while a render pass runs in native code (Mitsuba), where Python signal handlers wait for
-the call to return: the signal is seen by a watcher thread through the interpreter's
-wake-up file descriptor (`signal.set_wakeup_fd`), which the C-level handler writes to
-at once. SIGKILL cannot be caught: `--resume` then continues from the last checkpoint,
-still bit for bit; so it does after a second signal.
+"""Ctrl-C and SIGTERM during a render: finish the pass, checkpoint, then stop (checkpoints
+are timed, so killing the loop would lose the passes since the last one, or leave a pass
+half-added); a second signal stops at once, even inside a native Mitsuba call, where Python
+handlers wait for the call to return: a watcher thread reads the interpreter's wake-up fd,
+which the C-level handler writes at once. `--resume` then goes on bit for bit.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
@@ -31,12 +24,9 @@ EXIT_STATUS = 130
 
 
 class DeferredStop:
-    """Context manager: ``requested`` is the first signal's name once one arrived; a
-    second signal ends the process at once (one line on stderr, exit status 130).
-
-    Outside the main thread (Dask workers) signals cannot be handled; it then does
-    nothing and the process's own handling applies.
-    """
+    """Context manager: ``requested`` is the first signal's name once one arrived; a second
+    one ends the process (one line on stderr, exit status 130). Outside the main thread (Dask
+    workers), where signals cannot be handled, it does nothing."""
 
     def __init__(self) -> None:
         self.requested: str | None = None
@@ -90,10 +80,8 @@ class DeferredStop:
                         self._stop_now(signal.Signals(signum).name)
 
     def _stop_now(self, name: str) -> None:
-        try:
+        with contextlib.suppress(Exception):       # stopping regardless
             sys.stderr.flush()
-        except Exception:                          # noqa: BLE001 - stopping regardless
-            pass
         os.write(2, f"\nnoisestop: interrupted: {name} again: stopped at once, without finishing the "
                     "pass (--resume continues from the last checkpoint)\n".encode())
         os._exit(EXIT_STATUS)
@@ -103,15 +91,12 @@ class DeferredStop:
             signal.signal(sig, handler)
         self._previous.clear()
         if self._pipe is not None:
-            try:
+            with contextlib.suppress(ValueError):
                 signal.set_wakeup_fd(self._old_wakeup)
-            except ValueError:
-                pass
             r, w = self._pipe
             self._pipe = None
             os.close(w)                            # the watcher reads EOF and ends
-            if self._watcher is not None:
-                self._watcher.join(1.0)
+            self._watcher.join(1.0)                # there is one whenever there is a pipe
             os.close(r)
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,

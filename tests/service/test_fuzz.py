@@ -20,7 +20,7 @@ from learning.data.accumulator import UnitAccumulator
 from learning.models.bundle_check import read_manifest
 from learning.data.npz import read_npz, savez_bytes
 from renderer.live.checkpoint import load_checkpoint, save_checkpoint
-from renderer.live.progress import LoopState, Progress
+from renderer.live.progress import LoopState, Progress, RunSettings
 from service.limits import Limits
 from service.oip import DATATYPES, ApiError, decode_tensors, parse_request, split_body
 
@@ -169,7 +169,9 @@ def test_manifest_reader_answers_or_refuses(tmp_path_factory, changes, raw):
 # --- checkpoint reader ------------------------------------------------------------------------
 
 GRID, BLOCK, FRAME, SIZES = (2, 2), (8, 8), (16, 16), [4, 4, 4, 4]
-SETTINGS = {"scene": "fuzz", "grid": list(GRID), "step": 4, "max_spp": 16}
+SETTINGS = RunSettings(scene="fuzz", resolution=FRAME, grid=GRID, block=BLOCK, tile=BLOCK, exposure=0.0, step=4,
+                       min_spp=4, max_spp=16, decide_skip=0.0, decide_growth=0.0, seed=0, quick_spp=0, quick="none",
+                       criterion={"name": "fuzz"}, variant="scalar_rgb", defines={}, tau=0.02)
 
 
 def _valid_checkpoint(path: Path) -> None:

@@ -1,29 +1,17 @@
 """A small Open Inference Protocol v2 client for a noisestop verdict server (stdlib only).
 
-`RemoteModel` looks like a local model to the renderer (``score_blocks(blocks, quick)``),
-so the adaptive loop can ask a server on another machine (DESIGN "HTTP API"). It speaks
-the binary tensor extension by default (REFERENCES.md): the body is the JSON header,
-then each input's raw little-endian row-major bytes in input order; the header length
-goes in ``Inference-Header-Content-Length`` and each input announces its byte count in
-``parameters.binary_data_size``; outputs are asked for with ``parameters.binary_data:
-true``. Responses are parsed whether the server answered in binary or in JSON. The bytes
-go through the codec the server uses too (`renderer.client.oip_codec`).
-
-Errors are explicit: a 4xx answer raises ValueError and a 5xx answer ConnectionError,
-both quoting the server's ``{"error": ...}`` message; an unreachable server raises
-ConnectionError after a bounded number of retries. Connection failures (refused, reset,
-dropped) are retried, and so is a 503 that carries Retry-After (a server at its in-flight
-or memory limit); a timeout or any other HTTP error answer is not.
-
-This module never imports the `service` package (DESIGN: renderer talks to the service
-over HTTP only).
+`RemoteModel` looks like a local model (``score_blocks(blocks, quick)``), so the adaptive loop
+can ask a server on another machine (DESIGN "HTTP API"), by default with the binary tensor
+extension, through the codec the server uses too (`oip_codec`). A 4xx answer raises
+ValueError and a 5xx ConnectionError, quoting the server's ``{"error": ...}``; connection
+failures, and a 503 with Retry-After (a server at its limits), are retried a bounded number
+of times, a timeout or other error answer is not. Never imports `service` (DESIGN: HTTP only).
 """
 from __future__ import annotations
 
 import http.client
 import json
 import logging
-import socket
 import time
 import urllib.error
 import urllib.parse
@@ -38,11 +26,7 @@ from .token import check_token, resolve_token
 
 logger = logging.getLogger(__name__)
 
-
-
-def default_token() -> str | None:
-    """The token from the environment, by the server's own rule (`renderer.client.token`)."""
-    return resolve_token()
+default_token = resolve_token       # called bare: the environment's token, by the server's own rule
 
 
 class RemoteModel:
@@ -129,12 +113,10 @@ class RemoteModel:
                     time.sleep(delay)
                     continue
                 return status, got, answer
-            except (TimeoutError, socket.timeout) as exc:
-                raise ConnectionError(f"{method} {url}: no answer within {self.timeout:g} s") from exc
-            except (urllib.error.URLError, ConnectionError, http.client.RemoteDisconnected,
+            except (TimeoutError, urllib.error.URLError, ConnectionError, http.client.RemoteDisconnected,
                     http.client.BadStatusLine) as exc:
                 reason = getattr(exc, "reason", exc)
-                if isinstance(reason, (TimeoutError, socket.timeout)):
+                if isinstance(reason, TimeoutError):
                     raise ConnectionError(f"{method} {url}: no answer within {self.timeout:g} s") from exc
                 if isinstance(exc, urllib.error.URLError) and not isinstance(reason, OSError):
                     raise ConnectionError(f"{method} {url}: {reason}") from exc
@@ -174,12 +156,9 @@ class RemoteModel:
     # -- protocol ----------------------------------------------------------------
 
     def ready(self) -> bool:
-        """Whether the server says the model is ready to answer.
-
-        An unreachable server raises ConnectionError ('not ready' and 'not there' differ);
-        a refused token (401/403) or an unknown model (404) raise ValueError; any other
-        error status (Triton answers 400, KServe 503 while loading) means not ready.
-        """
+        """Whether the server says the model is ready. Unreachable: ConnectionError ('not ready'
+        and 'not there' differ); 401/403/404: ValueError; any other error status (Triton's 400,
+        KServe's 503 while loading): not ready."""
         url = self._path("v2", "models", self.model, "ready")
         status, _, body = self._request("GET", url)
         if status in (401, 403, 404):
@@ -194,10 +173,8 @@ class RemoteModel:
 
     @property
     def quick(self) -> str:
-        """The served model's input ('halves', or the quick image 'albedo', 'direct', 'none'), from its metadata.
-
-        Asked once; a server that does not say (older versions) is taken to want albedo.
-        """
+        """The served model's input ('halves', or the quick image 'albedo', 'direct', 'none'),
+        asked once from its metadata (a server that does not say wants albedo)."""
         if self._quick is None:
             params = self.metadata().get("parameters") or {}
             self._quick = str(params.get("quick", "albedo"))

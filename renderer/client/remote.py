@@ -139,19 +139,15 @@ class RemoteModel:
             obj = json.loads(body)
         except (ValueError, UnicodeDecodeError):
             return body[:200].decode("utf-8", "replace").strip() or "(empty body)"
-        if isinstance(obj, dict) and "error" in obj:
-            return str(obj["error"])
-        if isinstance(obj, dict) and "detail" in obj:
-            return str(obj["detail"])
+        for key in ("error", "detail"):
+            if isinstance(obj, dict) and key in obj:
+                return str(obj[key])
         return json.dumps(obj)[:200]
 
     def _check(self, method: str, url: str, status: int, body: bytes) -> None:
-        if status < 400:
-            return
-        msg = f"{method} {url}: HTTP {status}: {self._error_text(body)}"
-        if status >= 500:
-            raise ConnectionError(msg)
-        raise ValueError(msg)
+        if status >= 400:
+            raise (ConnectionError if status >= 500 else ValueError)(
+                f"{method} {url}: HTTP {status}: {self._error_text(body)}")
 
     # -- protocol ----------------------------------------------------------------
 
@@ -298,7 +294,7 @@ class RemoteModel:
         if self.tau is not None:
             params["tau"] = float(self.tau)
         n = len(next(iter(tensors.values())))
-        verdicts, scores = [], []
+        verdicts, scores = [np.zeros(0, np.int8)], [np.zeros(0, np.float64)]     # n may be 0
         for i in range(0, n, self.batch_size):
             inputs = {k: v[i:i + self.batch_size] for k, v in tensors.items()}
             rows = len(next(iter(inputs.values())))
@@ -310,6 +306,4 @@ class RemoteModel:
                 raise ValueError(f"server returned verdicts other than -1/+1: {np.unique(v)[:5].tolist()}")
             verdicts.append(v.astype(np.int8))
             scores.append(s.astype(np.float64))
-        if not verdicts:
-            return np.zeros(0, np.int8), np.zeros(0, np.float64)
         return np.concatenate(verdicts), np.concatenate(scores)

@@ -53,16 +53,14 @@ def simulate_loop(stack: Stack, criterion: Criterion, min_spp: int | None = None
     quick = stack.split(stack.quick()) if criterion.needs_quick else None
     loop = PassLoop(criterion, (stack.n_blocks, tiling.tiles_per_block), tiling.tile_shape, stack.spp, min_spp,
                     quick, tiling=tiling, decide_skip=decide_skip, decide_growth=decide_growth)
-    bar = tqdm(total=len(V), desc=f"{stack.scene} simulate", unit="lvl", disable=not progress, leave=False)
-    for k, _, pass_spp, pass_img in recover_passes(stack):
-        bar.update(1)
+    for k, _, pass_spp, pass_img in tqdm(recover_passes(stack), total=len(V), desc=f"{stack.scene} simulate",
+                                         unit="lvl", disable=not progress, leave=False):
         ids = np.flatnonzero(loop.active)
         if not ids.size:
             V[k:] = 1
             break
         loop.run_round(ids, [(cut(pass_img)[ids], pass_spp)])   # stopped units get no more samples
         V[k, ~loop.active] = 1
-    bar.close()
     return V, loop
 
 

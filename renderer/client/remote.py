@@ -227,7 +227,8 @@ class RemoteModel:
         return self._parse_outputs(url, rhdrs, body, outputs)
 
     @staticmethod
-    def _parse_outputs(url: str, headers: dict[str, str], body: bytes, wanted: tuple[str, ...]) -> dict[str, np.ndarray]:
+    def _parse_outputs(url: str, headers: dict[str, str], body: bytes,
+                       wanted: tuple[str, ...]) -> dict[str, np.ndarray]:
         hlen = headers.get(HEADER_LENGTH.lower())
         try:
             header, tail = split_body(body, int(hlen) if hlen is not None else None)
@@ -263,7 +264,8 @@ class RemoteModel:
             raise ValueError(f"POST {url}: answer lacks output(s) {missing}")
         return result
 
-    def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None, exposure: float = ROW["exposure"].default,
+    def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None,
+                     exposure: float = ROW["exposure"].default,
                      offset: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(verdict int8 [N], score float64 [N]) for linear RGB blocks [N, H, W, 3]: the
         server's stop rule at display `exposure` and at `offset` (None: the model's own)."""

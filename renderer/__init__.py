@@ -1,9 +1,8 @@
-"""renderer: Mitsuba scene library, block rendering, stack building, the adaptive loop, farm.
+"""renderer: Mitsuba scenes, block rendering, stack building, the adaptive loop, farm.
 
-Names are loaded on first use (PEP 562), so `renderer.spec` and the command-line parser
-do not import Mitsuba. The Python entry to the main job is `render` (a scene in, a
-`RenderResult` out); `register` adds the ``noisestop`` Mitsuba integrator (importing
-`renderer` does not: that would import Mitsuba and choose its variant).
+Names load on first use (PEP 562), so `renderer.spec` and the command line do not import
+Mitsuba; `register` adds the ``noisestop`` integrator (importing `renderer` does not: that
+would choose Mitsuba's variant).
 """
 from __future__ import annotations
 

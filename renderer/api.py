@@ -1,12 +1,6 @@
-"""`renderer.render`: the adaptive render as a Python call, a scene in and arrays out.
-
-Mitsuba users expect ``mi.render(scene)`` semantics: a scene object in, an image out, no
-files. `render` runs the very loop of `noisestop render` (`renderer.live.adaptive.run_adaptive`:
-same seeds, same stops, same report) in memory and returns a `RenderResult`; its
-`save` writes the command line's files. Checkpoints and resuming stay command-line
-features (`noisestop render --resume`, `adaptive_render(resume=True)`): an in-memory
-render has no folder to resume from, and a Python caller who wants to bound a render
-gives `time_limit`.
+"""`renderer.render`: the adaptive render as a Python call (``mi.render`` style: a scene in,
+arrays out, no files). It runs `noisestop render`'s very loop in memory; resuming stays a
+command-line feature (an in-memory render has no folder to resume from).
 """
 from __future__ import annotations
 
@@ -34,25 +28,19 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
            model: str | os.PathLike[str] | None = None, server: str | None = None,
            exposure: float | None = None, resolution: int | tuple[int, int] | str | None = None,
            grid: Sequence[int] | None = None, block: int | None = None, tile: int | None = None,
-           min_spp: int | None = None,
-           max_spp: int | None = None, step: int | None = None, decide_skip: float | None = None,
-           decide_growth: float | None = None,
-           seed: int | None = None,
+           min_spp: int | None = None, max_spp: int | None = None, step: int | None = None,
+           decide_skip: float | None = None, decide_growth: float | None = None, seed: int | None = None,
            time_limit: float | None = None, spp_budget: float | None = None, quick_spp: int | None = None,
            defines: Mapping[str, str] | None = None,
-           reference: Stack | str | os.PathLike[str] | np.ndarray | None = None,
-           progress: bool = True) -> RenderResult:
+           reference: Stack | str | os.PathLike[str] | np.ndarray | None = None, progress: bool = True) -> RenderResult:
     """Render `scene` adaptively: sample each block until it looks converged, in memory.
 
-    A scene file is loaded with the ``noisestop`` Mitsuba integrator registered for the
-    current variant (as `renderer.register` does), so its integrator may be that one; a
-    built-in or loaded scene needs no registration. Bad arguments raise ValueError with a
-    one-line message naming the argument: a missing model, scene file or reference raises
-    `renderer.errors.InputNotFound` and an unreachable or failing verdict server
-    `renderer.errors.ServerUnavailable`, ValueErrors that are also FileNotFoundError and
-    ConnectionError. Every setting is a row of the render spec (`renderer.settings.ROWS`);
-    None means not given: the scene's ``noisestop`` integrator's property, else what the
-    reference stack implies, else the default (report.json ``settings_source`` says which).
+    A scene file is loaded with the ``noisestop`` integrator registered. Bad arguments raise
+    ValueError, one line naming the argument; a missing model, scene file or reference raises
+    `renderer.errors.InputNotFound` and a failing verdict server `ServerUnavailable` (also
+    FileNotFoundError and ConnectionError). None means not given: the scene's ``noisestop``
+    integrator's property, else what the reference stack implies, else the default
+    (report.json ``settings_source`` says which).
 
     Parameters
     ----------
@@ -95,12 +83,7 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
         raise ServerUnavailable(str(exc)) from exc
 
 
-
-def _numpydoc_rows(door: str = API) -> str:
-    """The rows a door offers as a numpydoc Parameters section (renderer.render's)."""
-    return "\n".join(f"    {row.name} : {row.type_doc} or None\n"
-                     + textwrap.fill(f"{row.help_text()}.", 92, initial_indent=" " * 8, subsequent_indent=" " * 8)
-                     for row in ROWS if door in row.doors)
-
-
-render.__doc__ = (render.__doc__ or "").replace("{rows}", _numpydoc_rows(API))
+_ROWS_DOC = "\n".join(f"    {row.name} : {row.type_doc} or None\n"
+                      + textwrap.fill(f"{row.help_text()}.", 92, initial_indent=" " * 8, subsequent_indent=" " * 8)
+                      for row in ROWS if API in row.doors)
+render.__doc__ = (render.__doc__ or "").replace("{rows}", _ROWS_DOC)

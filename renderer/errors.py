@@ -1,9 +1,5 @@
-"""The exceptions `renderer.render` raises for bad arguments, each a ValueError.
-
-Why: the API promises ValueError (one line, naming the argument) for every bad argument,
-but a missing model bundle, scene file or reference surfaced as FileNotFoundError and an
-unreachable verdict server as ConnectionError, so ``except ValueError`` missed them. These
-subclass both, so code catching either keeps working.
+"""The exceptions `renderer.render` raises for bad arguments, each a ValueError (as the API
+promises) and also FileNotFoundError or ConnectionError, so either ``except`` catches them.
 """
 from __future__ import annotations
 

@@ -1,55 +1,33 @@
-"""`noisestop render` for one scene or many: the command facade, and many scenes as one
-Dask task each (`renderer.farm.executor`: local processes or a cluster)."""
+"""`noisestop render` for one scene or many (one Dask task each, `renderer.farm`)."""
 from __future__ import annotations
 
-import logging
 import os
 import time
 from collections.abc import Sequence
-from concurrent.futures import as_completed
-from pathlib import Path
 from typing import Any
-
-from tqdm import tqdm
 
 from .live.adaptive import adaptive_render
 from .live.outputs import prepare_output_dir
 from .spec import COMMAND_LINE
 
-logger = logging.getLogger(__name__)
 
-
-def _register_for(scene: str | os.PathLike) -> None:
-    """Register the ``noisestop`` integrator in this process if `scene` is a file: its
-    integrator may be that one (the loop cannot import the plugin; a built-in needs none)."""
+def _render_one(scene: str | os.PathLike, out: str | os.PathLike, kwargs: dict[str, Any]) -> dict[str, Any]:
+    """`adaptive_render`, with the ``noisestop`` integrator registered first if `scene` is a
+    file (its integrator may be that one; the loop cannot import the plugin)."""
     from .plugin import register
     from .scenes.catalog import is_scene_file
 
     if is_scene_file(scene):
         register()
-
-
-def _render_task(scene: str, out: str, kwargs: dict[str, Any]) -> dict[str, Any]:
-    """What one worker runs: one scene, start to finish (or resume to finish)."""
-    from .farm import configure_worker_threads
-
-    configure_worker_threads()
-    _register_for(scene)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     return adaptive_render(scene, out, **kwargs)
 
 
 def render_many(scenes: Sequence[str | os.PathLike], out: str | os.PathLike, *,
                 workers: int | None = None, scheduler: str | None = None, progress: bool = True,
                 **kwargs: Any) -> dict[str, Any]:
-    """`adaptive_render` for many scenes, one task per scene, into out/<scene>/.
-
-    Runs on `renderer.farm.executor` (local Dask processes or a cluster). Each task
-    resolves its own render spec and builds its own criterion. A failing scene does not
-    stop the others: it is listed under ``failed``. `kwargs` are `adaptive_render`'s
-    keyword arguments (the render spec's settings included).
-    """
-    from .farm import executor
+    """`adaptive_render` (`kwargs`: its keyword arguments) for many scenes into out/<scene>/,
+    one task per scene, each resolving its own spec. A failing scene is listed under ``failed``."""
+    from .farm import run_tasks
     from .scenes.catalog import scene_label
 
     if not scenes:
@@ -63,17 +41,12 @@ def render_many(scenes: Sequence[str | os.PathLike], out: str | os.PathLike, *,
     reports: dict[str, Any] = {}
     failed: dict[str, str] = {}
     kwargs = {**kwargs, "progress": False}
-    with executor(workers, scheduler) as pool:
-        futures = {pool.submit(_render_task, os.fspath(s), str(root / lab), kwargs): lab
-                   for s, lab in zip(scenes, labels)}
-        for fut in tqdm(as_completed(futures), total=len(futures), desc="scenes", unit="scene",
-                        disable=not progress):
-            lab = futures[fut]
-            try:
-                reports[lab] = fut.result()
-            except Exception as exc:  # one bad scene must not lose the others' work
-                failed[lab] = f"{type(exc).__name__}: {exc}"
-                logger.error("scene %s failed: %s", lab, failed[lab])
+    tasks = [(lab, (os.fspath(s), str(root / lab), kwargs)) for s, lab in zip(scenes, labels)]
+    for lab, report, error in run_tasks(_render_one, tasks, workers, scheduler, progress):
+        if error:
+            failed[lab] = error
+        else:
+            reports[lab] = report
     return {"out": str(root), "wall_s": time.perf_counter() - t0,
             "scenes": dict(sorted(reports.items())), "failed": failed}
 
@@ -83,9 +56,8 @@ def render_command(scenes: str | Sequence[str], out: str | os.PathLike, given: d
                    **kwargs: Any) -> dict[str, Any]:
     """What `noisestop render` runs: one scene -> its report; several -> `render_many`'s summary.
 
-    `scenes`: a name, an XML path, or a comma-separated list; `given`: the render spec's
-    settings the command line gave (None: not given), resolved per scene (its reference
-    stack may imply some); `kwargs`: `adaptive_render`'s (resume).
+    `scenes`: a name, an XML path, or a comma-separated list; `given`: the settings the
+    command line gave (None: not given), resolved per scene; `kwargs`: `adaptive_render`'s.
     """
     names = [s.strip() for s in scenes.split(",") if s.strip()] if isinstance(scenes, str) else list(scenes)
     if not names:
@@ -96,6 +68,5 @@ def render_command(scenes: str | Sequence[str], out: str | os.PathLike, given: d
                          "directory holding every scene)")
     kwargs = {**given, **kwargs, "reference": reference, "source": COMMAND_LINE}
     if len(names) == 1:
-        _register_for(names[0])
-        return adaptive_render(names[0], out, **kwargs)
+        return _render_one(names[0], out, kwargs)
     return render_many(names, out, workers=workers, scheduler=scheduler, **kwargs)

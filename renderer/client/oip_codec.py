@@ -1,15 +1,9 @@
-"""The Open Inference Protocol v2 binary tensor codec, one for both ends (numpy only).
-
-Binary tensor extension (REFERENCES.md): a body is a JSON header of
-`Inference-Header-Content-Length` bytes followed by raw little-endian row-major tensors in
-the order the header lists them, each announced by `parameters.binary_data_size`. The
-client (`renderer.client.remote`) encodes requests and decodes answers with it, the server
-(`service.oip`) decodes requests and encodes answers with it: the two ends cannot drift
-apart. It lives in `renderer` because `service` may import `renderer` and not the
-reverse (DESIGN "Layout"), and it imports neither Mitsuba nor the FastAPI stack.
-
-Problems are `WireError` (a ValueError) whose message says what does not add up; the
-server answers it as a 400, the client raises it naming the URL.
+"""The Open Inference Protocol v2 binary tensor codec, one for the client and the server
+(`service.oip`), so the two ends cannot drift apart (numpy only; in `renderer` because
+`service` may import it and not the reverse). A body is a JSON header of
+`Inference-Header-Content-Length` bytes, then the raw little-endian row-major tensors in the
+header's order, each announced by `parameters.binary_data_size` (REFERENCES.md). Problems are
+`WireError`: the server answers it as a 400, the client raises it naming the URL.
 """
 from __future__ import annotations
 
@@ -35,8 +29,7 @@ class WireError(ValueError):
 
 
 def tensor_bytes(arr: np.ndarray, datatype: str | None = None) -> bytes:
-    """The wire bytes of a tensor: little-endian, row-major (as `datatype` if given, else
-    in the array's own type)."""
+    """The wire bytes of a tensor: little-endian, row-major, as `datatype` (default: its own)."""
     arr = np.asarray(arr)
     dtype = DATATYPES[datatype] if datatype is not None else arr.dtype.newbyteorder("<")
     return np.ascontiguousarray(arr, dtype=dtype).tobytes()
@@ -62,12 +55,8 @@ def split_body(body: bytes | memoryview, header_length: int | None) -> tuple[byt
 
 def read_tensor(tail: bytes | memoryview, datatype: str, shape: Sequence[int], size: int, offset: int,
                 what: str) -> np.ndarray:
-    """The tensor announced with `binary_data_size` `size` at `offset` of the binary tail.
-
-    A numpy view of `tail` (no copy) when the memory is writable and aligned, else a copy
-    (torch needs aligned, writable memory). `what` names the tensor in errors
-    ("input 'blocks'").
-    """
+    """The tensor of `size` bytes at `offset` of the binary tail, `what` naming it in errors:
+    a view (no copy) when the memory is writable and aligned, else a copy (torch needs both)."""
     if datatype not in DATATYPES:
         raise WireError(f"{what}: unsupported datatype {datatype!r}")
     dtype = DATATYPES[datatype]

@@ -1,29 +1,17 @@
 """A small Open Inference Protocol v2 client for a noisestop verdict server (stdlib only).
 
-`RemoteModel` looks like a local model to the renderer (``score_blocks(blocks, quick)``),
-so the adaptive loop can ask a server on another machine (DESIGN "HTTP API"). It speaks
-the binary tensor extension by default (REFERENCES.md): the body is the JSON header,
-then each input's raw little-endian row-major bytes in input order; the header length
-goes in ``Inference-Header-Content-Length`` and each input announces its byte count in
-``parameters.binary_data_size``; outputs are asked for with ``parameters.binary_data:
-true``. Responses are parsed whether the server answered in binary or in JSON. The bytes
-go through the codec the server uses too (`renderer.client.oip_codec`).
-
-Errors are explicit: a 4xx answer raises ValueError and a 5xx answer ConnectionError,
-both quoting the server's ``{"error": ...}`` message; an unreachable server raises
-ConnectionError after a bounded number of retries. Connection failures (refused, reset,
-dropped) are retried, and so is a 503 that carries Retry-After (a server at its in-flight
-or memory limit); a timeout or any other HTTP error answer is not.
-
-This module never imports the `service` package (DESIGN: renderer talks to the service
-over HTTP only).
+`RemoteModel` looks like a local model (``score_blocks(blocks, quick)``), so the adaptive loop
+can ask a server on another machine (DESIGN "HTTP API"), by default with the binary tensor
+extension, through the codec the server uses too (`oip_codec`). A 4xx answer raises
+ValueError and a 5xx ConnectionError, quoting the server's ``{"error": ...}``; connection
+failures, and a 503 with Retry-After (a server at its limits), are retried a bounded number
+of times, a timeout or other error answer is not. Never imports `service` (DESIGN: HTTP only).
 """
 from __future__ import annotations
 
 import http.client
 import json
 import logging
-import socket
 import time
 import urllib.error
 import urllib.parse
@@ -38,11 +26,7 @@ from .token import check_token, resolve_token
 
 logger = logging.getLogger(__name__)
 
-
-
-def default_token() -> str | None:
-    """The token from the environment, by the server's own rule (`renderer.client.token`)."""
-    return resolve_token()
+default_token = resolve_token       # called bare: the environment's token, by the server's own rule
 
 
 class RemoteModel:
@@ -129,12 +113,10 @@ class RemoteModel:
                     time.sleep(delay)
                     continue
                 return status, got, answer
-            except (TimeoutError, socket.timeout) as exc:
-                raise ConnectionError(f"{method} {url}: no answer within {self.timeout:g} s") from exc
-            except (urllib.error.URLError, ConnectionError, http.client.RemoteDisconnected,
+            except (TimeoutError, urllib.error.URLError, ConnectionError, http.client.RemoteDisconnected,
                     http.client.BadStatusLine) as exc:
                 reason = getattr(exc, "reason", exc)
-                if isinstance(reason, (TimeoutError, socket.timeout)):
+                if isinstance(reason, TimeoutError):
                     raise ConnectionError(f"{method} {url}: no answer within {self.timeout:g} s") from exc
                 if isinstance(exc, urllib.error.URLError) and not isinstance(reason, OSError):
                     raise ConnectionError(f"{method} {url}: {reason}") from exc
@@ -157,29 +139,22 @@ class RemoteModel:
             obj = json.loads(body)
         except (ValueError, UnicodeDecodeError):
             return body[:200].decode("utf-8", "replace").strip() or "(empty body)"
-        if isinstance(obj, dict) and "error" in obj:
-            return str(obj["error"])
-        if isinstance(obj, dict) and "detail" in obj:
-            return str(obj["detail"])
+        for key in ("error", "detail"):
+            if isinstance(obj, dict) and key in obj:
+                return str(obj[key])
         return json.dumps(obj)[:200]
 
     def _check(self, method: str, url: str, status: int, body: bytes) -> None:
-        if status < 400:
-            return
-        msg = f"{method} {url}: HTTP {status}: {self._error_text(body)}"
-        if status >= 500:
-            raise ConnectionError(msg)
-        raise ValueError(msg)
+        if status >= 400:
+            raise (ConnectionError if status >= 500 else ValueError)(
+                f"{method} {url}: HTTP {status}: {self._error_text(body)}")
 
     # -- protocol ----------------------------------------------------------------
 
     def ready(self) -> bool:
-        """Whether the server says the model is ready to answer.
-
-        An unreachable server raises ConnectionError ('not ready' and 'not there' differ);
-        a refused token (401/403) or an unknown model (404) raise ValueError; any other
-        error status (Triton answers 400, KServe 503 while loading) means not ready.
-        """
+        """Whether the server says the model is ready. Unreachable: ConnectionError ('not ready'
+        and 'not there' differ); 401/403/404: ValueError; any other error status (Triton's 400,
+        KServe's 503 while loading): not ready."""
         url = self._path("v2", "models", self.model, "ready")
         status, _, body = self._request("GET", url)
         if status in (401, 403, 404):
@@ -194,10 +169,8 @@ class RemoteModel:
 
     @property
     def quick(self) -> str:
-        """The served model's input ('halves', or the quick image 'albedo', 'direct', 'none'), from its metadata.
-
-        Asked once; a server that does not say (older versions) is taken to want albedo.
-        """
+        """The served model's input ('halves', or the quick image 'albedo', 'direct', 'none'),
+        asked once from its metadata (a server that does not say wants albedo)."""
         if self._quick is None:
             params = self.metadata().get("parameters") or {}
             self._quick = str(params.get("quick", "albedo"))
@@ -254,7 +227,8 @@ class RemoteModel:
         return self._parse_outputs(url, rhdrs, body, outputs)
 
     @staticmethod
-    def _parse_outputs(url: str, headers: dict[str, str], body: bytes, wanted: tuple[str, ...]) -> dict[str, np.ndarray]:
+    def _parse_outputs(url: str, headers: dict[str, str], body: bytes,
+                       wanted: tuple[str, ...]) -> dict[str, np.ndarray]:
         hlen = headers.get(HEADER_LENGTH.lower())
         try:
             header, tail = split_body(body, int(hlen) if hlen is not None else None)
@@ -290,7 +264,8 @@ class RemoteModel:
             raise ValueError(f"POST {url}: answer lacks output(s) {missing}")
         return result
 
-    def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None, exposure: float = ROW["exposure"].default,
+    def score_blocks(self, blocks: np.ndarray, quick: np.ndarray | None = None,
+                     exposure: float = ROW["exposure"].default,
                      offset: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(verdict int8 [N], score float64 [N]) for linear RGB blocks [N, H, W, 3]: the
         server's stop rule at display `exposure` and at `offset` (None: the model's own)."""
@@ -321,7 +296,7 @@ class RemoteModel:
         if self.tau is not None:
             params["tau"] = float(self.tau)
         n = len(next(iter(tensors.values())))
-        verdicts, scores = [], []
+        verdicts, scores = [np.zeros(0, np.int8)], [np.zeros(0, np.float64)]     # n may be 0
         for i in range(0, n, self.batch_size):
             inputs = {k: v[i:i + self.batch_size] for k, v in tensors.items()}
             rows = len(next(iter(inputs.values())))
@@ -333,6 +308,4 @@ class RemoteModel:
                 raise ValueError(f"server returned verdicts other than -1/+1: {np.unique(v)[:5].tolist()}")
             verdicts.append(v.astype(np.int8))
             scores.append(s.astype(np.float64))
-        if not verdicts:
-            return np.zeros(0, np.int8), np.zeros(0, np.float64)
         return np.concatenate(verdicts), np.concatenate(scores)

@@ -1,22 +1,12 @@
-"""Where the bearer token of a verdict server comes from: one rule for the server
-(`service.auth`) and its client (`renderer.client.remote`).
+"""Where a verdict server's bearer token comes from: one rule for the server (`service.auth`)
+and its client.
 
 An explicit token or token file first, else NOISESTOP_TOKEN or the file NOISESTOP_TOKEN_FILE
-names (a Docker or Kubernetes secret). Both set is a mistake, refused on both sides (before,
-the client let the variable win while the server refused), and an empty token is never
-taken for "no token": a variable that is set but empty (`NOISESTOP_TOKEN=`, or
-`NOISESTOP_TOKEN_FILE=`), a token of spaces and an empty token file are all refused. Only
-variables that are not set at all mean "no token" (which `noisestop serve` then accepts
-only with `--no-auth`, on loopback).
-
-A token is one line of visible ASCII characters (``!`` to ``~``: what an HTTP header can
-carry): a token file may end with one newline, nothing else; a variable's or argument's
-spaces are refused like any other (a token of " abc" is not "abc": what a user typed and
-what a client sends must be one token). Anything else (a second line, a control, space or
-non-ASCII character) is refused in one line naming where the token came from (the
-variable, or `--token-file` when the file was given by the flag) and never showing it:
-before, a two-line file reached the HTTP layer, whose error printed the whole
-``Authorization`` header, and a server took it and then answered every request 401.
+names (a Docker or Kubernetes secret); both set is refused. Only unset variables mean "no
+token": an empty one, a token of spaces and an empty file are refused. A token is one line of
+visible ASCII (``!`` to ``~``, what an HTTP header carries; a file may end with one newline),
+so what a user typed is what the client sends; anything else is refused in one line naming
+where it came from and never showing it (the HTTP layer's error would print the header).
 """
 from __future__ import annotations
 

@@ -5,27 +5,17 @@ import json
 import logging
 import os
 import time
-from concurrent.futures import as_completed
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from tqdm import tqdm
-
 from noisefeat.safeio import read_text
 
-from ..farm import configure_worker_threads, executor
+from ..farm import run_tasks
 from .stackbuild import BuildSettings, build_stack
 
 log = logging.getLogger(__name__)
 BUILD_LOG = "build-log.jsonl"
-
-
-def _task(scene: str, out: str, settings: BuildSettings, progress: bool) -> dict[str, Any]:
-    """What one worker runs: one scene, start to finish (or resume to finish)."""
-    configure_worker_threads()
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    return build_stack(scene, out, settings, progress=progress)
 
 
 def build_dataset(scenes: list[str], out: str | os.PathLike, settings: BuildSettings,
@@ -39,22 +29,15 @@ def build_dataset(scenes: list[str], out: str | os.PathLike, settings: BuildSett
     t0 = time.perf_counter()
     results: list[dict[str, Any]] = []
     errors: dict[str, str] = {}
-    with executor(workers, scheduler) as pool:
-        futures = {pool.submit(_task, s, str(out), settings, progress): s for s in scenes}
-        for fut in tqdm(as_completed(futures), total=len(futures), desc="scenes", unit="scene",
-                        disable=not progress):
-            scene = futures[fut]
-            try:
-                r = fut.result()
-            except Exception as exc:  # one bad scene must not lose the others' work
-                errors[scene] = f"{type(exc).__name__}: {exc}"
-                log.error("scene %s failed: %s", scene, errors[scene])
-                continue
-            results.append(r)
-            log.info("%s: %d levels, %d censored blocks, %.0f s", r["scene"], r["levels"],
-                     r["censored"], r["seconds"])
-    wall = time.perf_counter() - t0
-    summary = {"out": str(out), "wall_s": wall, "scenes": sorted(results, key=lambda r: r["scene"]),
+    tasks = [(s, (s, str(out), settings, progress)) for s in scenes]
+    for scene, r, error in run_tasks(build_stack, tasks, workers, scheduler, progress):
+        if error:
+            errors[scene] = error
+            continue
+        results.append(r)
+        log.info("%s: %d levels, %d censored blocks, %.0f s", r["scene"], r["levels"], r["censored"], r["seconds"])
+    summary = {"out": str(out), "wall_s": time.perf_counter() - t0,
+               "scenes": sorted(results, key=lambda r: r["scene"]),
                "failed": errors, "settings": settings.to_dict(),
                "sub_images": sum(r["levels"] * r["blocks"] for r in results),
                "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -64,8 +47,7 @@ def build_dataset(scenes: list[str], out: str | os.PathLike, settings: BuildSett
 
 
 def append_build_log(out: Path, summary: dict[str, Any]) -> None:
-    """One JSON line per build run in OUT/BUILD_LOG, so a dataset's build time is on record
-    (`noisestop bench dataset` reports the latest run that rendered anything)."""
+    """One JSON line per build run in OUT/BUILD_LOG: a dataset's build time on record."""
     with open(out / BUILD_LOG, "a") as f:
         f.write(json.dumps(summary, default=str) + "\n")
 

@@ -42,16 +42,14 @@ def contact_sheet(stack: Stack, path: str | os.PathLike, n_levels: int = 4) -> P
     panels.append((f"reference {stack.reference_spp} spp", stack.reference()))
     if stack.has_quick:
         panels.append((f"quick ({stack.quick_description})", stack.quick()))
-    th = stack.thresholds or [None] * stack.n_blocks
-    th_text = ["never" if t is None else str(t) for t in th]
+    th_text = ["never" if t is None else str(t) for t in stack.thresholds or [None] * stack.n_blocks]
     fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.6), dpi=110)
-    for i, (ax, (title, img)) in enumerate(zip(np.atleast_1d(axes), panels)):
+    for ax, (title, img) in zip(np.atleast_1d(axes), panels):
         ax.imshow(display(img).numpy(), interpolation="nearest")
         ax.set_title(title, fontsize=8)
         ax.set_xticks([])
         ax.set_yticks([])
-        is_reference = title.startswith("reference")
-        _draw_grid(ax, stack, th_text if is_reference else None)
+        _draw_grid(ax, stack, th_text if title.startswith("reference") else None)
     fig.suptitle(f"{stack.scene}: block thresholds (spp) drawn on the reference", fontsize=9)
     fig.tight_layout()
     try:

@@ -1,20 +1,11 @@
-"""Build one labelled stack (dataset format v1) from a scene: levels, reference, quick.
+"""Build one labelled stack (dataset format v1) from a scene: levels, reference, quick images.
 
-The extra quick images of `learning.data.stack_format.EXTRA_QUICK` (direct lighting) are
-rendered too, also into stacks that are already complete, so rerunning a build adds them.
-
-Levels are cumulative means at spp = step, 2*step, ...; each level adds one independent
-pass of `step` samples (Mitsuba seed derived from (seed, pass)). The reference uses its
-own seed stream, so its noise is independent of the levels it judges. Every pass is split
-into Mitsuba calls of at most `max_lanes` samples in flight (a 4096-spp reference of a
-256x256 frame in one call would hold 268 M lanes in memory).
-
-A complete stack whose virtual-observer labels came from an older observer (another
-edge margin) is relabelled in place when the build is rerun; human labels are kept.
-
-Interrupted builds resume: images are written atomically by `learning.StackWriter`, and
-the float64 running sum is checkpointed (atomically) in `<scene>/.build/accum.npz` after
-each level, so a rerun continues from the last finished level.
+Level k is the cumulative mean of (k+1)*step spp, one independent `step`-sample pass per
+level; the reference has its own seed stream, so its noise is independent of the levels it
+judges. Mitsuba calls hold at most `max_lanes` samples (a 4096-spp 256x256 reference in one
+call would be 268 M lanes). A rerun resumes from `<scene>/.build/accum.npz` (the float64 sum,
+saved atomically after each level), adds missing EXTRA_QUICK images, and relabels a complete
+stack whose virtual-observer labels are stale (human labels are kept).
 """
 from __future__ import annotations
 
@@ -95,18 +86,13 @@ def _calls(br: BlockRenderer, spp: int, max_lanes: int) -> tuple[int, int]:
 
 
 def render_mean(br: BlockRenderer, spp: int, seed: int, first_pass: int, max_lanes: int) -> np.ndarray:
-    """Mean of `spp` full-frame samples in calls of <= max_lanes samples (float64).
-
-    Call i uses pass index first_pass + i.
-    """
-    chunk, _ = _calls(br, spp, max_lanes)
+    """Mean (float64) of `spp` full-frame samples in calls of <= max_lanes samples, call i at
+    pass index first_pass + i."""
+    chunk, calls = _calls(br, spp, max_lanes)
     total = np.zeros((br.height, br.width, 3), np.float64)
-    done, passes = 0, 0
-    while done < spp:
-        n = min(chunk, spp - done)
-        total += br.render_full(n, seed, pass_index=first_pass + passes).astype(np.float64) * n
-        done += n
-        passes += 1
+    for i in range(calls):
+        n = min(chunk, spp - i * chunk)
+        total += br.render_full(n, seed, pass_index=first_pass + i).astype(np.float64) * n
     return total / spp
 
 
@@ -143,9 +129,9 @@ def build_stack(scene: str, out_root: str | os.PathLike, settings: BuildSettings
                      reference_spp=settings.reference_spp,
                      quick=QUICK_DESCRIPTION.format(spp=settings.quick_spp),
                      renderer=f"mitsuba {mi.__version__} {variant} path", grid=settings.grid,
-                     build={k: v for k, v in settings.to_dict().items() if k not in ("contact_sheet",)})
+                     build={k: v for k, v in settings.to_dict().items() if k != "contact_sheet"})
     writer = StackWriter(out, plan)
-    for kind in EXTRA_QUICK:     # cheap, and added to stacks built before they existed
+    for kind in EXTRA_QUICK:     # cheap, so added to stacks built before they existed too
         if not (out / EXTRA_QUICK[kind]).exists():
             writer.write_extra_quick(kind, br.quick_image(spp=settings.quick_spp, seed=settings.seed, kind=kind))
     observer = VirtualObserver(tau=settings.tau, ppd=settings.ppd)
@@ -166,19 +152,15 @@ def build_stack(scene: str, out_root: str | os.PathLike, settings: BuildSettings
     ckpt = build_dir / "accum.npz"
     state = _load_checkpoint(ckpt, (br.height, br.width, 3))
     done, total = state if state is not None else (0, np.zeros((br.height, br.width, 3), np.float64))
-    # Pass indices per level are fixed by the level number, so a resumed build renders the
-    # very same samples an uninterrupted one would.
+    # pass indices fixed by the level number: a resumed build renders an uninterrupted one's samples
     _, passes_per_level = _calls(br, settings.step, settings.max_lanes)
-    bar = tqdm(total=settings.levels, initial=done, desc=f"{name} levels", unit="lvl",
-               disable=not progress, leave=False)
-    for k in range(done, settings.levels):
+    for k in tqdm(range(done, settings.levels), total=settings.levels, initial=done, desc=f"{name} levels",
+                  unit="lvl", disable=not progress, leave=False):
         mean = render_mean(br, settings.step, level_seed, k * passes_per_level, settings.max_lanes)
         total += mean * settings.step
         spp = settings.spp[k]
         writer.write_level(spp, (total / spp).astype(np.float32))
         _save_checkpoint(ckpt, k + 1, total)
-        bar.update(1)
-    bar.close()
 
     levels = (read_exr(out / level_name(s)) for s in settings.spp)   # one at a time
     terms = observer_terms(read_exr(out / REFERENCE), levels, settings.grid, observer.ppd, observer.exposure)

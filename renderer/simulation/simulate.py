@@ -1,18 +1,10 @@
-"""Run a stopping criterion over stored stacks instead of rendering (offline evaluation).
+"""A stopping criterion run over stored stacks instead of rendering (offline evaluation).
 
-Level k of a stack is the cumulative mean of spp[k] samples; the passes between levels
-come back exactly (`learning.inputs.halves.recover_passes`), and feeding them to a
-`UnitAccumulator` gives the very half buffers the live loop keeps (A = even passes,
-B = odd passes). With a constant step every pass has the same size and A and B hold
-equal sample counts, as in the live loop; with a varying step (e.g. doubling spp) halves
-are unbalanced and a warning says so.
-
-`simulate_stack` then runs the live loop's own rounds (`renderer.live.passloop.PassLoop`), one
-a level: once spp >= min_spp, only the still-active units (the stack's blocks, or their
-tiles) are asked, and a unit once converged stays converged and is never asked again. The
-verdict matrix V [K, B] therefore holds -1 up to the level where the loop would have stopped
-the block and +1 from there on, which is what `learning.evaluation.metrics.evaluate_verdicts`
-scores.
+The passes between a stack's levels come back exactly (`learning.inputs.halves.recover_passes`)
+and feed the live loop's own `PassLoop`, one round a level, so the half buffers (A: even
+passes, B: odd) and the stops are the live render's; a varying step leaves the halves
+unbalanced (warned). The verdict matrix V [K, units] holds -1 until the loop stopped the unit
+and +1 from there on, as `learning.evaluation.metrics.evaluate_verdicts` scores.
 """
 from __future__ import annotations
 
@@ -44,14 +36,9 @@ def simulate_loop(stack: Stack, criterion: Criterion, min_spp: int | None = None
                   progress: bool = False, tile: int | None = None,
                   decide_skip: float = ROW["decide_skip"].default,
                   decide_growth: float = ROW["decide_growth"].default) -> tuple[np.ndarray, PassLoop]:
-    """Verdicts V int8 [K, n_units] the live loop would produce on this stack, and the loop
-    (its `ledger`: the decisions' counters and timers). Units: the stack's blocks, or with `tile` (smaller
-    than a block) each block's tiles, numbered as the live render numbers them.
-
-    `min_spp` (None: no minimum): no decision before that many samples. `decide_skip`: how
-    far a unit's decisions skip towards its predicted stop, `decide_growth`: the least its
-    spp grows between them (`renderer.live.passloop.next_decision`). Each as its door
-    checked it (`evaluate_criterion_cli`: the rows' checks), not checked again here.
+    """Verdicts V int8 [K, n_units] the live loop would give on this stack, and the loop (its
+    `ledger`). Units: the stack's blocks, or with `tile` their tiles, numbered as the live
+    render numbers them. The settings are the rows', as their door checked them.
     """
     from ..live.block_windows import BlockWindows
 
@@ -62,21 +49,18 @@ def simulate_loop(stack: Stack, criterion: Criterion, min_spp: int | None = None
 
     def cut(frame: np.ndarray) -> np.ndarray:
         return np.asarray(frame).reshape(-1, 3)[units].reshape(len(units), tiling.tile_h, tiling.tile_w, 3)
-    K = stack.n_levels
-    V = np.full((K, tiling.n_units), -1, np.int8)
+    V = np.full((stack.n_levels, tiling.n_units), -1, np.int8)
     quick = stack.split(stack.quick()) if criterion.needs_quick else None
     loop = PassLoop(criterion, (stack.n_blocks, tiling.tiles_per_block), tiling.tile_shape, stack.spp, min_spp,
                     quick, tiling=tiling, decide_skip=decide_skip, decide_growth=decide_growth)
-    bar = tqdm(total=K, desc=f"{stack.scene} simulate", unit="lvl", disable=not progress, leave=False)
-    for k, _, pass_spp, pass_img in recover_passes(stack):
-        bar.update(1)
+    for k, _, pass_spp, pass_img in tqdm(recover_passes(stack), total=len(V), desc=f"{stack.scene} simulate",
+                                         unit="lvl", disable=not progress, leave=False):
         ids = np.flatnonzero(loop.active)
         if not ids.size:
             V[k:] = 1
             break
         loop.run_round(ids, [(cut(pass_img)[ids], pass_spp)])   # stopped units get no more samples
         V[k, ~loop.active] = 1
-    bar.close()
     return V, loop
 
 
@@ -86,17 +70,12 @@ def simulate_stack(stack: Stack, criterion: Criterion, min_spp: int | None = Non
     return simulate_loop(stack, criterion, min_spp, progress)[0]
 
 
-def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int | None = None,
-                    band: float | None = None) -> dict[str, Any]:
-    """The budget render on a stored stack: block b's j-th pass is the stack's pass j
-    (`learning.inputs.halves.recover_passes`), as the live render's keyed samples make it,
-    so the loop (`Budget.select`, `PassLoop.run_round`) sees what it would see live.
-    `spp_budget` as a door checked it (the render spec's row).
-
-    Returns each block's final spp, whether it stopped, the budget's report part and the
-    rounds run. The final image of block b is the stack's level at its spp.
+def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int | None = None) -> dict[str, Any]:
+    """The budget render on a stored stack: block b's j-th pass is the stack's pass j, as the
+    live render's keyed samples make it. Returns each block's final spp (its image: the
+    stack's level there), whether it stopped, the budget's report part and the rounds run.
     """
-    from ..live.budget import BAND, Budget
+    from ..live.budget import Budget
 
     if criterion.needs_halves:
         check_constant_step(stack)
@@ -106,7 +85,7 @@ def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int 
         pass_spp.append(int(spp_j))
     quick = stack.split(stack.quick()) if criterion.needs_quick else None
     loop = PassLoop(criterion, tuple(stack.grid), tuple(stack.block), np.cumsum(pass_spp), min_spp, quick)
-    budget = Budget(spp_budget, band=BAND if band is None else band)
+    budget = Budget(spp_budget)
     rounds = 0
     while True:
         ids = budget.select(loop)
@@ -124,16 +103,13 @@ def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int 
 
 def _as_stacks(stacks: Stack | str | os.PathLike | Iterable[Stack | str | os.PathLike],
                tau: float = DEFAULT_TAU) -> list[Stack]:
-    """Stacks as given (already labelled as the caller wants), or read from directories
-    and labelled by the observer at `tau` (`learning.data.relabel.observed`)."""
+    """Stacks as given (labelled as the caller wants), or read from directories and labelled
+    by the observer at `tau`."""
     if isinstance(stacks, Stack):
         return [stacks]
     if isinstance(stacks, (str, os.PathLike)):
         return [observed(s, tau) for s in read_stacks(stacks)]
-    out = []
-    for s in stacks:
-        out.extend(_as_stacks(s, tau) if not isinstance(s, Stack) else [s])
-    return out
+    return [st for s in stacks for st in _as_stacks(s, tau)]
 
 
 def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str | os.PathLike],
@@ -143,14 +119,11 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
                        decide_growth: float = ROW["decide_growth"].default) -> dict[str, Any]:
     """DESIGN metrics of a criterion simulated on labelled stacks, overall and per scene.
 
-    `stacks`: a dataset directory, a stack, or a list of either. `criterion_factory(stack)`
-    returns the criterion for each stack (the oracle needs that stack's thresholds; the
-    others are configuration only, one object for every stack). Stacks read from
-    directories are labelled by the observer at `tau`. The result is `evaluate_verdicts`'
-    dict plus ``criterion`` (its description) and ``counters`` (summed counters and
-    timers). With `tile`, the criterion decides per tile and is scored against the tile
-    truth (`learning.data.relabel.with_tile_truth`); ``blocks`` then holds the same
-    metrics per block (a block stops when all its tiles have), against the block truth.
+    `stacks`: a dataset directory, a stack, or a list of either; `criterion_factory(stack)`:
+    each stack's criterion (the oracle needs its thresholds). Returns `evaluate_verdicts`'
+    dict plus ``end``, ``criterion`` (its description) and ``counters`` (summed counters and
+    timers). With `tile`, units are tiles scored against the tile truth, and ``blocks`` holds
+    the metrics per block (stopped when all its tiles are) against the block truth.
     """
     todo = _as_stacks(stacks, tau)
     if not todo:
@@ -191,18 +164,15 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
     out["end"] = {"per_scene": end, "above_tau": sum(e["above_tau"] for e in end.values()),
                   "blocks": sum(e["blocks"] for e in end.values())}
     out["criterion"] = description
-    out["counters"] = external_counters(counters)         # the names a simulation's JSON has always had
+    out["counters"] = external_counters(counters)
     return out
 
 
 def end_of_render(stack: Stack, verdicts: np.ndarray, tile: int | None, tau: float) -> dict[str, float]:
-    """What the version-3 block observer says of the image the simulated render ends with:
-    each unit (block, or tile) at the level it stopped at (the last if never), put
-    together into the frame and judged against the reference (`learning.data.tile_truth.
-    FinalFrame`). ``above_tau``: blocks whose error exceeds tau (what a user sees as noise
-    left); ``early``: those of them whose block truth converges in the stack; ``worst``: the
-    largest error. At tile grain this is the honest block count: a tile that stopped early
-    shows in its block whatever the tile truth's thresholds say."""
+    """The block observer's verdict on the frame the simulated render ends with: each unit at
+    the level it stopped at (the last if never), judged per block against the reference
+    (`learning.data.tile_truth.FinalFrame`), so at tile grain a tile that stopped early shows
+    in its block whatever the tile truth says."""
     from learning.data.observer import observer_for
     from learning.data.tile_truth import FinalFrame
 
@@ -210,9 +180,8 @@ def end_of_render(stack: Stack, verdicts: np.ndarray, tile: int | None, tau: flo
 
 
 def _against_block_oracle(out: dict[str, Any]) -> None:
-    """Add to a tile-grain evaluation, per scene and overall: the samples spent per tile and
-    the tile oracle's, each as a ratio to the block oracle's (a block's samples are the mean
-    of its tiles'): what deciding per tile saves against the best block-grain stops."""
+    """Add to a tile-grain evaluation, per scene and overall, the samples spent and the tile
+    oracle's as ratios to the block oracle's: what deciding per tile saves."""
     totals = {"spent": 0.0, "tile_oracle": 0.0, "block_oracle": 0.0}
     for scene, entry in out["per_scene"].items():
         t, b = entry["counts"], out["blocks"]["per_scene"][scene]["counts"]
@@ -234,11 +203,9 @@ def criterion_factory(kind: str, *, model: str | None = None, server: str | None
                       threshold: float | None = None, offset: float | None = None,
                       exposure: float | None = None, tau: float | None = None,
                       tile: int | None = None) -> Callable[[Stack], Criterion]:
-    """The criterion of each stack for `evaluate_criterion`, from command-line style options
-    (None: not given), resolved and checked by the render spec and built by the one
-    factory (`renderer.criteria.make_criterion`): one criterion for every stack of a block
-    size (a `tile` as large as the stack's block is block grain, as in the live render), or
-    the oracle with each stack's own thresholds (its tiles' with `tile`)."""
+    """Each stack's criterion for `evaluate_criterion`, from command-line style options (None:
+    not given) resolved by the render spec: one per block size (a `tile` as large as the
+    block is block grain, as live), or the oracle with each stack's (tiles') thresholds."""
     from ..criteria import make_criterion
     from ..criteria.gated import GatedCriterion
     from ..setting_kinds import MAX_SIDE
@@ -259,8 +226,6 @@ def criterion_factory(kind: str, *, model: str | None = None, server: str | None
     built: dict[bool, Criterion] = {spec.tile_grain() is None: first}
 
     def per_block(st: Stack) -> Criterion:
-        """The criterion at the stack's block: a tile as large as the block is the whole
-        block (block grain: the model alone, as the live render's frame fit makes it)."""
         fitted = replace(spec, block=max(int(b) for b in st.block), grid=None)
         whole = fitted.tile_grain() is None
         if whole not in built:
@@ -276,10 +241,9 @@ def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list
                            tau: float = DEFAULT_TAU, tile: int | None = None,
                            decide_skip: float = ROW["decide_skip"].default,
                            decide_growth: float = ROW["decide_growth"].default) -> dict[str, Any]:
-    """What `noisestop evaluate --criterion C` runs for a rule criterion: simulate C on the
-    stacks of `data` (only `scenes` if given), labelled by the observer at the noise target
-    `tau`, and return the DESIGN metrics, overall and per scene. The simulation's door: its
-    settings are checked here, by their rows, before any stack is read."""
+    """`noisestop evaluate --criterion C`: C simulated on the stacks of `data` (only `scenes`
+    if given) labelled at `tau`; the DESIGN metrics. The simulation's door: its settings are
+    checked here, by their rows, before any stack is read."""
     from ..spec import checked
 
     checked({"min_spp": min_spp, "decide_skip": decide_skip, "decide_growth": decide_growth})

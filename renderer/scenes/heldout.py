@@ -1,16 +1,10 @@
-"""Held-out scenes: eight views no model is trained or calibrated on.
+"""Held-out scenes: eight views no model is trained or calibrated on, sharing nothing with the
+training library but the render settings (`scene_kit`).
 
-A stopping rule is only worth what it does on scenes it has never seen. These scenes
-share nothing with the training library (`renderer.scenes.catalog`) but the renderer settings
-(`renderer.scenes.scene_kit`): other rooms, open scenes under a sun and sky, a studio material
-preview under an image-based light, procedural bitmap textures, a spot-lit dark stage,
-a corridor of lights. They are built at a level every 32 spp up to 2048 spp with an
-8192-spp reference (`make heldout`), long enough that most of their blocks converge
-inside the stack: a scene that never converges only tests "never stop early", so the
-evaluation reports such scenes apart (`learning.evaluation.generalisation`).
-
-Textures and the environment map are made here from seeded numpy noise (no files, no
-downloads), so every machine builds the same scenes.
+`make heldout` renders them every 32 spp up to 2048 spp, with an 8192-spp reference: most of
+their blocks converge inside the stack (a scene that never converges only tests "never stop
+early", so `learning.evaluation.generalisation` reports such scenes apart). Textures and the
+environment map come from seeded numpy noise: no files, the same scenes on every machine.
 """
 from __future__ import annotations
 
@@ -18,26 +12,11 @@ import math
 
 import numpy as np
 
-from .scene_kit import (
-                        SceneDict,
-                        T,
-                        base,
-                        bitmap_texture,
-                        checker_texture,
-                        cube,
-                        diffuse,
-                        panel,
-                        rgb,
-                        room_box,
-                        value_noise,
-                        )
+from .scene_kit import (SceneDict, T, base, bitmap_texture, checker_texture, cube, diffuse, panel, rgb, room_box,
+                        value_noise)
 from noisefeat.extras import require
 
 # ----------------------------------------------------------------------------- procedural images
-
-
-
-
 
 
 def marble(size: int = 256, seed: int = 3) -> np.ndarray:
@@ -73,12 +52,6 @@ def studio_environment(width: int = 256, seed: int = 5) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- scenes
-
-
-
-
-
-
 
 
 def studio_preview(resolution: int) -> SceneDict:

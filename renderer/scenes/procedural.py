@@ -1,22 +1,13 @@
-"""Seeded procedural scenes: as many different training views as the render budget buys.
+"""Seeded procedural scenes (`proc-0042` is seed 42, the same on every machine): as many
+training views as the render budget buys, where fourteen hand-built ones are too few and too
+alike, and their stacks end before most of them converge.
 
-Fourteen hand-built scenes are too few and too alike to learn a stopping rule that does not
-depend on the scene, and their stacks end before most of them converge. This generator
-draws a scene from a seed (`proc-0042` is seed 42, the same on every machine): a room or
-an open scene; two to six objects in diffuse, textured, glossy, metal, mirror and glass
-materials; lights from tiny to large panels and spheres (some seen directly), an
-environment (constant, procedural sky map or sun and sky); albedos from dark to bright and
-an exposure from dim to bright. The draws are weighted so that most blocks converge within
-2048 spp (glass only under broad light, where its caustics resolve; see docs/guide/training.md).
-
-Content scale: a block of a real frame (64 px of a 256 or 1280 px frame) shows a part of
-the view, not a thumbnail of all of it. So a procedural scene at resolution R is an R x R
-window (the film's crop window, at a seeded position) of a frame `zoom` = 1, 2, 3 or 4
-times larger: the noise and the texture a model learns from come at the scales of
-blocks of frames 1-4x the stack's size, for the render cost of the window alone.
-
-Nothing here is shared with the held-out scenes (`renderer.scenes.heldout`) but the renderer
-settings and geometric helpers of `renderer.scenes.scene_kit`.
+A seed draws a room or an open scene, two to six objects of varied materials, lights from
+tiny to large (some seen directly) or an environment, albedos and an exposure from dark to
+bright; weighted so that most blocks converge within 2048 spp (glass only under broad light,
+where its caustics resolve; docs/guide/training.md). A scene at resolution R is an R x R crop
+window, at a seeded place, of a frame `zoom` = 1 to 4 times larger: a block then shows part of
+a view, as in a real frame, at the scales of frames 1-4x the stack's, for the window's cost.
 """
 from __future__ import annotations
 
@@ -49,8 +40,7 @@ def expand_procedural(spec: str) -> list[str] | None:
     `spec` is not of that form. Raises ValueError for a malformed count."""
     if not spec.startswith("procedural:"):
         return None
-    arg = spec.split(":", 1)[1]
-    m = re.fullmatch(r"(\d+)(?:-(\d+))?", arg)
+    m = re.fullmatch(r"(\d+)(?:-(\d+))?", spec.split(":", 1)[1])
     if not m:
         raise ValueError(f"{spec!r}: expected procedural:N or procedural:A-B (seeds A..B-1)")
     a, b = (0, int(m.group(1))) if m.group(2) is None else (int(m.group(1)), int(m.group(2)))

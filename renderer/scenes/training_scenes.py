@@ -1,6 +1,4 @@
-"""The training library of built-in scenes, each a ``mi.load_dict`` description made from
-the image resolution alone (`renderer.scenes.catalog` lists them and says why every scene shares
-its integrator, film and sampler settings; `renderer.scenes.heldout` is the held-out set)."""
+"""The training library of built-in scenes (`catalog.SCENES` lists them)."""
 from __future__ import annotations
 
 from .scene_kit import SceneDict, T, base, checker_texture, diffuse, rgb
@@ -12,13 +10,8 @@ CB_GREEN = [0.105421, 0.37798, 0.076425]
 CB_LIGHT = [18.387, 13.9873, 6.75357]
 
 
-def _room(
-    floor: dict | None = None,
-    ceiling: dict | None = None,
-    back: dict | None = None,
-    left: dict | None = None,
-    right: dict | None = None,
-) -> SceneDict:
+def _room(floor: dict | None = None, ceiling: dict | None = None, back: dict | None = None,
+          left: dict | None = None, right: dict | None = None) -> SceneDict:
     """The five walls of the [-1, 1]^3 Cornell room (open towards the camera at +z)."""
     return {
         "floor": {"type": "rectangle", "to_world": T().translate([0, -1, 0]).rotate([1, 0, 0], -90),
@@ -55,10 +48,11 @@ def _boxes(bsdf_small: dict | None = None, bsdf_tall: dict | None = None) -> Sce
     }
 
 
-def _cornell_like(resolution: int, light_scale: float = 1.0) -> SceneDict:
+def _cornell_like(resolution: int, light: dict) -> SceneDict:
+    """The Cornell room and its two boxes under `light`."""
     d = base(resolution)
     d.update(_room())
-    d["light"] = _ceiling_light([c * light_scale for c in CB_LIGHT])
+    d["light"] = light
     d.update(_boxes())
     return d
 
@@ -67,32 +61,24 @@ def _cornell_like(resolution: int, light_scale: float = 1.0) -> SceneDict:
 
 
 def cornell(resolution: int) -> SceneDict:
-    return _cornell_like(resolution)
+    return _cornell_like(resolution, _ceiling_light(CB_LIGHT))
 
 
 def cornell_dark(resolution: int) -> SceneDict:
-    return _cornell_like(resolution, light_scale=0.04)
+    return _cornell_like(resolution, _ceiling_light([c * 0.04 for c in CB_LIGHT]))
 
 
 def cornell_bright(resolution: int) -> SceneDict:
-    return _cornell_like(resolution, light_scale=12.0)
+    return _cornell_like(resolution, _ceiling_light([c * 12.0 for c in CB_LIGHT]))
 
 
 def large_light(resolution: int) -> SceneDict:
-    d = base(resolution)
-    d.update(_room())
-    d["light"] = _ceiling_light([c * 0.075 for c in CB_LIGHT], sx=0.85, sz=0.85)
-    d.update(_boxes())
-    return d
+    return _cornell_like(resolution, _ceiling_light([c * 0.075 for c in CB_LIGHT], sx=0.85, sz=0.85))
 
 
 def small_light(resolution: int) -> SceneDict:
-    d = base(resolution)
-    d.update(_room())
-    d["light"] = {"type": "sphere", "center": [0.0, 0.85, 0.0], "radius": 0.025,
-                  "emitter": {"type": "area", "radiance": rgb([1400.0, 1100.0, 700.0])}}
-    d.update(_boxes())
-    return d
+    return _cornell_like(resolution, {"type": "sphere", "center": [0.0, 0.85, 0.0], "radius": 0.025,
+                                      "emitter": {"type": "area", "radiance": rgb([1400.0, 1100.0, 700.0])}})
 
 
 def glossy(resolution: int) -> SceneDict:
@@ -112,8 +98,7 @@ def mirrors(resolution: int) -> SceneDict:
     d = base(resolution)
     d.update(_room())
     d["light"] = _ceiling_light([c * 0.4 for c in CB_LIGHT], sx=0.4, sz=0.3)
-    # Two facing mirror panels on the side walls: the spheres repeat down a hall of
-    # reflections that changes with the view point.
+    # facing mirrors on the side walls: the spheres repeat down a view-dependent hall of reflections
     d["mirror_left"] = {"type": "rectangle", "bsdf": mirror,
                         "to_world": T().translate([-0.98, -0.2, -0.2]).rotate([0, 1, 0], 90).scale([0.7, 0.55, 1])}
     d["mirror_right"] = {"type": "rectangle", "bsdf": mirror,
@@ -138,8 +123,7 @@ def glass_caustic(resolution: int) -> SceneDict:
 def indirect(resolution: int) -> SceneDict:
     d = base(resolution)
     d.update(_room())
-    # Cove lighting: an upward-facing light on top of a shelf; the camera only sees the
-    # shelf's underside, the room is lit by the bounce off the ceiling.
+    # cove lighting: a light facing up on a shelf the camera sees from below; the ceiling's bounce lights the room
     d["shelf"] = {"type": "rectangle",
                   "to_world": T().translate([0, 0.6, -0.2]).rotate([1, 0, 0], 90).scale([0.75, 0.55, 1]),
                   "bsdf": diffuse(0.7)}

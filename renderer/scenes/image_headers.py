@@ -1,14 +1,11 @@
 """An image's size read from its header, as Mitsuba's Bitmap reads it, before Mitsuba decodes it.
 
-Why: a 1.2 MB PNG of 20000 x 20000 pixels passed the texture's size cap and grew a render
-past 2.5 GB while Mitsuba decoded it (a decompression bomb). The file's size says nothing
-about its pixels; its header does. So the format is told from the first bytes as
-``Bitmap::detect_file_format`` tells it (src/core/bitmap.cpp, 3.9): BMP, RGBE (.hdr), PFM,
-PPM, JPEG, PNG, OpenEXR, then TGA by its footer, and the width and height are read as that
-format's reader reads them (with its integer casts). An image over ``CAPS["image pixels"]``
-is refused in one line; so is a file whose header cannot be read within `HEAD` bytes (Mitsuba
-would read a header line of any length) or whose format Mitsuba does not read. Only the
-header is read: memory and time are bounded whatever the file.
+A 1.2 MB PNG of 20000 x 20000 pixels passed the texture's size cap and grew a render past
+2.5 GB (a decompression bomb): the header, not the file's size, tells the pixels. The format
+is told as ``Bitmap::detect_file_format`` tells it (src/core/bitmap.cpp, 3.9) and the size
+read as its reader reads it (integer casts included), from the header alone (bounded memory
+and time). Refused in one line: over ``CAPS["image pixels"]``, a header not read within `HEAD`
+bytes (Mitsuba would read a line of any length), a format Mitsuba does not read.
 """
 from __future__ import annotations
 

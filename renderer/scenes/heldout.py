@@ -1,5 +1,5 @@
-"""Held-out scenes: eight views no model is trained or calibrated on, sharing nothing with the
-training library but the render settings (`scene_kit`).
+"""Held-out scenes (`catalog.SCENES` describes them): eight views no model is trained or
+calibrated on, sharing nothing with the training library but the render settings (`scene_kit`).
 
 `make heldout` renders them every 32 spp up to 2048 spp, with an 8192-spp reference: most of
 their blocks converge inside the stack (a scene that never converges only tests "never stop
@@ -55,11 +55,8 @@ def studio_environment(width: int = 256, seed: int = 5) -> np.ndarray:
 
 
 def studio_preview(resolution: int) -> SceneDict:
-    """Material preview: three spheres on a plane under a smooth studio environment map."""
-    mi = require("mitsuba")
-
     d = base(resolution, origin=(0.0, 1.1, 4.2), target=(0.0, 0.25, 0.0), fov=35.0)
-    d["env"] = {"type": "envmap", "bitmap": mi.Bitmap(studio_environment()), "scale": 1.6}
+    d["env"] = {"type": "envmap", "bitmap": require("mitsuba").Bitmap(studio_environment()), "scale": 1.6}
     d["ground"] = {"type": "disk", "bsdf": diffuse(0.45),
                    "to_world": T().rotate([1, 0, 0], -90).scale(6.0)}
     d["plastic"] = {"type": "sphere", "center": [-1.05, 0.45, 0.0], "radius": 0.45,
@@ -71,7 +68,6 @@ def studio_preview(resolution: int) -> SceneDict:
 
 
 def sunlit_courtyard(resolution: int) -> SceneDict:
-    """Open scene under sun and sky: pillars and blocks casting shadows on paving."""
     d = base(resolution, origin=(0.0, 3.2, 7.5), target=(0.0, 0.4, 0.0), fov=40.0)
     d["sky"] = {"type": "sunsky", "hour": 16.5, "sky_scale": 2.0, "sun_scale": 2.0,
                 "to_world": T().rotate([0, 1, 0], 40)}
@@ -87,7 +83,6 @@ def sunlit_courtyard(resolution: int) -> SceneDict:
 
 
 def marble_hall(resolution: int) -> SceneDict:
-    """Room with a marble floor, wood-panelled back wall and a panel light: texture masks noise."""
     d = base(resolution, origin=(0.0, 1.4, 3.2), target=(0.0, 0.9, -2.0), fov=50.0)
     d.update(room_box(5.0, 6.5, 3.0, floor={"type": "roughplastic", "alpha": 0.2,
                                           "diffuse_reflectance": bitmap_texture(marble())},
@@ -101,7 +96,6 @@ def marble_hall(resolution: int) -> SceneDict:
 
 
 def spot_stage(resolution: int) -> SceneDict:
-    """A dark stage lit by one spot: a pool of light, objects, and a lot of near-black."""
     d = base(resolution, origin=(0.0, 1.6, 4.0), target=(0.0, 0.5, 0.0), fov=42.0)
     d.update(room_box(8.0, 10.5, 4.0, front=4.5, floor={"type": "roughplastic", "alpha": 0.25,
                                           "diffuse_reflectance": rgb(0.08)},
@@ -115,7 +109,6 @@ def spot_stage(resolution: int) -> SceneDict:
 
 
 def lamp_room(resolution: int) -> SceneDict:
-    """A table under a hanging globe lamp in a warm room: soft shadows, indirect light."""
     d = base(resolution, origin=(1.6, 1.7, 3.4), target=(0.0, 0.8, -1.0), fov=48.0)
     d.update(room_box(5.0, 6.0, 3.0, floor={"type": "diffuse", "reflectance": bitmap_texture(wood(seed=8))},
                    walls=diffuse([0.8, 0.65, 0.5]), front=3.6, closed=True))
@@ -131,7 +124,6 @@ def lamp_room(resolution: int) -> SceneDict:
 
 
 def corridor(resolution: int) -> SceneDict:
-    """A long corridor with a row of ceiling lights and a glossy floor: depth and reflections."""
     d = base(resolution, origin=(0.0, 1.3, 1.5), target=(0.0, 1.1, -8.0), fov=55.0)
     d.update(room_box(2.4, 12.0, 2.6, floor={"type": "roughplastic", "alpha": 0.12,
                                            "diffuse_reflectance": rgb([0.25, 0.25, 0.28])},
@@ -145,7 +137,6 @@ def corridor(resolution: int) -> SceneDict:
 
 
 def pastel_blocks(resolution: int) -> SceneDict:
-    """Open scene: a grid of pastel blocks under an overcast sky (ambient occlusion look)."""
     d = base(resolution, origin=(4.5, 4.5, 6.0), target=(0.0, 0.3, 0.0), fov=38.0)
     d["sky"] = {"type": "constant", "radiance": rgb([0.9, 0.92, 1.0])}
     d["ground"] = {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(15), "bsdf": diffuse(0.6)}
@@ -160,7 +151,6 @@ def pastel_blocks(resolution: int) -> SceneDict:
 
 
 def window_light(resolution: int) -> SceneDict:
-    """A room lit only through a window in its left wall: a sun patch, the rest bounce light."""
     d = base(resolution, origin=(0.6, 1.4, 2.6), target=(-0.4, 1.0, -2.0), fov=55.0)
     walls = diffuse([0.78, 0.76, 0.72])
     d.update(room_box(4.0, 7.0, 2.8, floor=diffuse([0.45, 0.4, 0.35]), walls=walls, open_left=True,

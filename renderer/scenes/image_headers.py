@@ -49,18 +49,12 @@ def check_image(path: str | os.PathLike, kind: str) -> None:
 def image_size(f: BinaryIO, size: int, path: str | os.PathLike, kind: str) -> tuple[str, int, int]:
     """(format, width, height) of the image open in `f` (`size` bytes), as Mitsuba reads them."""
     head = read_named(f, path, kind, HEAD)
-    if head[:2] == b"BM":
-        return _bmp(head)
-    if head[:2] == b"#?":
-        return _rgbe(head)
-    if head[:2] in (b"PF", b"Pf"):
-        return _pfm(head)
-    if head[:2] == b"P6":
-        return _ppm(head)
+    for magic, reader in ((b"BM", _bmp), (b"#?", _rgbe), (b"PF", _pfm), (b"Pf", _pfm), (b"P6", _ppm),
+                          (b"\x89PNG\r\n\x1a\n", _png)):       # no magic is another's prefix
+        if head.startswith(magic):
+            return reader(head)
     if head[:2] == b"\xff\xd8":
         return _jpeg(f, path, kind)
-    if head[:8] == b"\x89PNG\r\n\x1a\n":
-        return _png(head)
     if head[:4] == _EXR_MAGIC:
         return _exr(f, path, kind)
     if size >= 18:

@@ -159,8 +159,6 @@ def _room_scene(rng: np.random.Generator, seed: int, resolution: int, gain: floa
 
 
 def _open_scene(rng: np.random.Generator, seed: int, resolution: int, gain: float) -> SceneDict:
-    mi = require("mitsuba")
-
     dist = float(rng.uniform(4, 9))
     angle = float(rng.uniform(0, 2 * math.pi))
     eye = [dist * math.sin(angle), float(rng.uniform(0.8, 5.0)), dist * math.cos(angle)]
@@ -170,7 +168,7 @@ def _open_scene(rng: np.random.Generator, seed: int, resolution: int, gain: floa
     if env == "constant":
         d["sky"] = {"type": "constant", "radiance": rgb((gain * np.array(_colour(rng, 0.5, 1.0))).tolist())}
     elif env == "map":
-        d["sky"] = {"type": "envmap", "bitmap": mi.Bitmap(_sky_map(rng, seed)), "scale": gain,
+        d["sky"] = {"type": "envmap", "bitmap": require("mitsuba").Bitmap(_sky_map(rng, seed)), "scale": gain,
                     "to_world": T().rotate([0, 1, 0], float(rng.uniform(0, 360)))}
     else:
         d["sky"] = {"type": "sunsky", "hour": float(rng.uniform(8, 17.5)), "sun_scale": gain,

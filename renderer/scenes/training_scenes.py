@@ -1,4 +1,4 @@
-"""The training library of built-in scenes (`catalog.SCENES` lists them)."""
+"""The training library of built-in scenes (`catalog.SCENES` lists and describes them)."""
 from __future__ import annotations
 
 from .scene_kit import SceneDict, T, base, checker_texture, diffuse, rgb
@@ -162,7 +162,6 @@ def _facing(p: list[float], a: list[float], b: list[float]) -> list[float]:
 
 
 def mis_plates(resolution: int) -> SceneDict:
-    """Veach-style MIS test: four plates of falling roughness, four lights of rising size."""
     cam = [0.0, 2.0, 15.0]
     d = base(resolution, origin=tuple(cam), target=(0.0, -1.8, 2.0), fov=30.0)
     d["floor"] = {"type": "rectangle", "to_world": T().translate([0, -4.5, 0]).rotate([1, 0, 0], -90).scale(20),

@@ -1,32 +1,25 @@
-"""The ``noisestop`` Mitsuba integrator: the adaptive loop inside ``mi.render``, wrapping
-another integrator as Mitsuba's ``aov`` and ``moment`` do::
+"""The ``noisestop`` Mitsuba integrator: the adaptive loop inside ``mi.render``, wrapping a
+nested integrator (``path`` if none) as Mitsuba's ``aov`` does::
 
     <integrator type="noisestop">
         <float name="tau" value="0.02"/>
-        <integer name="max_spp" value="1024"/>
         <integrator type="path"/>
     </integrator>
 
-``mi.render(scene)`` runs `renderer.live.adaptive.run_adaptive` with the nested integrator
-(Mitsuba's ``path`` if none) and returns [H, W, 5]: R, G, B, then the AOVs ``spp`` and
-``converged`` (1 where the criterion stopped the block); the last `RenderResult` is kept as
-``integrator.result``.
+``mi.render`` returns [H, W, 5]: R, G, B and the AOVs ``spp`` and ``converged`` (1 where the
+block stopped); ``integrator.result`` keeps the last `RenderResult`. Properties (optional; the
+rows of `renderer.settings.PLUGIN_ROWS`): ``criterion``, ``tau``, ``threshold``, ``offset``,
+``quantile``, ``model``, ``exposure``, ``block``, ``tile``, ``min_spp``, ``max_spp``, ``step``,
+``decide_skip``, ``decide_growth``, ``seed``, ``time_limit``, ``spp_budget``, ``quick_spp``, and
+``progress`` (boolean). They are resolved in the constructor as `renderer.render`'s arguments
+are (source "scene plugin"), and a bad one is one ValueError line when the integrator is used,
+not a traceback from Mitsuba's loader. ``mi.render``'s nonzero ``spp`` is the max_spp, its
+``seed`` adds to the resolved one; `renderer.render` on such a scene takes the properties for
+the settings it is not given (through `renderer.plugin_schema`).
 
-Properties, all optional: the render spec's rows about the scene (`renderer.settings.PLUGIN_ROWS`):
-``criterion``, ``tau``, ``threshold``, ``offset``, ``quantile``, ``model``, ``exposure``,
-``block``, ``tile``, ``min_spp``, ``max_spp``, ``step``, ``decide_skip``, ``decide_growth``,
-``seed``, ``time_limit``, ``spp_budget``, ``quick_spp``; and ``progress`` (boolean). They are
-read in the constructor and resolved there as `renderer.render`'s arguments are (source
-"scene plugin"). A nonzero ``spp`` of ``mi.render`` is the max_spp, its ``seed`` adds to the
-resolved seed (k = 0, 1, ... give independent renders). `renderer.render` and ``noisestop
-render`` on such a scene take the properties for the settings they are not given
-(`renderer.live.plan.prepare`, through `renderer.plugin_schema`). A bad property is one
-ValueError line where the integrator is used, not a traceback from Mitsuba's loader.
-
-Mitsuba's bindings take one base class, per variant: `integrator_class` binds
-`NoisestopIntegrator`'s methods to the variant's ``mi.SamplingIntegrator``. `register` needs a
-variant, so importing does not register: it is called before a scene file is loaded, and
-again after ``mi.set_variant`` to another variant.
+Mitsuba's bindings take one base class, per variant: `integrator_class` binds the methods of
+`NoisestopIntegrator` to the variant's ``mi.SamplingIntegrator``. `register` needs a variant,
+so importing does not register: call it before loading a scene file, and after ``mi.set_variant``.
 """
 from __future__ import annotations
 

@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from .scene_kit import (SceneDict, T, base, bitmap_texture, checker_texture, cube, diffuse, panel, rgb, room_box,
-                        value_noise)
+                        sphere, sphere_light, value_noise)
 from noisefeat.extras import require
 
 # ----------------------------------------------------------------------------- procedural images
@@ -59,11 +59,10 @@ def studio_preview(resolution: int) -> SceneDict:
     d["env"] = {"type": "envmap", "bitmap": require("mitsuba").Bitmap(studio_environment()), "scale": 1.6}
     d["ground"] = {"type": "disk", "bsdf": diffuse(0.45),
                    "to_world": T().rotate([1, 0, 0], -90).scale(6.0)}
-    d["plastic"] = {"type": "sphere", "center": [-1.05, 0.45, 0.0], "radius": 0.45,
-                    "bsdf": {"type": "roughplastic", "diffuse_reflectance": rgb([0.6, 0.12, 0.1]), "alpha": 0.15}}
-    d["metal"] = {"type": "sphere", "center": [0.0, 0.45, -0.2], "radius": 0.45,
-                  "bsdf": {"type": "roughconductor", "material": "Al", "alpha": 0.25}}
-    d["matte"] = {"type": "sphere", "center": [1.05, 0.45, 0.0], "radius": 0.45, "bsdf": diffuse(0.75)}
+    d["plastic"] = sphere([-1.05, 0.45, 0.0], 0.45,
+                          {"type": "roughplastic", "diffuse_reflectance": rgb([0.6, 0.12, 0.1]), "alpha": 0.15})
+    d["metal"] = sphere([0.0, 0.45, -0.2], 0.45, {"type": "roughconductor", "material": "Al", "alpha": 0.25})
+    d["matte"] = sphere([1.05, 0.45, 0.0], 0.45, diffuse(0.75))
     return d
 
 
@@ -89,8 +88,8 @@ def marble_hall(resolution: int) -> SceneDict:
                    walls=diffuse([0.75, 0.7, 0.6]), back={"type": "diffuse", "reflectance": bitmap_texture(wood())},
                    front=3.5, closed=True))
     d["light"] = panel([0.0, 2.99, -2.0], 0.8, 0.5, [9.0, 8.5, 7.5])
-    d["sphere"] = {"type": "sphere", "center": [0.8, 0.5, -2.2], "radius": 0.5,
-                   "bsdf": {"type": "roughplastic", "diffuse_reflectance": rgb([0.15, 0.3, 0.55]), "alpha": 0.1}}
+    d["sphere"] = sphere([0.8, 0.5, -2.2], 0.5,
+                         {"type": "roughplastic", "diffuse_reflectance": rgb([0.15, 0.3, 0.55]), "alpha": 0.1})
     d["plinth"] = cube([-0.9, 0.4, -2.6], [0.6, 0.8, 0.6], diffuse(0.8), 15)
     return d
 
@@ -102,8 +101,7 @@ def spot_stage(resolution: int) -> SceneDict:
                    walls=diffuse(0.06)))
     d["spot"] = {"type": "spot", "intensity": rgb(60.0), "cutoff_angle": 28.0, "beam_width": 18.0,
                  "to_world": T().look_at(origin=[0.6, 3.8, 1.2], target=[0.0, 0.0, -1.0], up=[0, 1, 0])}
-    d["copper"] = {"type": "sphere", "center": [-0.5, 0.55, -1.0], "radius": 0.55,
-                   "bsdf": {"type": "roughconductor", "material": "Cu", "alpha": 0.2}}
+    d["copper"] = sphere([-0.5, 0.55, -1.0], 0.55, {"type": "roughconductor", "material": "Cu", "alpha": 0.2})
     d["cube"] = cube([0.75, 0.4, -0.7], [0.8, 0.8, 0.8], diffuse(0.8), 30)
     return d
 
@@ -112,8 +110,7 @@ def lamp_room(resolution: int) -> SceneDict:
     d = base(resolution, origin=(1.6, 1.7, 3.4), target=(0.0, 0.8, -1.0), fov=48.0)
     d.update(room_box(5.0, 6.0, 3.0, floor={"type": "diffuse", "reflectance": bitmap_texture(wood(seed=8))},
                    walls=diffuse([0.8, 0.65, 0.5]), front=3.6, closed=True))
-    d["lamp"] = {"type": "sphere", "center": [0.0, 1.9, -1.2], "radius": 0.14,
-                 "emitter": {"type": "area", "radiance": rgb([40.0, 32.0, 20.0])}}
+    d["lamp"] = sphere_light([0.0, 1.9, -1.2], 0.14, [40.0, 32.0, 20.0])
     top = diffuse([0.5, 0.35, 0.2])
     d["table_top"] = cube([0.0, 0.75, -1.2], [1.6, 0.06, 0.9], top)
     for i, (x, z) in enumerate(((-0.72, -0.8), (0.72, -0.8), (-0.72, -1.6), (0.72, -1.6))):

@@ -17,7 +17,7 @@ import re
 import numpy as np
 
 from .scene_kit import (SceneDict, T, base, bitmap_texture, checker_texture, cube, diffuse, panel, rgb,
-                        room_box, value_noise)
+                        room_box, sphere, sphere_light, value_noise)
 from noisefeat.extras import require
 
 PREFIX = "proc-"
@@ -95,7 +95,7 @@ def _objects(rng: np.random.Generator, seed: int, area: tuple[float, float, floa
         x, z, s = float(rng.uniform(x0, x1)), float(rng.uniform(z0, z1)), float(rng.uniform(0.2, 0.7))
         shape = rng.choice(["sphere", "cube", "cylinder"])
         if shape == "sphere":
-            out[f"obj{i}"] = {"type": "sphere", "center": [x, s, z], "radius": s, "bsdf": bsdf}
+            out[f"obj{i}"] = sphere([x, s, z], s, bsdf)
         elif shape == "cube":
             h = s * float(rng.uniform(0.8, 3.0))
             out[f"obj{i}"] = cube([x, h / 2, z], [2 * s, h, 2 * s * float(rng.uniform(0.5, 1.5))], bsdf,
@@ -149,10 +149,8 @@ def _room_scene(rng: np.random.Generator, seed: int, resolution: int, gain: floa
         else:
             r = min(s, 0.4)
             rad = power / (4 * math.pi * r * r) * colour
-            d[f"light{i}"] = {"type": "sphere", "center": [float(rng.uniform(-w / 3, w / 3)),
-                                                          float(rng.uniform(1.0, h - 0.5)),
-                                                          float(rng.uniform(-front + 0.8, front - 1.5))],
-                              "radius": r, "emitter": {"type": "area", "radiance": rgb(rad.tolist())}}
+            d[f"light{i}"] = sphere_light([float(rng.uniform(-w / 3, w / 3)), float(rng.uniform(1.0, h - 0.5)),
+                                           float(rng.uniform(-front + 0.8, front - 1.5))], r, rad.tolist())
     d.update(_objects(rng, seed, (-w / 2 + 0.6, w / 2 - 0.6, -front + 0.8, front - 2.0),
                       broad_light=total_area > 0.5))
     return d
@@ -177,9 +175,8 @@ def _open_scene(rng: np.random.Generator, seed: int, resolution: int, gain: floa
     d["ground"] = {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(20), "bsdf": ground}
     if rng.random() < 0.3:      # an area light seen directly, e.g. a lamp on a pole
         r = float(np.exp(rng.uniform(math.log(0.05), math.log(0.4))))
-        d["lamp"] = {"type": "sphere", "center": [float(rng.uniform(-2, 2)), float(rng.uniform(1, 3)),
-                                                  float(rng.uniform(-2, 2))], "radius": r,
-                     "emitter": {"type": "area", "radiance": rgb(gain * float(rng.uniform(2, 20)))}}
+        d["lamp"] = sphere_light([float(rng.uniform(-2, 2)), float(rng.uniform(1, 3)), float(rng.uniform(-2, 2))],
+                                 r, gain * float(rng.uniform(2, 20)))
     d.update(_objects(rng, seed, (-2.5, 2.5, -2.5, 2.5), broad_light=True))
     return d
 

@@ -118,6 +118,15 @@ def room_box(width: float, depth: float, height: float, floor: dict, walls: dict
                           "to_world": T().translate([0, h / 2, front]).rotate([0, 1, 0], 180).scale([w, h / 2, 1])}
     return parts
 
+def sphere(centre: list[float], radius: float, bsdf: dict) -> dict:
+    return {"type": "sphere", "center": centre, "radius": radius, "bsdf": bsdf}
+
+
+def sphere_light(centre: list[float], radius: float, radiance: list[float] | float) -> dict:
+    return {"type": "sphere", "center": centre, "radius": radius,
+            "emitter": {"type": "area", "radiance": rgb(radiance)}}
+
+
 def panel(centre: list[float], sx: float, sz: float, radiance: list[float] | float) -> dict:
     """A downward-facing rectangular area light."""
     return {"type": "rectangle", "emitter": {"type": "area", "radiance": rgb(radiance)},

@@ -2,25 +2,14 @@
 
 Mitsuba opens what a scene names itself, past `noisefeat.safeio`: a ply naming /dev/zero grew
 a render to 7.6 GB, an include or a bitmap of a FIFO hung it. So the XML is walked first as
-Mitsuba 3's parser reads it (src/core/parser.cpp, 3.9), and the first file named that is not
-a regular file within its kind's cap (`safeio.CAPS`) is refused in one line naming the file
-and the element naming it. As Mitsuba does, the walk:
-
-* substitutes ``$name`` (-D values, then ``<default>``s so far; longest first, ``\\$``
-  escaped), and leaves unchecked a value still holding one (Mitsuba refuses it before opening);
-* reads an ``<include>`` resolved in the including file's folder, then its chain's folders;
-* adds a top-level ``<path>``'s folder for the includes after it (in the top file: for every
-  plugin's file too);
-* resolves a ``filename`` property, and ``<spectrum filename>``, as the plugin will: in the top
-  file's ``<path>`` folders, its folder, then Mitsuba's search paths, not an include's folder.
-
-A name found nowhere is a one-line FileNotFoundError. Paths are joined as Mitsuba joins them
-and never normalised (through a link, ``L/..`` is not L's folder). Refused too: a DOCTYPE
-(pugixml skips it; expat would apply its entities and attribute declarations); text not read
-as pugixml reads it (`xml_encoding`); images and meshes past their header bounds
-(`image_headers`, `mesh_headers`); plugin libraries in the scene's folders (`plugin_libs`);
-and the walk's own cost past the MAX_ bounds below (includes counted each time, as Mitsuba
-parses each each time; an include seen again in the same state is not parsed again).
+Mitsuba 3's parser reads it (src/core/parser.cpp, 3.9): ``$name`` substituted, includes
+followed, ``<path>`` folders added, each ``filename`` resolved where the plugin will resolve it
+(the top file's folders, not an include's); paths are joined as Mitsuba joins them, never
+normalised (through a link, ``L/..`` is not L's folder). Each file named must be a regular file
+within its kind's cap (`safeio.CAPS`) and header bounds (`image_headers`, `mesh_headers`); a
+DOCTYPE (which expat would apply and pugixml skips), text not read as pugixml reads it
+(`xml_encoding`), a plugin library in the scene's folders (`plugin_libs`) and a walk past the
+MAX_ bounds are refused too: each in one line naming the file and the element naming it.
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """The training library of built-in scenes (`catalog.SCENES` lists and describes them)."""
 from __future__ import annotations
 
-from .scene_kit import SceneDict, T, base, checker_texture, diffuse, rgb
+from .scene_kit import SceneDict, T, base, checker_texture, diffuse, rgb, sphere, sphere_light
 
 
 CB_WHITE = [0.885809, 0.698859, 0.666422]
@@ -77,16 +77,14 @@ def large_light(resolution: int) -> SceneDict:
 
 
 def small_light(resolution: int) -> SceneDict:
-    return _cornell_like(resolution, {"type": "sphere", "center": [0.0, 0.85, 0.0], "radius": 0.025,
-                                      "emitter": {"type": "area", "radiance": rgb([1400.0, 1100.0, 700.0])}})
+    return _cornell_like(resolution, sphere_light([0.0, 0.85, 0.0], 0.025, [1400.0, 1100.0, 700.0]))
 
 
 def glossy(resolution: int) -> SceneDict:
     d = base(resolution)
     d.update(_room(back={"type": "roughplastic", "diffuse_reflectance": rgb(CB_WHITE), "alpha": 0.08}))
     d["light"] = _ceiling_light(CB_LIGHT)
-    d["gold_sphere"] = {"type": "sphere", "center": [0.4, -0.6, 0.25], "radius": 0.4,
-                        "bsdf": {"type": "roughconductor", "material": "Au", "alpha": 0.15}}
+    d["gold_sphere"] = sphere([0.4, -0.6, 0.25], 0.4, {"type": "roughconductor", "material": "Au", "alpha": 0.15})
     d["plastic_box"] = {"type": "cube",
                         "to_world": T().translate([-0.4, -0.45, -0.3]).rotate([0, 1, 0], 20).scale([0.3, 0.55, 0.3]),
                         "bsdf": {"type": "roughplastic", "diffuse_reflectance": rgb([0.1, 0.2, 0.6]), "alpha": 0.05}}
@@ -103,20 +101,16 @@ def mirrors(resolution: int) -> SceneDict:
                         "to_world": T().translate([-0.98, -0.2, -0.2]).rotate([0, 1, 0], 90).scale([0.7, 0.55, 1])}
     d["mirror_right"] = {"type": "rectangle", "bsdf": mirror,
                          "to_world": T().translate([0.98, -0.2, -0.2]).rotate([0, 1, 0], -90).scale([0.7, 0.55, 1])}
-    d["diffuse_sphere"] = {"type": "sphere", "center": [-0.3, -0.65, 0.1], "radius": 0.35,
-                           "bsdf": diffuse([0.2, 0.3, 0.8])}
-    d["steel_sphere"] = {"type": "sphere", "center": [0.4, -0.7, -0.35], "radius": 0.3,
-                         "bsdf": {"type": "roughconductor", "material": "Cr", "alpha": 0.05}}
+    d["diffuse_sphere"] = sphere([-0.3, -0.65, 0.1], 0.35, diffuse([0.2, 0.3, 0.8]))
+    d["steel_sphere"] = sphere([0.4, -0.7, -0.35], 0.3, {"type": "roughconductor", "material": "Cr", "alpha": 0.05})
     return d
 
 
 def glass_caustic(resolution: int) -> SceneDict:
     d = base(resolution)
     d.update(_room())
-    d["light"] = {"type": "sphere", "center": [0.0, 0.8, 0.0], "radius": 0.06,
-                  "emitter": {"type": "area", "radiance": rgb([220.0, 180.0, 120.0])}}
-    d["glass_sphere"] = {"type": "sphere", "center": [0.0, -0.55, 0.1], "radius": 0.45,
-                         "bsdf": {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0}}
+    d["light"] = sphere_light([0.0, 0.8, 0.0], 0.06, [220.0, 180.0, 120.0])
+    d["glass_sphere"] = sphere([0.0, -0.55, 0.1], 0.45, {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0})
     return d
 
 
@@ -142,8 +136,7 @@ def checker(resolution: int) -> SceneDict:
     d.update(_room(floor=tex(0.1, 0.8, 12), back=tex([0.7, 0.7, 0.2], [0.2, 0.2, 0.6], 20),
                    left=tex(CB_RED, 0.8, 8), right=tex(CB_GREEN, 0.8, 8)))
     d["light"] = _ceiling_light(CB_LIGHT, sx=0.35, sz=0.3)
-    d["sphere"] = {"type": "sphere", "center": [0.35, -0.6, 0.2], "radius": 0.4,
-                   "bsdf": tex(0.05, 0.9, 24)}
+    d["sphere"] = sphere([0.35, -0.6, 0.2], 0.4, tex(0.05, 0.9, 24))
     d["box"] = {"type": "cube",
                 "to_world": T().translate([-0.4, -0.45, -0.3]).rotate([0, 1, 0], 20).scale([0.3, 0.55, 0.3]),
                 "bsdf": tex([0.9, 0.5, 0.1], 0.1, 6)}
@@ -177,8 +170,7 @@ def mis_plates(resolution: int) -> SceneDict:
                           "bsdf": {"type": "roughconductor", "material": "Cu", "alpha": alpha}}
     lights = [(-3.0, 0.04, 600.0), (-1.0, 0.12, 70.0), (1.0, 0.35, 8.0), (3.0, 0.8, 1.5)]
     for i, (x, r, L) in enumerate(lights):
-        d[f"light{i}"] = {"type": "sphere", "center": [x, light_y, light_z], "radius": r,
-                          "emitter": {"type": "area", "radiance": rgb(L)}}
+        d[f"light{i}"] = sphere_light([x, light_y, light_z], r, L)
     return d
 
 
@@ -187,11 +179,10 @@ def env_spheres(resolution: int) -> SceneDict:
     d["sky"] = {"type": "constant", "radiance": rgb([0.6, 0.75, 1.0])}
     d["ground"] = {"type": "rectangle", "to_world": T().translate([0, -0.5, 0]).rotate([1, 0, 0], -90).scale(8),
                    "bsdf": diffuse(0.5)}
-    d["s_diffuse"] = {"type": "sphere", "center": [-1.1, 0.0, 0.0], "radius": 0.5, "bsdf": diffuse([0.8, 0.3, 0.2])}
-    d["s_glossy"] = {"type": "sphere", "center": [0.0, 0.0, 0.0], "radius": 0.5,
-                     "bsdf": {"type": "roughplastic", "diffuse_reflectance": rgb([0.2, 0.6, 0.3]), "alpha": 0.1}}
-    d["s_glass"] = {"type": "sphere", "center": [1.1, 0.0, 0.0], "radius": 0.5,
-                    "bsdf": {"type": "dielectric", "int_ior": 1.5}}
+    d["s_diffuse"] = sphere([-1.1, 0.0, 0.0], 0.5, diffuse([0.8, 0.3, 0.2]))
+    d["s_glossy"] = sphere([0.0, 0.0, 0.0], 0.5,
+                           {"type": "roughplastic", "diffuse_reflectance": rgb([0.2, 0.6, 0.3]), "alpha": 0.1})
+    d["s_glass"] = sphere([1.1, 0.0, 0.0], 0.5, {"type": "dielectric", "int_ior": 1.5})
     return d
 
 

@@ -38,13 +38,8 @@ def checker_texture(c0: float | list[float], c1: float | list[float], scale: flo
             "to_uv": require("mitsuba").ScalarTransform3f().scale([scale, scale])}
 
 
-def base(
-    resolution: int,
-    origin: tuple[float, float, float] = (0.0, 0.0, 3.9),
-    target: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    up: tuple[float, float, float] = (0.0, 1.0, 0.0),
-    fov: float = 39.3077,
-) -> SceneDict:
+def base(resolution: int, origin: tuple[float, float, float] = (0.0, 0.0, 3.9),
+         target: tuple[float, float, float] = (0.0, 0.0, 0.0), fov: float = 39.3077) -> SceneDict:
     """Scene skeleton: path integrator, perspective camera, box-filtered hdrfilm (module docstring)."""
     if not isinstance(resolution, int) or resolution < 1:
         raise ValueError(f"resolution must be a positive integer, got {resolution!r}")
@@ -52,23 +47,14 @@ def base(
         "type": "scene",
         "integrator": {"type": "path", "max_depth": MAX_DEPTH},
         "sensor": {
-            "type": "perspective",
-            "fov_axis": "smaller",
-            "fov": fov,
-            "near_clip": 0.001,
-            "far_clip": 100.0,
-            "to_world": T().look_at(origin=list(origin), target=list(target), up=list(up)),
+            "type": "perspective", "fov_axis": "smaller", "fov": fov, "near_clip": 0.001, "far_clip": 100.0,
+            "to_world": T().look_at(origin=list(origin), target=list(target), up=[0.0, 1.0, 0.0]),
             "sampler": {"type": "independent", "sample_count": 16},
-            "film": {
-                "type": "hdrfilm",
-                "width": resolution,
-                "height": resolution,
-                "rfilter": {"type": "box"},
-                "pixel_format": "rgb",
-                "component_format": "float32",
-            },
+            "film": {"type": "hdrfilm", "width": resolution, "height": resolution, "rfilter": {"type": "box"},
+                     "pixel_format": "rgb", "component_format": "float32"},
         },
     }
+
 
 def value_noise(size: int, octaves: int, seed: int) -> np.ndarray:
     """Smooth fractal noise in [0, 1], [size, size] float32 (bilinear octaves of random grids)."""

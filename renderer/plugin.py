@@ -52,8 +52,7 @@ class NoisestopIntegrator:
         self.nested = nested[0] if nested else mi.load_dict({"type": "path"})
         #: the last render's RenderResult (image, spp, converged, report)
         self.result = None
-        #: a bad property's one-line message, raised when the integrator is used: Mitsuba's
-        #: loader would print a Python traceback around an error raised here
+        #: a bad property's one-line message, raised when the integrator is used (module docstring)
         self.property_error: str | None = None
         #: the seed they resolve to, which ``mi.render``'s seed adds to (an int: Dr.Jit
         #: traverses an integrator's attributes, so the resolved spec itself is not kept)

@@ -1,60 +1,36 @@
-"""The ``noisestop`` Mitsuba integrator: the adaptive loop inside ``mi.render``.
-
-It wraps another integrator, as Mitsuba's own ``aov`` and ``moment`` integrators do::
+"""The ``noisestop`` Mitsuba integrator: the adaptive loop inside ``mi.render``, wrapping a
+nested integrator (``path`` if none) as Mitsuba's ``aov`` does::
 
     <integrator type="noisestop">
         <float name="tau" value="0.02"/>
-        <integer name="max_spp" value="1024"/>
         <integrator type="path"/>
     </integrator>
 
-``mi.render(scene)`` then runs `renderer.live.adaptive.run_adaptive` with the nested
-integrator and returns a [H, W, 5] tensor: R, G, B, then the two AOV channels the
-integrator's ``aov_names()`` lists, ``spp`` (samples per pixel) and ``converged`` (1 where
-the criterion stopped the block), the way Mitsuba's ``aov`` integrator appends its
-channels. The last render's `RenderResult` (report included) is kept as
-``integrator.result``.
+``mi.render`` returns [H, W, 5]: R, G, B and the AOVs ``spp`` and ``converged`` (1 where the
+block stopped); ``integrator.result`` keeps the last `RenderResult`. Properties (optional; the
+rows of `renderer.settings.PLUGIN_ROWS`): ``criterion``, ``tau``, ``threshold``, ``offset``,
+``quantile``, ``model``, ``exposure``, ``block``, ``tile``, ``min_spp``, ``max_spp``, ``step``,
+``decide_skip``, ``decide_growth``, ``seed``, ``time_limit``, ``spp_budget``, ``quick_spp``, and
+``progress`` (boolean). They are resolved in the constructor as `renderer.render`'s arguments
+are (source "scene plugin"), and a bad one is one ValueError line when the integrator is used,
+not a traceback from Mitsuba's loader. ``mi.render``'s nonzero ``spp`` is the max_spp, its
+``seed`` adds to the resolved one; `renderer.render` on such a scene takes the properties for
+the settings it is not given (through `renderer.plugin_schema`).
 
-Properties (all optional): the render spec's rows the plugin offers
-(`renderer.settings.PLUGIN_ROWS`: ``criterion``, ``tau``, ``threshold``, ``offset``,
-``quantile``, ``model``, ``exposure``, ``block``, ``tile`` (the unit's side in pixels; the
-block's own side for whole blocks), ``min_spp``, ``max_spp``, ``step``, ``decide_skip``,
-``decide_growth``, ``seed``, ``time_limit``, ``spp_budget``, ``quick_spp``: every row but server,
-resolution, grid, defines and checkpoint_every, which name things outside the scene), plus
-``progress`` (boolean); `renderer.plugin_schema.PROPERTIES`. They are read once, in the
-constructor, and resolved and checked there by the same resolver as `renderer.render`'s
-arguments (source "scene plugin"; unset ones take its defaults). ``mi.render``'s own
-arguments add to them: a nonzero ``spp`` is the render's max_spp, and ``seed`` is added to
-the resolved seed, so ``mi.render(scene, seed=k)`` for k = 0, 1, ... gives independent
-renders, and ``mi.render(scene)`` equals ``renderer.render(scene, ...)`` with the same
-settings, and ``renderer.render(scene)`` on such a scene takes these properties for the
-arguments it is not given, as do ``renderer.render("FILE.xml")`` and ``noisestop render
---scene FILE.xml`` on such a file (`renderer.live.plan.prepare` reads them once the scene is
-loaded, through `renderer.plugin_schema`, which knows the integrator by its class).
-
-A bad property (a wrong type, out of range, a block too small, min_spp above max_spp, two
-nested integrators) does not fail the scene's loading, where Mitsuba would wrap the error
-in a Python traceback: it is one ValueError line wherever the integrator is used
-(`renderer.render`, `noisestop render`, and as the cause of ``mi.render``'s RuntimeError).
-
-The class: `NoisestopIntegrator`, here at module level. Mitsuba's base classes are per
-variant and its bindings take one base class only, so `integrator_class` binds its methods
-to the variant's ``mi.SamplingIntegrator`` (one class per variant, made once).
-
-Registering is an explicit call, `register` (idempotent, per variant; also
-`renderer.register`): it needs a Mitsuba variant, so neither ``import renderer`` nor
-importing this module does it. `renderer.render` and ``noisestop render`` call it before
-they load a scene file (whose integrator may be ``noisestop``); a built-in scene needs
-none, and a loaded one was loaded with it. Python plugins are registered for the variant
-that is set: after ``mi.set_variant`` to another one, call `register` again.
+Mitsuba's bindings take one base class, per variant: `integrator_class` binds the methods of
+`NoisestopIntegrator` to the variant's ``mi.SamplingIntegrator``. `register` needs a variant,
+so importing does not register: call it before loading a scene file, and after ``mi.set_variant``.
 """
 from __future__ import annotations
 
 from typing import Any
 
 import numpy as np
+from learning.data.variant import select_variant
+from noisefeat.extras import require
 
 from .plugin_schema import AOVS, CLASSES, PLUGIN, PROPERTIES, noisestop_of
+from .scenes.plugin_libs import preload
 from .spec import PLUGIN as FROM_PLUGIN
 from .spec import resolve
 
@@ -62,15 +38,12 @@ _registered: set[str] = set()
 
 
 class NoisestopIntegrator:
-    """Adaptive sampling around a nested integrator (see `renderer.plugin`): the methods of
-    the Mitsuba integrator `integrator_class` makes for the variant that is set."""
+    """Adaptive sampling around a nested integrator: the methods `integrator_class` binds."""
 
     #: the variant's ``mi.SamplingIntegrator`` (set on the class `integrator_class` makes)
     base: Any = None
 
     def __init__(self, props: Any) -> None:
-        from noisefeat.extras import require
-
         mi = require("mitsuba")
         self.base.__init__(self, props)
         nested = [props[k] for k in props.keys()
@@ -79,18 +52,16 @@ class NoisestopIntegrator:
         self.nested = nested[0] if nested else mi.load_dict({"type": "path"})
         #: the last render's RenderResult (image, spp, converged, report)
         self.result = None
-        #: a bad property's one-line message, raised when the integrator is used: Mitsuba's
-        #: loader would print a Python traceback around an error raised here
+        #: a bad property's one-line message, raised when the integrator is used (module docstring)
         self.property_error: str | None = None
-        #: the properties set (the render spec's rows, as given)
-        self.settings: dict[str, Any] = {}
         #: the seed they resolve to, which ``mi.render``'s seed adds to (an int: Dr.Jit
         #: traverses an integrator's attributes, so the resolved spec itself is not kept)
         self.base_seed = 0
         self.progress = False
         # every property is read before anything is checked: Mitsuba refuses to load an
         # integrator that left one unread, with a message naming it instead of the cause
-        self.settings = {k: props[k] for k in PROPERTIES if k in props and k != "progress"}
+        #: the properties set (the render spec's rows, as given)
+        self.settings: dict[str, Any] = {k: props[k] for k in PROPERTIES if k in props and k != "progress"}
         progress = props["progress"] if "progress" in props else False
         try:
             if len(nested) > 1:
@@ -101,15 +72,13 @@ class NoisestopIntegrator:
             if not isinstance(progress, bool):
                 raise ValueError(f"progress must be a boolean, got {progress!r}")
             self.progress = progress
-            # a bad property: known now, raised when used
             self.base_seed = resolve(self.settings, source=FROM_PLUGIN).seed
         except ValueError as exc:
             self.property_error = f"noisestop integrator: {exc}".replace(
                 "noisestop integrator: noisestop integrator: ", "noisestop integrator: ")
 
     def check(self) -> None:
-        """ValueError (one line) if a property was bad: raised where the integrator is used
-        (mi.render, renderer.render, the render loop), not while Mitsuba loads it."""
+        """ValueError (one line) if a property was bad: raised where the integrator is used."""
         if self.property_error is not None:
             raise ValueError(self.property_error)
 
@@ -119,8 +88,6 @@ class NoisestopIntegrator:
     def render(self, scene: Any, sensor: Any = 0, seed: Any = 0, spp: int = 0, develop: bool = True,
                evaluate: bool = True) -> Any:
         """The adaptive render of `scene` from `sensor` as [H, W, 5] (R, G, B, spp, converged)."""
-        from noisefeat.extras import require
-
         from .live.adaptive import run_adaptive
 
         self.check()
@@ -146,8 +113,6 @@ class NoisestopIntegrator:
         return require("mitsuba").TensorXf(np.ascontiguousarray(data))
 
     def traverse(self, callback: Any) -> None:
-        from noisefeat.extras import require
-
         callback.put("nested", self.nested, require("mitsuba").ParamFlags.NonDifferentiable)
 
     def to_string(self) -> str:
@@ -156,12 +121,8 @@ class NoisestopIntegrator:
 
 
 def integrator_class() -> type:
-    """`NoisestopIntegrator` as a Mitsuba integrator of the variant that is set (choosing one
-    first, as `learning.data.variant.select_variant` does, if none is): its methods on the
-    variant's ``mi.SamplingIntegrator``, made once per variant."""
-    from learning.data.variant import select_variant
-    from noisefeat.extras import require
-
+    """`NoisestopIntegrator` as an integrator of the variant that is set (`select_variant`'s
+    if none is), made once per variant."""
     variant = select_variant()
     if variant not in CLASSES:
         mi = require("mitsuba")
@@ -188,14 +149,11 @@ def register() -> str:
     str
         The Mitsuba variant it is registered for.
     """
-    from noisefeat.extras import require
-
-    from .scenes.plugin_libs import preload
-
+    mi = require("mitsuba")
     cls = integrator_class()
     preload()          # Mitsuba's plugin libraries from its own folder (the nested path one included)
-    variant = require("mitsuba").variant()
+    variant = mi.variant()
     if variant not in _registered:
-        require("mitsuba").register_integrator(PLUGIN, lambda props: cls(props))
+        mi.register_integrator(PLUGIN, lambda props: cls(props))
         _registered.add(variant)
     return variant

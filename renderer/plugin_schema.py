@@ -1,10 +1,6 @@
-"""The ``noisestop`` Mitsuba integrator as a render sees it: its name, the channels it adds,
-the properties it reads, and whether an integrator is one (`noisestop_of`).
-
-Kept apart from the integrator (`renderer.plugin`), which runs the render loop: the loop
-reads a loaded scene's ``noisestop`` properties through this module, so it never imports
-the plugin (that would close an import circle), and it knows the plugin by its class, not
-by the attributes it happens to have.
+"""The ``noisestop`` integrator as a render sees it: its name, channels, properties, and
+whether an integrator is one (`noisestop_of`, by its class). Apart from `renderer.plugin`,
+which imports the render loop: the loop reads a scene's integrator through this module.
 """
 from __future__ import annotations
 

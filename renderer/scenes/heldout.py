@@ -1,16 +1,10 @@
-"""Held-out scenes: eight views no model is trained or calibrated on.
+"""Held-out scenes (`catalog.SCENES` describes them): eight views no model is trained or
+calibrated on, sharing nothing with the training library but the render settings (`scene_kit`).
 
-A stopping rule is only worth what it does on scenes it has never seen. These scenes
-share nothing with the training library (`renderer.scenes.catalog`) but the renderer settings
-(`renderer.scenes.scene_kit`): other rooms, open scenes under a sun and sky, a studio material
-preview under an image-based light, procedural bitmap textures, a spot-lit dark stage,
-a corridor of lights. They are built at a level every 32 spp up to 2048 spp with an
-8192-spp reference (`make heldout`), long enough that most of their blocks converge
-inside the stack: a scene that never converges only tests "never stop early", so the
-evaluation reports such scenes apart (`learning.evaluation.generalisation`).
-
-Textures and the environment map are made here from seeded numpy noise (no files, no
-downloads), so every machine builds the same scenes.
+`make heldout` renders them every 32 spp up to 2048 spp, with an 8192-spp reference: most of
+their blocks converge inside the stack (a scene that never converges only tests "never stop
+early", so `learning.evaluation.generalisation` reports such scenes apart). Textures and the
+environment map come from seeded numpy noise: no files, the same scenes on every machine.
 """
 from __future__ import annotations
 
@@ -18,26 +12,11 @@ import math
 
 import numpy as np
 
-from .scene_kit import (
-                        SceneDict,
-                        T,
-                        base,
-                        bitmap_texture,
-                        checker_texture,
-                        cube,
-                        diffuse,
-                        panel,
-                        rgb,
-                        room_box,
-                        value_noise,
-                        )
+from .scene_kit import (SceneDict, T, base, bitmap_texture, checker_texture, cube, diffuse, panel, rgb, room_box,
+                        sphere, sphere_light, value_noise)
 from noisefeat.extras import require
 
 # ----------------------------------------------------------------------------- procedural images
-
-
-
-
 
 
 def marble(size: int = 256, seed: int = 3) -> np.ndarray:
@@ -75,30 +54,19 @@ def studio_environment(width: int = 256, seed: int = 5) -> np.ndarray:
 # ----------------------------------------------------------------------------- scenes
 
 
-
-
-
-
-
-
 def studio_preview(resolution: int) -> SceneDict:
-    """Material preview: three spheres on a plane under a smooth studio environment map."""
-    mi = require("mitsuba")
-
     d = base(resolution, origin=(0.0, 1.1, 4.2), target=(0.0, 0.25, 0.0), fov=35.0)
-    d["env"] = {"type": "envmap", "bitmap": mi.Bitmap(studio_environment()), "scale": 1.6}
+    d["env"] = {"type": "envmap", "bitmap": require("mitsuba").Bitmap(studio_environment()), "scale": 1.6}
     d["ground"] = {"type": "disk", "bsdf": diffuse(0.45),
                    "to_world": T().rotate([1, 0, 0], -90).scale(6.0)}
-    d["plastic"] = {"type": "sphere", "center": [-1.05, 0.45, 0.0], "radius": 0.45,
-                    "bsdf": {"type": "roughplastic", "diffuse_reflectance": rgb([0.6, 0.12, 0.1]), "alpha": 0.15}}
-    d["metal"] = {"type": "sphere", "center": [0.0, 0.45, -0.2], "radius": 0.45,
-                  "bsdf": {"type": "roughconductor", "material": "Al", "alpha": 0.25}}
-    d["matte"] = {"type": "sphere", "center": [1.05, 0.45, 0.0], "radius": 0.45, "bsdf": diffuse(0.75)}
+    d["plastic"] = sphere([-1.05, 0.45, 0.0], 0.45,
+                          {"type": "roughplastic", "diffuse_reflectance": rgb([0.6, 0.12, 0.1]), "alpha": 0.15})
+    d["metal"] = sphere([0.0, 0.45, -0.2], 0.45, {"type": "roughconductor", "material": "Al", "alpha": 0.25})
+    d["matte"] = sphere([1.05, 0.45, 0.0], 0.45, diffuse(0.75))
     return d
 
 
 def sunlit_courtyard(resolution: int) -> SceneDict:
-    """Open scene under sun and sky: pillars and blocks casting shadows on paving."""
     d = base(resolution, origin=(0.0, 3.2, 7.5), target=(0.0, 0.4, 0.0), fov=40.0)
     d["sky"] = {"type": "sunsky", "hour": 16.5, "sky_scale": 2.0, "sun_scale": 2.0,
                 "to_world": T().rotate([0, 1, 0], 40)}
@@ -114,40 +82,35 @@ def sunlit_courtyard(resolution: int) -> SceneDict:
 
 
 def marble_hall(resolution: int) -> SceneDict:
-    """Room with a marble floor, wood-panelled back wall and a panel light: texture masks noise."""
     d = base(resolution, origin=(0.0, 1.4, 3.2), target=(0.0, 0.9, -2.0), fov=50.0)
     d.update(room_box(5.0, 6.5, 3.0, floor={"type": "roughplastic", "alpha": 0.2,
                                           "diffuse_reflectance": bitmap_texture(marble())},
                    walls=diffuse([0.75, 0.7, 0.6]), back={"type": "diffuse", "reflectance": bitmap_texture(wood())},
                    front=3.5, closed=True))
     d["light"] = panel([0.0, 2.99, -2.0], 0.8, 0.5, [9.0, 8.5, 7.5])
-    d["sphere"] = {"type": "sphere", "center": [0.8, 0.5, -2.2], "radius": 0.5,
-                   "bsdf": {"type": "roughplastic", "diffuse_reflectance": rgb([0.15, 0.3, 0.55]), "alpha": 0.1}}
+    d["sphere"] = sphere([0.8, 0.5, -2.2], 0.5,
+                         {"type": "roughplastic", "diffuse_reflectance": rgb([0.15, 0.3, 0.55]), "alpha": 0.1})
     d["plinth"] = cube([-0.9, 0.4, -2.6], [0.6, 0.8, 0.6], diffuse(0.8), 15)
     return d
 
 
 def spot_stage(resolution: int) -> SceneDict:
-    """A dark stage lit by one spot: a pool of light, objects, and a lot of near-black."""
     d = base(resolution, origin=(0.0, 1.6, 4.0), target=(0.0, 0.5, 0.0), fov=42.0)
     d.update(room_box(8.0, 10.5, 4.0, front=4.5, floor={"type": "roughplastic", "alpha": 0.25,
                                           "diffuse_reflectance": rgb(0.08)},
                    walls=diffuse(0.06)))
     d["spot"] = {"type": "spot", "intensity": rgb(60.0), "cutoff_angle": 28.0, "beam_width": 18.0,
                  "to_world": T().look_at(origin=[0.6, 3.8, 1.2], target=[0.0, 0.0, -1.0], up=[0, 1, 0])}
-    d["copper"] = {"type": "sphere", "center": [-0.5, 0.55, -1.0], "radius": 0.55,
-                   "bsdf": {"type": "roughconductor", "material": "Cu", "alpha": 0.2}}
+    d["copper"] = sphere([-0.5, 0.55, -1.0], 0.55, {"type": "roughconductor", "material": "Cu", "alpha": 0.2})
     d["cube"] = cube([0.75, 0.4, -0.7], [0.8, 0.8, 0.8], diffuse(0.8), 30)
     return d
 
 
 def lamp_room(resolution: int) -> SceneDict:
-    """A table under a hanging globe lamp in a warm room: soft shadows, indirect light."""
     d = base(resolution, origin=(1.6, 1.7, 3.4), target=(0.0, 0.8, -1.0), fov=48.0)
     d.update(room_box(5.0, 6.0, 3.0, floor={"type": "diffuse", "reflectance": bitmap_texture(wood(seed=8))},
                    walls=diffuse([0.8, 0.65, 0.5]), front=3.6, closed=True))
-    d["lamp"] = {"type": "sphere", "center": [0.0, 1.9, -1.2], "radius": 0.14,
-                 "emitter": {"type": "area", "radiance": rgb([40.0, 32.0, 20.0])}}
+    d["lamp"] = sphere_light([0.0, 1.9, -1.2], 0.14, [40.0, 32.0, 20.0])
     top = diffuse([0.5, 0.35, 0.2])
     d["table_top"] = cube([0.0, 0.75, -1.2], [1.6, 0.06, 0.9], top)
     for i, (x, z) in enumerate(((-0.72, -0.8), (0.72, -0.8), (-0.72, -1.6), (0.72, -1.6))):
@@ -158,7 +121,6 @@ def lamp_room(resolution: int) -> SceneDict:
 
 
 def corridor(resolution: int) -> SceneDict:
-    """A long corridor with a row of ceiling lights and a glossy floor: depth and reflections."""
     d = base(resolution, origin=(0.0, 1.3, 1.5), target=(0.0, 1.1, -8.0), fov=55.0)
     d.update(room_box(2.4, 12.0, 2.6, floor={"type": "roughplastic", "alpha": 0.12,
                                            "diffuse_reflectance": rgb([0.25, 0.25, 0.28])},
@@ -172,7 +134,6 @@ def corridor(resolution: int) -> SceneDict:
 
 
 def pastel_blocks(resolution: int) -> SceneDict:
-    """Open scene: a grid of pastel blocks under an overcast sky (ambient occlusion look)."""
     d = base(resolution, origin=(4.5, 4.5, 6.0), target=(0.0, 0.3, 0.0), fov=38.0)
     d["sky"] = {"type": "constant", "radiance": rgb([0.9, 0.92, 1.0])}
     d["ground"] = {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(15), "bsdf": diffuse(0.6)}
@@ -187,7 +148,6 @@ def pastel_blocks(resolution: int) -> SceneDict:
 
 
 def window_light(resolution: int) -> SceneDict:
-    """A room lit only through a window in its left wall: a sun patch, the rest bounce light."""
     d = base(resolution, origin=(0.6, 1.4, 2.6), target=(-0.4, 1.0, -2.0), fov=55.0)
     walls = diffuse([0.78, 0.76, 0.72])
     d.update(room_box(4.0, 7.0, 2.8, floor=diffuse([0.45, 0.4, 0.35]), walls=walls, open_left=True,

@@ -1,14 +1,11 @@
 """An image's size read from its header, as Mitsuba's Bitmap reads it, before Mitsuba decodes it.
 
-Why: a 1.2 MB PNG of 20000 x 20000 pixels passed the texture's size cap and grew a render
-past 2.5 GB while Mitsuba decoded it (a decompression bomb). The file's size says nothing
-about its pixels; its header does. So the format is told from the first bytes as
-``Bitmap::detect_file_format`` tells it (src/core/bitmap.cpp, 3.9): BMP, RGBE (.hdr), PFM,
-PPM, JPEG, PNG, OpenEXR, then TGA by its footer, and the width and height are read as that
-format's reader reads them (with its integer casts). An image over ``CAPS["image pixels"]``
-is refused in one line; so is a file whose header cannot be read within `HEAD` bytes (Mitsuba
-would read a header line of any length) or whose format Mitsuba does not read. Only the
-header is read: memory and time are bounded whatever the file.
+A 1.2 MB PNG of 20000 x 20000 pixels passed the texture's size cap and grew a render past
+2.5 GB (a decompression bomb): the header, not the file's size, tells the pixels. The format
+is told as ``Bitmap::detect_file_format`` tells it (src/core/bitmap.cpp, 3.9) and the size
+read as its reader reads it (integer casts included), from the header alone (bounded memory
+and time). Refused in one line: over ``CAPS["image pixels"]``, a header not read within `HEAD`
+bytes (Mitsuba would read a line of any length), a format Mitsuba does not read.
 """
 from __future__ import annotations
 
@@ -52,18 +49,12 @@ def check_image(path: str | os.PathLike, kind: str) -> None:
 def image_size(f: BinaryIO, size: int, path: str | os.PathLike, kind: str) -> tuple[str, int, int]:
     """(format, width, height) of the image open in `f` (`size` bytes), as Mitsuba reads them."""
     head = read_named(f, path, kind, HEAD)
-    if head[:2] == b"BM":
-        return _bmp(head)
-    if head[:2] == b"#?":
-        return _rgbe(head)
-    if head[:2] in (b"PF", b"Pf"):
-        return _pfm(head)
-    if head[:2] == b"P6":
-        return _ppm(head)
+    for magic, reader in ((b"BM", _bmp), (b"#?", _rgbe), (b"PF", _pfm), (b"Pf", _pfm), (b"P6", _ppm),
+                          (b"\x89PNG\r\n\x1a\n", _png)):       # no magic is another's prefix
+        if head.startswith(magic):
+            return reader(head)
     if head[:2] == b"\xff\xd8":
         return _jpeg(f, path, kind)
-    if head[:8] == b"\x89PNG\r\n\x1a\n":
-        return _png(head)
     if head[:4] == _EXR_MAGIC:
         return _exr(f, path, kind)
     if size >= 18:

@@ -1,23 +1,13 @@
 """A mesh's (or volume grid's) element counts read from its header, before Mitsuba loads it.
 
-Why: Mitsuba allocates a mesh's buffers from the counts its header states (ply, serialized,
-.vol grids) or from the file's size (obj), and a file under its size cap could still grow a
-render past 2.5 GB: a sparse .obj just under the 2 GiB cap, a ply or a compressed
-serialized mesh that states a billion vertices. Each is read here as Mitsuba's loader reads
-it (src/shapes/{ply.h,obj.cpp,serialized.cpp}, src/render/volumegrid.cpp, 3.9):
-
-* ply: the header (lines up to ``end_header``, within `HEAD` bytes); its elements must fit
-  in the bytes after it (a binary row is its properties' sizes, a list a count and three
-  items as Mitsuba reads them; an ASCII value takes two bytes at least);
-* obj: the whole file, in bounded chunks: no line of 1024 bytes or more (Mitsuba refuses
-  one too, but only after scanning it: a sparse file's hole is one such line), and its words
-  bound its elements (a vertex line is four words, a face adds a triangle per word);
-* serialized: the shape's compressed header (flags, name, vertex and face counts), inflated
-  a few bytes only;
-* .vol grids: the stated cells times channels must be in the file.
-
-The counts (vertices and faces, all elements of a ply, the words of an obj) are bounded by
-``CAPS["mesh elements"]``; each refusal is one line naming the file.
+Mitsuba sizes a mesh's buffers from the counts its header states (ply, serialized, .vol) or
+from the file's size (obj): a sparse .obj under the 2 GiB cap, or a ply or serialized mesh
+stating a billion vertices, grew a render past 2.5 GB. Each is read as Mitsuba's loader reads
+it (src/shapes/{ply.h,obj.cpp,serialized.cpp}, src/render/volumegrid.cpp, 3.9), its counts
+bounded by ``CAPS["mesh elements"]``: a ply's header (within `HEAD` bytes), its elements in the
+bytes after it; an obj in chunks, no line of `OBJ_LINE` bytes (Mitsuba refuses one only after
+reading it: a sparse hole is one) and its words bounding its elements; a serialized shape's
+compressed header, a few bytes inflated; a grid's cells times channels in the file.
 """
 from __future__ import annotations
 
@@ -88,6 +78,7 @@ def check_ply(path: str | os.PathLike, kind: str) -> None:
     if stop < 0:
         raise _refuse(path, kind, f"has no ply header (no end_header line within {HEAD} bytes)")
     _bound(path, kind, sum(e[0] for e in elements), "elements")
+    # an ASCII value takes two bytes at least (a digit and a separator); the last needs none after it
     need = sum(n * (2 * values if ascii_ else row) for n, row, values in elements) - (1 if ascii_ else 0)
     if need > size - (stop + 1):
         raise _refuse(path, kind, f"states elements of {need} bytes at least, but holds {size - stop - 1} "

@@ -1,20 +1,12 @@
 """No code is loaded from a scene's folders: Mitsuba's plugin libraries come from Mitsuba.
 
-Why: Mitsuba's PluginManager loads the library of a plugin it has not loaded yet as
-``plugins/<type>.so`` through the file resolver (src/core/plugin.cpp, 3.9), and while a
-scene file loads, that resolver holds the scene's ``<path>`` folders and its own folder
-first, then the current folder (as it was when Mitsuba was imported), then Mitsuba's own:
-a ``plugins/diffuse.so`` built by whoever wrote the scene ran its code in our process.
-Two closes, both needed:
-
-* `preload`: every library in Mitsuba's own ``plugins`` folder is loaded once per process,
-  resolved in Mitsuba's folder alone, before any scene loads (the manager caches libraries
-  by name, so the built-in names, the ones Mitsuba itself creates behind a scene's back
-  included, never reach the resolver again);
-* `plugin_library_error`: a ``type`` the walker reads in a scene must be a plain name (a
-  dot or a slash would change the library's file name), and no search folder before
-  Mitsuba's own may hold ``plugins/<type>.so`` (any name: one that is not built in would
-  still be looked up there).
+Mitsuba loads a plugin's library it has not loaded yet as ``plugins/<type>.so`` through the
+file resolver (src/core/plugin.cpp, 3.9), which, while a scene loads, holds the scene's
+folders first: a ``plugins/diffuse.so`` next to a scene would run in our process. Both closes
+are needed: `preload` loads every library of Mitsuba's own folder, resolved there alone,
+before any scene (the manager caches them by name, those Mitsuba creates behind a scene's
+back included); `plugin_library_error` refuses a type that is not a plain name (a dot or a
+slash changes the file name) or whose library a folder before Mitsuba's holds (any name).
 """
 from __future__ import annotations
 
@@ -23,6 +15,8 @@ import re
 import sys
 import threading
 from collections.abc import Sequence
+
+from noisefeat.extras import require
 
 #: a type Mitsuba may look a library up for: no dot (its extension would be replaced), no slash
 PLAIN = re.compile(r"[A-Za-z0-9_\-]+")
@@ -33,17 +27,13 @@ _lock = threading.Lock()
 
 def mitsuba_folder() -> str:
     """Mitsuba's own folder (its library's, where its ``plugins`` folder is)."""
-    from noisefeat.extras import require
-
     return os.path.dirname(os.path.abspath(require("mitsuba").__file__))
 
 
 def preload() -> int:
-    """Load every plugin library of Mitsuba's own folder (once per process; later calls
-    return 0), resolved there alone; the number loaded."""
+    """Load every plugin library of Mitsuba's own folder, resolved there alone; the number
+    loaded (0 after the first call)."""
     global _done
-    from noisefeat.extras import require
-
     with _lock:
         if _done:
             return 0
@@ -66,9 +56,8 @@ def preload() -> int:
 
 
 def plugin_library_error(type_: str, folders: Sequence[str], own: str | None) -> str | None:
-    """Why a scene naming plugin `type_` is refused, or None: Mitsuba would look its library
-    up in `folders` (the resolver's, in order) and one before `own` (Mitsuba's folder) holds
-    ``plugins/<type_>.so``, or the name is not plain."""
+    """Why a scene naming plugin `type_` is refused, or None: the name is not plain, or one of
+    `folders` (the resolver's, in order) before `own` (Mitsuba's) holds its library."""
     if not PLAIN.fullmatch(type_):
         return (f'plugin type "{type_[:64]}" is not a plain name (letters, digits, _ and -): Mitsuba would '
                 "look for a library by that file name")

@@ -1,22 +1,13 @@
-"""Seeded procedural scenes: as many different training views as the render budget buys.
+"""Seeded procedural scenes (`proc-0042` is seed 42, the same on every machine): as many
+training views as the render budget buys, where fourteen hand-built ones are too few and too
+alike, and their stacks end before most of them converge.
 
-Fourteen hand-built scenes are too few and too alike to learn a stopping rule that does not
-depend on the scene, and their stacks end before most of them converge. This generator
-draws a scene from a seed (`proc-0042` is seed 42, the same on every machine): a room or
-an open scene; two to six objects in diffuse, textured, glossy, metal, mirror and glass
-materials; lights from tiny to large panels and spheres (some seen directly), an
-environment (constant, procedural sky map or sun and sky); albedos from dark to bright and
-an exposure from dim to bright. The draws are weighted so that most blocks converge within
-2048 spp (glass only under broad light, where its caustics resolve; see docs/guide/training.md).
-
-Content scale: a block of a real frame (64 px of a 256 or 1280 px frame) shows a part of
-the view, not a thumbnail of all of it. So a procedural scene at resolution R is an R x R
-window (the film's crop window, at a seeded position) of a frame `zoom` = 1, 2, 3 or 4
-times larger: the noise and the texture a model learns from come at the scales of
-blocks of frames 1-4x the stack's size, for the render cost of the window alone.
-
-Nothing here is shared with the held-out scenes (`renderer.scenes.heldout`) but the renderer
-settings and geometric helpers of `renderer.scenes.scene_kit`.
+A seed draws a room or an open scene, two to six objects of varied materials, lights from
+tiny to large (some seen directly) or an environment, albedos and an exposure from dark to
+bright; weighted so that most blocks converge within 2048 spp (glass only under broad light,
+where its caustics resolve; docs/guide/training.md). A scene at resolution R is an R x R crop
+window, at a seeded place, of a frame `zoom` = 1 to 4 times larger: a block then shows part of
+a view, as in a real frame, at the scales of frames 1-4x the stack's, for the window's cost.
 """
 from __future__ import annotations
 
@@ -26,7 +17,7 @@ import re
 import numpy as np
 
 from .scene_kit import (SceneDict, T, base, bitmap_texture, checker_texture, cube, diffuse, panel, rgb,
-                        room_box, value_noise)
+                        room_box, sphere, sphere_light, value_noise)
 from noisefeat.extras import require
 
 PREFIX = "proc-"
@@ -49,8 +40,7 @@ def expand_procedural(spec: str) -> list[str] | None:
     `spec` is not of that form. Raises ValueError for a malformed count."""
     if not spec.startswith("procedural:"):
         return None
-    arg = spec.split(":", 1)[1]
-    m = re.fullmatch(r"(\d+)(?:-(\d+))?", arg)
+    m = re.fullmatch(r"(\d+)(?:-(\d+))?", spec.split(":", 1)[1])
     if not m:
         raise ValueError(f"{spec!r}: expected procedural:N or procedural:A-B (seeds A..B-1)")
     a, b = (0, int(m.group(1))) if m.group(2) is None else (int(m.group(1)), int(m.group(2)))
@@ -105,7 +95,7 @@ def _objects(rng: np.random.Generator, seed: int, area: tuple[float, float, floa
         x, z, s = float(rng.uniform(x0, x1)), float(rng.uniform(z0, z1)), float(rng.uniform(0.2, 0.7))
         shape = rng.choice(["sphere", "cube", "cylinder"])
         if shape == "sphere":
-            out[f"obj{i}"] = {"type": "sphere", "center": [x, s, z], "radius": s, "bsdf": bsdf}
+            out[f"obj{i}"] = sphere([x, s, z], s, bsdf)
         elif shape == "cube":
             h = s * float(rng.uniform(0.8, 3.0))
             out[f"obj{i}"] = cube([x, h / 2, z], [2 * s, h, 2 * s * float(rng.uniform(0.5, 1.5))], bsdf,
@@ -159,18 +149,14 @@ def _room_scene(rng: np.random.Generator, seed: int, resolution: int, gain: floa
         else:
             r = min(s, 0.4)
             rad = power / (4 * math.pi * r * r) * colour
-            d[f"light{i}"] = {"type": "sphere", "center": [float(rng.uniform(-w / 3, w / 3)),
-                                                          float(rng.uniform(1.0, h - 0.5)),
-                                                          float(rng.uniform(-front + 0.8, front - 1.5))],
-                              "radius": r, "emitter": {"type": "area", "radiance": rgb(rad.tolist())}}
+            d[f"light{i}"] = sphere_light([float(rng.uniform(-w / 3, w / 3)), float(rng.uniform(1.0, h - 0.5)),
+                                           float(rng.uniform(-front + 0.8, front - 1.5))], r, rad.tolist())
     d.update(_objects(rng, seed, (-w / 2 + 0.6, w / 2 - 0.6, -front + 0.8, front - 2.0),
                       broad_light=total_area > 0.5))
     return d
 
 
 def _open_scene(rng: np.random.Generator, seed: int, resolution: int, gain: float) -> SceneDict:
-    mi = require("mitsuba")
-
     dist = float(rng.uniform(4, 9))
     angle = float(rng.uniform(0, 2 * math.pi))
     eye = [dist * math.sin(angle), float(rng.uniform(0.8, 5.0)), dist * math.cos(angle)]
@@ -180,7 +166,7 @@ def _open_scene(rng: np.random.Generator, seed: int, resolution: int, gain: floa
     if env == "constant":
         d["sky"] = {"type": "constant", "radiance": rgb((gain * np.array(_colour(rng, 0.5, 1.0))).tolist())}
     elif env == "map":
-        d["sky"] = {"type": "envmap", "bitmap": mi.Bitmap(_sky_map(rng, seed)), "scale": gain,
+        d["sky"] = {"type": "envmap", "bitmap": require("mitsuba").Bitmap(_sky_map(rng, seed)), "scale": gain,
                     "to_world": T().rotate([0, 1, 0], float(rng.uniform(0, 360)))}
     else:
         d["sky"] = {"type": "sunsky", "hour": float(rng.uniform(8, 17.5)), "sun_scale": gain,
@@ -189,9 +175,8 @@ def _open_scene(rng: np.random.Generator, seed: int, resolution: int, gain: floa
     d["ground"] = {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(20), "bsdf": ground}
     if rng.random() < 0.3:      # an area light seen directly, e.g. a lamp on a pole
         r = float(np.exp(rng.uniform(math.log(0.05), math.log(0.4))))
-        d["lamp"] = {"type": "sphere", "center": [float(rng.uniform(-2, 2)), float(rng.uniform(1, 3)),
-                                                  float(rng.uniform(-2, 2))], "radius": r,
-                     "emitter": {"type": "area", "radiance": rgb(gain * float(rng.uniform(2, 20)))}}
+        d["lamp"] = sphere_light([float(rng.uniform(-2, 2)), float(rng.uniform(1, 3)), float(rng.uniform(-2, 2))],
+                                 r, gain * float(rng.uniform(2, 20)))
     d.update(_objects(rng, seed, (-2.5, 2.5, -2.5, 2.5), broad_light=True))
     return d
 

@@ -1,47 +1,15 @@
 """Every file a scene XML names, checked before Mitsuba opens any of them.
 
-Why: Mitsuba opens what a scene names itself, past `noisefeat.safeio`: a ``<shape
-type="ply">`` naming /dev/zero grew a render to 7.6 GB, an ``<include>`` or a bitmap of a
-FIFO hung it. So the XML is walked first, as Mitsuba 3's parser reads it
-(src/core/parser.cpp, 3.9), and each file it names must be a regular file within its kind's
-cap (`safeio.CAPS`: mesh, texture, environment map, included scene, ...); the first that is
-not is refused in one line naming the file and the element naming it.
-
-What the walk follows, as Mitsuba does:
-
-* ``$name`` in any attribute is replaced by the -D value or the ``<default>`` seen so far
-  (longest name first, ``\\$`` escaped); an attribute left with an unknown ``$name`` is not
-  checked: Mitsuba refuses it while parsing, before it opens anything;
-* ``<include filename>`` is resolved against the including file's folder, then the folders
-  the include chain was resolved with, and read (depth below Mitsuba's 15; a file that
-  includes itself, directly or not, is refused as a loop; at most `MAX_FILES` files read);
-* ``<path value>`` at a file's top adds a search folder (for the includes after it, and,
-  in the top file, for every plugin's file);
-* a ``filename`` property (``<string name="filename">``: ply, obj and serialized meshes,
-  bitmaps, environment maps, volume grids, measured BSDFs) is resolved as Mitsuba resolves it
-  when the plugin loads: against the top file's ``<path>`` folders, its own folder, then
-  Mitsuba's search paths (the current folder first), **not** an include's folder;
-  ``<spectrum filename>`` likewise.
-
-A name found nowhere is checked where Mitsuba would look last (relative to the current
-folder): a missing file is a one-line FileNotFoundError here, not Mitsuba's later error.
-Paths are joined as Mitsuba joins them and resolved by the OS (never normalised: through a
-link, ``L/..`` is not the folder holding L).
-
-What the walk reads as Mitsuba reads it, or refuses:
-
-* the text: in the encoding pugixml reads (`xml_encoding`); a DOCTYPE is refused: pugixml
-  skips it, while expat would apply its entities (how an XML file grows without bound) and
-  attribute declarations (an NMTOKENS attribute's spaces folded: another file name than
-  Mitsuba's);
-* the files a plugin reads, past their size cap: images' pixels (`image_headers`), meshes'
-  and grids' element counts (`mesh_headers`), bounded by ``safeio.CAPS``;
-* plugin types: a plain name, and no ``plugins/<type>.so`` in the folders Mitsuba would
-  load it from (`plugin_libs`);
-* its own cost: objects nest at most `MAX_NESTING` deep, elements `MAX_ELEMENT_DEPTH`,
-  at most `MAX_FILES` include visits and `MAX_XML_BYTES` of XML (repeats counted, as Mitsuba
-  parses each include each time), `MAX_PATHS` <path> folders; an include seen again with the
-  same folders, parameters and nesting is not parsed again.
+Mitsuba opens what a scene names itself, past `noisefeat.safeio`: a ply naming /dev/zero grew
+a render to 7.6 GB, an include or a bitmap of a FIFO hung it. So the XML is walked first as
+Mitsuba 3's parser reads it (src/core/parser.cpp, 3.9): ``$name`` substituted, includes
+followed, ``<path>`` folders added, each ``filename`` resolved where the plugin will resolve it
+(the top file's folders, not an include's); paths are joined as Mitsuba joins them, never
+normalised (through a link, ``L/..`` is not L's folder). Each file named must be a regular file
+within its kind's cap (`safeio.CAPS`) and header bounds (`image_headers`, `mesh_headers`); a
+DOCTYPE (which expat would apply and pugixml skips), text not read as pugixml reads it
+(`xml_encoding`), a plugin library in the scene's folders (`plugin_libs`) and a walk past the
+MAX_ bounds are refused too: each in one line naming the file and the element naming it.
 """
 from __future__ import annotations
 
@@ -231,8 +199,8 @@ class _Walk:
         resolver.insert(0, p)
 
     def check_plugin_files(self) -> None:
-        """Each plugin's `filename`, resolved as it will be when the plugin loads: a regular
-        file within its kind's cap, and within the bounds its header check reads."""
+        """Each plugin's `filename`, resolved as when the plugin loads: a regular file within its
+        kind's cap and its header check's bounds."""
         seen: set[tuple[object, ...]] = set()
         for name, kind, element, where, tag, type_, props in self.plugin_files:
             named = f" (named by {element} in {where})"
@@ -261,8 +229,7 @@ def _integer(value: str | None) -> int:
 
 
 def _resolve(name: str, resolver: Sequence[str]) -> str:
-    """Mitsuba's FileResolver.resolve: the first folder in which a relative name exists,
-    else the name as given (relative to the current folder)."""
+    """Mitsuba's FileResolver.resolve: the first folder a relative name exists in, else the name."""
     if not os.path.isabs(name):
         for base in resolver:
             candidate = os.path.join(base, name)
@@ -272,8 +239,7 @@ def _resolve(name: str, resolver: Sequence[str]) -> str:
 
 
 def _found(name: str, resolver: Sequence[str], kind: str, named_by: str) -> str:
-    """`name` resolved (`_resolve`); a relative name found nowhere: FileNotFoundError naming
-    the folders searched."""
+    """`name` resolved; a relative name found nowhere: FileNotFoundError naming the folders."""
     path = _resolve(name, resolver)
     if not os.path.isabs(name) and not os.path.lexists(path):
         raise FileNotFoundError(f"{name}: {kind} not found in {', '.join(dict.fromkeys(resolver))}{named_by}")
@@ -284,21 +250,16 @@ def _checked(call: Callable[[], T], named_by: str) -> T:
     """`call()`, its one-line refusal told which element named the file."""
     try:
         return call()
-    except FileNotFoundError as exc:
-        raise FileNotFoundError(f"{exc}{named_by}") from None
-    except InputFileError as exc:
-        raise InputFileError(f"{exc}{named_by}") from None
+    except (FileNotFoundError, InputFileError) as exc:
+        raise type(exc)(f"{exc}{named_by}") from None
 
 
 def check_scene_files(path: str | os.PathLike[str], defines: Mapping[str, str] | None = None,
                       search: Sequence[str | os.PathLike] | None = None, own: str | None = None) -> None:
-    """Refuse, in one line, a scene XML at `path` (the path Mitsuba is given) that names a
-    file which is not a regular file within its kind's cap and header bounds, a plugin
-    library in its search folders, or whose includes loop or nest too deep.
-
-    `defines`: the -D parameters it is loaded with; `search`: Mitsuba's search folders
-    (``mi.file_resolver()``; None: the current folder); `own`: Mitsuba's folder, whose
-    plugin libraries are Mitsuba's (None: every folder is looked at)."""
+    """Refuse, in one line, the scene XML Mitsuba is given as `path` if a file it names (or the
+    walk) breaks a rule of this module. `defines`: its -D parameters; `search`: Mitsuba's search
+    folders (None: the current folder); `own`: Mitsuba's folder, whose plugin libraries are its
+    own (None: none is)."""
     path = os.fspath(path)
     path = path if os.path.isabs(path) else os.path.join(os.getcwd(), path)
     walk = _Walk(defines, [os.getcwd()] if search is None else search, own)

@@ -1,9 +1,7 @@
-"""The training library of built-in scenes, each a ``mi.load_dict`` description made from
-the image resolution alone (`renderer.scenes.catalog` lists them and says why every scene shares
-its integrator, film and sampler settings; `renderer.scenes.heldout` is the held-out set)."""
+"""The training library of built-in scenes (`catalog.SCENES` lists and describes them)."""
 from __future__ import annotations
 
-from .scene_kit import SceneDict, T, base, checker_texture, diffuse, rgb
+from .scene_kit import SceneDict, T, base, checker_texture, diffuse, rgb, sphere, sphere_light
 
 
 CB_WHITE = [0.885809, 0.698859, 0.666422]
@@ -12,13 +10,8 @@ CB_GREEN = [0.105421, 0.37798, 0.076425]
 CB_LIGHT = [18.387, 13.9873, 6.75357]
 
 
-def _room(
-    floor: dict | None = None,
-    ceiling: dict | None = None,
-    back: dict | None = None,
-    left: dict | None = None,
-    right: dict | None = None,
-) -> SceneDict:
+def _room(floor: dict | None = None, ceiling: dict | None = None, back: dict | None = None,
+          left: dict | None = None, right: dict | None = None) -> SceneDict:
     """The five walls of the [-1, 1]^3 Cornell room (open towards the camera at +z)."""
     return {
         "floor": {"type": "rectangle", "to_world": T().translate([0, -1, 0]).rotate([1, 0, 0], -90),
@@ -55,10 +48,11 @@ def _boxes(bsdf_small: dict | None = None, bsdf_tall: dict | None = None) -> Sce
     }
 
 
-def _cornell_like(resolution: int, light_scale: float = 1.0) -> SceneDict:
+def _cornell_like(resolution: int, light: dict) -> SceneDict:
+    """The Cornell room and its two boxes under `light`."""
     d = base(resolution)
     d.update(_room())
-    d["light"] = _ceiling_light([c * light_scale for c in CB_LIGHT])
+    d["light"] = light
     d.update(_boxes())
     return d
 
@@ -67,40 +61,30 @@ def _cornell_like(resolution: int, light_scale: float = 1.0) -> SceneDict:
 
 
 def cornell(resolution: int) -> SceneDict:
-    return _cornell_like(resolution)
+    return _cornell_like(resolution, _ceiling_light(CB_LIGHT))
 
 
 def cornell_dark(resolution: int) -> SceneDict:
-    return _cornell_like(resolution, light_scale=0.04)
+    return _cornell_like(resolution, _ceiling_light([c * 0.04 for c in CB_LIGHT]))
 
 
 def cornell_bright(resolution: int) -> SceneDict:
-    return _cornell_like(resolution, light_scale=12.0)
+    return _cornell_like(resolution, _ceiling_light([c * 12.0 for c in CB_LIGHT]))
 
 
 def large_light(resolution: int) -> SceneDict:
-    d = base(resolution)
-    d.update(_room())
-    d["light"] = _ceiling_light([c * 0.075 for c in CB_LIGHT], sx=0.85, sz=0.85)
-    d.update(_boxes())
-    return d
+    return _cornell_like(resolution, _ceiling_light([c * 0.075 for c in CB_LIGHT], sx=0.85, sz=0.85))
 
 
 def small_light(resolution: int) -> SceneDict:
-    d = base(resolution)
-    d.update(_room())
-    d["light"] = {"type": "sphere", "center": [0.0, 0.85, 0.0], "radius": 0.025,
-                  "emitter": {"type": "area", "radiance": rgb([1400.0, 1100.0, 700.0])}}
-    d.update(_boxes())
-    return d
+    return _cornell_like(resolution, sphere_light([0.0, 0.85, 0.0], 0.025, [1400.0, 1100.0, 700.0]))
 
 
 def glossy(resolution: int) -> SceneDict:
     d = base(resolution)
     d.update(_room(back={"type": "roughplastic", "diffuse_reflectance": rgb(CB_WHITE), "alpha": 0.08}))
     d["light"] = _ceiling_light(CB_LIGHT)
-    d["gold_sphere"] = {"type": "sphere", "center": [0.4, -0.6, 0.25], "radius": 0.4,
-                        "bsdf": {"type": "roughconductor", "material": "Au", "alpha": 0.15}}
+    d["gold_sphere"] = sphere([0.4, -0.6, 0.25], 0.4, {"type": "roughconductor", "material": "Au", "alpha": 0.15})
     d["plastic_box"] = {"type": "cube",
                         "to_world": T().translate([-0.4, -0.45, -0.3]).rotate([0, 1, 0], 20).scale([0.3, 0.55, 0.3]),
                         "bsdf": {"type": "roughplastic", "diffuse_reflectance": rgb([0.1, 0.2, 0.6]), "alpha": 0.05}}
@@ -112,34 +96,28 @@ def mirrors(resolution: int) -> SceneDict:
     d = base(resolution)
     d.update(_room())
     d["light"] = _ceiling_light([c * 0.4 for c in CB_LIGHT], sx=0.4, sz=0.3)
-    # Two facing mirror panels on the side walls: the spheres repeat down a hall of
-    # reflections that changes with the view point.
+    # facing mirrors on the side walls: the spheres repeat down a view-dependent hall of reflections
     d["mirror_left"] = {"type": "rectangle", "bsdf": mirror,
                         "to_world": T().translate([-0.98, -0.2, -0.2]).rotate([0, 1, 0], 90).scale([0.7, 0.55, 1])}
     d["mirror_right"] = {"type": "rectangle", "bsdf": mirror,
                          "to_world": T().translate([0.98, -0.2, -0.2]).rotate([0, 1, 0], -90).scale([0.7, 0.55, 1])}
-    d["diffuse_sphere"] = {"type": "sphere", "center": [-0.3, -0.65, 0.1], "radius": 0.35,
-                           "bsdf": diffuse([0.2, 0.3, 0.8])}
-    d["steel_sphere"] = {"type": "sphere", "center": [0.4, -0.7, -0.35], "radius": 0.3,
-                         "bsdf": {"type": "roughconductor", "material": "Cr", "alpha": 0.05}}
+    d["diffuse_sphere"] = sphere([-0.3, -0.65, 0.1], 0.35, diffuse([0.2, 0.3, 0.8]))
+    d["steel_sphere"] = sphere([0.4, -0.7, -0.35], 0.3, {"type": "roughconductor", "material": "Cr", "alpha": 0.05})
     return d
 
 
 def glass_caustic(resolution: int) -> SceneDict:
     d = base(resolution)
     d.update(_room())
-    d["light"] = {"type": "sphere", "center": [0.0, 0.8, 0.0], "radius": 0.06,
-                  "emitter": {"type": "area", "radiance": rgb([220.0, 180.0, 120.0])}}
-    d["glass_sphere"] = {"type": "sphere", "center": [0.0, -0.55, 0.1], "radius": 0.45,
-                         "bsdf": {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0}}
+    d["light"] = sphere_light([0.0, 0.8, 0.0], 0.06, [220.0, 180.0, 120.0])
+    d["glass_sphere"] = sphere([0.0, -0.55, 0.1], 0.45, {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0})
     return d
 
 
 def indirect(resolution: int) -> SceneDict:
     d = base(resolution)
     d.update(_room())
-    # Cove lighting: an upward-facing light on top of a shelf; the camera only sees the
-    # shelf's underside, the room is lit by the bounce off the ceiling.
+    # cove lighting: a light facing up on a shelf the camera sees from below; the ceiling's bounce lights the room
     d["shelf"] = {"type": "rectangle",
                   "to_world": T().translate([0, 0.6, -0.2]).rotate([1, 0, 0], 90).scale([0.75, 0.55, 1]),
                   "bsdf": diffuse(0.7)}
@@ -158,8 +136,7 @@ def checker(resolution: int) -> SceneDict:
     d.update(_room(floor=tex(0.1, 0.8, 12), back=tex([0.7, 0.7, 0.2], [0.2, 0.2, 0.6], 20),
                    left=tex(CB_RED, 0.8, 8), right=tex(CB_GREEN, 0.8, 8)))
     d["light"] = _ceiling_light(CB_LIGHT, sx=0.35, sz=0.3)
-    d["sphere"] = {"type": "sphere", "center": [0.35, -0.6, 0.2], "radius": 0.4,
-                   "bsdf": tex(0.05, 0.9, 24)}
+    d["sphere"] = sphere([0.35, -0.6, 0.2], 0.4, tex(0.05, 0.9, 24))
     d["box"] = {"type": "cube",
                 "to_world": T().translate([-0.4, -0.45, -0.3]).rotate([0, 1, 0], 20).scale([0.3, 0.55, 0.3]),
                 "bsdf": tex([0.9, 0.5, 0.1], 0.1, 6)}
@@ -178,7 +155,6 @@ def _facing(p: list[float], a: list[float], b: list[float]) -> list[float]:
 
 
 def mis_plates(resolution: int) -> SceneDict:
-    """Veach-style MIS test: four plates of falling roughness, four lights of rising size."""
     cam = [0.0, 2.0, 15.0]
     d = base(resolution, origin=tuple(cam), target=(0.0, -1.8, 2.0), fov=30.0)
     d["floor"] = {"type": "rectangle", "to_world": T().translate([0, -4.5, 0]).rotate([1, 0, 0], -90).scale(20),
@@ -194,8 +170,7 @@ def mis_plates(resolution: int) -> SceneDict:
                           "bsdf": {"type": "roughconductor", "material": "Cu", "alpha": alpha}}
     lights = [(-3.0, 0.04, 600.0), (-1.0, 0.12, 70.0), (1.0, 0.35, 8.0), (3.0, 0.8, 1.5)]
     for i, (x, r, L) in enumerate(lights):
-        d[f"light{i}"] = {"type": "sphere", "center": [x, light_y, light_z], "radius": r,
-                          "emitter": {"type": "area", "radiance": rgb(L)}}
+        d[f"light{i}"] = sphere_light([x, light_y, light_z], r, L)
     return d
 
 
@@ -204,11 +179,10 @@ def env_spheres(resolution: int) -> SceneDict:
     d["sky"] = {"type": "constant", "radiance": rgb([0.6, 0.75, 1.0])}
     d["ground"] = {"type": "rectangle", "to_world": T().translate([0, -0.5, 0]).rotate([1, 0, 0], -90).scale(8),
                    "bsdf": diffuse(0.5)}
-    d["s_diffuse"] = {"type": "sphere", "center": [-1.1, 0.0, 0.0], "radius": 0.5, "bsdf": diffuse([0.8, 0.3, 0.2])}
-    d["s_glossy"] = {"type": "sphere", "center": [0.0, 0.0, 0.0], "radius": 0.5,
-                     "bsdf": {"type": "roughplastic", "diffuse_reflectance": rgb([0.2, 0.6, 0.3]), "alpha": 0.1}}
-    d["s_glass"] = {"type": "sphere", "center": [1.1, 0.0, 0.0], "radius": 0.5,
-                    "bsdf": {"type": "dielectric", "int_ior": 1.5}}
+    d["s_diffuse"] = sphere([-1.1, 0.0, 0.0], 0.5, diffuse([0.8, 0.3, 0.2]))
+    d["s_glossy"] = sphere([0.0, 0.0, 0.0], 0.5,
+                           {"type": "roughplastic", "diffuse_reflectance": rgb([0.2, 0.6, 0.3]), "alpha": 0.1})
+    d["s_glass"] = sphere([1.1, 0.0, 0.0], 0.5, {"type": "dielectric", "int_ior": 1.5})
     return d
 
 

@@ -1,16 +1,11 @@
-"""The text encoding Mitsuba's XML parser (pugixml) reads a scene file in, told as it tells it.
+"""The text encoding Mitsuba's XML parser (pugixml) reads a scene file in.
 
-Why: the walker (`renderer.scenes.scenefiles`) must check the file names Mitsuba will open.
-Python's expat decodes a file in the encoding it declares; pugixml ignores most
-declarations and reads UTF-8. A scene declaring ``encoding="windows-1252"`` named the bytes
-``m\\xc3\\xa9.ply``: the walker checked ``mÃ©.ply`` (a regular file) and Mitsuba opened
-``mé.ply`` (a FIFO), and hung. So the walker parses in the encoding pugixml will use
-(`pugixml_encoding`, a port of pugixml's ``guess_buffer_encoding``: a UTF-16/32 byte-order
-mark or NUL pattern, else a declared ISO-8859-1 / latin1, else UTF-8), and refuses:
-
-* UTF-16 and UTF-32 files (pugixml converts them; the walker does not follow);
-* a file with bytes over 127 that declares an encoding other than the one pugixml reads it
-  in: its author meant other names than the ones Mitsuba would open.
+Expat decodes a file in the encoding it declares; pugixml ignores most declarations and reads
+UTF-8. A scene declaring ``windows-1252`` named the bytes ``m\\xc3\\xa9.ply``: the walker
+checked ``mÃ©.ply`` (a regular file) while Mitsuba opened ``mé.ply`` (a FIFO), and hung. So the
+walker parses in `pugixml_encoding` (pugixml's ``guess_buffer_encoding``: a UTF-16/32 mark or
+NUL pattern, else a declared ISO-8859-1 / latin1, else UTF-8) and refuses UTF-16/32 files and
+a non-ASCII file declaring another encoding than that (`declaration_error`).
 """
 from __future__ import annotations
 
@@ -28,9 +23,7 @@ _NAMES = {"UTF-8": {"utf-8", "utf8"}, "ISO-8859-1": {"iso-8859-1", "latin1", "la
 def pugixml_encoding(data: bytes) -> str | None:
     """``"UTF-8"`` or ``"ISO-8859-1"``: the encoding pugixml parses `data` in; None for
     UTF-16 or UTF-32 (or NUL bytes where pugixml looks for them)."""
-    if len(data) < 4:
-        return "UTF-8"
-    if data[:3] == b"\xef\xbb\xbf":
+    if len(data) < 4 or data[:3] == b"\xef\xbb\xbf":
         return "UTF-8"
     if data[:2] in (b"\xfe\xff", b"\xff\xfe") or 0 in data[:2]:
         return None
@@ -44,8 +37,7 @@ def pugixml_encoding(data: bytes) -> str | None:
 
 
 def declaration_error(declared: str | None, used: str, data: bytes) -> str | None:
-    """Why a file declaring `declared` and read in `used` is refused, or None: only a file
-    with bytes over 127 can be read differently from what its declaration says."""
+    """Why a file declaring `declared` and read in `used` is refused, or None (always for ASCII)."""
     if declared is None or declared.lower() in _NAMES[used] or data.isascii():
         return None
     return (f'declares encoding="{declared}", but Mitsuba reads it as {used}: save it as UTF-8 '

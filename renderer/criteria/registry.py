@@ -63,8 +63,7 @@ def declare(cls: T) -> T:
                                                     for k, s in settings.items()):
         raise ValueError(f"criterion {name}: settings must map row names to Setting, got {settings!r}")
     known = _declared.get(name)
-    if known is not None and known is not cls and \
-            (known.__module__, known.__qualname__) != (cls.__module__, cls.__qualname__):
+    if known is not None and (known.__module__, known.__qualname__) != (cls.__module__, cls.__qualname__):
         raise ValueError(f"criterion {name!r} is declared twice: {known.__module__}.{known.__qualname__} and "
                          f"{cls.__module__}.{cls.__qualname__}")
     _declared[name] = cls

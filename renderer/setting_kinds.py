@@ -1,11 +1,6 @@
-"""The kinds of a render setting's row (`renderer.settings.ROWS` holds the rows): each kind
-is a class, as scikit-learn's `Interval` and `StrOptions` are constraints of their own:
-`IntRow` and `FloatRow` (a range), `PathRow`, `CriterionRow`, `GridRow`, `ResolutionRow`,
-`DefinesRow`, and `BlockRow` and `TileRow` (an int row with more to say). A row checks a
-value (`check`: a one-line ValueError naming the setting), reads command-line text
-(`parse`, the argparse type), and explains itself (`help_text`: its documentation with what
-each criterion declares of it). Also here: the doors a row may be offered at, and the
-ASCII number parsers every door shares. Nothing heavy is imported.
+"""The kinds of a render setting's row (`renderer.settings.ROWS`), one class each: a row
+checks a value (`check`), reads command-line text (`parse`) and explains itself
+(`help_text`). Also the doors and the ASCII number parsers every door shares.
 """
 from __future__ import annotations
 
@@ -13,7 +8,7 @@ import argparse
 import math
 import os
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -24,15 +19,14 @@ from noisefeat.bounds import SizeBounds
 from .criteria.registry import TILE, declared
 from .criteria.registry import names as criterion_names
 
-#: the largest frame side and grid count a setting may name (the frame bounds of
-#: noisefeat.bounds then cap the pixels)
+#: the largest frame side and grid count a setting may name (noisefeat.bounds caps the pixels)
 MAX_SIDE = 65536
 #: the doors: renderer.render's keywords, the command line's flags, the plugin's properties
 API, CLI, XML = "api", "cli", "plugin"
 ALL_DOORS = frozenset({API, CLI, XML})
 _DEFINE_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
-#: a number as a user types it: ASCII digits only (Python's int and float also take `１６`,
-#: `٢` and `1_024`, which no one means on a command line), spaces around it
+_DEFINES = "defines must be KEY=VALUE pairs, KEY a parameter name and VALUE not empty, got "
+#: ASCII digits only: int and float also take `１６`, `٢` and `1_024`, which no one means
 _ASCII_INT = re.compile(r"[ \t]*[+-]?[0-9]+[ \t]*")
 _ASCII_FLOAT = re.compile(r"[ \t]*[+-]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|inf|infinity|nan)[ \t]*",
                           re.IGNORECASE)
@@ -46,8 +40,8 @@ def ascii_int(text: str) -> int:
 
 
 def ascii_float(text: str) -> float:
-    """`float(text)` for ASCII digits only (inf and nan are spelled out, for the range
-    checks to refuse in their own words); ValueError otherwise."""
+    """`float(text)` for ASCII digits only (inf and nan pass, for the range checks to refuse
+    in their own words); ValueError otherwise."""
     if not isinstance(text, str) or not _ASCII_FLOAT.fullmatch(text):
         raise ValueError(f"not a number in ASCII digits: {text!r}")
     return float(text)
@@ -55,7 +49,7 @@ def ascii_float(text: str) -> float:
 
 def _shown(value: Any) -> str:
     """A refused value as an error message shows it: short, whatever its size."""
-    if isinstance(value, (int, np.integer)) and not isinstance(value, bool) and abs(int(value)) >= 10**15:
+    if _is_int(value) and abs(int(value)) >= 10**15:
         try:
             return f"a {len(str(abs(int(value))))}-digit number"
         except ValueError:          # str() refuses past 4300 digits
@@ -65,12 +59,10 @@ def _shown(value: Any) -> str:
 
 
 def _num(x: Any) -> str:
-    """A bound as written: whole numbers in full (1048576, not 1.04858e+06)."""
+    """A bound or default as written: whole numbers in full (1048576, not 1.04858e+06)."""
+    if not isinstance(x, (int, float, np.integer, np.floating)) or isinstance(x, bool):
+        return str(x)
     return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:g}"
-
-
-def _default(value: Any) -> str:
-    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 def _is_int(value: Any) -> bool:
@@ -79,9 +71,7 @@ def _is_int(value: Any) -> bool:
 
 @dataclass(frozen=True)
 class Row:
-    """One setting: name, default (None: none, or decided as `doc` says), one line of
-    documentation, the doors that offer it and its command line's metavar. A subclass is a
-    kind of value: how it is checked, read from text and shown in renderer.render's help."""
+    """One setting (default None: none, or decided as `doc` says); a subclass is a kind of value."""
 
     name: str
     default: Any
@@ -101,12 +91,11 @@ class Row:
         raise NotImplementedError
 
     def from_text(self, text: str) -> Any:
-        """Command-line text as a value for `check` (text it cannot read is left for `check`
-        to refuse in the row's own words)."""
+        """Command-line text as a value for `check` (unreadable text is left for `check` to refuse)."""
         return text
 
     def parse(self, text: str) -> Any:
-        """Command-line text as this row's value, checked: argparse's type."""
+        """argparse's type: command-line text as this row's value, checked."""
         try:
             return self.check(self.from_text(text))
         except ValueError as exc:
@@ -121,12 +110,11 @@ class Row:
         return value
 
     def note(self) -> str:
-        """What the help adds to `doc` (criteria-dependent text)."""
+        """What the help adds to `doc` from the criteria."""
         return ""
 
     def help_text(self) -> str:
-        """The row's help (the command line's, renderer.render's docstring): its documentation,
-        what each criterion that takes it says of it, and its default."""
+        """The row's help (command line, renderer.render's docstring): doc, the criteria's word, default."""
         text = self.doc + self.note()
         users = {name: cls.settings[self.name] for name, cls in declared().items() if self.name in cls.settings}
         if users:
@@ -134,10 +122,10 @@ class Row:
             for name, setting in users.items():
                 said = [setting.doc] if setting.doc else []
                 if setting.default is not None:
-                    said.append(f"default {_default(setting.default)}")
+                    said.append(f"default {_num(setting.default)}")
                 text += f"; {name}: {', '.join(said)}" if said else ""
         if self.default is not None and "default" not in text:
-            text += f" (default {_default(self.default)})"
+            text += f" (default {_num(self.default)})"
         return text
 
 
@@ -149,6 +137,15 @@ class Interval(Row):
     high: float
     open_low: bool = False
 
+    #: how command-line text becomes a number
+    read: ClassVar[Callable[[str], Any]]
+
+    def from_text(self, text: str) -> Any:
+        try:
+            return self.read(text)
+        except ValueError:
+            return text
+
     def range_text(self) -> str:
         return f"{'(' if self.open_low else '['}{_num(self.low)}, {_num(self.high)}]"
 
@@ -158,17 +155,12 @@ class IntRow(Interval):
     """A whole number in range."""
 
     type_doc: ClassVar[str] = "int"
+    read = staticmethod(ascii_int)
 
     def check(self, value: Any) -> int:
         if not _is_int(value) or not self.low <= value <= self.high:
             raise ValueError(f"{self.name} must be a whole number in {self.range_text()}, got {_shown(value)}")
         return int(value)
-
-    def from_text(self, text: str) -> Any:
-        try:
-            return ascii_int(text)
-        except ValueError:
-            return text
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -176,6 +168,7 @@ class FloatRow(Interval):
     """A finite number in range."""
 
     type_doc: ClassVar[str] = "float"
+    read = staticmethod(ascii_float)
 
     def check(self, value: Any) -> float:
         ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
@@ -189,17 +182,10 @@ class FloatRow(Interval):
             raise ValueError(f"{self.name} must be a finite number in {self.range_text()}, got {_shown(value)}")
         return float(value)
 
-    def from_text(self, text: str) -> Any:
-        try:
-            return ascii_float(text)
-        except ValueError:
-            return text
-
 
 @dataclass(frozen=True, kw_only=True)
 class BlockRow(IntRow):
-    """A block side: in range, and within the block bounds (noisefeat.bounds,
-    environment-configurable)."""
+    """A block side, also within noisefeat's block bounds (environment-configurable)."""
 
     def check(self, value: Any) -> int:
         side = super().check(value)
@@ -230,8 +216,7 @@ class PathRow(Row):
 
 @dataclass(frozen=True)
 class CriterionRow(Row):
-    """A declared criterion's name (`renderer.criteria.registry`), or a Criterion object
-    (renderer.render only)."""
+    """A declared criterion's name, or a Criterion object (renderer.render only)."""
 
     type_doc: ClassVar[str] = "str or Criterion"
 
@@ -284,8 +269,7 @@ class GridRow(Row):
 
 @dataclass(frozen=True)
 class ResolutionRow(Row):
-    """N (the long side; the film's aspect ratio is kept) or 'WxH' / (W, H) (both sides),
-    each side in [1, MAX_SIDE], within the frame bounds before any scene loads."""
+    """N (the long side, aspect kept) or 'WxH' / (W, H), within the frame bounds before any scene loads."""
 
     type_doc: ClassVar[str] = "int or (int, int) or str"
 
@@ -327,15 +311,13 @@ class DefinesRow(Row):
         if not isinstance(value, Mapping) or not all(
                 isinstance(k, str) and _DEFINE_KEY.fullmatch(k) and isinstance(v, str) and v.strip()
                 for k, v in value.items()):
-            raise ValueError(f"defines must be KEY=VALUE pairs, KEY a parameter name and VALUE not empty, "
-                             f"got {_shown(value)}")
+            raise ValueError(_DEFINES + _shown(value))
         return {k: v.strip() for k, v in value.items()}
 
     def from_text(self, text: str) -> Any:
         key, sep, val = text.partition("=")
         if not sep:
-            raise ValueError(f"defines must be KEY=VALUE pairs, KEY a parameter name and VALUE not "
-                             f"empty, got {_shown(text)}")
+            raise ValueError(_DEFINES + _shown(text))
         return {key.strip(): val}
 
     def cli_options(self) -> dict[str, Any]:

@@ -1,9 +1,6 @@
-"""Every setting of a render, each one row (`ROWS`): its name, kind, default, range, one line
-of documentation and the doors that offer it. The one place a setting is defined; the kinds
-of rows, how each checks, parses and explains a value, are `renderer.setting_kinds`.
-`renderer.spec.resolve` combines a render's rows; a criterion takes a row by its declaration
-(`declared_row`, `declared_values`). Nothing heavy is imported: the command line builds its
-parser from the rows.
+"""Every setting of a render, one row each (`ROWS`): the one place a setting is defined
+(the kinds of rows are `renderer.setting_kinds`). Nothing heavy is imported: the command
+line builds its parser from the rows.
 """
 from __future__ import annotations
 
@@ -17,19 +14,17 @@ from noisefeat.bounds import EXPOSURE_RANGE
 from .setting_kinds import (API, CLI, MAX_SIDE, XML, BlockRow, CriterionRow, DefinesRow, FloatRow, GridRow, IntRow,
                             PathRow, ResolutionRow, Row, TileRow)
 
-#: spp settings are whole numbers in [1, MAX_SPP]; a render makes at most MAX_PASSES passes
-#: (each appends a row to the checkpointed history)
+#: spp settings are in [1, MAX_SPP]; at most MAX_PASSES passes (each a row of the checkpointed history)
 MAX_SPP = 1 << 20
 MAX_PASSES = 10_000
-#: the longest time limit, seconds (a year: anything longer is a typo)
+#: a year, in seconds: a longer time limit is a typo
 MAX_TIME_LIMIT = 365 * 24 * 3600.0
 MAX_SEED = 2**32 - 1
 #: the block size the bundled model and flip's c(tau) were trained and calibrated on
 DEFAULT_BLOCK = 64
 #: the observer's tile (its 16x16 tile means): the finest grain its guarantee holds at
 DEFAULT_TILE = 16
-#: what `noisestop render` and `make run` use unless told: the criterion that measured best
-#: on the held-out scenes at <= 5 % early stops (README "Deciding a stop", BENCHMARKS.md)
+#: the criterion that measured best on the held-out scenes at <= 5 % early stops (BENCHMARKS.md)
 DEFAULT_CRITERION = "flip"
 
 
@@ -39,7 +34,6 @@ def _spp(name: str, default: int, doc: str) -> IntRow:
 
 #: every setting of a render, in the order renderer.render lists them
 ROWS: tuple[Row, ...] = (
-    # the criteria are their own declarations (`renderer.criteria.registry`): the help lists them
     CriterionRow("criterion", DEFAULT_CRITERION, "when a unit has converged"),
     FloatRow("tau", DEFAULT_TAU,
              "noise target: the largest 16x16-tile mean FLIP against the reference a converged block may "
@@ -94,20 +88,17 @@ ROWS: tuple[Row, ...] = (
     _spp("quick_spp", 16, "samples of the quick image a model criterion reads (rendered once)"),
     DefinesRow("defines", None, "an XML scene's <default> parameters, as mitsuba -D KEY=VALUE",
                doors=frozenset({API, CLI}), metavar="KEY=VALUE"),
-    # a render into a folder (the command line's; `adaptive_render`'s keyword): how often it checkpoints
     FloatRow("checkpoint_every", 30.0, "seconds between checkpoints (also written at the end, at --time-limit "
              "and on Ctrl-C/SIGTERM); 0: after every pass", low=0.0, high=1e9, metavar="S",
              doors=frozenset({CLI})),
 )
 ROW = {r.name: r for r in ROWS}
-#: the plugin's properties: the rows it offers, plus `progress` (how a render shows, not
-#: what it renders)
+#: the plugin's properties (it adds `progress`: how a render shows, not what it renders)
 PLUGIN_ROWS = tuple(r for r in ROWS if XML in r.doors)
 
 
 def declared_row(criterion: type, name: str) -> Row:
-    """Row `name` as `criterion` (a class) takes it: its declared default and range where it
-    declares them (`renderer.criteria.registry.Setting`), else the row's."""
+    """Row `name` with the default and range `criterion` (a class) declares for it, if any."""
     row = ROW[name]
     setting = getattr(criterion, "settings", {}).get(name)
     if setting is None:
@@ -117,8 +108,7 @@ def declared_row(criterion: type, name: str) -> Row:
 
 
 def declared_values(criterion: type, given: Mapping[str, Any]) -> dict[str, Any]:
-    """The settings `given` to a criterion's constructor (None: not given) by its
-    declaration: each checked by its `declared_row`, or that row's default."""
+    """A criterion constructor's settings (None: not given) checked or defaulted by its `declared_row`s."""
     check_known(given)
     rows = {name: declared_row(criterion, name) for name in given}
     return {name: rows[name].default if value is None else rows[name].check(value) for name, value in given.items()}

@@ -1,27 +1,8 @@
-"""The render spec: every setting of a render is one row of `ROWS` (`renderer.settings`),
-and `resolve` is the one place a render's settings are defaulted and checked (DESIGN
-"Render spec"), into a typed, frozen `RenderSpec`.
-
-Why one table: settings used to be defaulted and range-checked in five layers (the API,
-the command line's types, the plugin, `run_adaptive`, the budget), and the copies drifted
-into bugs. The doors only collect what they were given ("not given" is None):
-`renderer.render` and `run_adaptive` (keyword arguments: source ``argument``), ``noisestop
-render`` (flags made from the rows, `service.commands.render.add_arguments`: ``command
-line``) and the ``noisestop`` Mitsuba integrator (its properties, `PLUGIN_ROWS`: ``scene
-plugin``, also under `renderer.render`'s arguments for a scene that has one).
-
-`resolve` takes, for each row, the value given, else the scene plugin's, else what the
-reference stack implies, else the row's default, checks it (one-line ValueError naming the
-setting), then the combination, then, given the loaded frame, fits the blocks to it;
-`RenderSpec` records where each value came from. A render resolves its spec once
-(`renderer.live.plan.prepare`), after its scene is loaded: the given values are `checked`
-first, so a bad one still fails before anything loads, and not checked again.
-
-What a criterion takes is its own declaration (`renderer.criteria.registry`): which rows it
-reads, with its own defaults and ranges where the row's do not do (`declared_row`), its
-grain, whether it needs true thresholds, and which given settings choose it. `resolve` and
-the criteria's constructors (`declared_values`) read those; no table here names a
-criterion. This module imports nothing heavy: the command line builds its parser from it.
+"""The render spec: `resolve` is the one place a render's settings (the rows of
+`renderer.settings.ROWS`) are defaulted and checked, into a frozen `RenderSpec` that records
+where each value came from (DESIGN "Render spec"). A door checks what it was given first
+(`checked`), so a bad value fails before anything loads, and is not checked again. No table
+here names a criterion: each declares the rows it takes (`renderer.criteria.registry`).
 """
 from __future__ import annotations
 
@@ -52,9 +33,7 @@ __all__ = ["ARGUMENT", "COMMAND_LINE", "PLUGIN", "DEFAULT", "SCENE", "NOT_USED",
 
 @dataclass(frozen=True)
 class RenderSpec:
-    """A render's settings, resolved and checked (`resolve`): one field per row of ROWS, in
-    their order (tests/renderer/test_render_settings.py holds them equal), plus `sources`
-    (where each came from). Frozen: nothing downstream changes them."""
+    """A render's settings, one field per row of ROWS in their order, and where each came from."""
 
     criterion: str | Declared           # a criterion's name, or a Criterion object (renderer.render)
     tau: float
@@ -95,18 +74,16 @@ class RenderSpec:
                          if getattr(self, k) is not None)
 
     def tile_grain(self) -> int | None:
-        """The tile side when blocks are cut into tiles (tile smaller than the block), else
-        None: whole blocks, or a grid whose block size the frame decides, not known yet."""
+        """The tile side when blocks are cut into tiles, else None (whole blocks, or not known yet)."""
         side = _block_side(self.block, self.grid, self.resolution)
         return self.tile if side is not None and self.tile < side else None
 
     def unit_side(self) -> int | None:
-        """The side of the units the loop decides on: the tile when blocks are cut into
-        tiles, else the block's (None: the frame decides it, not known yet)."""
+        """The side of the units the loop decides on (None: not known yet)."""
         return self.tile_grain() or _block_side(self.block, self.grid, self.resolution)
 
     def settings_source(self) -> dict[str, str]:
-        """report.json ``settings_source``: where every setting in use came from."""
+        """report.json ``settings_source``: where each setting in use came from."""
         return {r.name: self.sources[r.name] for r in ROWS
                 if getattr(self, r.name) is not None and self.sources[r.name] != NOT_USED}
 
@@ -115,30 +92,26 @@ FIELDS = tuple(f.name for f in fields(RenderSpec) if f.name != "sources")
 
 
 def grain_of(criterion: str | Declared) -> str:
-    """A criterion's grain (`renderer.criteria.registry`), by name or of an object."""
+    """A criterion's grain, by name or of an object."""
     return criterion_class(criterion).grain if isinstance(criterion, str) else getattr(criterion, "grain", TILE)
 
 
 def reference_settings(stack: Any) -> dict[str, Any]:
-    """The settings a reference stack implies (only those it determines)."""
-    out: dict[str, Any] = {"grid": tuple(int(g) for g in stack.grid), "max_spp": int(stack.spp[-1]),
-                           "min_spp": int(stack.spp[0])}
-    out["resolution"] = int(stack.width) if stack.width == stack.height else (int(stack.width), int(stack.height))
+    """The settings a reference stack determines."""
     spp = [int(s) for s in stack.spp]
+    out: dict[str, Any] = {"grid": tuple(int(g) for g in stack.grid), "max_spp": spp[-1], "min_spp": spp[0]}
+    out["resolution"] = int(stack.width) if stack.width == stack.height else (int(stack.width), int(stack.height))
     if all(b - a == spp[0] for a, b in zip([0, *spp[:-1]], spp)):   # spp = step, 2 step, 3 step...
         out["step"] = spp[0]
     return out
 
 
 class Checked(dict[str, Any]):
-    """Settings a door was given, each checked by its row (`checked`): `resolve` takes them
-    as they are."""
+    """Settings a door checked (`checked`): `resolve` takes them as they are."""
 
 
 def checked(given: Mapping[str, Any]) -> Checked:
-    """`given`'s values (None: not given, left out), each checked once by its row: what a
-    door checks before anything loads. One-line ValueError naming the setting; unknown
-    names refused."""
+    """`given`'s values (None: not given, left out), each checked by its row, unknown names refused."""
     check_known(given)
     return Checked({name: ROW[name].check(value) for name, value in given.items() if value is not None})
 
@@ -146,13 +119,11 @@ def checked(given: Mapping[str, Any]) -> Checked:
 def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping[str, Any] | None = None,
             reference: Any = None, frame: tuple[int, int] | None = None,
             thresholds_known: bool | None = None) -> RenderSpec:
-    """The `RenderSpec` of a render: each row from `given` (None: not given; `Checked`:
-    checked already), else the scene plugin's properties, else the reference stack's implied
-    settings, else its default (the criterion's declared one for the rows it declares); each
-    checked once, then the combination; with `frame` (the loaded film's (width, height)) the
-    blocks fitted to it (`_fit_frame`). `thresholds_known`: true thresholds will be there
-    for a criterion that needs them (default: a reference stack is given).
-    ValueError (one line, naming the setting) for anything wrong."""
+    """Each row from `given` (None: not given), else the scene `plugin`'s, else the `reference`
+    stack's, else its default (the criterion's, for the rows it declares); then the
+    combination, and with `frame` (the loaded film's (width, height)) the blocks fitted to it.
+    `thresholds_known` (default: a reference is given): a criterion that needs true
+    thresholds will have them. A one-line ValueError naming the setting for anything wrong."""
     check_known(given, plugin)
     ref_source = f"reference {getattr(reference, 'path', '')}".rstrip()
     layers = [(given, source), (plugin or {}, PLUGIN)]
@@ -165,29 +136,23 @@ def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping
                 values[name] = value if isinstance(layer, Checked) else ROW[name].check(value)
                 sources[name] = src
     # blocks are a grid or a block size: the highest layer that names either decides
-    for layer, src in layers:
+    unused = "block" if "grid" in implied else "grid"
+    for layer, _ in layers:
         named = [k for k in ("grid", "block") if layer.get(k) is not None]
         if len(named) == 2:
             raise ValueError("give the blocks either as a grid (--grid ROWS COLS) or as a block size "
                              "(--block PX), not both")
         if named:
             unused = "block" if named[0] == "grid" else "grid"
-            values.pop(unused, None)
-            values[unused], sources[unused] = None, NOT_USED
             break
-    else:
-        if "grid" in implied:
-            values["block"], sources["block"] = None, NOT_USED
-        else:
-            values["grid"], sources["grid"] = None, NOT_USED
+    values[unused], sources[unused] = None, NOT_USED
     for row in ROWS:
         if row.name in values:
             continue
         if row.name in implied:
             values[row.name], sources[row.name] = implied[row.name], ref_source
         else:
-            values[row.name] = row.default
-            sources[row.name] = SCENE if row.name == "resolution" else DEFAULT
+            values[row.name], sources[row.name] = row.default, SCENE if row.name == "resolution" else DEFAULT
     _combine(values, sources, [source, PLUGIN, ref_source, DEFAULT],
              reference is not None if thresholds_known is None else thresholds_known)
     if frame is not None:
@@ -196,8 +161,7 @@ def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping
 
 
 def _combine(values: dict[str, Any], sources: dict[str, str], rank: list[str], thresholds_known: bool) -> None:
-    """The checks no row can make alone, and the criterion a render uses with the settings
-    it declares (`_criterion`)."""
+    """The checks no row can make alone, and the criterion with the settings it declares."""
     def level(name: str) -> int:
         return rank.index(sources[name]) if sources[name] in rank else len(rank)
 
@@ -221,10 +185,9 @@ def _combine(values: dict[str, Any], sources: dict[str, str], rank: list[str], t
 
 
 def _criterion(values: dict[str, Any], sources: dict[str, str], thresholds_known: bool) -> None:
-    """The criterion by its declaration (`renderer.criteria.registry`): a setting given
-    without a criterion chooses the one it `selects` (a model, server or offset: the model,
-    on every door); its declared settings take its defaults and ranges, the settings only
-    other criteria take are ignored with a warning; whole blocks by default at block grain."""
+    """The criterion by its declaration: a setting given without a criterion chooses the one
+    it `selects`; its settings take its defaults and ranges, those only other criteria take
+    are ignored with a warning; whole blocks by default at block grain."""
     declarations = declared()
     if sources["criterion"] == DEFAULT:
         chosen = [(name, key) for name, cls in declarations.items() for key, setting in cls.settings.items()
@@ -255,8 +218,7 @@ def _criterion(values: dict[str, Any], sources: dict[str, str], thresholds_known
 
 
 def _block_side(block: int | None, grid: tuple[int, int] | None, resolution: Any) -> int | None:
-    """A block's longer side in pixels: the block size, or a grid's block on a frame of
-    (W, H) pixels; None while a grid's frame is not known."""
+    """A block's longer side in pixels (a grid's on a (W, H) frame); None while the frame is not known."""
     if block is not None:
         return block
     if grid is not None and isinstance(resolution, tuple):
@@ -265,9 +227,8 @@ def _block_side(block: int | None, grid: tuple[int, int] | None, resolution: Any
 
 
 def _fit_frame(values: dict[str, Any], sources: dict[str, str], width: int, height: int) -> None:
-    """The settings for the loaded frame: its resolution, a default block no larger than the
-    frame's short side, and the blocks, the frame and block bounds (noisefeat.bounds)
-    checked against it: a block no larger than the frame, a grid that divides it."""
+    """The settings for the loaded frame: a default block no larger than its short side, the
+    blocks and the bounds of noisefeat.bounds checked against it."""
     values["resolution"] = (int(width), int(height))
     short, block, grid = int(min(width, height)), values["block"], values["grid"]
     if block is not None and block > short:

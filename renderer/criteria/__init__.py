@@ -1,19 +1,7 @@
-"""Stopping criteria: the contract (`contract`) and what it reads (`batch`), one module per
-criterion, each declaring itself (`registry`), and the factory.
-
-* `ModelCriterion` (`model`): a learned model, in this process or on a verdict server;
-  at tile grain `GatedCriterion` (`gated`): its block verdict gates flip's tile verdicts.
-* `FlipCriterion` (`flip`): training-free FLIP between the two half buffers.
-* `EstimateCriterion` (`estimate`): flip's history corrected per tile by a learned
-  estimate of the observer's error.
-* `VarianceCriterion` (`variance`): Blender Cycles' adaptive-sampling pixel test.
-* `OracleCriterion` (`oracle`): a labelled stack's true thresholds (the best stops).
-* `UniformCriterion` (`uniform`): never stops (the baseline).
-
-A new criterion is one file: a `Criterion` subclass with its declaration, decorated with
-`declare` (in this package, or anywhere imported before the render, or an installed
-package's entry point in the group ``noisestop.criteria``). `make_criterion(spec)` builds
-the one a `renderer.spec.RenderSpec` names; `criterion_names()` lists them.
+"""Stopping criteria: the contract (`contract`), what it reads (`batch`), one module per
+criterion, the registry and the factory. A new criterion is one file: a `Criterion`
+subclass decorated with `declare` (here, in any module imported before the render, or an
+installed package's entry point in the group ``noisestop.criteria``).
 """
 from .batch import UnitBatch, UnitView
 from .contract import (COUNTER_NAMES, EXTERNAL_COUNTER_NAMES, TIMER_NAMES, Criterion, Decision, Tally,

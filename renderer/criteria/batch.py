@@ -1,10 +1,6 @@
 """What a criterion reads: the units it is asked about at once (`UnitBatch`), or one
-`UnitView` per unit for callers outside the loop.
-
-Kept apart from the contract (`renderer.criteria.contract`): this is how the loop's device
-tensors are read lazily and how tiles are put back together into their blocks; that is
-what a criterion answers. torch is imported where a tensor is made, so the command line,
-which lists the criteria, builds its parser without it.
+`UnitView` per unit. torch is imported where a tensor is made, so the command line, which
+lists the criteria, builds its parser without it.
 """
 from __future__ import annotations
 
@@ -19,16 +15,11 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class UnitView:
-    """What a criterion may look at for one unit (a block, or a tile of one) at one moment of the render.
-
-    `mean` is the cumulative mean of every sample so far, [bh, bw, 3] linear RGB.
-    `halves` = (A, B): means of the even-numbered and odd-numbered passes (the
-    `UnitAccumulator` convention), or None when the caller does not track them.
-    `half_spp` = samples in A and in B. `quick` is the unit's part of the quick noise-free image
-    (None if not rendered). `nonfinite` counts (pixel, pass) values the accumulator dropped.
-    A non-finite pixel in `mean`, or in a half whose `half_spp` is positive, is one with no
-    finite estimate: the unit is never converged (the module docstring).
-    """
+    """One unit (a block, or a tile of one) now: `mean` [bh, bw, 3] linear RGB of every
+    sample, `halves` (A, B) the means of the even and odd passes (None: not tracked) with
+    `half_spp` samples, `quick` its part of the quick image, `nonfinite` the dropped
+    (pixel, pass) values. A non-finite pixel in `mean`, or in a half that holds a pass, has
+    no finite estimate (`renderer.criteria.contract`)."""
 
     mean: np.ndarray
     spp: int
@@ -39,20 +30,14 @@ class UnitView:
 
 
 class UnitBatch:
-    """What a criterion may look at for all the units it is asked about, at once.
+    """All the units a criterion is asked about, at once: batched so that a criterion
+    reading whole tensors on the renderer's device sends only its verdicts to the host.
 
-    Why batched: the live loop keeps its accumulators on the renderer's device, and a
-    criterion that reads whole tensors (flip: FLIP on the device) sends only its verdicts
-    to the host. `mean` and `halves` are float64 tensors [k, bh, bw, 3] on that device,
-    computed on first use (a criterion that does not read them costs nothing); `spp`
-    int64 [k], `half_spp` int64 [k, 2] and `nonfinite` int64 [k] are host arrays; `quick`
-    is what the criterion's `prepare` made of the quick image's blocks [k, ...] (the
-    blocks themselves unless it prepares them), or None. `evidence` float64 [k, 3]: each
-    unit's earlier decisions as the loop keeps them (`learning.inputs.history.Evidence`),
-    or None (no history: a criterion that reads it treats every unit as new). `tiling` (the renderer's
-    `BlockWindows`, when the units are tiles of blocks): `block_halves` puts the asked
-    tiles' blocks back together, for a criterion that judges a tile in its context.
-    `unestimated` int64 [k] (host): pixels with no finite estimate (the module docstring).
+    `mean` and `halves`: float64 [k, bh, bw, 3] on that device, read on first use; `spp`,
+    `half_spp` [k, 2], `nonfinite` and `unestimated` (pixels with no finite estimate): int64
+    host arrays; `quick`: what the criterion's `prepare` made of the quick blocks, or None;
+    `evidence`: the units' earlier decisions (`learning.inputs.history.Evidence`; None: every
+    unit new); `tiling`: the renderer's `BlockWindows` when the units are tiles of blocks.
     """
 
     def __init__(self, spp: np.ndarray, *, mean: Any = None, halves: Any = None,
@@ -72,9 +57,7 @@ class UnitBatch:
     @classmethod
     def from_accumulator(cls, acc: Any, ids: Sequence[int], quick: np.ndarray | None = None,
                          tiling: Any = None, evidence: np.ndarray | None = None) -> UnitBatch:
-        """The units `ids` of a `UnitAccumulator`, read lazily from its device tensors.
-        `quick` is per block: with `tiling`, a tile's row is its block's. `evidence`: the
-        loop's `learning.inputs.history.Evidence`, or None."""
+        """The units `ids` of a `UnitAccumulator`, read lazily; `quick` is per block."""
         ids_a = np.asarray(ids, np.int64)
         rows = ids_a if tiling is None else ids_a // tiling.tiles_per_block
         return cls(acc.spp_all()[ids_a], half_spp=acc.half_spp_all()[ids_a],
@@ -83,23 +66,24 @@ class UnitBatch:
 
     @classmethod
     def from_views(cls, views: Sequence[UnitView]) -> UnitBatch:
-        """One batch from per-unit views (callers outside the live loop, tests)."""
+        """One batch from per-unit views."""
         import torch
+
+        def stack(arrays: Any) -> torch.Tensor:
+            return torch.from_numpy(np.stack([np.asarray(a, np.float64) for a in arrays]))
 
         shapes = {np.shape(v.mean) for v in views}
         if len(shapes) != 1:
             raise ValueError(f"the blocks of one decision must share a shape, got {sorted(shapes)}")
         halves = None
         if all(v.halves is not None for v in views):
-            halves = tuple(torch.from_numpy(np.stack([np.asarray(v.halves[j], np.float64) for v in views]))  # type: ignore[index]
-                           for j in (0, 1))
+            halves = (stack(v.halves[0] for v in views), stack(v.halves[1] for v in views))  # type: ignore[index]
         half_spp = np.array([v.half_spp for v in views], np.int64) if all(v.half_spp is not None for v in views) \
             else None
         quick = np.stack([np.asarray(v.quick) for v in views]) if all(v.quick is not None for v in views) else None
-        mean = torch.from_numpy(np.stack([np.asarray(v.mean, np.float64) for v in views]))
-        return cls(np.array([v.spp for v in views], np.int64), mean=mean, halves=halves, half_spp=half_spp,
-                   nonfinite=np.array([v.nonfinite if np.isfinite(v.mean).all() else max(v.nonfinite, 1)
-                                       for v in views], np.int64), quick=quick,
+        return cls(np.array([v.spp for v in views], np.int64), mean=stack(v.mean for v in views), halves=halves,
+                   half_spp=half_spp, quick=quick, nonfinite=np.array(
+                       [v.nonfinite if np.isfinite(v.mean).all() else max(v.nonfinite, 1) for v in views], np.int64),
                    unestimated=np.array([_unestimated_view(v) for v in views], np.int64))
 
     def __len__(self) -> int:
@@ -125,10 +109,9 @@ class UnitBatch:
         return self._halves is not None or self._source is not None
 
     def _assembled(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[torch.Tensor, torch.Tensor]]:
-        """(blocks, first, row, every, (A, B)) of the blocks the batch's tiles lie in, once a
-        batch: their ids, the first of the batch's tiles in each, each tile's block row, the
-        ids of all their tiles, and their half buffers put together from all their tiles
-        (stopped ones as they stopped), [kb, bh, bw, C] on the device."""
+        """Once a batch, of the blocks its tiles lie in: (their ids, the first of the batch's
+        tiles in each, each tile's block row, the ids of all their tiles, their halves put
+        together from all their tiles, stopped ones as they stopped, [kb, bh, bw, C])."""
         if self._blocks is None:
             acc, ids = self._source
             t = self.tiling.tiles_per_block
@@ -142,13 +125,9 @@ class UnitBatch:
         return self._blocks
 
     def halves_of(self, rows: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """(A, B) of the batch's units `rows` only, [len(rows), uh, uw, C] on the device.
-
-        Why: a tile criterion that reads the halves of a few of its units (the flat units'
-        check, the judged units' dot term) should not read every unit's, and where the
-        tiles' blocks are already put together (`block_halves`) it cuts them from the tiles
-        read for that instead of reading them again: the same values, bit for bit (the same
-        division). Whole blocks read every unit's halves once (`halves`), as each is asked."""
+        """(A, B) of the units `rows` only, [len(rows), uh, uw, C]: tiles read just those, or
+        cut them from the tiles `block_halves` read (bit for bit the same); whole blocks read
+        every unit's once."""
         import torch
 
         rows = np.asarray(rows, np.int64)
@@ -166,9 +145,8 @@ class UnitBatch:
         return a[sel], b[sel]
 
     def block_halves(self, among: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
-        """(A, B, row, slot): the half buffers of the blocks the batch's tiles `among` lie in,
-        each block window put together from all its tiles (stopped ones as they stopped),
-        [kb, bh, bw, C] on the device; tile among[i] is tile `slot[i]` of block `row[i]`."""
+        """(A, B, row, slot): the assembled halves of the blocks the tiles `among` lie in;
+        tile among[i] is tile `slot[i]` of block `row[i]`."""
         import torch
 
         _, _, rows, _, (a, b) = self._assembled()
@@ -177,11 +155,9 @@ class UnitBatch:
         return a[sel], b[sel], row, self._source[1][among] % self.tiling.tiles_per_block
 
     def whole_blocks(self) -> tuple[UnitBatch, np.ndarray, np.ndarray]:
-        """(batch, blocks, row): the blocks the batch's tiles lie in as one batch of whole
-        blocks (windows put together from all their tiles, stopped ones as they stopped; a
-        block's spp and half spp are its least sampled tile's, its dropped values the sum),
-        their ids, and the row of each asked tile's block: what a block-grain criterion
-        judges a tile's block by."""
+        """(batch, blocks, row): the blocks the tiles lie in as a batch of whole blocks (spp
+        and half spp of their least sampled tile, dropped values summed), their ids, and
+        each tile's block row: what a block-grain criterion judges a tile's block by."""
         acc, _ = self._source
         blocks, first, row, every, halves = self._assembled()
         per_block = (len(blocks), self.tiling.tiles_per_block)
@@ -212,8 +188,7 @@ class UnitBatch:
 
 
 def _unestimated_view(v: UnitView) -> int:
-    """A view's pixels with no finite estimate: non-finite in its mean, or in a half that
-    holds a pass (a half of unknown spp counts when given)."""
+    """A view's pixels with no finite estimate (a half of unknown spp counts)."""
     bad = ~np.isfinite(np.asarray(v.mean, np.float64)).all(axis=-1)
     for j, half in enumerate(v.halves or ()):
         if v.half_spp is None or v.half_spp[j] > 0:

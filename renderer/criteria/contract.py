@@ -1,42 +1,16 @@
-"""What a stopping criterion is: the `Criterion` contract, its declaration, and the
-`Decision` it returns for the `UnitBatch` it reads (`renderer.criteria.batch`).
+"""What a stopping criterion is: the `Criterion` contract and the `Decision` it returns.
 
-A criterion declares itself on its class, in its own file (`renderer.criteria.registry`):
-its name, grain, the render settings it takes and how it is built from a resolved
-`renderer.spec.RenderSpec` (`from_spec`). Its constructor checks and defaults what it is
-given by that declaration (`checked`), the rows of the render spec and its own `settings`,
-the one check `renderer.spec.resolve` makes too: no criterion checks a setting its own way.
+A criterion sees all the units it is asked about at once (a `UnitBatch`) and answers, per
+unit, +1 (converged) or -1 (noisy) with its ratio to the target (> 1: above it; what a
+budget render spends by). The live loop and the simulation on stored stacks call the same
+`decide`, so what is measured offline is what runs online. A criterion is configuration
+only: one object may judge any number of renders; the loop owns their counters and timers.
 
-A criterion sees all the units it is asked about at once, as a `UnitBatch` (cumulative
-means and the two half buffers as tensors on the accumulator's device, spp, quick blocks;
-`UnitView`s, one per unit, for callers outside the loop) and answers, per unit, +1
-(converged: stop sampling it) or -1 (noisy: keep sampling) with its ratio to the target
-(> 1: above it; what a budget render spends by). The live loop and the simulation on
-stored stacks build the same batches and call the same `decide`
-(`renderer.live.passloop.PassLoop.judge`), so what is measured offline is what runs online.
-
-A criterion is configuration only, as a scikit-learn estimator's parameters are: one
-object may judge any number of renders, in any order, in any process. What a render
-accumulates (its counters, timers and ratios) is the loop's (`renderer.live.passloop`); a
-`Decision` carries one call's share of it.
-
-The model and flip criteria decide by the one stop rule (`learning.stoprule`): a block is
-converged when its score exceeds the offset, or at once when it is flat (its display image
-within one 8-bit level: no noise to see). The loop adds the rest of the rule: no decision
-before min spp, and a stop is held.
-
-Non-finite samples: a unit with no finite estimate is never converged, whatever
-the criterion (`Criterion.decide` holds it noisy, ratio NaN, after the criterion's own
-verdict; uniform never stops anyway), so it renders to max spp. "No finite estimate"
-(`UnitBatch.unestimated`): some pixel of the unit has no finite value in a half buffer
-that holds a pass, that is, every (pixel, pass) value the accumulator put there was
-dropped as non-finite (`learning.data.accumulator`); from views, a non-finite pixel in the
-mean or in a half that holds a pass. A pixel with some finite passes has an estimate (the
-mean of those) and is judged as usual: one NaN pass among many does not hold a unit. This
-is the served halves route's rule (`learning.stoprule.flat_halves`: non-finite halves are
-never flat, and the service answers -1), seen through the accumulator, which drops what
-the route would receive as NaN: without it a unit whose samples were all dropped had a
-black, flat mean and stopped at once.
+A unit with no finite estimate (`UnitBatch.unestimated`: a pixel whose every value in a
+half that holds a pass was dropped as non-finite) is never converged, whatever the
+criterion: without this, a unit whose samples were all dropped had a black, flat mean and
+stopped at once. One NaN pass among many does not hold a unit (the served route's rule,
+`learning.stoprule.flat_halves`).
 """
 from __future__ import annotations
 
@@ -59,19 +33,14 @@ if TYPE_CHECKING:
 
 V = TypeVar("V")
 
-# decide_calls: calls to decide; units_asked: verdicts given; units_featured: units whose
-# current image went through the feature extractor or FLIP (here or on a server);
-# feature_rows: 26-feature rows computed in this process (current and quick units);
-# converged: +1 verdicts; flat_units: units settled by the flat test; nonfinite_units:
-# verdicts on units that held non-finite samples; dotted_units: units held noisy by the
-# dot guard; gated_tiles: tiles flip called converged that the model's block verdict held
-# (the model at tile grain, `renderer.criteria.gated`).
+# units_featured: units whose image went through the features or FLIP (here or on a server);
+# feature_rows: 26-feature rows computed here; flat_units: settled by the flat test;
+# nonfinite_units: held non-finite samples; dotted_units: held noisy by the dot guard;
+# gated_tiles: tiles flip called converged that the model's block verdict held
 COUNTER_NAMES = ("decide_calls", "units_asked", "units_featured", "feature_rows", "converged",
                  "flat_units", "nonfinite_units", "dotted_units", "gated_tiles")
-#: the one mapping from a counter's name here to its name outside (report.json "counters",
-#: a simulation's "counters", the checkpoint's counter_names) where the two differ: the
-#: counters were named when every unit was a block, and those files keep their names
-#: (DESIGN fixes report.json; a checkpoint written before still loads)
+#: a counter's name in report.json, a simulation's counters and checkpoints, where it differs:
+#: those files keep the names given when every unit was a block (DESIGN fixes report.json)
 EXTERNAL_COUNTER_NAMES = {"units_asked": "blocks_asked", "units_featured": "blocks_featured",
                           "flat_units": "flat_blocks", "nonfinite_units": "nonfinite_blocks",
                           "dotted_units": "dotted_blocks"}
@@ -84,7 +53,7 @@ def external_counters(counters: Mapping[str, V]) -> dict[str, V]:
 
 
 def internal_counters(counters: Mapping[str, V]) -> dict[str, V]:
-    """`counters` read from a file (external names) under this code's names, in the same order."""
+    """`counters` read from a file under this code's names, in the same order."""
     return {_INTERNAL_COUNTER_NAMES.get(k, k): v for k, v in counters.items()}
 
 
@@ -93,11 +62,9 @@ TIMER_NAMES = ("features_s", "decisions_s")
 
 @dataclass(frozen=True)
 class Decision:
-    """One `decide` call's answer: `verdict` int8 [k] (+1 converged, -1 noisy), `ratio`
-    float64 [k] (each unit's distance to the target as a ratio, > 1 above it, 0 flat, NaN
-    no estimate yet), `evidence` float64 [k] (what this decision adds to each unit's
-    history, `learning.inputs.history`; None for a criterion without one), and what the
-    call cost (`counts` over COUNTER_NAMES, `timers` over TIMER_NAMES), for the loop to add up."""
+    """One `decide` call's answer: `verdict` int8 [k], `ratio` float64 [k] (0 flat, NaN no
+    estimate yet), `evidence` float64 [k] (what it adds to each unit's history,
+    `learning.inputs.history`; None: no history), and what the call cost, for the loop."""
 
     verdict: np.ndarray
     ratio: np.ndarray
@@ -107,14 +74,14 @@ class Decision:
 
 
 class Tally(dict):
-    """The counts one `decide` call makes (a fresh one per call; helpers add to it)."""
+    """The counts of one `decide` call."""
 
     def add(self, name: str, n: int | float) -> None:
         self[name] = self.get(name, 0) + n
 
     @contextmanager
     def timing(self, name: str = "features_s") -> Iterator[None]:
-        """Add the seconds of the block to `name` (features_s: making a model's input)."""
+        """Add the block's seconds to `name`."""
         t0 = time.perf_counter()
         try:
             yield
@@ -124,52 +91,40 @@ class Tally(dict):
 
 class Criterion(ABC):
     """Base class: validates inputs, enforces int8 +-1 verdicts, times and counts a call.
-
-    `needs_quick` / `needs_halves` tell the caller what the batches must carry, so the
-    quick image is rendered (and half buffers recovered) only when some criterion uses
-    them; `quick_kind` says which quick image ('albedo' or 'direct'). `noise_ratio`: whether
-    the loop may skip decisions from its ratio (below).
-
-    The declaration (`renderer.criteria.registry`, read by the render spec, the command
-    line, the plugin and the factory once the class is `declare`d): `name`, `grain`,
-    `settings`, `needs_thresholds`, `summary` and `from_spec`.
-    """
+    Its declaration (`renderer.criteria.registry`): `name`, `grain`, `settings`,
+    `needs_thresholds`, `summary` and `from_spec`."""
 
     name: str = "criterion"
-    #: what it judges (DESIGN "Decision grain"): TILE (the tiles of blocks), BLOCK (whole
-    #: blocks unless a tile is given) or BLOCK_ONLY (whole blocks always)
+    #: TILE (the tiles of blocks), BLOCK (whole blocks unless a tile is given) or BLOCK_ONLY
     grain: str = TILE
-    #: the render spec's rows it takes beyond tau and exposure, with its own defaults and
-    #: ranges where the row's do not do (a row no criterion names is every render's)
+    #: the rows it takes beyond tau and exposure (a row no criterion names is every render's)
     settings: ClassVar[dict[str, Setting]] = {}
-    #: it needs a labelled reference's true thresholds (the render spec refuses it without)
+    #: it needs a labelled reference's true thresholds
     needs_thresholds: bool = False
-    #: one line for the help: what it stops on
+    #: one line for the help
     summary: str = ""
+    #: what the batches must carry (the quick image, 'albedo' or 'direct', and the half
+    #: buffers are made only when a criterion reads them)
     needs_quick: bool = False
     quick_kind: str = "albedo"
     needs_halves: bool = False
-    #: its ratio is a noise level over the target, falling as 1/sqrt(spp) as Monte Carlo
-    #: noise does, so the loop may predict when a unit can stop and skip its decisions
-    #: before then (`renderer.live.passloop.next_decision`); else every pass is judged
+    #: its ratio falls as 1/sqrt(spp), as Monte Carlo noise does, so the loop may skip the
+    #: decisions before a unit's predicted stop
     noise_ratio: bool = False
-    #: it may call a unit converged; one that never does (the uniform baseline) is asked only
-    #: at a unit's last pass (`renderer.live.passloop.PassLoop.run_round`), so the loop traces
-    #: the passes before it in as few launches as it can
-    #: (`renderer.live.launches.grown_passes`): no decision where none can succeed
+    #: it may call a unit converged; one that never does is asked only at a unit's last pass,
+    #: so the loop traces the passes before in as few launches as it can
     stops: bool = True
 
     @classmethod
     def from_spec(cls, spec: RenderSpec, thresholds: Sequence[int | None] | None = None) -> Criterion:
-        """The criterion of a resolved render spec (`thresholds`: a labelled reference's true
-        ones, per unit). By default the class called with its declared settings by name."""
+        """The criterion of a resolved spec (`thresholds`: a labelled reference's, per unit);
+        by default the class called with its declared settings."""
         return cls(**{name: getattr(spec, name) for name in cls.settings})
 
     @classmethod
     def checked(cls, **given: Any) -> dict[str, Any]:
-        """`given` (render settings by row name; None: not given) checked and defaulted by
-        this criterion's declaration (`renderer.settings.declared_values`): what a constructor
-        keeps of its arguments, by the one check the render spec makes."""
+        """A constructor's render settings (None: not given), checked and defaulted by this
+        criterion's declaration: the one check the render spec makes too."""
         from ..settings import declared_values
 
         return declared_values(cls, given)
@@ -179,14 +134,12 @@ class Criterion(ABC):
         return {"name": self.name}
 
     def prepare(self, quick: np.ndarray) -> tuple[np.ndarray, Tally]:
-        """What the batches' `quick` holds, from every block's quick image [n, bh, bw, 3]
-        (the blocks themselves unless a criterion reads something computed from them once
-        per render), and what making it cost."""
+        """What the batches' `quick` holds, made once per render from the quick blocks
+        [n, bh, bw, 3] (by default the blocks themselves), and what making it cost."""
         return quick, Tally()
 
     def decide(self, ids: Sequence[int], batch: UnitBatch | Sequence[UnitView]) -> Decision:
-        """The `Decision` on the listed units: a `UnitBatch` (the loop's), or one
-        `UnitView` per unit."""
+        """The `Decision` on the listed units: a `UnitBatch`, or one `UnitView` per unit."""
         t0 = time.perf_counter()       # before the views are batched: that may time features too
         ids = np.asarray(ids, np.int64).reshape(-1).tolist()
         tally = Tally()
@@ -242,23 +195,20 @@ class Criterion(ABC):
         return batch
 
     def assess(self, ids: list[int], batch: UnitBatch, tally: Tally) -> tuple[np.ndarray, ...]:
-        """The criterion's own answer on a validated, non-empty batch, before `decide` checks
-        it and wraps it into a `Decision`: what a criterion made of others combines (the
-        model at tile grain, `renderer.criteria.gated`). See `_decide`."""
+        """`_decide`'s answer, before `decide` checks and wraps it: what a criterion made of
+        others combines (`renderer.criteria.gated`)."""
         return self._decide(ids, batch, tally)
 
     @abstractmethod
     def _decide(self, ids: list[int], batch: UnitBatch, tally: Tally) -> tuple[np.ndarray, ...]:
-        """(verdict [k], ratio [k]) for validated, non-empty input, and for a criterion that
-        decides from the history a third, the decision's evidence [k] (`Decision`); counts
-        go into `tally`."""
+        """(verdict [k], ratio [k]) for a validated, non-empty batch, and a criterion with a
+        history the decision's evidence [k]; counts go into `tally`."""
 
     @staticmethod
     def _flat(batch: UnitBatch, exposure: float, tally: Tally) -> np.ndarray:
-        """bool [n]: units with no visible variation at all (the stop rule's flat test),
-        computed where the means live. Once both half buffers hold a pass, a flat mean is
-        not enough: the halves must agree within one 8-bit level too (`learning.stoprule.
-        flat_halves`, the served route's rule): a mean can be flat over halves that differ."""
+        """bool [n]: units with no visible variation (the stop rule's flat test). Once both
+        halves hold a pass they must agree within one 8-bit level too (the served route's
+        rule): a mean can be flat over halves that differ."""
         flat = flat_blocks(batch.mean, exposure)
         if batch.half_spp is not None and batch.has_halves:
             check = np.flatnonzero(flat & (batch.half_spp.min(axis=1) > 0))
@@ -269,10 +219,8 @@ class Criterion(ABC):
 
     @staticmethod
     def _dots(batch: UnitBatch, ask: np.ndarray, exposure: float, tau: float, tally: Tally) -> np.ndarray:
-        """float64 [len(batch)]: the asked units' dot term from their half buffers, relative
-        to tau (`learning.stoprule.dots_ratio`; 0 for the others). Above 1 a unit still
-        holds more isolated outlier pixels than the observer lets through, so it stays noisy
-        whatever its score (`learning.stoprule.hold_dotted`, the served route's guard too)."""
+        """float64 [len(batch)]: the asked units' dot term relative to tau (0 for the others);
+        above 1 a unit holds more isolated outliers than the observer lets through."""
         out = np.zeros(len(batch.spp))
         if ask.size:
             out[ask] = dots_ratio(*batch.halves_of(ask), exposure, tau)
@@ -281,6 +229,5 @@ class Criterion(ABC):
 
     @staticmethod
     def _ready(batch: UnitBatch, flat: np.ndarray) -> np.ndarray:
-        """The units with a noise estimate to judge: not flat, and both half buffers hold a
-        pass (with one pass the halves cannot disagree yet)."""
+        """The units to judge: not flat, and both halves hold a pass (else they cannot disagree)."""
         return np.flatnonzero(~flat & (batch.half_spp.min(axis=1) > 0))   # type: ignore[union-attr]

@@ -24,16 +24,12 @@ if TYPE_CHECKING:
 class EstimateCriterion(FlipCriterion):
     """Learned: a tile stops when its estimated observer error is at most c(tau).
 
-    The estimate (`learning.models.tile_error`) is the tile's halves history e_hist (flip's
-    statistic, `learning.inputs.history`) times exp(g(x)), g learned on the training corpus
-    from what the loop has at the decision (`learning.inputs.tile_features`: the scores, the
-    spp, the dot term, the block's other tiles and the tile's content: brightness, dark and
-    black pixels, the halves' outliers, texture). Where the halves are blind (dark tiles,
-    both halves missing the same rare paths) g raises the estimate; where texture masks
-    what they still see, it lowers it. c(tau) is the bundle's curve (`learning.models.
-    tile_error_bundle`), chosen on the training scenes' final frames out of fold, so the
-    margin that keeps early stops rare is the estimate's own out-of-fold error. Flat tiles
-    stop and dotted ones stay noisy as with flip. The ratio is estimate / c.
+    The estimate (`learning.models.tile_error`) is flip's history e_hist times exp(g(x)), g
+    learned from what the loop has at the decision (`learning.inputs.tile_features`): it
+    raises the estimate where the halves are blind (dark tiles, rare paths both miss) and
+    lowers it where texture masks what they see. c(tau) is the bundle's, chosen out of fold,
+    so the margin that keeps early stops rare is the estimate's own error. Flat and dotted
+    tiles as with flip; the ratio is estimate / c.
     """
 
     name = "estimate"
@@ -44,10 +40,8 @@ class EstimateCriterion(FlipCriterion):
 
     def __init__(self, c: float | None = None, exposure: float | None = None, tau: float | None = None,
                  tile: int | None = None, bundle: Any = None) -> None:
-        """`c`: the threshold (None: the bundle's c(tau)); `exposure`, `tau`: None for the
-        render spec's defaults; `tile`: the tile side (the bundle's: 16); `bundle`: a
-        loaded `TileErrorBundle` (None: the one shipped with the package). Whole blocks of
-        the bundle's tile side are that tile (`tile` None: checked at the first decision)."""
+        """`c` None: the bundle's c(tau); `tile`: the unit side, the bundle's (None: checked at
+        the first decision); `bundle`: a `TileErrorBundle` (None: the shipped one)."""
         from learning.inputs.halves import flip_offset
         from learning.models.tile_error_bundle import load_tile_error_bundle
 

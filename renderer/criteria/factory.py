@@ -1,6 +1,5 @@
-"""The one criterion factory: a `RenderSpec` in, a `Criterion` out, on every door (the API,
-the command line, the plugin, the simulation and the evaluation). It knows no criterion:
-it builds the one the registry declares under the spec's name (`renderer.criteria.registry`)."""
+"""The one criterion factory, on every door: it builds the criterion the registry declares
+under a `RenderSpec`'s name, and knows none itself."""
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -14,9 +13,8 @@ if TYPE_CHECKING:
 
 
 def make_criterion(spec: RenderSpec, thresholds: Sequence[int | None] | None = None) -> Criterion:
-    """The criterion `spec` names, built by its declaration (`Criterion.from_spec`), or
-    `spec.criterion` itself when it is already one. `thresholds`: the true thresholds of a
-    labelled reference stack (what a criterion that `needs_thresholds` reads)."""
+    """The criterion `spec` names (or `spec.criterion` when it is one); `thresholds`: a
+    labelled reference stack's true ones."""
     if isinstance(spec.criterion, Criterion):
         return spec.criterion
     return criterion_class(spec.criterion).from_spec(spec, thresholds)

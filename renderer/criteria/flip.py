@@ -20,24 +20,14 @@ if TYPE_CHECKING:
 
 @declare
 class FlipCriterion(Criterion):
-    """Training-free: FLIP between display(A) and display(B), the two half buffers.
+    """Training-free: a unit is converged when e <= c, or at once when flat, and stays noisy
+    while dotted (`Criterion._dots`) or with one pass only. e is the LDR-FLIP map between
+    the display images of the two half buffers, pooled as the observer pools (the largest
+    16x16 tile mean); c defaults to c(tau), calibrated on training scenes only
+    (`learning/flip.json`). The ratio is e / c, or the dot term where larger.
 
-    e = the raw LDR-FLIP map between the display images of the even-pass and odd-pass
-    means, pooled as the observer pools (the largest 16x16 tile mean,
-    `learning.inputs.halves`); the block is converged when e <= c (the stop rule with score
-    -e), or at once when flat. `c` defaults to c(tau), the curve calibrated on training
-    scenes only and shipped in `learning/flip.json`. A block whose halves still disagree on
-    more isolated pixels than the observer lets through (`Criterion._dots`) stays
-    noisy whatever e is. A block whose odd half is still empty (one pass) has no estimate
-    yet and stays noisy, so the first flip decision comes after two passes unless the block
-    is flat. FLIP runs on the active, non-flat blocks only, where the half buffers live (the
-    GPU with cuda_ad_rgb); its time is the decision cost. The ratio is e / c, or the dot
-    term where that is larger.
-
-    At tile grain a tile decides from its history: e is the mean of its
-    decisions' e_j sqrt(spp_j) brought to the current spp (`learning.inputs.history`), which
-    the loop keeps per unit; one level's score is noisy, the history's is not. The tile curve
-    of c(tau) is calibrated on the same statistic (`statistic` in its record and in `describe`).
+    At tile grain e is the tile's history (`learning.inputs.history`): one level's score is
+    noisy, the history's is not; c(tau)'s tile curve is calibrated on the same statistic.
     """
 
     name = "flip"
@@ -50,8 +40,7 @@ class FlipCriterion(Criterion):
 
     def __init__(self, c: float | None = None, exposure: float | None = None, tau: float | None = None,
                  tile: int | None = None) -> None:
-        """`c`: the threshold (None: c(tau)); `exposure`, `tau`: None for the render spec's
-        defaults; `tile`: the tile side when blocks are cut into tiles (None: whole blocks)."""
+        """`c` None: c(tau); `tile`: the tile side when blocks are cut into tiles (None: whole blocks)."""
         from learning.inputs.halves import flip_c, flip_offset, load_flip_calibration, unit_calibration
 
         given = self.checked(threshold=c, exposure=exposure, tau=tau)
@@ -77,8 +66,7 @@ class FlipCriterion(Criterion):
                 "source": self.source, "unit": self.unit, "statistic": self.statistic}
 
     def _flip(self, batch: UnitBatch, ask: np.ndarray) -> np.ndarray:
-        """e of the asked units: of a block, its pooled FLIP between the halves; of a tile,
-        the FLIP map of its whole block (its neighbours are context) pooled over the tile."""
+        """e of the asked units; a tile's is its whole block's FLIP map (context) pooled over it."""
         import torch
 
         from noisefeat.flip import flip_halves_tensor, pool_tiles
@@ -107,8 +95,7 @@ class FlipCriterion(Criterion):
         return *self._verdicts(score, flat, dots), evidence
 
     def _verdicts(self, score: np.ndarray, flat: np.ndarray, dots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(verdicts, ratios) of the units' scores -e (NaN: not decided) against c: flat units
-        stop (ratio 0), dotted ones stay noisy, the ratio is e / c or the dot term's."""
+        """(verdicts, ratios) of the scores -e (NaN: not decided) against c."""
         with np.errstate(invalid="ignore"):
             ratio = np.fmax(-score / self.c if self.c > 0 else np.inf, dots)
         ratio = np.where(flat, 0.0, np.where(np.isnan(score), np.nan, ratio))

@@ -13,23 +13,17 @@ from .contract import Criterion, Tally
 
 
 class GatedCriterion(Criterion):
-    """A tile stops when the model calls its whole 64x64 block converged (the paper's unit,
-    the one the model was trained and calibrated on) *and* the flip criterion calls the
-    tile converged. Why both: the model alone cannot tell a block's clean tiles from its
-    noisy one, and flip alone stops a tile on its own noisy estimate; the model's verdict
-    on the whole block is a second opinion the tile must also pass.
-
-    The block's image is put together from all its tiles as they stand (stopped tiles as
-    they stopped), so the model judges what the frame will show. The ratio is the larger
-    of the two (a budget render spends on the farther from the target). Not declared: it
-    is what the model criterion's `from_spec` builds at tile grain.
+    """A tile stops when the model calls its whole block converged (the unit it was trained
+    on) *and* flip calls the tile converged: the model cannot tell a block's clean tiles
+    from its noisy one, and flip alone stops a tile on its own noisy estimate. The block is
+    put together from its tiles as they stand, so the model judges what the frame will
+    show; the ratio is the larger of the two. Not declared: the model's `from_spec` builds it.
     """
 
     name = "model"
     needs_halves = True
 
     def __init__(self, gate: Criterion, tiles: Criterion) -> None:
-        """`gate`: the block-grain criterion (the model); `tiles`: the tile-grain one (flip)."""
         self.gate, self.tiles = gate, tiles
         self.needs_quick, self.quick_kind = gate.needs_quick, gate.quick_kind
 

@@ -35,10 +35,7 @@ def _asked(tensor: torch.Tensor, ask: np.ndarray) -> np.ndarray:
 
 
 class LocalScorer:
-    """A `learning.models.bundle.Model` in this process: scores here, verdicts by its stop
-    rule at `offset`. Its input is one of: the two half buffers (``halves``), the features
-    of the current block next to its quick block's (``features``: the quick features are
-    computed once per render, in `prepare`), or the blocks themselves (``raw``)."""
+    """A `learning.models.bundle.Model` in this process, judging by its stop rule at `offset`."""
 
     def __init__(self, model: Any, offset: float | None) -> None:
         self.model = model
@@ -59,10 +56,9 @@ class LocalScorer:
 
     def judge(self, batch: UnitBatch, ask: np.ndarray, quick: np.ndarray | None, exposure: float,
               tally: Tally) -> tuple[np.ndarray, np.ndarray]:
-        """(verdict, ratio) of the asked blocks: the rule at the offset, and the distance to
-        it as a ratio (a score is a signed distance: exp(offset - score) is 1 at the offset).
-        `quick`: what `prepare` made of the batch's quick blocks, or None (a model without one)."""
-        m = self.model
+        """(verdict, ratio) of the asked blocks; a score is a signed distance, so the ratio is
+        exp(offset - score). `quick`: what `prepare` made of the quick blocks, or None."""
+        m, quick = self.model, None if quick is None else quick[ask]
         with torch_threads(1):
             with tally.timing():
                 if self.input == "halves":
@@ -72,11 +68,9 @@ class LocalScorer:
                     from learning.inputs.table import feature_input
                     from noisefeat import extract_features
 
-                    x = feature_input(extract_features(_asked(batch.mean, ask), exposure=exposure),
-                                      None if quick is None else quick[ask])
+                    x = feature_input(extract_features(_asked(batch.mean, ask), exposure=exposure), quick)
                 else:
-                    x = m.inputs_from_blocks(_asked(batch.mean, ask), None if quick is None else quick[ask],
-                                             exposure=exposure)
+                    x = m.inputs_from_blocks(_asked(batch.mean, ask), quick, exposure=exposure)
             if self.input != "raw":
                 tally.add("feature_rows", len(ask))
             score = np.asarray(m.decision_function(x), np.float64)
@@ -86,9 +80,8 @@ class LocalScorer:
 
 
 class RemoteScorer:
-    """A verdict server (`renderer.client.remote.RemoteModel`): it applies the stop rule itself at
-    its model's offset, or at `offset` when given (sent with every request, as is the
-    exposure), so its verdicts are used as they come; it reports no ratio."""
+    """A verdict server (`renderer.client.remote.RemoteModel`): it applies the stop rule at its
+    model's offset or the `offset` sent; its verdicts are used as they come, with no ratio."""
 
     def __init__(self, model: Any, offset: float | None) -> None:
         self.model, self.offset = model, offset
@@ -114,27 +107,20 @@ class RemoteScorer:
 
 @declare
 class ModelCriterion(Criterion):
-    """A learned verdict model: a local `learning.models.bundle.Model` or a `RemoteModel`.
-
-    Verdicts follow the one stop rule: flat blocks are converged without asking the model;
-    the others are converged when their score exceeds the offset (the model's calibrated
-    offset at `tau`, or `offset` if given: the user's speed/accuracy knob). The scorer
-    adapter (`LocalScorer`, `RemoteScorer`) answers for the blocks asked. A `halves` model
-    is asked from the second pass on (both halves must hold a pass) and sees the observer's
-    dots through the same halves (`Criterion._dots`): a dotted block stays noisy.
+    """A learned verdict model, local or remote: flat blocks are converged without asking
+    it, the others when their score exceeds the offset (the model's at `tau`, or `offset`).
+    A `halves` model is asked from the second pass on, and a dotted block stays noisy.
     """
 
     name = "model"
     summary = "the learned model: a bundle, or a verdict server"
-    #: the paper's block is its unit; given a smaller tile, its block verdict gates flip's
-    #: tile verdicts (`from_spec`, `renderer.criteria.gated`)
+    #: the paper's block is its unit; given a smaller tile, it gates flip's (`renderer.criteria.gated`)
     grain = BLOCK
     settings = {"model": Setting(selects=True), "server": Setting(selects=True), "offset": Setting(selects=True)}
 
     def __init__(self, model: ScoresBlocks, exposure: float | None = None, offset: float | None = None,
                  tau: float | None = None) -> None:
-        """`model`: the scorer; `offset`: None for the model's calibrated offset at `tau`, or
-        its own calibrated one when no tau is given either; `exposure`: None for the default."""
+        """`offset` None: the model's calibrated offset at `tau`, or its own without a tau."""
         if not hasattr(model, "score_blocks"):
             raise ValueError(f"model must have score_blocks(blocks, quick), got {type(model).__name__}")
         self.model = model
@@ -156,8 +142,8 @@ class ModelCriterion(Criterion):
 
     @classmethod
     def from_spec(cls, spec: RenderSpec, thresholds: Sequence[int | None] | None = None) -> Criterion:
-        """The model of `spec.model` (None: the bundled one) or the verdict server of
-        `spec.server`; at tile grain, gating flip's tile verdicts (`renderer.criteria.gated`)."""
+        """The model of `spec.model` (None: the bundled one) or `spec.server`, gating flip's
+        tiles at tile grain."""
         if spec.server is not None:
             from ..client.remote import RemoteModel
 
@@ -180,12 +166,12 @@ class ModelCriterion(Criterion):
 
     @property
     def rule(self) -> StopRule | None:
-        """The rule verdicts are made by here (None: a server's, applied there)."""
+        """The rule verdicts are made by here (None: a server's)."""
         return self.scorer.rule
 
     @property
     def effective_offset(self) -> float | None:
-        """The offset verdicts are made at (None: a remote server's own, not known here)."""
+        """The offset verdicts are made at (None: a server's own)."""
         return self.rule.offset if self.rule is not None else self.offset
 
     def describe(self) -> dict[str, Any]:

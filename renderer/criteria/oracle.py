@@ -18,11 +18,8 @@ if TYPE_CHECKING:
 
 @declare
 class OracleCriterion(Criterion):
-    """Block b is converged iff spp >= T_b; a null threshold (censored) never converges.
-
-    With the thresholds of a labelled stack this is the best any criterion can do on that
-    stack: the yardstick of `spp_ratio_vs_oracle`. Its ratio is T_b / spp.
-    """
+    """Block b is converged iff spp >= T_b (None, censored: never); the ratio is T_b / spp.
+    The best any criterion can do on a labelled stack: the yardstick of `spp_ratio_vs_oracle`."""
 
     name = "oracle"
     summary = "a labelled reference stack's true thresholds"

@@ -1,21 +1,8 @@
-"""The criteria a render may name: each declares itself in its own file, and this registry
-is the one list the render spec, the command line, the plugin and the factory read.
-
-A criterion is a `renderer.criteria.Criterion` subclass decorated with `declare`; its
-declaration is on the class, as scikit-learn keeps an estimator's `_parameter_constraints`
-on the estimator: `name` (what ``--criterion`` and the plugin's ``criterion`` property
-say), `grain` (`TILE`: it judges the tiles of blocks; `BLOCK`: whole blocks unless a tile
-is given; `BLOCK_ONLY`: whole blocks always), `settings` (the render spec's rows it takes,
-each a `Setting`: its default and range for this criterion, where the row's own do not
-do), `needs_thresholds` (a labelled reference's true thresholds), `summary` (one line for
-the help) and `from_spec` (how it is built from a resolved `renderer.spec.RenderSpec`).
-Nothing else knows what criteria there are.
-
-Where the declarations come from: every module of this package (found by listing it, so
-a new one is one file), the entry points of the group ``noisestop.criteria`` (an
-installed package's criterion, for every door, the command line included), and any module
-that declares one when it is imported (a test's). This module imports nothing heavy:
-the command line builds its parser from it.
+"""The criteria a render may name: the one list every door reads. A criterion declares
+itself on its class (`renderer.criteria.Criterion` lists the declaration) and is added by
+`declare`: from this package's modules (found by listing it), the entry points of
+``noisestop.criteria``, or any module imported before. Nothing heavy is imported: the
+command line builds its parser from it.
 """
 from __future__ import annotations
 
@@ -39,11 +26,9 @@ T = TypeVar("T", bound=type)
 
 @dataclass(frozen=True)
 class Setting:
-    """How a criterion takes one render setting (a row of `renderer.settings.ROWS`, by name):
-    its `default` for this criterion (None: the row's), a narrower range [`low`, `high`]
-    (None: the row's), what the setting means to it (`doc`, for the help), and whether
-    giving the setting without a criterion chooses this criterion (`selects`: a model
-    bundle means the model criterion)."""
+    """How a criterion takes one row of `renderer.settings.ROWS`: its `default` and range
+    [`low`, `high`] (None: the row's), its meaning for the help (`doc`), and whether giving
+    it without a criterion chooses this one (`selects`: a model bundle means the model)."""
 
     default: Any = None
     low: float | None = None
@@ -53,8 +38,7 @@ class Setting:
 
 
 class Declared(Protocol):
-    """What the render spec reads of a criterion, a class or an object given ready-made
-    (`renderer.criteria.Criterion`): its declaration."""
+    """What the render spec reads of a criterion, class or ready-made object."""
 
     name: str
     grain: str
@@ -67,9 +51,8 @@ _loaded = False
 
 
 def declare(cls: T) -> T:
-    """Class decorator: add a criterion class to the registry under its `name`, its
-    declaration checked (ValueError naming what is wrong). Declaring again under the same
-    name replaces the earlier class only when it is the same class re-imported."""
+    """Class decorator: register a criterion under its `name`, its declaration checked; a
+    second class under a name is refused unless it is the same class re-imported."""
     name = getattr(cls, "name", None)
     if not isinstance(name, str) or not name.isidentifier():
         raise ValueError(f"{cls.__qualname__}: a criterion's name must be an identifier, got {name!r}")
@@ -80,15 +63,11 @@ def declare(cls: T) -> T:
                                                     for k, s in settings.items()):
         raise ValueError(f"criterion {name}: settings must map row names to Setting, got {settings!r}")
     known = _declared.get(name)
-    if known is not None and known is not cls and \
-            (known.__module__, known.__qualname__) != (cls.__module__, cls.__qualname__):
-        raise ValueError(f"criterion {name!r} is declared twice: {_where(known)} and {_where(cls)}")
+    if known is not None and (known.__module__, known.__qualname__) != (cls.__module__, cls.__qualname__):
+        raise ValueError(f"criterion {name!r} is declared twice: {known.__module__}.{known.__qualname__} and "
+                         f"{cls.__module__}.{cls.__qualname__}")
     _declared[name] = cls
     return cls
-
-
-def _where(cls: type) -> str:
-    return f"{cls.__module__}.{cls.__qualname__}"
 
 
 def declared() -> dict[str, type]:
@@ -111,8 +90,7 @@ def criterion_class(name: str) -> type:
 
 
 def _load() -> None:
-    """Import this package's modules (each declares its own criteria) and the entry points'
-    once; an entry point that fails to load is logged and left out."""
+    """Import this package's modules and the entry points once (a broken entry point is logged, left out)."""
     global _loaded
     if _loaded:
         return

@@ -12,7 +12,7 @@ from .registry import declare
 
 @declare
 class UniformCriterion(Criterion):
-    """Never converged: every block is rendered to max spp (the uniform baseline)."""
+    """Never converged (the uniform baseline)."""
 
     name = "uniform"
     summary = "never: max_spp everywhere, the baseline"

@@ -22,31 +22,13 @@ if TYPE_CHECKING:
 class VarianceCriterion(Criterion):
     """Blender Cycles' adaptive-sampling test, applied to every pixel of a block.
 
-    Exact rule implemented (per pixel, channels r, g, b; I = cumulative mean of all
-    samples, A = mean of the even-numbered passes, the first half buffer):
-
-        diff      = |I_r - A_r| + |I_g - A_g| + |I_b - A_b|
-        intensity = max(I_r + I_g + I_b, 0)
-        norm      = sqrt(intensity) if intensity < 1 else intensity
-        error     = diff / (1e-4 + norm)
-        pixel passes  iff  error < scale * threshold        (scale = 1 by default)
-
-    This is Cycles' ``film_adaptive_sampling_convergence_check``
-    (intern/cycles/kernel/film/adaptive_sampling.h): there I and A are sums and A holds
-    one class of samples doubled, and both are multiplied by 1/N, so I/N and A/N are the
-    two means used here. The kernel compares against the user's noise threshold itself
-    (``error < threshold``); REFERENCES.md's "5 x noise_threshold" is not in that source,
-    so `scale` defaults to 1 and is exposed for anyone who wants the other reading.
-
-    Block rule (Octane's "group pixels"): the block is converged when a fraction of at
-    least `quantile` of its pixels pass (1.0, the default: every pixel). Cycles' one-pixel
-    dilation of unconverged pixels is irrelevant with quantile 1 and is not done.
-
-    Half buffers need two passes: with only one pass A equals I and the test would pass
-    trivially, so a block whose odd half B is still empty is noisy. The first variance
-    decision therefore comes at max(min_spp, 2 x step) unless the block is flat.
-    Non-finite values follow noisefeat's rule (NaN/-Inf -> 0, +Inf -> 1), so no decision
-    is ever NaN.
+    A pixel passes when error < scale * threshold (`pixel_error`: Cycles'
+    ``film_adaptive_sampling_convergence_check``, intern/cycles/kernel/film/adaptive_sampling.h,
+    whose sums over 1/N are the means I of all samples and A of the even passes). The kernel
+    compares with the threshold itself; REFERENCES.md's "5 x noise_threshold" is not in that
+    source, so `scale` defaults to 1. A block is converged when at least `quantile` of its
+    pixels pass (Octane's "group pixels"; Cycles' dilation is moot at quantile 1). With one
+    pass A equals I, so a block is noisy until both halves hold one.
     """
 
     name = "variance"
@@ -59,9 +41,7 @@ class VarianceCriterion(Criterion):
 
     def __init__(self, threshold: float | None = None, quantile: float | None = None, scale: float = 1.0,
                  flat_shortcut: bool = True, exposure: float | None = None) -> None:
-        """`threshold`, `quantile`, `exposure`: render settings (None: their declared
-        defaults); `scale` multiplies the threshold (below); `flat_shortcut`: a flat unit
-        converges at once."""
+        """Render settings None: their declared defaults; `flat_shortcut`: a flat unit converges at once."""
         given = self.checked(threshold=threshold, quantile=quantile, exposure=exposure)
         if not (np.isfinite(scale) and scale > 0):
             raise ValueError(f"scale must be a positive number, got {scale!r}")
@@ -78,8 +58,7 @@ class VarianceCriterion(Criterion):
 
     @staticmethod
     def _finite(x: Any) -> torch.Tensor:
-        """The display rule's mapping of non-finite values, in linear float64: NaN and -Inf
-        -> 0, +Inf -> 1 (so no error is ever NaN)."""
+        """Non-finite values as the display rule maps them (NaN, -Inf -> 0, +Inf -> 1): no error is NaN."""
         import torch
 
         return torch.nan_to_num(torch.as_tensor(x).to(torch.float64), nan=0.0, posinf=1.0, neginf=0.0)

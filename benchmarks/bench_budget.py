@@ -2,7 +2,7 @@
 
 For every held-out stack: uniform sampling to `UNIFORM_SPP` against the budget render
 (flip criterion at c(tau)) given the same samples in total (the budget simulated on the
-stack's own passes, `renderer.live.budget.simulate_budget`: equal spp, not measured time). Each
+stack's own passes, `renderer.simulation.simulate.simulate_budget`: equal spp, not measured time). Each
 side's error per block is the virtual observer's against the 8192-spp reference, at the
 level the block ended at (DESIGN's pooling: the largest 16x16 tile mean of FLIP).
 """

@@ -156,7 +156,7 @@ def quick_image_cost() -> dict[str, float]:
     from renderer.live.blocks import QUICK_KINDS, BlockRenderer
     from renderer.scenes.catalog import load_scene
     scene, res, spp = QUICK_COST_SCENE
-    br = BlockRenderer(load_scene(scene, res), (4, 4))
+    br = BlockRenderer(load_scene(scene, res), grid=(4, 4))
     out = {}
     for kind in QUICK_KINDS:
         br.quick_image(spp, kind=kind)                       # compile

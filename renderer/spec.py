@@ -73,6 +73,10 @@ class RenderSpec:
                          ("resolution", "grid", "block", "step", "min_spp", "max_spp", "tau", "exposure")
                          if getattr(self, k) is not None)
 
+    def cut(self) -> dict[str, Any]:
+        """How the frame is cut into blocks and tiles, as `BlockWindows` takes it."""
+        return {"grid": self.grid, "block": self.block, "tile": self.tile}
+
     def tile_grain(self) -> int | None:
         """The tile side when blocks are cut into tiles, else None (whole blocks, or not known yet)."""
         side = _block_side(self.block, self.grid, self.resolution)

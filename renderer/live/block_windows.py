@@ -55,6 +55,12 @@ class BlockWindows:
         self._block_from_tiles[inner.reshape(len(self._tile_offsets), -1)] = torch.arange(
             len(self._tile_offsets) * self.tile_h * self.tile_w).reshape(len(self._tile_offsets), -1)
 
+    def geometry(self) -> dict[str, tuple[int, int]]:
+        """The cut in pixels, as a run records it: resolution (W, H), grid (rows, columns),
+        block and tile (height, width)."""
+        return {"resolution": (self.width, self.height), "grid": self.grid, "block": self.block_shape,
+                "tile": self.tile_shape}
+
     @property
     def n_blocks(self) -> int:
         return self.grid[0] * self.grid[1]

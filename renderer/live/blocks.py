@@ -62,13 +62,13 @@ QUICK_KINDS = ("albedo", "direct")
 
 
 class BlockRenderer(BlockWindows):
-    """Render any subset of the units (`BlockWindows`) of a scene's sensor (by default its
-    first), the film's crop window as the frame. `engine`: 'wavefront' or 'crop' (default: by
-    variant). `integrator`: by default the scene's (the ``noisestop`` plugin's nested one)."""
+    """Render any subset of the units of a scene's sensor (by default its first), the film's
+    crop window as the frame, cut as `cut` says (`BlockWindows`' grid, block and tile).
+    `engine`: 'wavefront' or 'crop' (default: by variant). `integrator`: by default the
+    scene's (the ``noisestop`` plugin's nested one)."""
 
-    def __init__(self, scene: Any, grid: tuple[int, int] | None = None, block: int | None = None,
-                 engine: str | None = None, sensor: Any = None, integrator: Any = None,
-                 tile: int | None = None) -> None:
+    def __init__(self, scene: Any, *, engine: str | None = None, sensor: Any = None, integrator: Any = None,
+                 **cut: Any) -> None:
         variant = select_variant()
         mi = require("mitsuba")
 
@@ -77,7 +77,7 @@ class BlockRenderer(BlockWindows):
         self.sensor = scene.sensors()[0] if sensor is None else sensor
         film = self.sensor.film()
         self._frame_offset = (int(film.crop_offset()[0]), int(film.crop_offset()[1]))
-        super().__init__(int(film.crop_size()[0]), int(film.crop_size()[1]), grid, block, tile)
+        super().__init__(int(film.crop_size()[0]), int(film.crop_size()[1]), **cut)
         # an XML scene may declare no integrator (mi.render then refuses): Mitsuba's path tracer
         self._integrator = scene.integrator() if integrator is None else integrator
         plugin = noisestop_of(self._integrator)

@@ -82,8 +82,7 @@ def prepare(scene: Any, given: Mapping[str, Any], *, reference: Any = None, sour
                    reference=ref.stack, frame=_frame(scene_obj, sensor, label))
     if ref.stack is not None:
         ref = replace(ref, stack=observed(ref.stack, spec.tau))
-    br = BlockRenderer(scene_obj, grid=spec.grid, block=spec.block, tile=spec.tile, sensor=sensor,
-                       integrator=integrator)
+    br = BlockRenderer(scene_obj, sensor=sensor, integrator=integrator, **spec.cut())
     try:
         crit = make_criterion(spec, None if ref.stack is None else ref.stack.thresholds)
         logger.info("%s: %s", label, spec.describe())

@@ -46,8 +46,7 @@ class RunSettings:
     @classmethod
     def of(cls, plan: RenderPlan) -> RunSettings:
         spec, br, crit = plan.spec, plan.renderer, plan.criterion
-        return cls(scene=plan.scene, resolution=(br.width, br.height), grid=(br.grid[0], br.grid[1]),
-                   block=(br.block_h, br.block_w), tile=(br.tile_h, br.tile_w), exposure=float(spec.exposure),
+        return cls(scene=plan.scene, **br.geometry(), exposure=float(spec.exposure),
                    step=int(spec.step), min_spp=int(spec.min_spp), max_spp=int(spec.max_spp),
                    decide_skip=float(spec.decide_skip), decide_growth=float(spec.decide_growth),
                    seed=int(spec.seed), quick_spp=int(spec.quick_spp),

@@ -9,6 +9,7 @@ import torch
 from learning.inputs.halves import recover_passes
 from noisefeat import split_blocks
 from renderer.live import adaptive, plan
+from renderer.live.block_windows import BlockWindows
 from renderer.live.ledger import Ledger
 from renderer.live.wavefront import Traced
 
@@ -31,6 +32,8 @@ class StackRenderer:
         self.calls = []
         self.ledger = Ledger()
         self.device = torch.device("cpu")
+
+    geometry = BlockWindows.geometry        # the cut as a run records it, from the attributes above
 
     def close(self):
         """Nothing to restore (BlockRenderer puts Dr.Jit's kernel-history flag back)."""

@@ -175,8 +175,7 @@ class RenderSession:
                                      self.spec.seed)
 
     def _queue_next(self, ids: np.ndarray, pass_ids: list[np.ndarray]) -> Launch | None:
-        """The launch `plan` would give after this one if none of its units stopped, queued
-        (None: there is none)."""
+        """The launch `plan` would give after this one if none of its units stopped, queued (None: none)."""
         after = pass_ids[-1] + 1
         go = self.loop.active[ids] & (after < len(self.loop.schedule))
         if not go.any():
@@ -199,8 +198,7 @@ class RenderSession:
 
     @property
     def progress(self) -> Progress:
-        """What the render has done, now (the loop's live arrays, not copies); kernel
-        compilations as last counted."""
+        """What the render has done, now (the loop's live arrays, not copies; kernels as last counted)."""
         timers = {**self.ledger.timers, "wall_s": self.wall_s()}
         return Progress(self.loop.state(), done=self.done, counters=dict(self.ledger.counters), timers=timers,
                         quick=self.quick, budget=None if self.budget is None else self.budget.state(self.loop.ratios))

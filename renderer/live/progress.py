@@ -1,5 +1,5 @@
-"""A render in progress, typed (a misspelt key fails where it is made, not when a checkpoint is read
-back): what it has done (`Progress`) and what a resume must match (`RunSettings`);
+"""A render in progress, typed (a misspelt key or a wrong dtype fails where it is made, not when a
+checkpoint is read back): what it has done (`Progress`) and what a resume must match (`RunSettings`);
 `renderer.live.checkpoint` alone turns these into arrays and back."""
 from __future__ import annotations
 

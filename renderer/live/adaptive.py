@@ -1,8 +1,7 @@
 """The adaptive progressive renderer (the paper's Figure 6): sample only the noisy blocks,
 until no unit is active or max_spp is reached. Only the command line's render
 (`adaptive_render`) checkpoints, between launches; samples depend only on (seed, pixel,
-pass), so a resume gives the very image and report (timings aside) of an uninterrupted run.
-"""
+pass), so a resume gives the very image and report (timings aside) of an uninterrupted run."""
 from __future__ import annotations
 
 import logging
@@ -20,7 +19,7 @@ from tqdm import tqdm
 from ..spec import ARGUMENT
 from .checkpoint import CHECKPOINT
 from .outputs import clear_results
-from .plan import RenderPlan, prepare
+from .plan import prepare
 from .report import render_result
 from .result import RenderResult
 from .session import RenderSession
@@ -49,36 +48,29 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True, re
     plan = prepare(scene, {"criterion": criterion, **settings}, reference=reference, source=source, plugin=plugin,
                    sensor=sensor, integrator=integrator, out=None if checkpoints is None else checkpoints.out)
     try:
-        session = open_session(plan, checkpoints, grow, t_start)
+        ckpt = None if checkpoints is None else Path(checkpoints.out) / CHECKPOINT
+        session = RenderSession(plan, ckpt_path=ckpt, resume=checkpoints is not None and checkpoints.resume,
+                                grow=grow, t_start=t_start)
+        # an earlier render's results go once this one is under way (a refused resume leaves them), on a
+        # resume too: beside an unfinished checkpoint they are stale, beside a finished one written again
+        if ckpt is not None and (removed := clear_results(ckpt.parent)):
+            logger.info("%s: removed the previous render's %s (%s)", ckpt.parent, ", ".join(removed),
+                        "the resumed render writes them" if session.resumed else
+                        "this render writes its own when it ends")
         reached = drive(session, progress, checkpoints is not None)
         return render_result(session, time_limit_reached=reached)
     finally:
         plan.renderer.close()
 
 
-def open_session(plan: RenderPlan, checkpoints: Checkpoints | None, grow: bool, t_start: float) -> RenderSession:
-    """The session of `plan`, resumed when asked. With checkpoints, the results an earlier
-    render left in the folder go once it is under way (a refused resume leaves the folder as
-    it was), on a resume too: beside an unfinished checkpoint they are an earlier render's,
-    beside a finished one they are written again at once."""
-    ckpt = None if checkpoints is None else Path(checkpoints.out) / CHECKPOINT
-    session = RenderSession(plan, ckpt_path=ckpt, resume=checkpoints is not None and checkpoints.resume, grow=grow,
-                            t_start=t_start)
-    if ckpt is not None and (removed := clear_results(ckpt.parent)):
-        logger.info("%s: removed the previous render's %s (%s)", ckpt.parent, ", ".join(removed),
-                    "the resumed render writes them" if session.resumed else "this render writes its own when it ends")
-    return session
-
-
 def drive(session: RenderSession, progress: bool, checkpointing: bool) -> bool:
-    """Advance the session launch by launch until it is done, checkpointing when
-    `checkpointing` (a first signal: checkpoint, then KeyboardInterrupt). A render that ends
-    within its first period writes none (a 1024x1024 checkpoint costs about half a second;
-    resuming a render that short is rendering it again). Whether the time limit ended it."""
+    """Advance the session until it is done; whether the time limit ended it. `checkpointing`: every
+    period and on a first signal (then KeyboardInterrupt), none for a render that ends within its
+    first period (a 1024x1024 checkpoint costs about half a second; resuming it is rendering it again)."""
     spec = session.spec
     every, time_limit = spec.checkpoint_every if checkpointing else math.inf, spec.time_limit
     last_saved = time.perf_counter()
-    bar = tqdm(total=len(session.loop.schedule), initial=session.rows, desc=f"{session.label} passes", unit="pass",
+    bar = tqdm(total=len(session.loop.schedule), initial=session.loop.rows, desc=f"{session.label} passes", unit="pass",
                disable=not progress, leave=False)
     stop = DeferredStop() if checkpointing else None
     with stop if stop is not None else nullcontext(), bar:
@@ -95,11 +87,11 @@ def drive(session: RenderSession, progress: bool, checkpointing: bool) -> bool:
                 session.checkpoint()
                 last_saved = time.perf_counter()
             if requested and not session.done:
-                raise KeyboardInterrupt(f"{stop.requested} after pass {session.rows}: checkpoint written to "
+                raise KeyboardInterrupt(f"{stop.requested} after pass {session.loop.rows}: checkpoint written to "
                                         f"{session.ckpt_path}, --resume continues")
             if reached:
                 logger.info("%s: time limit of %gs reached after pass %d (%d units still active)%s",
-                            session.label, time_limit, session.rows, int(session.loop.active.sum()),
+                            session.label, time_limit, session.loop.rows, int(session.loop.active.sum()),
                             "; --resume continues" if session.ckpt_path is not None else "")
                 return True
     return False
@@ -107,10 +99,9 @@ def drive(session: RenderSession, progress: bool, checkpointing: bool) -> bool:
 
 def adaptive_render(scene: str | os.PathLike, out: str | os.PathLike, criterion: Any = None, *,
                     resume: bool = False, **kwargs: Any) -> dict[str, Any]:
-    """Render `scene` adaptively into `out`, with checkpoints there (`resume`: continue from
-    them); the report, also out/report.json. Its wall_s runs to the end of the last pass
-    (writing the files is not in it), every attempt's added up. `kwargs`:
-    `run_adaptive`'s (the render spec's settings, `reference`, `progress`, `source`)."""
+    """Render `scene` adaptively into `out`, with checkpoints there (`resume`: continue from them);
+    the report, also out/report.json (wall_s: every attempt's, to the end of the last pass).
+    `kwargs`: `run_adaptive`'s (the render spec's settings, `reference`, `progress`, `source`)."""
     result = run_adaptive(scene, criterion, checkpoints=Checkpoints(out, resume), **kwargs)
     result.save(out)
     report = result.report

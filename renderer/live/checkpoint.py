@@ -1,9 +1,7 @@
-"""The adaptive render's checkpoint (out/checkpoint.npz), where the typed progress becomes
-arrays and back: written atomically with a digest, read without pickle, and trusted only when
-made with the same settings and holding a state the loop could have produced (a truncated,
-byte-flipped or forged file is one ValueError naming it, never a traceback nor a resume from
-pass 1,000,000; what the file cannot vouch for: `renderer.live.checkpoint_checks`).
-"""
+"""The adaptive render's checkpoint (out/checkpoint.npz), where the typed progress becomes arrays and
+back: written atomically with a digest, read without pickle, trusted only when made with the same
+settings and holding a state the loop could have produced (else one ValueError naming the file; what
+the file cannot vouch for: `renderer.live.checkpoint_checks`)."""
 from __future__ import annotations
 
 import dataclasses
@@ -62,8 +60,7 @@ def save_checkpoint(path: Path, progress: Progress, settings: RunSettings) -> No
         "timer_values": np.array(list(progress.timers.values()), np.float64),
         "quick": np.zeros((0, 0, 3), np.float32) if progress.quick is None else progress.quick,
     }
-    for k, v in loop.acc.state().items():
-        arrays[f"acc_{k}"] = v
+    arrays.update({f"acc_{k}": v for k, v in loop.acc.state().items()})
     b = progress.budget
     if b is not None:          # a budget render: its blocks may be out of step
         arrays.update({"budget_prioritised_rounds": np.int64(b.prioritised_rounds),
@@ -222,11 +219,10 @@ def _state(data: dict[str, np.ndarray], pass_spp: list[int], grid: tuple[int, in
         if got is None or got.shape != (2,) or got.dtype.kind != "i" or tuple(int(v) for v in got) != tuple(want):
             raise ValueError(f"accumulator {key} {None if got is None else got.tolist()} is not the render's "
                              f"{list(want)}")
-    bh, bw = unit_shape
     if int(_get(acc_state, "version", "int64", ())) != UnitAccumulator.STATE_VERSION:
         raise ValueError(f"accumulator state version {acc_state['version']}, this code reads "
                          f"{UnitAccumulator.STATE_VERSION}")
-    for key, dtype, shape in (("sum", "float64", (2, n, bh, bw, 3)), ("weight", "int64", (2, n, bh, bw)),
+    for key, dtype, shape in (("sum", "float64", (2, n, *unit_shape, 3)), ("weight", "int64", (2, n, *unit_shape)),
                               ("spp", "int64", (n, 2)), ("passes", "int64", (n,)), ("nonfinite", "int64", (n,))):
         arr = _get(acc_state, key, dtype, shape)
         if arr.dtype.kind == "f" and not np.isfinite(arr).all():

@@ -1,7 +1,5 @@
-"""A resumed checkpoint's checks against the scene and the criterion: what the file alone
-cannot vouch for (`renderer.live.checkpoint` vouches for the rest). A refusal is a ValueError
-naming the file.
-"""
+"""A resumed checkpoint's checks against the scene and the criterion: what the file alone cannot
+vouch for (`renderer.live.checkpoint` vouches for the rest). A refusal is a ValueError naming the file."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -29,11 +27,9 @@ RADIANCE_RATIO = 1e6
 
 
 def check_radiance(path: Path, acc: UnitAccumulator, br: BlockRenderer, first_spp: int, seed: int) -> None:
-    """ValueError unless a checkpoint's radiance is what its scene renders: sums scaled x1e30
-    (every unit then "converged"), digest recomputed, pass every check of the file alone. The
-    first pass depends only on (seed, pixel, pass), so it is traced again (not added to the
-    image) and the mean radiance held must lie within RADIANCE_RATIO of its mean. A black
-    first pass proves nothing (light found later)."""
+    """ValueError unless a checkpoint's radiance is what its scene renders (sums scaled x1e30, digest
+    recomputed, pass every check of the file alone): the first pass, which depends only on (seed, pixel,
+    pass), is traced again and the mean held must lie within RADIANCE_RATIO of its mean (unless black)."""
     units = np.flatnonzero(acc.pass_counts() > 0)
     if not units.size:
         return
@@ -52,15 +48,13 @@ NEXT_RATIO = 1e3
 
 
 def check_evidence(path: Path, loop: PassLoop) -> None:
-    """ValueError unless a resumed loop's decision evidence and next decisions agree with the
-    half buffers its checkpoint holds. Neither can be recomputed from the file (a forged one,
-    sums zeroed or 1e300, stopped units early or ran them to max spp), but every decision of
-    a unit estimated one per-unit constant (noise falls as 1/sqrt(spp)), so the criterion is
-    asked once more on the active, judged units, keeping nothing (the resumed render counts
-    as the uninterrupted one). Refused: a unit judged at the spp it holds with less evidence
-    than that decision added (half of it, for a tile's context), a mean estimate more than
-    EVIDENCE_RATIO from its halves' now (honest ones: within 3x on cornell), a next decision
-    more than NEXT_RATIO past what its ratio now asks for."""
+    """ValueError unless a resumed loop's decision evidence and next decisions agree with the half
+    buffers its checkpoint holds. Neither can be recomputed from the file (forged sums, zeroed or 1e300,
+    stop units early or run them to max spp), but every decision estimated one per-unit constant (noise
+    falls as 1/sqrt(spp)), so the criterion is asked once more on the active, judged units, keeping
+    nothing. Refused: a unit judged at the spp it holds with less evidence than that decision added
+    (half of it, for a tile's context), a mean estimate more than EVIDENCE_RATIO from its halves' now
+    (honest ones: within 3x on cornell), a next decision more than NEXT_RATIO past what its ratio asks."""
     decided = loop.evidence.last
     ids = np.flatnonzero(loop.active & (decided > 0))
     if not ids.size or not loop.criterion.noise_ratio:
@@ -83,8 +77,7 @@ def check_evidence(path: Path, loop: PassLoop) -> None:
     # judged at the spp it holds: that decision added (spp - the one before) x
     here = fresh & (spp == decided[ids])
     if here.any():
-        before = _decided_before(loop, ids[here])
-        w = (spp[here] - before).astype(np.float64)
+        w = (spp[here] - _decided_before(loop, ids[here])).astype(np.float64)
         short = (weight[here] < w) | (total[here] < 0.5 * w * x[here])
         if short.any():
             _refuse(path, f"unit {int(ids[here][short][0])} holds less evidence than its last decision added")

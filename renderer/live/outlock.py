@@ -1,8 +1,7 @@
-"""One render at a time per output folder (two renders into one folder left final.exr from
-one and report.json from the other): an advisory `flock` on out/.noisestop.lock, which the
-kernel drops when its holder dies, kill -9 included, so a lock file a killed run left is taken
-over (logged), and one a running render holds refuses the second render in one line.
-"""
+"""One render at a time per output folder (two renders into one folder left final.exr from one and
+report.json from the other): an advisory `flock` on out/.noisestop.lock, which the kernel drops when
+its holder dies (kill -9 too), so a lock a killed run left is taken over (logged), and one a running
+render holds refuses the second render in one line."""
 from __future__ import annotations
 
 import contextlib

@@ -1,8 +1,6 @@
-"""What an adaptive render leaves on disk: final.exr, final.png, spp_map.png, report.json
-and, with a reference, compare.png. Every file is written atomically, so an interrupted run
-never leaves a truncated image that looks finished; no pyplot (global state: unsafe in Dask
-worker threads).
-"""
+"""What an adaptive render leaves on disk: final.exr, final.png, spp_map.png, report.json and, with a
+reference, compare.png. Every file is written atomically, so an interrupted run never leaves a truncated
+image that looks finished; no pyplot (global state: unsafe in Dask worker threads)."""
 from __future__ import annotations
 
 import io
@@ -30,17 +28,6 @@ COMPARE = "compare.png"
 RESULTS = (FINAL_EXR, FINAL_PNG, SPP_MAP, REPORT, COMPARE)
 
 
-def check_output_path(path: str | os.PathLike) -> None:
-    """Refuse, in one line, an empty output folder name (`Path("")` is the current folder,
-    where the out-folder lock did not hold) and the root folder (by where the path leads:
-    `//`, `/..` and a link to `/` too)."""
-    text = os.fspath(path)
-    if not text:
-        raise ValueError("the output folder is an empty name: name a folder (e.g. --out out)")
-    if os.path.realpath(text) == os.path.realpath(os.sep):
-        raise ValueError(f"{text}: the output folder cannot be the root folder; name a folder of its own")
-
-
 def clear_results(out: str | os.PathLike) -> list[str]:
     """Remove the previous render's results from folder `out`, so that none is left beside
     this render's checkpoint or results; the names removed. One that cannot be removed (a
@@ -60,10 +47,15 @@ def clear_results(out: str | os.PathLike) -> list[str]:
 
 
 def prepare_output_dir(path: str | os.PathLike) -> Path:
-    """`path` as an existing, writable directory, or a one-line error before any work.
-    Writability is probed by creating a file: permission bits do not bind root, a read-only
-    mount binds everyone."""
-    check_output_path(path)
+    """`path` as an existing, writable directory, or a one-line error before any work: not an empty name
+    (`Path("")` is the current folder, where the out-folder lock did not hold) nor the root folder (by
+    where the path leads: `//`, `/..` and a link to `/` too). Writability is probed by creating a file:
+    permission bits do not bind root, a read-only mount binds everyone."""
+    text = os.fspath(path)
+    if not text:
+        raise ValueError("the output folder is an empty name: name a folder (e.g. --out out)")
+    if os.path.realpath(text) == os.path.realpath(os.sep):
+        raise ValueError(f"{text}: the output folder cannot be the root folder; name a folder of its own")
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise NotADirectoryError(f"{p}: exists and is not a directory (the output must be a folder)")
@@ -93,11 +85,10 @@ MAP_SIZE, BAR_W, BAR_GAP, MARGIN, LEGEND_ROW = 512, 18, 14, 12, 18
 def spp_map_png(spp: np.ndarray, windows: Sequence[Sequence[int]], block_spp: Sequence[int],
                 converged: Sequence[bool], min_spp: int, max_spp: int,
                 above_target: Sequence[int] = ()) -> bytes:
-    """PNG bytes: a heat map of the samples per pixel (log2 viridis from `min_spp` to
-    `max_spp`), a colour bar and a legend; windows outlined, in red those that ran to max spp,
-    in orange those a budget left above target (`above_target`, ids); each one's spp written
-    on it up to 64 windows. Pillow and cmap, not matplotlib: its import and draw cost every
-    render 0.5 s."""
+    """PNG bytes: a heat map of the samples per pixel (log2 viridis from `min_spp` to `max_spp`), a colour
+    bar and a legend; windows outlined, in red those that ran to max spp, in orange those a budget left
+    above target (`above_target`, ids); each one's spp written on it up to 64 windows. Pillow and cmap,
+    not matplotlib: its import and draw cost every render 0.5 s."""
     from PIL import Image, ImageDraw, ImageFont
 
     Colormap = require("cmap").Colormap        # a missing [render] extra: one line naming it

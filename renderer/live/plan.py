@@ -1,7 +1,6 @@
 """Everything an adaptive render needs, made once before its first pass (`prepare`): the
 settings checked, the reference and the scene loaded, the spec resolved once knowing the
-frame, the renderer and the criterion built. One place, so that the doors cannot drift apart.
-"""
+frame, the renderer and the criterion built. One place, so that the doors cannot drift apart."""
 from __future__ import annotations
 
 import logging
@@ -53,13 +52,12 @@ class RenderPlan:
 def prepare(scene: Any, given: Mapping[str, Any], *, reference: Any = None, source: str = ARGUMENT,
             plugin: Mapping[str, Any] | None = None, sensor: Any = None, integrator: Any = None,
             out: str | os.PathLike[str] | None = None) -> RenderPlan:
-    """The `RenderPlan` of a render, or a one-line ValueError. `scene`: a built-in name, an
-    XML path or a loaded ``mi.Scene``. `given`: the render spec's rows (None: not given), given
-    by `source`. `plugin`: the ``noisestop`` properties under them (None: the scene's own
-    integrator's, if it is one). `reference`: a labelled stack or dataset directory of this
-    scene (its grid and levels become the defaults), or a reference image. `sensor` /
-    `integrator`: instead of the scene's first sensor and own integrator. `out`: a folder
-    checked writable before the scene loads."""
+    """The `RenderPlan` of a render, or a one-line ValueError. `scene`: a built-in name, an XML path or
+    a loaded ``mi.Scene``. `given`: the render spec's rows (None: not given), given by `source`. `plugin`:
+    the ``noisestop`` properties under them (None: the scene's own integrator's, if it is one).
+    `reference`: a labelled stack or dataset directory of this scene (its grid and levels become the
+    defaults), or a reference image. `sensor` / `integrator`: instead of the scene's first sensor and
+    own integrator. `out`: a folder checked writable before the scene loads."""
     from learning.data.relabel import observed
     from learning.data.variant import current_variant, select_variant
 
@@ -70,7 +68,7 @@ def prepare(scene: Any, given: Mapping[str, Any], *, reference: Any = None, sour
     ref = load_reference(reference, label)
     values = checked(given)            # each given setting once: a bad one fails before anything loads
     if out is not None:
-        prepare_output_dir(out)        # writable: before the scene loads
+        prepare_output_dir(out)
     variant = select_variant() or current_variant()
     implied = reference_settings(ref.stack) if ref.stack is not None else {}
     scene_obj = scene if loaded else load_scene(scene, values.get("resolution", implied.get("resolution")),
@@ -134,7 +132,6 @@ def load_reference(reference: Stack | str | os.PathLike[str] | np.ndarray | None
     no per-level errors, so no oracle thresholds."""
     if reference is None:
         return Reference()
-    img = None
     if isinstance(reference, np.ndarray):
         img = np.asarray(reference, np.float32)
         if img.ndim != 3 or img.shape[2] != 3:
@@ -148,7 +145,7 @@ def load_reference(reference: Stack | str | os.PathLike[str] | np.ndarray | None
             raise FileNotFoundError(f"{os.fspath(reference)}: reference image not found")
         check_regular(reference, "reference image")     # a device, a FIFO, a folder: one line saying which
         img = read_exr(reference)
-    if img is None:
+    else:
         return Reference(reference, stack=find_stack(reference, label))
     finite = np.isfinite(img)
     if not finite.all():       # every figure would be NaN

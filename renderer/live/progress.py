@@ -1,7 +1,6 @@
-"""A render in progress, typed: what it has done (`Progress`) and what a resume must match
-(`RunSettings`). Typed so that a misspelt key or a wrong dtype fails where it is made, not when
-a checkpoint is read back; `renderer.live.checkpoint` alone turns these into arrays and back.
-"""
+"""A render in progress, typed (a misspelt key or a wrong dtype fails where it is made, not when a
+checkpoint is read back): what it has done (`Progress`) and what a resume must match (`RunSettings`);
+`renderer.live.checkpoint` alone turns these into arrays and back."""
 from __future__ import annotations
 
 from collections.abc import Mapping

@@ -1,7 +1,6 @@
-"""The adaptive render's report.json: per block window (and per tile) spp and verdict
-history, totals, the ledger's counters and timers, and against a reference DESIGN's
-early-stop metrics and what a person would see flipping between final.png and it. Read from
-a finished render's live objects, never from the checkpoint's arrays (their own format)."""
+"""The adaptive render's report.json: per block window (and tile) spp and verdict history, totals,
+the ledger's counters and timers, and against a reference DESIGN's early-stop metrics and what a
+person would see flipping between final.png and it; read from a finished render's live objects."""
 from __future__ import annotations
 
 import logging
@@ -11,7 +10,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from learning.data.accumulator import UnitAccumulator
 from learning.data.stack import Stack
 
 from ..criteria import COUNTER_NAMES, external_counters
@@ -34,14 +32,10 @@ Json = dict[str, Any]
 def render_report(plan: RenderPlan, loop: PassLoop, ledger: Ledger, wall_s: float) -> Json:
     """report.json's core: settings, units, counters and timers (`wall_s`: every attempt's
     seconds so far), and the early-stop metrics against the plan's labelled stack."""
-    br, ref = plan.renderer, plan.reference.stack
-    settings = RunSettings.of(plan)
-    n, T = br.n_blocks, br.tiles_per_block
-    max_spp = settings.max_spp
-    acc, counters, timers, wall = loop.acc, ledger.counters, ledger.timers, float(wall_s)
-    spp = acc.spp_all()                       # per unit: a block, or one of its T tiles
-    nonfinite = acc.nonfinite_all()
-    converged = ~loop.active
+    br, ref, settings = plan.renderer, plan.reference.stack, RunSettings.of(plan)
+    n, T, max_spp = br.n_blocks, br.tiles_per_block, settings.max_spp
+    counters, timers, wall = ledger.counters, ledger.timers, float(wall_s)
+    spp, nonfinite, converged = loop.acc.spp_all(), loop.acc.nonfinite_all(), ~loop.active   # per unit (block or tile)
     units = [{"id": u, "window": list(br.unit_window(u)), "spp": int(spp[u]), "converged": bool(converged[u]),
               "stop_spp": int(loop.stop_spp[u]) if converged[u] else None, "nonfinite": int(nonfinite[u]),
               "history": [[s, v] for s, v in loop.events.get(u, [])]} for u in range(n * T)]
@@ -50,12 +44,10 @@ def render_report(plan: RenderPlan, loop: PassLoop, ledger: Ledger, wall_s: floa
         blocks = units
     else:                                     # a block: its tiles' mean spp, done when all of them are
         blocks = [{"id": b, "window": list(br.window(b)), "spp": int(round(float(block_spp[b].mean()))),
-                   "converged": bool(block_done[b]),
-                   "stop_spp": int(block_spp[b].max()) if block_done[b] else None,
+                   "converged": bool(block_done[b]), "stop_spp": int(block_spp[b].max()) if block_done[b] else None,
                    "nonfinite": int(nonfinite.reshape(n, T)[b].sum()), "history": []} for b in range(n)]
         for t in units:
             t["block"] = t["id"] // T
-    pixels = br.tile_h * br.tile_w            # samples_spent counts shared window pixels once per window
     setup_s, render_s, features_s, decisions_s = (float(timers.get(k, 0.0))
                                                   for k in ("setup_s", "render_s", "features_s", "decisions_s"))
     described = settings.criterion
@@ -67,18 +59,15 @@ def render_report(plan: RenderPlan, loop: PassLoop, ledger: Ledger, wall_s: floa
         # the noise target: the observer's tau the knob above was calibrated for (flip: c = c(tau))
         "tau": settings.tau,
         "resolution": [br.width, br.height], "grid": list(br.grid), "block": [br.block_h, br.block_w],
-        "tile": [br.tile_h, br.tile_w],
-        "step": settings.step, "min_spp": settings.min_spp, "max_spp": max_spp,
+        "tile": [br.tile_h, br.tile_w], "step": settings.step, "min_spp": settings.min_spp, "max_spp": max_spp,
         # when units are judged (`renderer.live.passloop.next_decision`): where stops can land
         "decide_skip": settings.decide_skip, "decide_growth": settings.decide_growth,
-        "seed": settings.seed, "exposure": settings.exposure, "quick": settings.quick,
-        "passes": loop.rows,
-        "samples_spent": int(spp.sum()) * pixels, "mean_spp": float(spp.mean()),
+        "seed": settings.seed, "exposure": settings.exposure, "quick": settings.quick, "passes": loop.rows,
+        # samples_spent counts shared window pixels once per window
+        "samples_spent": int(spp.sum()) * br.tile_h * br.tile_w, "mean_spp": float(spp.mean()),
         "saved_vs_uniform": 1.0 - float(spp.sum()) / (n * T * max_spp),
-        "blocks_converged": int(block_done.sum()), "tiles_converged": int(converged.sum()),
-        "wall_s": wall,
-        "timing": {"setup_s": setup_s, "render_s": render_s, "features_s": features_s,
-                   "decisions_s": decisions_s,
+        "blocks_converged": int(block_done.sum()), "tiles_converged": int(converged.sum()), "wall_s": wall,
+        "timing": {"setup_s": setup_s, "render_s": render_s, "features_s": features_s, "decisions_s": decisions_s,
                    "overhead_s": max(0.0, wall - setup_s - render_s - features_s - decisions_s)},
         "counters": {"blocks_rendered_per_pass": loop.rendered.tolist(),
                      "blocks_rendered": int(loop.rendered.sum()),
@@ -126,12 +115,11 @@ def window_dots(image: np.ndarray, reference: np.ndarray, windows: Sequence[Sequ
 def final_vs_reference(image: np.ndarray, reference: np.ndarray, grid: tuple[int, int], tau: float,
                        exposure: float = 0.0, stopped: np.ndarray | None = None,
                        windows: Sequence[Sequence[int]] | None = None) -> Json:
-    """What a person would see flipping between final.png and the reference: the observer's
-    per-block error, the blocks still above tau and those of them the criterion stopped (the
-    others ran to max spp), per block the pixels over the dot level (`window_dots`), and among
-    the stopped blocks the most dots and how many hold more than a block may (16 in 64x64).
-    `windows` (x, y, w, h) per block: instead of cutting the frame into `grid` (windows that
-    overlap at the frame's edge do not tile it)."""
+    """What a person would see flipping between final.png and the reference: the observer's per-block
+    error, the blocks above tau (and of them those `stopped`), per block the pixels over the dot level
+    (`window_dots`), and among the stopped blocks the most dots and how many hold more than a block may
+    (16 in 64x64). `windows` (x, y, w, h) per block: instead of cutting the frame into `grid` (overlapping
+    windows do not tile it)."""
     from learning.data.block_terms import window_errors
     from learning.data.observer import VirtualObserver
     from noisefeat.dots import REPORT_LEVEL, dot_rank
@@ -184,26 +172,22 @@ def render_result(session: RenderSession, *, time_limit_reached: bool) -> Render
     if budget is not None and budget.limited:    # not a resumed one's budget of none
         report["budget"] = budget.describe(loop, time_limit_reached)
     report["render_calls"] = session.counts()
-    windows = [br.unit_window(u) for u in range(n)]
-    image, spp_px, owner = compose(acc.means(np.arange(n)).cpu().numpy(), windows, acc.spp_all(),
-                                   (br.height, br.width))
-    empty, _, _ = compose(acc.unsampled(np.arange(n))[..., None].astype(np.float64), windows, acc.spp_all(),
-                          (br.height, br.width))
+    units, windows, frame = np.arange(n), [br.unit_window(u) for u in range(n)], (br.height, br.width)
+    image, spp_px, owner = compose(acc.means(units).cpu().numpy(), windows, acc.spp_all(), frame)
+    empty, _, _ = compose(acc.unsampled(units)[..., None].astype(np.float64), windows, acc.spp_all(), frame)
     # (pixel, pass) values dropped as NaN/Inf; pixels with no finite sample (shown as 0; a farm
     # exits 3 on them); units never converged for want of a finite estimate
     report["nonfinite"] = {"dropped": int(acc.nonfinite_all().sum()), "pixels": int((empty[..., 0] > 0).sum()),
-                           "units": int((acc.unestimated(np.arange(n)) > 0).sum())}
+                           "units": int((acc.unestimated(units) > 0).sum())}
     if report["nonfinite"]["dropped"]:
         logger.warning("%s", nonfinite_line(report))
     block_done = (~loop.active).reshape(br.n_blocks, br.tiles_per_block).all(axis=1)
     image = image.astype(np.float32)
-    ref_img = ref.image
-    if ref.stack is not None:
-        ref_img = ref.stack.reference()
-        if ref_img.shape != image.shape:
-            logger.warning("reference image %s differs from the render %s: no final-vs-reference check",
-                           ref_img.shape, image.shape)
-            ref_img = None
+    ref_img = ref.image if ref.stack is None else ref.stack.reference()
+    if ref.stack is not None and ref_img.shape != image.shape:
+        logger.warning("reference image %s differs from the render %s: no final-vs-reference check",
+                       ref_img.shape, image.shape)
+        ref_img = None
     if ref_img is not None:
         report["final_vs_reference"] = final_vs_reference(
             image, ref_img, br.grid, float(spec.tau), float(spec.exposure), block_done,

@@ -1,11 +1,5 @@
-"""One adaptive render in progress: its renderer, loop, budget, ledger and checkpoint.
-
-`renderer.live.adaptive.run_adaptive` opens a `RenderSession` on a prepared
-`renderer.live.plan.RenderPlan` and calls `advance` until it is done;
-`renderer.live.report.render_result` turns it into the result. The session owns the render's
-`Ledger` and hands it to the renderer, the loop and the budget; `progress` is what survives a
-crash (`checkpoint` writes it).
-"""
+"""One adaptive render in progress (`RenderSession`): its renderer, loop, budget, the `Ledger`
+they share, and the checkpoint that lets a crashed render go on (`progress`)."""
 from __future__ import annotations
 
 import logging
@@ -99,11 +93,6 @@ class RenderSession:
 
     # -- the launch ----------------------------------------------------------------------
 
-    @property
-    def rows(self) -> int:
-        """The verdict history's rows so far (report.json "passes")."""
-        return self.loop.rows
-
     def plan(self) -> tuple[np.ndarray, list[np.ndarray]]:
         """The units of the next launch and, per pass, each unit's pass index ([]: the render is
         over): every pending unit at its own next pass, or the units a budget picks."""
@@ -126,10 +115,8 @@ class RenderSession:
         return ids, grown[:max(1, int(left // max(one, 1.0)) if math.isfinite(left) else 1)]
 
     def _grown(self, ids: np.ndarray, first: np.ndarray, stale: np.ndarray | None = None) -> list[np.ndarray]:
-        """The pass indices of units `ids` in one launch from their next ones `first`
-        (`grown_passes`; past decisions that may stop a unit only as far as `ahead_passes`
-        allows). `stale`: units whose next decision is not known yet (`_queue_next`), taken as
-        due at their first pass."""
+        """The pass indices of units `ids` in one launch from their next ones `first` (`grown_passes`,
+        `ahead_passes`). `stale`: units whose next decision is not known yet, taken as due at `first`."""
         if not ids.size:
             return []
         loop = self.loop
@@ -145,11 +132,9 @@ class RenderSession:
         return [first + j for j in range(k)]
 
     def advance(self) -> int:
-        """One launch: plan, queue and wait for it, then a round per pass; returns the history
-        rows it added (0: done). Without a budget (and with `grow`) the next launch is queued
-        once this one's images are in, before they are judged (`_queue_next`; queued before
-        the wait, the host's work competes with the trace: 3 % slower on 2 cores). Passes
-        queued for units that stop are dropped: only samples_traced counts them."""
+        """One launch, then a round per pass; the history rows it added (0: done). Without a budget and
+        with `grow`, the next launch is queued once this one's images are in, before they are judged
+        (queued before the wait, the host's work slows the trace). Passes of units that stop are dropped."""
         ahead, self._ahead = self._ahead, None
         t0 = time.perf_counter()
         if ahead is None:
@@ -190,8 +175,7 @@ class RenderSession:
                                      self.spec.seed)
 
     def _queue_next(self, ids: np.ndarray, pass_ids: list[np.ndarray]) -> Launch | None:
-        """The launch `plan` would give after this one if none of its units stopped, queued
-        (None: there is none)."""
+        """The launch `plan` would give after this one if none of its units stopped, queued (None: none)."""
         after = pass_ids[-1] + 1
         go = self.loop.active[ids] & (after < len(self.loop.schedule))
         if not go.any():
@@ -214,10 +198,8 @@ class RenderSession:
 
     @property
     def progress(self) -> Progress:
-        """What the render has done, now (the loop's live arrays, not copies); kernel
-        compilations as last counted."""
-        timers = dict(self.ledger.timers)
-        timers["wall_s"] = self.wall_s()
+        """What the render has done, now (the loop's live arrays, not copies; kernels as last counted)."""
+        timers = {**self.ledger.timers, "wall_s": self.wall_s()}
         return Progress(self.loop.state(), done=self.done, counters=dict(self.ledger.counters), timers=timers,
                         quick=self.quick, budget=None if self.budget is None else self.budget.state(self.loop.ratios))
 

@@ -1,9 +1,7 @@
-"""Ctrl-C and SIGTERM during a render: finish the pass, checkpoint, then stop (checkpoints
-are timed, so killing the loop would lose the passes since the last one, or leave a pass
-half-added); a second signal stops at once, even inside a native Mitsuba call, where Python
-handlers wait for the call to return: a watcher thread reads the interpreter's wake-up fd,
-which the C-level handler writes at once. `--resume` then goes on bit for bit.
-"""
+"""Ctrl-C and SIGTERM during a render: finish the pass, checkpoint, then stop (killing the loop would
+lose the passes since the last timed checkpoint, or leave a pass half-added); a second signal stops at
+once, even inside a native Mitsuba call, where Python handlers wait for the call to return: a watcher
+thread reads the interpreter's wake-up fd, which the C-level handler writes at once."""
 from __future__ import annotations
 
 import contextlib

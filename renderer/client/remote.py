@@ -3,7 +3,8 @@
 `RemoteModel` scores blocks like a local model over HTTP (DESIGN "HTTP API"; never imports
 `service`), by default with the binary tensor extension through the server's codec (`oip_codec`).
 A 4xx answer raises ValueError and a 5xx ConnectionError, quoting the server's ``{"error": ...}``;
-connection failures and a 503 with Retry-After are retried a bounded number of times.
+connection failures and a 503 with Retry-After are retried a bounded number of times, a timeout
+or other error answer is not.
 """
 from __future__ import annotations
 

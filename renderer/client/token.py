@@ -4,7 +4,8 @@ and its client.
 An explicit token or token file first, else NOISESTOP_TOKEN or the file NOISESTOP_TOKEN_FILE
 names (a Docker or Kubernetes secret); both set is refused. Only unset variables mean "no
 token": an empty one, a token of spaces, an empty file and a token that is not one line of
-visible ASCII are refused, naming where it came from and never showing it.
+visible ASCII (a file may end with one newline) are refused, naming where it came from, never
+showing it.
 """
 from __future__ import annotations
 

@@ -47,12 +47,9 @@ def executor(workers: int | None = None, scheduler: str | None = None) -> Iterat
 
 
 def configure_worker_threads() -> None:
-    """Inside a worker: give torch its share of the cores (NOISESTOP_THREADS).
-
-    Dr.Jit's pool is left alone: `drjit.set_thread_count(1)` makes Mitsuba's EXR
-    `Bitmap.write` hang on OpenEXR's thread-pool semaphore (mitsuba 3.9.1;
-    tests/renderer/test_dataset_build.py guards it).
-    """
+    """Inside a worker: give torch its share of the cores (NOISESTOP_THREADS). Dr.Jit's pool is
+    left alone: `drjit.set_thread_count(1)` makes Mitsuba's EXR `Bitmap.write` hang on OpenEXR's
+    thread-pool semaphore (mitsuba 3.9.1; tests/renderer/test_dataset_build.py guards it)."""
     from noisefeat.bounds import env_int
 
     threads = env_int(os.environ, "NOISESTOP_THREADS", 0, minimum=1)   # unset or blank: 0, left alone

@@ -1,8 +1,7 @@
-"""The Open Inference Protocol v2 binary tensor codec, one for the client and the server
-(`service.oip`), so the two ends cannot drift apart (numpy only; in `renderer` because
-`service` may import it and not the reverse). A body is a JSON header of
-`Inference-Header-Content-Length` bytes, then the raw little-endian row-major tensors in the
-header's order, each announced by `parameters.binary_data_size` (REFERENCES.md). Problems are
+"""The Open Inference Protocol v2 binary tensor codec of the client and the server (`service.oip`), so
+the two ends cannot drift apart (numpy only; in `renderer`, which `service` may import). A body is a
+JSON header of `Inference-Header-Content-Length` bytes, then the raw little-endian row-major tensors
+in the header's order, each of `parameters.binary_data_size` bytes (REFERENCES.md). Problems are
 `WireError`: the server answers it as a 400, the client raises it naming the URL.
 """
 from __future__ import annotations
@@ -38,9 +37,7 @@ def tensor_bytes(arr: np.ndarray, datatype: str | None = None) -> bytes:
 def join_body(header: bytes, tensors: Sequence[bytes]) -> tuple[bytes, int | None]:
     """(body, header length) of a message: the JSON header then the binary tensors; the
     header length is None when no tensor is binary (a plain JSON body)."""
-    if not tensors:
-        return header, None
-    return header + b"".join(tensors), len(header)
+    return (header + b"".join(tensors), len(header)) if tensors else (header, None)
 
 
 def split_body(body: bytes | memoryview, header_length: int | None) -> tuple[bytes | memoryview, bytes | memoryview]:

@@ -1,11 +1,10 @@
 """A small Open Inference Protocol v2 client for a noisestop verdict server (stdlib only).
 
-`RemoteModel` looks like a local model (``score_blocks(blocks, quick)``), so the adaptive loop
-can ask a server on another machine (DESIGN "HTTP API"), by default with the binary tensor
-extension, through the codec the server uses too (`oip_codec`). A 4xx answer raises
-ValueError and a 5xx ConnectionError, quoting the server's ``{"error": ...}``; connection
-failures, and a 503 with Retry-After (a server at its limits), are retried a bounded number
-of times, a timeout or other error answer is not. Never imports `service` (DESIGN: HTTP only).
+`RemoteModel` scores blocks like a local model over HTTP (DESIGN "HTTP API"; never imports
+`service`), by default with the binary tensor extension through the server's codec (`oip_codec`).
+A 4xx answer raises ValueError and a 5xx ConnectionError, quoting the server's ``{"error": ...}``;
+connection failures and a 503 with Retry-After are retried a bounded number of times, a timeout
+or other error answer is not.
 """
 from __future__ import annotations
 
@@ -32,10 +31,9 @@ default_token = resolve_token       # called bare: the environment's token, by t
 class RemoteModel:
     """A verdict model behind an OIP v2 server, used like a local `learning` Model.
 
-    `url`: the server's base URL (``http://host:8000``); `model`: the model name
-    (every noisestop server serves ``default``); `token`: bearer token (default: from
-    NOISESTOP_TOKEN / NOISESTOP_TOKEN_FILE); `binary`: use the binary tensor extension
-    (else plain JSON lists, ~10x larger); `batch_size`: most blocks per request.
+    `url`: the server's base URL (``http://host:8000``); `model`: its name (noisestop serves ``default``);
+    `token`: bearer token (default: NOISESTOP_TOKEN / NOISESTOP_TOKEN_FILE); `binary`: the binary tensor
+    extension (else plain JSON lists, ~10x larger); `batch_size`: most blocks per request.
     """
 
     input = "features"  # the server computes features from blocks + quick: send the quick blocks
@@ -96,7 +94,6 @@ class RemoteModel:
             attempt += 1
             self.requests += 1
             req = urllib.request.Request(url, data=body, method=method, headers=hdrs)
-            unsendable = False
             try:
                 with self._opener.open(req, timeout=self.timeout) as resp:
                     return resp.status, {k.lower(): v for k, v in resp.headers.items()}, resp.read()
@@ -127,11 +124,12 @@ class RemoteModel:
                 logger.warning("%s %s failed (%s); retry %d/%d in %.2f s", method, url, reason, attempt,
                                self.retries, delay)
                 time.sleep(delay)
+                continue
             except ValueError:      # http.client refusing a header: its message quotes it, token and all
-                unsendable = True
-            if unsendable:          # raised here, outside the handler: not even as the context
-                raise ValueError(f"{method} {url}: the request could not be sent (refused by http.client; its "
-                                 "headers, which hold the token, are not shown)")
+                pass
+            # only a refused request gets here: raised outside the handler, so not even as the context
+            raise ValueError(f"{method} {url}: the request could not be sent (refused by http.client; its "
+                             "headers, which hold the token, are not shown)")
 
     @staticmethod
     def _error_text(body: bytes) -> str:
@@ -288,13 +286,8 @@ class RemoteModel:
 
     def _score(self, tensors: dict[str, np.ndarray], exposure: float,
                offset: float | None) -> tuple[np.ndarray, np.ndarray]:
-        params: dict[str, Any] = {}
-        if exposure:
-            params["exposure"] = float(exposure)
-        if offset is not None:
-            params["offset"] = float(offset)
-        if self.tau is not None:
-            params["tau"] = float(self.tau)
+        given = {"exposure": exposure or None, "offset": offset, "tau": self.tau}     # exposure 0: not sent
+        params = {k: float(v) for k, v in given.items() if v is not None}
         n = len(next(iter(tensors.values())))
         verdicts, scores = [np.zeros(0, np.int8)], [np.zeros(0, np.float64)]     # n may be 0
         for i in range(0, n, self.batch_size):

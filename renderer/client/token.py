@@ -3,10 +3,9 @@ and its client.
 
 An explicit token or token file first, else NOISESTOP_TOKEN or the file NOISESTOP_TOKEN_FILE
 names (a Docker or Kubernetes secret); both set is refused. Only unset variables mean "no
-token": an empty one, a token of spaces and an empty file are refused. A token is one line of
-visible ASCII (``!`` to ``~``, what an HTTP header carries; a file may end with one newline),
-so what a user typed is what the client sends; anything else is refused in one line naming
-where it came from and never showing it (the HTTP layer's error would print the header).
+token": an empty one, a token of spaces, an empty file and a token that is not one line of
+visible ASCII (a file may end with one newline) are refused, naming where it came from, never
+showing it.
 """
 from __future__ import annotations
 

@@ -47,8 +47,7 @@ def contact_sheet(stack: Stack, path: str | os.PathLike, n_levels: int = 4) -> P
     for ax, (title, img) in zip(np.atleast_1d(axes), panels):
         ax.imshow(display(img).numpy(), interpolation="nearest")
         ax.set_title(title, fontsize=8)
-        ax.set_xticks([])
-        ax.set_yticks([])
+        ax.set(xticks=[], yticks=[])
         _draw_grid(ax, stack, th_text if title.startswith("reference") else None)
     fig.suptitle(f"{stack.scene}: block thresholds (spp) drawn on the reference", fontsize=9)
     fig.tight_layout()

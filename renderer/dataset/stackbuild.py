@@ -1,11 +1,10 @@
 """Build one labelled stack (dataset format v1) from a scene: levels, reference, quick images.
 
-Level k is the cumulative mean of (k+1)*step spp, one independent `step`-sample pass per
-level; the reference has its own seed stream, so its noise is independent of the levels it
-judges. Mitsuba calls hold at most `max_lanes` samples (a 4096-spp 256x256 reference in one
-call would be 268 M lanes). A rerun resumes from `<scene>/.build/accum.npz` (the float64 sum,
-saved atomically after each level), adds missing EXTRA_QUICK images, and relabels a complete
-stack whose virtual-observer labels are stale (human labels are kept).
+Level k is the cumulative mean of (k+1)*step spp, one independent `step`-sample pass per level;
+the reference has its own seed stream, so its noise is independent of the levels it judges.
+Mitsuba calls hold at most `max_lanes` samples. A rerun resumes from `<scene>/.build/accum.npz`
+(the float64 sum, saved atomically after each level), adds missing EXTRA_QUICK images, and
+relabels a complete stack whose virtual-observer labels are stale (human labels are kept).
 """
 from __future__ import annotations
 
@@ -20,22 +19,22 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from learning.data.block_terms import observer_terms, poolings, stack_observer_errors
 from learning.data.exr import read_exr
 from learning.data.npz import read_npz
-from learning.data.block_terms import observer_terms, poolings, stack_observer_errors
 from learning.data.observer import VirtualObserver, thresholds_from_errors
 from learning.data.relabel import relabel_if_stale
-from noisefeat.atomic import atomic_write
 from learning.data.stack import read_stack
 from learning.data.stack_format import EXTRA_QUICK, REFERENCE, level_name
 from learning.data.stack_write import StackWriter, make_plan
+from learning.data.variant import select_variant
+from noisefeat.atomic import atomic_write
+from noisefeat.extras import require
 from noisefeat.pooling import POOLINGS
 
 from ..live.blocks import BlockRenderer
 from ..scenes.catalog import load_scene, scene_label
 from ..settings import ROW
-from learning.data.variant import select_variant
-from noisefeat.extras import require
 
 log = logging.getLogger(__name__)
 
@@ -74,9 +73,7 @@ class BuildSettings:
         return [self.step * (k + 1) for k in range(self.levels)]
 
     def to_dict(self) -> dict[str, Any]:
-        d = asdict(self)
-        d["grid"] = list(self.grid)
-        return d
+        return {**asdict(self), "grid": list(self.grid)}
 
 
 def _calls(br: BlockRenderer, spp: int, max_lanes: int) -> tuple[int, int]:

@@ -1,10 +1,9 @@
 """A stopping criterion run over stored stacks instead of rendering (offline evaluation).
 
 The passes between a stack's levels come back exactly (`learning.inputs.halves.recover_passes`)
-and feed the live loop's own `PassLoop`, one round a level, so the half buffers (A: even
-passes, B: odd) and the stops are the live render's; a varying step leaves the halves
-unbalanced (warned). The verdict matrix V [K, units] holds -1 until the loop stopped the unit
-and +1 from there on, as `learning.evaluation.metrics.evaluate_verdicts` scores.
+and feed the live loop's own `PassLoop`, one round a level, so the half buffers and the stops
+are the live render's. The verdicts V [K, units] are -1 until the loop stopped the unit, +1
+from there on, as `learning.evaluation.metrics.evaluate_verdicts` scores.
 """
 from __future__ import annotations
 
@@ -18,16 +17,22 @@ import numpy as np
 from tqdm import tqdm
 
 from learning.data.dataset_dir import read_stacks
+from learning.data.observer import observer_for
 from learning.data.relabel import observed, read_observed, with_tile_truth
 from learning.data.stack import Stack
+from learning.data.tile_truth import FinalFrame
 from learning.evaluation.generalisation import scene_groups
 from learning.evaluation.metrics import evaluate_verdicts
 from learning.inputs.halves import check_constant_step, recover_passes
 from learning.names import DEFAULT_TAU
 
-from ..criteria import Criterion, external_counters
+from ..criteria import Criterion, GatedCriterion, external_counters, make_criterion
+from ..live.block_windows import BlockWindows
+from ..live.budget import Budget
 from ..live.passloop import PassLoop
+from ..setting_kinds import MAX_SIDE
 from ..settings import ROW
+from ..spec import COMMAND_LINE, checked, resolve
 
 logger = logging.getLogger(__name__)
 
@@ -37,18 +42,12 @@ def simulate_loop(stack: Stack, criterion: Criterion, min_spp: int | None = None
                   decide_skip: float = ROW["decide_skip"].default,
                   decide_growth: float = ROW["decide_growth"].default) -> tuple[np.ndarray, PassLoop]:
     """Verdicts V int8 [K, n_units] the live loop would give on this stack, and the loop (its
-    `ledger`). Units: the stack's blocks, or with `tile` their tiles, numbered as the live
-    render numbers them. The settings are the rows', as their door checked them.
-    """
-    from ..live.block_windows import BlockWindows
-
+    `ledger`). Units: the stack's blocks, or with `tile` their tiles, numbered as live.
+    The settings are the rows', as their door checked them."""
     if criterion.needs_halves:
         check_constant_step(stack)
     tiling = BlockWindows(stack.width, stack.height, grid=tuple(stack.grid), tile=tile)
     units = tiling._unit_idx.numpy()
-
-    def cut(frame: np.ndarray) -> np.ndarray:
-        return np.asarray(frame).reshape(-1, 3)[units].reshape(len(units), tiling.tile_h, tiling.tile_w, 3)
     V = np.full((stack.n_levels, tiling.n_units), -1, np.int8)
     quick = stack.split(stack.quick()) if criterion.needs_quick else None
     loop = PassLoop(criterion, (stack.n_blocks, tiling.tiles_per_block), tiling.tile_shape, stack.spp, min_spp,
@@ -59,7 +58,8 @@ def simulate_loop(stack: Stack, criterion: Criterion, min_spp: int | None = None
         if not ids.size:
             V[k:] = 1
             break
-        loop.run_round(ids, [(cut(pass_img)[ids], pass_spp)])   # stopped units get no more samples
+        tiles = pass_img.reshape(-1, 3)[units[ids]].reshape(len(ids), tiling.tile_h, tiling.tile_w, 3)
+        loop.run_round(ids, [(tiles, pass_spp)])   # stopped units get no more samples
         V[k, ~loop.active] = 1
     return V, loop
 
@@ -73,10 +73,7 @@ def simulate_stack(stack: Stack, criterion: Criterion, min_spp: int | None = Non
 def simulate_budget(stack: Any, criterion: Any, spp_budget: float, min_spp: int | None = None) -> dict[str, Any]:
     """The budget render on a stored stack: block b's j-th pass is the stack's pass j, as the
     live render's keyed samples make it. Returns each block's final spp (its image: the
-    stack's level there), whether it stopped, the budget's report part and the rounds run.
-    """
-    from ..live.budget import Budget
-
+    stack's level there), whether it stopped, the budget's report part and the rounds run."""
     if criterion.needs_halves:
         check_constant_step(stack)
     passes, pass_spp = [], []
@@ -120,10 +117,9 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
     """DESIGN metrics of a criterion simulated on labelled stacks, overall and per scene.
 
     `stacks`: a dataset directory, a stack, or a list of either; `criterion_factory(stack)`:
-    each stack's criterion (the oracle needs its thresholds). Returns `evaluate_verdicts`'
-    dict plus ``end``, ``criterion`` (its description) and ``counters`` (summed counters and
-    timers). With `tile`, units are tiles scored against the tile truth, and ``blocks`` holds
-    the metrics per block (stopped when all its tiles are) against the block truth.
+    each stack's criterion. Returns `evaluate_verdicts`' dict plus ``end``, ``criterion`` (its
+    description) and ``counters`` (summed). With `tile`, units are tiles scored against the tile
+    truth, and ``blocks`` holds the metrics per block (stopped when all its tiles are).
     """
     todo = _as_stacks(stacks, tau)
     if not todo:
@@ -170,12 +166,8 @@ def evaluate_criterion(stacks: Stack | str | os.PathLike | Iterable[Stack | str 
 
 def end_of_render(stack: Stack, verdicts: np.ndarray, tile: int | None, tau: float) -> dict[str, float]:
     """The block observer's verdict on the frame the simulated render ends with: each unit at
-    the level it stopped at (the last if never), judged per block against the reference
-    (`learning.data.tile_truth.FinalFrame`), so at tile grain a tile that stopped early shows
-    in its block whatever the tile truth says."""
-    from learning.data.observer import observer_for
-    from learning.data.tile_truth import FinalFrame
-
+    the level it stopped at (the last if never), judged per block (`FinalFrame`), so a tile
+    that stopped early shows in its block whatever the tile truth says."""
     return FinalFrame(stack, tile, observer_for(stack, tau)).judge(verdicts)
 
 
@@ -206,11 +198,6 @@ def criterion_factory(kind: str, *, model: str | None = None, server: str | None
     """Each stack's criterion for `evaluate_criterion`, from command-line style options (None:
     not given) resolved by the render spec: one per block size (a `tile` as large as the
     block is block grain, as live), or the oracle with each stack's (tiles') thresholds."""
-    from ..criteria import make_criterion
-    from ..criteria.gated import GatedCriterion
-    from ..setting_kinds import MAX_SIDE
-    from ..spec import COMMAND_LINE, resolve
-
     spec = resolve({"criterion": kind, "model": model, "server": server, "threshold": threshold,
                     "offset": offset, "exposure": exposure, "tau": tau,
                     "tile": MAX_SIDE if tile is None else tile},    # None: whole blocks
@@ -244,8 +231,6 @@ def evaluate_criterion_cli(data: str | os.PathLike, criterion: str, scenes: list
     """`noisestop evaluate --criterion C`: C simulated on the stacks of `data` (only `scenes`
     if given) labelled at `tau`; the DESIGN metrics. The simulation's door: its settings are
     checked here, by their rows, before any stack is read."""
-    from ..spec import checked
-
     checked({"min_spp": min_spp, "decide_skip": decide_skip, "decide_growth": decide_growth})
     factory = criterion_factory(criterion, model=model, server=server, threshold=threshold, offset=offset,
                                 tau=tau, tile=tile)   # a knob out of range fails before any stack is read

@@ -19,7 +19,7 @@ from tqdm import tqdm
 from ..spec import ARGUMENT
 from .checkpoint import CHECKPOINT
 from .outputs import clear_results
-from .plan import prepare
+from .plan import RenderPlan, prepare
 from .report import render_result
 from .result import RenderResult
 from .session import RenderSession
@@ -48,19 +48,24 @@ def run_adaptive(scene: Any, criterion: Any = None, *, progress: bool = True, re
     plan = prepare(scene, {"criterion": criterion, **settings}, reference=reference, source=source, plugin=plugin,
                    sensor=sensor, integrator=integrator, out=None if checkpoints is None else checkpoints.out)
     try:
-        ckpt = None if checkpoints is None else Path(checkpoints.out) / CHECKPOINT
-        session = RenderSession(plan, ckpt_path=ckpt, resume=checkpoints is not None and checkpoints.resume,
-                                grow=grow, t_start=t_start)
-        # an earlier render's results go once this one is under way (a refused resume leaves them), on a
-        # resume too: beside an unfinished checkpoint they are stale, beside a finished one written again
-        if ckpt is not None and (removed := clear_results(ckpt.parent)):
-            logger.info("%s: removed the previous render's %s (%s)", ckpt.parent, ", ".join(removed),
-                        "the resumed render writes them" if session.resumed else
-                        "this render writes its own when it ends")
+        session = open_session(plan, checkpoints, grow, t_start)
         reached = drive(session, progress, checkpoints is not None)
         return render_result(session, time_limit_reached=reached)
     finally:
         plan.renderer.close()
+
+
+def open_session(plan: RenderPlan, checkpoints: Checkpoints | None, grow: bool, t_start: float) -> RenderSession:
+    """The session of `plan`, resumed when asked. An earlier render's results go once this one is
+    under way (a refused resume leaves them), on a resume too: beside an unfinished checkpoint
+    they are stale, beside a finished one they are written again at once."""
+    ckpt = None if checkpoints is None else Path(checkpoints.out) / CHECKPOINT
+    session = RenderSession(plan, ckpt_path=ckpt, resume=checkpoints is not None and checkpoints.resume, grow=grow,
+                            t_start=t_start)
+    if ckpt is not None and (removed := clear_results(ckpt.parent)):
+        logger.info("%s: removed the previous render's %s (%s)", ckpt.parent, ", ".join(removed),
+                    "the resumed render writes them" if session.resumed else "this render writes its own when it ends")
+    return session
 
 
 def drive(session: RenderSession, progress: bool, checkpointing: bool) -> bool:

@@ -63,11 +63,9 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
         ``report`` (the report.json dict); ``save(dir)`` writes the files.
     """
     from .live.adaptive import run_adaptive
-    from .plugin import register
-    from .scenes.catalog import is_scene_file
+    from .plugin import register_for
 
-    if is_scene_file(scene):
-        register()      # before the file loads: its integrator may be `noisestop`
+    register_for(scene)
     try:
         return run_adaptive(scene, criterion, tau=tau, threshold=threshold, offset=offset, quantile=quantile,
                             model=model, server=server, exposure=exposure, resolution=resolution, grid=grid,

@@ -6,23 +6,22 @@ nested integrator (``path`` if none) as Mitsuba's ``aov`` does::
         <integrator type="path"/>
     </integrator>
 
-``mi.render`` returns [H, W, 5]: R, G, B and the AOVs ``spp`` and ``converged`` (1 where the
-block stopped); ``integrator.result`` keeps the last `RenderResult`. Properties (optional; the
-rows of `renderer.settings.PLUGIN_ROWS`): ``criterion``, ``tau``, ``threshold``, ``offset``,
-``quantile``, ``model``, ``exposure``, ``block``, ``tile``, ``min_spp``, ``max_spp``, ``step``,
-``decide_skip``, ``decide_growth``, ``seed``, ``time_limit``, ``spp_budget``, ``quick_spp``, and
-``progress`` (boolean). They are resolved in the constructor as `renderer.render`'s arguments
-are (source "scene plugin"), and a bad one is one ValueError line when the integrator is used,
-not a traceback from Mitsuba's loader. ``mi.render``'s nonzero ``spp`` is the max_spp, its
-``seed`` adds to the resolved one; `renderer.render` on such a scene takes the properties for
-the settings it is not given (through `renderer.plugin_schema`).
+``mi.render`` returns [H, W, 5]: R, G, B and the AOVs ``spp`` and ``converged``;
+``integrator.result`` keeps the last `RenderResult`. Properties (`renderer.settings.PLUGIN_ROWS`):
+``criterion``, ``tau``, ``threshold``, ``offset``, ``quantile``, ``model``, ``exposure``, ``block``,
+``tile``, ``min_spp``, ``max_spp``, ``step``, ``decide_skip``, ``decide_growth``, ``seed``,
+``time_limit``, ``spp_budget``, ``quick_spp``, and ``progress`` (boolean); resolved as
+`renderer.render`'s arguments (source "scene plugin"), a bad one is one ValueError line when the
+integrator is used. ``mi.render``'s nonzero ``spp`` is the max_spp, its ``seed`` adds to the
+resolved one.
 
-Mitsuba's bindings take one base class, per variant: `integrator_class` binds the methods of
-`NoisestopIntegrator` to the variant's ``mi.SamplingIntegrator``. `register` needs a variant,
-so importing does not register: call it before loading a scene file, and after ``mi.set_variant``.
+Mitsuba's bindings take one base class per variant: `integrator_class` binds the methods of
+`NoisestopIntegrator` to the variant's ``mi.SamplingIntegrator``; `register` needs a variant,
+so importing does not register.
 """
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import numpy as np
@@ -30,6 +29,7 @@ from learning.data.variant import select_variant
 from noisefeat.extras import require
 
 from .plugin_schema import AOVS, CLASSES, PLUGIN, PROPERTIES, noisestop_of
+from .scenes.catalog import is_builtin
 from .scenes.plugin_libs import preload
 from .spec import PLUGIN as FROM_PLUGIN
 from .spec import resolve
@@ -141,14 +141,8 @@ def _as_int(seed: Any) -> int:
 
 
 def register() -> str:
-    """Register the ``noisestop`` integrator with Mitsuba for the current variant (choosing
-    one first, as `learning.data.variant.select_variant` does, if none is set). Idempotent.
-
-    Returns
-    -------
-    str
-        The Mitsuba variant it is registered for.
-    """
+    """Register the ``noisestop`` integrator with Mitsuba for the current variant (choosing one
+    first, as `learning.data.variant.select_variant` does, if none is set), once; the variant."""
     mi = require("mitsuba")
     cls = integrator_class()
     preload()          # Mitsuba's plugin libraries from its own folder (the nested path one included)
@@ -157,3 +151,10 @@ def register() -> str:
         mi.register_integrator(PLUGIN, lambda props: cls(props))
         _registered.add(variant)
     return variant
+
+
+def register_for(scene: Any) -> None:
+    """`register` before `scene` loads if it is a scene file's path (its integrator may be
+    ``noisestop``); a built-in scene's name or a loaded scene needs none."""
+    if isinstance(scene, (str, os.PathLike)) and not is_builtin(scene):
+        register()

@@ -93,12 +93,6 @@ def is_builtin(name: str | os.PathLike) -> bool:
     return name in SCENES or procedural_seed(name) is not None
 
 
-def is_scene_file(scene: Any) -> bool:
-    """Whether `scene` is a scene file's path (whose loading may need the ``noisestop``
-    integrator registered), not a built-in name nor a loaded scene."""
-    return isinstance(scene, (str, os.PathLike)) and not is_builtin(scene)
-
-
 def scene_label(scene: str | os.PathLike) -> str:
     """Directory name of a scene: the built-in name, or an XML file's stem."""
     s = os.fspath(scene)

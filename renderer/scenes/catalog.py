@@ -1,9 +1,5 @@
-"""The built-in scene library (`SCENES`) and the loading of built-in scenes and XML files.
-
-Every built-in scene is a ``mi.load_dict`` dict made from the resolution alone (samples per
-pixel are chosen at render time), with the shared settings of `scene_kit` (why each is what
-it is: its docstring).
-"""
+"""The built-in scene library (`SCENES`: ``mi.load_dict`` dicts made from the resolution alone,
+with `scene_kit`'s shared settings) and the loading of built-in scenes and XML files."""
 
 from __future__ import annotations
 
@@ -40,43 +36,40 @@ class SceneSpec:
     tags: tuple[str, ...] = ()
 
 
+#: (name, description, tags); the builder is the function of that name
 _TRAINING = (
-    ("cornell", "Cornell box, diffuse walls and boxes, small ceiling light", ("diffuse",)),
-    ("cornell_dark", "Cornell box lit 25x dimmer: dark exposure, noise near black", ("diffuse", "dark")),
-    ("cornell_bright", "Cornell box lit 12x brighter: overexposed, clipping hides noise", ("diffuse", "bright")),
-    ("large_light", "Cornell box under a ceiling-wide panel light: soft shadows, low noise",
-     ("diffuse", "large-light")),
-    ("small_light", "Cornell box lit by a tiny bright sphere light: hard shadows, fireflies",
-     ("diffuse", "small-light")),
-    ("glossy", "Rough gold sphere, rough plastic box and glossy back wall in a Cornell box", ("glossy",)),
-    ("mirrors", "Two facing mirror walls: view-dependent inter-reflections of spheres", ("mirror", "glossy")),
+    ("cornell", "Cornell box, diffuse walls and boxes, small ceiling light", "diffuse"),
+    ("cornell_dark", "Cornell box lit 25x dimmer: dark exposure, noise near black", "diffuse dark"),
+    ("cornell_bright", "Cornell box lit 12x brighter: overexposed, clipping hides noise", "diffuse bright"),
+    ("large_light", "Cornell box under a ceiling-wide panel light: soft shadows, low noise", "diffuse large-light"),
+    ("small_light", "Cornell box lit by a tiny bright sphere light: hard shadows, fireflies", "diffuse small-light"),
+    ("glossy", "Rough gold sphere, rough plastic box and glossy back wall in a Cornell box", "glossy"),
+    ("mirrors", "Two facing mirror walls: view-dependent inter-reflections of spheres", "mirror glossy"),
     ("glass_caustic", "Glass sphere on the floor under a small light: refractive caustic",
-     ("dielectric", "caustic", "small-light")),
-    ("indirect", "Light hidden on top of a shelf: the room is lit only by ceiling bounce", ("diffuse", "indirect")),
-    ("checker", "High-frequency checkerboard textures everywhere: texture masks noise", ("textured",)),
-    ("mis_plates", "Veach MIS plates: four roughness levels x four light sizes",
-     ("glossy", "small-light", "large-light")),
+     "dielectric caustic small-light"),
+    ("indirect", "Light hidden on top of a shelf: the room is lit only by ceiling bounce", "diffuse indirect"),
+    ("checker", "High-frequency checkerboard textures everywhere: texture masks noise", "textured"),
+    ("mis_plates", "Veach MIS plates: four roughness levels x four light sizes", "glossy small-light large-light"),
     ("env_spheres", "Diffuse, glossy and glass spheres on a ground plane under a uniform sky",
-     ("environment", "dielectric", "glossy")),
-    ("allblack", "Closed geometry with no light at all: an all-zero image (degenerate input)", ("degenerate",)),
-    ("sky", "Constant environment and nothing else: a flat image (degenerate input)", ("degenerate", "environment")),
+     "environment dielectric glossy"),
+    ("allblack", "Closed geometry with no light at all: an all-zero image (degenerate input)", "degenerate"),
+    ("sky", "Constant environment and nothing else: a flat image (degenerate input)", "degenerate environment"),
 )
 #: never used to train or calibrate anything (`heldout`); tagged HELDOUT before their own tags
 _HELDOUT = (
     ("studio_preview", "Material preview: three spheres on a plane under a studio environment map",
-     ("environment", "glossy")),
-    ("sunlit_courtyard", "Pillars and blocks under sun and sky casting shadows on paving", ("outdoor", "textured")),
-    ("marble_hall", "Room with a marble floor, wood-grain back wall and a panel light", ("textured", "glossy")),
-    ("spot_stage", "Dark stage lit by one spot light: a pool of light in near-black", ("dark", "glossy")),
-    ("lamp_room", "Table under a hanging globe lamp in a warm room with a wooden floor", ("diffuse", "textured")),
-    ("corridor", "Long corridor with a row of ceiling lights and a glossy floor", ("glossy",)),
-    ("pastel_blocks", "Grid of pastel blocks under an overcast sky (ambient occlusion look)",
-     ("outdoor", "environment")),
-    ("window_light", "Room lit through one window: a sun patch, the rest bounce light", ("indirect",)),
+     "environment glossy"),
+    ("sunlit_courtyard", "Pillars and blocks under sun and sky casting shadows on paving", "outdoor textured"),
+    ("marble_hall", "Room with a marble floor, wood-grain back wall and a panel light", "textured glossy"),
+    ("spot_stage", "Dark stage lit by one spot light: a pool of light in near-black", "dark glossy"),
+    ("lamp_room", "Table under a hanging globe lamp in a warm room with a wooden floor", "diffuse textured"),
+    ("corridor", "Long corridor with a row of ceiling lights and a glossy floor", "glossy"),
+    ("pastel_blocks", "Grid of pastel blocks under an overcast sky (ambient occlusion look)", "outdoor environment"),
+    ("window_light", "Room lit through one window: a sun patch, the rest bounce light", "indirect"),
 )
 SCENES: dict[str, SceneSpec] = {
-    **{n: SceneSpec(n, d, getattr(training, n), tags) for n, d, tags in _TRAINING},
-    **{n: SceneSpec(n, d, getattr(heldout, n), (HELDOUT, *tags)) for n, d, tags in _HELDOUT},
+    **{n: SceneSpec(n, d, getattr(training, n), tuple(tags.split())) for n, d, tags in _TRAINING},
+    **{n: SceneSpec(n, d, getattr(heldout, n), (HELDOUT, *tags.split())) for n, d, tags in _HELDOUT},
 }
 
 
@@ -146,19 +139,16 @@ def resize_film(scene: Any, size: tuple[int, int], x_fov: float | None = None) -
 
 
 def framing_fov(sensor_props: Any, scene: Any, size: tuple[int, int]) -> float | None:
-    """The horizontal field of view Mitsuba gives the first sensor for a film of `size`.
-
-    A ``fov`` is measured along the sensor's ``fov_axis`` for the film it has, so a new aspect
-    changes the horizontal field unless the axis is x: Mitsuba's ``parse_fov`` of the sensor's
-    properties (`sensor_props`) gives it. None (the field is kept) for a sensor without a field
-    of view, or properties that do not give the loaded sensor's field for its own film.
-    """
+    """The horizontal field of view Mitsuba's ``parse_fov`` gives the first sensor (properties
+    `sensor_props`) for a film of `size`: a ``fov`` is measured along its ``fov_axis``. None
+    (kept) for a sensor without one, or properties that do not give its field for its own film."""
     mi = require("mitsuba")
 
-    params = mi.traverse(scene.sensors()[0])
+    sensor = scene.sensors()[0]
+    params = mi.traverse(sensor)
     if sensor_props is None or "x_fov" not in params:
         return None
-    own = scene.sensors()[0].film().size()
+    own = sensor.film().size()
     try:
         loaded = float(np.asarray(params["x_fov"]).ravel()[0])
         if abs(mi.parse_fov(sensor_props, float(own[0]) / float(own[1])) - loaded) > 1e-3 * max(1.0, loaded):
@@ -170,15 +160,15 @@ def framing_fov(sensor_props: Any, scene: Any, size: tuple[int, int]) -> float |
 
 
 def _xml_sensor_props(path: str, defines: Mapping[str, str] | None) -> Any:
-    """The first sensor's properties in an XML file, `<default>`s and -D applied (None if
-    Mitsuba's parser API is missing or the file declares no sensor of its own)."""
+    """The first sensor's properties in an XML file, `<default>`s and -D applied (None without
+    Mitsuba's parser API or a sensor)."""
     mi = require("mitsuba")
 
     parser = getattr(mi, "parser", None)
     if parser is None or not hasattr(mi, "parse_fov"):
         return None
-    # parsed with mi.load_file's search folders (the file's own first), on a copy: a <path> in
-    # the file would otherwise join Mitsuba's global ones for good
+    # with mi.load_file's search folders (the file's own first), on a copy: a <path> in the file
+    # would otherwise join Mitsuba's global ones for good
     previous = mi.file_resolver()
     resolver = mi.FileResolver(previous)
     resolver.prepend(os.path.dirname(path))

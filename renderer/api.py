@@ -63,7 +63,6 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
         ``report`` (the report.json dict); ``save(dir)`` writes the files.
     """
     from .live.adaptive import run_adaptive
-    from .plugin import register_for
 
     register_for(scene)
     try:
@@ -79,6 +78,17 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
         raise InputNotFound(str(exc)) from exc
     except ConnectionError as exc:         # the verdict server
         raise ServerUnavailable(str(exc)) from exc
+
+
+def register_for(scene: Any) -> None:
+    """`renderer.plugin.register` before `scene` loads if it is a scene file's path (its
+    integrator may be ``noisestop``); a built-in scene's name or a loaded scene needs none."""
+    from .scenes.catalog import is_builtin
+
+    if isinstance(scene, (str, os.PathLike)) and not is_builtin(scene):
+        from .plugin import register
+
+        register()
 
 
 _ROWS_DOC = "\n".join(f"    {row.name} : {row.type_doc} or None\n"

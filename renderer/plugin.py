@@ -17,11 +17,10 @@ resolved one.
 
 Mitsuba's bindings take one base class per variant: `integrator_class` binds the methods of
 `NoisestopIntegrator` to the variant's ``mi.SamplingIntegrator``; `register` needs a variant,
-so importing does not register.
+so importing does not register (`renderer.api.register_for` does, before a scene file loads).
 """
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import numpy as np
@@ -29,7 +28,6 @@ from learning.data.variant import select_variant
 from noisefeat.extras import require
 
 from .plugin_schema import AOVS, CLASSES, PLUGIN, PROPERTIES, noisestop_of
-from .scenes.catalog import is_builtin
 from .scenes.plugin_libs import preload
 from .spec import PLUGIN as FROM_PLUGIN
 from .spec import resolve
@@ -151,10 +149,3 @@ def register() -> str:
         mi.register_integrator(PLUGIN, lambda props: cls(props))
         _registered.add(variant)
     return variant
-
-
-def register_for(scene: Any) -> None:
-    """`register` before `scene` loads if it is a scene file's path (its integrator may be
-    ``noisestop``); a built-in scene's name or a loaded scene needs none."""
-    if isinstance(scene, (str, os.PathLike)) and not is_builtin(scene):
-        register()

@@ -14,7 +14,7 @@ from .spec import COMMAND_LINE
 def _render_one(scene: str | os.PathLike, out: str | os.PathLike, kwargs: dict[str, Any]) -> dict[str, Any]:
     """`adaptive_render`, with the ``noisestop`` integrator registered first if `scene` is a
     file (its integrator may be that one; the loop cannot import the plugin)."""
-    from .plugin import register_for
+    from .api import register_for
 
     register_for(scene)
     return adaptive_render(scene, out, **kwargs)

@@ -1,13 +1,8 @@
-"""A mesh's (or volume grid's) element counts read from its header, before Mitsuba loads it.
-
-Mitsuba sizes a mesh's buffers from the counts its header states (ply, serialized, .vol) or
-from the file's size (obj): a sparse .obj under the 2 GiB cap, or a ply or serialized mesh
-stating a billion vertices, grew a render past 2.5 GB. Each is read as Mitsuba's loader reads
-it (src/shapes/{ply.h,obj.cpp,serialized.cpp}, src/render/volumegrid.cpp, 3.9), its counts
-bounded by ``CAPS["mesh elements"]``: a ply's header (within `HEAD` bytes), its elements in the
-bytes after it; an obj in chunks, no line of `OBJ_LINE` bytes (Mitsuba refuses one only after
-reading it: a sparse hole is one) and its words bounding its elements; a serialized shape's
-compressed header, a few bytes inflated; a grid's cells times channels in the file.
+"""A mesh's (or volume grid's) element counts read from its header, before Mitsuba loads it:
+Mitsuba sizes its buffers from the counts a header states (ply, serialized, .vol) or from the
+file's size (obj). Each is read as Mitsuba's loader reads it (src/shapes/{ply.h,obj.cpp,
+serialized.cpp}, src/render/volumegrid.cpp, 3.9), its counts bounded by ``CAPS["mesh elements"]``
+and by the bytes the file holds; an obj is scanned in chunks for lines of `OBJ_LINE` bytes.
 """
 from __future__ import annotations
 

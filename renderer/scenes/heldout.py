@@ -1,10 +1,7 @@
 """Held-out scenes (`catalog.SCENES` describes them): eight views no model is trained or
-calibrated on, sharing nothing with the training library but the render settings (`scene_kit`).
-
-`make heldout` renders them every 32 spp up to 2048 spp, with an 8192-spp reference: most of
-their blocks converge inside the stack (a scene that never converges only tests "never stop
-early", so `learning.evaluation.generalisation` reports such scenes apart). Textures and the
-environment map come from seeded numpy noise: no files, the same scenes on every machine.
+calibrated on, sharing nothing with the training library but the render settings (`scene_kit`),
+most of whose blocks converge within `make heldout`'s 2048 spp. Textures and the environment map
+come from seeded numpy noise: no files, the same scenes on every machine.
 """
 from __future__ import annotations
 

@@ -103,9 +103,8 @@ class NoisestopIntegrator:
             s["max_spp"] = int(spp)
         if _as_int(seed):
             s["seed"] = self.base_seed + _as_int(seed)
-        result = run_adaptive(scene, source=FROM_PLUGIN, plugin={}, progress=self.progress, sensor=sensor,
-                              integrator=self.nested, **s)      # its settings, not the scene's integrator's
-        self.result = result
+        self.result = result = run_adaptive(scene, source=FROM_PLUGIN, plugin={}, progress=self.progress,
+                                            sensor=sensor, integrator=self.nested, **s)  # its settings, not the scene's
         data = np.concatenate([result.image, result.spp[..., None].astype(np.float32),
                                result.converged[..., None].astype(np.float32)], axis=-1)
         return require("mitsuba").TensorXf(np.ascontiguousarray(data))

@@ -36,40 +36,37 @@ class SceneSpec:
     tags: tuple[str, ...] = ()
 
 
-#: (name, description, tags); the builder is the function of that name
+#: (name, description); the builder is the function of that name
 _TRAINING = (
-    ("cornell", "Cornell box, diffuse walls and boxes, small ceiling light", "diffuse"),
-    ("cornell_dark", "Cornell box lit 25x dimmer: dark exposure, noise near black", "diffuse dark"),
-    ("cornell_bright", "Cornell box lit 12x brighter: overexposed, clipping hides noise", "diffuse bright"),
-    ("large_light", "Cornell box under a ceiling-wide panel light: soft shadows, low noise", "diffuse large-light"),
-    ("small_light", "Cornell box lit by a tiny bright sphere light: hard shadows, fireflies", "diffuse small-light"),
-    ("glossy", "Rough gold sphere, rough plastic box and glossy back wall in a Cornell box", "glossy"),
-    ("mirrors", "Two facing mirror walls: view-dependent inter-reflections of spheres", "mirror glossy"),
-    ("glass_caustic", "Glass sphere on the floor under a small light: refractive caustic",
-     "dielectric caustic small-light"),
-    ("indirect", "Light hidden on top of a shelf: the room is lit only by ceiling bounce", "diffuse indirect"),
-    ("checker", "High-frequency checkerboard textures everywhere: texture masks noise", "textured"),
-    ("mis_plates", "Veach MIS plates: four roughness levels x four light sizes", "glossy small-light large-light"),
-    ("env_spheres", "Diffuse, glossy and glass spheres on a ground plane under a uniform sky",
-     "environment dielectric glossy"),
-    ("allblack", "Closed geometry with no light at all: an all-zero image (degenerate input)", "degenerate"),
-    ("sky", "Constant environment and nothing else: a flat image (degenerate input)", "degenerate environment"),
+    ("cornell", "Cornell box, diffuse walls and boxes, small ceiling light"),
+    ("cornell_dark", "Cornell box lit 25x dimmer: dark exposure, noise near black"),
+    ("cornell_bright", "Cornell box lit 12x brighter: overexposed, clipping hides noise"),
+    ("large_light", "Cornell box under a ceiling-wide panel light: soft shadows, low noise"),
+    ("small_light", "Cornell box lit by a tiny bright sphere light: hard shadows, fireflies"),
+    ("glossy", "Rough gold sphere, rough plastic box and glossy back wall in a Cornell box"),
+    ("mirrors", "Two facing mirror walls: view-dependent inter-reflections of spheres"),
+    ("glass_caustic", "Glass sphere on the floor under a small light: refractive caustic"),
+    ("indirect", "Light hidden on top of a shelf: the room is lit only by ceiling bounce"),
+    ("checker", "High-frequency checkerboard textures everywhere: texture masks noise"),
+    ("mis_plates", "Veach MIS plates: four roughness levels x four light sizes"),
+    ("env_spheres", "Diffuse, glossy and glass spheres on a ground plane under a uniform sky"),
+    ("allblack", "Closed geometry with no light at all: an all-zero image (degenerate input)"),
+    ("sky", "Constant environment and nothing else: a flat image (degenerate input)"),
 )
-#: never used to train or calibrate anything (`heldout`); tagged HELDOUT before their own tags
+#: never used to train or calibrate anything (`heldout`): tagged HELDOUT
 _HELDOUT = (
-    ("studio_preview", "Material preview: three spheres on a plane under a studio environment map",
-     "environment glossy"),
-    ("sunlit_courtyard", "Pillars and blocks under sun and sky casting shadows on paving", "outdoor textured"),
-    ("marble_hall", "Room with a marble floor, wood-grain back wall and a panel light", "textured glossy"),
-    ("spot_stage", "Dark stage lit by one spot light: a pool of light in near-black", "dark glossy"),
-    ("lamp_room", "Table under a hanging globe lamp in a warm room with a wooden floor", "diffuse textured"),
-    ("corridor", "Long corridor with a row of ceiling lights and a glossy floor", "glossy"),
-    ("pastel_blocks", "Grid of pastel blocks under an overcast sky (ambient occlusion look)", "outdoor environment"),
-    ("window_light", "Room lit through one window: a sun patch, the rest bounce light", "indirect"),
+    ("studio_preview", "Material preview: three spheres on a plane under a studio environment map"),
+    ("sunlit_courtyard", "Pillars and blocks under sun and sky casting shadows on paving"),
+    ("marble_hall", "Room with a marble floor, wood-grain back wall and a panel light"),
+    ("spot_stage", "Dark stage lit by one spot light: a pool of light in near-black"),
+    ("lamp_room", "Table under a hanging globe lamp in a warm room with a wooden floor"),
+    ("corridor", "Long corridor with a row of ceiling lights and a glossy floor"),
+    ("pastel_blocks", "Grid of pastel blocks under an overcast sky (ambient occlusion look)"),
+    ("window_light", "Room lit through one window: a sun patch, the rest bounce light"),
 )
 SCENES: dict[str, SceneSpec] = {
-    **{n: SceneSpec(n, d, getattr(training, n), tuple(tags.split())) for n, d, tags in _TRAINING},
-    **{n: SceneSpec(n, d, getattr(heldout, n), (HELDOUT, *tags.split())) for n, d, tags in _HELDOUT},
+    **{n: SceneSpec(n, d, getattr(training, n)) for n, d in _TRAINING},
+    **{n: SceneSpec(n, d, getattr(heldout, n), (HELDOUT,)) for n, d in _HELDOUT},
 }
 
 

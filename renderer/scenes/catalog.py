@@ -9,10 +9,9 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
 from . import heldout
 from . import training_scenes as training
+from .framing import Resolution, dict_sensor_props, film_size_for, framing_fov, resize_film, xml_sensor_props
 from .procedural import procedural_scene, procedural_seed
 from .scene_kit import SceneDict
 from .plugin_libs import mitsuba_folder, preload
@@ -103,97 +102,6 @@ def scene_dict(name: str, resolution: int) -> SceneDict:
     return SCENES[name].builder(resolution) if seed is None else procedural_scene(seed, resolution)
 
 
-# ----------------------------------------------------------------------------- loading
-
-Resolution = int | tuple[int, int]
-
-
-def film_size_for(resolution: Resolution, width: int, height: int) -> tuple[int, int]:
-    """(W, H) for a film of width x height: N scales the long side to N, keeping the aspect."""
-    if isinstance(resolution, tuple):
-        return resolution
-    scale = resolution / max(width, height)
-    return max(1, round(width * scale)), max(1, round(height * scale))
-
-
-def resize_film(scene: Any, size: tuple[int, int], x_fov: float | None = None) -> None:
-    """Set the first sensor's film to `size` (W, H) in place through its scene parameters,
-    framed with horizontal field `x_fov` (degrees; None keeps the sensor's). A crop window
-    set by the file is dropped, with a warning."""
-    mi = require("mitsuba")
-
-    sensor = scene.sensors()[0]
-    film = sensor.film()
-    if tuple(film.crop_size()) != tuple(film.size()) or tuple(film.crop_offset()) != (0, 0):
-        logger.warning("the film's crop window is dropped: the frame is resized to %dx%d", *size)
-    params = mi.traverse(sensor)
-    params["film.size"] = mi.ScalarVector2u(*size)
-    params["film.crop_size"] = mi.ScalarVector2u(*size)
-    params["film.crop_offset"] = mi.ScalarPoint2u(0, 0)
-    if x_fov is not None and "x_fov" in params:
-        params["x_fov"] = float(x_fov)
-    params.update()
-
-
-def framing_fov(sensor_props: Any, scene: Any, size: tuple[int, int]) -> float | None:
-    """The horizontal field of view Mitsuba's ``parse_fov`` gives the first sensor (properties
-    `sensor_props`) for a film of `size`: a ``fov`` is measured along its ``fov_axis``. None
-    (kept) for a sensor without one, or properties that do not give its field for its own film."""
-    mi = require("mitsuba")
-
-    sensor = scene.sensors()[0]
-    params = mi.traverse(sensor)
-    if sensor_props is None or "x_fov" not in params:
-        return None
-    own = sensor.film().size()
-    try:
-        loaded = float(np.asarray(params["x_fov"]).ravel()[0])
-        if abs(mi.parse_fov(sensor_props, float(own[0]) / float(own[1])) - loaded) > 1e-3 * max(1.0, loaded):
-            logger.warning("cannot tell the first sensor's field-of-view axis: its horizontal field is kept")
-            return None
-        return float(mi.parse_fov(sensor_props, size[0] / size[1]))
-    except (RuntimeError, ValueError) as exc:        # Mitsuba throws for out-of-range fields
-        raise ValueError(f"a {size[0]}x{size[1]} film: {' '.join(str(exc).split())}") from None
-
-
-def _xml_sensor_props(path: str, defines: Mapping[str, str] | None) -> Any:
-    """The first sensor's properties in an XML file, `<default>`s and -D applied (None without
-    Mitsuba's parser API or a sensor)."""
-    mi = require("mitsuba")
-
-    parser = getattr(mi, "parser", None)
-    if parser is None or not hasattr(mi, "parse_fov"):
-        return None
-    # with mi.load_file's search folders (the file's own first), on a copy: a <path> in the file
-    # would otherwise join Mitsuba's global ones for good
-    previous = mi.file_resolver()
-    resolver = mi.FileResolver(previous)
-    resolver.prepend(os.path.dirname(path))
-    mi.set_file_resolver(resolver)
-    try:
-        state = parser.parse_file(parser.ParserConfig(mi.variant()), path, **dict(defines or {}))
-    except RuntimeError as exc:       # mi.load_file read it, so this is unexpected: keep the field
-        logger.warning("%s: cannot read the sensor's field of view (%s): its horizontal field is kept",
-                       path, " ".join(str(exc).split()))
-        return None
-    finally:
-        mi.set_file_resolver(previous)
-    sensors = [n for n in state.nodes if n.type == mi.ObjectType.Sensor]
-    return sensors[0].props if sensors else None
-
-
-def _dict_sensor_props(d: SceneDict) -> Any:
-    """A built-in scene dict's sensor field-of-view properties, as Mitsuba reads them."""
-    mi = require("mitsuba")
-
-    props = mi.Properties("perspective")
-    sensor = d.get("sensor", {})
-    for key in ("fov", "fov_axis", "focal_length"):
-        if key in sensor:
-            props[key] = float(sensor[key]) if key == "fov" else str(sensor[key])
-    return props
-
-
 def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | None = None,
                defines: Mapping[str, str] | None = None) -> Any:
     """Load a built-in scene by name, or any Mitsuba 3 XML file, as an ``mi.Scene``.
@@ -215,7 +123,7 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | No
         d = scene_dict(name_or_path, side)
         scene = mi.load_dict(d)
         if isinstance(resolution, tuple) and resolution != (side, side):
-            resize_film(scene, resolution, framing_fov(_dict_sensor_props(d), scene, resolution))
+            resize_film(scene, resolution, framing_fov(dict_sensor_props(d), scene, resolution))
         return scene
     looks_like_file = name_or_path.lower().endswith(".xml") or os.sep in name_or_path
     if not looks_like_file and not os.path.exists(name_or_path):
@@ -238,6 +146,6 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | No
         return scene
     want = film_size_for(resolution, *own)
     if want != own:
-        resize_film(scene, want, framing_fov(_xml_sensor_props(path, defines), scene, want))
+        resize_film(scene, want, framing_fov(xml_sensor_props(path, defines), scene, want))
     logger.info("loaded %s (film %dx%d, rendered at %dx%d)", path, own[0], own[1], *want)
     return scene

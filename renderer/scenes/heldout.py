@@ -13,8 +13,6 @@ from .scene_kit import (SceneDict, T, base, bitmap_texture, checker_texture, cub
                         sphere, sphere_light, value_noise)
 from noisefeat.extras import require
 
-# ----------------------------------------------------------------------------- procedural images
-
 
 def marble(size: int = 256, seed: int = 3) -> np.ndarray:
     """Veined marble, linear RGB [size, size, 3]."""
@@ -46,9 +44,6 @@ def studio_environment(width: int = 256, seed: int = 5) -> np.ndarray:
         img += (power * np.clip(1.2 - d, 0, 1) ** 2)[..., None]
     img += 0.02 * value_noise(width, 3, seed)[:h, :, None]
     return img.astype(np.float32)
-
-
-# ----------------------------------------------------------------------------- scenes
 
 
 def studio_preview(resolution: int) -> SceneDict:

@@ -67,9 +67,9 @@ class _Walk:
         #: includes walked: (path, kind, resolver, parameters, chain, nesting) -> (files, bytes) they read
         self.walked: dict[tuple[object, ...], tuple[int, int]] = {}
 
-    # -- substitution, as parser.cpp's substitute_parameters
     def substitute(self, value: str) -> str | None:
-        """`value` with its $names replaced; None if one is left that Mitsuba would refuse."""
+        """`value` with its $names replaced as parser.cpp's substitute_parameters replaces them;
+        None if one is left that Mitsuba would refuse."""
         if "$" not in value:
             return value
         for key in sorted(self.params, key=len, reverse=True):
@@ -97,7 +97,6 @@ class _Walk:
             raise ValueError(f"{path}: the scene's XML (its includes counted each time) is over {MAX_XML_BYTES} "
                              "bytes; refused")
 
-    # -- one XML file
     def read(self, path: str, kind: str, chain: tuple[str, ...], resolver: list[str], named_by: str,
              nesting: int = 0) -> None:
         """Read and walk one XML file (`chain`: the real paths of the files including it;

@@ -54,9 +54,6 @@ def _cornell_like(resolution: int, light: dict) -> SceneDict:
     return {**_room(resolution), "light": light, **_boxes()}
 
 
-# ----------------------------------------------------------------------------- scenes
-
-
 def cornell(resolution: int) -> SceneDict:
     return _cornell_like(resolution, _ceiling_light(CB_LIGHT))
 

@@ -72,8 +72,7 @@ SCENES: dict[str, SceneSpec] = {
 def list_scenes(heldout: bool | None = None) -> list[tuple[str, str]]:
     """(name, description) of the built-in scenes in library order: all (None), the held-out
     set (True) or the training library (False)."""
-    return [(s.name, s.description) for s in SCENES.values()
-            if heldout is None or (HELDOUT in s.tags) == heldout]
+    return [(s.name, s.description) for s in SCENES.values() if heldout is None or (HELDOUT in s.tags) == heldout]
 
 
 def is_builtin(name: str | os.PathLike) -> bool:

@@ -83,11 +83,10 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
 def register_for(scene: Any) -> None:
     """`renderer.plugin.register` before `scene` loads if it is a scene file's path (its
     integrator may be ``noisestop``); a built-in scene's name or a loaded scene needs none."""
+    from .plugin import register
     from .scenes.catalog import is_builtin
 
     if isinstance(scene, (str, os.PathLike)) and not is_builtin(scene):
-        from .plugin import register
-
         register()
 
 

@@ -61,13 +61,12 @@ def check_ply(path: str | os.PathLike, kind: str) -> None:
                 raise _refuse(path, kind, f"states an element count that is no plain number: {words[2][:32]!r}")
             elements.append([int(words[2]), 0, 0])
         elif words[0] == b"property" and elements and len(words) >= 3:
-            types = words[1:-1] if words[1] != b"list" else words[2:-1]
-            sizes = [PLY_TYPES.get(t.decode("ascii", "replace")) for t in types]
-            if None in sizes or len(sizes) != (2 if words[1] == b"list" else 1):
+            is_list = words[1] == b"list"
+            sizes = [PLY_TYPES.get(t.decode("ascii", "replace")) for t in words[1 + is_list:-1]]
+            if None in sizes or len(sizes) != 1 + is_list:
                 raise _refuse(path, kind, f"has a property Mitsuba does not read: {line[:64]!r}")
-            row = sizes[0] + 3 * sizes[1] if words[1] == b"list" else sizes[0]   # a list: count, 3 items
-            elements[-1][1] += row
-            elements[-1][2] += 4 if words[1] == b"list" else 1
+            elements[-1][1] += sizes[0] + 3 * sizes[1] if is_list else sizes[0]   # a list: count, 3 items
+            elements[-1][2] += 4 if is_list else 1
         else:
             raise _refuse(path, kind, f"has a header line Mitsuba does not read: {line[:64]!r}")
     if stop < 0:

@@ -6,14 +6,14 @@ nested integrator (``path`` if none) as Mitsuba's ``aov`` does::
         <integrator type="path"/>
     </integrator>
 
-``mi.render`` returns [H, W, 5]: R, G, B and the AOVs ``spp`` and ``converged``;
-``integrator.result`` keeps the last `RenderResult`. Properties (`renderer.settings.PLUGIN_ROWS`):
-``criterion``, ``tau``, ``threshold``, ``offset``, ``quantile``, ``model``, ``exposure``, ``block``,
-``tile``, ``min_spp``, ``max_spp``, ``step``, ``decide_skip``, ``decide_growth``, ``seed``,
-``time_limit``, ``spp_budget``, ``quick_spp``, and ``progress`` (boolean); resolved as
-`renderer.render`'s arguments (source "scene plugin"), a bad one is one ValueError line when the
-integrator is used. ``mi.render``'s nonzero ``spp`` is the max_spp, its ``seed`` adds to the
-resolved one.
+``mi.render`` returns [H, W, 5]: R, G, B and the AOVs ``spp`` and ``converged`` (1 where the
+block stopped); ``integrator.result`` keeps the last `RenderResult`. Properties (the rows of
+`renderer.settings.PLUGIN_ROWS`): ``criterion``, ``tau``, ``threshold``, ``offset``, ``quantile``,
+``model``, ``exposure``, ``block``, ``tile``, ``min_spp``, ``max_spp``, ``step``, ``decide_skip``,
+``decide_growth``, ``seed``, ``time_limit``, ``spp_budget``, ``quick_spp``, and ``progress``
+(boolean); resolved as `renderer.render`'s arguments (source "scene plugin"), a bad one is one
+ValueError line when the integrator is used. ``mi.render``'s nonzero ``spp`` is the max_spp, its
+``seed`` adds to the resolved one.
 
 Mitsuba's bindings take one base class per variant: `integrator_class` binds the methods of
 `NoisestopIntegrator` to the variant's ``mi.SamplingIntegrator``; `register` needs a variant,

@@ -96,7 +96,7 @@ def room_box(width: float, depth: float, height: float, floor: dict, walls: dict
     }
     return {name: {"type": "rectangle", "bsdf": bsdf, "to_world": T().translate(at).rotate(axis, deg).scale(size)}
             for name, (bsdf, at, axis, deg, size) in parts.items()
-            if not (name == "left" and open_left or name == "front" and not closed)}
+            if not ((name == "left" and open_left) or (name == "front" and not closed))}
 
 
 def sphere(centre: list[float], radius: float, bsdf: dict) -> dict:

@@ -1,8 +1,7 @@
 """renderer: Mitsuba scenes, block rendering, stack building, the adaptive loop, farm.
 
-Names load on first use (PEP 562), so `renderer.spec` and the command line do not import
-Mitsuba; `register` adds the ``noisestop`` integrator (importing `renderer` does not: that
-would choose Mitsuba's variant).
+Names load on first use (PEP 562), so `renderer.spec` and the command line do not import Mitsuba;
+`register` adds the ``noisestop`` integrator (importing `renderer` does not: it chooses a variant).
 """
 from __future__ import annotations
 

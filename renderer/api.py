@@ -63,11 +63,8 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
         ``report`` (the report.json dict); ``save(dir)`` writes the files.
     """
     from .live.adaptive import run_adaptive
-    from .plugin import register
-    from .scenes.catalog import is_scene_file
 
-    if is_scene_file(scene):
-        register()      # before the file loads: its integrator may be `noisestop`
+    register_for(scene)
     try:
         return run_adaptive(scene, criterion, tau=tau, threshold=threshold, offset=offset, quantile=quantile,
                             model=model, server=server, exposure=exposure, resolution=resolution, grid=grid,
@@ -81,6 +78,16 @@ def render(scene: Any, *, criterion: Criterion | str | None = None, tau: float |
         raise InputNotFound(str(exc)) from exc
     except ConnectionError as exc:         # the verdict server
         raise ServerUnavailable(str(exc)) from exc
+
+
+def register_for(scene: Any) -> None:
+    """`renderer.plugin.register` before `scene` loads if it is a scene file's path (its
+    integrator may be ``noisestop``); a built-in scene's name or a loaded scene needs none."""
+    from .plugin import register
+    from .scenes.catalog import is_builtin
+
+    if isinstance(scene, (str, os.PathLike)) and not is_builtin(scene):
+        register()
 
 
 _ROWS_DOC = "\n".join(f"    {row.name} : {row.type_doc} or None\n"

@@ -1,6 +1,5 @@
 """The exceptions `renderer.render` raises for bad arguments, each a ValueError (as the API
-promises) and also FileNotFoundError or ConnectionError, so either ``except`` catches them.
-"""
+promises) and also FileNotFoundError or ConnectionError, so either ``except`` catches them."""
 from __future__ import annotations
 
 from noisefeat.errors import InputNotFound

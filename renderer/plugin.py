@@ -7,19 +7,17 @@ nested integrator (``path`` if none) as Mitsuba's ``aov`` does::
     </integrator>
 
 ``mi.render`` returns [H, W, 5]: R, G, B and the AOVs ``spp`` and ``converged`` (1 where the
-block stopped); ``integrator.result`` keeps the last `RenderResult`. Properties (optional; the
-rows of `renderer.settings.PLUGIN_ROWS`): ``criterion``, ``tau``, ``threshold``, ``offset``,
-``quantile``, ``model``, ``exposure``, ``block``, ``tile``, ``min_spp``, ``max_spp``, ``step``,
-``decide_skip``, ``decide_growth``, ``seed``, ``time_limit``, ``spp_budget``, ``quick_spp``, and
-``progress`` (boolean). They are resolved in the constructor as `renderer.render`'s arguments
-are (source "scene plugin"), and a bad one is one ValueError line when the integrator is used,
-not a traceback from Mitsuba's loader. ``mi.render``'s nonzero ``spp`` is the max_spp, its
-``seed`` adds to the resolved one; `renderer.render` on such a scene takes the properties for
-the settings it is not given (through `renderer.plugin_schema`).
+block stopped); ``integrator.result`` keeps the last `RenderResult`. Properties (the rows of
+`renderer.settings.PLUGIN_ROWS`): ``criterion``, ``tau``, ``threshold``, ``offset``, ``quantile``,
+``model``, ``exposure``, ``block``, ``tile``, ``min_spp``, ``max_spp``, ``step``, ``decide_skip``,
+``decide_growth``, ``seed``, ``time_limit``, ``spp_budget``, ``quick_spp``, and ``progress``
+(boolean); resolved as `renderer.render`'s arguments (source "scene plugin"), a bad one is one
+ValueError line when the integrator is used. ``mi.render``'s nonzero ``spp`` is the max_spp, its
+``seed`` adds to the resolved one.
 
-Mitsuba's bindings take one base class, per variant: `integrator_class` binds the methods of
-`NoisestopIntegrator` to the variant's ``mi.SamplingIntegrator``. `register` needs a variant,
-so importing does not register: call it before loading a scene file, and after ``mi.set_variant``.
+Mitsuba's bindings take one base class per variant: `integrator_class` binds the methods of
+`NoisestopIntegrator` to the variant's ``mi.SamplingIntegrator``; `register` needs a variant,
+so importing does not register (`renderer.api.register_for` does, before a scene file loads).
 """
 from __future__ import annotations
 
@@ -105,9 +103,8 @@ class NoisestopIntegrator:
             s["max_spp"] = int(spp)
         if _as_int(seed):
             s["seed"] = self.base_seed + _as_int(seed)
-        result = run_adaptive(scene, source=FROM_PLUGIN, plugin={}, progress=self.progress, sensor=sensor,
-                              integrator=self.nested, **s)      # its settings, not the scene's integrator's
-        self.result = result
+        self.result = result = run_adaptive(scene, source=FROM_PLUGIN, plugin={}, progress=self.progress,
+                                            sensor=sensor, integrator=self.nested, **s)  # its settings, not the scene's
         data = np.concatenate([result.image, result.spp[..., None].astype(np.float32),
                                result.converged[..., None].astype(np.float32)], axis=-1)
         return require("mitsuba").TensorXf(np.ascontiguousarray(data))
@@ -141,14 +138,8 @@ def _as_int(seed: Any) -> int:
 
 
 def register() -> str:
-    """Register the ``noisestop`` integrator with Mitsuba for the current variant (choosing
-    one first, as `learning.data.variant.select_variant` does, if none is set). Idempotent.
-
-    Returns
-    -------
-    str
-        The Mitsuba variant it is registered for.
-    """
+    """Register the ``noisestop`` integrator with Mitsuba for the current variant (choosing one
+    first, as `learning.data.variant.select_variant` does, if none is set), once; the variant."""
     mi = require("mitsuba")
     cls = integrator_class()
     preload()          # Mitsuba's plugin libraries from its own folder (the nested path one included)

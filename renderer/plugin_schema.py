@@ -1,7 +1,5 @@
-"""The ``noisestop`` integrator as a render sees it: its name, channels, properties, and
-whether an integrator is one (`noisestop_of`, by its class). Apart from `renderer.plugin`,
-which imports the render loop: the loop reads a scene's integrator through this module.
-"""
+"""The ``noisestop`` integrator as a render sees it: its name, channels, properties, and whether
+an integrator is one (`noisestop_of`); the loop reads it here, as `renderer.plugin` imports the loop."""
 from __future__ import annotations
 
 from collections.abc import Mapping

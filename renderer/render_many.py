@@ -14,11 +14,9 @@ from .spec import COMMAND_LINE
 def _render_one(scene: str | os.PathLike, out: str | os.PathLike, kwargs: dict[str, Any]) -> dict[str, Any]:
     """`adaptive_render`, with the ``noisestop`` integrator registered first if `scene` is a
     file (its integrator may be that one; the loop cannot import the plugin)."""
-    from .plugin import register
-    from .scenes.catalog import is_scene_file
+    from .api import register_for
 
-    if is_scene_file(scene):
-        register()
+    register_for(scene)
     return adaptive_render(scene, out, **kwargs)
 
 

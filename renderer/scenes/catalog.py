@@ -1,9 +1,5 @@
-"""The built-in scene library (`SCENES`) and the loading of built-in scenes and XML files.
-
-Every built-in scene is a ``mi.load_dict`` dict made from the resolution alone (samples per
-pixel are chosen at render time), with the shared settings of `scene_kit` (why each is what
-it is: its docstring).
-"""
+"""The built-in scene library (`SCENES`: ``mi.load_dict`` dicts made from the resolution alone,
+with `scene_kit`'s shared settings) and the loading of built-in scenes and XML files."""
 
 from __future__ import annotations
 
@@ -13,10 +9,9 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
 from . import heldout
 from . import training_scenes as training
+from .framing import Resolution, dict_sensor_props, film_size_for, framing_fov, resize_film, xml_sensor_props
 from .procedural import procedural_scene, procedural_seed
 from .scene_kit import SceneDict
 from .plugin_libs import mitsuba_folder, preload
@@ -40,63 +35,50 @@ class SceneSpec:
     tags: tuple[str, ...] = ()
 
 
+#: (name, description); the builder is the function of that name
 _TRAINING = (
-    ("cornell", "Cornell box, diffuse walls and boxes, small ceiling light", ("diffuse",)),
-    ("cornell_dark", "Cornell box lit 25x dimmer: dark exposure, noise near black", ("diffuse", "dark")),
-    ("cornell_bright", "Cornell box lit 12x brighter: overexposed, clipping hides noise", ("diffuse", "bright")),
-    ("large_light", "Cornell box under a ceiling-wide panel light: soft shadows, low noise",
-     ("diffuse", "large-light")),
-    ("small_light", "Cornell box lit by a tiny bright sphere light: hard shadows, fireflies",
-     ("diffuse", "small-light")),
-    ("glossy", "Rough gold sphere, rough plastic box and glossy back wall in a Cornell box", ("glossy",)),
-    ("mirrors", "Two facing mirror walls: view-dependent inter-reflections of spheres", ("mirror", "glossy")),
-    ("glass_caustic", "Glass sphere on the floor under a small light: refractive caustic",
-     ("dielectric", "caustic", "small-light")),
-    ("indirect", "Light hidden on top of a shelf: the room is lit only by ceiling bounce", ("diffuse", "indirect")),
-    ("checker", "High-frequency checkerboard textures everywhere: texture masks noise", ("textured",)),
-    ("mis_plates", "Veach MIS plates: four roughness levels x four light sizes",
-     ("glossy", "small-light", "large-light")),
-    ("env_spheres", "Diffuse, glossy and glass spheres on a ground plane under a uniform sky",
-     ("environment", "dielectric", "glossy")),
-    ("allblack", "Closed geometry with no light at all: an all-zero image (degenerate input)", ("degenerate",)),
-    ("sky", "Constant environment and nothing else: a flat image (degenerate input)", ("degenerate", "environment")),
+    ("cornell", "Cornell box, diffuse walls and boxes, small ceiling light"),
+    ("cornell_dark", "Cornell box lit 25x dimmer: dark exposure, noise near black"),
+    ("cornell_bright", "Cornell box lit 12x brighter: overexposed, clipping hides noise"),
+    ("large_light", "Cornell box under a ceiling-wide panel light: soft shadows, low noise"),
+    ("small_light", "Cornell box lit by a tiny bright sphere light: hard shadows, fireflies"),
+    ("glossy", "Rough gold sphere, rough plastic box and glossy back wall in a Cornell box"),
+    ("mirrors", "Two facing mirror walls: view-dependent inter-reflections of spheres"),
+    ("glass_caustic", "Glass sphere on the floor under a small light: refractive caustic"),
+    ("indirect", "Light hidden on top of a shelf: the room is lit only by ceiling bounce"),
+    ("checker", "High-frequency checkerboard textures everywhere: texture masks noise"),
+    ("mis_plates", "Veach MIS plates: four roughness levels x four light sizes"),
+    ("env_spheres", "Diffuse, glossy and glass spheres on a ground plane under a uniform sky"),
+    ("allblack", "Closed geometry with no light at all: an all-zero image (degenerate input)"),
+    ("sky", "Constant environment and nothing else: a flat image (degenerate input)"),
 )
-#: never used to train or calibrate anything (`heldout`); tagged HELDOUT before their own tags
+#: never used to train or calibrate anything (`heldout`): tagged HELDOUT
 _HELDOUT = (
-    ("studio_preview", "Material preview: three spheres on a plane under a studio environment map",
-     ("environment", "glossy")),
-    ("sunlit_courtyard", "Pillars and blocks under sun and sky casting shadows on paving", ("outdoor", "textured")),
-    ("marble_hall", "Room with a marble floor, wood-grain back wall and a panel light", ("textured", "glossy")),
-    ("spot_stage", "Dark stage lit by one spot light: a pool of light in near-black", ("dark", "glossy")),
-    ("lamp_room", "Table under a hanging globe lamp in a warm room with a wooden floor", ("diffuse", "textured")),
-    ("corridor", "Long corridor with a row of ceiling lights and a glossy floor", ("glossy",)),
-    ("pastel_blocks", "Grid of pastel blocks under an overcast sky (ambient occlusion look)",
-     ("outdoor", "environment")),
-    ("window_light", "Room lit through one window: a sun patch, the rest bounce light", ("indirect",)),
+    ("studio_preview", "Material preview: three spheres on a plane under a studio environment map"),
+    ("sunlit_courtyard", "Pillars and blocks under sun and sky casting shadows on paving"),
+    ("marble_hall", "Room with a marble floor, wood-grain back wall and a panel light"),
+    ("spot_stage", "Dark stage lit by one spot light: a pool of light in near-black"),
+    ("lamp_room", "Table under a hanging globe lamp in a warm room with a wooden floor"),
+    ("corridor", "Long corridor with a row of ceiling lights and a glossy floor"),
+    ("pastel_blocks", "Grid of pastel blocks under an overcast sky (ambient occlusion look)"),
+    ("window_light", "Room lit through one window: a sun patch, the rest bounce light"),
 )
 SCENES: dict[str, SceneSpec] = {
-    **{n: SceneSpec(n, d, getattr(training, n), tags) for n, d, tags in _TRAINING},
-    **{n: SceneSpec(n, d, getattr(heldout, n), (HELDOUT, *tags)) for n, d, tags in _HELDOUT},
+    **{n: SceneSpec(n, d, getattr(training, n)) for n, d in _TRAINING},
+    **{n: SceneSpec(n, d, getattr(heldout, n), (HELDOUT,)) for n, d in _HELDOUT},
 }
 
 
 def list_scenes(heldout: bool | None = None) -> list[tuple[str, str]]:
     """(name, description) of the built-in scenes in library order: all (None), the held-out
     set (True) or the training library (False)."""
-    return [(s.name, s.description) for s in SCENES.values()
-            if heldout is None or (HELDOUT in s.tags) == heldout]
+    return [(s.name, s.description) for s in SCENES.values() if heldout is None or (HELDOUT in s.tags) == heldout]
 
 
 def is_builtin(name: str | os.PathLike) -> bool:
     """Whether `name` names a built-in scene (the library's or a procedural one), not a file."""
     name = os.fspath(name)
     return name in SCENES or procedural_seed(name) is not None
-
-
-def is_scene_file(scene: Any) -> bool:
-    """Whether `scene` is a scene file's path (whose loading may need the ``noisestop``
-    integrator registered), not a built-in name nor a loaded scene."""
-    return isinstance(scene, (str, os.PathLike)) and not is_builtin(scene)
 
 
 def scene_label(scene: str | os.PathLike) -> str:
@@ -117,100 +99,6 @@ def scene_dict(name: str, resolution: int) -> SceneDict:
         raise _unknown(name)
     select_variant()  # transforms need a variant
     return SCENES[name].builder(resolution) if seed is None else procedural_scene(seed, resolution)
-
-
-# ----------------------------------------------------------------------------- loading
-
-Resolution = int | tuple[int, int]
-
-
-def film_size_for(resolution: Resolution, width: int, height: int) -> tuple[int, int]:
-    """(W, H) for a film of width x height: N scales the long side to N, keeping the aspect."""
-    if isinstance(resolution, tuple):
-        return resolution
-    scale = resolution / max(width, height)
-    return max(1, round(width * scale)), max(1, round(height * scale))
-
-
-def resize_film(scene: Any, size: tuple[int, int], x_fov: float | None = None) -> None:
-    """Set the first sensor's film to `size` (W, H) in place through its scene parameters,
-    framed with horizontal field `x_fov` (degrees; None keeps the sensor's). A crop window
-    set by the file is dropped, with a warning."""
-    mi = require("mitsuba")
-
-    sensor = scene.sensors()[0]
-    film = sensor.film()
-    if tuple(film.crop_size()) != tuple(film.size()) or tuple(film.crop_offset()) != (0, 0):
-        logger.warning("the film's crop window is dropped: the frame is resized to %dx%d", *size)
-    params = mi.traverse(sensor)
-    params["film.size"] = mi.ScalarVector2u(*size)
-    params["film.crop_size"] = mi.ScalarVector2u(*size)
-    params["film.crop_offset"] = mi.ScalarPoint2u(0, 0)
-    if x_fov is not None and "x_fov" in params:
-        params["x_fov"] = float(x_fov)
-    params.update()
-
-
-def framing_fov(sensor_props: Any, scene: Any, size: tuple[int, int]) -> float | None:
-    """The horizontal field of view Mitsuba gives the first sensor for a film of `size`.
-
-    A ``fov`` is measured along the sensor's ``fov_axis`` for the film it has, so a new aspect
-    changes the horizontal field unless the axis is x: Mitsuba's ``parse_fov`` of the sensor's
-    properties (`sensor_props`) gives it. None (the field is kept) for a sensor without a field
-    of view, or properties that do not give the loaded sensor's field for its own film.
-    """
-    mi = require("mitsuba")
-
-    params = mi.traverse(scene.sensors()[0])
-    if sensor_props is None or "x_fov" not in params:
-        return None
-    own = scene.sensors()[0].film().size()
-    try:
-        loaded = float(np.asarray(params["x_fov"]).ravel()[0])
-        if abs(mi.parse_fov(sensor_props, float(own[0]) / float(own[1])) - loaded) > 1e-3 * max(1.0, loaded):
-            logger.warning("cannot tell the first sensor's field-of-view axis: its horizontal field is kept")
-            return None
-        return float(mi.parse_fov(sensor_props, size[0] / size[1]))
-    except (RuntimeError, ValueError) as exc:        # Mitsuba throws for out-of-range fields
-        raise ValueError(f"a {size[0]}x{size[1]} film: {' '.join(str(exc).split())}") from None
-
-
-def _xml_sensor_props(path: str, defines: Mapping[str, str] | None) -> Any:
-    """The first sensor's properties in an XML file, `<default>`s and -D applied (None if
-    Mitsuba's parser API is missing or the file declares no sensor of its own)."""
-    mi = require("mitsuba")
-
-    parser = getattr(mi, "parser", None)
-    if parser is None or not hasattr(mi, "parse_fov"):
-        return None
-    # parsed with mi.load_file's search folders (the file's own first), on a copy: a <path> in
-    # the file would otherwise join Mitsuba's global ones for good
-    previous = mi.file_resolver()
-    resolver = mi.FileResolver(previous)
-    resolver.prepend(os.path.dirname(path))
-    mi.set_file_resolver(resolver)
-    try:
-        state = parser.parse_file(parser.ParserConfig(mi.variant()), path, **dict(defines or {}))
-    except RuntimeError as exc:       # mi.load_file read it, so this is unexpected: keep the field
-        logger.warning("%s: cannot read the sensor's field of view (%s): its horizontal field is kept",
-                       path, " ".join(str(exc).split()))
-        return None
-    finally:
-        mi.set_file_resolver(previous)
-    sensors = [n for n in state.nodes if n.type == mi.ObjectType.Sensor]
-    return sensors[0].props if sensors else None
-
-
-def _dict_sensor_props(d: SceneDict) -> Any:
-    """A built-in scene dict's sensor field-of-view properties, as Mitsuba reads them."""
-    mi = require("mitsuba")
-
-    props = mi.Properties("perspective")
-    sensor = d.get("sensor", {})
-    for key in ("fov", "fov_axis", "focal_length"):
-        if key in sensor:
-            props[key] = float(sensor[key]) if key == "fov" else str(sensor[key])
-    return props
 
 
 def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | None = None,
@@ -234,7 +122,7 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | No
         d = scene_dict(name_or_path, side)
         scene = mi.load_dict(d)
         if isinstance(resolution, tuple) and resolution != (side, side):
-            resize_film(scene, resolution, framing_fov(_dict_sensor_props(d), scene, resolution))
+            resize_film(scene, resolution, framing_fov(dict_sensor_props(d), scene, resolution))
         return scene
     looks_like_file = name_or_path.lower().endswith(".xml") or os.sep in name_or_path
     if not looks_like_file and not os.path.exists(name_or_path):
@@ -257,6 +145,6 @@ def load_scene(name_or_path: str | os.PathLike[str], resolution: Resolution | No
         return scene
     want = film_size_for(resolution, *own)
     if want != own:
-        resize_film(scene, want, framing_fov(_xml_sensor_props(path, defines), scene, want))
+        resize_film(scene, want, framing_fov(xml_sensor_props(path, defines), scene, want))
     logger.info("loaded %s (film %dx%d, rendered at %dx%d)", path, own[0], own[1], *want)
     return scene

@@ -1,10 +1,7 @@
 """Held-out scenes (`catalog.SCENES` describes them): eight views no model is trained or
-calibrated on, sharing nothing with the training library but the render settings (`scene_kit`).
-
-`make heldout` renders them every 32 spp up to 2048 spp, with an 8192-spp reference: most of
-their blocks converge inside the stack (a scene that never converges only tests "never stop
-early", so `learning.evaluation.generalisation` reports such scenes apart). Textures and the
-environment map come from seeded numpy noise: no files, the same scenes on every machine.
+calibrated on, sharing nothing with the training library but the render settings (`scene_kit`),
+most of whose blocks converge within `make heldout`'s 2048 spp. Textures and the environment map
+come from seeded numpy noise: no files, the same scenes on every machine.
 """
 from __future__ import annotations
 
@@ -15,8 +12,6 @@ import numpy as np
 from .scene_kit import (SceneDict, T, base, bitmap_texture, checker_texture, cube, diffuse, panel, rgb, room_box,
                         sphere, sphere_light, value_noise)
 from noisefeat.extras import require
-
-# ----------------------------------------------------------------------------- procedural images
 
 
 def marble(size: int = 256, seed: int = 3) -> np.ndarray:
@@ -51,14 +46,10 @@ def studio_environment(width: int = 256, seed: int = 5) -> np.ndarray:
     return img.astype(np.float32)
 
 
-# ----------------------------------------------------------------------------- scenes
-
-
 def studio_preview(resolution: int) -> SceneDict:
     d = base(resolution, origin=(0.0, 1.1, 4.2), target=(0.0, 0.25, 0.0), fov=35.0)
     d["env"] = {"type": "envmap", "bitmap": require("mitsuba").Bitmap(studio_environment()), "scale": 1.6}
-    d["ground"] = {"type": "disk", "bsdf": diffuse(0.45),
-                   "to_world": T().rotate([1, 0, 0], -90).scale(6.0)}
+    d["ground"] = {"type": "disk", "bsdf": diffuse(0.45), "to_world": T().rotate([1, 0, 0], -90).scale(6.0)}
     d["plastic"] = sphere([-1.05, 0.45, 0.0], 0.45,
                           {"type": "roughplastic", "diffuse_reflectance": rgb([0.6, 0.12, 0.1]), "alpha": 0.15})
     d["metal"] = sphere([0.0, 0.45, -0.2], 0.45, {"type": "roughconductor", "material": "Al", "alpha": 0.25})
@@ -83,10 +74,9 @@ def sunlit_courtyard(resolution: int) -> SceneDict:
 
 def marble_hall(resolution: int) -> SceneDict:
     d = base(resolution, origin=(0.0, 1.4, 3.2), target=(0.0, 0.9, -2.0), fov=50.0)
-    d.update(room_box(5.0, 6.5, 3.0, floor={"type": "roughplastic", "alpha": 0.2,
-                                          "diffuse_reflectance": bitmap_texture(marble())},
-                   walls=diffuse([0.75, 0.7, 0.6]), back={"type": "diffuse", "reflectance": bitmap_texture(wood())},
-                   front=3.5, closed=True))
+    floor = {"type": "roughplastic", "alpha": 0.2, "diffuse_reflectance": bitmap_texture(marble())}
+    d.update(room_box(5.0, 6.5, 3.0, floor=floor, walls=diffuse([0.75, 0.7, 0.6]),
+                      back={"type": "diffuse", "reflectance": bitmap_texture(wood())}, front=3.5, closed=True))
     d["light"] = panel([0.0, 2.99, -2.0], 0.8, 0.5, [9.0, 8.5, 7.5])
     d["sphere"] = sphere([0.8, 0.5, -2.2], 0.5,
                          {"type": "roughplastic", "diffuse_reflectance": rgb([0.15, 0.3, 0.55]), "alpha": 0.1})
@@ -96,9 +86,8 @@ def marble_hall(resolution: int) -> SceneDict:
 
 def spot_stage(resolution: int) -> SceneDict:
     d = base(resolution, origin=(0.0, 1.6, 4.0), target=(0.0, 0.5, 0.0), fov=42.0)
-    d.update(room_box(8.0, 10.5, 4.0, front=4.5, floor={"type": "roughplastic", "alpha": 0.25,
-                                          "diffuse_reflectance": rgb(0.08)},
-                   walls=diffuse(0.06)))
+    d.update(room_box(8.0, 10.5, 4.0, floor={"type": "roughplastic", "alpha": 0.25, "diffuse_reflectance": rgb(0.08)},
+                      walls=diffuse(0.06), front=4.5))
     d["spot"] = {"type": "spot", "intensity": rgb(60.0), "cutoff_angle": 28.0, "beam_width": 18.0,
                  "to_world": T().look_at(origin=[0.6, 3.8, 1.2], target=[0.0, 0.0, -1.0], up=[0, 1, 0])}
     d["copper"] = sphere([-0.5, 0.55, -1.0], 0.55, {"type": "roughconductor", "material": "Cu", "alpha": 0.2})
@@ -109,7 +98,7 @@ def spot_stage(resolution: int) -> SceneDict:
 def lamp_room(resolution: int) -> SceneDict:
     d = base(resolution, origin=(1.6, 1.7, 3.4), target=(0.0, 0.8, -1.0), fov=48.0)
     d.update(room_box(5.0, 6.0, 3.0, floor={"type": "diffuse", "reflectance": bitmap_texture(wood(seed=8))},
-                   walls=diffuse([0.8, 0.65, 0.5]), front=3.6, closed=True))
+                      walls=diffuse([0.8, 0.65, 0.5]), front=3.6, closed=True))
     d["lamp"] = sphere_light([0.0, 1.9, -1.2], 0.14, [40.0, 32.0, 20.0])
     top = diffuse([0.5, 0.35, 0.2])
     d["table_top"] = cube([0.0, 0.75, -1.2], [1.6, 0.06, 0.9], top)
@@ -122,9 +111,8 @@ def lamp_room(resolution: int) -> SceneDict:
 
 def corridor(resolution: int) -> SceneDict:
     d = base(resolution, origin=(0.0, 1.3, 1.5), target=(0.0, 1.1, -8.0), fov=55.0)
-    d.update(room_box(2.4, 12.0, 2.6, floor={"type": "roughplastic", "alpha": 0.12,
-                                           "diffuse_reflectance": rgb([0.25, 0.25, 0.28])},
-                   walls=diffuse([0.7, 0.72, 0.75]), back=diffuse([0.45, 0.2, 0.15])))
+    floor = {"type": "roughplastic", "alpha": 0.12, "diffuse_reflectance": rgb([0.25, 0.25, 0.28])}
+    d.update(room_box(2.4, 12.0, 2.6, floor=floor, walls=diffuse([0.7, 0.72, 0.75]), back=diffuse([0.45, 0.2, 0.15])))
     for i, z in enumerate((-1.5, -4.5, -7.5, -10.5)):
         d[f"light{i}"] = panel([0.0, 2.59, z], 0.35, 0.2, [14.0, 14.0, 12.0])
     for i, z in enumerate((-3.0, -6.0, -9.0)):
@@ -151,7 +139,7 @@ def window_light(resolution: int) -> SceneDict:
     d = base(resolution, origin=(0.6, 1.4, 2.6), target=(-0.4, 1.0, -2.0), fov=55.0)
     walls = diffuse([0.78, 0.76, 0.72])
     d.update(room_box(4.0, 7.0, 2.8, floor=diffuse([0.45, 0.4, 0.35]), walls=walls, open_left=True,
-                   front=3.0, closed=True))
+                      front=3.0, closed=True))
     w, h, depth = 2.0, 2.8, 4.0
     # the left wall, with a window 1.2 m wide and 1 m high in its middle
     for name, (z0, z1, y0, y1) in {"sill": (-3.0, depth, 0.0, 0.9), "head": (-3.0, depth, 1.9, h),

@@ -1,11 +1,9 @@
-"""An image's size read from its header, as Mitsuba's Bitmap reads it, before Mitsuba decodes it.
+"""An image's size read from its header, as Mitsuba's Bitmap reads it, before Mitsuba decodes it:
+a small PNG may hold a decompression bomb, so the header, not the file's size, tells the pixels.
 
-A 1.2 MB PNG of 20000 x 20000 pixels passed the texture's size cap and grew a render past
-2.5 GB (a decompression bomb): the header, not the file's size, tells the pixels. The format
-is told as ``Bitmap::detect_file_format`` tells it (src/core/bitmap.cpp, 3.9) and the size
-read as its reader reads it (integer casts included), from the header alone (bounded memory
-and time). Refused in one line: over ``CAPS["image pixels"]``, a header not read within `HEAD`
-bytes (Mitsuba would read a line of any length), a format Mitsuba does not read.
+The format is told as ``Bitmap::detect_file_format`` tells it (src/core/bitmap.cpp, 3.9), the size
+read as its reader reads it (integer casts included), from the header alone. Refused in one line:
+over ``CAPS["image pixels"]``, a header not read within `HEAD` bytes, a format Mitsuba does not read.
 """
 from __future__ import annotations
 
@@ -56,7 +54,7 @@ def image_size(f: BinaryIO, size: int, path: str | os.PathLike, kind: str) -> tu
     if head[:2] == b"\xff\xd8":
         return _jpeg(f, path, kind)
     if head[:4] == _EXR_MAGIC:
-        return _exr(f, path, kind)
+        return _exr(f, size, path, kind)
     if size >= 18:
         f.seek(size - 18)
         footer = read_named(f, path, kind, 18)
@@ -142,13 +140,12 @@ def _jpeg(f: BinaryIO, path: str | os.PathLike, kind: str) -> tuple[str, int, in
     raise _Unreadable(f"no JPEG frame header within {MAX_JPEG_SEGMENTS} segments")
 
 
-def _exr(f: BinaryIO, path: str | os.PathLike, kind: str) -> tuple[str, int, int]:
+def _exr(f: BinaryIO, size: int, path: str | os.PathLike, kind: str) -> tuple[str, int, int]:
     """The largest data window of the file's headers (one per part), read within
-    ``CAPS["EXR header"]`` bytes; a scanline part's chunk table must fit in the file too."""
+    ``CAPS["EXR header"]`` bytes; a scanline part's chunk table must fit in the file (`size`) too."""
     f.seek(0)
     cap = CAPS["EXR header"]
     data = read_named(f, path, kind, cap)
-    size = os.fstat(f.fileno()).st_size
     multipart = struct.unpack_from("<I", data, 4)[0] & _EXR_MULTIPART
     pos, widest = 8, None
     while True:

@@ -1,13 +1,8 @@
-"""A mesh's (or volume grid's) element counts read from its header, before Mitsuba loads it.
-
-Mitsuba sizes a mesh's buffers from the counts its header states (ply, serialized, .vol) or
-from the file's size (obj): a sparse .obj under the 2 GiB cap, or a ply or serialized mesh
-stating a billion vertices, grew a render past 2.5 GB. Each is read as Mitsuba's loader reads
-it (src/shapes/{ply.h,obj.cpp,serialized.cpp}, src/render/volumegrid.cpp, 3.9), its counts
-bounded by ``CAPS["mesh elements"]``: a ply's header (within `HEAD` bytes), its elements in the
-bytes after it; an obj in chunks, no line of `OBJ_LINE` bytes (Mitsuba refuses one only after
-reading it: a sparse hole is one) and its words bounding its elements; a serialized shape's
-compressed header, a few bytes inflated; a grid's cells times channels in the file.
+"""A mesh's (or volume grid's) element counts read from its header, before Mitsuba loads it:
+Mitsuba sizes its buffers from the counts a header states (ply, serialized, .vol) or from the
+file's size (obj). Each is read as Mitsuba's loader reads it (src/shapes/{ply.h,obj.cpp,
+serialized.cpp}, src/render/volumegrid.cpp, 3.9), its counts bounded by ``CAPS["mesh elements"]``
+and by the bytes the file holds; an obj is scanned in chunks for lines of `OBJ_LINE` bytes.
 """
 from __future__ import annotations
 
@@ -66,13 +61,12 @@ def check_ply(path: str | os.PathLike, kind: str) -> None:
                 raise _refuse(path, kind, f"states an element count that is no plain number: {words[2][:32]!r}")
             elements.append([int(words[2]), 0, 0])
         elif words[0] == b"property" and elements and len(words) >= 3:
-            types = words[1:-1] if words[1] != b"list" else words[2:-1]
-            sizes = [PLY_TYPES.get(t.decode("ascii", "replace")) for t in types]
-            if None in sizes or len(sizes) != (2 if words[1] == b"list" else 1):
+            is_list = words[1] == b"list"
+            sizes = [PLY_TYPES.get(t.decode("ascii", "replace")) for t in words[1 + is_list:-1]]
+            if None in sizes or len(sizes) != 1 + is_list:
                 raise _refuse(path, kind, f"has a property Mitsuba does not read: {line[:64]!r}")
-            row = sizes[0] + 3 * sizes[1] if words[1] == b"list" else sizes[0]   # a list: count, 3 items
-            elements[-1][1] += row
-            elements[-1][2] += 4 if words[1] == b"list" else 1
+            elements[-1][1] += sizes[0] + 3 * sizes[1] if is_list else sizes[0]   # a list: count, 3 items
+            elements[-1][2] += 4 if is_list else 1
         else:
             raise _refuse(path, kind, f"has a header line Mitsuba does not read: {line[:64]!r}")
     if stop < 0:

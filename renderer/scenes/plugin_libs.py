@@ -1,12 +1,10 @@
 """No code is loaded from a scene's folders: Mitsuba's plugin libraries come from Mitsuba.
 
-Mitsuba loads a plugin's library it has not loaded yet as ``plugins/<type>.so`` through the
-file resolver (src/core/plugin.cpp, 3.9), which, while a scene loads, holds the scene's
-folders first: a ``plugins/diffuse.so`` next to a scene would run in our process. Both closes
-are needed: `preload` loads every library of Mitsuba's own folder, resolved there alone,
-before any scene (the manager caches them by name, those Mitsuba creates behind a scene's
-back included); `plugin_library_error` refuses a type that is not a plain name (a dot or a
-slash changes the file name) or whose library a folder before Mitsuba's holds (any name).
+Mitsuba loads a plugin library as ``plugins/<type>.so`` through the file resolver (src/core/
+plugin.cpp, 3.9), which holds the scene's folders first while it loads: a ``plugins/diffuse.so``
+next to a scene would run in our process. So `preload` loads every library of Mitsuba's own
+folder before any scene (the manager caches them by name), and `plugin_library_error` refuses
+a type that is not a plain name or whose library a folder before Mitsuba's holds.
 """
 from __future__ import annotations
 
@@ -31,8 +29,8 @@ def mitsuba_folder() -> str:
 
 
 def preload() -> int:
-    """Load every plugin library of Mitsuba's own folder, resolved there alone; the number
-    loaded (0 after the first call)."""
+    """Load every plugin library of Mitsuba's own folder, resolved there alone; how many (0
+    after the first call)."""
     global _done
     with _lock:
         if _done:

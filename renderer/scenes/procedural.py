@@ -1,13 +1,11 @@
-"""Seeded procedural scenes (`proc-0042` is seed 42, the same on every machine): as many
-training views as the render budget buys, where fourteen hand-built ones are too few and too
-alike, and their stacks end before most of them converge.
+"""Seeded procedural scenes (`proc-0042` is seed 42, the same on every machine): as many training
+views as the render budget buys, where the fourteen hand-built ones are too few and too alike.
 
-A seed draws a room or an open scene, two to six objects of varied materials, lights from
-tiny to large (some seen directly) or an environment, albedos and an exposure from dark to
-bright; weighted so that most blocks converge within 2048 spp (glass only under broad light,
-where its caustics resolve; docs/guide/training.md). A scene at resolution R is an R x R crop
-window, at a seeded place, of a frame `zoom` = 1 to 4 times larger: a block then shows part of
-a view, as in a real frame, at the scales of frames 1-4x the stack's, for the window's cost.
+A seed draws a room or an open scene, two to six objects of varied materials, lights from tiny
+to large or an environment, albedos and an exposure; weighted so that most blocks converge within
+2048 spp (glass only under broad light; docs/guide/training.md). A scene at resolution R is an
+R x R crop window, at a seeded place, of a frame `zoom` = 1 to 4 times larger: a block shows part
+of a view at the scales of larger frames, for the window's cost.
 """
 from __future__ import annotations
 

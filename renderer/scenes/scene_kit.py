@@ -1,13 +1,10 @@
-"""Parts every built-in scene is made of: transforms, colours, materials, rooms, and the
-skeleton `base`, whose settings all scenes share, for these reasons:
-
-* ``path`` to depth 8: the mirror room and the caustics look right, and a scene still takes
-  about a second at 128x128 and 64 spp on the llvm variant (2 cores);
-* a box-filtered film: each sample stays in its own pixel, so a block rendered alone (a crop
-  window) is the same estimator as that block cut from a full frame, and blocks may be
-  sampled in any subset (Mitsuba's default Gaussian splats samples 2 px wide);
-* the ``independent`` sampler: passes with distinct seeds are independent, as the cumulative
-  means and the half buffers assume; its ``sample_count`` is a placeholder for ``mi.render``'s.
+"""Parts every built-in scene is made of, and the skeleton `base` whose settings all share:
+``path`` to depth 8 (mirrors and caustics look right, a scene still takes about a second at
+128x128 and 64 spp on llvm); a box-filtered film (each sample stays in its pixel, so a block
+rendered alone as a crop window is the same estimator as that block cut from a full frame,
+where Mitsuba's Gaussian splats 2 px wide); the ``independent`` sampler (passes with distinct
+seeds are independent, as the cumulative means and half buffers assume; its ``sample_count``
+is a placeholder for ``mi.render``'s).
 """
 from __future__ import annotations
 
@@ -19,6 +16,7 @@ from noisefeat.extras import require
 MAX_DEPTH = 8
 
 SceneDict = dict[str, Any]
+
 
 def T() -> Any:
     return require("mitsuba").ScalarTransform4f()
@@ -76,33 +74,30 @@ def value_noise(size: int, octaves: int, seed: int) -> np.ndarray:
     out /= total
     return ((out - out.min()) / (np.ptp(out) + 1e-12)).astype(np.float32)
 
+
 def bitmap_texture(image: np.ndarray) -> dict:
     return {"type": "bitmap", "bitmap": require("mitsuba").Bitmap(np.ascontiguousarray(image, np.float32)),
             "raw": True}
 
+
 def room_box(width: float, depth: float, height: float, floor: dict, walls: dict, back: dict | None = None,
-          open_left: bool = False, front: float = 0.0, closed: bool = False) -> SceneDict:
+             open_left: bool = False, front: float = 0.0, closed: bool = False) -> SceneDict:
     """Floor, ceiling and walls of a box room centred on x, floor at y = 0, spanning z from
     `front` back to `front - depth`; open at the front unless `closed`."""
-    w, d, h = width / 2, depth, height
-    zc = front - d / 2
-    parts: SceneDict = {
-        "floor": {"type": "rectangle", "bsdf": floor,
-                  "to_world": T().translate([0, 0, zc]).rotate([1, 0, 0], -90).scale([w, d / 2, 1])},
-        "ceiling": {"type": "rectangle", "bsdf": walls,
-                    "to_world": T().translate([0, h, zc]).rotate([1, 0, 0], 90).scale([w, d / 2, 1])},
-        "back": {"type": "rectangle", "bsdf": back or walls,
-                 "to_world": T().translate([0, h / 2, front - d]).scale([w, h / 2, 1])},
-        "right": {"type": "rectangle", "bsdf": walls,
-                  "to_world": T().translate([w, h / 2, zc]).rotate([0, 1, 0], -90).scale([d / 2, h / 2, 1])},
+    w, d, h, zc = width / 2, depth / 2, height / 2, front - depth / 2
+    x, y = [1, 0, 0], [0, 1, 0]
+    parts = {      # name: (bsdf, centre, rotation axis and degrees, half sizes)
+        "floor": (floor, [0, 0, zc], x, -90, [w, d, 1]),
+        "ceiling": (walls, [0, height, zc], x, 90, [w, d, 1]),
+        "back": (back or walls, [0, h, front - depth], y, 0, [w, h, 1]),
+        "right": (walls, [w, h, zc], y, -90, [d, h, 1]),
+        "left": (walls, [-w, h, zc], y, 90, [d, h, 1]),
+        "front": (walls, [0, h, front], y, 180, [w, h, 1]),
     }
-    if not open_left:
-        parts["left"] = {"type": "rectangle", "bsdf": walls,
-                         "to_world": T().translate([-w, h / 2, zc]).rotate([0, 1, 0], 90).scale([d / 2, h / 2, 1])}
-    if closed:
-        parts["front"] = {"type": "rectangle", "bsdf": walls,
-                          "to_world": T().translate([0, h / 2, front]).rotate([0, 1, 0], 180).scale([w, h / 2, 1])}
-    return parts
+    return {name: {"type": "rectangle", "bsdf": bsdf, "to_world": T().translate(at).rotate(axis, deg).scale(size)}
+            for name, (bsdf, at, axis, deg, size) in parts.items()
+            if not ((name == "left" and open_left) or (name == "front" and not closed))}
+
 
 def sphere(centre: list[float], radius: float, bsdf: dict) -> dict:
     return {"type": "sphere", "center": centre, "radius": radius, "bsdf": bsdf}
@@ -117,6 +112,7 @@ def panel(centre: list[float], sx: float, sz: float, radiance: list[float] | flo
     """A downward-facing rectangular area light."""
     return {"type": "rectangle", "emitter": {"type": "area", "radiance": rgb(radiance)},
             "to_world": T().translate(centre).rotate([1, 0, 0], 90).scale([sx, sz, 1])}
+
 
 def cube(centre: list[float], size: list[float], bsdf: dict, angle: float = 0.0) -> dict:
     return {"type": "cube", "bsdf": bsdf,

@@ -1,15 +1,13 @@
-"""Every file a scene XML names, checked before Mitsuba opens any of them.
+"""Every file a scene XML names, checked before Mitsuba opens any of them (past `noisefeat.safeio`,
+a ply naming /dev/zero or a bitmap of a FIFO would exhaust memory or hang a render).
 
-Mitsuba opens what a scene names itself, past `noisefeat.safeio`: a ply naming /dev/zero grew
-a render to 7.6 GB, an include or a bitmap of a FIFO hung it. So the XML is walked first as
-Mitsuba 3's parser reads it (src/core/parser.cpp, 3.9): ``$name`` substituted, includes
-followed, ``<path>`` folders added, each ``filename`` resolved where the plugin will resolve it
-(the top file's folders, not an include's); paths are joined as Mitsuba joins them, never
-normalised (through a link, ``L/..`` is not L's folder). Each file named must be a regular file
-within its kind's cap (`safeio.CAPS`) and header bounds (`image_headers`, `mesh_headers`); a
-DOCTYPE (which expat would apply and pugixml skips), text not read as pugixml reads it
-(`xml_encoding`), a plugin library in the scene's folders (`plugin_libs`) and a walk past the
-MAX_ bounds are refused too: each in one line naming the file and the element naming it.
+The XML is walked as Mitsuba 3's parser reads it (src/core/parser.cpp, 3.9): ``$name``
+substituted, includes followed, ``<path>`` folders added, each ``filename`` resolved where the
+plugin will (the top file's folders), paths joined as Mitsuba joins them, never normalised. Each
+file must be a regular file within its kind's cap (`safeio.CAPS`) and header bounds
+(`image_headers`, `mesh_headers`); a DOCTYPE (expat would apply it, pugixml skips it), text not
+read as pugixml reads it (`xml_encoding`), a plugin library in the scene's folders (`plugin_libs`)
+and a walk past the MAX_ bounds are refused too, each in one line naming the file and element.
 """
 from __future__ import annotations
 
@@ -18,6 +16,7 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import TypeVar
 from xml.parsers import expat
 
+from noisefeat.extras import require
 from noisefeat.safeio import InputFileError, check_regular, read_input
 
 from .image_headers import check_image
@@ -33,10 +32,8 @@ MAX_DEPTH = 15
 MAX_FILES = 4096
 #: most bytes of XML Mitsuba may parse for one scene (includes counted each time)
 MAX_XML_BYTES = 1 << 30
-#: deepest nesting of objects (<scene> is 1): real scenes stay under 8 (scene, shape, a few
-#: wrapping BSDFs, a texture), while Mitsuba's load doubles with each level of twosided BSDFs
-#: (24 levels: 3.5 s; 40: over 30 s and 1.4 GB; 20,000: a crash in its recursive parser); 16
-#: leaves twice the room real scenes take and costs Mitsuba milliseconds at worst
+#: deepest nesting of objects (<scene> is 1): real scenes stay under 8, while Mitsuba's load
+#: doubles with each level of twosided BSDFs (40 levels: over 30 s and 1.4 GB)
 MAX_NESTING = 16
 #: deepest nesting of any XML element (objects, their properties, transforms)
 MAX_ELEMENT_DEPTH = 64
@@ -70,9 +67,9 @@ class _Walk:
         #: includes walked: (path, kind, resolver, parameters, chain, nesting) -> (files, bytes) they read
         self.walked: dict[tuple[object, ...], tuple[int, int]] = {}
 
-    # -- substitution, as parser.cpp's substitute_parameters
     def substitute(self, value: str) -> str | None:
-        """`value` with its $names replaced; None if one is left that Mitsuba would refuse."""
+        """`value` with its $names replaced as parser.cpp's substitute_parameters replaces them;
+        None if one is left that Mitsuba would refuse."""
         if "$" not in value:
             return value
         for key in sorted(self.params, key=len, reverse=True):
@@ -100,7 +97,6 @@ class _Walk:
             raise ValueError(f"{path}: the scene's XML (its includes counted each time) is over {MAX_XML_BYTES} "
                              "bytes; refused")
 
-    # -- one XML file
     def read(self, path: str, kind: str, chain: tuple[str, ...], resolver: list[str], named_by: str,
              nesting: int = 0) -> None:
         """Read and walk one XML file (`chain`: the real paths of the files including it;
@@ -270,8 +266,5 @@ def check_scene_files(path: str | os.PathLike[str], defines: Mapping[str, str] |
 
 def mitsuba_search_paths() -> list[str]:
     """The folders Mitsuba resolves a relative file name in (its file resolver's, in order)."""
-    from noisefeat.extras import require
-
     fr = require("mitsuba").file_resolver()
     return [str(fr[i]) for i in range(len(fr))]
-

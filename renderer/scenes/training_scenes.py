@@ -10,14 +10,15 @@ CB_GREEN = [0.105421, 0.37798, 0.076425]
 CB_LIGHT = [18.387, 13.9873, 6.75357]
 
 
-def _room(floor: dict | None = None, ceiling: dict | None = None, back: dict | None = None,
-          left: dict | None = None, right: dict | None = None) -> SceneDict:
-    """The five walls of the [-1, 1]^3 Cornell room (open towards the camera at +z)."""
+def _room(resolution: int, floor: dict | None = None, back: dict | None = None, left: dict | None = None,
+          right: dict | None = None) -> SceneDict:
+    """`base` and the five walls of the [-1, 1]^3 Cornell room (open towards the camera at +z)."""
     return {
+        **base(resolution),
         "floor": {"type": "rectangle", "to_world": T().translate([0, -1, 0]).rotate([1, 0, 0], -90),
                   "bsdf": floor or diffuse(CB_WHITE)},
         "ceiling": {"type": "rectangle", "to_world": T().translate([0, 1, 0]).rotate([1, 0, 0], 90),
-                    "bsdf": ceiling or diffuse(CB_WHITE)},
+                    "bsdf": diffuse(CB_WHITE)},
         "back": {"type": "rectangle", "to_world": T().translate([0, 0, -1]),
                  "bsdf": back or diffuse(CB_WHITE)},
         "left": {"type": "rectangle", "to_world": T().translate([-1, 0, 0]).rotate([0, 1, 0], 90),
@@ -37,27 +38,20 @@ def _ceiling_light(radiance: float | list[float], sx: float = 0.23, sz: float = 
     }
 
 
-def _boxes(bsdf_small: dict | None = None, bsdf_tall: dict | None = None) -> SceneDict:
+def _boxes() -> SceneDict:
     return {
         "small_box": {"type": "cube",
                       "to_world": T().translate([0.335, -0.7, 0.38]).rotate([0, 1, 0], -17).scale(0.3),
-                      "bsdf": bsdf_small or diffuse(CB_WHITE)},
+                      "bsdf": diffuse(CB_WHITE)},
         "tall_box": {"type": "cube",
                      "to_world": T().translate([-0.33, -0.4, -0.28]).rotate([0, 1, 0], 17.5).scale([0.3, 0.61, 0.3]),
-                     "bsdf": bsdf_tall or diffuse(CB_WHITE)},
+                     "bsdf": diffuse(CB_WHITE)},
     }
 
 
 def _cornell_like(resolution: int, light: dict) -> SceneDict:
     """The Cornell room and its two boxes under `light`."""
-    d = base(resolution)
-    d.update(_room())
-    d["light"] = light
-    d.update(_boxes())
-    return d
-
-
-# ----------------------------------------------------------------------------- scenes
+    return {**_room(resolution), "light": light, **_boxes()}
 
 
 def cornell(resolution: int) -> SceneDict:
@@ -81,8 +75,7 @@ def small_light(resolution: int) -> SceneDict:
 
 
 def glossy(resolution: int) -> SceneDict:
-    d = base(resolution)
-    d.update(_room(back={"type": "roughplastic", "diffuse_reflectance": rgb(CB_WHITE), "alpha": 0.08}))
+    d = _room(resolution, back={"type": "roughplastic", "diffuse_reflectance": rgb(CB_WHITE), "alpha": 0.08})
     d["light"] = _ceiling_light(CB_LIGHT)
     d["gold_sphere"] = sphere([0.4, -0.6, 0.25], 0.4, {"type": "roughconductor", "material": "Au", "alpha": 0.15})
     d["plastic_box"] = {"type": "cube",
@@ -93,8 +86,7 @@ def glossy(resolution: int) -> SceneDict:
 
 def mirrors(resolution: int) -> SceneDict:
     mirror = {"type": "conductor"}  # material 'none': a perfect mirror
-    d = base(resolution)
-    d.update(_room())
+    d = _room(resolution)
     d["light"] = _ceiling_light([c * 0.4 for c in CB_LIGHT], sx=0.4, sz=0.3)
     # facing mirrors on the side walls: the spheres repeat down a view-dependent hall of reflections
     d["mirror_left"] = {"type": "rectangle", "bsdf": mirror,
@@ -107,16 +99,14 @@ def mirrors(resolution: int) -> SceneDict:
 
 
 def glass_caustic(resolution: int) -> SceneDict:
-    d = base(resolution)
-    d.update(_room())
+    d = _room(resolution)
     d["light"] = sphere_light([0.0, 0.8, 0.0], 0.06, [220.0, 180.0, 120.0])
     d["glass_sphere"] = sphere([0.0, -0.55, 0.1], 0.45, {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0})
     return d
 
 
 def indirect(resolution: int) -> SceneDict:
-    d = base(resolution)
-    d.update(_room())
+    d = _room(resolution)
     # cove lighting: a light facing up on a shelf the camera sees from below; the ceiling's bounce lights the room
     d["shelf"] = {"type": "rectangle",
                   "to_world": T().translate([0, 0.6, -0.2]).rotate([1, 0, 0], 90).scale([0.75, 0.55, 1]),
@@ -132,9 +122,8 @@ def checker(resolution: int) -> SceneDict:
     def tex(c0: float | list[float], c1: float | list[float], scale: float) -> dict:
         return {"type": "diffuse", "reflectance": checker_texture(c0, c1, scale)}
 
-    d = base(resolution)
-    d.update(_room(floor=tex(0.1, 0.8, 12), back=tex([0.7, 0.7, 0.2], [0.2, 0.2, 0.6], 20),
-                   left=tex(CB_RED, 0.8, 8), right=tex(CB_GREEN, 0.8, 8)))
+    d = _room(resolution, floor=tex(0.1, 0.8, 12), back=tex([0.7, 0.7, 0.2], [0.2, 0.2, 0.6], 20),
+              left=tex(CB_RED, 0.8, 8), right=tex(CB_GREEN, 0.8, 8))
     d["light"] = _ceiling_light(CB_LIGHT, sx=0.35, sz=0.3)
     d["sphere"] = sphere([0.35, -0.6, 0.2], 0.4, tex(0.05, 0.9, 24))
     d["box"] = {"type": "cube",
@@ -187,13 +176,10 @@ def env_spheres(resolution: int) -> SceneDict:
 
 
 def allblack(resolution: int) -> SceneDict:
-    d = base(resolution)
-    d.update(_room())  # geometry but no emitter at all: every path carries zero radiance
-    d.update(_boxes())
-    return d
+    # geometry but no emitter at all: every path carries zero radiance
+    return {**_room(resolution), **_boxes()}
 
 
 def sky(resolution: int) -> SceneDict:
-    d = base(resolution)
-    d["sky"] = {"type": "constant", "radiance": rgb(0.5)}  # nothing else: a flat, noise-free image
-    return d
+    # nothing else: a flat, noise-free image
+    return {**base(resolution), "sky": {"type": "constant", "radiance": rgb(0.5)}}

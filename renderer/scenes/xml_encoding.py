@@ -1,11 +1,9 @@
 """The text encoding Mitsuba's XML parser (pugixml) reads a scene file in.
 
 Expat decodes a file in the encoding it declares; pugixml ignores most declarations and reads
-UTF-8. A scene declaring ``windows-1252`` named the bytes ``m\\xc3\\xa9.ply``: the walker
-checked ``mÃ©.ply`` (a regular file) while Mitsuba opened ``mé.ply`` (a FIFO), and hung. So the
-walker parses in `pugixml_encoding` (pugixml's ``guess_buffer_encoding``: a UTF-16/32 mark or
-NUL pattern, else a declared ISO-8859-1 / latin1, else UTF-8) and refuses UTF-16/32 files and
-a non-ASCII file declaring another encoding than that (`declaration_error`).
+UTF-8, so a file's names could be checked as other names than Mitsuba opens. The walker parses
+in `pugixml_encoding` (pugixml's ``guess_buffer_encoding``) and refuses UTF-16/32 files and a
+non-ASCII file declaring another encoding than that (`declaration_error`).
 """
 from __future__ import annotations
 

@@ -9,11 +9,11 @@ from typing import Any
 
 import numpy as np
 
-from .scene_kit import SceneDict
 from noisefeat.extras import require
 
-#: `load_scene`'s logger: its warnings keep the name they are known by
-logger = logging.getLogger("renderer.scenes.catalog")
+from .scene_kit import SceneDict
+
+logger = logging.getLogger(__name__)
 
 Resolution = int | tuple[int, int]
 

@@ -136,6 +136,7 @@ class DecisionLog:
     def attach(self, crit: Any, budget_cls: Any) -> Any:
         """Record `crit`'s decisions and the rounds of `budget_cls`; returns an undo."""
         from learning.stoprule import FLAT_TOLERANCE
+        from renderer.live.budget import BAND
         from noisefeat.display import display_range
 
         decide, select = crit.decide, budget_cls.select
@@ -151,7 +152,7 @@ class DecisionLog:
             ids = np.flatnonzero(loop.pending())
             priority = budget.priority(loop, ids)          # what the round was chosen by
             if picked and np.isfinite(priority).all():
-                self.values.append(priority / (budget.band * priority.max()))
+                self.values.append(priority / (BAND * priority.max()))
             return picked
 
         crit.decide = logged_decide

@@ -2,18 +2,18 @@
 
 The loop's words (defined here; docs/codemap.md repeats them):
 
-* a *unit* is what the loop samples, judges and stops: a tile of a block, or the block itself
-  at block grain (unit u is tile u % T of block u // T: `renderer.live.block_windows`);
-* a *pass* adds `pass_spp[j]` samples per pixel to some units; j, its *pass index*, keys its
-  random numbers; `schedule` holds the spp at the end of each pass; a unit's *pass count* is
-  how many passes it holds; each pass is one row of the verdict history;
+* a *unit* is what the loop samples, judges and stops: a tile of a block, or the block itself at block
+  grain (unit u is tile u % T of block u // T: `renderer.live.block_windows`);
+* a *pass* adds `pass_spp[j]` samples per pixel to some units; j, its *pass index*, keys its random
+  numbers; `schedule` holds the spp at the end of each pass; a unit's *pass count* is how many passes it
+  holds; each pass is one row of the verdict history;
 * the *step* is the spp of a pass; a unit is *pending* while active with a pass left;
-* a *round* adds one or more passes to some units, then judges those due (`run_round`);
+* a *round* adds one or more passes to some units, then judges those due in one batched
+  `Criterion.decide` through the stop rule's gate (`learning.stoprule.decide_active`): those called
+  converged leave the active set for good (`run_round`);
 * a *launch* traces the passes of one or more rounds at once (`RenderSession.advance`).
 
-A round's units due are judged in one batched `Criterion.decide` through the stop rule's gate
-(`learning.stoprule.decide_active`); those called converged leave the active set for good. A
-criterion is configuration only: the loop owns what a render accumulates.
+A criterion is configuration only: the loop owns what a render accumulates.
 """
 from __future__ import annotations
 
@@ -37,10 +37,9 @@ def schedule(step: int, max_spp: int) -> np.ndarray:
 
 
 def next_decision(spp: np.ndarray, ratio: np.ndarray, skip: float, growth: float = 0.0) -> np.ndarray:
-    """int64 [k]: the spp at which units judged at `spp`, `ratio` times their target, are judged
-    next. Noise falls as 1/sqrt(spp), so a unit r times above its target reaches it near spp
-    r^2: judge it again at (skip r)^2 times its spp, and not before (1 + growth) times it (a
-    decision costs the same whether or not the unit can stop). No estimate: the next pass."""
+    """int64 [k]: the spp at which units judged at `spp`, `ratio` times their target, are judged next.
+    Noise falls as 1/sqrt(spp): judge again at (skip r)^2 times its spp, not before (1 + growth) times it
+    (a decision costs the same whether or not the unit can stop). No estimate: the next pass."""
     r = np.asarray(ratio, np.float64)
     finite = np.isfinite(r)
     with np.errstate(over="ignore"):              # a huge ratio: the clip's top
@@ -79,13 +78,10 @@ class UnitRatios:
 
 
 class PassLoop:
-    """Active set, accumulator, verdict history and ratios of one render's units.
-
-    `grid`: the units as (rows, columns), row-major. `tiling` (the renderer's `BlockWindows`)
-    puts tiles back into their blocks for a criterion that judges a tile in its block's
-    context. `decide_skip`, `decide_growth`: see `next_decision`. `quick`: the quick image's
-    blocks [n, bh, bw, 3] when the criterion reads them. `ledger`: None, one of its own.
-    """
+    """Active set, accumulator, verdict history and ratios of one render's units. `grid`: the units as
+    (rows, columns), row-major. `tiling` (the renderer's `BlockWindows`) puts tiles back into their blocks
+    for a criterion that judges a tile in its block's context. `decide_skip`, `decide_growth`: see
+    `next_decision`. `quick`: the quick image's blocks [n, bh, bw, 3] when the criterion reads them."""
 
     def __init__(self, criterion: Criterion, grid: tuple[int, int], unit_shape: tuple[int, int],
                  schedule: Sequence[int], min_spp: int | None, quick: np.ndarray | None = None,

@@ -58,10 +58,9 @@ QUICK_KINDS = tuple(_QUICK_INTEGRATORS)
 
 
 class BlockRenderer(BlockWindows):
-    """Render any subset of the units of a scene's sensor (by default its first), the film's
-    crop window as the frame, cut as `cut` says (`BlockWindows`' grid, block and tile).
-    `engine`: 'wavefront' or 'crop' (default: by variant). `integrator`: by default the
-    scene's (the ``noisestop`` plugin's nested one)."""
+    """Render any subset of the units of a scene's sensor (by default its first), the film's crop window as the
+    frame, cut as `cut` says (`BlockWindows`' grid, block and tile). `engine`: 'wavefront' or 'crop' (default:
+    by variant). `integrator`: by default the scene's (the ``noisestop`` plugin's nested one)."""
 
     def __init__(self, scene: Any, *, engine: str | None = None, sensor: Any = None, integrator: Any = None,
                  **cut: Any) -> None:

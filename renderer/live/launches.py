@@ -11,10 +11,9 @@ import numpy as np
 
 def grown_passes(n_units: int, n_pending: int, passes_left: int, grow: bool = True, undecided: int = 1,
                  lane_cap: int = 1) -> int:
-    """How many passes of the pending units one launch traces (1 without `grow`, at most the
-    passes left): floor(n_units / n_pending), so a launch holds about as many samples as the
-    first, made even (the half buffers alternate); or, while few units can stop, `undecided`
-    passes (`ahead_passes`), at most `lane_cap`."""
+    """How many passes of the pending units one launch traces (1 without `grow`, at most the passes left):
+    floor(n_units / n_pending), so a launch holds about as many samples as the first, made even (the half
+    buffers alternate); or, while few units can stop, `undecided` passes (`ahead_passes`), at most `lane_cap`."""
     if not grow or n_pending <= 0:
         return 1
     k = n_units // n_pending

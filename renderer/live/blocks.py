@@ -121,8 +121,6 @@ class BlockRenderer(BlockWindows):
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # -- rendering --------------------------------------------------------------
-
     def _set_crop(self, x: int, y: int, w: int, h: int) -> None:
         """Point the film's crop window at frame-relative (x, y, w, h), if it moved."""
         crop = (x, y, w, h)

@@ -48,9 +48,8 @@ class Ledger:
         """Go on from a checkpoint's counters and timers: the process's costs (`RENDER_COUNTERS`,
         `RENDER_TIMERS`) add up over attempts; the decisions' are the render's so far, so the checkpoint's
         replace this attempt's (its quick image, counted already). Names this ledger does not keep are ignored."""
-        for k, v in counters.items():
-            if k in self.counters:
-                self.counters[k] = (self.counters[k] if k in RENDER_COUNTERS else 0) + int(v)
-        for k, v in timers.items():
-            if k in self.timers:
-                self.timers[k] = (self.timers[k] if k in RENDER_TIMERS else 0.0) + float(v)
+        for kept, given, summed, kind in ((self.counters, counters, RENDER_COUNTERS, int),
+                                          (self.timers, timers, RENDER_TIMERS, float)):
+            for k, v in given.items():
+                if k in kept:
+                    kept[k] = (kept[k] if k in summed else kind(0)) + kind(v)

@@ -44,8 +44,7 @@ def next_decision(spp: np.ndarray, ratio: np.ndarray, skip: float, growth: float
     finite = np.isfinite(r)
     with np.errstate(over="ignore"):              # a huge ratio: the clip's top
         predicted = np.clip((skip * np.where(finite, r, 0.0)) ** 2, 1.0 + growth, float(1 << 20))
-    grow = np.where(finite, predicted, 1.0)
-    return np.floor(np.asarray(spp, np.float64) * grow).astype(np.int64)
+    return np.floor(np.asarray(spp, np.float64) * np.where(finite, predicted, 1.0)).astype(np.int64)
 
 
 class UnitRatios:

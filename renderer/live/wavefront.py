@@ -162,14 +162,11 @@ class WavefrontTracer:
 
         def splat_result() -> list[torch.Tensor]:
             self._sync()
-            outs = []
-            for mask, t in zip(masks, tensors):
-                sums = t.torch().reshape(-1, 4)
-                w = sums[:, 3:]
-                # float32 division of float32 sums: the correctly rounded quotient, as float64's rounded
-                value = torch.where(w > 0, sums[:, :3] / torch.where(w > 0, w, 1.0), 0.0)
-                outs.append(torch.where(mask.reshape(-1, 1), value, 0.0).view(frame))
-            return outs
+            sums = torch.stack([t.torch().reshape(-1, 4) for t in tensors])
+            w = sums[..., 3:]
+            # float32 division of float32 sums: the correctly rounded quotient, as float64's rounded
+            value = torch.where(w > 0, sums[..., :3] / torch.where(w > 0, w, 1.0), 0.0)
+            return list(torch.where(torch.stack(masks).reshape(len(masks), -1, 1), value, 0.0).view(len(masks), *frame))
         return Traced(splat_result)
 
     # -- one launch ---------------------------------------------------------------

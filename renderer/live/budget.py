@@ -88,10 +88,8 @@ class Budget:
 
     def left(self, spp: np.ndarray, elapsed: float) -> float:
         """Unit-spp the budget still allows (inf: no bound known yet), `spp` every unit's now."""
-        left = math.inf
+        left = math.inf if self.spp_budget is None else self.spp_budget * len(spp) - float(spp.sum())
         seconds, traced = self.ledger.budget_cost
-        if self.spp_budget is not None:
-            left = self.spp_budget * len(spp) - float(spp.sum())
         if self.time_limit is not None and traced > 0:
             rate = seconds / traced
             left = min(left, max(0.0, self.time_limit - elapsed) / rate if rate > 0 else math.inf)

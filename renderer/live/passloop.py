@@ -4,13 +4,12 @@ The loop's words (defined here; docs/codemap.md repeats them):
 
 * a *unit* is what the loop samples, judges and stops: a tile of a block, or the block itself at block
   grain (unit u is tile u % T of block u // T: `renderer.live.block_windows`);
-* a *pass* adds `pass_spp[j]` samples per pixel to some units; j, its *pass index*, keys its random
-  numbers; `schedule` holds the spp at the end of each pass; a unit's *pass count* is how many passes it
-  holds; each pass is one row of the verdict history;
-* the *step* is the spp of a pass; a unit is *pending* while active with a pass left;
-* a *round* adds one or more passes to some units, then judges those due in one batched
-  `Criterion.decide` through the stop rule's gate (`learning.stoprule.decide_active`): those called
-  converged leave the active set for good (`run_round`);
+* a *pass* adds `pass_spp[j]` (the *step*) samples per pixel to some units; j, its *pass index*, keys its
+  random numbers; `schedule` holds the spp at each pass's end; a unit's *pass count* is how many passes it
+  holds (a row of the verdict history each); it is *pending* while active with a pass left;
+* a *round* adds one or more passes to some units, then judges those due in one batched `Criterion.decide`
+  through the stop rule's gate (`learning.stoprule.decide_active`): those called converged leave the active
+  set for good (`run_round`);
 * a *launch* traces the passes of one or more rounds at once (`RenderSession.advance`).
 
 A criterion is configuration only: the loop owns what a render accumulates.
@@ -65,10 +64,9 @@ class UnitRatios:
     def predicted(self, ids: Any, spp: Any) -> np.ndarray:
         """float64 [k]: the ratios of units `ids` brought to `spp` [k] by 1/sqrt(spp) (NaN where
         unknown), so a unit whose decisions skip passes is ranked by its noise now."""
-        _, ratio = self.take(ids)
         idx = np.asarray(ids, np.int64).reshape(-1)
         now = np.maximum(np.asarray(spp, np.float64).reshape(-1), 1.0)
-        return ratio * np.sqrt(np.maximum(self.spp[idx], 1) / now)
+        return self.take(idx)[1] * np.sqrt(np.maximum(self.spp[idx], 1) / now)
 
     def take(self, ids: Any) -> tuple[np.ndarray, np.ndarray]:
         """(asked bool [k], ratio float64 [k], NaN where unknown) of units `ids`."""

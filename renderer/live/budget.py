@@ -1,12 +1,9 @@
 """A budget render (``--spp-budget N``, ``--time-limit S``): spend the samples where the noise is.
 
-A round renders the whole blocks whose `priority`, their worst pending unit's ratio to its target over
-sqrt(spp), is at least `BAND` times the largest: samples in proportion to each unit's noise per sample,
-lowering both the worst and the mean error against uniform sampling (Cauchy-Schwarz; levelling the
-ratio itself helps the worst unit most but measured worse on the mean). While the budget covers every
-pending unit to max spp, a round renders all of them. A unit's j-th pass is always pass index j's
-samples, judged when the unbudgeted render would judge it, so a block goes through that render's states
-in another order and a resumed time-limited render ends in its image.
+docs/guide/rendering.md, "Budgets and time limits", says what it renders. A round takes the whole blocks whose
+`priority` is at least `BAND` times the largest: samples in proportion to each unit's noise per sample, which
+lowers both the worst and the mean error against uniform sampling (Cauchy-Schwarz; levelling the ratio itself
+helps the worst unit most but measured worse on the mean).
 """
 from __future__ import annotations
 

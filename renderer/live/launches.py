@@ -1,7 +1,6 @@
-"""How many passes one launch traces.
+"""How many passes one launch traces (docs/how-it-works.md, "Launches").
 
-A launch costs about 10 ms whatever its size, 3-4 % of a 16-spp pass at 256x256
-(BENCHMARKS.md, "Speed"), so a launch may hold several passes; each keeps its own pass index
+A launch costs about 10 ms whatever its size, so it may hold several passes; each keeps its own pass index
 and is judged in turn, so stops, history and image are those of one pass per launch.
 """
 from __future__ import annotations

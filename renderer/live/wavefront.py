@@ -1,10 +1,8 @@
 """One kernel launch per pass for any set of pixels (docs/how-it-works.md, "The loop").
 
-`WavefrontTracer` does ``SamplingIntegrator.render``'s work for the requested pixels only (a crop
-window per unit would compile a kernel per unit), every value that changes between passes opaque,
-with random numbers keyed per (pixel, sample, pass): any set of units is a full-frame trace cut
-down, bit for bit with a box filter, to float32 rounding with a wider one (splatted from the pixels
-grown by the guard band). Edge pixels get no samples from outside the frame (no ``sample_border``).
+`WavefrontTracer` does ``SamplingIntegrator.render``'s work for the requested pixels only, every value that
+changes between passes opaque (one kernel per render); edge pixels get no samples from outside the frame
+(no ``sample_border``).
 """
 from __future__ import annotations
 

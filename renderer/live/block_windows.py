@@ -40,10 +40,10 @@ class BlockWindows:
         ys = torch.tensor(self._ys)[:, None, None, None] + torch.arange(self.block_h)[None, None, :, None]
         xs = torch.tensor(self._xs)[None, :, None, None] + torch.arange(self.block_w)[None, None, None, :]
         self._win_idx = (ys * self.width + xs).reshape(self.n_blocks, -1)
-        windows = tile_windows(self.block_h, self.block_w, max(self.block_h, self.block_w) if tile is None else tile)
-        self.tile_w, self.tile_h = windows[0][2:]
-        self._tile_offsets = [(dx, dy) for dx, dy, _, _ in windows]
-        ox, oy = torch.tensor(self._tile_offsets).T[:, :, None, None]
+        self._tiles = tile_windows(self.block_h, self.block_w,
+                                   max(self.block_h, self.block_w) if tile is None else tile)
+        self.tile_w, self.tile_h = self._tiles[0][2:]
+        ox, oy = torch.tensor(self._tiles).T[:2, :, None, None]
         # each tile's pixels in its block [T, th * tw]
         inner = ((oy + torch.arange(self.tile_h)[:, None]) * self.block_w + ox + torch.arange(self.tile_w)).flatten(1)
         #: flat frame pixel indices of every unit (tile) window [n_units, th * tw]
@@ -64,7 +64,7 @@ class BlockWindows:
 
     @property
     def tiles_per_block(self) -> int:
-        return len(self._tile_offsets)
+        return len(self._tiles)
 
     @property
     def n_units(self) -> int:
@@ -79,12 +79,12 @@ class BlockWindows:
     def unit_window(self, unit: int) -> tuple[int, int, int, int]:
         """(x, y, width, height) of unit (tile) `unit` within the frame."""
         x, y = self.block_origin(int(unit) // self.tiles_per_block)
-        dx, dy = self._tile_offsets[int(unit) % self.tiles_per_block]
+        dx, dy = self._tiles[int(unit) % self.tiles_per_block][:2]
         return x + dx, y + dy, self.tile_w, self.tile_h
 
     def tile_windows(self) -> list[tuple[int, int, int, int]]:
         """(x, y, width, height) of every tile inside its block."""
-        return [(dx, dy, self.tile_w, self.tile_h) for dx, dy in self._tile_offsets]
+        return list(self._tiles)
 
     def assemble(self, tiles: torch.Tensor) -> torch.Tensor:
         """Block windows [k, bh, bw, C] from their tiles [k, T, th, tw, C] (where tiles

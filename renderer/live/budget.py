@@ -100,8 +100,7 @@ class Budget:
         ids = np.flatnonzero(loop.pending())
         if not ids.size:
             return []
-        left = self.left(spp, elapsed)
-        if left >= float((int(loop.schedule[-1]) - spp[ids]).sum()):
+        if self.left(spp, elapsed) >= float((int(loop.schedule[-1]) - spp[ids]).sum()):
             return ids.tolist()                            # enough for everything: as unbudgeted
         block, need = needs(loop, ids)
         prio = np.full(len(need), -np.inf)

@@ -84,16 +84,14 @@ class BlockRenderer(BlockWindows):
         #: whether the film's filter has no negative lobe (then every pixel's radiance is >= 0)
         self.nonnegative = filter_nonnegative(film.rfilter())
         jit = variant.split("_")[0] in ("llvm", "cuda")
-        if engine is None:
-            engine = "wavefront" if jit else "crop"
-        if engine not in ("wavefront", "crop"):
+        self.engine = ("wavefront" if jit else "crop") if engine is None else engine
+        if self.engine not in ("wavefront", "crop"):
             raise ValueError(f"engine must be 'wavefront' or 'crop', got {engine!r}")
-        self.engine = engine
         # where passes live: the variant's device for the wavefront engine (the crop engine's are host images)
-        self.device = torch.device("cuda" if engine == "wavefront" and variant.startswith("cuda") else "cpu")
+        self.device = torch.device("cuda" if self.engine == "wavefront" and variant.startswith("cuda") else "cpu")
         self._ledger = Ledger()
         self._tracer = WavefrontTracer(scene, self.sensor, self._integrator, self.device, self._ledger) \
-            if engine == "wavefront" else None
+            if self.engine == "wavefront" else None
         self._unit_idx = self._unit_idx.to(self.device)       # the units' pixels, where passes live
         self._counts_kernels = jit                            # Dr.Jit's kernel history counts compilations
         self._history_flag_before: bool | None = None

@@ -264,9 +264,8 @@ class BlockRenderer(BlockWindows):
         return self._render(spp, derive_seed(seed, FRAME_SEED_KEY, pass_index), where="full frame")
 
     def quick_image(self, spp: int = 16, seed: int = 0, kind: str = "albedo") -> np.ndarray:
-        """The design's noise-free-ish 'quick' image, full frame: kind 'albedo' (the default, no
-        light transport) or 'direct' (direct lighting: shading and shadows, some noise under
-        area lights; the quick-image ablation)."""
+        """The design's noise-free-ish 'quick' image, full frame: kind 'albedo' (the default, no light transport) or
+        'direct' (direct lighting: shading and shadows, some noise under area lights; the quick-image ablation)."""
         if kind not in QUICK_KINDS:
             raise ValueError(f"quick image kind must be one of {QUICK_KINDS}, got {kind!r}")
         self._set_crop(0, 0, self.width, self.height)

@@ -93,9 +93,8 @@ class Budget:
         return left
 
     def select(self, loop: PassLoop, elapsed: float = 0.0) -> list[int]:
-        """The units of the next round, in unit order ([]: the budget or the units ran out):
-        all pending ones while the budget covers them, else whole blocks within the band,
-        worst first as far as an spp budget pays."""
+        """The units of the next round, in unit order ([]: the budget or the units ran out): all pending ones while
+        the budget covers them, else whole blocks within the band, worst first as far as an spp budget pays."""
         spp = loop.acc.spp_all()
         ids = np.flatnonzero(loop.pending())
         if not ids.size:

@@ -168,16 +168,13 @@ class PassLoop:
 
     @property
     def events(self) -> dict[int, list[tuple[int, int]]]:
-        """Each decided unit's own [(spp, verdict)], in order (a budget row holds units at
-        different spp, so each is the unit's own)."""
+        """Each decided unit's own [(spp, verdict)], in order (a budget row holds units at different spp)."""
         units, rows = np.nonzero(self.history.T)        # unit-major, rows in order within a unit
         out: dict[int, list[tuple[int, int]]] = {}
         for u, s, v in zip(units.tolist(), self.history_unit_spp[rows, units].tolist(),
                            self.history[rows, units].tolist()):
             out.setdefault(u, []).append((s, v))
         return out
-
-    # -- checkpointing ---------------------------------------------------------------
 
     @property
     def rows(self) -> int:

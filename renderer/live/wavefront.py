@@ -200,8 +200,7 @@ class WavefrontTracer:
         return pos, mi.Color3f(weight * radiance)
 
     def _sync(self) -> None:
-        """Dr.Jit and torch queue GPU work on their own streams: wait for both before handing
-        arrays across (nothing on the CPU)."""
+        """Dr.Jit and torch queue GPU work on their own streams: wait for both before handing arrays across."""
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
             self._dr.sync_thread()

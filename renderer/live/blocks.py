@@ -232,8 +232,7 @@ class BlockRenderer(BlockWindows):
         def gather() -> torch.Tensor:
             for traced, jobs_p in launched:
                 for frame, (_, rows, idx) in zip(traced.result(), jobs_p):
-                    out[torch.from_numpy(rows).to(self.device)] = frame.view(-1, 3)[idx].view(
-                        len(rows), self.tile_h, self.tile_w, 3)
+                    out[torch.from_numpy(rows).to(self.device)] = frame.view(-1, 3)[idx].view(-1, *out.shape[1:])
             self.count_kernels()      # its kernels are done: read their records now, so they do not pile up
             return out
         return Traced(gather)

@@ -1,8 +1,10 @@
 """One kernel launch per pass for any set of pixels (docs/how-it-works.md, "The loop").
 
-`WavefrontTracer` does ``SamplingIntegrator.render``'s work for the requested pixels only, every value that
-changes between passes opaque (one kernel per render); edge pixels get no samples from outside the frame
-(no ``sample_border``).
+`WavefrontTracer` does ``SamplingIntegrator.render``'s work for the requested pixels only (a crop window per
+unit would compile a kernel per unit), every value that changes between passes opaque: one kernel per render.
+Random numbers are keyed per (pixel, sample, pass) (`KeyedSampler`), so any set of units is a full-frame trace
+cut down: bit for bit with a box filter, to float32 rounding with a wider one. Edge pixels get no samples from
+outside the frame (no ``sample_border``).
 """
 from __future__ import annotations
 
@@ -210,8 +212,8 @@ class WavefrontTracer:
         self.ledger.count("kernel_lanes", int(pixels.numel()) * spp)
 
     def _submit_box(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor) -> Callable[[], torch.Tensor]:
-        """Box filter: queue one launch; its finish gives each pixel's mean of its own samples, float32
-        [n, 3]: `dr.block_sum` of its consecutive lanes, in lane order, once they are evaluated (summed from the path
+        """Box filter: queue one launch; its finish gives each pixel's mean of its own samples, float32 [n, 3]:
+        `dr.block_sum` of its consecutive lanes, in lane order, once they are evaluated (summed from the path
         tracer's expression, each channel would trace the paths again)."""
         dr = self._dr
         self._sync()

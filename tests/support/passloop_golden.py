@@ -136,8 +136,8 @@ class DecisionLog:
     def attach(self, crit: Any, budget_cls: Any) -> Any:
         """Record `crit`'s decisions and the rounds of `budget_cls`; returns an undo."""
         from learning.stoprule import FLAT_TOLERANCE
-        from renderer.live.budget import BAND
         from noisefeat.display import display_range
+        from renderer.live.budget import BAND
 
         decide, select = crit.decide, budget_cls.select
 

@@ -1,11 +1,10 @@
 """Where a frame's blocks and tiles lie, in pixels: arithmetic only, the same for every engine.
 
-Blocks are a grid that divides the frame (``grid=(rows, cols)``: stacks, references) or
-windows every `block` pixels (the live render of any film), the last row and column flush
-with the frame's edge, so every window the criterion sees is a full block of one sample
-count, the size the model and the flip threshold were calibrated on. The final image takes
-each pixel from the covering window with the most samples (`compose`). Each block is cut
-into tiles of `tile` pixels by the same rule, the same in every block: the loop's units
+Blocks are a grid that divides the frame (``grid=(rows, cols)``: stacks, references) or windows every
+`block` pixels (the live render of any film), the last row and column flush with the frame's edge, so
+every window the criterion sees is a full block of one sample count, the size the model and the flip
+threshold were calibrated on (the final image takes each pixel from the covering window with the most
+samples: `compose`). Each block is cut into tiles of `tile` pixels by the same rule: the loop's units
 (unit u is tile u % T of block u // T; without a tile size a block is its one tile).
 """
 from __future__ import annotations
@@ -41,19 +40,17 @@ class BlockWindows:
         ys = torch.tensor(self._ys)[:, None, None, None] + torch.arange(self.block_h)[None, None, :, None]
         xs = torch.tensor(self._xs)[None, :, None, None] + torch.arange(self.block_w)[None, None, None, :]
         self._win_idx = (ys * self.width + xs).reshape(self.n_blocks, -1)
-        windows = tile_windows(self.block_h, self.block_w, max(self.block_h, self.block_w) if tile is None else tile)
-        self.tile_w, self.tile_h = windows[0][2:]
-        self._tile_offsets = [(dx, dy) for dx, dy, _, _ in windows]
-        oy = torch.tensor([dy for _, dy in self._tile_offsets])[:, None, None]
-        ox = torch.tensor([dx for dx, _ in self._tile_offsets])[:, None, None]
-        inner = (oy + torch.arange(self.tile_h)[None, :, None]) * self.block_w + ox + torch.arange(self.tile_w)[None, None, :]
+        self._tiles = tile_windows(self.block_h, self.block_w,
+                                   max(self.block_h, self.block_w) if tile is None else tile)
+        self.tile_w, self.tile_h = self._tiles[0][2:]
+        ox, oy = torch.tensor(self._tiles).T[:2, :, None, None]
+        # each tile's pixels in its block [T, th * tw]
+        inner = ((oy + torch.arange(self.tile_h)[:, None]) * self.block_w + ox + torch.arange(self.tile_w)).flatten(1)
         #: flat frame pixel indices of every unit (tile) window [n_units, th * tw]
-        self._unit_idx = self._win_idx[:, inner.reshape(-1)].reshape(self.n_units, -1) \
-            if self.tiles_per_block > 1 else self._win_idx
+        self._unit_idx = self._win_idx[:, inner.reshape(-1)].reshape(self.n_units, -1)
         #: where each pixel of a block window comes from: its last tile's (tile, row, column)
         self._block_from_tiles = torch.full((self.block_h * self.block_w,), -1, dtype=torch.int64)
-        self._block_from_tiles[inner.reshape(len(self._tile_offsets), -1)] = torch.arange(
-            len(self._tile_offsets) * self.tile_h * self.tile_w).reshape(len(self._tile_offsets), -1)
+        self._block_from_tiles[inner] = torch.arange(inner.numel()).reshape(inner.shape)
 
     def geometry(self) -> dict[str, tuple[int, int]]:
         """The cut in pixels, as a run records it: resolution (W, H), grid (rows, columns),
@@ -67,7 +64,7 @@ class BlockWindows:
 
     @property
     def tiles_per_block(self) -> int:
-        return len(self._tile_offsets)
+        return len(self._tiles)
 
     @property
     def n_units(self) -> int:
@@ -82,12 +79,12 @@ class BlockWindows:
     def unit_window(self, unit: int) -> tuple[int, int, int, int]:
         """(x, y, width, height) of unit (tile) `unit` within the frame."""
         x, y = self.block_origin(int(unit) // self.tiles_per_block)
-        dx, dy = self._tile_offsets[int(unit) % self.tiles_per_block]
+        dx, dy = self._tiles[int(unit) % self.tiles_per_block][:2]
         return x + dx, y + dy, self.tile_w, self.tile_h
 
     def tile_windows(self) -> list[tuple[int, int, int, int]]:
         """(x, y, width, height) of every tile inside its block."""
-        return [(dx, dy, self.tile_w, self.tile_h) for dx, dy in self._tile_offsets]
+        return list(self._tiles)
 
     def assemble(self, tiles: torch.Tensor) -> torch.Tensor:
         """Block windows [k, bh, bw, C] from their tiles [k, T, th, tw, C] (where tiles

@@ -1,11 +1,8 @@
-"""Block rendering: samples for any subset of a frame's units, the full-frame estimator.
+"""Block rendering: samples for any subset of a frame's units, each the full-frame estimator cut down.
 
-A unit rendered alone must be the very estimator of that unit cut out of a full-frame
-render. On vectorised variants (llvm, cuda) `renderer.live.wavefront.WavefrontTracer` traces
-the pixels of all requested units in one launch. The crop engine (scalar variants) renders
-each unit as one ``mi.render`` of the film's crop window grown by the filter's guard band and
-cut back: the same estimator in distribution, not the same random numbers (Mitsuba seeds
-lanes by position).
+The wavefront engine (llvm, cuda: `WavefrontTracer`) traces all requested units in one launch; the
+crop engine (scalar variants) renders each unit's crop window grown by the filter's guard band: the
+same estimator in distribution, not the same random numbers (Mitsuba seeds lanes by position).
 """
 from __future__ import annotations
 
@@ -28,8 +25,8 @@ from .wavefront import Traced, WavefrontTracer, filter_guard, filter_nonnegative
 
 logger = logging.getLogger(__name__)
 
-#: the unit id (none's) that keys the seeds of passes traced over the whole frame: full-frame
-#: renders, quick images and every wavefront pass (keyed per pixel, a cut of the frame's pass)
+#: the unit id keying the seeds of passes traced over the whole frame: full frames, quick images and every
+#: wavefront pass (a cut of the frame's)
 FRAME_SEED_KEY = -1
 
 
@@ -48,31 +45,27 @@ def _to_rgb(img: Any, where: str) -> np.ndarray:
     if arr.ndim != 3:
         raise ValueError(f"{where}: Mitsuba returned an image of shape {arr.shape}, expected [h, w, c]")
     c = arr.shape[2]
-    if c == 1:
-        return np.repeat(arr, 3, axis=2)
-    if c >= 3:
-        return np.ascontiguousarray(arr[..., :3])
-    raise ValueError(f"{where}: film has {c} channels; need 1 (luminance), 3 (rgb) or 4 (rgba)")
+    if c in (0, 2):
+        raise ValueError(f"{where}: film has {c} channels; need 1 (luminance), 3 (rgb) or 4 (rgba)")
+    return np.repeat(arr, 3, axis=2) if c == 1 else np.ascontiguousarray(arr[..., :3])
 
 
 #: (unit, pass index) jobs of `render_passes`
 Jobs = Sequence[tuple[int, int]] | np.ndarray
-#: quick images the renderer can make (learning.inputs.table.QUICK_MODES adds 'none')
-QUICK_KINDS = ("albedo", "direct")
+#: the integrators of the quick images the renderer can make (learning.inputs.table.QUICK_MODES adds 'none')
+_QUICK_INTEGRATORS = {"albedo": {"type": "aov", "aovs": "albedo:albedo"}, "direct": {"type": "direct"}}
+QUICK_KINDS = tuple(_QUICK_INTEGRATORS)
 
 
 class BlockRenderer(BlockWindows):
-    """Render any subset of the units of a scene's sensor (by default its first), the film's
-    crop window as the frame, cut as `cut` says (`BlockWindows`' grid, block and tile).
-    `engine`: 'wavefront' or 'crop' (default: by variant). `integrator`: by default the
-    scene's (the ``noisestop`` plugin's nested one)."""
+    """Render any subset of the units of a scene's sensor (by default its first), the film's crop window as the
+    frame, cut as `cut` says (`BlockWindows`' grid, block and tile). `engine`: 'wavefront' or 'crop' (default:
+    by variant). `integrator`: by default the scene's (the ``noisestop`` plugin's nested one)."""
 
     def __init__(self, scene: Any, *, engine: str | None = None, sensor: Any = None, integrator: Any = None,
                  **cut: Any) -> None:
         variant = select_variant()
-        mi = require("mitsuba")
-
-        self._mi = mi
+        mi = self._mi = require("mitsuba")
         self.scene = scene
         self.sensor = scene.sensors()[0] if sensor is None else sensor
         film = self.sensor.film()
@@ -91,16 +84,14 @@ class BlockRenderer(BlockWindows):
         #: whether the film's filter has no negative lobe (then every pixel's radiance is >= 0)
         self.nonnegative = filter_nonnegative(film.rfilter())
         jit = variant.split("_")[0] in ("llvm", "cuda")
-        if engine is None:
-            engine = "wavefront" if jit else "crop"
-        if engine not in ("wavefront", "crop"):
+        self.engine = ("wavefront" if jit else "crop") if engine is None else engine
+        if self.engine not in ("wavefront", "crop"):
             raise ValueError(f"engine must be 'wavefront' or 'crop', got {engine!r}")
-        self.engine = engine
         # where passes live: the variant's device for the wavefront engine (the crop engine's are host images)
-        self.device = torch.device("cuda" if engine == "wavefront" and variant.startswith("cuda") else "cpu")
+        self.device = torch.device("cuda" if self.engine == "wavefront" and variant.startswith("cuda") else "cpu")
         self._ledger = Ledger()
         self._tracer = WavefrontTracer(scene, self.sensor, self._integrator, self.device, self._ledger) \
-            if engine == "wavefront" else None
+            if self.engine == "wavefront" else None
         self._unit_idx = self._unit_idx.to(self.device)       # the units' pixels, where passes live
         self._counts_kernels = jit                            # Dr.Jit's kernel history counts compilations
         self._history_flag_before: bool | None = None
@@ -128,17 +119,14 @@ class BlockRenderer(BlockWindows):
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # -- rendering --------------------------------------------------------------
-
     def _set_crop(self, x: int, y: int, w: int, h: int) -> None:
         """Point the film's crop window at frame-relative (x, y, w, h), if it moved."""
         crop = (x, y, w, h)
         if crop == self._crop:
             return
-        mi = self._mi
         ox, oy = self._frame_offset
-        self._params["film.crop_offset"] = mi.ScalarPoint2u(ox + x, oy + y)
-        self._params["film.crop_size"] = mi.ScalarVector2u(w, h)
+        self._params["film.crop_offset"] = self._mi.ScalarPoint2u(ox + x, oy + y)
+        self._params["film.crop_size"] = self._mi.ScalarVector2u(w, h)
         self._params.update()
         self._crop = crop
 
@@ -154,10 +142,9 @@ class BlockRenderer(BlockWindows):
             self._tracer.ledger = ledger
 
     def count_kernels(self) -> None:
-        """Add the compilations in Dr.Jit's kernel history since the last count to the ledger,
-        emptying it. Read after every launch (once its images are in, as reading waits for
-        queued kernels): the history keeps every kernel run until read, and read only at
-        checkpoints it grew a render's memory to 1.8 GB after 2,500 passes."""
+        """Add the compilations in Dr.Jit's kernel history since the last count to the ledger, emptying it:
+        read after every launch's images are in (reading waits for queued kernels), as the history keeps
+        every kernel run until read (read at checkpoints only, 1.8 GB after 2,500 passes)."""
         if self._counts_kernels:
             dr = require("drjit")
             self._ledger.count("kernel_compiles", sum(1 for k in dr.kernel_history()
@@ -222,9 +209,7 @@ class BlockRenderer(BlockWindows):
         renders at once): `result()` gives its tensor."""
         units, pass_ids, sizes = self._check_jobs(jobs, spp)
         out = torch.empty((len(units), self.tile_h, self.tile_w, 3), dtype=torch.float32, device=self.device)
-        if not len(units):
-            return Traced(lambda: out)
-        if self._tracer is None:                  # scalar variants: one mi.render per unit
+        if self._tracer is None or not len(units):     # scalar variants: one mi.render per unit
             try:
                 for i, (u, p, s) in enumerate(zip(units.tolist(), pass_ids.tolist(), sizes.tolist())):
                     out[i] = torch.from_numpy(self._render_crop(u, s, seed, p))
@@ -247,8 +232,7 @@ class BlockRenderer(BlockWindows):
         def gather() -> torch.Tensor:
             for traced, jobs_p in launched:
                 for frame, (_, rows, idx) in zip(traced.result(), jobs_p):
-                    out[torch.from_numpy(rows).to(self.device)] = frame.view(-1, 3)[idx].view(
-                        len(rows), self.tile_h, self.tile_w, 3)
+                    out[torch.from_numpy(rows).to(self.device)] = frame.view(-1, 3)[idx].view(-1, *out.shape[1:])
             self.count_kernels()      # its kernels are done: read their records now, so they do not pile up
             return out
         return Traced(gather)
@@ -279,16 +263,11 @@ class BlockRenderer(BlockWindows):
         return self._render(spp, derive_seed(seed, FRAME_SEED_KEY, pass_index), where="full frame")
 
     def quick_image(self, spp: int = 16, seed: int = 0, kind: str = "albedo") -> np.ndarray:
-        """The design's noise-free-ish 'quick' image, full frame: kind 'albedo' (the default, no
-        light transport) or 'direct' (direct lighting: shading and shadows, some noise under
-        area lights; the quick-image ablation)."""
-        self._set_crop(0, 0, self.width, self.height)
-        if kind == "albedo":
-            integrator = self._mi.load_dict({"type": "aov", "aovs": "albedo:albedo"})
-        elif kind == "direct":
-            integrator = self._mi.load_dict({"type": "direct"})
-        else:
+        """The design's noise-free-ish 'quick' image, full frame: kind 'albedo' (the default, no light transport) or
+        'direct' (direct lighting: shading and shadows, some noise under area lights; the quick-image ablation)."""
+        if kind not in QUICK_KINDS:
             raise ValueError(f"quick image kind must be one of {QUICK_KINDS}, got {kind!r}")
-        return self._render(spp, derive_seed(seed, FRAME_SEED_KEY, -1), integrator=integrator,
-                            where=f"{kind} quick image")
+        self._set_crop(0, 0, self.width, self.height)
+        return self._render(spp, derive_seed(seed, FRAME_SEED_KEY, -1),
+                            integrator=self._mi.load_dict(_QUICK_INTEGRATORS[kind]), where=f"{kind} quick image")
 

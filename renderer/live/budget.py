@@ -1,15 +1,9 @@
 """A budget render (``--spp-budget N``, ``--time-limit S``): spend the samples where the noise is.
 
-A round renders whole blocks (a tile is judged in its block's context): those whose
-`priority`, their worst pending unit's ratio to its target over sqrt(spp), is at least `band`
-times the largest. Levelling it gives each unit samples in proportion to its noise per sample
-a_u, which lowers both the worst and the mean error against uniform sampling
-(Cauchy-Schwarz); levelling the ratio itself (``per_sample=False``, samples ~ a_u^2) helps the
-worst unit most but measured worse on the mean. While the budget left covers every pending
-unit to max spp, a round renders all of them, as the unbudgeted loop does. A unit's j-th pass
-is always pass index j's samples, judged when the unbudgeted render would judge it (an spp
-budget that can bind: every pass, `judges_every_unit`), so a block goes through that render's
-states, only in another order, and a resumed time-limited render ends in its image.
+docs/guide/rendering.md, "Budgets and time limits", says what it renders. A round takes the whole blocks whose
+`priority` is at least `BAND` times the largest: samples in proportion to each unit's noise per sample, which
+lowers both the worst and the mean error against uniform sampling (Cauchy-Schwarz; levelling the ratio itself
+helps the worst unit most but measured worse on the mean).
 """
 from __future__ import annotations
 
@@ -40,23 +34,15 @@ def needs(loop: PassLoop, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass
 class Budget:
-    """What a budget render may still spend, and which units a round renders.
-
-    `spp_budget`: samples per pixel averaged over the units; `time_limit`: seconds (None:
-    none; both checked by the render spec). `ledger`: where the rounds' cost goes.
-    """
+    """What a budget render may still spend, and which units a round renders. `spp_budget`: samples per
+    pixel averaged over the units; `time_limit`: seconds (None: none; both checked by the render spec);
+    `ledger`: where the rounds' cost goes."""
 
     spp_budget: float | None = None
     time_limit: float | None = None
-    band: float = BAND
-    per_sample: bool = True
     ended: bool = False
     prioritised_rounds: int = 0
     ledger: Ledger = field(default_factory=Ledger)
-
-    def __post_init__(self) -> None:
-        if not 0.0 < self.band <= 1.0:
-            raise ValueError(f"band must be in (0, 1], got {self.band!r}")
 
     @classmethod
     def for_spec(cls, spec: RenderSpec, ledger: Ledger, resumed: bool = False) -> Budget | None:
@@ -99,31 +85,27 @@ class Budget:
 
     def left(self, spp: np.ndarray, elapsed: float) -> float:
         """Unit-spp the budget still allows (inf: no bound known yet), `spp` every unit's now."""
-        left = math.inf
+        left = math.inf if self.spp_budget is None else self.spp_budget * len(spp) - float(spp.sum())
         seconds, traced = self.ledger.budget_cost
-        if self.spp_budget is not None:
-            left = self.spp_budget * len(spp) - float(spp.sum())
         if self.time_limit is not None and traced > 0:
             rate = seconds / traced
             left = min(left, max(0.0, self.time_limit - elapsed) / rate if rate > 0 else math.inf)
         return left
 
     def select(self, loop: PassLoop, elapsed: float = 0.0) -> list[int]:
-        """The units of the next round, in unit order ([]: the budget or the units ran out):
-        all pending ones while the budget covers them, else whole blocks within the band,
-        worst first as far as an spp budget pays."""
+        """The units of the next round, in unit order ([]: the budget or the units ran out): all pending ones while
+        the budget covers them, else whole blocks within the band, worst first as far as an spp budget pays."""
         spp = loop.acc.spp_all()
         ids = np.flatnonzero(loop.pending())
         if not ids.size:
             return []
-        left = self.left(spp, elapsed)
-        if left >= float((int(loop.schedule[-1]) - spp[ids]).sum()):
+        if self.left(spp, elapsed) >= float((int(loop.schedule[-1]) - spp[ids]).sum()):
             return ids.tolist()                            # enough for everything: as unbudgeted
         block, need = needs(loop, ids)
         prio = np.full(len(need), -np.inf)
         np.maximum.at(prio, block, self.priority(loop, ids))   # a block: its worst unit
         top = prio.max()
-        chosen = prio >= self.band * top if np.isfinite(top) else ~np.isfinite(prio)
+        chosen = prio >= BAND * top if np.isfinite(top) else ~np.isfinite(prio)
         if self.spp_budget is not None:                    # what fits, worst first
             order = np.flatnonzero(chosen)[np.argsort(-prio[chosen], kind="stable")]
             room = self.spp_budget * loop.acc.n_units - float(spp.sum())
@@ -140,14 +122,10 @@ class Budget:
         return picked.tolist()
 
     def priority(self, loop: PassLoop, ids: np.ndarray) -> np.ndarray:
-        """Units `ids`' ratios brought to their spp now (inf: no estimate yet, so first), over
-        sqrt(spp) with `per_sample`."""
+        """Units `ids`' ratios brought to their spp now (inf: no estimate yet, so first), over sqrt(spp)."""
         spp = loop.acc.spp_all()[ids]
         ratio = loop.ratios.predicted(ids, spp)
-        ratio = np.where(np.isnan(ratio), np.inf, ratio)
-        if self.per_sample:
-            ratio = ratio / np.sqrt(np.maximum(spp, 1))
-        return ratio
+        return np.where(np.isnan(ratio), np.inf, ratio) / np.sqrt(np.maximum(spp, 1))
 
     def finished(self, loop: PassLoop) -> bool:
         """Whether no unit is pending, or the spp budget cannot pay another pass of any block."""
@@ -171,7 +149,7 @@ class Budget:
         above = [{"id": int(b), "ratio": None if math.isnan(r) else float(r), "spp": int(spp[b])}
                  for b, r in zip(ids.tolist(), ratio.tolist())]
         above.sort(key=lambda x: -(math.inf if x["ratio"] is None else x["ratio"]))
-        return {"spp_budget": self.spp_budget, "time_limit": self.time_limit, "band": self.band,
+        return {"spp_budget": self.spp_budget, "time_limit": self.time_limit, "band": BAND,
                 "judges_every_unit": self.judges_every_unit(int(loop.schedule[-1])), "ended": ended,
                 "prioritised_rounds": self.prioritised_rounds,
                 "above_target": above if ended else []}

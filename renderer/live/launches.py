@@ -1,7 +1,6 @@
-"""How many passes one launch traces.
+"""How many passes one launch traces (docs/how-it-works.md, "Launches").
 
-A launch costs about 10 ms whatever its size, 3-4 % of a 16-spp pass at 256x256
-(BENCHMARKS.md, "Speed"), so a launch may hold several passes; each keeps its own pass index
+A launch costs about 10 ms whatever its size, so it may hold several passes; each keeps its own pass index
 and is judged in turn, so stops, history and image are those of one pass per launch.
 """
 from __future__ import annotations
@@ -11,10 +10,9 @@ import numpy as np
 
 def grown_passes(n_units: int, n_pending: int, passes_left: int, grow: bool = True, undecided: int = 1,
                  lane_cap: int = 1) -> int:
-    """How many passes of the pending units one launch traces (1 without `grow`, at most the
-    passes left): floor(n_units / n_pending), so a launch holds about as many samples as the
-    first, made even (the half buffers alternate); or, while few units can stop, `undecided`
-    passes (`ahead_passes`), at most `lane_cap`."""
+    """How many passes of the pending units one launch traces (1 without `grow`, at most the passes left):
+    floor(n_units / n_pending), so a launch holds about as many samples as the first, made even (the half
+    buffers alternate); or, while few units can stop, `undecided` passes (`ahead_passes`), at most `lane_cap`."""
     if not grow or n_pending <= 0:
         return 1
     k = n_units // n_pending

@@ -19,9 +19,8 @@ RENDER_TIMERS = ("render_s", "setup_s", "wall_s")
 
 
 class Ledger:
-    """Counters (whole numbers) and timers (seconds) by name, in the order first named (the
-    checkpoint's and the report's). `budget_cost`: a budget render's rounds, [seconds,
-    unit-spp traced]."""
+    """Counters (whole numbers) and timers (seconds) by name, in the order first named (the checkpoint's and the
+    report's). `budget_cost`: a budget render's rounds, [seconds, unit-spp traced]."""
 
     def __init__(self, counters: Iterable[str] = (), timers: Iterable[str] = ()) -> None:
         self.counters: dict[str, int] = dict.fromkeys(counters, 0)
@@ -47,12 +46,10 @@ class Ledger:
 
     def restore(self, counters: Mapping[str, Any], timers: Mapping[str, float]) -> None:
         """Go on from a checkpoint's counters and timers: the process's costs (`RENDER_COUNTERS`,
-        `RENDER_TIMERS`) add up over attempts; the decisions' are the render's so far, so the
-        checkpoint's replace this attempt's (its quick image, counted already). Names this
-        ledger does not keep are ignored."""
-        for k, v in counters.items():
-            if k in self.counters:
-                self.counters[k] = (self.counters[k] if k in RENDER_COUNTERS else 0) + int(v)
-        for k, v in timers.items():
-            if k in self.timers:
-                self.timers[k] = (self.timers[k] if k in RENDER_TIMERS else 0.0) + float(v)
+        `RENDER_TIMERS`) add up over attempts; the decisions' are the render's so far, so the checkpoint's
+        replace this attempt's (its quick image, counted already). Names this ledger does not keep are ignored."""
+        for kept, given, summed, kind in ((self.counters, counters, RENDER_COUNTERS, int),
+                                          (self.timers, timers, RENDER_TIMERS, float)):
+            for k, v in given.items():
+                if k in kept:
+                    kept[k] = (kept[k] if k in summed else kind(0)) + kind(v)

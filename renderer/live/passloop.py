@@ -2,18 +2,17 @@
 
 The loop's words (defined here; docs/codemap.md repeats them):
 
-* a *unit* is what the loop samples, judges and stops: a tile of a block, or the block itself
-  at block grain (unit u is tile u % T of block u // T: `renderer.live.block_windows`);
-* a *pass* adds `pass_spp[j]` samples per pixel to some units; j, its *pass index*, keys its
-  random numbers; `schedule` holds the spp at the end of each pass; a unit's *pass count* is
-  how many passes it holds; each pass is one row of the verdict history;
-* the *step* is the spp of a pass; a unit is *pending* while active with a pass left;
-* a *round* adds one or more passes to some units, then judges those due (`run_round`);
+* a *unit* is what the loop samples, judges and stops: a tile of a block, or the block itself at block
+  grain (unit u is tile u % T of block u // T: `renderer.live.block_windows`);
+* a *pass* adds `pass_spp[j]` (the *step*) samples per pixel to some units; j, its *pass index*, keys its
+  random numbers; `schedule` holds the spp at each pass's end; a unit's *pass count* is how many passes it
+  holds (a row of the verdict history each); it is *pending* while active with a pass left;
+* a *round* adds one or more passes to some units, then judges those due in one batched `Criterion.decide`
+  through the stop rule's gate (`learning.stoprule.decide_active`): those called converged leave the active
+  set for good (`run_round`);
 * a *launch* traces the passes of one or more rounds at once (`RenderSession.advance`).
 
-A round's units due are judged in one batched `Criterion.decide` through the stop rule's gate
-(`learning.stoprule.decide_active`); those called converged leave the active set for good. A
-criterion is configuration only: the loop owns what a render accumulates.
+A criterion is configuration only: the loop owns what a render accumulates.
 """
 from __future__ import annotations
 
@@ -37,16 +36,14 @@ def schedule(step: int, max_spp: int) -> np.ndarray:
 
 
 def next_decision(spp: np.ndarray, ratio: np.ndarray, skip: float, growth: float = 0.0) -> np.ndarray:
-    """int64 [k]: the spp at which units judged at `spp`, `ratio` times their target, are judged
-    next. Noise falls as 1/sqrt(spp), so a unit r times above its target reaches it near spp
-    r^2: judge it again at (skip r)^2 times its spp, and not before (1 + growth) times it (a
-    decision costs the same whether or not the unit can stop). No estimate: the next pass."""
+    """int64 [k]: the spp at which units judged at `spp`, `ratio` times their target, are judged next.
+    Noise falls as 1/sqrt(spp): judge again at (skip r)^2 times its spp, not before (1 + growth) times it
+    (a decision costs the same whether or not the unit can stop). No estimate: the next pass."""
     r = np.asarray(ratio, np.float64)
     finite = np.isfinite(r)
     with np.errstate(over="ignore"):              # a huge ratio: the clip's top
         predicted = np.clip((skip * np.where(finite, r, 0.0)) ** 2, 1.0 + growth, float(1 << 20))
-    grow = np.where(finite, predicted, 1.0)
-    return np.floor(np.asarray(spp, np.float64) * grow).astype(np.int64)
+    return np.floor(np.asarray(spp, np.float64) * np.where(finite, predicted, 1.0)).astype(np.int64)
 
 
 class UnitRatios:
@@ -67,10 +64,9 @@ class UnitRatios:
     def predicted(self, ids: Any, spp: Any) -> np.ndarray:
         """float64 [k]: the ratios of units `ids` brought to `spp` [k] by 1/sqrt(spp) (NaN where
         unknown), so a unit whose decisions skip passes is ranked by its noise now."""
-        _, ratio = self.take(ids)
         idx = np.asarray(ids, np.int64).reshape(-1)
         now = np.maximum(np.asarray(spp, np.float64).reshape(-1), 1.0)
-        return ratio * np.sqrt(np.maximum(self.spp[idx], 1) / now)
+        return self.take(idx)[1] * np.sqrt(np.maximum(self.spp[idx], 1) / now)
 
     def take(self, ids: Any) -> tuple[np.ndarray, np.ndarray]:
         """(asked bool [k], ratio float64 [k], NaN where unknown) of units `ids`."""
@@ -79,13 +75,10 @@ class UnitRatios:
 
 
 class PassLoop:
-    """Active set, accumulator, verdict history and ratios of one render's units.
-
-    `grid`: the units as (rows, columns), row-major. `tiling` (the renderer's `BlockWindows`)
-    puts tiles back into their blocks for a criterion that judges a tile in its block's
-    context. `decide_skip`, `decide_growth`: see `next_decision`. `quick`: the quick image's
-    blocks [n, bh, bw, 3] when the criterion reads them. `ledger`: None, one of its own.
-    """
+    """Active set, accumulator, verdict history and ratios of one render's units. `grid`: the units as
+    (rows, columns), row-major. `tiling` (the renderer's `BlockWindows`) puts tiles back into their blocks
+    for a criterion that judges a tile in its block's context. `decide_skip`, `decide_growth`: see
+    `next_decision`. `quick`: the quick image's blocks [n, bh, bw, 3] when the criterion reads them."""
 
     def __init__(self, criterion: Criterion, grid: tuple[int, int], unit_shape: tuple[int, int],
                  schedule: Sequence[int], min_spp: int | None, quick: np.ndarray | None = None,
@@ -175,16 +168,13 @@ class PassLoop:
 
     @property
     def events(self) -> dict[int, list[tuple[int, int]]]:
-        """Each decided unit's own [(spp, verdict)], in order (a budget row holds units at
-        different spp, so each is the unit's own)."""
+        """Each decided unit's own [(spp, verdict)], in order (a budget row holds units at different spp)."""
         units, rows = np.nonzero(self.history.T)        # unit-major, rows in order within a unit
         out: dict[int, list[tuple[int, int]]] = {}
         for u, s, v in zip(units.tolist(), self.history_unit_spp[rows, units].tolist(),
                            self.history[rows, units].tolist()):
             out.setdefault(u, []).append((s, v))
         return out
-
-    # -- checkpointing ---------------------------------------------------------------
 
     @property
     def rows(self) -> int:

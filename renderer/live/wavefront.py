@@ -1,13 +1,10 @@
 """One kernel launch per pass for any set of pixels (docs/how-it-works.md, "The loop").
 
-A crop window per unit would cost a Mitsuba call and a kernel compilation per unit (the crop
-is baked into the kernel, mitsuba3 #908). `WavefrontTracer` does what
-``SamplingIntegrator.render`` does per sample for exactly the requested pixels, every value
-that changes between passes opaque: one kernel per render. Random numbers are keyed per
-(pixel, sample, pass) (`KeyedSampler`), so any set of units is a full-frame trace cut down:
-bit for bit with a box filter; a wider filter splats into a frame-sized ``mi.ImageBlock``
-from the pixels grown by a guard band (`guard_band`), equal to float32 rounding. Edge pixels
-get no samples from outside the frame (no ``sample_border``).
+`WavefrontTracer` does ``SamplingIntegrator.render``'s work for the requested pixels only (a crop window per
+unit would compile a kernel per unit), every value that changes between passes opaque: one kernel per render.
+Random numbers are keyed per (pixel, sample, pass) (`KeyedSampler`), so any set of units is a full-frame trace
+cut down: bit for bit with a box filter, to float32 rounding with a wider one. Edge pixels get no samples from
+outside the frame (no ``sample_border``).
 """
 from __future__ import annotations
 
@@ -29,13 +26,6 @@ T = TypeVar("T")
 MAX_LANES = 1 << 24
 
 
-def guard_band(radius: float) -> int:
-    """Pixels around a requested one whose samples can reach it through the filter: a sample
-    of pixel q lies in [q, q + 1] (inclusive: q + u rounds to q + 1 in float32 for u near 1)
-    and reaches pixel p when |p + 1/2 - x| <= radius."""
-    return int(math.floor(float(radius) + 0.5))
-
-
 def filter_nonnegative(rfilter: Any) -> bool:
     """Whether a reconstruction filter is >= 0 over its radius (box, tent, gaussian; not
     mitchell, catmullrom), sampled at 64 points: a checkpoint's sums are then >= 0."""
@@ -44,8 +34,10 @@ def filter_nonnegative(rfilter: Any) -> bool:
 
 
 def filter_guard(rfilter: Any) -> int:
-    """The guard band a film's filter needs, for both engines (none for a box filter)."""
-    return 0 if rfilter.is_box_filter() else guard_band(rfilter.radius())
+    """The guard band a film's filter needs, for both engines (none for a box filter): the pixels around
+    a requested one whose samples reach it, as a sample of pixel q lies in [q, q + 1] (inclusive: q + u
+    rounds to q + 1 in float32 for u near 1) and reaches pixel p when |p + 1/2 - x| <= radius."""
+    return 0 if rfilter.is_box_filter() else int(math.floor(float(rfilter.radius()) + 0.5))
 
 
 @functools.cache
@@ -82,18 +74,13 @@ def _keyed_sampler_class() -> type:
 
 
 class WavefrontTracer:
-    """Trace `spp` samples for any set of a frame's pixels (row-major in the film's crop
-    window) on a JIT variant. Masks come in and frames go out as torch tensors on `device`,
-    shared with Dr.Jit through DLPack. `ledger` counts its launches, lanes and samples traced
-    (guard band included).
-    """
+    """Trace `spp` samples for any set of a frame's pixels (row-major in the film's crop window) on a JIT
+    variant: masks in and frames out as torch tensors on `device`, shared with Dr.Jit through DLPack.
+    `ledger` counts its launches, lanes and samples traced (guard band included)."""
 
     def __init__(self, scene: Any, sensor: Any, integrator: Any, device: torch.device | None = None,
                  ledger: Ledger | None = None) -> None:
-        dr = require("drjit")
-        mi = require("mitsuba")
-
-        self._mi, self._dr = mi, dr
+        self._dr, self._mi = require("drjit"), require("mitsuba")
         self.scene, self.sensor, self.integrator = scene, sensor, integrator
         self.device = torch.device("cpu") if device is None else device
         film = sensor.film()
@@ -135,8 +122,10 @@ class WavefrontTracer:
         thread pool or CUDA stream); `result()` waits and returns what `trace_jobs` would."""
         if isinstance(spp, bool) or not isinstance(spp, (int, np.integer)) or spp < 1:
             raise ValueError(f"spp must be a positive integer, got {spp!r}")
+        spp = int(spp)
         masks = [self._mask(m) for m, _ in jobs]
-        keys = [int(k) & 0xFFFFFFFF for _, k in jobs]
+        # int32 of the keys' low 32 bits: Dr.Jit's UInt32 takes them bit for bit, int32 crosses DLPack everywhere
+        keys = [(int(k) + 2**31) % 2**32 - 2**31 for _, k in jobs]
         frame = (self.height, self.width, 3)
         grown = masks if self.box else [self.traced_pixels(m) for m in masks]
         pixels = [torch.nonzero(m.flatten()).flatten() for m in grown]
@@ -146,23 +135,17 @@ class WavefrontTracer:
             return Traced(lambda: [torch.zeros(frame, dtype=torch.float32, device=self.device) for _ in masks])
         all_pixels = torch.cat(pixels).to(torch.int32)
         job_of = torch.repeat_interleave(torch.arange(len(masks)), torch.tensor(counts)).to(self.device)
-        key64 = torch.tensor(keys, dtype=torch.int64, device=self.device)[job_of]
-        # int32 of the same bits: Dr.Jit's UInt32 takes them bit for bit, int32 crosses DLPack everywhere
-        all_keys = torch.where(key64 >= 2**31, key64 - 2**32, key64).to(torch.int32)
-        self.ledger.count("samples_traced", total * int(spp))
-        per_launch = max(1, MAX_LANES // int(spp))
+        all_keys = torch.tensor(keys, dtype=torch.int32, device=self.device)[job_of]
+        self.ledger.count("samples_traced", total * spp)
+        per_launch = max(1, MAX_LANES // spp)
         if self.box:
-            chunks = [self._submit_box(all_pixels[i:i + per_launch], int(spp), all_keys[i:i + per_launch])
+            chunks = [self._submit_box(all_pixels[i:i + per_launch], spp, all_keys[i:i + per_launch])
                       for i in range(0, total, per_launch)]
 
             def box_result() -> list[torch.Tensor]:
-                values = torch.cat([finish() for finish in chunks])
-                outs = []
-                for pix, part in zip(pixels, torch.split(values, counts)):
-                    out = torch.zeros((self.height * self.width, 3), dtype=torch.float32, device=self.device)
-                    out[pix] = part
-                    outs.append(out.view(frame))
-                return outs
+                outs = torch.zeros((len(masks), self.height * self.width, 3), dtype=torch.float32, device=self.device)
+                outs[job_of, torch.cat(pixels)] = torch.cat([finish() for finish in chunks])
+                return list(outs.view(len(masks), *frame))
             return Traced(box_result)
         # a wide filter: every job splats into its own frame; a launch's lanes hold its jobs'
         # pixels one job after the other, so each job's splat reads only its own lanes
@@ -174,19 +157,16 @@ class WavefrontTracer:
             j = min(total, i + per_launch)
             spans = [(b, max(lo, i) - i, min(hi, j) - i) for b, lo, hi in zip(films, ends[:-1], ends[1:])
                      if min(hi, j) > max(lo, i)]
-            self._submit_splat(all_pixels[i:j], int(spp), all_keys[i:j], spans)
+            self._submit_splat(all_pixels[i:j], spp, all_keys[i:j], spans)
         tensors = [f.tensor() for f in films]      # a job's frame: its ImageBlock
 
         def splat_result() -> list[torch.Tensor]:
             self._sync()
-            outs = []
-            for mask, t in zip(masks, tensors):
-                sums = t.torch().reshape(-1, 4)
-                w = sums[:, 3:]
-                # float32 division of float32 sums: the correctly rounded quotient, as float64's rounded
-                value = torch.where(w > 0, sums[:, :3] / torch.where(w > 0, w, 1.0), 0.0)
-                outs.append(torch.where(mask.reshape(-1, 1), value, 0.0).view(frame))
-            return outs
+            sums = torch.stack([t.torch().reshape(-1, 4) for t in tensors])
+            w = sums[..., 3:]
+            # float32 division of float32 sums: the correctly rounded quotient, as float64's rounded
+            value = torch.where(w > 0, sums[..., :3] / torch.where(w > 0, w, 1.0), 0.0)
+            return list(torch.where(torch.stack(masks).reshape(len(masks), -1, 1), value, 0.0).view(len(masks), *frame))
         return Traced(splat_result)
 
     # -- one launch ---------------------------------------------------------------
@@ -195,8 +175,7 @@ class WavefrontTracer:
         """(film position, radiance) of every sample of `pixels` with their pass `keys` (int32
         read as UInt32): lanes pixel-major; sample j of pixel p, key k seeds by TEA(p, k), TEA(j, .)."""
         mi, dr = self._mi, self._dr
-        n = int(pixels.numel()) * spp
-        lane = dr.arange(mi.UInt32, n)
+        lane = dr.arange(mi.UInt32, int(pixels.numel()) * spp)
         spp_o = dr.opaque(mi.UInt32, spp)
         which = lane // spp_o
         j = lane - which * spp_o
@@ -223,8 +202,7 @@ class WavefrontTracer:
         return pos, mi.Color3f(weight * radiance)
 
     def _sync(self) -> None:
-        """Dr.Jit and torch queue GPU work on their own streams: wait for both before handing
-        arrays across (nothing on the CPU)."""
+        """Dr.Jit and torch queue GPU work on their own streams: wait for both before handing arrays across."""
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
             self._dr.sync_thread()
@@ -234,10 +212,9 @@ class WavefrontTracer:
         self.ledger.count("kernel_lanes", int(pixels.numel()) * spp)
 
     def _submit_box(self, pixels: torch.Tensor, spp: int, keys: torch.Tensor) -> Callable[[], torch.Tensor]:
-        """Box filter: queue one launch; its finish gives each pixel's mean of its own samples,
-        float32 [n, 3]: `dr.block_sum` of its consecutive lanes, in lane order, once the lanes
-        are evaluated (summed from the path tracer's expression, each channel would trace the
-        paths again)."""
+        """Box filter: queue one launch; its finish gives each pixel's mean of its own samples, float32 [n, 3]:
+        `dr.block_sum` of its consecutive lanes, in lane order, once they are evaluated (summed from the path
+        tracer's expression, each channel would trace the paths again)."""
         dr = self._dr
         self._sync()
         _, rgb = self._samples(pixels, spp, keys)

@@ -137,6 +137,7 @@ class DecisionLog:
         """Record `crit`'s decisions and the rounds of `budget_cls`; returns an undo."""
         from learning.stoprule import FLAT_TOLERANCE
         from noisefeat.display import display_range
+        from renderer.live.budget import BAND
 
         decide, select = crit.decide, budget_cls.select
 
@@ -151,7 +152,7 @@ class DecisionLog:
             ids = np.flatnonzero(loop.pending())
             priority = budget.priority(loop, ids)          # what the round was chosen by
             if picked and np.isfinite(priority).all():
-                self.values.append(priority / (budget.band * priority.max()))
+                self.values.append(priority / (BAND * priority.max()))
             return picked
 
         crit.decide = logged_decide

@@ -16,6 +16,7 @@ import numpy as np
 
 from noisefeat.bounds import SizeBounds
 
+from .criteria.contract import Criterion
 from .criteria.registry import TILE, declared
 from .criteria.registry import names as criterion_names
 
@@ -221,12 +222,10 @@ class CriterionRow(Row):
     type_doc: ClassVar[str] = "str or Criterion"
 
     def check(self, value: Any) -> Any:
-        if not isinstance(value, str) and hasattr(value, "decide") and hasattr(value, "describe"):
+        if isinstance(value, Criterion) or isinstance(value, str) and value in criterion_names():
             return value
-        if not isinstance(value, str) or value not in criterion_names():
-            raise ValueError(f"criterion must be one of {', '.join(criterion_names())} or a Criterion, "
-                             f"got {_shown(value)}")
-        return value
+        raise ValueError(f"criterion must be one of {', '.join(criterion_names())} or a Criterion, "
+                         f"got {_shown(value)}")
 
     def cli_options(self) -> dict[str, Any]:
         return {**super().cli_options(), "metavar": "{" + ",".join(criterion_names()) + "}"}

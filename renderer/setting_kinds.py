@@ -16,8 +16,7 @@ import numpy as np
 
 from noisefeat.bounds import SizeBounds
 
-from .criteria.contract import Criterion
-from .criteria.registry import TILE, declared
+from .criteria.registry import TILE, Declared, declared
 from .criteria.registry import names as criterion_names
 
 #: the largest frame side and grid count a setting may name (noisefeat.bounds caps the pixels)
@@ -222,7 +221,7 @@ class CriterionRow(Row):
     type_doc: ClassVar[str] = "str or Criterion"
 
     def check(self, value: Any) -> Any:
-        if isinstance(value, Criterion) or isinstance(value, str) and value in criterion_names():
+        if isinstance(value, Declared) or isinstance(value, str) and value in criterion_names():
             return value
         raise ValueError(f"criterion must be one of {', '.join(criterion_names())} or a Criterion, "
                          f"got {_shown(value)}")

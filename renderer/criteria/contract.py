@@ -19,14 +19,14 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
 from learning.stoprule import NOISY, dots_ratio, flat_blocks, flat_halves
 
 from .batch import UnitBatch, UnitView
-from .registry import TILE, Setting
+from .registry import Declared, criterion_class
 
 if TYPE_CHECKING:
     from ..spec import RenderSpec
@@ -89,20 +89,11 @@ class Tally(dict):
             self.add(name, time.perf_counter() - t0)
 
 
-class Criterion(ABC):
+class Criterion(Declared, ABC):
     """Base class: validates inputs, enforces int8 +-1 verdicts, times and counts a call.
-    Its declaration (`renderer.criteria.registry`): `name`, `grain`, `settings`,
-    `needs_thresholds`, `summary` and `from_spec`."""
+    Its declaration (`renderer.criteria.registry.Declared`): `name`, `grain`, `settings`,
+    `needs_thresholds`, `summary`, and `from_spec`."""
 
-    name: str = "criterion"
-    #: TILE (the tiles of blocks), BLOCK (whole blocks unless a tile is given) or BLOCK_ONLY
-    grain: str = TILE
-    #: the rows it takes beyond tau and exposure (a row no criterion names is every render's)
-    settings: ClassVar[dict[str, Setting]] = {}
-    #: it needs a labelled reference's true thresholds
-    needs_thresholds: bool = False
-    #: one line for the help
-    summary: str = ""
     #: what the batches must carry (the quick image, 'albedo' or 'direct', and the half
     #: buffers are made only when a criterion reads them)
     needs_quick: bool = False
@@ -231,3 +222,11 @@ class Criterion(ABC):
     def _ready(batch: UnitBatch, flat: np.ndarray) -> np.ndarray:
         """The units to judge: not flat, and both halves hold a pass (else they cannot disagree)."""
         return np.flatnonzero(~flat & (batch.half_spp.min(axis=1) > 0))   # type: ignore[union-attr]
+
+
+def make_criterion(spec: RenderSpec, thresholds: Sequence[int | None] | None = None) -> Criterion:
+    """The one criterion factory: the criterion `spec` names, built by its declared class (or
+    `spec.criterion` when it is one); `thresholds`: a labelled reference stack's true ones."""
+    if isinstance(spec.criterion, Criterion):
+        return spec.criterion
+    return criterion_class(spec.criterion).from_spec(spec, thresholds)

@@ -1,16 +1,10 @@
-"""What a stopping criterion is: the `Criterion` contract and the `Decision` it returns.
-
-A criterion sees all the units it is asked about at once (a `UnitBatch`) and answers, per
-unit, +1 (converged) or -1 (noisy) with its ratio to the target (> 1: above it; what a
-budget render spends by). The live loop and the simulation on stored stacks call the same
-`decide`, so what is measured offline is what runs online. A criterion is configuration
-only: one object may judge any number of renders; the loop owns their counters and timers.
-
-A unit with no finite estimate (`UnitBatch.unestimated`: a pixel whose every value in a
-half that holds a pass was dropped as non-finite) is never converged, whatever the
-criterion: without this, a unit whose samples were all dropped had a black, flat mean and
-stopped at once. One NaN pass among many does not hold a unit (the served route's rule,
-`learning.stoprule.flat_halves`).
+"""What a stopping criterion is: the `Criterion` contract, the `Decision` it returns, and the
+one factory (`make_criterion`). A criterion answers, per unit of a `UnitBatch`, +1 (converged)
+or -1 (noisy) with its ratio to the target (> 1: above it; what a budget render spends by).
+The live loop and the simulation call the same `decide`, so what is measured offline runs
+online; a criterion is configuration only (the loop owns counters and timers). A unit with no
+finite estimate (`UnitBatch.unestimated`) is never converged, whatever the criterion: else a
+unit whose samples were all dropped would stop at once on its black, flat mean.
 """
 from __future__ import annotations
 
@@ -157,13 +151,11 @@ class Criterion(Declared, ABC):
                                f"{np.unique(verdict)[:5].tolist()}")
         verdict = verdict.astype(np.int8)
         blind = batch.unestimated > 0          # no finite estimate: never converged (module docstring)
-        if blind.any():
-            verdict, ratio = np.where(blind, NOISY, verdict).astype(np.int8), np.where(blind, np.nan, ratio)
+        verdict, ratio = np.where(blind, NOISY, verdict).astype(np.int8), np.where(blind, np.nan, ratio)
         features_s = float(tally.pop("features_s", 0.0))
         counts = {"decide_calls": 1, "units_asked": len(ids), "converged": int((verdict > 0).sum()),
                   "nonfinite_units": int((batch.nonfinite > 0).sum()), **tally}
-        timers = {"features_s": features_s,
-                  "decisions_s": max(0.0, time.perf_counter() - t0 - features_s)}
+        timers = {"features_s": features_s, "decisions_s": max(0.0, time.perf_counter() - t0 - features_s)}
         return Decision(verdict, ratio, evidence, counts, timers)
 
     def _batch_of_views(self, ids: list[int], views: list[UnitView], tally: Tally) -> UnitBatch:

@@ -20,15 +20,12 @@ if TYPE_CHECKING:
 
 @declare
 class FlipCriterion(Criterion):
-    """Training-free: a unit is converged when e <= c, or at once when flat, and stays noisy
-    while dotted (`Criterion._dots`) or with one pass only. e is the LDR-FLIP map between
-    the display images of the two half buffers, pooled as the observer pools (the largest
-    16x16 tile mean); c defaults to c(tau), calibrated on training scenes only
-    (`learning/flip.json`). The ratio is e / c, or the dot term where larger.
-
-    At tile grain e is the tile's history (`learning.inputs.history`): one level's score is
-    noisy, the history's is not; c(tau)'s tile curve is calibrated on the same statistic.
-    """
+    """Training-free: a unit is converged when e <= c, or at once when flat, and stays noisy while
+    dotted (`Criterion._dots`) or with one pass only. e is the LDR-FLIP map between the display
+    images of the two half buffers, pooled as the observer pools (the largest 16x16 tile mean);
+    at tile grain, the tile's history (`learning.inputs.history`: one level's score is noisy).
+    c defaults to c(tau), calibrated on training scenes only and on the same statistic
+    (`learning/flip.json`). The ratio is e / c, or the dot term where larger."""
 
     name = "flip"
     summary = "training-free: FLIP between the two half buffers, at most c(tau)"

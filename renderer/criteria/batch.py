@@ -128,12 +128,11 @@ class UnitBatch:
             acc, ids = self._source
             if self._blocks is None:
                 return acc.halves(ids[rows])
-            _, _, block_row, _, _ = self._blocks
-            at = torch.from_numpy(block_row[rows] * self.tiling.tiles_per_block
-                                  + ids[rows] % self.tiling.tiles_per_block)
+            t = self.tiling.tiles_per_block
+            rows = self._blocks[2][rows] * t + ids[rows] % t       # the tiles' rows in `_tile_halves`
             a, b = self._tile_halves
-            return a[at.to(a.device)], b[at.to(b.device)]
-        a, b = self.halves      # type: ignore[misc]
+        else:
+            a, b = self.halves      # type: ignore[misc]
         sel = torch.from_numpy(rows).to(a.device)
         return a[sel], b[sel]
 

@@ -64,15 +64,11 @@ class FlipCriterion(Criterion):
 
     def _flip(self, batch: UnitBatch, ask: np.ndarray) -> np.ndarray:
         """e of the asked units; a tile's is its whole block's FLIP map (context) pooled over it."""
-        import torch
-
         from noisefeat.flip import flip_halves_tensor, pool_tiles
         from noisefeat.flip_maps import flip_maps_tensor
 
         if batch.tiling is None:
-            a, b = batch.halves     # type: ignore[misc]
-            sel = torch.from_numpy(ask).to(a.device)
-            return flip_halves_tensor(a[sel], b[sel], self.exposure, pooling=CRITERION_POOLING).cpu().numpy()
+            return flip_halves_tensor(*batch.halves_of(ask), self.exposure, pooling=CRITERION_POOLING).cpu().numpy()
         a, b, row, slot = batch.block_halves(ask)
         e = pool_tiles(flip_maps_tensor(a, b, self.exposure), batch.tiling.tile_windows(), CRITERION_POOLING)
         return e.cpu().numpy()[row, slot]

@@ -39,8 +39,7 @@ def ascii_int(text: str) -> int:
 
 
 def ascii_float(text: str) -> float:
-    """`float(text)` for ASCII digits only (inf and nan pass, for the range checks to refuse
-    in their own words); ValueError otherwise."""
+    """`float(text)` for ASCII digits only (inf and nan pass: the range checks refuse them); ValueError otherwise."""
     if not isinstance(text, str) or not _ASCII_FLOAT.fullmatch(text):
         raise ValueError(f"not a number in ASCII digits: {text!r}")
     return float(text)

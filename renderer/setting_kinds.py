@@ -1,7 +1,6 @@
-"""The kinds of a render setting's row (`renderer.settings.ROWS`), one class each: a row
-checks a value (`check`), reads command-line text (`parse`) and explains itself
-(`help_text`). Also the doors and the ASCII number parsers every door shares.
-"""
+"""The kinds of a render setting's row (`renderer.settings.ROWS`), one class each: a row checks a
+value (`check`), reads command-line text (`parse`) and explains itself (`help_text`). Also the
+doors and the ASCII number parsers every door shares."""
 from __future__ import annotations
 
 import argparse
@@ -16,7 +15,7 @@ import numpy as np
 
 from noisefeat.bounds import SizeBounds
 
-from .criteria.registry import TILE, declared
+from .criteria.registry import TILE, Declared, declared
 from .criteria.registry import names as criterion_names
 
 #: the largest frame side and grid count a setting may name (noisefeat.bounds caps the pixels)
@@ -40,8 +39,7 @@ def ascii_int(text: str) -> int:
 
 
 def ascii_float(text: str) -> float:
-    """`float(text)` for ASCII digits only (inf and nan pass, for the range checks to refuse
-    in their own words); ValueError otherwise."""
+    """`float(text)` for ASCII digits only (inf and nan pass: the range checks refuse them); ValueError otherwise."""
     if not isinstance(text, str) or not _ASCII_FLOAT.fullmatch(text):
         raise ValueError(f"not a number in ASCII digits: {text!r}")
     return float(text)
@@ -171,16 +169,15 @@ class FloatRow(Interval):
     read = staticmethod(ascii_float)
 
     def check(self, value: Any) -> float:
-        ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
-        if ok:
+        v = math.nan
+        if not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating)):
             try:
                 v = float(value)
             except OverflowError:       # an int past float's range (10**400): out of range, not a bug
                 v = math.inf
-            ok = math.isfinite(v) and self.low <= v <= self.high and not (self.open_low and v == self.low)
-        if not ok:
+        if not (math.isfinite(v) and self.low <= v <= self.high and not (self.open_low and v == self.low)):
             raise ValueError(f"{self.name} must be a finite number in {self.range_text()}, got {_shown(value)}")
-        return float(value)
+        return v
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -221,12 +218,10 @@ class CriterionRow(Row):
     type_doc: ClassVar[str] = "str or Criterion"
 
     def check(self, value: Any) -> Any:
-        if not isinstance(value, str) and hasattr(value, "decide") and hasattr(value, "describe"):
+        if isinstance(value, Declared) or isinstance(value, str) and value in criterion_names():
             return value
-        if not isinstance(value, str) or value not in criterion_names():
-            raise ValueError(f"criterion must be one of {', '.join(criterion_names())} or a Criterion, "
-                             f"got {_shown(value)}")
-        return value
+        raise ValueError(f"criterion must be one of {', '.join(criterion_names())} or a Criterion, "
+                         f"got {_shown(value)}")
 
     def cli_options(self) -> dict[str, Any]:
         return {**super().cli_options(), "metavar": "{" + ",".join(criterion_names()) + "}"}
@@ -274,27 +269,26 @@ class ResolutionRow(Row):
     type_doc: ClassVar[str] = "int or (int, int) or str"
 
     def check(self, value: Any) -> int | tuple[int, int]:
-        size: Any = None
+        sides: list[int] = []       # N, or W and H
         if _is_int(value):
-            size = int(value)
+            sides = [int(value)]
         elif isinstance(value, str):
             try:
-                nums = [ascii_int(p) for p in value.lower().replace("×", "x").split("x")]
+                sides = [ascii_int(p) for p in value.lower().replace("×", "x").split("x")]
             except ValueError:
-                nums = []
-            size = None if len(nums) not in (1, 2) else nums[0] if len(nums) == 1 else (nums[0], nums[1])
+                pass
         elif isinstance(value, Sequence) and len(value) == 2 and all(_is_int(v) for v in value):
-            size = (int(value[0]), int(value[1]))
-        if size is None:
+            sides = [int(v) for v in value]
+        if len(sides) not in (1, 2):
             raise ValueError(f"resolution must be N (long side, aspect kept) or WxH, e.g. 512 or 1280x720, "
                              f"got {_shown(value)}")
-        if any(not 1 <= v <= MAX_SIDE for v in (size if isinstance(size, tuple) else (size,))):
+        if any(not 1 <= v <= MAX_SIDE for v in sides):
             raise ValueError(f"resolution sides must be whole numbers in [1, {MAX_SIDE}], got {_shown(value)}")
-        w, h = size if isinstance(size, tuple) else (size, size)
+        w, h = sides[0], sides[-1]
         bounds = SizeBounds.from_env()
         if w * h > bounds.max_frame_pixels:
             bounds.check_frame(h, w, (1, 1))     # its one-line message names the bound
-        return size
+        return w if len(sides) == 1 else (w, h)
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,7 @@
-"""The render spec: `resolve` is the one place a render's settings (the rows of
-`renderer.settings.ROWS`) are defaulted and checked, into a frozen `RenderSpec` that records
-where each value came from (DESIGN "Render spec"). A door checks what it was given first
-(`checked`), so a bad value fails before anything loads, and is not checked again. No table
-here names a criterion: each declares the rows it takes (`renderer.criteria.registry`).
+"""The render spec: `resolve` defaults and checks a render's settings (`renderer.settings.ROWS`)
+in one place, into a frozen `RenderSpec` recording where each value came from (DESIGN "Render
+spec"). A door checks what it was given first (`checked`): a bad value fails before anything
+loads, and is not checked again. Each criterion declares the rows it takes; no table here does.
 """
 from __future__ import annotations
 
@@ -35,7 +34,7 @@ __all__ = ["ARGUMENT", "COMMAND_LINE", "PLUGIN", "DEFAULT", "SCENE", "NOT_USED",
 class RenderSpec:
     """A render's settings, one field per row of ROWS in their order, and where each came from."""
 
-    criterion: str | Declared           # a criterion's name, or a Criterion object (renderer.render)
+    criterion: str | Declared
     tau: float
     threshold: float | None
     offset: float | None
@@ -59,9 +58,6 @@ class RenderSpec:
     defines: Mapping[str, str] | None
     checkpoint_every: float
     sources: Mapping[str, str] = field(compare=False)
-
-    def values(self) -> dict[str, Any]:
-        return {r.name: getattr(self, r.name) for r in ROWS}
 
     def describe(self) -> str:
         """One log line: 'resolution 256x256 (scene), block 64 (default), ...'."""
@@ -97,7 +93,7 @@ FIELDS = tuple(f.name for f in fields(RenderSpec) if f.name != "sources")
 
 def grain_of(criterion: str | Declared) -> str:
     """A criterion's grain, by name or of an object."""
-    return criterion_class(criterion).grain if isinstance(criterion, str) else getattr(criterion, "grain", TILE)
+    return criterion_class(criterion).grain if isinstance(criterion, str) else criterion.grain
 
 
 def reference_settings(stack: Any) -> dict[str, Any]:
@@ -130,8 +126,8 @@ def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping
     thresholds will have them. A one-line ValueError naming the setting for anything wrong."""
     check_known(given, plugin)
     ref_source = f"reference {getattr(reference, 'path', '')}".rstrip()
-    layers = [(given, source), (plugin or {}, PLUGIN)]
-    implied = reference_settings(reference) if reference is not None else {}
+    implied = Checked(reference_settings(reference) if reference is not None else {})
+    layers = [(given, source), (plugin or {}, PLUGIN), (implied, ref_source)]
     values: dict[str, Any] = {}
     sources: dict[str, str] = {}
     for layer, src in layers:
@@ -140,7 +136,7 @@ def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping
                 values[name] = value if isinstance(layer, Checked) else ROW[name].check(value)
                 sources[name] = src
     # blocks are a grid or a block size: the highest layer that names either decides
-    unused = "block" if "grid" in implied else "grid"
+    unused = "grid"
     for layer, _ in layers:
         named = [k for k in ("grid", "block") if layer.get(k) is not None]
         if len(named) == 2:
@@ -151,13 +147,9 @@ def resolve(given: Mapping[str, Any], *, source: str = ARGUMENT, plugin: Mapping
             break
     values[unused], sources[unused] = None, NOT_USED
     for row in ROWS:
-        if row.name in values:
-            continue
-        if row.name in implied:
-            values[row.name], sources[row.name] = implied[row.name], ref_source
-        else:
+        if row.name not in values:
             values[row.name], sources[row.name] = row.default, SCENE if row.name == "resolution" else DEFAULT
-    _combine(values, sources, [source, PLUGIN, ref_source, DEFAULT],
+    _combine(values, sources, [src for _, src in layers] + [DEFAULT],
              reference is not None if thresholds_known is None else thresholds_known)
     if frame is not None:
         _fit_frame(values, sources, *frame)
@@ -176,9 +168,9 @@ def _combine(values: dict[str, Any], sources: dict[str, str], rank: list[str], t
     if lo > hi:
         if level("min_spp") == level("max_spp"):
             raise ValueError(f"min_spp ({lo}) is above max_spp ({hi})")
-        loser = "min_spp" if level("max_spp") < level("min_spp") else "max_spp"
-        values[loser] = hi if loser == "min_spp" else lo   # the one given wins over a default
-        sources[loser] += f" (clipped to {'max' if loser == 'min_spp' else 'min'}_spp)"
+        loser, winner = ("min_spp", "max_spp") if level("max_spp") < level("min_spp") else ("max_spp", "min_spp")
+        values[loser] = values[winner]          # the one given wins over a default
+        sources[loser] += f" (clipped to {winner})"
     passes = -(-values["max_spp"] // values["step"])
     if passes > MAX_PASSES:
         raise ValueError(f"max_spp {values['max_spp']} in steps of {values['step']} is {passes} passes, "
@@ -200,10 +192,8 @@ def _criterion(values: dict[str, Any], sources: dict[str, str], thresholds_known
             values["criterion"], key = chosen[0]
             sources["criterion"] = f"{sources[key]} ({key})"
     crit = values["criterion"]
-    if not isinstance(crit, str):           # a Criterion object, configured already
-        label = getattr(crit, "name", type(crit).__name__)
-    else:
-        cls, label = criterion_class(crit), crit
+    if isinstance(crit, str):               # (a Criterion object is configured already)
+        cls = criterion_class(crit)
         if cls.needs_thresholds and not thresholds_known:
             raise ValueError(f"the {crit} criterion needs true thresholds: give a labelled dataset or stack of "
                              "this scene as the reference (not an image)")
@@ -218,6 +208,7 @@ def _criterion(values: dict[str, Any], sources: dict[str, str], thresholds_known
             if values[key] is not None and sources[key] != DEFAULT:
                 logger.warning("%s is ignored with the %s criterion", key, crit)
     if grain_of(crit) != TILE and sources["tile"] == DEFAULT:
+        label = getattr(crit, "name", crit)
         values["tile"], sources["tile"] = MAX_SIDE, f"{DEFAULT} (whole blocks: the {label} criterion)"
 
 

@@ -1,13 +1,11 @@
-"""Stopping criteria: the contract (`contract`), what it reads (`batch`), one module per
-criterion, the registry and the factory. A new criterion is one file: a `Criterion`
-subclass decorated with `declare` (here, in any module imported before the render, or an
-installed package's entry point in the group ``noisestop.criteria``).
-"""
+"""Stopping criteria: the contract and the factory (`contract`), what a criterion reads
+(`batch`), one module per criterion and the registry. A new criterion is one file: a
+`Criterion` subclass decorated with `declare` (here, in any module imported before the
+render, or an installed package's entry point in the group ``noisestop.criteria``)."""
 from .batch import UnitBatch, UnitView
 from .contract import (COUNTER_NAMES, EXTERNAL_COUNTER_NAMES, TIMER_NAMES, Criterion, Decision, Tally,
-                       external_counters, internal_counters)
+                       external_counters, internal_counters, make_criterion)
 from .estimate import EstimateCriterion
-from .factory import make_criterion
 from .flip import FlipCriterion
 from .gated import GatedCriterion
 from .model import ModelCriterion, ScoresBlocks

@@ -1,7 +1,5 @@
-"""What a criterion reads: the units it is asked about at once (`UnitBatch`), or one
-`UnitView` per unit. torch is imported where a tensor is made, so the command line, which
-lists the criteria, builds its parser without it.
-"""
+"""What a criterion reads: the units it is asked about at once (`UnitBatch`), or one `UnitView`
+per unit. torch is imported where a tensor is made: the command line's parser goes without it."""
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -30,25 +28,21 @@ class UnitView:
 
 
 class UnitBatch:
-    """All the units a criterion is asked about, at once: batched so that a criterion
-    reading whole tensors on the renderer's device sends only its verdicts to the host.
-
-    `mean` and `halves`: float64 [k, bh, bw, 3] on that device, read on first use; `spp`,
-    `half_spp` [k, 2], `nonfinite` and `unestimated` (pixels with no finite estimate): int64
-    host arrays; `quick`: what the criterion's `prepare` made of the quick blocks, or None;
-    `evidence`: the units' earlier decisions (`learning.inputs.history.Evidence`; None: every
-    unit new); `tiling`: the renderer's `BlockWindows` when the units are tiles of blocks.
-    """
+    """All the units a criterion is asked about, at once: batched so that a criterion reading
+    whole tensors on the renderer's device sends only its verdicts to the host. `mean` and
+    `halves`: float64 [k, bh, bw, 3] on that device, read on first use; `spp`, `half_spp` [k, 2],
+    `nonfinite` and `unestimated` (pixels with no finite estimate): int64 host arrays; `quick`:
+    what the criterion's `prepare` made of the quick blocks, or None; `evidence`: the units'
+    earlier decisions (`learning.inputs.history.Evidence`; None: every unit new); `tiling`: the
+    renderer's `BlockWindows` when the units are tiles of blocks."""
 
     def __init__(self, spp: np.ndarray, *, mean: Any = None, halves: Any = None,
                  half_spp: np.ndarray | None = None, nonfinite: Any = None, quick: np.ndarray | None = None,
                  source: Any = None, tiling: Any = None, evidence: np.ndarray | None = None,
                  unestimated: Any = None) -> None:
         self.spp = np.asarray(spp, np.int64).reshape(-1)
-        self.tiling = tiling
-        self.evidence = evidence
         self.half_spp = None if half_spp is None else np.asarray(half_spp, np.int64).reshape(-1, 2)
-        self.quick = quick
+        self.tiling, self.evidence, self.quick = tiling, evidence, quick
         self._mean, self._halves, self._nonfinite, self._source = mean, halves, nonfinite, source
         self._unestimated = unestimated
         self._blocks: Any = None           # the tiles' whole blocks, assembled once (`_assembled`)
@@ -75,9 +69,8 @@ class UnitBatch:
         shapes = {np.shape(v.mean) for v in views}
         if len(shapes) != 1:
             raise ValueError(f"the blocks of one decision must share a shape, got {sorted(shapes)}")
-        halves = None
-        if all(v.halves is not None for v in views):
-            halves = (stack(v.halves[0] for v in views), stack(v.halves[1] for v in views))  # type: ignore[index]
+        halves = (tuple(stack(v.halves[j] for v in views) for j in (0, 1))  # type: ignore[index]
+                  if all(v.halves is not None for v in views) else None)
         half_spp = np.array([v.half_spp for v in views], np.int64) if all(v.half_spp is not None for v in views) \
             else None
         quick = np.stack([np.asarray(v.quick) for v in views]) if all(v.quick is not None for v in views) else None
@@ -135,12 +128,11 @@ class UnitBatch:
             acc, ids = self._source
             if self._blocks is None:
                 return acc.halves(ids[rows])
-            _, _, block_row, _, _ = self._blocks
-            at = torch.from_numpy(block_row[rows] * self.tiling.tiles_per_block
-                                  + ids[rows] % self.tiling.tiles_per_block)
+            t = self.tiling.tiles_per_block
+            rows = self._blocks[2][rows] * t + ids[rows] % t       # the tiles' rows in `_tile_halves`
             a, b = self._tile_halves
-            return a[at.to(a.device)], b[at.to(b.device)]
-        a, b = self.halves      # type: ignore[misc]
+        else:
+            a, b = self.halves      # type: ignore[misc]
         sel = torch.from_numpy(rows).to(a.device)
         return a[sel], b[sel]
 

@@ -1,16 +1,10 @@
-"""What a stopping criterion is: the `Criterion` contract and the `Decision` it returns.
-
-A criterion sees all the units it is asked about at once (a `UnitBatch`) and answers, per
-unit, +1 (converged) or -1 (noisy) with its ratio to the target (> 1: above it; what a
-budget render spends by). The live loop and the simulation on stored stacks call the same
-`decide`, so what is measured offline is what runs online. A criterion is configuration
-only: one object may judge any number of renders; the loop owns their counters and timers.
-
-A unit with no finite estimate (`UnitBatch.unestimated`: a pixel whose every value in a
-half that holds a pass was dropped as non-finite) is never converged, whatever the
-criterion: without this, a unit whose samples were all dropped had a black, flat mean and
-stopped at once. One NaN pass among many does not hold a unit (the served route's rule,
-`learning.stoprule.flat_halves`).
+"""What a stopping criterion is: the `Criterion` contract, the `Decision` it returns, and the
+one factory (`make_criterion`). A criterion answers, per unit of a `UnitBatch`, +1 (converged)
+or -1 (noisy) with its ratio to the target (> 1: above it; what a budget render spends by).
+The live loop and the simulation call the same `decide`, so what is measured offline runs
+online; a criterion is configuration only (the loop owns counters and timers). A unit with no
+finite estimate (`UnitBatch.unestimated`) is never converged, whatever the criterion: else a
+unit whose samples were all dropped would stop at once on its black, flat mean.
 """
 from __future__ import annotations
 
@@ -19,14 +13,14 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
 from learning.stoprule import NOISY, dots_ratio, flat_blocks, flat_halves
 
 from .batch import UnitBatch, UnitView
-from .registry import TILE, Setting
+from .registry import Declared, criterion_class
 
 if TYPE_CHECKING:
     from ..spec import RenderSpec
@@ -89,20 +83,11 @@ class Tally(dict):
             self.add(name, time.perf_counter() - t0)
 
 
-class Criterion(ABC):
+class Criterion(Declared, ABC):
     """Base class: validates inputs, enforces int8 +-1 verdicts, times and counts a call.
-    Its declaration (`renderer.criteria.registry`): `name`, `grain`, `settings`,
-    `needs_thresholds`, `summary` and `from_spec`."""
+    Its declaration (`renderer.criteria.registry.Declared`): `name`, `grain`, `settings`,
+    `needs_thresholds`, `summary`, and `from_spec`."""
 
-    name: str = "criterion"
-    #: TILE (the tiles of blocks), BLOCK (whole blocks unless a tile is given) or BLOCK_ONLY
-    grain: str = TILE
-    #: the rows it takes beyond tau and exposure (a row no criterion names is every render's)
-    settings: ClassVar[dict[str, Setting]] = {}
-    #: it needs a labelled reference's true thresholds
-    needs_thresholds: bool = False
-    #: one line for the help
-    summary: str = ""
     #: what the batches must carry (the quick image, 'albedo' or 'direct', and the half
     #: buffers are made only when a criterion reads them)
     needs_quick: bool = False
@@ -166,13 +151,11 @@ class Criterion(ABC):
                                f"{np.unique(verdict)[:5].tolist()}")
         verdict = verdict.astype(np.int8)
         blind = batch.unestimated > 0          # no finite estimate: never converged (module docstring)
-        if blind.any():
-            verdict, ratio = np.where(blind, NOISY, verdict).astype(np.int8), np.where(blind, np.nan, ratio)
+        verdict, ratio = np.where(blind, NOISY, verdict).astype(np.int8), np.where(blind, np.nan, ratio)
         features_s = float(tally.pop("features_s", 0.0))
         counts = {"decide_calls": 1, "units_asked": len(ids), "converged": int((verdict > 0).sum()),
                   "nonfinite_units": int((batch.nonfinite > 0).sum()), **tally}
-        timers = {"features_s": features_s,
-                  "decisions_s": max(0.0, time.perf_counter() - t0 - features_s)}
+        timers = {"features_s": features_s, "decisions_s": max(0.0, time.perf_counter() - t0 - features_s)}
         return Decision(verdict, ratio, evidence, counts, timers)
 
     def _batch_of_views(self, ids: list[int], views: list[UnitView], tally: Tally) -> UnitBatch:
@@ -231,3 +214,11 @@ class Criterion(ABC):
     def _ready(batch: UnitBatch, flat: np.ndarray) -> np.ndarray:
         """The units to judge: not flat, and both halves hold a pass (else they cannot disagree)."""
         return np.flatnonzero(~flat & (batch.half_spp.min(axis=1) > 0))   # type: ignore[union-attr]
+
+
+def make_criterion(spec: RenderSpec, thresholds: Sequence[int | None] | None = None) -> Criterion:
+    """The one criterion factory: the criterion `spec` names, built by its declared class (or
+    `spec.criterion` when it is one); `thresholds`: a labelled reference stack's true ones."""
+    if isinstance(spec.criterion, Criterion):
+        return spec.criterion
+    return criterion_class(spec.criterion).from_spec(spec, thresholds)

@@ -22,15 +22,12 @@ if TYPE_CHECKING:
 
 @declare
 class EstimateCriterion(FlipCriterion):
-    """Learned: a tile stops when its estimated observer error is at most c(tau).
-
-    The estimate (`learning.models.tile_error`) is flip's history e_hist times exp(g(x)), g
-    learned from what the loop has at the decision (`learning.inputs.tile_features`): it
-    raises the estimate where the halves are blind (dark tiles, rare paths both miss) and
-    lowers it where texture masks what they see. c(tau) is the bundle's, chosen out of fold,
-    so the margin that keeps early stops rare is the estimate's own error. Flat and dotted
-    tiles as with flip; the ratio is estimate / c.
-    """
+    """Learned: a tile stops when its estimated observer error is at most c(tau). The estimate
+    (`learning.models.tile_error`) is flip's history e_hist times exp(g(x)), g learned from what
+    the loop has at the decision (`learning.inputs.tile_features`): higher where the halves are
+    blind (dark tiles, rare paths both miss), lower where texture masks what they see. c(tau) is
+    the bundle's, chosen out of fold, so the margin is the estimate's own error. Flat and dotted
+    tiles as with flip; the ratio is estimate / c."""
 
     name = "estimate"
     summary = "learned: the halves' history corrected per tile by a learned error estimate, at most c(tau)"

@@ -20,15 +20,12 @@ if TYPE_CHECKING:
 
 @declare
 class FlipCriterion(Criterion):
-    """Training-free: a unit is converged when e <= c, or at once when flat, and stays noisy
-    while dotted (`Criterion._dots`) or with one pass only. e is the LDR-FLIP map between
-    the display images of the two half buffers, pooled as the observer pools (the largest
-    16x16 tile mean); c defaults to c(tau), calibrated on training scenes only
-    (`learning/flip.json`). The ratio is e / c, or the dot term where larger.
-
-    At tile grain e is the tile's history (`learning.inputs.history`): one level's score is
-    noisy, the history's is not; c(tau)'s tile curve is calibrated on the same statistic.
-    """
+    """Training-free: a unit is converged when e <= c, or at once when flat, and stays noisy while
+    dotted (`Criterion._dots`) or with one pass only. e is the LDR-FLIP map between the display
+    images of the two half buffers, pooled as the observer pools (the largest 16x16 tile mean);
+    at tile grain, the tile's history (`learning.inputs.history`: one level's score is noisy).
+    c defaults to c(tau), calibrated on training scenes only and on the same statistic
+    (`learning/flip.json`). The ratio is e / c, or the dot term where larger."""
 
     name = "flip"
     summary = "training-free: FLIP between the two half buffers, at most c(tau)"
@@ -67,15 +64,11 @@ class FlipCriterion(Criterion):
 
     def _flip(self, batch: UnitBatch, ask: np.ndarray) -> np.ndarray:
         """e of the asked units; a tile's is its whole block's FLIP map (context) pooled over it."""
-        import torch
-
         from noisefeat.flip import flip_halves_tensor, pool_tiles
         from noisefeat.flip_maps import flip_maps_tensor
 
         if batch.tiling is None:
-            a, b = batch.halves     # type: ignore[misc]
-            sel = torch.from_numpy(ask).to(a.device)
-            return flip_halves_tensor(a[sel], b[sel], self.exposure, pooling=CRITERION_POOLING).cpu().numpy()
+            return flip_halves_tensor(*batch.halves_of(ask), self.exposure, pooling=CRITERION_POOLING).cpu().numpy()
         a, b, row, slot = batch.block_halves(ask)
         e = pool_tiles(flip_maps_tensor(a, b, self.exposure), batch.tiling.tile_windows(), CRITERION_POOLING)
         return e.cpu().numpy()[row, slot]

@@ -13,12 +13,10 @@ from .contract import Criterion, Tally
 
 
 class GatedCriterion(Criterion):
-    """A tile stops when the model calls its whole block converged (the unit it was trained
-    on) *and* flip calls the tile converged: the model cannot tell a block's clean tiles
-    from its noisy one, and flip alone stops a tile on its own noisy estimate. The block is
-    put together from its tiles as they stand, so the model judges what the frame will
-    show; the ratio is the larger of the two. Not declared: the model's `from_spec` builds it.
-    """
+    """A tile stops when the model calls its whole block converged (the unit it was trained on)
+    *and* flip calls the tile converged: the model cannot tell a block's clean tiles from its noisy
+    one, and flip alone stops a tile on its own noisy estimate. The block is put together from its
+    tiles as they stand; the ratio is the larger of the two. The model's `from_spec` builds it."""
 
     name = "model"
     needs_halves = True

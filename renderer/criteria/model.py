@@ -84,8 +84,7 @@ class RemoteScorer:
     model's offset or the `offset` sent; its verdicts are used as they come, with no ratio."""
 
     def __init__(self, model: Any, offset: float | None) -> None:
-        self.model, self.offset = model, offset
-        self.rule = None
+        self.model, self.offset, self.rule = model, offset, None
 
     def prepare(self, quick: np.ndarray, exposure: float, tally: Tally) -> np.ndarray:
         return quick
@@ -179,8 +178,7 @@ class ModelCriterion(Criterion):
         d: dict[str, Any] = {"name": self.name, "offset": self.effective_offset, "tau": self.tau}
         manifest = getattr(m, "manifest", None)
         if isinstance(manifest, Mapping):
-            d["model"] = {"kind": manifest.get("kind"), "name": manifest.get("name"),
-                          "input": manifest.get("input"), "quick": manifest.get("quick"),
+            d["model"] = {**{k: manifest.get(k) for k in ("kind", "name", "input", "quick")},
                           "path": str(getattr(m, "path", "") or "")}
         elif hasattr(m, "url"):
             d["model"] = {"remote": str(m.url), "name": str(getattr(m, "model", ""))}

@@ -1,8 +1,7 @@
 """The criteria a render may name: the one list every door reads. A criterion declares
 itself on its class (`renderer.criteria.Criterion` lists the declaration) and is added by
-`declare`: from this package's modules (found by listing it), the entry points of
-``noisestop.criteria``, or any module imported before. Nothing heavy is imported: the
-command line builds its parser from it.
+`declare`: from this package's modules, the entry points of ``noisestop.criteria``, or any
+module imported before. Nothing heavy is imported: the command line builds its parser from it.
 """
 from __future__ import annotations
 
@@ -11,7 +10,7 @@ import logging
 import pkgutil
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Protocol, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 logger = logging.getLogger(__name__)
 
@@ -37,13 +36,19 @@ class Setting:
     selects: bool = False
 
 
-class Declared(Protocol):
-    """What the render spec reads of a criterion, class or ready-made object."""
+class Declared:
+    """What a criterion declares on its class, all that the registry and the render spec read
+    of it: the base of `renderer.criteria.Criterion`, here so that they need not import that."""
 
-    name: str
-    grain: str
-    settings: Mapping[str, Setting]
-    needs_thresholds: bool
+    name: str = "criterion"
+    #: TILE (the tiles of blocks), BLOCK (whole blocks unless a tile is given) or BLOCK_ONLY
+    grain: str = TILE
+    #: the rows it takes beyond tau and exposure (a row no criterion names is every render's)
+    settings: ClassVar[dict[str, Setting]] = {}
+    #: it needs a labelled reference's true thresholds
+    needs_thresholds: bool = False
+    #: one line for the help
+    summary: str = ""
 
 
 _declared: dict[str, type] = {}

@@ -20,15 +20,12 @@ if TYPE_CHECKING:
 
 @declare
 class VarianceCriterion(Criterion):
-    """Blender Cycles' adaptive-sampling test, applied to every pixel of a block.
-
-    A pixel passes when error < scale * threshold (`pixel_error`: Cycles'
-    ``film_adaptive_sampling_convergence_check``, intern/cycles/kernel/film/adaptive_sampling.h,
-    whose sums over 1/N are the means I of all samples and A of the even passes). The kernel
-    compares with the threshold itself; REFERENCES.md's "5 x noise_threshold" is not in that
-    source, so `scale` defaults to 1. A block is converged when at least `quantile` of its
-    pixels pass (Octane's "group pixels"; Cycles' dilation is moot at quantile 1). With one
-    pass A equals I, so a block is noisy until both halves hold one.
+    """Blender Cycles' adaptive-sampling test, applied to every pixel of a block: a pixel passes
+    when error < scale * threshold (`pixel_error`: Cycles' ``film_adaptive_sampling_convergence_check``,
+    intern/cycles/kernel/film/adaptive_sampling.h, I the mean of all samples, A of the even passes;
+    the kernel compares with the threshold itself, so `scale` defaults to 1). A block is converged
+    when at least `quantile` of its pixels pass (Octane's "group pixels"); it is noisy until both
+    halves hold a pass (with one, A equals I).
     """
 
     name = "variance"
@@ -67,8 +64,7 @@ class VarianceCriterion(Criterion):
         """Cycles' per-pixel error [..., bh, bw] (finite, >= 0), where the inputs live."""
         import torch
 
-        i = self._finite(mean)
-        a = self._finite(half_a)
+        i, a = self._finite(mean), self._finite(half_a)
         diff = (i - a).abs().sum(dim=-1)
         intensity = i.sum(dim=-1).clamp_min(0.0)
         norm = torch.where(intensity < 1.0, intensity.sqrt(), intensity)

@@ -42,3 +42,21 @@ def test_an_unreachable_server_is_a_value_error(monkeypatch: pytest.MonkeyPatch)
     with pytest.raises(ValueError, match="127.0.0.1:9") as err:
         renderer.render("cornell", server="http://127.0.0.1:9", **TINY)
     assert isinstance(err.value, ServerUnavailable) and isinstance(err.value, ConnectionError)
+
+
+def test_an_object_that_is_no_criterion_is_refused_at_the_door(monkeypatch: pytest.MonkeyPatch) -> None:
+    import renderer.scenes.catalog
+
+    class Lookalike:            # decides and describes, but is no Criterion
+        def decide(self, ids, batch):
+            raise AssertionError("decided")
+
+        def describe(self):
+            return {"name": "lookalike"}
+
+    def load_scene(*args, **kwargs):
+        raise AssertionError("the scene loaded")
+    monkeypatch.setattr(renderer.scenes.catalog, "load_scene", load_scene)
+    with pytest.raises(ValueError, match="^criterion must be one of .* or a Criterion, got <") as err:
+        renderer.render("cornell", criterion=Lookalike(), **TINY)
+    assert "\n" not in str(err.value)

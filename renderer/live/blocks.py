@@ -209,7 +209,9 @@ class BlockRenderer(BlockWindows):
         renders at once): `result()` gives its tensor."""
         units, pass_ids, sizes = self._check_jobs(jobs, spp)
         out = torch.empty((len(units), self.tile_h, self.tile_w, 3), dtype=torch.float32, device=self.device)
-        if self._tracer is None or not len(units):     # scalar variants: one mi.render per unit
+        if not len(units):
+            return Traced(lambda: out)
+        if self._tracer is None:                  # scalar variants: one mi.render per unit
             try:
                 for i, (u, p, s) in enumerate(zip(units.tolist(), pass_ids.tolist(), sizes.tolist())):
                     out[i] = torch.from_numpy(self._render_crop(u, s, seed, p))

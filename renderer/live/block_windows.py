@@ -48,9 +48,10 @@ class BlockWindows:
         inner = ((oy + torch.arange(self.tile_h)[:, None]) * self.block_w + ox + torch.arange(self.tile_w)).flatten(1)
         #: flat frame pixel indices of every unit (tile) window [n_units, th * tw]
         self._unit_idx = self._win_idx[:, inner.reshape(-1)].reshape(self.n_units, -1)
-        #: where each pixel of a block window comes from: its last tile's (tile, row, column)
-        self._block_from_tiles = torch.full((self.block_h * self.block_w,), -1, dtype=torch.int64)
-        self._block_from_tiles[inner] = torch.arange(inner.numel()).reshape(inner.shape)
+        #: where each pixel of a block window comes from: its last tile's (tile, row, column), the largest
+        #: index (a reduction: an assignment through repeated indices leaves the winner unspecified)
+        self._block_from_tiles = torch.full((self.block_h * self.block_w,), -1, dtype=torch.int64).scatter_reduce(
+            0, inner.flatten(), torch.arange(inner.numel()), reduce="amax")
 
     def geometry(self) -> dict[str, tuple[int, int]]:
         """The cut in pixels, as a run records it: resolution (W, H), grid (rows, columns),

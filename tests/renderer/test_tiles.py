@@ -107,6 +107,11 @@ def test_tiles_fill_their_blocks() -> None:
         tiles = frame[w._unit_idx].reshape(w.n_blocks, per_block, w.tile_h, w.tile_w, 1)
         blocks = frame[w._win_idx].reshape(w.n_blocks, w.block_h, w.block_w, 1)
         assert torch.equal(w.assemble(tiles), blocks)
+        last = torch.full((w.block_h, w.block_w), -1, dtype=torch.int64)    # where tiles overlap: the later one's
+        for t, (dx, dy, tile_w, tile_h) in enumerate(w.tile_windows()):
+            n = tile_h * tile_w
+            last[dy:dy + tile_h, dx:dx + tile_w] = torch.arange(t * n, (t + 1) * n).reshape(tile_h, tile_w)
+        assert torch.equal(w._block_from_tiles, last.flatten())
         x, y, tw, th = w.unit_window(w.n_units - 1)
         assert (x + tw, y + th) == (100, 72)
 

@@ -133,7 +133,8 @@ class WavefrontTracer:
         total = sum(counts)
         if total == 0:
             return Traced(lambda: [torch.zeros(frame, dtype=torch.float32, device=self.device) for _ in masks])
-        all_pixels = torch.cat(pixels).to(torch.int32)
+        flat = torch.cat(pixels)             # every job's pixels, one job after the other
+        all_pixels = flat.to(torch.int32)
         job_of = torch.repeat_interleave(torch.arange(len(masks)), torch.tensor(counts)).to(self.device)
         all_keys = torch.tensor(keys, dtype=torch.int32, device=self.device)[job_of]
         self.ledger.count("samples_traced", total * spp)
@@ -144,7 +145,7 @@ class WavefrontTracer:
 
             def box_result() -> list[torch.Tensor]:
                 outs = torch.zeros((len(masks), self.height * self.width, 3), dtype=torch.float32, device=self.device)
-                outs[job_of, torch.cat(pixels)] = torch.cat([finish() for finish in chunks])
+                outs[job_of, flat] = torch.cat([finish() for finish in chunks])
                 return list(outs.view(len(masks), *frame))
             return Traced(box_result)
         # a wide filter: every job splats into its own frame; a launch's lanes hold its jobs'

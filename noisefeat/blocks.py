@@ -6,7 +6,8 @@ from collections.abc import Sequence
 import numpy as np
 
 
-def _check_grid(shape: tuple[int, ...], grid: tuple[int, int]) -> tuple[int, int]:
+def grid_block_shape(shape: tuple[int, ...], grid: tuple[int, int]) -> tuple[int, int]:
+    """The (height, width) of a `grid`'s blocks on an image of `shape`, or a ValueError saying why not."""
     gh, gw = (int(g) for g in grid)
     if gh < 1 or gw < 1:
         raise ValueError(f"grid must be two positive integers, got {grid}")
@@ -43,7 +44,7 @@ def split_blocks(image: np.ndarray, grid: tuple[int, int] = (4, 4)) -> np.ndarra
     img = np.asarray(image)
     if img.ndim not in (2, 3):
         raise ValueError(f"expected an image [H, W] or [H, W, C], got shape {img.shape}")
-    bh, bw = _check_grid(img.shape, grid)
+    bh, bw = grid_block_shape(img.shape, grid)
     gh, gw = img.shape[0] // bh, img.shape[1] // bw
     tail = img.shape[2:]
     out = img.reshape(gh, bh, gw, bw, *tail).swapaxes(1, 2)

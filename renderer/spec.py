@@ -27,7 +27,7 @@ SCENE = "scene"
 NOT_USED = "not used"
 
 __all__ = ["ARGUMENT", "COMMAND_LINE", "PLUGIN", "DEFAULT", "SCENE", "NOT_USED", "RenderSpec", "FIELDS", "resolve",
-           "Checked", "checked", "grain_of", "reference_settings"]
+           "Checked", "checked", "reference_settings"]
 
 
 @dataclass(frozen=True)
@@ -91,7 +91,7 @@ class RenderSpec:
 FIELDS = tuple(f.name for f in fields(RenderSpec) if f.name != "sources")
 
 
-def grain_of(criterion: str | Declared) -> str:
+def _grain_of(criterion: str | Declared) -> str:
     """A criterion's grain, by name or of an object."""
     return criterion_class(criterion).grain if isinstance(criterion, str) else criterion.grain
 
@@ -207,7 +207,7 @@ def _criterion(values: dict[str, Any], sources: dict[str, str], thresholds_known
         for key in sorted(others, key=list(ROW).index):
             if values[key] is not None and sources[key] != DEFAULT:
                 logger.warning("%s is ignored with the %s criterion", key, crit)
-    if grain_of(crit) != TILE and sources["tile"] == DEFAULT:
+    if _grain_of(crit) != TILE and sources["tile"] == DEFAULT:
         label = getattr(crit, "name", crit)
         values["tile"], sources["tile"] = MAX_SIDE, f"{DEFAULT} (whole blocks: the {label} criterion)"
 
@@ -237,7 +237,7 @@ def _fit_frame(values: dict[str, Any], sources: dict[str, str], width: int, heig
                          f"blocks: width must be divisible by {grid[1]} and height by {grid[0]}")
     side = _block_side(block, grid, values["resolution"])
     crit = values["criterion"]
-    if grain_of(crit) == BLOCK_ONLY and values["tile"] < side:
+    if _grain_of(crit) == BLOCK_ONLY and values["tile"] < side:
         raise ValueError(f"the {getattr(crit, 'name', crit)} criterion decides whole blocks: "
                          f"leave tile unset or give the block's side ({side})")
     values["tile"] = min(values["tile"], side)            # a tile is at most its block

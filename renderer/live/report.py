@@ -29,10 +29,10 @@ logger = logging.getLogger(__name__)
 Json = dict[str, Any]
 
 
-def render_report(plan: RenderPlan, loop: PassLoop, ledger: Ledger, wall_s: float) -> Json:
+def render_report(plan: RenderPlan, settings: RunSettings, loop: PassLoop, ledger: Ledger, wall_s: float) -> Json:
     """report.json's core: settings, units, counters and timers (`wall_s`: every attempt's
     seconds so far), and the early-stop metrics against the plan's labelled stack."""
-    br, ref, settings = plan.renderer, plan.reference.stack, RunSettings.of(plan)
+    br, ref = plan.renderer, plan.reference.stack
     n, T, max_spp = br.n_blocks, br.tiles_per_block, settings.max_spp
     counters, timers, wall = ledger.counters, ledger.timers, float(wall_s)
     spp, nonfinite, converged = loop.acc.spp_all(), loop.acc.nonfinite_all(), ~loop.active   # per unit (block or tile)
@@ -163,7 +163,7 @@ def render_result(session: RenderSession, *, time_limit_reached: bool) -> Render
     plan, loop, ledger, budget = session.render_plan, session.loop, session.ledger, session.budget
     br, spec, ref = plan.renderer, plan.spec, plan.reference
     acc, n = loop.acc, br.n_units
-    report = render_report(plan, loop, ledger, session.wall_s())
+    report = render_report(plan, session.settings, loop, ledger, session.wall_s())
     report["settings_source"] = spec.settings_source()
     if spec.defines:
         report["defines"] = dict(spec.defines)

@@ -22,17 +22,17 @@ from noisefeat.extras import require
 logger = logging.getLogger(__name__)
 
 DEFAULT_SCENE = "cornell"
-HELDOUT = "heldout"
 
 
 @dataclass(frozen=True)
 class SceneSpec:
-    """One built-in scene: a name, a one-line description and its dict builder."""
+    """One built-in scene: a name, a one-line description, its dict builder, and whether it is
+    held out (never used to train or calibrate anything)."""
 
     name: str
     description: str
     builder: Callable[[int], SceneDict] = field(repr=False)
-    tags: tuple[str, ...] = ()
+    heldout: bool = False
 
 
 #: (name, description); the builder is the function of that name
@@ -52,7 +52,7 @@ _TRAINING = (
     ("allblack", "Closed geometry with no light at all: an all-zero image (degenerate input)"),
     ("sky", "Constant environment and nothing else: a flat image (degenerate input)"),
 )
-#: never used to train or calibrate anything (`heldout`): tagged HELDOUT
+#: never used to train or calibrate anything (`heldout`)
 _HELDOUT = (
     ("studio_preview", "Material preview: three spheres on a plane under a studio environment map"),
     ("sunlit_courtyard", "Pillars and blocks under sun and sky casting shadows on paving"),
@@ -65,14 +65,14 @@ _HELDOUT = (
 )
 SCENES: dict[str, SceneSpec] = {
     **{n: SceneSpec(n, d, getattr(training, n)) for n, d in _TRAINING},
-    **{n: SceneSpec(n, d, getattr(heldout, n), (HELDOUT,)) for n, d in _HELDOUT},
+    **{n: SceneSpec(n, d, getattr(heldout, n), heldout=True) for n, d in _HELDOUT},
 }
 
 
 def list_scenes(heldout: bool | None = None) -> list[tuple[str, str]]:
     """(name, description) of the built-in scenes in library order: all (None), the held-out
     set (True) or the training library (False)."""
-    return [(s.name, s.description) for s in SCENES.values() if heldout is None or (HELDOUT in s.tags) == heldout]
+    return [(s.name, s.description) for s in SCENES.values() if heldout is None or s.heldout == heldout]
 
 
 def is_builtin(name: str | os.PathLike) -> bool:

@@ -43,6 +43,7 @@ def cmd_features(args: argparse.Namespace) -> int:
     import numpy as np
 
     from noisefeat import FEATURE_NAMES, extract_features, split_blocks
+    from noisefeat.blocks import grid_block_shape
     from renderer.live.blocks import BlockRenderer
     from renderer.scenes.catalog import DEFAULT_SCENE, load_scene
     from learning.data.variant import select_variant
@@ -52,7 +53,9 @@ def cmd_features(args: argparse.Namespace) -> int:
     scene_name = args.scene or DEFAULT_SCENE
     t0 = time.perf_counter()
     scene = load_scene(scene_name, resolution=args.resolution)
-    image = BlockRenderer(scene, grid=tuple(args.grid)).render_full(spp=args.spp, seed=0)
+    br = BlockRenderer(scene, grid=tuple(args.grid))
+    grid_block_shape((br.height, br.width), tuple(args.grid))     # before rendering: a scene file's aspect
+    image = br.render_full(spp=args.spp, seed=0)
     t_render = time.perf_counter() - t0
     blocks = split_blocks(image, tuple(args.grid))
     t1 = time.perf_counter()

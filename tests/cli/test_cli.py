@@ -54,6 +54,19 @@ def test_uneven_grid_is_a_clear_error():
     assert "grid" in out.stderr
 
 
+def test_uneven_grid_is_refused_before_rendering(monkeypatch, capsys):
+    from renderer.live.blocks import BlockRenderer
+    from service.cli import main
+
+    def traced(*args, **kwargs):
+        raise AssertionError("rendered before the grid was checked")
+
+    monkeypatch.setattr(BlockRenderer, "render_full", traced)
+    assert main(["features", "--resolution", "66", "--grid", "4", "4", "--spp", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot be cut into a 4x4 grid" in err and "rendered before" not in err
+
+
 def test_dataset_check_exit_codes(tmp_path):
     make_synthetic_stack(tmp_path / "good" / "s1", size=32, spp=(4, 8, 16))
     ok = run("dataset", "check", str(tmp_path / "good"), "--json")

@@ -169,7 +169,7 @@ def test_held_out_scenes_are_a_separate_set() -> None:
     train, held = list_scenes(heldout=False), list_scenes(heldout=True)
     assert len(held) == 8 and len(train) == 14 and list_scenes() == train + held
     assert not {n for n, _ in train} & {n for n, _ in held}
-    assert all("heldout" in SCENES[n].tags for n, _ in held)
+    assert all(SCENES[n].heldout for n, _ in held) and not any(SCENES[n].heldout for n, _ in train)
 
 
 def test_procedural_textures_are_seeded_and_in_range() -> None:

@@ -128,8 +128,9 @@ class UnitBatch:
             acc, ids = self._source
             if self._blocks is None:
                 return acc.halves(ids[rows])
+            _, _, block_row, _, _ = self._blocks
             t = self.tiling.tiles_per_block
-            rows = self._blocks[2][rows] * t + ids[rows] % t       # the tiles' rows in `_tile_halves`
+            rows = block_row[rows] * t + ids[rows] % t       # the tiles' rows in `_tile_halves`
             a, b = self._tile_halves
         else:
             a, b = self.halves      # type: ignore[misc]
